@@ -1,0 +1,301 @@
+"""Detections from a tiled mask: connected components across tiles, moments, properties.
+
+Each tile labels its own part of the mask (8-connectivity, :func:`scipy.ndimage.label`)
+and reduces every component to additive moments (pixel count, sums of row, col, row^2,
+col^2, row*col, of the input values, bounding box, peak value and peak statistic). Labels
+along the four tile edges are kept; a union-find over neighbouring tiles' edge labels
+joins the parts of components that straddle tile borders, and their moments add up. The
+result equals labelling the whole-scene mask at once, while the client only ever holds a
+table of components, never the mask.
+
+``merge_px``: fragments separated by a gap of at most ``merge_px`` pixels are one ship
+(single-look ships break up into bright scatterers). Grouping is done on the mask dilated
+by a square of half-side ``r = ceil(merge_px / 2)`` (two pixels at Chebyshev distance d are
+joined when d <= 2r + 1, i.e. a gap of d - 1 <= merge_px pixels); moments use the
+undilated pixels only. Each tile therefore needs its mask on a margin of ``r`` pixels
+around its core.
+
+Ship geometry from second moments: the covariance of a component's pixel positions plus
+the within-pixel variance (1/12 of a pixel squared along each axis) is that of a uniform
+rectangle of length l and width w with variances l^2/12 and w^2/12, so
+l = sqrt(12 * lambda_1) and w = sqrt(12 * lambda_2) with lambda the covariance eigenvalues
+(in pixels, or in metres with the pixel spacing). Heading is the principal axis, measured
+clockwise from image "up" (decreasing row), in [0, 180).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+#: Structured dtype of a component's additive moments.
+MOMENT_DTYPE = np.dtype([
+    ("n", np.int64), ("sr", np.float64), ("sc", np.float64), ("srr", np.float64),
+    ("scc", np.float64), ("src", np.float64), ("r0", np.int64), ("c0", np.int64),
+    ("r1", np.int64), ("c1", np.int64), ("peak", np.float64), ("sumv", np.float64),
+    ("score", np.float64), ("peak_r", np.int64), ("peak_c", np.int64),
+])
+
+EIGHT = np.ones((3, 3), dtype=bool)
+
+
+def merge_radius(merge_px: int) -> int:
+    """Half-side of the dilation that joins fragments with gaps of <= merge_px pixels."""
+    return int(math.ceil(merge_px / 2.0))
+
+
+@dataclass
+class TileComponents:
+    """What one tile contributes: its edge labels and the moments of its components."""
+
+    tile: tuple[int, int]
+    shape: tuple[int, int]
+    moments: np.ndarray                         # MOMENT_DTYPE of edge components, index = edge label - 1
+    edges: dict[str, np.ndarray] = field(default_factory=dict)  # top/bottom/left/right label lines
+    complete: np.ndarray | None = None          # MOMENT_DTYPE of components inside the tile (final)
+
+
+def tile_components(
+    mask_ext: np.ndarray,
+    values: np.ndarray,
+    stat: np.ndarray,
+    r: int,
+    origin: tuple[int, int],
+    scene_shape: tuple[int, int],
+    tile: tuple[int, int],
+) -> TileComponents:
+    """Label one tile's mask and reduce its components to moments.
+
+    Parameters
+    ----------
+    mask_ext : (h + 2r, w + 2r) bool
+        The tile's mask with a margin of ``r`` pixels each side (False outside the scene).
+    values, stat : (h, w)
+        Input values and detector statistic of the core.
+    r : merge radius (:func:`merge_radius`).
+    origin : global (row, col) of the core's first pixel.
+    """
+    h, w = values.shape
+    if r > 0:
+        grown = ndimage.maximum_filter(mask_ext.view(np.uint8), size=2 * r + 1, mode="constant", cval=0)
+        grown = grown[r:r + h, r:r + w].astype(bool)
+        mask = mask_ext[r:r + h, r:r + w]
+    else:
+        grown = mask_ext
+        mask = mask_ext
+    labels, n = ndimage.label(grown, structure=EIGHT)
+    mom = np.zeros(n, MOMENT_DTYPE)
+    mom["r0"] = np.iinfo(np.int64).max
+    mom["c0"] = np.iinfo(np.int64).max
+    mom["r1"] = np.iinfo(np.int64).min
+    mom["c1"] = np.iinfo(np.int64).min
+    mom["peak"] = -np.inf
+    mom["score"] = -np.inf
+    if n:
+        rr, cc = np.nonzero(mask)
+        lab = labels[rr, cc] - 1
+        v = values[rr, cc].astype(np.float64)
+        s = stat[rr, cc].astype(np.float64)
+        gr = (rr + origin[0]).astype(np.float64)
+        gc = (cc + origin[1]).astype(np.float64)
+        mom["n"] = np.bincount(lab, minlength=n)
+        mom["sr"] = np.bincount(lab, gr, n)
+        mom["sc"] = np.bincount(lab, gc, n)
+        mom["srr"] = np.bincount(lab, gr * gr, n)
+        mom["scc"] = np.bincount(lab, gc * gc, n)
+        mom["src"] = np.bincount(lab, gr * gc, n)
+        mom["sumv"] = np.bincount(lab, v, n)
+        grr = rr + origin[0]
+        gcc = cc + origin[1]
+        np.minimum.at(mom["r0"], lab, grr)
+        np.minimum.at(mom["c0"], lab, gcc)
+        np.maximum.at(mom["r1"], lab, grr + 1)
+        np.maximum.at(mom["c1"], lab, gcc + 1)
+        np.maximum.at(mom["score"], lab, s)
+        # peak value and its position (first in raster order among equal peaks)
+        order = np.lexsort((-v, lab))
+        first = np.ones(len(order), bool)
+        first[1:] = lab[order][1:] != lab[order][:-1]
+        sel = order[first]
+        mom["peak"][lab[sel]] = v[sel]
+        mom["peak_r"][lab[sel]] = grr[sel]
+        mom["peak_c"][lab[sel]] = gcc[sel]
+    edges = {
+        "top": labels[0, :].copy(), "bottom": labels[-1, :].copy(),
+        "left": labels[:, 0].copy(), "right": labels[:, -1].copy(),
+    }
+    touching = np.zeros(n, bool)
+    for e in edges.values():
+        ids = np.unique(e[e > 0]) - 1
+        touching[ids] = True
+    # compact: only components touching an edge need merging; relabel the edges 1..k
+    remap = np.zeros(n + 1, np.int64)
+    tid = np.flatnonzero(touching)
+    remap[tid + 1] = np.arange(1, len(tid) + 1)
+    edges = {k: remap[v] for k, v in edges.items()}
+    complete = mom[~touching]
+    complete = complete[complete["n"] > 0]
+    return TileComponents(tile=tile, shape=(h, w), moments=mom[touching], edges=edges, complete=complete)
+
+
+class _UnionFind:
+    def __init__(self, n: int):
+        self.parent = np.arange(n, dtype=np.int64)
+
+    def find(self, a: int) -> int:
+        p = self.parent
+        root = a
+        while p[root] != root:
+            root = p[root]
+        while p[a] != root:
+            p[a], a = root, p[a]
+        return root
+
+    def union(self, a: int, b: int) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra != rb:
+            if ra < rb:
+                self.parent[rb] = ra
+            else:
+                self.parent[ra] = rb
+
+
+def _pairs_line(a: np.ndarray, b: np.ndarray) -> set[tuple[int, int]]:
+    """Label pairs of 8-adjacent pixels across a straight border (a and b face each other)."""
+    out: set[tuple[int, int]] = set()
+    n = len(a)
+    for d in (-1, 0, 1):
+        lo, hi = max(0, -d), min(n, n - d)
+        if lo >= hi:
+            continue
+        aa = a[lo:hi]
+        bb = b[lo + d:hi + d]
+        ok = (aa > 0) & (bb > 0)
+        if ok.any():
+            out.update(zip(aa[ok].tolist(), bb[ok].tolist()))
+    return out
+
+
+def combine(moments: list[np.ndarray]) -> np.ndarray:
+    """Add moment records of parts of one component."""
+    m = np.concatenate(moments)
+    out = np.zeros(1, MOMENT_DTYPE)
+    for k in ("n", "sr", "sc", "srr", "scc", "src", "sumv"):
+        out[k] = m[k].sum()
+    valid = m["n"] > 0
+    mv = m[valid]
+    out["r0"], out["c0"] = mv["r0"].min(), mv["c0"].min()
+    out["r1"], out["c1"] = mv["r1"].max(), mv["c1"].max()
+    out["score"] = mv["score"].max()
+    i = int(np.lexsort((mv["peak_c"], mv["peak_r"], -mv["peak"]))[0])
+    out["peak"], out["peak_r"], out["peak_c"] = mv["peak"][i], mv["peak_r"][i], mv["peak_c"][i]
+    return out
+
+
+def merge_tiles(tiles: dict[tuple[int, int], TileComponents]) -> np.ndarray:
+    """Join components across tile borders; returns one moment record per component.
+
+    ``tiles`` maps grid index (i, j) to the tile's :class:`TileComponents`. Components
+    inside a tile (``complete``) pass through; edge components are joined by union-find.
+    """
+    keys = sorted(tiles)
+    offset: dict[tuple[int, int], int] = {}
+    total = 0
+    for k in keys:
+        offset[k] = total
+        total += len(tiles[k].moments)
+    uf = _UnionFind(total)
+
+    def link(ka, kb, pairs):
+        oa, ob = offset[ka], offset[kb]
+        for a, b in pairs:
+            uf.union(oa + a - 1, ob + b - 1)
+
+    for (i, j) in keys:
+        t = tiles[(i, j)]
+        right = tiles.get((i, j + 1))
+        if right is not None:
+            link((i, j), (i, j + 1), _pairs_line(t.edges["right"], right.edges["left"]))
+        below = tiles.get((i + 1, j))
+        if below is not None:
+            link((i, j), (i + 1, j), _pairs_line(t.edges["bottom"], below.edges["top"]))
+        diag = tiles.get((i + 1, j + 1))
+        if diag is not None:
+            a, b = t.edges["bottom"][-1], diag.edges["top"][0]
+            if a > 0 and b > 0:
+                link((i, j), (i + 1, j + 1), [(a, b)])
+        anti = tiles.get((i + 1, j - 1))
+        if anti is not None:
+            a, b = t.edges["bottom"][0], anti.edges["top"][-1]
+            if a > 0 and b > 0:
+                link((i, j), (i + 1, j - 1), [(a, b)])
+    complete = [tiles[k].complete for k in keys if tiles[k].complete is not None]
+    if total == 0:
+        res = np.concatenate(complete) if complete else np.zeros(0, MOMENT_DTYPE)
+        return res[np.lexsort((res["c0"], res["r0"]))]
+    allm = np.concatenate([tiles[k].moments for k in keys])
+    roots = np.array([uf.find(a) for a in range(total)], dtype=np.int64)
+    order = np.argsort(roots, kind="stable")
+    rs = roots[order]
+    starts = np.flatnonzero(np.r_[True, rs[1:] != rs[:-1]])
+    ends = np.r_[starts[1:], len(rs)]
+    out = []
+    for s, e in zip(starts, ends):
+        idx = order[s:e]
+        if e - s == 1:
+            rec = allm[idx]
+        else:
+            rec = combine([allm[idx]])
+        if rec["n"][0] > 0:
+            out.append(rec)
+    parts = out + complete
+    if not parts:
+        return np.zeros(0, MOMENT_DTYPE)
+    res = np.concatenate(parts)
+    return res[np.lexsort((res["c0"], res["r0"]))]
+
+
+def shape_from_moments(
+    rec: np.void | np.ndarray, spacing: tuple[float, float] | None
+) -> dict:
+    """Centroid, bounding box, length/width/heading (pixels and metres) of one component."""
+    n = float(rec["n"])
+    mr, mc = float(rec["sr"]) / n, float(rec["sc"]) / n
+    vrr = max(float(rec["srr"]) / n - mr * mr, 0.0) + 1.0 / 12.0
+    vcc = max(float(rec["scc"]) / n - mc * mc, 0.0) + 1.0 / 12.0
+    vrc = float(rec["src"]) / n - mr * mc
+
+    def eig(a, b, c):
+        tr, det = a + c, a * c - b * b
+        disc = math.sqrt(max(tr * tr / 4.0 - det, 0.0))
+        l1, l2 = tr / 2.0 + disc, max(tr / 2.0 - disc, 0.0)
+        # principal direction (dr, dc)
+        if abs(b) > 1e-12 * max(abs(a), abs(c), 1e-300):
+            dr, dc = l1 - c, b
+        elif a >= c:
+            dr, dc = 1.0, 0.0
+        else:
+            dr, dc = 0.0, 1.0
+        return l1, l2, dr, dc
+
+    l1, l2, dr, dc = eig(vrr, vrc, vcc)
+    out = {
+        "bbox_px": [int(rec["r0"]), int(rec["c0"]), int(rec["r1"]), int(rec["c1"])],
+        "centroid_px": [mr + 0.5, mc + 0.5],
+        "area_px": int(n),
+        "length_px": math.sqrt(12.0 * l1),
+        "width_px": math.sqrt(12.0 * l2),
+        "length_m": None,
+        "width_m": None,
+    }
+    if spacing is not None:
+        az, rg = spacing
+        l1m, l2m, dr, dc = eig(vrr * az * az, vrc * az * rg, vcc * rg * rg)
+        out["length_m"] = math.sqrt(12.0 * l1m)
+        out["width_m"] = math.sqrt(12.0 * l2m)
+    heading = math.degrees(math.atan2(dc, -dr)) % 180.0
+    out["heading_deg"] = 0.0 if abs(heading - 180.0) < 1e-9 else heading
+    return out

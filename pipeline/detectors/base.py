@@ -1,0 +1,104 @@
+"""What every detector declares: parameters (validated), input, halo, and pure array maths.
+
+A detector is a :class:`DetectorSpec`. Its maths is two pure functions:
+
+``prepare(params) -> dict``
+    scene-independent scalars computed once on the client (thresholds from the PFA, ring
+    size, ...). They are recorded in ``run.json``.
+
+``detect(block, halo, origin, params, prep) -> (mask, stat)``
+    ``block`` is the tile *with its halo*: a 2-D float array of shape
+    ``(h + 2*halo, w + 2*halo)`` cut from the mirror-extended scene (numpy ``reflect``
+    extension, the seed's choice), whose element ``[0, 0]`` is scene pixel ``origin``
+    (row, col; negative inside the mirrored border). It returns the boolean ``mask`` and
+    the float32 detector statistic ``stat`` of the ``(h, w)`` core; ``stat > threshold``
+    wherever ``mask`` is set. ``stat`` need only be meaningful where ``mask`` is set (it is
+    used for the ``score`` of detections).
+
+Results must not depend on where the tile starts: the whole scene processed as one block
+and the same scene processed in tiles give bit-identical masks (tests check it). Window
+sums therefore use :mod:`pipeline.boxsum`, whose association order is fixed by global
+pixel coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class DetectorParams(BaseModel):
+    """Parameters shared by every detector (CONTRACT.md names)."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    pfa: float = Field(1e-5, gt=0.0, lt=0.5, description="probability of false alarm per pixel")
+    target: int = Field(1, ge=1, le=255, description="target window side (odd, pixels)")
+    guard: int = Field(41, ge=1, le=511, description="guard window side (odd, pixels)")
+    background: int = Field(61, ge=3, le=1023, description="background window side (odd, pixels)")
+    looks: Optional[float] = Field(
+        None, gt=0.0, le=1e4,
+        description="equivalent number of looks; default: the scene's 'looks' attribute",
+    )
+    min_area_px: int = Field(3, ge=1, description="smallest detection kept, in pixels")
+    max_area_px: Optional[int] = Field(None, ge=1, description="largest detection kept, in pixels")
+    min_length_m: Optional[float] = Field(None, ge=0.0, description="shortest ship kept (needs pixel spacing)")
+    max_length_m: Optional[float] = Field(None, gt=0.0, description="longest ship kept (needs pixel spacing)")
+    merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
+
+    @model_validator(mode="after")
+    def _windows(self):
+        for name in ("target", "guard", "background"):
+            v = getattr(self, name)
+            if v % 2 == 0:
+                raise ValueError(f"{name} must be odd, got {v}")
+        if self.target > self.guard:
+            raise ValueError(f"target ({self.target}) must not exceed guard ({self.guard})")
+        if self.guard >= self.background:
+            raise ValueError(f"background ({self.background}) must be larger than guard ({self.guard})")
+        if self.max_area_px is not None and self.max_area_px < self.min_area_px:
+            raise ValueError(f"max_area_px ({self.max_area_px}) must be >= min_area_px ({self.min_area_px})")
+        if (self.min_length_m is not None and self.max_length_m is not None
+                and self.max_length_m < self.min_length_m):
+            raise ValueError(f"max_length_m ({self.max_length_m}) must be >= min_length_m ({self.min_length_m})")
+        return self
+
+    @property
+    def n_ring(self) -> int:
+        """Number of clutter cells in the ring between guard and background windows."""
+        return self.background**2 - self.guard**2
+
+
+@dataclass(frozen=True)
+class DetectorSpec:
+    """A detector: name, parameter model, input, halo rule and its pure maths."""
+
+    name: str
+    summary: str
+    reference: str
+    params: type[DetectorParams]
+    prepare: Callable[[Any], dict]
+    detect: Callable[..., tuple[np.ndarray, np.ndarray]]
+    input: str = "intensity"  # the scene quantity the detector reads (see pipeline.inputs)
+    needs_looks: bool = False
+
+    def halo(self, params: DetectorParams) -> int:
+        """Pixels of context each side of a tile: half the largest window."""
+        return int(params.background) // 2
+
+    def describe(self) -> dict:
+        schema = self.params.model_json_schema()
+        defaults = {k: f.default for k, f in self.params.model_fields.items()}
+        return {
+            "name": self.name,
+            "summary": self.summary,
+            "reference": self.reference,
+            "input": self.input,
+            "halo": "background // 2",
+            "halo_default_px": self.halo(self.params()),
+            "parameters": schema.get("properties", {}),
+            "defaults": defaults,
+        }

@@ -1,0 +1,217 @@
+"""The scene store of CONTRACT.md: a Zarr v3 group of square-chunked 2-D tiles.
+
+A scene is a Zarr v3 group readable with :func:`xarray.open_zarr`. Each variable is a
+2-D array on dims ``(y, x)`` chunked in ``tile x tile`` squares and zstd-compressed:
+
+- ``intensity`` (float32) for detected (GRD-like) scenes,
+- complex64 ``hh``, ``hv``, ``vv`` (or ``vh``) for SLC and quad-pol scenes,
+- ``c11`` ... ``c33`` for covariance (C3) scenes: real diagonal (float32), complex
+  upper triangle (complex64).
+
+Group attributes: ``kind``, ``looks``, ``pixel_spacing_m`` ([azimuth, range]) when known,
+``sensor``, ``acquired`` (ISO 8601), ``crs`` + ``transform`` (GDAL order
+``[c, a, b, f, d, e]``: x = c + a*col + b*row, y = f + d*col + e*row) when known, and
+provenance (``source``, ``looks_source``, ``sarship_version``).
+
+Stores are written to a temporary sibling path and renamed into place only when complete
+(:func:`atomic_store`), so a failed or interrupted write never leaves a half-written scene.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import uuid
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+#: Default tile (chunk) side in pixels.
+DEFAULT_TILE = 2048
+
+#: Scene kinds of CONTRACT.md.
+KINDS = ("intensity", "slc", "quadpol", "covariance")
+
+#: Complex channel names a scene may hold.
+COMPLEX_CHANNELS = ("hh", "hv", "vh", "vv")
+
+#: Covariance element names (upper triangle, row-major).
+COVARIANCE_VARS = ("c11", "c12", "c13", "c22", "c23", "c33")
+
+ZSTD_LEVEL = 3
+
+
+def _zstd():
+    from zarr.codecs import ZstdCodec
+
+    return ZstdCodec(level=ZSTD_LEVEL)
+
+
+@dataclass
+class Scene:
+    """An opened scene store (metadata only; pixels are read on demand)."""
+
+    path: Path
+    shape: tuple[int, int]
+    tile: int
+    variables: dict[str, str]  # name -> dtype string
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def kind(self) -> str:
+        return str(self.attrs.get("kind", "intensity"))
+
+    @property
+    def looks(self) -> float | None:
+        v = self.attrs.get("looks")
+        return None if v is None else float(v)
+
+    @property
+    def pixel_spacing_m(self) -> tuple[float, float] | None:
+        v = self.attrs.get("pixel_spacing_m")
+        if v is None:
+            return None
+        return (float(v[0]), float(v[1]))
+
+    def array(self, name: str):
+        """The zarr array ``name`` (opened read-only)."""
+        import zarr
+
+        return zarr.open_array(str(self.path / name), mode="r")
+
+
+def open_scene(path: str | os.PathLike) -> Scene:
+    """Open a scene store, raising :class:`InputError` with a clear message if it is not one."""
+    import zarr
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"scene '{p}' does not exist")
+    try:
+        g = zarr.open_group(str(p), mode="r")
+    except Exception as exc:  # zarr raises several types for non-stores
+        raise InputError(f"'{p}' is not a Zarr scene store ({type(exc).__name__}: {exc})") from None
+    variables: dict[str, str] = {}
+    shape: tuple[int, int] | None = None
+    tile = None
+    for name, arr in g.arrays():
+        if arr.ndim != 2:
+            continue
+        variables[name] = str(arr.dtype)
+        if shape is None:
+            shape = (int(arr.shape[0]), int(arr.shape[1]))
+            tile = int(arr.chunks[0])
+        elif tuple(arr.shape) != shape:
+            raise InputError(f"scene '{p}': variable '{name}' has shape {arr.shape}, expected {shape}")
+    if shape is None:
+        raise InputError(f"scene '{p}' holds no 2-D variable (expected 'intensity', 'hh', ... or 'c11')")
+    return Scene(path=p, shape=shape, tile=int(tile), variables=variables, attrs=dict(g.attrs))
+
+
+def create_scene(
+    path: str | os.PathLike,
+    shape: tuple[int, int],
+    variables: dict[str, Any],
+    tile: int = DEFAULT_TILE,
+    attrs: dict[str, Any] | None = None,
+):
+    """Create an empty scene group at ``path`` (overwriting) and return the zarr group.
+
+    ``variables`` maps names to numpy dtypes. Arrays are chunked ``(tile, tile)``, zstd
+    compressed, with dimension names ``("y", "x")`` so that xarray opens them.
+    """
+    import zarr
+
+    if tile < 1:
+        raise InputError(f"--tile must be a positive number of pixels, got {tile}")
+    g = zarr.open_group(str(path), mode="w", zarr_format=3)
+    ch = (int(tile), int(tile))  # square tiles, as the contract says (may exceed a small scene)
+    for name, dtype in variables.items():
+        g.create_array(
+            name,
+            shape=tuple(int(s) for s in shape),
+            chunks=ch,
+            dtype=np.dtype(dtype),
+            compressors=_zstd(),
+            dimension_names=("y", "x"),
+            fill_value=0,
+        )
+    if attrs:
+        g.attrs.update(_jsonable(attrs))
+    return g
+
+
+def finalize_scene(path: str | os.PathLike, attrs: dict[str, Any] | None = None) -> None:
+    """Update attributes and consolidate metadata (for ``xarray.open_zarr``)."""
+    import zarr
+
+    g = zarr.open_group(str(path), mode="r+")
+    if attrs:
+        g.attrs.update(_jsonable(attrs))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        zarr.consolidate_metadata(str(path))
+
+
+def tile_slices(shape: tuple[int, int], tile: int) -> Iterator[tuple[int, int, int, int, int, int]]:
+    """Yield ``(i, j, r0, r1, c0, c1)`` for each tile of a grid over ``shape`` (row-major)."""
+    H, W = shape
+    for i, r0 in enumerate(range(0, H, tile)):
+        for j, c0 in enumerate(range(0, W, tile)):
+            yield i, j, r0, min(r0 + tile, H), c0, min(c0 + tile, W)
+
+
+@contextlib.contextmanager
+def atomic_store(final: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
+    """Yield a temporary sibling path; rename it to ``final`` only if the block succeeds.
+
+    On any exception the temporary path is removed and ``final`` is left as it was.
+    """
+    final = Path(final)
+    parent = final.parent if str(final.parent) else Path(".")
+    if not parent.exists():
+        raise InputError(f"output folder '{parent}' does not exist")
+    if not os.access(parent, os.W_OK):
+        raise InputError(f"output folder '{parent}' is not writable")
+    if final.exists() and not overwrite:
+        raise InputError(f"output '{final}' already exists")
+    tmp = parent / f".{final.name}.partial-{uuid.uuid4().hex[:8]}"
+    try:
+        yield tmp
+        if final.exists():
+            old = parent / f".{final.name}.old-{uuid.uuid4().hex[:8]}"
+            os.replace(final, old)
+            os.replace(tmp, final)
+            _rm(old)
+        else:
+            os.replace(tmp, final)
+    except BaseException:
+        _rm(tmp)
+        raise
+
+
+def _rm(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    elif p.exists() or p.is_symlink():
+        with contextlib.suppress(OSError):
+            p.unlink()
+
+
+def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        elif isinstance(v, np.ndarray):
+            v = v.tolist()
+        elif isinstance(v, tuple):
+            v = list(v)
+        out[k] = v
+    return out

@@ -1,0 +1,57 @@
+"""Halo geometry: cutting a tile plus its mirror-extended context out of a scene.
+
+The thesis (000_5bc9398123fbbeaa.txt, Algorithm 1, step 1) mirror-extends the image at its
+borders by the sliding-window size. We use the mirror *without* repeating the edge pixel
+(numpy ``pad(mode="reflect")``, scipy.ndimage ``mode="mirror"``): scene pixel ``-k`` is
+pixel ``k``. For halos wider than the scene the reflection repeats (a triangle wave of
+period ``2 (n - 1)``), exactly as ``numpy.pad`` does, so a tile's padded block is always a
+slice of the one mirror-extended scene, whatever the tile size.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+
+def reflect_index(start: int, stop: int, n: int) -> np.ndarray:
+    """Scene indices of the mirror-extended positions ``start .. stop-1`` (``reflect`` mode)."""
+    idx = np.arange(start, stop, dtype=np.int64)
+    if n == 1:
+        return np.zeros_like(idx)
+    period = 2 * (n - 1)
+    idx = np.mod(idx, period)
+    return np.where(idx >= n, period - idx, idx)
+
+
+def padded_block(
+    read: Callable[[int, int, int, int], np.ndarray],
+    shape: tuple[int, int],
+    r0: int,
+    r1: int,
+    c0: int,
+    c1: int,
+    halo: int,
+) -> np.ndarray:
+    """Tile ``[r0:r1, c0:c1]`` with ``halo`` pixels of mirror-extended context on each side.
+
+    ``read(ra, rb, ca, cb)`` returns the scene rectangle ``[ra:rb, ca:cb]``. Only the
+    bounding rectangle of the needed scene pixels is read (at most the tile plus its halo).
+    The result is ``padded[halo + i, halo + j] == scene[r0 + i, c0 + j]``.
+    """
+    H, W = shape
+    ri = reflect_index(r0 - halo, r1 + halo, H)
+    ci = reflect_index(c0 - halo, c1 + halo, W)
+    ra, rb = int(ri.min()), int(ri.max()) + 1
+    ca, cb = int(ci.min()), int(ci.max()) + 1
+    raw = np.asarray(read(ra, rb, ca, cb))
+    if halo == 0 or (ra == r0 - halo and rb == r1 + halo and ca == c0 - halo and cb == c1 + halo):
+        return raw
+    return raw[np.ix_(ri - ra, ci - ca)]
+
+
+def mirror_pad(x: np.ndarray, halo: int) -> np.ndarray:
+    """The whole array mirror-extended by ``halo`` (reference for tests and small scenes)."""
+    H, W = x.shape
+    return x[np.ix_(reflect_index(-halo, H + halo, H), reflect_index(-halo, W + halo, W))]

@@ -1,0 +1,269 @@
+"""The ``sarship`` command line (CONTRACT.md, "Command line").
+
+Every command: ``--help``; exit 0 on success; exit 2 with one line on stderr naming the
+problem for bad input or arguments (no traceback; nothing partial left behind); long work
+shows progress on stderr. ``SARSHIP_DEBUG=1`` prints tracebacks of unexpected errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from pipeline.errors import InputError
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2 (argparse prints usage + error)
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def _shape(text: str) -> tuple[int, int]:
+    try:
+        a, b = text.lower().split("x")
+        return int(a), int(b)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ROWSxCOLS like 2048x2048, got '{text}'") from None
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got '{text}'") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got '{text}'")
+    return v
+
+
+def _settings(pairs: list[str]) -> dict[str, str]:
+    out = {}
+    for p in pairs or []:
+        if "=" not in p:
+            raise InputError(f"--set expects KEY=VALUE, got '{p}'")
+        k, v = p.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+def _progress(label: str):
+    tty = sys.stderr.isatty()
+    state = {"dec": -1}
+
+    def cb(done: int, total: int) -> None:
+        pct = 100.0 * done / max(total, 1)
+        line = f"{label}: {done}/{total} tiles ({pct:3.0f}%)"
+        if tty:
+            print("\r" + line, end="\n" if done == total else "", file=sys.stderr, flush=True)
+        elif int(pct // 10) != state["dec"] or done == total:
+            state["dec"] = int(pct // 10)
+            print(line, file=sys.stderr, flush=True)
+
+    return cb
+
+
+# ----------------------------------------------------------------------------- commands
+
+
+def cmd_simulate(a) -> int:
+    from pipeline.simulate import SimConfig, simulate, validate
+
+    cfg = validate(SimConfig(
+        kind=a.kind, shape=a.shape, ships=a.ships, seed=a.seed, looks=a.looks, clutter=a.clutter,
+        land=a.land, sidelobes=a.sidelobes, ambiguities=a.ambiguities, stripes=a.stripes, rfi=a.rfi,
+        scr_db=a.scr_db, pixel_spacing_m=(a.spacing, a.spacing),
+    ))
+    out = Path(a.out)
+    truth = a.truth or f"{out}.truth.geojson"
+    simulate(out, cfg, tile=a.tile, truth_path=truth, progress=_progress("simulate"))
+    print(f"scene: {out}")
+    print(f"truth: {truth}")
+    return 0
+
+
+def cmd_ingest(a) -> int:
+    from pipeline.readers import ingest
+
+    channels = a.channels.split(",") if a.channels else None
+    band: Any = a.band
+    if band is not None and band.isdigit():
+        band = int(band)
+    scene = ingest(a.inputs, a.out, kind=a.kind, tile=a.tile, progress=_progress("ingest"),
+                   band=band, channels=channels, looks=a.looks)
+    print(f"scene: {scene.path} {scene.shape[0]}x{scene.shape[1]} kind={scene.kind} "
+          f"looks={scene.looks} variables={','.join(scene.variables)}")
+    return 0
+
+
+def cmd_detect(a) -> int:
+    from workers.run import run_detection
+
+    run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile,
+                        scheduler=a.scheduler, device=a.device, progress=True)
+    o = run["outputs"]
+    print(f"detections: {o['detections.geojson']} ({run['detections']} ships)")
+    print(f"mask: {o['mask.zarr']}")
+    print(f"run: {o['run.json']}")
+    return 0
+
+
+def cmd_evaluate(a) -> int:
+    from pipeline.scoring import evaluate, format_scores
+
+    det = Path(a.detections)
+    mask = a.mask
+    if mask is None and (det.parent / "mask.zarr").exists():
+        mask = str(det.parent / "mask.zarr")
+    scores = evaluate(det, a.truth, mask_path=mask)
+    if a.json:
+        print(json.dumps(scores, indent=1))
+    else:
+        print(format_scores(scores))
+    return 0
+
+
+def cmd_detectors(a) -> int:
+    from pipeline import detectors
+
+    info = [detectors.get(n).describe() for n in detectors.names()]
+    if a.json:
+        print(json.dumps(info, indent=1, default=str))
+        return 0
+    for d in info:
+        print(f"{d['name']}: {d['summary']}")
+        print(f"  input: {d['input']}; halo: {d['halo']} ({d['halo_default_px']} px by default)")
+        print(f"  reference: {d['reference']}")
+        for k, p in d["parameters"].items():
+            print(f"  {k} = {d['defaults'][k]!r}: {p.get('description', '')}")
+    return 0
+
+
+def cmd_demo(a) -> int:
+    """Simulate a scene with ships, detect them on a local Dask cluster, score them."""
+    from pipeline.scoring import evaluate, format_scores
+    from pipeline.simulate import SimConfig, simulate, validate
+    from workers.run import run_detection
+
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = out / "scene.zarr"
+    truth = out / "scene.truth.geojson"
+    cfg = validate(SimConfig(kind="intensity", shape=a.shape, ships=a.ships, seed=a.seed, looks=a.looks,
+                             clutter="k", scr_db=a.scr_db))
+    print(f"sarship demo: simulating a {a.shape[0]}x{a.shape[1]} K-distributed scene with {a.ships} ships",
+          file=sys.stderr)
+    simulate(scene, cfg, tile=a.tile, truth_path=truth, progress=_progress("simulate"))
+    run = run_detection(scene, a.detector, _settings(a.set), out_dir=out / "detect", tile=a.tile,
+                        scheduler=a.scheduler, progress=True)
+    det = out / "detect" / "detections.geojson"
+    scores = evaluate(det, truth)
+    from pipeline.detections import write_json
+
+    write_json(out / "scores.json", scores)
+    print(format_scores(scores))
+    print(f"scene: {scene}")
+    print(f"truth: {truth}")
+    print(f"detections: {det} ({run['detections']} ships)")
+    print(f"mask: {out / 'detect' / 'mask.zarr'}")
+    print(f"run: {out / 'detect' / 'run.json'}")
+    print(f"scores: {out / 'scores.json'}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="sarship", description="Ship detection in SAR scenes on Dask (see CONTRACT.md).")
+    p.add_argument("--version", action="version", version=f"sarship {__import__('pipeline').__version__}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    s = sub.add_parser("simulate", help="simulate a scene with ground truth")
+    s.add_argument("out", help="output scene store (OUT.zarr)")
+    s.add_argument("--kind", choices=["intensity", "slc", "quadpol"], default="intensity")
+    s.add_argument("--shape", type=_shape, default=(2048, 2048), help="ROWSxCOLS (default 2048x2048)")
+    s.add_argument("--ships", type=int, default=10)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--looks", type=float, default=1.0)
+    s.add_argument("--clutter", choices=["rayleigh", "gamma", "k"], default="gamma")
+    s.add_argument("--scr-db", dest="scr_db", type=float, default=15.0, help="ship-to-clutter ratio (dB)")
+    s.add_argument("--spacing", type=float, default=10.0, help="pixel spacing in metres (default 10)")
+    for flag in ("land", "sidelobes", "ambiguities", "stripes", "rfi"):
+        s.add_argument(f"--{flag}", action="store_true")
+    s.add_argument("--truth", help="truth GeoJSON path (default OUT.zarr.truth.geojson)")
+    s.add_argument("--tile", type=_positive_int, default=2048)
+    s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("ingest", help="convert GeoTIFF/TIFF, PNG/JPEG, .npy or Zarr into a scene store")
+    s.add_argument("inputs", nargs="+")
+    s.add_argument("--out", required=True, help="output scene store (SCENE.zarr)")
+    s.add_argument("--kind", choices=["auto", "amplitude", "intensity", "slc", "quadpol"], default="auto")
+    s.add_argument("--tile", type=_positive_int, default=2048)
+    s.add_argument("--channels", help="comma-separated channel names of the bands/files (e.g. vh,vv)")
+    s.add_argument("--band", help="band (name or index) used as 'intensity' for multi-band real inputs")
+    s.add_argument("--looks", type=float, help="equivalent number of looks (default: from the product or estimated)")
+    s.set_defaults(func=cmd_ingest)
+
+    s = sub.add_parser("detect", help="run a detector on a scene store")
+    s.add_argument("scene")
+    s.add_argument("--detector", required=True)
+    s.add_argument("--set", action="append", metavar="KEY=VALUE", help="detector parameter (repeatable)")
+    s.add_argument("--out", default="sarship-out", help="output folder (default ./sarship-out)")
+    s.add_argument("--tile", type=_positive_int, help="processing tile side (default: the scene's chunk)")
+    s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: start a local cluster)")
+    s.add_argument("--device", choices=["auto", "cpu", "gpu"], default="auto")
+    s.set_defaults(func=cmd_detect)
+
+    s = sub.add_parser("evaluate", help="score detections against truth")
+    s.add_argument("detections")
+    s.add_argument("--truth", required=True, help="truth GeoJSON, PASCAL-VOC xml (file or folder) or mask image")
+    s.add_argument("--mask", help="detection mask (default: mask.zarr beside the detections)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_evaluate)
+
+    s = sub.add_parser("detectors", help="list detectors with their parameters")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_detectors)
+
+    s = sub.add_parser("demo", help="the main job on an embedded default: simulate, detect on a local Dask cluster, score")
+    s.add_argument("--out", default="sarship-demo")
+    s.add_argument("--shape", type=_shape, default=(4096, 4096))
+    s.add_argument("--ships", type=int, default=40)
+    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--looks", type=float, default=4.0)
+    s.add_argument("--scr-db", dest="scr_db", type=float, default=15.0)
+    s.add_argument("--detector", default="ca_cfar")
+    s.add_argument("--set", action="append", metavar="KEY=VALUE")
+    s.add_argument("--tile", type=_positive_int, default=1024)
+    s.add_argument("--scheduler")
+    s.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    a = parser.parse_args(argv)
+    try:
+        return int(a.func(a) or 0)
+    except InputError as exc:
+        print(f"sarship {a.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"sarship {a.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # unexpected: one line unless debugging
+        if os.environ.get("SARSHIP_DEBUG"):
+            raise
+        msg = str(exc).splitlines()[0] if str(exc) else ""
+        print(f"sarship {a.command}: internal error: {type(exc).__name__}: {msg} "
+              f"(set SARSHIP_DEBUG=1 for the traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,302 @@
+"""``sarship detect``: submit one task per output tile to Dask, merge, write the outputs.
+
+Outputs (CONTRACT.md) in ``DIR``: ``mask.zarr`` (a Zarr v3 group with the uint8 array
+``mask`` chunked like the tiles), ``detections.geojson`` and ``run.json``. They are written
+under a temporary folder inside ``DIR`` and renamed into place only when the run has
+succeeded, so a failed or interrupted run leaves the previous outputs (or nothing) behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import platform
+import shutil
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from pipeline import __version__, detectors
+from pipeline.components import merge_radius, merge_tiles
+from pipeline.detections import collection, features, keep_mask, write_json
+from pipeline.errors import InputError
+from pipeline.inputs import intensity_source, make_reader
+from pipeline.scene import Scene, open_scene, tile_slices
+from workers.tasks import TileJob, run_tile
+
+OUTPUTS = ("mask.zarr", "detections.geojson", "run.json")
+
+
+def parse_settings(spec, settings: dict[str, Any]):
+    """Validate ``--set`` values with the detector's pydantic model; one-line errors."""
+    from pydantic import ValidationError
+
+    clean = {}
+    for k, v in settings.items():
+        if isinstance(v, str) and v.lower() in ("none", "null", ""):
+            v = None
+        clean[k] = v
+    try:
+        return spec.params(**clean)
+    except ValidationError as exc:
+        raise InputError(format_validation(exc, spec.name)) from None
+
+
+def format_validation(exc, detector: str) -> str:
+    msgs = []
+    for e in exc.errors():
+        loc = ".".join(str(x) for x in e.get("loc", ()))
+        msg = e.get("msg", "invalid").removeprefix("Value error, ")
+        if e.get("type") == "extra_forbidden":
+            msgs.append(f"unknown parameter '{loc}' for detector '{detector}'")
+        elif loc:
+            got = e.get("input")
+            msgs.append(f"parameter '{loc}': {msg} (got {got!r})")
+        else:
+            msgs.append(msg)
+    return "; ".join(msgs)
+
+
+def resolve_looks(spec, params, scene: Scene, var: str, transform: str) -> tuple[Any, str]:
+    """Fill ``looks`` from the scene attribute, else estimate it from a sample of tiles."""
+    if not spec.needs_looks or params.looks is not None:
+        return params, "parameter" if params.looks is not None else "not used"
+    if scene.looks is not None:
+        return params.model_copy(update={"looks": scene.looks}), "scene attribute"
+    from pipeline.looks import estimate_looks
+
+    read = make_reader(str(scene.path), var, transform)
+    H, W = scene.shape
+    blocks = []
+    side = 512
+    for r in np.linspace(0, max(H - side, 0), 4).astype(int):
+        for c in np.linspace(0, max(W - side, 0), 4).astype(int):
+            blocks.append(read(int(r), min(int(r) + side, H), int(c), min(int(c) + side, W)))
+    L = float(estimate_looks(blocks))
+    return params.model_copy(update={"looks": L}), "estimated from the scene (MoLC, median over blocks)"
+
+
+class Progress:
+    """Tile progress on stderr: a live line on a terminal, a line per 10 % otherwise."""
+
+    def __init__(self, total: int, label: str, enabled: bool = True):
+        self.total, self.label, self.enabled = total, label, enabled
+        self.done = 0
+        self.t0 = time.perf_counter()
+        self.px = 0
+        self.tty = sys.stderr.isatty()
+        self.last_decile = -1
+
+    def step(self, pixels: int) -> None:
+        self.done += 1
+        self.px += pixels
+        if not self.enabled:
+            return
+        el = time.perf_counter() - self.t0
+        rate = self.px / el / 1e6 if el > 0 else 0.0
+        pct = 100.0 * self.done / self.total
+        line = f"{self.label}: {self.done}/{self.total} tiles ({pct:3.0f}%) {rate:7.1f} Mpx/s"
+        if self.tty:
+            print("\r" + line, end="\n" if self.done == self.total else "", file=sys.stderr, flush=True)
+        else:
+            dec = int(pct // 10)
+            if dec != self.last_decile or self.done == self.total:
+                self.last_decile = dec
+                print(line, file=sys.stderr, flush=True)
+
+
+def _versions() -> dict[str, str]:
+    import importlib.metadata as md
+
+    out = {"sarship": __version__, "python": platform.python_version()}
+    for pkg in ("numpy", "scipy", "numba", "dask", "distributed", "zarr", "xarray", "pydantic"):
+        with contextlib.suppress(Exception):
+            out[pkg] = md.version(pkg)
+    return out
+
+
+def _prepare_out(out_dir: Path) -> Path:
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create output folder '{out_dir}': {exc.strerror}") from None
+    if not out_dir.is_dir():
+        raise InputError(f"output '{out_dir}' is not a folder")
+    if not os.access(out_dir, os.W_OK):
+        raise InputError(f"output folder '{out_dir}' is not writable")
+    tmp = out_dir / f".sarship-partial-{uuid.uuid4().hex[:8]}"
+    try:
+        tmp.mkdir()
+    except OSError as exc:
+        raise InputError(f"output folder '{out_dir}' is not writable: {exc.strerror}") from None
+    return tmp
+
+
+def _commit(tmp: Path, out_dir: Path) -> None:
+    for name in OUTPUTS:
+        src, dst = tmp / name, out_dir / name
+        if dst.exists():
+            old = out_dir / f".{name}.old-{uuid.uuid4().hex[:8]}"
+            os.replace(dst, old)
+            os.replace(src, dst)
+            shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+        else:
+            os.replace(src, dst)
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def run_detection(
+    scene_path: str | os.PathLike,
+    detector: str,
+    settings: dict[str, Any] | None = None,
+    out_dir: str | os.PathLike = "sarship-out",
+    tile: int | None = None,
+    client=None,
+    scheduler: str | None = None,
+    device: str = "auto",
+    progress: bool = True,
+    on_tile: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Run ``detector`` on a scene store; returns the ``run.json`` content.
+
+    ``client``: a connected ``distributed.Client`` (else one is made: ``scheduler`` or a
+    local cluster). ``tile``: processing/output tile side (default: the scene's chunk).
+    """
+    t_start = time.perf_counter()
+    spec = detectors.get(detector)
+    settings = dict(settings or {})
+    channel = settings.pop("channel", None)
+    params = parse_settings(spec, settings)
+    if device not in ("auto", "cpu", "gpu"):
+        raise InputError(f"--device must be auto, cpu or gpu, got '{device}'")
+    if device == "gpu":
+        raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation in this version")
+    scene = open_scene(scene_path)
+    var, transform = intensity_source(scene, channel)
+    tile = int(tile or scene.tile)
+    if tile < 8:
+        raise InputError(f"--tile must be at least 8 pixels, got {tile}")
+    params, looks_source = resolve_looks(spec, params, scene, var, transform)
+    prep = spec.prepare(params)
+    warnings: list[str] = []
+    spacing = scene.pixel_spacing_m
+    if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
+        warnings.append("min_length_m/max_length_m ignored: the scene's pixel spacing is unknown")
+    halo = spec.halo(params)
+    mr = merge_radius(params.merge_px)
+    H, W = scene.shape
+    out_dir = Path(out_dir)
+    tmp = _prepare_out(out_dir)
+    try:
+        import zarr
+
+        from pipeline.scene import _zstd
+
+        g = zarr.open_group(str(tmp / "mask.zarr"), mode="w", zarr_format=3)
+        g.create_array("mask", shape=(H, W), chunks=(tile, tile), dtype="uint8",
+                       compressors=_zstd(), dimension_names=("y", "x"), fill_value=0)
+        geo = {k: scene.attrs[k] for k in ("crs", "transform") if k in scene.attrs}
+        g.attrs.update({"detector": detector, "scene": str(scene.path), **geo})
+        jobs = [
+            TileJob(
+                scene_path=str(scene.path), var=var, transform=transform, scene_shape=(H, W),
+                index=(i, j), bounds=(r0, r1, c0, c1), halo=halo, merge_r=mr, detector=detector,
+                params=params.model_dump(), prep=prep, mask_path=str(tmp / "mask.zarr" / "mask"),
+                spacing=spacing,
+            )
+            for i, j, r0, r1, c0, c1 in tile_slices((H, W), tile)
+        ]
+        t_prep = time.perf_counter()
+        with contextlib.ExitStack() as stack:
+            if client is None:
+                from workers.cluster import connect
+
+                client = stack.enter_context(connect(scheduler))
+            results = _execute(client, jobs, detector, progress, on_tile)
+        t_tiles = time.perf_counter()
+        comps = {r["index"]: r["components"] for r in results}
+        records = merge_tiles(comps)
+        records = records[keep_mask(records, params, spacing)]
+        feats = features(records, spacing, geo)
+        t_merge = time.perf_counter()
+        dashboard = None
+        with contextlib.suppress(Exception):
+            dashboard = client.dashboard_link
+        run = {
+            "sarship_version": __version__,
+            "detector": detector,
+            "reference": spec.reference,
+            "parameters": params.model_dump(),
+            "channel": var,
+            "looks_source": looks_source,
+            "prepared": prep,
+            "scene": {
+                "path": str(Path(scene.path).resolve()),
+                "shape": [H, W],
+                "kind": scene.kind,
+                "tile": scene.tile,
+                "looks": scene.looks,
+                "pixel_spacing_m": list(spacing) if spacing else None,
+                "attrs": {k: v for k, v in scene.attrs.items() if k not in ("simulation",)},
+            },
+            "tiles": {
+                "size": tile,
+                "grid": [math.ceil(H / tile), math.ceil(W / tile)],
+                "count": len(jobs),
+                "halo_px": halo,
+                "merge_radius_px": mr,
+                "per_tile": [
+                    {"index": list(r["index"]), "worker": r["worker"], "detected_px": r["detected_px"],
+                     **{k: round(r[k], 6) for k in ("read_s", "detect_s", "write_s", "label_s")}}
+                    for r in sorted(results, key=lambda r: r["index"])
+                ],
+            },
+            "detections": len(feats),
+            "detected_px": int(sum(r["detected_px"] for r in results)),
+            "timings": {
+                "prepare_s": round(t_prep - t_start, 4),
+                "tiles_s": round(t_tiles - t_prep, 4),
+                "merge_s": round(t_merge - t_tiles, 4),
+                "detect_cpu_s": round(sum(r["detect_s"] for r in results), 4),
+                "read_cpu_s": round(sum(r["read_s"] for r in results), 4),
+                "mpx_per_s": round(H * W / max(t_tiles - t_prep, 1e-9) / 1e6, 3),
+            },
+            "device": "cpu",
+            "cluster": {"dashboard": dashboard, "workers": sorted({r["worker"] for r in results})},
+            "versions": _versions(),
+            "warnings": warnings,
+            "outputs": {name: str((out_dir / name).resolve()) for name in OUTPUTS},
+        }
+        fc = collection(feats, detector=detector, scene=str(scene.path), parameters=params.model_dump())
+        write_json(tmp / "detections.geojson", fc)
+        run["timings"]["total_s"] = round(time.perf_counter() - t_start, 4)
+        write_json(tmp / "run.json", run)
+        _commit(tmp, out_dir)
+        return run
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile) -> list[dict]:
+    from distributed import as_completed
+
+    futures = client.map(run_tile, jobs, pure=False, key=[f"sarship-{detector}-tile-{j.index[0]}-{j.index[1]}-{uuid.uuid4().hex[:6]}" for j in jobs])
+    prog = Progress(len(jobs), f"detect {detector}", progress)
+    results = []
+    try:
+        for fut in as_completed(futures):
+            res = fut.result()
+            results.append(res)
+            prog.step(res["pixels"])
+            if on_tile is not None:
+                on_tile(len(results), len(jobs))
+    except BaseException:
+        client.cancel(futures)
+        raise
+    return results
