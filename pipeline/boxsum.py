@@ -29,56 +29,92 @@ def _box_along_cols(x, m, g0, out):
     """out[r, i] = sum(x[r, i:i+m]) for i in range(C - m + 1); x[:, 0] is global column g0."""
     R, C = x.shape
     n_out = C - m + 1
-    pre = np.empty(C, np.float64)
-    suf = np.empty(C, np.float64)
+    suf = np.empty(m, np.float64)
     for r in range(R):
-        acc = 0.0
-        for c in range(C):
-            if (g0 + c) % m == 0:
-                acc = 0.0
-            acc += x[r, c]
-            pre[c] = acc
-        acc = 0.0
-        for c in range(C - 1, -1, -1):
-            if (g0 + c + 1) % m == 0:
-                acc = 0.0
-            acc += x[r, c]
-            suf[c] = acc
-        for i in range(n_out):
-            if (g0 + i) % m == 0:
-                out[r, i] = suf[i]
-            else:
-                out[r, i] = suf[i] + pre[i + m - 1]
+        s = -(g0 % m)
+        while s < n_out:
+            i_lo = max(s, 0)
+            i_hi = min(s + m, n_out)
+            if i_lo < i_hi:
+                e = s + m - 1
+                acc = np.float64(x[r, e])
+                suf[e - s] = acc
+                for c in range(e - 1, i_lo - 1, -1):
+                    acc = acc + x[r, c]
+                    suf[c - s] = acc
+                i0 = i_lo
+                if i0 == s:
+                    out[r, i0] = suf[0]
+                    i0 += 1
+                pre = 0.0
+                first = True
+                for c in range(s + m, i0 + m - 1):
+                    if first:
+                        pre = np.float64(x[r, c])
+                        first = False
+                    else:
+                        pre = pre + x[r, c]
+                for i in range(i0, i_hi):
+                    c = i + m - 1
+                    if first:
+                        pre = np.float64(x[r, c])
+                        first = False
+                    else:
+                        pre = pre + x[r, c]
+                    out[r, i] = suf[i - s] + pre
+            s += m
 
 
 @njit(nogil=True, cache=True)
 def _box_along_rows(x, m, g0, out):
-    """out[i, c] = sum(x[i:i+m, c]) for i in range(R - m + 1); x[0, :] is global row g0."""
+    """out[i, c] = sum(x[i:i+m, c]) for i in range(R - m + 1); x[0, :] is global row g0.
+
+    Processed block by block (blocks of ``m`` rows aligned on global multiples of ``m``):
+    the suffix sums of one block live in an ``m x C`` buffer and the prefix sums of the
+    next block in one row, so the working set stays small whatever the tile height.
+    """
     R, C = x.shape
     n_out = R - m + 1
-    pre = np.empty((R, C), np.float64)
-    suf = np.empty((R, C), np.float64)
-    for r in range(R):
-        if (g0 + r) % m == 0 or r == 0:
+    suf = np.empty((m, C), np.float64)
+    pre = np.empty(C, np.float64)
+    s = -(g0 % m)  # array row of the first block start (<= 0)
+    while s < n_out:
+        i_lo = max(s, 0)
+        i_hi = min(s + m, n_out)
+        if i_lo < i_hi:
+            e = s + m - 1  # block end, always inside the array when an output needs it
             for c in range(C):
-                pre[r, c] = x[r, c]
-        else:
-            for c in range(C):
-                pre[r, c] = pre[r - 1, c] + x[r, c]
-    for r in range(R - 1, -1, -1):
-        if (g0 + r + 1) % m == 0 or r == R - 1:
-            for c in range(C):
-                suf[r, c] = x[r, c]
-        else:
-            for c in range(C):
-                suf[r, c] = suf[r + 1, c] + x[r, c]
-    for i in range(n_out):
-        if (g0 + i) % m == 0:
-            for c in range(C):
-                out[i, c] = suf[i, c]
-        else:
-            for c in range(C):
-                out[i, c] = suf[i, c] + pre[i + m - 1, c]
+                suf[e - s, c] = x[e, c]
+            for r in range(e - 1, i_lo - 1, -1):
+                for c in range(C):
+                    suf[r - s, c] = suf[r - s + 1, c] + x[r, c]
+            i0 = i_lo
+            if i0 == s:
+                for c in range(C):
+                    out[i0, c] = suf[0, c]
+                i0 += 1
+            # prefix of the next block up to row i0 + m - 2
+            first = True
+            for r in range(s + m, i0 + m - 1):
+                if first:
+                    for c in range(C):
+                        pre[c] = x[r, c]
+                    first = False
+                else:
+                    for c in range(C):
+                        pre[c] = pre[c] + x[r, c]
+            for i in range(i0, i_hi):
+                r = i + m - 1
+                if first:
+                    for c in range(C):
+                        pre[c] = x[r, c]
+                    first = False
+                else:
+                    for c in range(C):
+                        pre[c] = pre[c] + x[r, c]
+                for c in range(C):
+                    out[i, c] = suf[i - s, c] + pre[c]
+        s += m
 
 
 def centered_box_sum(block: np.ndarray, m: int, halo: int, origin: tuple[int, int]) -> np.ndarray:
@@ -106,7 +142,7 @@ def centered_box_sum(block: np.ndarray, m: int, halo: int, origin: tuple[int, in
     w = block.shape[1] - 2 * halo
     off = halo - r
     sub = block[off: off + h + m - 1, off: off + w + m - 1]
-    if sub.dtype != np.float64:
+    if sub.dtype not in (np.float32, np.float64):
         sub = sub.astype(np.float64)
     tmp = np.empty((h + m - 1, w), np.float64)
     _box_along_cols(sub, m, origin[1] + off, tmp)
