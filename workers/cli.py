@@ -248,6 +248,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     a = parser.parse_args(argv)
+    # readers report problems themselves, as one line; keep libraries' log chatter off stderr
+    import logging
+
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
     try:
         return int(a.func(a) or 0)
     except InputError as exc:
