@@ -26,43 +26,87 @@ from numba import njit
 
 @njit(nogil=True, cache=True)
 def _box_along_cols(x, m, g0, out):
-    """out[r, i] = sum(x[r, i:i+m]) for i in range(C - m + 1); x[:, 0] is global column g0."""
+    """out[r, i] = sum(x[r, i:i+m]) for i in range(C - m + 1); x[:, 0] is global column g0.
+
+    Rows are processed four at a time with independent accumulators: a prefix/suffix scan
+    is a chain of dependent additions, and four interleaved chains keep the floating-point
+    units busy. Each row's additions happen in exactly the order of the one-row scan.
+    """
     R, C = x.shape
     n_out = C - m + 1
-    suf = np.empty(m, np.float64)
-    for r in range(R):
+    suf = np.empty((4, m), np.float64)
+    r = 0
+    while r + 4 <= R:
         s = -(g0 % m)
         while s < n_out:
             i_lo = max(s, 0)
             i_hi = min(s + m, n_out)
             if i_lo < i_hi:
                 e = s + m - 1
-                acc = np.float64(x[r, e])
-                suf[e - s] = acc
-                for c in range(e - 1, i_lo - 1, -1):
-                    acc = acc + x[r, c]
-                    suf[c - s] = acc
+                a0 = 0.0
+                a1 = 0.0
+                a2 = 0.0
+                a3 = 0.0
+                for c in range(e, i_lo - 1, -1):
+                    a0 = a0 + x[r, c]
+                    a1 = a1 + x[r + 1, c]
+                    a2 = a2 + x[r + 2, c]
+                    a3 = a3 + x[r + 3, c]
+                    suf[0, c - s] = a0
+                    suf[1, c - s] = a1
+                    suf[2, c - s] = a2
+                    suf[3, c - s] = a3
                 i0 = i_lo
                 if i0 == s:
-                    out[r, i0] = suf[0]
+                    out[r, i0] = suf[0, 0]
+                    out[r + 1, i0] = suf[1, 0]
+                    out[r + 2, i0] = suf[2, 0]
+                    out[r + 3, i0] = suf[3, 0]
                     i0 += 1
-                pre = 0.0
-                first = True
+                p0 = 0.0
+                p1 = 0.0
+                p2 = 0.0
+                p3 = 0.0
                 for c in range(s + m, i0 + m - 1):
-                    if first:
-                        pre = np.float64(x[r, c])
-                        first = False
-                    else:
-                        pre = pre + x[r, c]
+                    p0 = p0 + x[r, c]
+                    p1 = p1 + x[r + 1, c]
+                    p2 = p2 + x[r + 2, c]
+                    p3 = p3 + x[r + 3, c]
                 for i in range(i0, i_hi):
                     c = i + m - 1
-                    if first:
-                        pre = np.float64(x[r, c])
-                        first = False
-                    else:
-                        pre = pre + x[r, c]
-                    out[r, i] = suf[i - s] + pre
+                    p0 = p0 + x[r, c]
+                    p1 = p1 + x[r + 1, c]
+                    p2 = p2 + x[r + 2, c]
+                    p3 = p3 + x[r + 3, c]
+                    out[r, i] = suf[0, i - s] + p0
+                    out[r + 1, i] = suf[1, i - s] + p1
+                    out[r + 2, i] = suf[2, i - s] + p2
+                    out[r + 3, i] = suf[3, i - s] + p3
             s += m
+        r += 4
+    while r < R:
+        s = -(g0 % m)
+        while s < n_out:
+            i_lo = max(s, 0)
+            i_hi = min(s + m, n_out)
+            if i_lo < i_hi:
+                e = s + m - 1
+                a0 = 0.0
+                for c in range(e, i_lo - 1, -1):
+                    a0 = a0 + x[r, c]
+                    suf[0, c - s] = a0
+                i0 = i_lo
+                if i0 == s:
+                    out[r, i0] = suf[0, 0]
+                    i0 += 1
+                p0 = 0.0
+                for c in range(s + m, i0 + m - 1):
+                    p0 = p0 + x[r, c]
+                for i in range(i0, i_hi):
+                    p0 = p0 + x[r, i + m - 1]
+                    out[r, i] = suf[0, i - s] + p0
+            s += m
+        r += 1
 
 
 @njit(nogil=True, cache=True)
