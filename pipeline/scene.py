@@ -1,7 +1,8 @@
 """The scene store of CONTRACT.md: a Zarr v3 group of square-chunked 2-D tiles.
 
 A scene is a Zarr v3 group readable with :func:`xarray.open_zarr`. Each variable is a
-2-D array on dims ``(y, x)`` chunked in ``tile x tile`` squares and zstd-compressed:
+2-D array on dims ``(y, x)`` stored in ``tile x tile`` squares (Zarr v3 shards of 512x512
+inner chunks when the tile is a multiple of 512, see :func:`chunking`), zstd-compressed:
 
 - ``intensity`` (float32) for detected (GRD-like) scenes,
 - complex64 ``hh``, ``hv``, ``vv`` (or ``vh``) for SLC and quad-pol scenes,
@@ -45,6 +46,32 @@ COMPLEX_CHANNELS = ("hh", "hv", "vh", "vv")
 COVARIANCE_VARS = ("c11", "c12", "c13", "c22", "c23", "c33")
 
 ZSTD_LEVEL = 3
+
+
+#: Inner chunk side inside a tile when tiles are stored as Zarr v3 shards (measured: reading
+#: a 2048 tile plus a 30-px halo takes 0.19 s unsharded, 0.075 s with 256, 0.048 s with 512).
+INNER_CHUNK = 512
+
+
+def chunking(tile: int) -> dict:
+    """Zarr layout of a tile: one shard per tile, split into 512x512 inner chunks.
+
+    A detector reads its tile plus a halo that reaches into the eight neighbouring tiles.
+    With one chunk per tile it would decompress all nine tiles (9x the data it needs);
+    with 512x512 inner chunks inside each tile's shard it decompresses only the strips it
+    reads. Writes stay one task per tile (= one shard). Tiles that are not a multiple of
+    512 (small test tiles) are plain chunks.
+    """
+    tile = int(tile)
+    if tile > INNER_CHUNK and tile % INNER_CHUNK == 0:
+        return {"chunks": (INNER_CHUNK, INNER_CHUNK), "shards": (tile, tile)}
+    return {"chunks": (tile, tile)}
+
+
+def array_tile(arr) -> int:
+    """The tile side of a stored array: its shard side, else its chunk side."""
+    shards = getattr(arr, "shards", None)
+    return int(shards[0] if shards else arr.chunks[0])
 
 
 def _zstd():
@@ -106,7 +133,7 @@ def open_scene(path: str | os.PathLike) -> Scene:
         variables[name] = str(arr.dtype)
         if shape is None:
             shape = (int(arr.shape[0]), int(arr.shape[1]))
-            tile = int(arr.chunks[0])
+            tile = array_tile(arr)
         elif tuple(arr.shape) != shape:
             raise InputError(f"scene '{p}': variable '{name}' has shape {arr.shape}, expected {shape}")
     if shape is None:
@@ -131,12 +158,11 @@ def create_scene(
     if tile < 1:
         raise InputError(f"--tile must be a positive number of pixels, got {tile}")
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
-    ch = (int(tile), int(tile))  # square tiles, as the contract says (may exceed a small scene)
     for name, dtype in variables.items():
         g.create_array(
             name,
             shape=tuple(int(s) for s in shape),
-            chunks=ch,
+            **chunking(tile),
             dtype=np.dtype(dtype),
             compressors=_zstd(),
             dimension_names=("y", "x"),
