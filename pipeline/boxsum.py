@@ -16,149 +16,284 @@ when ``i`` starts a block). Every sum is formed in an order fixed by global coor
 alone: bit-identical for any tiling, O(1) per pixel (3 additions), and with no long-range
 drift (each partial sum covers fewer than ``m`` samples). Two separable passes (rows, then
 columns) give the 2-D box sum. Accumulation is in float64.
+
+Implementation (single-threaded, ``nogil``). The horizontal pass (along rows, blocks of
+columns) comes first, on the input; the vertical pass (along columns, blocks of rows) runs
+on its float64 results. Both are *streamed*: output rows are produced one at a time, and
+the horizontal sums of an input row are computed just before the vertical pass needs them,
+into a ring of ``m + 4`` rows, so no full-size float64 intermediate is ever written and the
+working set stays in L2 (wide tiles are cut into column strips, which changes nothing in
+the sums: column blocks are aligned on global coordinates). Detectors that need several
+windows run one stream per window in lockstep and decide row by row
+(:mod:`pipeline.detectors.ca_cfar`).
+
+Exact order of the additions (what the tests pin down, for every input):
+
+* horizontal, along a row, block ``[s, s + m)``: suffix ``S[e] = 0.0 + x[e]``,
+  ``S[c] = S[c + 1] + x[c]``; prefix of the next block ``P[s + m] = 0.0 + x[s + m]``,
+  ``P[c] = P[c - 1] + x[c]``; ``h[i] = S[i]`` if ``i == s`` else ``S[i] + P[i + m - 1]``;
+* vertical, on ``h``, block ``[s, s + m)`` of rows: ``S[e] = h[e]``,
+  ``S[r] = S[r + 1] + h[r]``; ``P[s + m] = h[s + m]``, ``P[r] = P[r - 1] + h[r]``;
+  ``out[i] = S[i]`` if ``i == s`` else ``S[i] + P[i + m - 1]``.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, uint64
+
+#: Output columns per strip: a stream's ring, ``(m + 4) x STRIP`` float64, stays in L2.
+STRIP = 1024
+
+# ---------------------------------------------------------------------------------------
+# Horizontal pass: window sums along rows of the input.
+# ---------------------------------------------------------------------------------------
 
 
 @njit(nogil=True, cache=True)
-def _box_along_cols(x, m, g0, out):
-    """out[r, i] = sum(x[r, i:i+m]) for i in range(C - m + 1); x[:, 0] is global column g0.
+def _hsum4(x, r, m, g0, H, d0, d1, d2, d3, suf):
+    """H[dk, i] = sum(x[r + k, i:i+m]) for k < 4, i < H.shape[1]; x[:, 0] is global column g0.
 
-    Rows are processed four at a time with independent accumulators: a prefix/suffix scan
-    is a chain of dependent additions, and four interleaved chains keep the floating-point
-    units busy. Each row's additions happen in exactly the order of the one-row scan.
+    Four rows are scanned together with independent accumulators: a prefix/suffix scan is
+    a chain of dependent additions, and four interleaved chains keep the floating-point
+    units busy. Each row's additions happen in exactly the order of the one-row scan
+    :func:`_hsum1`. ``suf`` is a (4, m) float64 scratch buffer.
+
+    Inner loops index with unsigned integers (every index there is >= 0): numba then skips
+    its negative-index wraparound, which otherwise costs more than the additions.
     """
-    R, C = x.shape
-    n_out = C - m + 1
-    suf = np.empty((4, m), np.float64)
-    r = 0
-    while r + 4 <= R:
-        s = -(g0 % m)
-        while s < n_out:
-            i_lo = max(s, 0)
-            i_hi = min(s + m, n_out)
-            if i_lo < i_hi:
-                e = s + m - 1
-                a0 = 0.0
-                a1 = 0.0
-                a2 = 0.0
-                a3 = 0.0
-                for c in range(e, i_lo - 1, -1):
-                    a0 = a0 + x[r, c]
-                    a1 = a1 + x[r + 1, c]
-                    a2 = a2 + x[r + 2, c]
-                    a3 = a3 + x[r + 3, c]
-                    suf[0, c - s] = a0
-                    suf[1, c - s] = a1
-                    suf[2, c - s] = a2
-                    suf[3, c - s] = a3
-                i0 = i_lo
-                if i0 == s:
-                    out[r, i0] = suf[0, 0]
-                    out[r + 1, i0] = suf[1, 0]
-                    out[r + 2, i0] = suf[2, 0]
-                    out[r + 3, i0] = suf[3, 0]
-                    i0 += 1
-                p0 = 0.0
-                p1 = 0.0
-                p2 = 0.0
-                p3 = 0.0
-                for c in range(s + m, i0 + m - 1):
-                    p0 = p0 + x[r, c]
-                    p1 = p1 + x[r + 1, c]
-                    p2 = p2 + x[r + 2, c]
-                    p3 = p3 + x[r + 3, c]
-                for i in range(i0, i_hi):
-                    c = i + m - 1
-                    p0 = p0 + x[r, c]
-                    p1 = p1 + x[r + 1, c]
-                    p2 = p2 + x[r + 2, c]
-                    p3 = p3 + x[r + 3, c]
-                    out[r, i] = suf[0, i - s] + p0
-                    out[r + 1, i] = suf[1, i - s] + p1
-                    out[r + 2, i] = suf[2, i - s] + p2
-                    out[r + 3, i] = suf[3, i - s] + p3
-            s += m
-        r += 4
-    while r < R:
-        s = -(g0 % m)
-        while s < n_out:
-            i_lo = max(s, 0)
-            i_hi = min(s + m, n_out)
-            if i_lo < i_hi:
-                e = s + m - 1
-                a0 = 0.0
-                for c in range(e, i_lo - 1, -1):
-                    a0 = a0 + x[r, c]
-                    suf[0, c - s] = a0
-                i0 = i_lo
-                if i0 == s:
-                    out[r, i0] = suf[0, 0]
-                    i0 += 1
-                p0 = 0.0
-                for c in range(s + m, i0 + m - 1):
-                    p0 = p0 + x[r, c]
-                for i in range(i0, i_hi):
-                    p0 = p0 + x[r, i + m - 1]
-                    out[r, i] = suf[0, i - s] + p0
-            s += m
-        r += 1
-
-
-@njit(nogil=True, cache=True)
-def _box_along_rows(x, m, g0, out):
-    """out[i, c] = sum(x[i:i+m, c]) for i in range(R - m + 1); x[0, :] is global row g0.
-
-    Processed block by block (blocks of ``m`` rows aligned on global multiples of ``m``):
-    the suffix sums of one block live in an ``m x C`` buffer and the prefix sums of the
-    next block in one row, so the working set stays small whatever the tile height.
-    """
-    R, C = x.shape
-    n_out = R - m + 1
-    suf = np.empty((m, C), np.float64)
-    pre = np.empty(C, np.float64)
-    s = -(g0 % m)  # array row of the first block start (<= 0)
+    n_out = H.shape[1]
+    x0 = x[r]
+    x1 = x[r + 1]
+    x2 = x[r + 2]
+    x3 = x[r + 3]
+    h0 = H[d0]
+    h1 = H[d1]
+    h2 = H[d2]
+    h3 = H[d3]
+    u0 = suf[0]
+    u1 = suf[1]
+    u2 = suf[2]
+    u3 = suf[3]
+    s = -(g0 % m)  # array column of the first block start (<= 0)
     while s < n_out:
         i_lo = max(s, 0)
         i_hi = min(s + m, n_out)
         if i_lo < i_hi:
-            e = s + m - 1  # block end, always inside the array when an output needs it
-            for c in range(C):
-                suf[e - s, c] = x[e, c]
-            for r in range(e - 1, i_lo - 1, -1):
-                for c in range(C):
-                    suf[r - s, c] = suf[r - s + 1, c] + x[r, c]
+            e = s + m - 1  # block end, inside the row whenever an output needs it
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            a3 = 0.0
+            for c in range(e, i_lo - 1, -1):
+                cu = uint64(c)
+                ju = uint64(c - s)
+                a0 = a0 + x0[cu]
+                a1 = a1 + x1[cu]
+                a2 = a2 + x2[cu]
+                a3 = a3 + x3[cu]
+                u0[ju] = a0
+                u1[ju] = a1
+                u2[ju] = a2
+                u3[ju] = a3
+            i0 = i_lo
+            if i0 == s:  # the window starting the block is the whole block: suffix alone
+                h0[i0] = a0
+                h1[i0] = a1
+                h2[i0] = a2
+                h3[i0] = a3
+                i0 += 1
+            # prefix of the next block, up to column i0 + m - 2
+            p0 = 0.0
+            p1 = 0.0
+            p2 = 0.0
+            p3 = 0.0
+            for c in range(s + m, i0 + m - 1):
+                cu = uint64(c)
+                p0 = p0 + x0[cu]
+                p1 = p1 + x1[cu]
+                p2 = p2 + x2[cu]
+                p3 = p3 + x3[cu]
+            for i in range(i0, i_hi):
+                iu = uint64(i)
+                cu = uint64(i + m - 1)
+                ju = uint64(i - s)
+                p0 = p0 + x0[cu]
+                p1 = p1 + x1[cu]
+                p2 = p2 + x2[cu]
+                p3 = p3 + x3[cu]
+                h0[iu] = u0[ju] + p0
+                h1[iu] = u1[ju] + p1
+                h2[iu] = u2[ju] + p2
+                h3[iu] = u3[ju] + p3
+        s += m
+
+
+@njit(nogil=True, cache=True)
+def _hsum1(x, r, m, g0, H, d, suf):
+    """H[d, i] = sum(x[r, i:i+m]) for i < H.shape[1]; x[:, 0] is global column g0.
+
+    Along the row, blocks ``[s, s + m)`` start where the global column is a multiple of m:
+    suffix ``S[e] = 0.0 + x[e]``, ``S[c] = S[c + 1] + x[c]`` from the block end down; prefix
+    ``P[s + m] = 0.0 + x[s + m]``, ``P[c] = P[c - 1] + x[c]`` over the next block; window
+    ``S[i]`` when ``i`` starts a block, else ``S[i] + P[i + m - 1]``.
+    """
+    n_out = H.shape[1]
+    x0 = x[r]
+    h0 = H[d]
+    u0 = suf[0]
+    s = -(g0 % m)
+    while s < n_out:
+        i_lo = max(s, 0)
+        i_hi = min(s + m, n_out)
+        if i_lo < i_hi:
+            e = s + m - 1
+            a0 = 0.0
+            for c in range(e, i_lo - 1, -1):
+                a0 = a0 + x0[uint64(c)]
+                u0[uint64(c - s)] = a0
             i0 = i_lo
             if i0 == s:
-                for c in range(C):
-                    out[i0, c] = suf[0, c]
+                h0[i0] = a0
                 i0 += 1
-            # prefix of the next block up to row i0 + m - 2
-            first = True
-            for r in range(s + m, i0 + m - 1):
-                if first:
-                    for c in range(C):
-                        pre[c] = x[r, c]
-                    first = False
-                else:
-                    for c in range(C):
-                        pre[c] = pre[c] + x[r, c]
+            p0 = 0.0
+            for c in range(s + m, i0 + m - 1):
+                p0 = p0 + x0[uint64(c)]
             for i in range(i0, i_hi):
-                r = i + m - 1
-                if first:
-                    for c in range(C):
-                        pre[c] = x[r, c]
-                    first = False
-                else:
-                    for c in range(C):
-                        pre[c] = pre[c] + x[r, c]
-                for c in range(C):
-                    out[i, c] = suf[i - s, c] + pre[c]
+                p0 = p0 + x0[uint64(i + m - 1)]
+                h0[uint64(i)] = u0[uint64(i - s)] + p0
         s += m
+
+
+# ---------------------------------------------------------------------------------------
+# Vertical pass, streamed: output rows in order, horizontal sums computed just ahead.
+# ---------------------------------------------------------------------------------------
+#
+# A stream for window m over an input x (R = n_out_rows + m - 1 rows, x[0, 0] at global
+# (g0r, g0c)) is the tuple (H, pre, suf, st) made by box_stream:
+#   H    ring of m + 4 rows of horizontal sums; input row r lives in slot (r - s0) % (m + 4),
+#        s0 <= 0 being the array row of the first row block;
+#   pre  running vertical prefix over the next row block;
+#   suf  scratch of the horizontal scans;
+#   st   state: current block start, rows whose horizontal sums are done, s0, and whether
+#        pre has been started for the current block.
+# When output row i opens a block [s, s + m), the block's horizontal sums are turned into
+# vertical suffix sums in place; each later output row i of the block adds the horizontal
+# sums of row i + m - 1 (next block) to pre and is suffix[i] + pre. Horizontal sums are
+# computed four rows at a time, at most three rows ahead of need: the rows alive at once
+# (suffix rows not yet emitted, next-block rows) span at most m + 3 rows, so the ring never
+# overwrites a row still needed.
+
+_ST_BLOCK = 0
+_ST_DONE = 1
+_ST_BASE = 2
+_ST_PRE = 3
+
+
+@njit(nogil=True, cache=True)
+def box_stream(m, w, g0r):
+    """A stream of ``m x m`` window sums over ``w`` output columns; x row 0 is global row ``g0r``.
+
+    Feed it to :func:`box_stream_row` for output rows 0, 1, 2, ... in order. Detectors that
+    need several windows run one stream per window in lockstep (see ``ca_cfar``).
+    """
+    st = np.empty(4, np.int64)
+    s0 = -(g0r % m)
+    st[_ST_BLOCK] = s0
+    st[_ST_DONE] = 0
+    st[_ST_BASE] = s0
+    st[_ST_PRE] = 0
+    return (np.empty((m + 4, w), np.float64), np.empty(w, np.float64),
+            np.empty((4, m), np.float64), st)
+
+
+@njit(nogil=True, cache=True)
+def _stream_fill(x, m, g0c, H, suf, st, r):
+    """Make sure the horizontal sums of x rows up to ``r`` are in the ring."""
+    R = x.shape[0]
+    Rz = H.shape[0]
+    base = st[_ST_BASE]
+    done = st[_ST_DONE]
+    while done <= r:
+        if done + 4 <= R:
+            _hsum4(x, done, m, g0c, H, (done - base) % Rz, (done + 1 - base) % Rz,
+                   (done + 2 - base) % Rz, (done + 3 - base) % Rz, suf)
+            done += 4
+        else:
+            _hsum1(x, done, m, g0c, H, (done - base) % Rz, suf)
+            done += 1
+    st[_ST_DONE] = done
+
+
+@njit(nogil=True, cache=True)
+def box_stream_row(x, m, g0c, stream, i, dst):
+    """dst[c] = sum(x[i:i+m, c:c+m]) for c < dst.size; call for i = 0, 1, 2, ... in order.
+
+    ``x`` is the input seen by this window (``x[0, 0]`` at global ``(g0r, g0c)``, ``g0r``
+    given to :func:`box_stream`), with ``dst.size + m - 1`` columns; the sums are those of
+    :func:`centered_box_sum`, bit for bit.
+    """
+    H, pre, suf, st = stream
+    Rz = H.shape[0]
+    n = H.shape[1]
+    base = st[_ST_BASE]
+    s = st[_ST_BLOCK]
+    if i == 0 or i == s + m:  # output row i opens a block
+        if i > 0:
+            s += m
+        st[_ST_BLOCK] = s
+        st[_ST_PRE] = 0
+        e = s + m - 1
+        _stream_fill(x, m, g0c, H, suf, st, e)
+        # vertical suffix sums of the block, in place, down to the first row still needed
+        b = (e - base) % Rz
+        for r in range(e - 1, i - 1, -1):
+            a = (r - base) % Rz
+            for c in range(n):
+                H[a, c] = H[b, c] + H[a, c]
+            b = a
+        # prefix of the next block up to row i + m - 2 (only when a tile starts mid-block)
+        for r in range(s + m, i + m - 1):
+            _stream_fill(x, m, g0c, H, suf, st, r)
+            a = (r - base) % Rz
+            if st[_ST_PRE] == 0:
+                st[_ST_PRE] = 1
+                for c in range(n):
+                    pre[c] = H[a, c]
+            else:
+                for c in range(n):
+                    pre[c] = pre[c] + H[a, c]
+    a = (i - base) % Rz
+    if i == s:
+        for c in range(n):
+            dst[c] = H[a, c]
+        return
+    r = i + m - 1
+    _stream_fill(x, m, g0c, H, suf, st, r)
+    b = (r - base) % Rz
+    if st[_ST_PRE] == 0:
+        st[_ST_PRE] = 1
+        for c in range(n):
+            p = H[b, c]
+            pre[c] = p
+            dst[c] = H[a, c] + p
+    else:
+        for c in range(n):
+            p = pre[c] + H[b, c]
+            pre[c] = p
+            dst[c] = H[a, c] + p
+
+
+@njit(nogil=True, cache=True)
+def _box_sum(x, m, g0r, g0c, strip, out):
+    """out[i, c] = sum(x[i:i+m, c:c+m]); x[0, 0] is global pixel (g0r, g0c)."""
+    h, w = out.shape
+    for c0 in range(0, w, strip):
+        c1 = min(c0 + strip, w)
+        xs = x[:, c0: c1 + m - 1]
+        stream = box_stream(m, c1 - c0, g0r)
+        for i in range(h):
+            box_stream_row(xs, m, g0c + c0, stream, i, out[i, c0:c1])
 
 
 def centered_box_sum(block: np.ndarray, m: int, halo: int, origin: tuple[int, int]) -> np.ndarray:
@@ -188,10 +323,8 @@ def centered_box_sum(block: np.ndarray, m: int, halo: int, origin: tuple[int, in
     sub = block[off: off + h + m - 1, off: off + w + m - 1]
     if sub.dtype not in (np.float32, np.float64):
         sub = sub.astype(np.float64)
-    tmp = np.empty((h + m - 1, w), np.float64)
-    _box_along_cols(sub, m, origin[1] + off, tmp)
     out = np.empty((h, w), np.float64)
-    _box_along_rows(tmp, m, origin[0] + off, out)
+    _box_sum(sub, m, origin[0] + off, origin[1] + off, STRIP, out)
     return out
 
 

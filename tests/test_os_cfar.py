@@ -144,7 +144,7 @@ def test_alpha_monte_carlo(n, k, looks, nt, draws):
 
 
 def test_default_k_and_prepare():
-    p = OSParams(looks=1.0)
+    p = OSParams(looks=1.0, guard=41, background=61, pfa=1e-5)
     assert p.n_ring == 61**2 - 41**2 == 2040
     assert p.k_rank == default_k(2040) == 1530
     prep = prepare(p)
@@ -171,7 +171,7 @@ def test_invalid_k(kw):
 def test_valid_k_limits_and_assignment():
     assert OSParams(guard=5, background=11, k=96).k_rank == 96
     assert OSParams(guard=5, background=11, k=1).k_rank == 1
-    p = OSParams(k=2000)
+    p = OSParams(k=2000, guard=41, background=61)
     with pytest.raises(ValidationError, match=r"k \(2000\)"):
         p.background = 51  # N = 51^2 - 41^2 = 920 < k
 

@@ -60,7 +60,7 @@ def test_detect_on_existing_scheduler(tmp_path, dask_processes):
     out = tmp_path / "o"
     res = subprocess.run([sys.executable, "-m", "workers.cli", "detect", str(scene), "--detector", "ca_cfar",
                           "--scheduler", dask_processes, "--out", str(out), "--tile", "64",
-                          "--set", "guard=11", "--set", "background=31"],
+                          "--set", "guard=11", "--set", "background=31", "--set", "min_area_px=1"],
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert dask_processes in res.stderr

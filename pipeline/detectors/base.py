@@ -72,6 +72,22 @@ class DetectorParams(BaseModel):
         return self.background**2 - self.guard**2
 
 
+def with_defaults(base: type[DetectorParams], name: str, **defaults: Any) -> type[DetectorParams]:
+    """A subclass of ``base`` whose listed fields have other defaults (constraints kept).
+
+    Detectors tune their own defaults (see ``bench/REALDATA.md``) while sharing one
+    definition, with its bounds and validators, of every CONTRACT parameter.
+    """
+    from pydantic import create_model
+    from pydantic.fields import FieldInfo
+
+    fields = {}
+    for key, value in defaults.items():
+        f = base.model_fields[key]
+        fields[key] = (f.annotation, FieldInfo.merge_field_infos(f, default=value))
+    return create_model(name, __base__=base, **fields)
+
+
 @dataclass(frozen=True)
 class DetectorSpec:
     """A detector: name, parameter model, input, halo rule and its pure maths."""

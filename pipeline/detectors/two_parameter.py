@@ -31,11 +31,15 @@ from pydantic import Field
 from scipy import stats
 
 from pipeline.boxsum import centered_box_sum, core
-from pipeline.detectors.base import DetectorParams, DetectorSpec
+from pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
 
 
-class TwoParameterParams(DetectorParams):
-    """Parameters of ``two_parameter``."""
+class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", pfa=1e-3, guard=21,
+                                       background=41, min_area_px=15, merge_px=0)):
+    """Parameters of ``two_parameter``.
+
+    Defaults chosen on real data (SAR-Ship-Dataset, HRSID, OpenSARShip; bench/REALDATA.md).
+    """
 
     threshold: Literal["student", "gaussian"] = Field(
         "student", description="exact Student-t threshold for N ring samples, or the classical Gaussian one"
