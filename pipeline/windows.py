@@ -46,8 +46,13 @@ def padded_block(
     ra, rb = int(ri.min()), int(ri.max()) + 1
     ca, cb = int(ci.min()), int(ci.max()) + 1
     raw = np.asarray(read(ra, rb, ca, cb))
-    if halo == 0 or (ra == r0 - halo and rb == r1 + halo and ca == c0 - halo and cb == c1 + halo):
+    pads = ((ra - (r0 - halo), (r1 + halo) - rb), (ca - (c0 - halo), (c1 + halo) - cb))
+    if pads == ((0, 0), (0, 0)):
         return raw
+    if raw.shape[0] > 1 and raw.shape[1] > 1:
+        # numpy's reflect padding is the same mirror (repeated for pads wider than a scene
+        # that the read covers whole), built from slice copies rather than a gather
+        return np.pad(raw, pads, mode="reflect")
     return raw[np.ix_(ri - ra, ci - ca)]
 
 

@@ -44,6 +44,19 @@ def test_padded_block_is_a_slice_of_the_mirrored_scene():
         np.testing.assert_array_equal(blk, P[r0:r1 + 2 * h, c0:c1 + 2 * h])
 
 
+def test_padded_block_random_cuts_any_halo():
+    rng = np.random.default_rng(1)
+    for H, W in [(1, 7), (2, 2), (5, 3), (23, 9), (40, 41), (100, 77)]:
+        x = rng.random((H, W))
+        for h in (0, 1, 3, 15, 60):
+            P = mirror_pad(x, h)
+            for _ in range(15):
+                r0 = int(rng.integers(0, H)); r1 = int(rng.integers(r0 + 1, H + 1))
+                c0 = int(rng.integers(0, W)); c1 = int(rng.integers(c0 + 1, W + 1))
+                blk = padded_block(lambda a, b, c, d: x[a:b, c:d], x.shape, r0, r1, c0, c1, h)
+                np.testing.assert_array_equal(blk, P[r0:r1 + 2 * h, c0:c1 + 2 * h])
+
+
 def _run(tmp_path, client, scene, det, tile, settings, tag):
     out = tmp_path / f"{det}-{tag}"
     run = run_detection(scene, det, settings, out_dir=out, tile=tile, client=client, progress=False)
