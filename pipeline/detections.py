@@ -32,14 +32,71 @@ def keep_mask(records: np.ndarray, params: Any, spacing: tuple[float, float] | N
     return keep
 
 
-def pixel_to_lonlat(transform: list[float], row: float, col: float) -> tuple[float, float]:
-    """GDAL geotransform [c, a, b, f, d, e]: x = c + a*col + b*row, y = f + d*col + e*row."""
-    c, a, b, f, d, e = transform
-    return c + a * col + b * row, f + d * col + e * row
+_WGS84 = ("EPSG:4326", "OGC:CRS84", "WGS84", "CRS84")
 
 
-def _outline(props: dict, spacing, transform) -> dict | None:
-    if transform is None:
+class Georeference:
+    """Scene pixel (row, col) -> WGS84 (lon, lat), from the scene's georeference attributes.
+
+    Pixel coordinates are continuous with pixel (r, c) covering [r, r+1) x [c, c+1), the
+    GDAL/GeoTIFF PixelIsArea convention. Sources, in order: ``transform`` (GDAL affine), or
+    ``gcps`` (ground control points ``{row, col, x, y}``: least-squares polynomial, affine
+    for < 6 points, quadratic from 6, as GDAL's GCP transformer does), in the scene ``crs``
+    (default EPSG:4326 for GCPs); any CRS other than WGS84 is converted with pyproj.
+    """
+
+    def __init__(self, attrs: dict):
+        self.transform = attrs.get("transform")
+        self.gcps = attrs.get("gcps")
+        crs = attrs.get("crs") or ("EPSG:4326" if self.gcps else None)
+        self.crs = str(crs) if crs else None
+        self._proj = None
+        self._coef = None
+        if self.transform is None and self.gcps:
+            g = self.gcps
+            rows = np.array([p["row"] for p in g], float)
+            cols = np.array([p["col"] for p in g], float)
+            A = self._design(rows, cols, quadratic=len(g) >= 6)
+            xy = np.array([[p["x"], p["y"]] for p in g], float)
+            self._coef, *_ = np.linalg.lstsq(A, xy, rcond=None)
+            self._quad = len(g) >= 6
+        if self.crs and self.crs.upper() not in _WGS84 and (self.transform is not None or self._coef is not None):
+            try:
+                from pyproj import Transformer
+
+                self._proj = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
+            except Exception:
+                self.crs = None  # unknown CRS: no geometry rather than a wrong one
+
+    @staticmethod
+    def _design(rows, cols, quadratic):
+        cols_ = [np.ones_like(rows), cols, rows]
+        if quadratic:
+            cols_ += [cols * cols, cols * rows, rows * rows]
+        return np.stack(cols_, axis=-1)
+
+    @property
+    def usable(self) -> bool:
+        if self.crs is None:
+            return False
+        return self.transform is not None or self._coef is not None
+
+    def lonlat(self, rows, cols) -> tuple[np.ndarray, np.ndarray]:
+        rows = np.asarray(rows, float)
+        cols = np.asarray(cols, float)
+        if self.transform is not None:
+            c, a, b, f, d, e = (float(v) for v in self.transform)
+            x, y = c + a * cols + b * rows, f + d * cols + e * rows
+        else:
+            xy = self._design(rows, cols, self._quad) @ self._coef
+            x, y = xy[..., 0], xy[..., 1]
+        if self._proj is not None:
+            x, y = self._proj.transform(x, y)
+        return np.asarray(x), np.asarray(y)
+
+
+def _outline(props: dict, spacing, geo: "Georeference | None") -> dict | None:
+    if geo is None or not geo.usable:
         return None
     cr, cc = props["centroid_px"]
     th = math.radians(props["heading_deg"])
@@ -47,23 +104,23 @@ def _outline(props: dict, spacing, transform) -> dict | None:
     ur, uc = -math.cos(th), math.sin(th)
     vr, vc = uc, -ur
     hl, hw = props["length_px"] / 2.0, props["width_px"] / 2.0
-    ring = []
+    rows, cols = [], []
     for sl, sw in ((1, 1), (1, -1), (-1, -1), (-1, 1), (1, 1)):
-        r = cr + sl * hl * ur + sw * hw * vr
-        c = cc + sl * hl * uc + sw * hw * vc
-        ring.append(list(pixel_to_lonlat(transform, r, c)))
+        rows.append(cr + sl * hl * ur + sw * hw * vr)
+        cols.append(cc + sl * hl * uc + sw * hw * vc)
+    lon, lat = geo.lonlat(rows, cols)
+    ring = [[float(a), float(b)] for a, b in zip(lon, lat)]
     return {"type": "Polygon", "coordinates": [ring]}
 
 
 def features(records: np.ndarray, spacing: tuple[float, float] | None, geo: dict | None = None) -> list[dict]:
     """One GeoJSON Feature per component record (CONTRACT properties).
 
-    ``geo``: scene georeference ``{"crs": "EPSG:4326", "transform": [...]}``; geometry is
-    the oriented ship rectangle in lon/lat when the CRS is geographic WGS84, else null.
+    ``geo``: the scene's georeference attributes (``crs`` + ``transform``, or ``gcps``);
+    geometry is the oriented ship rectangle in WGS84 lon/lat (:class:`Georeference`), or
+    null when the scene is not georeferenced.
     """
-    transform = None
-    if geo and str(geo.get("crs", "")).upper() in ("EPSG:4326", "OGC:CRS84", "WGS84") and geo.get("transform"):
-        transform = [float(v) for v in geo["transform"]]
+    georef = Georeference(geo) if geo else None
     out = []
     for rec in records:
         props = shape_from_moments(rec, spacing)
@@ -71,7 +128,7 @@ def features(records: np.ndarray, spacing: tuple[float, float] | None, geo: dict
         props["mean"] = float(rec["sumv"]) / float(rec["n"])
         props["score"] = float(rec["score"]) if math.isfinite(float(rec["score"])) else None
         props["peak_px"] = [int(rec["peak_r"]), int(rec["peak_c"])]
-        out.append({"type": "Feature", "geometry": _outline(props, spacing, transform), "properties": props})
+        out.append({"type": "Feature", "geometry": _outline(props, spacing, georef), "properties": props})
     return out
 
 

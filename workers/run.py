@@ -200,7 +200,7 @@ def run_detection(
         g = zarr.open_group(str(tmp / "mask.zarr"), mode="w", zarr_format=3)
         g.create_array("mask", shape=(H, W), dtype="uint8", **chunking(tile),
                        compressors=_zstd(), dimension_names=("y", "x"), fill_value=0)
-        geo = {k: scene.attrs[k] for k in ("crs", "transform") if k in scene.attrs}
+        geo = {k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs}
         g.attrs.update({"detector": detector, "scene": str(scene.path), **geo})
         jobs = [
             TileJob(
