@@ -161,3 +161,15 @@ def test_simulate_detect_evaluate_end_to_end(tmp_path):
     res = sarship("detect", scene, "--detector", "os_cfar", "--out", out, "--tile", "256")
     assert res.returncode == 0, res.stderr
     assert json.loads((out / "run.json").read_text())["detector"] == "os_cfar"
+
+
+def test_demo_main_job(tmp_path):
+    """The README's main job (smaller scene): simulate, detect on a local cluster, score."""
+    out = tmp_path / "demo"
+    res = sarship("demo", "--out", out, "--shape", "1536x1536", "--ships", "8", "--tile", "512")
+    assert res.returncode == 0, res.stderr
+    for key in ("scene:", "truth:", "detections:", "mask:", "run:", "scores:"):
+        assert key in res.stdout, key
+    scores = json.loads((out / "scores.json").read_text())
+    assert scores["n_truth"] == 8 and scores["fom"] >= 0.8, scores
+    assert (out / "detect" / "mask.zarr").is_dir() and (out / "detect" / "run.json").is_file()

@@ -30,6 +30,8 @@ def test_sharded_tiles_read_by_xarray_and_detect(tmp_path, client):
     ma = zarr.open_array(str(tmp_path / "a" / "mask.zarr" / "mask"))
     mb = zarr.open_array(str(tmp_path / "b" / "mask.zarr" / "mask"))
     assert ma.shards == (1024, 1024)
+    dm = xr.open_zarr(tmp_path / "a" / "mask.zarr")
+    assert dm["mask"].dims == ("y", "x") and dm.attrs["detector"] == "ca_cfar"
     np.testing.assert_array_equal(ma[:], mb[:])
     fa = json.loads((tmp_path / "a" / "detections.geojson").read_text())["features"]
     fb = json.loads((tmp_path / "b" / "detections.geojson").read_text())["features"]

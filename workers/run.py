@@ -26,7 +26,7 @@ from pipeline.components import merge_radius, merge_tiles
 from pipeline.detections import collection, features, keep_mask, write_json
 from pipeline.errors import InputError
 from pipeline.inputs import intensity_source, make_reader
-from pipeline.scene import Scene, open_scene, tile_slices
+from pipeline.scene import Scene, finalize_scene, open_scene, tile_slices
 from workers.tasks import TileJob, run_tile
 
 OUTPUTS = ("mask.zarr", "detections.geojson", "run.json")
@@ -272,6 +272,7 @@ def run_detection(
             "warnings": warnings,
             "outputs": {name: str((out_dir / name).resolve()) for name in OUTPUTS},
         }
+        finalize_scene(tmp / "mask.zarr")  # consolidated metadata: xarray.open_zarr reads it
         fc = collection(feats, detector=detector, scene=str(scene.path), parameters=params.model_dump())
         write_json(tmp / "detections.geojson", fc)
         run["timings"]["total_s"] = round(time.perf_counter() - t_start, 4)
