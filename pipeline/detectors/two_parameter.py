@@ -18,7 +18,10 @@ PFA) has exactly the PFA asked for. ``threshold="gaussian"`` gives the classical
 t = Phi^{-1}(1 - PFA) / sqrt(n), exact only as N -> infinity.
 
 ``domain`` picks the quantity the Gaussian model is applied to: ``intensity`` (as SNAP),
-``amplitude`` (sqrt) or ``db`` (10 log10, where speckle is closest to Gaussian).
+``amplitude`` (sqrt) or ``db`` (10 log10, where speckle is closest to Gaussian). In ``db``
+non-positive values are floored at 1e-30 (-300 dB), a fixed floor so that tiles agree;
+data with exact zeros (8-bit quantised JPEG chips, no-data borders) then carry -300 dB
+outliers into the ring statistics: use ``intensity`` or ``amplitude`` for such data.
 """
 
 from __future__ import annotations
