@@ -4,6 +4,12 @@ Single-channel detectors (``two_parameter``, ``ca_cfar``, ``os_cfar``) read inte
 the scene's ``intensity`` variable, else |S|^2 of a complex channel (``hh`` first, then
 ``vv``, ``vh``, ``hv``), else the covariance diagonal ``c11``. The ``channel`` parameter
 (any scene variable) overrides the choice.
+
+Polarimetric detectors (``DetectorSpec.input == "polarimetric"``, e.g. ``apwf``) read the
+scene's complex channels stacked on a trailing axis, :func:`polarimetric_source`: quad-pol
+``[hh, hv, vv]`` (p = 3; ``vh`` is not used when ``hv`` is there, reciprocity), dual-pol
+``[hh, hv]``, ``[vh, vv]`` or ``[hh, vv]`` (p = 2), always in the order hh, hv, vh, vv.
+The reader (transform ``"stack"``) returns a complex64 ``(rows, cols, p)`` block.
 """
 
 from __future__ import annotations
@@ -37,9 +43,66 @@ def intensity_source(scene: Scene, channel: str | None = None) -> tuple[str, str
     return var, transform
 
 
-def make_reader(path: str, var: str, transform: str) -> Callable[[int, int, int, int], np.ndarray]:
-    """``read(ra, rb, ca, cb)`` -> float32 intensity of the scene rectangle."""
+_POL_ORDER = ("hh", "hv", "vh", "vv")
+
+
+def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tuple[str, ...], str]:
+    """``(variables, "stack")``: the scene's complex channels a polarimetric detector reads.
+
+    Order hh, hv, vh, vv; with all of ``hh``, ``hv``, ``vv`` present: ``[hh, hv, vv]``
+    (quad-pol, p = 3; ``[hh, vh, vv]`` when the scene has vh instead of hv); otherwise the complex channels among hh/hv/vh/vv (dual-pol, p = 2:
+    ``[hh, hv]``, ``[vh, vv]``, ``[hh, vv]``, ...). ``channels`` (comma-separated scene
+    variables, e.g. ``"hh,vv"``) overrides the choice; each must be complex. Fewer than two
+    complex channels: :class:`InputError` naming what the scene has.
+    """
+    def is_complex(v: str) -> bool:
+        return "complex" in scene.variables.get(v, "")
+
+    has = ", ".join(f"{k} ({v})" for k, v in scene.variables.items()) or "nothing"
+    if channels is not None:
+        names = [c.strip() for c in str(channels).split(",") if c.strip()]
+        for c in names:
+            if c not in scene.variables:
+                raise InputError(f"parameter 'channel': scene has no variable '{c}' (has: {has})")
+            if not is_complex(c):
+                raise InputError(f"parameter 'channel': variable '{c}' is not complex "
+                                 f"(a polarimetric detector needs complex channels; scene has: {has})")
+        if len(set(names)) != len(names) or not 2 <= len(names) <= 3:
+            raise InputError(f"parameter 'channel': give 2 or 3 distinct complex channels, got '{channels}'")
+        return tuple(names), "stack"
+    found = [v for v in _POL_ORDER if is_complex(v)]
+    if all(v in found for v in ("hh", "hv", "vv")):
+        return ("hh", "hv", "vv"), "stack"
+    if len(found) < 2:
+        raise InputError(
+            f"scene '{scene.path}' has {len(found)} complex polarimetric channel(s) "
+            f"({', '.join(found) or 'none'}); a polarimetric detector needs at least two of "
+            f"hh, hv, vh, vv (scene has: {has})"
+        )
+    return tuple(found), "stack"
+
+
+def make_reader(path: str, var: str | tuple[str, ...], transform: str
+                ) -> Callable[[int, int, int, int], np.ndarray]:
+    """``read(ra, rb, ca, cb)`` -> float32 intensity of the scene rectangle.
+
+    With a tuple of variables and transform ``"stack"``: the complex64 channels of the
+    rectangle stacked on a trailing axis, shape ``(rb - ra, cb - ca, p)``.
+    """
     import zarr
+
+    if not isinstance(var, str):
+        if transform != "stack":
+            raise ValueError(f"several variables need transform 'stack', got '{transform}'")
+        arrs = [zarr.open_array(f"{path}/{v}", mode="r") for v in var]
+
+        def read_stack(ra: int, rb: int, ca: int, cb: int) -> np.ndarray:
+            out = np.empty((rb - ra, cb - ca, len(arrs)), np.complex64)
+            for k, a in enumerate(arrs):
+                out[:, :, k] = a[ra:rb, ca:cb]
+            return out
+
+        return read_stack
 
     arr = zarr.open_array(f"{path}/{var}", mode="r")
 

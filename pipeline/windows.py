@@ -36,9 +36,11 @@ def padded_block(
 ) -> np.ndarray:
     """Tile ``[r0:r1, c0:c1]`` with ``halo`` pixels of mirror-extended context on each side.
 
-    ``read(ra, rb, ca, cb)`` returns the scene rectangle ``[ra:rb, ca:cb]``. Only the
-    bounding rectangle of the needed scene pixels is read (at most the tile plus its halo).
-    The result is ``padded[halo + i, halo + j] == scene[r0 + i, c0 + j]``.
+    ``read(ra, rb, ca, cb)`` returns the scene rectangle ``[ra:rb, ca:cb]``, a 2-D array or
+    an array with trailing axes (e.g. ``(rows, cols, p)`` stacked polarimetric channels).
+    Only the bounding rectangle of the needed scene pixels is read (at most the tile plus
+    its halo). The mirror extension acts on the two image axes only; trailing axes are
+    kept whole. The result is ``padded[halo + i, halo + j, ...] == scene[r0 + i, c0 + j, ...]``.
     """
     H, W = shape
     ri = reflect_index(r0 - halo, r1 + halo, H)
@@ -52,11 +54,14 @@ def padded_block(
     if raw.shape[0] > 1 and raw.shape[1] > 1:
         # numpy's reflect padding is the same mirror (repeated for pads wider than a scene
         # that the read covers whole), built from slice copies rather than a gather
+        if raw.ndim > 2:
+            pads = pads + ((0, 0),) * (raw.ndim - 2)
         return np.pad(raw, pads, mode="reflect")
-    return raw[np.ix_(ri - ra, ci - ca)]
+    return raw[np.ix_(ri - ra, ci - ca)]  # trailing axes, if any, are kept whole
 
 
 def mirror_pad(x: np.ndarray, halo: int) -> np.ndarray:
-    """The whole array mirror-extended by ``halo`` (reference for tests and small scenes)."""
-    H, W = x.shape
+    """The whole array mirror-extended by ``halo`` along its first two axes (reference for
+    tests and small scenes); trailing axes are kept whole."""
+    H, W = x.shape[:2]
     return x[np.ix_(reflect_index(-halo, H + halo, H), reflect_index(-halo, W + halo, W))]

@@ -25,7 +25,7 @@ from pipeline import __version__, detectors
 from pipeline.components import merge_radius, merge_tiles
 from pipeline.detections import collection, features, keep_mask, write_json
 from pipeline.errors import InputError
-from pipeline.inputs import intensity_source, make_reader
+from pipeline.inputs import intensity_source, make_reader, polarimetric_source
 from pipeline.scene import Scene, finalize_scene, open_scene, tile_slices
 from workers.tasks import TileJob, run_tile
 
@@ -177,7 +177,10 @@ def run_detection(
     if device == "gpu":
         raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation in this version")
     scene = open_scene(scene_path)
-    var, transform = intensity_source(scene, channel)
+    if spec.input == "polarimetric":
+        var, transform = polarimetric_source(scene, channel)
+    else:
+        var, transform = intensity_source(scene, channel)
     tile = int(tile or scene.tile)
     if tile < 8:
         raise InputError(f"--tile must be at least 8 pixels, got {tile}")
@@ -232,7 +235,7 @@ def run_detection(
             "detector": detector,
             "reference": spec.reference,
             "parameters": params.model_dump(),
-            "channel": var,
+            "channel": var if isinstance(var, str) else list(var),
             "looks_source": looks_source,
             "prepared": prep,
             "scene": {

@@ -24,7 +24,7 @@ from pipeline.windows import padded_block
 @dataclass(frozen=True)
 class TileJob:
     scene_path: str
-    var: str
+    var: str | tuple[str, ...]  # a tuple: stacked complex channels (polarimetric detectors)
     transform: str
     scene_shape: tuple[int, int]
     index: tuple[int, int]
@@ -36,6 +36,17 @@ class TileJob:
     prep: dict
     mask_path: str | None
     spacing: tuple[float, float] | None
+
+
+def span(x: np.ndarray) -> np.ndarray:
+    """Sum over the trailing axis of |x|^2 (float32): the span of stacked channels.
+
+    Plain sum of the channels' powers (|hh|^2 + |hv|^2 + |vv|^2 for quad-pol), not the
+    lexicographic |hh|^2 + 2|hv|^2 + |vv|^2 of the simulator's SCR definition.
+    """
+    xr = x.real.astype(np.float32)
+    xi = x.imag.astype(np.float32)
+    return (xr * xr + xi * xi).sum(axis=-1, dtype=np.float32)
 
 
 def _worker_name() -> str:
@@ -76,6 +87,8 @@ def run_tile(job: TileJob) -> dict[str, Any]:
     mext[m - a: m - a + mask_e.shape[0], m - b: m - b + mask_e.shape[1]] = mask_e
     hb = job.halo
     values = block[hb + a: hb + a + h, hb + b: hb + b + w]
+    if values.ndim == 3:  # stacked complex channels: span = sum of |channel|^2
+        values = span(values)
     comps = tile_components(mext, values, stat_e[a:a + h, b:b + w], m, (r0, c0), (H, W), job.index)
     comps.complete = comps.complete[keep_mask(comps.complete, params, job.spacing)]
     t4 = time.perf_counter()

@@ -12,6 +12,7 @@ _MODULES = {
     "two_parameter": "pipeline.detectors.two_parameter",
     "ca_cfar": "pipeline.detectors.ca_cfar",
     "os_cfar": "pipeline.detectors.os_cfar",
+    "apwf": "pipeline.detectors.apwf",
 }
 
 
