@@ -9,6 +9,7 @@ succeeded, so a failed or interrupted run leaves the previous outputs (or nothin
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import platform
@@ -27,7 +28,7 @@ from pipeline.detections import collection, features, keep_mask, write_json
 from pipeline.errors import InputError
 from pipeline.inputs import intensity_source, make_reader, polarimetric_source
 from pipeline.scene import Scene, finalize_scene, open_scene, tile_slices
-from workers.tasks import TileJob, run_tile
+from workers.tasks import TileJob, run_tile, run_tile_stats
 
 OUTPUTS = ("mask.zarr", "detections.geojson", "run.json")
 
@@ -214,12 +215,22 @@ def run_detection(
             )
             for i, j, r0, r1, c0, c1 in tile_slices((H, W), tile)
         ]
-        t_prep = time.perf_counter()
+        scene_pass = None
         with contextlib.ExitStack() as stack:
             if client is None:
                 from workers.cluster import connect
 
                 client = stack.enter_context(connect(scheduler))
+            if spec.scene_pass is not None:
+                t_pass = time.perf_counter()
+                stats = _execute(client, jobs, detector, progress, None, run_tile_stats, "scene statistics")
+                scene_values = spec.reduce([s["stats"] for s in sorted(stats, key=lambda s: s["index"])],
+                                           params, prep)
+                prep = {**prep, **scene_values}
+                jobs = [dataclasses.replace(j, prep=prep) for j in jobs]
+                scene_pass = {"tiles": len(stats), "seconds": round(time.perf_counter() - t_pass, 4),
+                              "values": scene_values}
+            t_prep = time.perf_counter()
             results = _execute(client, jobs, detector, progress, on_tile)
         t_tiles = time.perf_counter()
         comps = {r["index"]: r["components"] for r in results}
@@ -238,6 +249,7 @@ def run_detection(
             "channel": var if isinstance(var, str) else list(var),
             "looks_source": looks_source,
             "prepared": prep,
+            "scene_pass": scene_pass,
             "scene": {
                 "path": str(Path(scene.path).resolve()),
                 "shape": [H, W],
@@ -287,11 +299,14 @@ def run_detection(
         raise
 
 
-def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile) -> list[dict]:
+def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile, fn=run_tile,
+             stage: str = "detect") -> list[dict]:
     from distributed import as_completed
 
-    futures = client.map(run_tile, jobs, pure=False, key=[f"sarship-{detector}-tile-{j.index[0]}-{j.index[1]}-{uuid.uuid4().hex[:6]}" for j in jobs])
-    prog = Progress(len(jobs), f"detect {detector}", progress)
+    tag = "stats" if fn is run_tile_stats else "tile"
+    futures = client.map(fn, jobs, pure=False, key=[
+        f"sarship-{detector}-{tag}-{j.index[0]}-{j.index[1]}-{uuid.uuid4().hex[:6]}" for j in jobs])
+    prog = Progress(len(jobs), f"{stage} {detector}", progress)
     results = []
     try:
         for fut in as_completed(futures):

@@ -59,6 +59,20 @@ def _worker_name() -> str:
         return "local"
 
 
+def run_tile_stats(job: TileJob) -> dict[str, Any]:
+    """First pass of a two-pass detector: the tile's contribution to scene-wide statistics."""
+    t0 = time.perf_counter()
+    spec = detectors.get(job.detector)
+    params = spec.params(**job.params)
+    H, W = job.scene_shape
+    r0, r1, c0, c1 = job.bounds
+    read = make_reader(job.scene_path, job.var, job.transform)
+    block = padded_block(read, (H, W), r0, r1, c0, c1, job.halo)
+    stats = spec.scene_pass(block, job.halo, (r0 - job.halo, c0 - job.halo), params, job.prep)
+    return {"index": job.index, "stats": stats, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
+            "seconds": time.perf_counter() - t0}
+
+
 def run_tile(job: TileJob) -> dict[str, Any]:
     """Process one tile; returns its components and timings."""
     t0 = time.perf_counter()

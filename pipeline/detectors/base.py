@@ -100,9 +100,20 @@ class DetectorSpec:
     detect: Callable[..., tuple[np.ndarray, np.ndarray]]
     input: str = "intensity"  # the scene quantity the detector reads (see pipeline.inputs)
     needs_looks: bool = False
+    #: Scene-wide statistics before detection (two passes): ``scene_pass(block, halo,
+    #: origin, params, prep) -> dict`` runs on every tile (same block as ``detect``), and
+    #: ``reduce(list_of_dicts, params, prep) -> dict`` combines them; the result is merged
+    #: into ``prep`` before ``detect`` runs, so every tile sees the same scene-wide values.
+    scene_pass: Optional[Callable[..., dict]] = None
+    reduce: Optional[Callable[..., dict]] = None
+    #: ``halo_fn(params) -> int`` for detectors whose context is not ``background // 2``.
+    halo_fn: Optional[Callable[[Any], int]] = None
+    halo_rule: str = "background // 2"
 
     def halo(self, params: DetectorParams) -> int:
-        """Pixels of context each side of a tile: half the largest window."""
+        """Pixels of context each side of a tile: half the largest window by default."""
+        if self.halo_fn is not None:
+            return int(self.halo_fn(params))
         return int(params.background) // 2
 
     def describe(self) -> dict:
@@ -113,7 +124,8 @@ class DetectorSpec:
             "summary": self.summary,
             "reference": self.reference,
             "input": self.input,
-            "halo": "background // 2",
+            "halo": self.halo_rule,
+            "scene_wide_pass": self.scene_pass is not None,
             "halo_default_px": self.halo(self.params()),
             "parameters": schema.get("properties", {}),
             "defaults": defaults,
