@@ -203,7 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("ingest", help="convert GeoTIFF/TIFF, PNG/JPEG, .npy or Zarr into a scene store")
     s.add_argument("inputs", nargs="+")
     s.add_argument("--out", required=True, help="output scene store (SCENE.zarr)")
-    s.add_argument("--kind", choices=["auto", "amplitude", "intensity", "slc", "quadpol"], default="auto")
+    s.add_argument("--kind", choices=["auto", "amplitude", "intensity", "slc", "quadpol", "covariance"], default="auto")
     s.add_argument("--tile", type=_positive_int, default=2048)
     s.add_argument("--channels", help="comma-separated channel names of the bands/files (e.g. vh,vv)")
     s.add_argument("--band", help="band (name or index) used as 'intensity' for multi-band real inputs")
