@@ -71,6 +71,12 @@ def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tupl
             raise InputError(f"parameter 'channel': give 2 or 3 distinct complex channels, got '{channels}'")
         return tuple(names), "stack"
     found = [v for v in _POL_ORDER if is_complex(v)]
+    if len(found) < 2 and "c11" in scene.variables and "c12" in scene.variables:
+        # covariance scene (C3 or C2): the reader assembles (rows, cols, p, p) matrices
+        if all(v in scene.variables for v in COVARIANCE3):
+            return COVARIANCE3, "covariance"
+        if all(v in scene.variables for v in COVARIANCE2):
+            return COVARIANCE2, "covariance"
     if all(v in found for v in ("hh", "hv", "vv")):
         return ("hh", "hv", "vv"), "stack"
     if len(found) < 2:
@@ -82,15 +88,37 @@ def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tupl
     return tuple(found), "stack"
 
 
+#: Covariance scene variables (upper triangle, row-major) for p = 3 and p = 2.
+COVARIANCE3 = ("c11", "c12", "c13", "c22", "c23", "c33")
+COVARIANCE2 = ("c11", "c12", "c22")
+
+
 def make_reader(path: str, var: str | tuple[str, ...], transform: str
                 ) -> Callable[[int, int, int, int], np.ndarray]:
     """``read(ra, rb, ca, cb)`` -> float32 intensity of the scene rectangle.
 
     With a tuple of variables and transform ``"stack"``: the complex64 channels of the
-    rectangle stacked on a trailing axis, shape ``(rb - ra, cb - ca, p)``.
+    rectangle stacked on a trailing axis, shape ``(rb - ra, cb - ca, p)``. With transform
+    ``"covariance"`` (variables :data:`COVARIANCE3` or :data:`COVARIANCE2`): the Hermitian
+    matrices, shape ``(rb - ra, cb - ca, p, p)``.
     """
     import zarr
 
+    if not isinstance(var, str) and transform == "covariance":
+        p = 3 if len(var) == 6 else 2
+        arrs = {v: zarr.open_array(f"{path}/{v}", mode="r") for v in var}
+
+        def read_cov(ra: int, rb: int, ca: int, cb: int) -> np.ndarray:
+            out = np.empty((rb - ra, cb - ca, p, p), np.complex64)
+            for i in range(p):
+                for j in range(i, p):
+                    a = np.asarray(arrs[f"c{i + 1}{j + 1}"][ra:rb, ca:cb])
+                    out[:, :, i, j] = a
+                    if j != i:
+                        out[:, :, j, i] = np.conj(a)
+            return out
+
+        return read_cov
     if not isinstance(var, str):
         if transform != "stack":
             raise ValueError(f"several variables need transform 'stack', got '{transform}'")

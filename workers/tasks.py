@@ -103,6 +103,8 @@ def run_tile(job: TileJob) -> dict[str, Any]:
     values = block[hb + a: hb + a + h, hb + b: hb + b + w]
     if values.ndim == 3:  # stacked complex channels: span = sum of |channel|^2
         values = span(values)
+    elif values.ndim == 4:  # covariance matrices: span = trace
+        values = np.trace(values, axis1=2, axis2=3).real.astype(np.float32)
     comps = tile_components(mext, values, stat_e[a:a + h, b:b + w], m, (r0, c0), (H, W), job.index)
     comps.complete = comps.complete[keep_mask(comps.complete, params, job.spacing)]
     t4 = time.perf_counter()

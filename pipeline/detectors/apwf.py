@@ -221,6 +221,45 @@ def _products(x, out):
 
 
 @njit(nogil=True, cache=True)
+def _products_cov(C, out):
+    """The p^2 real numbers of a covariance matrix per pixel, in :func:`_products`' layout."""
+    R, W, p, _ = C.shape
+    for i in range(R):
+        for j in range(W):
+            for d in range(p):
+                out[d, i, j] = np.float64(C[i, j, d, d].real)
+            q = p
+            for a in range(p):
+                for b in range(a + 1, p):
+                    z = C[i, j, a, b]
+                    out[q, i, j] = np.float64(z.real)
+                    out[q + 1, i, j] = np.float64(z.imag)
+                    q += 2
+
+
+def _cov_to_x_free_stat(C, S, n):
+    """y = N tr(S^-1 C) per pixel (numpy; C (h, w, p, p), S in the products layout)."""
+    h, w, p, _ = C.shape
+    M = np.empty((h, w, p, p), np.complex128)
+    for d in range(p):
+        M[..., d, d] = S[d]
+    q = p
+    for a in range(p):
+        for b in range(a + 1, p):
+            M[..., a, b] = S[q] + 1j * S[q + 1]
+            M[..., b, a] = S[q] - 1j * S[q + 1]
+            q += 2
+    with np.errstate(all="ignore"):
+        sol = np.linalg.solve(M, C.astype(np.complex128))
+        y = n * np.real(np.trace(sol, axis1=2, axis2=3))
+    bad = ~np.isfinite(y)
+    if bad.any():
+        nz = np.abs(C).sum(axis=(2, 3)) > 0
+        y[bad] = np.where(nz[bad], np.inf, 0.0)
+    return y
+
+
+@njit(nogil=True, cache=True)
 def _pwf(x, S, n, thr, mask, stat):
     """y = N X^H S^-1 X per pixel from the window sums S[q] (layout of :func:`_products`)."""
     h, w, p = x.shape
@@ -280,7 +319,10 @@ def window_sums(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWF
     o = (int(origin[0]) + off, int(origin[1]) + off)
     p = block.shape[2]
     prods = np.empty((p * p, sub.shape[0], sub.shape[1]), np.float64)
-    _products(sub, prods)
+    if block.ndim == 4:
+        _products_cov(sub, prods)
+    else:
+        _products(sub, prods)
     S = np.empty((p * p, h, w), np.float64)
     for q in range(p * p):
         S[q] = centered_box_sum(prods[q], b, r, o)
@@ -296,8 +338,11 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
     :data:`STRIP_ROWS` x :data:`STRIP_COLS` pixels (sub-blocks with their own origin:
     the box sums, hence y, are the same bit for bit).
     """
-    if block.ndim != 3 or block.shape[2] not in (2, 3):
-        raise ValueError(f"apwf needs a (rows, cols, p) block with p = 2 or 3 channels, got shape {block.shape}")
+    cov = block.ndim == 4
+    if not ((block.ndim == 3 and block.shape[2] in (2, 3))
+            or (cov and block.shape[2] == block.shape[3] and block.shape[2] in (2, 3))):
+        raise ValueError(f"apwf needs (rows, cols, p) channels or (rows, cols, p, p) covariances with p = 2 or 3, "
+                         f"got shape {block.shape}")
     b = int(prm.background)
     if b // 2 > halo:
         raise ValueError(f"window {b} needs a halo of {b // 2}, block has {halo}")
@@ -315,7 +360,15 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
             sub = block[r0: r1 + 2 * halo, c0: c1 + 2 * halo]
             S = window_sums(sub, halo, (origin[0] + r0, origin[1] + c0), prm)
             core = sub[halo: halo + r1 - r0, halo: halo + c1 - c0]
-            _pwf(core, S, n, thr, mask[r0:r1, c0:c1], stat[r0:r1, c0:c1])
+            if cov:
+                y = _cov_to_x_free_stat(core, S, n)
+                m = y > thr
+                st = y.astype(np.float32)
+                st[m & (st <= np.float32(thr))] = np.nextafter(np.float32(thr), np.float32(np.inf))
+                mask[r0:r1, c0:c1] = m
+                stat[r0:r1, c0:c1] = st
+            else:
+                _pwf(core, S, n, thr, mask[r0:r1, c0:c1], stat[r0:r1, c0:c1])
     return mask, stat
 
 

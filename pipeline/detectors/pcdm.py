@@ -5,7 +5,8 @@ ALGORITHMS.md section C.
 
 Per pixel:
 
-1. Covariance ``C = <k k^H>`` of the lexicographic scattering vector
+1. Covariance ``C = <k k^H>`` (or the scene's stored C3/C2 for covariance scenes) of the
+   lexicographic scattering vector
    ``k = [S_HH, sqrt(2) S_HV, S_VV]`` (quad-pol, p = 3) or ``k = [S_1, S_2]`` of the two
    channels of a dual-pol scene (p = 2). ``<.>`` is a ``looks_window`` x ``looks_window``
    boxcar (default 1: the single-look ``k k^H``, as the thesis' GPU kernel computes it).
@@ -106,14 +107,19 @@ def covariance_planes(block: np.ndarray, looks_window: int, halo_px: int, origin
     """
     x = np.asarray(block)
     p = x.shape[2]
-    k = x.astype(np.complex128)
-    if p == 3:
-        k[..., 1] *= math.sqrt(2.0)
     pairs = [(i, j) for i in range(p) for j in range(i + 1, p)]
-    planes = [(k[..., i].real ** 2 + k[..., i].imag ** 2) for i in range(p)]
-    for i, j in pairs:
-        prod = k[..., i] * np.conj(k[..., j])
-        planes += [prod.real, prod.imag]
+    if x.ndim == 4:  # covariance scene: C given (lexicographic basis, as stored)
+        planes = [x[..., i, i].real.astype(np.float64) for i in range(p)]
+        for i, j in pairs:
+            planes += [x[..., i, j].real.astype(np.float64), x[..., i, j].imag.astype(np.float64)]
+    else:
+        k = x.astype(np.complex128)
+        if p == 3:
+            k[..., 1] *= math.sqrt(2.0)
+        planes = [(k[..., i].real ** 2 + k[..., i].imag ** 2) for i in range(p)]
+        for i, j in pairs:
+            prod = k[..., i] * np.conj(k[..., j])
+            planes += [prod.real, prod.imag]
     r = looks_window // 2
     if r == 0:
         return np.stack(planes)
@@ -208,8 +214,8 @@ def _pcdm_kernel(C, p, span_out, psh_out):
 
 def span_psh(block: np.ndarray, halo_px: int, origin, p: PCDMParams) -> tuple[np.ndarray, np.ndarray]:
     """SPAN_P and PSH (float64) of the core of a padded polarimetric block (rows, cols, p)."""
-    if block.ndim != 3 or block.shape[2] not in (2, 3):
-        raise ValueError("pcdm needs a (rows, cols, 2 or 3) block of complex channels")
+    if not (block.ndim in (3, 4) and block.shape[2] in (2, 3)):
+        raise ValueError("pcdm needs (rows, cols, p) complex channels or (rows, cols, p, p) covariances, p = 2 or 3")
     r = p.looks_window // 2
     C = covariance_planes(block, p.looks_window, halo_px, origin)
     # C covers the block minus r each side; the core plus a 1-pixel margin starts at halo - r - 1
