@@ -113,19 +113,42 @@ def covariance_planes(block: np.ndarray, looks_window: int, halo_px: int, origin
         for i, j in pairs:
             planes += [x[..., i, j].real.astype(np.float64), x[..., i, j].imag.astype(np.float64)]
     else:
-        k = x.astype(np.complex128)
-        if p == 3:
-            k[..., 1] *= math.sqrt(2.0)
-        planes = [(k[..., i].real ** 2 + k[..., i].imag ** 2) for i in range(p)]
-        for i, j in pairs:
-            prod = k[..., i] * np.conj(k[..., j])
-            planes += [prod.real, prod.imag]
+        planes = np.empty((p * p, x.shape[0], x.shape[1]), np.float64)
+        _planes_from_k(x, planes)
+        if looks_window == 1:
+            return planes
     r = looks_window // 2
     if r == 0:
         return np.stack(planes)
     n = float(looks_window * looks_window)
     # boxcar means with the tiling-invariant window sums; the output covers block minus r
     return np.stack([centered_box_sum(pl, looks_window, r, (origin[0], origin[1])) / n for pl in planes])
+
+
+@njit(nogil=True, cache=True)
+def _planes_from_k(x, out):
+    """k k^H planes (diagonal, then Re/Im of i < j) of k = [x0, sqrt2 x1, x2] (p = 3) or x."""
+    R, W, p = x.shape
+    s2 = math.sqrt(2.0)
+    kr = np.empty(p)
+    ki = np.empty(p)
+    for i in range(R):
+        for j in range(W):
+            for c in range(p):
+                kr[c] = np.float64(x[i, j, c].real)
+                ki[c] = np.float64(x[i, j, c].imag)
+            if p == 3:
+                kr[1] *= s2
+                ki[1] *= s2
+            for c in range(p):
+                out[c, i, j] = kr[c] * kr[c] + ki[c] * ki[c]
+            q = p
+            for a in range(p):
+                for b in range(a + 1, p):
+                    # k_a conj(k_b)
+                    out[q, i, j] = kr[a] * kr[b] + ki[a] * ki[b]
+                    out[q + 1, i, j] = ki[a] * kr[b] - kr[a] * ki[b]
+                    q += 2
 
 
 @njit(nogil=True, cache=True)
