@@ -13,6 +13,7 @@ _MODULES = {
     "ca_cfar": "pipeline.detectors.ca_cfar",
     "os_cfar": "pipeline.detectors.os_cfar",
     "apwf": "pipeline.detectors.apwf",
+    "lmm": "pipeline.detectors.lmm",
     "pcdm": "pipeline.detectors.pcdm",
 }
 
