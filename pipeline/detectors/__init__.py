@@ -15,6 +15,7 @@ _MODULES = {
     "apwf": "pipeline.detectors.apwf",
     "lmm": "pipeline.detectors.lmm",
     "pcdm": "pipeline.detectors.pcdm",
+    "vb_polsar": "pipeline.detectors.vb_polsar",
 }
 
 
