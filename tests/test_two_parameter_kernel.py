@@ -1,0 +1,349 @@
+"""The fused two-parameter kernel, bit for bit, against a plain numpy statement of its maths.
+
+``two_parameter.detect`` streams all its window sums in one SIMD kernel. It promises the
+results of the plain pipeline, to the last bit, for every input: y = the tile as float64,
+transformed (identity, sqrt(max(x, 0)) or 10 log10(max(x, 1e-30)), by numpy); the window
+sums of y and y * y over the background and guard windows (and of y over the target
+window) in the van Herk order of :mod:`pipeline.boxsum` (stated below with
+``np.add.accumulate``, a strictly sequential running sum, one block at a time); then
+s1 = s1b - s1g, s2 = s2b - s2g, mu = s1 / N, var = (s2 - s1 mu) / (N - 1), d = x_t - mu,
+statistic d / sqrt(var) (inf if var <= 0 < d, else 0 if var <= 0), mask = statistic > t.
+Checked for every dtype, domain, window, origin, tile shape and strip width, including
+tiles smaller than the window, 1-pixel tiles, signed zeros, infinities and NaNs, and for
+any tiling of a scene.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numba import njit, uint64
+
+from pipeline.boxsum import centered_box_sum
+from pipeline.detectors import two_parameter as tp
+from pipeline.windows import mirror_pad
+
+
+def _vh_ref(a: np.ndarray, m: int, g0: int, zero_start: bool) -> np.ndarray:
+    """Sums of ``m`` consecutive elements along the last axis of float64 ``a`` (first element
+    at global coordinate ``g0``) in the van Herk order: blocks ``[s, s + m)`` with
+    ``(g0 + s) % m == 0``; suffix from the block end down, prefix of the next block from its
+    start up, both from 0.0 (``zero_start``, horizontal pass) or from the first element
+    (vertical pass); window ``suffix[i]`` when ``i`` starts a block, else
+    ``suffix[i] + prefix[i + m - 1]``."""
+    n = a.shape[-1] - m + 1
+    out = np.empty(a.shape[:-1] + (n,))
+    zero = np.zeros(a.shape[:-1] + (1,))
+
+    def run(seg):
+        if zero_start:
+            return np.add.accumulate(np.concatenate([zero, seg], axis=-1), axis=-1)[..., 1:]
+        return np.add.accumulate(seg, axis=-1)
+
+    s = -(g0 % m)
+    while s < n:
+        lo, hi = max(s, 0), min(s + m, n)
+        if lo < hi:
+            e = s + m - 1
+            suf = run(a[..., lo:e + 1][..., ::-1])[..., ::-1]
+            if lo == s:
+                out[..., s] = suf[..., 0]
+            first = max(lo, s + 1)
+            if first < hi:
+                pre = run(a[..., s + m: hi + m - 1])
+                for i in range(first, hi):
+                    out[..., i] = suf[..., i - lo] + pre[..., i - s - 1]
+        s += m
+    return out
+
+
+def _box_ref(y, m, halo, origin):
+    r = m // 2
+    off = halo - r
+    h = y.shape[0] - 2 * halo
+    w = y.shape[1] - 2 * halo
+    sub = y[off: off + h + m - 1, off: off + w + m - 1]
+    with np.errstate(all="ignore"):
+        horiz = _vh_ref(sub, m, origin[1] + off, zero_start=True)
+        return np.ascontiguousarray(_vh_ref(horiz.T, m, origin[0] + off, zero_start=False).T)
+
+
+def _transform(block, domain):
+    x = block.astype(np.float64)
+    with np.errstate(all="ignore"):
+        if domain == "amplitude":
+            return np.sqrt(np.maximum(x, 0.0))
+        if domain == "db":
+            return 10.0 * np.log10(np.maximum(x, 1e-30))
+    return x
+
+
+def _decide(xt, s1b, s1g, s2b, s2g, prep):
+    n = float(prep["n_ring"])
+    with np.errstate(all="ignore"):
+        s1 = s1b - s1g
+        s2 = s2b - s2g
+        mu = s1 / n
+        var = (s2 - s1 * mu) / (n - 1.0)
+        d = xt - mu
+        s = np.where(var > 0.0, d / np.sqrt(var), np.where(d > 0.0, np.inf, 0.0))
+    return s > float(prep["threshold"]), s.astype(np.float32)
+
+
+def two_parameter_ref(block, halo, origin, p, prep, box=_box_ref):
+    """The plain pipeline; ``box`` = the numpy reference or ``boxsum.centered_box_sum``."""
+    y = _transform(block, p.domain)
+    with np.errstate(all="ignore"):
+        y2 = y * y
+    s1b, s1g = box(y, p.background, halo, origin), box(y, p.guard, halo, origin)
+    s2b, s2g = box(y2, p.background, halo, origin), box(y2, p.guard, halo, origin)
+    if p.target == 1:
+        xt = y[halo: y.shape[0] - halo, halo: y.shape[1] - halo]
+    else:
+        xt = box(y, p.target, halo, origin) / float(p.target**2)
+    return _decide(xt, s1b, s1g, s2b, s2g, prep)
+
+
+def assert_bits(got, ref):
+    assert got.shape == ref.shape and got.dtype == ref.dtype, (got.shape, ref.shape, got.dtype, ref.dtype)
+    if got.dtype == np.bool_:
+        np.testing.assert_array_equal(got, ref)
+        return
+    nan_g, nan_r = np.isnan(got), np.isnan(ref)
+    np.testing.assert_array_equal(nan_g, nan_r)
+    if got[~nan_g].tobytes() != ref[~nan_r].tobytes():
+        d = np.flatnonzero((got != ref) & ~nan_g)
+        raise AssertionError(f"{d.size} values differ, first at {np.unravel_index(d[0], got.shape)}: "
+                             f"{got.flat[d[0]]!r} != {ref.flat[d[0]]!r}")
+
+
+def _values(rng, shape, kind, dtype):
+    if kind == "int16":
+        return rng.integers(-1000, 1000, shape).astype(np.int16)
+    if kind == "gamma":
+        x = rng.gamma(1.5, 1.0, shape)
+    elif kind == "wide":  # magnitudes over 16 decades: any change of order shows
+        x = rng.standard_normal(shape) * 10.0 ** rng.integers(-8, 9, shape)
+    elif kind == "decades":  # positive, over 80 decades (the dB domain's range)
+        x = 10.0 ** rng.uniform(-40, 40, shape)
+    elif kind == "flat":  # constant: var = 0 exactly
+        x = np.full(shape, 3.0)
+    else:  # special values
+        x = rng.gamma(2.0, 1.0, shape)
+        u = rng.random(shape)
+        x[u < 0.05] = 0.0
+        x[(u >= 0.05) & (u < 0.08)] = -0.0
+        x[(u >= 0.08) & (u < 0.09)] = -2.5
+        x[(u >= 0.09) & (u < 0.095)] = 1e30
+        x[(u >= 0.095) & (u < 0.097)] = 1e-35
+        if kind == "nonfinite":
+            x[(u >= 0.097) & (u < 0.098)] = np.inf
+            x[(u >= 0.098) & (u < 0.099)] = -np.inf
+            x[(u >= 0.099) & (u < 0.0995)] = np.nan
+    return x.astype(dtype)
+
+
+KINDS = [("gamma", np.float32), ("wide", np.float64), ("special", np.float32), ("nonfinite", np.float64),
+         ("decades", np.float64), ("wide", np.float32), ("special", np.float64), ("nonfinite", np.float32),
+         ("flat", np.float32), ("int16", None)]
+DOMAINS = ["intensity", "amplitude", "db"]
+
+
+def _cases(seed, n):
+    rng = np.random.default_rng(seed)
+    for k in range(n):
+        t = int(rng.choice([1, 1, 1, 3, 5]))
+        g = t + 2 * int(rng.integers(0, 12))
+        b = g + 2 * int(rng.integers(1, 20))
+        if k % 7 == 0:
+            t, g, b = 1, 21, 41  # the defaults
+        elif k % 7 == 3:
+            t, g, b = 3, 21, 41
+        halo = b // 2 + int(rng.choice([0, 0, 3]))
+        if k % 5 == 0:
+            h, w = 1, 1
+        elif k % 5 == 1:
+            h, w = int(rng.integers(1, 8)), int(rng.integers(1, 8))
+        else:
+            h, w = int(rng.integers(1, 150)), int(rng.integers(1, 150))
+        origin = (int(rng.integers(-400, 900)), int(rng.integers(-400, 900)))
+        kind, dtype = KINDS[k % len(KINDS)]
+        block = _values(rng, (h + 2 * halo, w + 2 * halo), kind, dtype)
+        p = tp.TwoParameterParams(pfa=float(rng.choice([1e-1, 1e-2, 1e-5])), target=t, guard=g, background=b,
+                                  domain=DOMAINS[(k // len(KINDS)) % 3 if k % 2 else k % 3],
+                                  threshold=str(rng.choice(["student", "gaussian"])), min_area_px=1)
+        yield block, halo, origin, p
+
+
+def _check(block, halo, origin, p, box=_box_ref):
+    prep = tp.prepare(p)
+    mask, stat = tp.detect(block, halo, origin, p, prep)
+    ref_mask, ref_stat = two_parameter_ref(block, halo, origin, p, prep, box)
+    assert_bits(mask, ref_mask)
+    assert_bits(stat, ref_stat)
+    return mask, stat
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_kernel_matches_reference_order(seed):
+    for block, halo, origin, p in _cases(300 + seed, 30):
+        _check(block, halo, origin, p)
+
+
+def test_kernel_matches_boxsum_pipeline():
+    """The former implementation: transform, ``centered_box_sum`` x 4 (5), decision."""
+    for block, halo, origin, p in _cases(400, 20):
+        _check(block, halo, origin, p, box=centered_box_sum)
+
+
+@pytest.mark.parametrize("strip", [1, 3, 17])
+def test_kernel_strips_change_nothing(monkeypatch, strip):
+    monkeypatch.setattr(tp, "STRIP", strip)
+    for block, halo, origin, p in _cases(500 + strip, 8):
+        _check(block, halo, origin, p)
+
+
+@pytest.mark.parametrize("domain", DOMAINS)
+@pytest.mark.parametrize("target", [1, 3])
+def test_kernel_default_windows_on_a_large_tile(domain, target):
+    """The production shape class: default windows, several strips, many row blocks and
+    (``db``) several bands of the logarithm."""
+    rng = np.random.default_rng(6)
+    p = tp.TwoParameterParams(domain=domain, target=target)
+    halo = p.background // 2
+    block = rng.gamma(2.0, 0.5, (170 + 2 * halo, 1700 + 2 * halo)).astype(np.float32)
+    block[100:104, 500:506] = 40.0
+    mask, _ = _check(block, halo, (1234, -30), p)
+    assert mask[100 - halo:104 - halo, 500 - halo:506 - halo].any()
+
+
+def test_kernel_non_contiguous_input():
+    rng = np.random.default_rng(8)
+    big = _values(rng, (120, 150), "gamma", np.float64)
+    block = big[3:110, 140:10:-1]  # strided, reversed columns
+    for domain in DOMAINS:
+        p = tp.TwoParameterParams(guard=5, background=13, target=3, domain=domain)
+        _check(block, 9, (-7, 11), p)
+
+
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_kernel_tiling_invariant(domain):
+    rng = np.random.default_rng(3)
+    x = rng.gamma(1.5, 1.0, (97, 83)).astype(np.float32)
+    x[40:43, 20:24] = 30.0
+    for t in (1, 3):
+        p = tp.TwoParameterParams(pfa=1e-2, target=t, guard=9, background=21, domain=domain)
+        prep = tp.prepare(p)
+        halo = p.background // 2 + 2
+        P = mirror_pad(x, halo)
+        whole_m, whole_s = tp.detect(P, halo, (-halo, -halo), p, prep)
+        for th, tw in [(1, 1), (5, 9), (13, 4), (40, 83)]:
+            for r0 in range(0, 97, th):
+                for c0 in range(0, 83, tw):
+                    r1, c1 = min(r0 + th, 97), min(c0 + tw, 83)
+                    blk = P[r0: r1 + 2 * halo, c0: c1 + 2 * halo]
+                    m, s = tp.detect(blk, halo, (r0 - halo, c0 - halo), p, prep)
+                    assert_bits(m, whole_m[r0:r1, c0:c1])
+                    assert_bits(s, whole_s[r0:r1, c0:c1])
+
+
+def test_kernel_empty_tiles():
+    p = tp.TwoParameterParams(guard=3, background=7)
+    prep = tp.prepare(p)
+    for h, w in [(0, 0), (0, 5), (5, 0)]:
+        mask, stat = tp.detect(np.ones((h + 6, w + 6), np.float32), 3, (0, 0), p, prep)
+        assert mask.shape == (h, w) and stat.shape == (h, w) and stat.dtype == np.float32
+
+
+@njit
+def _divn(a, n, out):
+    nv = tp._vsplat(n)
+    yv = tp._vsplat(1.0 / n)
+    for j in range(0, a.size, 4):
+        tp._vstore(out, uint64(j), tp._vdivn(tp._vload(a, uint64(j)), nv, yv))
+
+
+def test_division_by_integer_is_correctly_rounded():
+    """``_vdivn`` (FMA correction instead of the divider) equals IEEE division, including
+    near rounding boundaries, for the divisors the kernel uses (ring sizes, N - 1, t^2)."""
+    rng = np.random.default_rng(11)
+    N = 1 << 16
+    for n in [8.0, 7.0, 9.0, 1240.0, 1239.0, 48.0, 47.0, 65025.0, 1023**2 - 1021**2 - 1.0,
+              *rng.integers(7, 1 << 20, 6).astype(float)]:
+        q = rng.uniform(1, 2, N) * 2.0 ** rng.integers(-60, 60, N)
+        with np.errstate(all="ignore"):
+            a = np.concatenate([
+                rng.standard_normal(N) * 10.0 ** rng.uniform(-300, 300, N),
+                np.nextafter(q * n, rng.choice([-np.inf, np.inf], N)),  # near exact quotients
+                (rng.integers(-2**52, 2**52, N) * 0.5) * n,  # quotients at half-integers
+                rng.standard_normal(N) * 2.0 ** rng.integers(-1075, 1024, N),  # subnormal to huge
+                np.array([0.0, -0.0, np.inf, -np.inf, np.nan, 5e-324, -5e-324, 1.7e308] * 4),
+            ])
+        out = np.empty_like(a)
+        with np.errstate(all="ignore"):
+            _divn(a, n, out)
+            ref = a / n
+        assert_bits(out, ref)
+
+
+def test_kernel_threshold_is_strict():
+    """mask = statistic > threshold: a statistic equal to the threshold is no detection
+    (flat data: var = 0 and d = 0, statistic 0; a spike on a flat ring: statistic inf)."""
+    p = tp.TwoParameterParams(guard=3, background=9)
+    x = np.full((20, 30), 2.0, np.float32)
+    x[10, 10] = 5.0
+    P = mirror_pad(x, 4)
+    prep = tp.prepare(p)
+    for thr in (0.0, np.inf):
+        mask, stat = tp.detect(P, 4, (-4, -4), p, {**prep, "threshold": thr})
+        ref_mask, ref_stat = two_parameter_ref(P, 4, (-4, -4), p, {**prep, "threshold": thr})
+        assert_bits(mask, ref_mask)
+        assert_bits(stat, ref_stat)
+        assert stat[10, 10] == np.inf and stat[0, 0] == 0.0
+        assert mask.sum() == (1 if thr == 0.0 else 0)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_transform_matches_numpy_bit_for_bit(dtype):
+    """y of each domain, as the kernel forms it (the logarithm of ``db`` by numpy in bands),
+    against the numpy transform, on special values and over the whole exponent range."""
+    rng = np.random.default_rng(12)
+    x = np.concatenate([
+        np.array([0.0, -0.0, -1.0, 1e-30, 1e-31, 1.0, np.inf, -np.inf, np.nan, -np.nan,
+                  5e-324, 1e-45, 3.4e38]),
+        rng.standard_normal(4000) * 10.0 ** rng.uniform(-45, 38, 4000),
+        rng.gamma(1.5, 1.0, 4000),
+    ]).astype(dtype)
+    src = np.ascontiguousarray(np.tile(x, (3, 1)))
+    n = x.size
+    Y = np.empty((2, n + 5))
+    for domain, mode in tp._MODE.items():
+        with np.errstate(all="ignore"):
+            ref = _transform(x, domain)
+        if mode == 2:
+            L = np.empty((2, n))
+            tp._db_band(src, 1, 2, 0, L)
+            tp._transform_row(L, 1, 0, n, mode, Y, 1)
+        else:
+            tp._transform_row(src, 1, 0, n, mode, Y, 1)
+        got = Y[1, :n]
+        assert_bits(got, ref)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(ref))  # zeros and NaNs too
+
+
+def test_fused_kernel_equals_in_module_reference_fallback():
+    """detect() and its plain fallback detect_reference() agree bit for bit."""
+    from pipeline.detectors import two_parameter as tp
+    from pipeline.windows import mirror_pad
+
+    rng = np.random.default_rng(42)
+    for domain in ("intensity", "amplitude", "db"):
+        for target in (1, 3):
+            x = rng.gamma(1.0, 1.0, (57, 61)).astype(np.float32)
+            prm = tp.TwoParameterParams(guard=9, background=15, target=target, domain=domain, pfa=1e-2)
+            prep = tp.prepare(prm)
+            blk = mirror_pad(x, 7)
+            m1, s1 = tp.detect(blk, 7, (-7, -7), prm, prep)
+            m2, s2 = tp.detect_reference(blk, 7, (-7, -7), prm, prep)
+            np.testing.assert_array_equal(m1, m2)
+            np.testing.assert_array_equal(s1, s2)
