@@ -233,7 +233,7 @@ def test_grid_default_windows_ships():
 
 
 def test_detect_rejects_bad_input():
-    p = LMMParams(guard=3, background=7)
+    p = LMMParams(guard=3, background=7, method="fast")
     prep = prepare(p)
     with pytest.raises(ValueError, match="halo"):
         detect(np.ones((20, 20), np.float32), 2, (0, 0), p, prep)
@@ -324,7 +324,7 @@ def test_tiled_equals_untiled_dask(tmp_path, client):
 
     r1, whole, mask1 = run(4096, "whole")
     p = LMMParams(**settings)
-    assert p.method == "grid" and LMMParams().method == "fast"
+    assert p.method == "grid" and LMMParams().method == "grid"
     h = SPEC.halo(p)
     assert h == 15 + 8
     ref, _ = detect(mirror_pad(x, h), h, (-h, -h), p, prepare(p))
@@ -353,3 +353,27 @@ def test_ships_on_simulated_scene(tmp_path, client):
     s = evaluate(tmp_path / "o" / "detections.geojson", truth)
     assert s["n_truth"] == 10
     assert s["fom"] >= 0.9, s
+
+
+def test_default_grid_meets_the_agreement_rule():
+    """The default (grid, step max(1, guard // 4), refine 2 nepers) is within the stated
+    tolerance of the fast form on both test scenes: the small-window dense-ship scene
+    (guard 7 -> step 1: the fast form itself) and default windows with ships (step 5)."""
+    from scipy import ndimage
+    rng = np.random.default_rng(13)
+    x = _scene(rng, 96, 8)
+    p = dict(guard=7, background=17, pfa=1e-3)
+    mf, _ = _run(x, method="fast", **p)
+    md, _ = _run(x, **p)
+    np.testing.assert_array_equal(md, mf)
+    rng = np.random.default_rng(21)
+    n = 120
+    y = np.exp(_mixture(rng, (n, n), [0.7, 0.3], [0.0, 1.0], [0.5, 0.8])).astype(np.float32)
+    for _ in range(6):
+        r, c = rng.integers(10, n - 14, size=2)
+        y[r:r + 3, c:c + 5] *= 60.0
+    mf, _ = _run(y, method="fast", pfa=1e-4)
+    md, _ = _run(y, pfa=1e-4)
+    assert mf.sum() > 20
+    assert np.mean(md != mf) <= 1e-3, ((md != mf).sum(), mf.sum())
+    assert abs(ndimage.label(md)[1] - ndimage.label(mf)[1]) <= 1
