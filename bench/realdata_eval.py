@@ -187,7 +187,7 @@ def components(mask: np.ndarray, merge_px: int) -> np.ndarray:
     ext = np.zeros((h + 2 * r, w + 2 * r), bool)
     ext[r:r + h, r:r + w] = mask
     z = np.zeros(mask.shape, np.float32)
-    comps = tile_components(ext, z, z, r, (0, 0), (h, w), (0, 0))
+    comps = tile_components(ext, z, z, r, (0, 0), (0, 0))
     return merge_tiles({(0, 0): comps})
 
 

@@ -91,6 +91,30 @@ def _find(parent, a):
 
 
 @njit(nogil=True, cache=True)
+def _union(parent, a, b):
+    """Join the sets of a and b (the smaller root index becomes the root)."""
+    ra, rb = _find(parent, a), _find(parent, b)
+    if ra < rb:
+        parent[rb] = ra
+    elif rb < ra:
+        parent[ra] = rb
+
+
+@njit(nogil=True, cache=True)
+def _union_pairs(parent, a, b):
+    for k in range(len(a)):
+        _union(parent, a[k], b[k])
+
+
+@njit(nogil=True, cache=True)
+def _roots(parent):
+    out = np.empty(len(parent), np.int64)
+    for k in range(len(parent)):
+        out[k] = _find(parent, k)
+    return out
+
+
+@njit(nogil=True, cache=True)
 def _label_points(rr, cc, n_rows, d):
     """Components of points (row-major sorted) joined at Chebyshev distance <= d.
 
@@ -119,12 +143,7 @@ def _label_points(rr, cc, n_rows, d):
                     hi = mid
             j = lo
             while j < b and cc[j] <= c + d:
-                ra, rb = _find(parent, k), _find(parent, j)
-                if ra != rb:
-                    if ra < rb:
-                        parent[rb] = ra
-                    else:
-                        parent[ra] = rb
+                _union(parent, k, j)
                 j += 1
     comp = np.empty(n, np.int64)
     ids = -np.ones(n, np.int64)
@@ -175,7 +194,6 @@ def tile_components(
     stat: np.ndarray,
     r: int,
     origin: tuple[int, int],
-    scene_shape: tuple[int, int],
     tile: tuple[int, int],
 ) -> TileComponents:
     """Label one tile's mask and reduce its components to moments.
@@ -251,28 +269,6 @@ def tile_components(
     return TileComponents(tile=tile, shape=(h, w), moments=mom[touching], edges=edges, complete=complete)
 
 
-class _UnionFind:
-    def __init__(self, n: int):
-        self.parent = np.arange(n, dtype=np.int64)
-
-    def find(self, a: int) -> int:
-        p = self.parent
-        root = a
-        while p[root] != root:
-            root = p[root]
-        while p[a] != root:
-            p[a], a = root, p[a]
-        return root
-
-    def union(self, a: int, b: int) -> None:
-        ra, rb = self.find(a), self.find(b)
-        if ra != rb:
-            if ra < rb:
-                self.parent[rb] = ra
-            else:
-                self.parent[ra] = rb
-
-
 def _pairs_line(a: np.ndarray, b: np.ndarray) -> set[tuple[int, int]]:
     """Label pairs of 8-adjacent pixels across a straight border (a and b face each other)."""
     out: set[tuple[int, int]] = set()
@@ -322,12 +318,12 @@ def merge_tiles(tiles: dict[tuple[int, int], TileComponents]) -> np.ndarray:
     for k in keys:
         offset[k] = total
         total += len(tiles[k].moments)
-    uf = _UnionFind(total)
+    parent = np.arange(total, dtype=np.int64)
 
     def link(ka, kb, pairs):
-        oa, ob = offset[ka], offset[kb]
-        for a, b in pairs:
-            uf.union(oa + a - 1, ob + b - 1)
+        if pairs:
+            ab = np.array(sorted(pairs), dtype=np.int64)
+            _union_pairs(parent, ab[:, 0] + offset[ka] - 1, ab[:, 1] + offset[kb] - 1)
 
     for (i, j) in keys:
         t = tiles[(i, j)]
@@ -352,7 +348,7 @@ def merge_tiles(tiles: dict[tuple[int, int], TileComponents]) -> np.ndarray:
         res = np.concatenate(complete) if complete else np.zeros(0, MOMENT_DTYPE)
         return res[_order(res)]
     allm = np.concatenate([tiles[k].moments for k in keys])
-    roots = np.array([uf.find(a) for a in range(total)], dtype=np.int64)
+    roots = _roots(parent)
     order = np.argsort(roots, kind="stable")
     rs = roots[order]
     starts = np.flatnonzero(np.r_[True, rs[1:] != rs[:-1]])

@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.scene import Scene
+from pipeline.scene import COVARIANCE2_VARS, COVARIANCE_VARS, Scene
 
 _PREFERENCE = ("intensity", "hh", "vv", "vh", "hv", "c11")
 
@@ -73,10 +73,10 @@ def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tupl
     found = [v for v in _POL_ORDER if is_complex(v)]
     if len(found) < 2 and "c11" in scene.variables and "c12" in scene.variables:
         # covariance scene (C3 or C2): the reader assembles (rows, cols, p, p) matrices
-        if all(v in scene.variables for v in COVARIANCE3):
-            return COVARIANCE3, "covariance"
-        if all(v in scene.variables for v in COVARIANCE2):
-            return COVARIANCE2, "covariance"
+        if all(v in scene.variables for v in COVARIANCE_VARS):
+            return COVARIANCE_VARS, "covariance"
+        if all(v in scene.variables for v in COVARIANCE2_VARS):
+            return COVARIANCE2_VARS, "covariance"
     if all(v in found for v in ("hh", "hv", "vv")):
         return ("hh", "hv", "vv"), "stack"
     if len(found) < 2:
@@ -88,18 +88,13 @@ def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tupl
     return tuple(found), "stack"
 
 
-#: Covariance scene variables (upper triangle, row-major) for p = 3 and p = 2.
-COVARIANCE3 = ("c11", "c12", "c13", "c22", "c23", "c33")
-COVARIANCE2 = ("c11", "c12", "c22")
-
-
 def make_reader(path: str, var: str | tuple[str, ...], transform: str
                 ) -> Callable[[int, int, int, int], np.ndarray]:
     """``read(ra, rb, ca, cb)`` -> float32 intensity of the scene rectangle.
 
     With a tuple of variables and transform ``"stack"``: the complex64 channels of the
     rectangle stacked on a trailing axis, shape ``(rb - ra, cb - ca, p)``. With transform
-    ``"covariance"`` (variables :data:`COVARIANCE3` or :data:`COVARIANCE2`): the Hermitian
+    ``"covariance"`` (variables :data:`COVARIANCE_VARS` or :data:`COVARIANCE2_VARS`): the Hermitian
     matrices, shape ``(rb - ra, cb - ca, p, p)``.
     """
     import zarr

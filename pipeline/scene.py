@@ -42,8 +42,9 @@ KINDS = ("intensity", "slc", "quadpol", "covariance")
 #: Complex channel names a scene may hold.
 COMPLEX_CHANNELS = ("hh", "hv", "vh", "vv")
 
-#: Covariance element names (upper triangle, row-major).
+#: Covariance element names (upper triangle, row-major), C3 and C2.
 COVARIANCE_VARS = ("c11", "c12", "c13", "c22", "c23", "c33")
+COVARIANCE2_VARS = ("c11", "c12", "c22")
 
 ZSTD_LEVEL = 3
 

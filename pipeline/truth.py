@@ -58,7 +58,6 @@ from pipeline.errors import InputError
 GEOJSON_SUFFIXES = (".geojson", ".json")
 VOC_SUFFIXES = (".xml",)
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".gif", ".jpg", ".jpeg", ".webp", ".pgm", ".ppm", ".pbm")
-ARRAY_SUFFIXES = (".npy", ".zarr")
 
 #: "Dominantly green" thresholds for colour (HRSID-style) masks.
 GREEN_MIN = 128

@@ -22,50 +22,11 @@ from numba import njit, uint64
 from pipeline.boxsum import centered_box_sum
 from pipeline.detectors import two_parameter as tp
 from pipeline.windows import mirror_pad
+from tests.test_boxsum import box_sum_ref
 
 
-def _vh_ref(a: np.ndarray, m: int, g0: int, zero_start: bool) -> np.ndarray:
-    """Sums of ``m`` consecutive elements along the last axis of float64 ``a`` (first element
-    at global coordinate ``g0``) in the van Herk order: blocks ``[s, s + m)`` with
-    ``(g0 + s) % m == 0``; suffix from the block end down, prefix of the next block from its
-    start up, both from 0.0 (``zero_start``, horizontal pass) or from the first element
-    (vertical pass); window ``suffix[i]`` when ``i`` starts a block, else
-    ``suffix[i] + prefix[i + m - 1]``."""
-    n = a.shape[-1] - m + 1
-    out = np.empty(a.shape[:-1] + (n,))
-    zero = np.zeros(a.shape[:-1] + (1,))
-
-    def run(seg):
-        if zero_start:
-            return np.add.accumulate(np.concatenate([zero, seg], axis=-1), axis=-1)[..., 1:]
-        return np.add.accumulate(seg, axis=-1)
-
-    s = -(g0 % m)
-    while s < n:
-        lo, hi = max(s, 0), min(s + m, n)
-        if lo < hi:
-            e = s + m - 1
-            suf = run(a[..., lo:e + 1][..., ::-1])[..., ::-1]
-            if lo == s:
-                out[..., s] = suf[..., 0]
-            first = max(lo, s + 1)
-            if first < hi:
-                pre = run(a[..., s + m: hi + m - 1])
-                for i in range(first, hi):
-                    out[..., i] = suf[..., i - lo] + pre[..., i - s - 1]
-        s += m
-    return out
-
-
-def _box_ref(y, m, halo, origin):
-    r = m // 2
-    off = halo - r
-    h = y.shape[0] - 2 * halo
-    w = y.shape[1] - 2 * halo
-    sub = y[off: off + h + m - 1, off: off + w + m - 1]
-    with np.errstate(all="ignore"):
-        horiz = _vh_ref(sub, m, origin[1] + off, zero_start=True)
-        return np.ascontiguousarray(_vh_ref(horiz.T, m, origin[0] + off, zero_start=False).T)
+# the reference summation order is the one of tests/test_boxsum.py
+_box_ref = box_sum_ref
 
 
 def _transform(block, domain):

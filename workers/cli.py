@@ -52,19 +52,9 @@ def _settings(pairs: list[str]) -> dict[str, str]:
 
 
 def _progress(label: str):
-    tty = sys.stderr.isatty()
-    state = {"dec": -1}
+    from workers.run import Progress
 
-    def cb(done: int, total: int) -> None:
-        pct = 100.0 * done / max(total, 1)
-        line = f"{label}: {done}/{total} tiles ({pct:3.0f}%)"
-        if tty:
-            print("\r" + line, end="\n" if done == total else "", file=sys.stderr, flush=True)
-        elif int(pct // 10) != state["dec"] or done == total:
-            state["dec"] = int(pct // 10)
-            print(line, file=sys.stderr, flush=True)
-
-    return cb
+    return Progress.callback(label)
 
 
 # ----------------------------------------------------------------------------- commands

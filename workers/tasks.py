@@ -59,15 +59,19 @@ def _worker_name() -> str:
         return "local"
 
 
+def _read(job: TileJob, r0: int, r1: int, c0: int, c1: int):
+    """The job's detector, its parameters, and the block ``[r0:r1, c0:c1]`` with its halo."""
+    spec = detectors.get(job.detector)
+    params = spec.params(**job.params)
+    read = make_reader(job.scene_path, job.var, job.transform)
+    return spec, params, padded_block(read, job.scene_shape, r0, r1, c0, c1, job.halo)
+
+
 def run_tile_stats(job: TileJob) -> dict[str, Any]:
     """First pass of a two-pass detector: the tile's contribution to scene-wide statistics."""
     t0 = time.perf_counter()
-    spec = detectors.get(job.detector)
-    params = spec.params(**job.params)
-    H, W = job.scene_shape
     r0, r1, c0, c1 = job.bounds
-    read = make_reader(job.scene_path, job.var, job.transform)
-    block = padded_block(read, (H, W), r0, r1, c0, c1, job.halo)
+    spec, params, block = _read(job, r0, r1, c0, c1)
     stats = spec.scene_pass(block, job.halo, (r0 - job.halo, c0 - job.halo), params, job.prep)
     return {"index": job.index, "stats": stats, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
             "seconds": time.perf_counter() - t0}
@@ -76,15 +80,12 @@ def run_tile_stats(job: TileJob) -> dict[str, Any]:
 def run_tile(job: TileJob) -> dict[str, Any]:
     """Process one tile; returns its components and timings."""
     t0 = time.perf_counter()
-    spec = detectors.get(job.detector)
-    params = spec.params(**job.params)
     H, W = job.scene_shape
     r0, r1, c0, c1 = job.bounds
     m = job.merge_r
     er0, er1 = max(r0 - m, 0), min(r1 + m, H)
     ec0, ec1 = max(c0 - m, 0), min(c1 + m, W)
-    read = make_reader(job.scene_path, job.var, job.transform)
-    block = padded_block(read, (H, W), er0, er1, ec0, ec1, job.halo)
+    spec, params, block = _read(job, er0, er1, ec0, ec1)
     t1 = time.perf_counter()
     mask_e, stat_e = spec.detect(block, job.halo, (er0 - job.halo, ec0 - job.halo), params, job.prep)
     t2 = time.perf_counter()
@@ -105,7 +106,7 @@ def run_tile(job: TileJob) -> dict[str, Any]:
         values = span(values)
     elif values.ndim == 4:  # covariance matrices: span = trace
         values = np.trace(values, axis1=2, axis2=3).real.astype(np.float32)
-    comps = tile_components(mext, values, stat_e[a:a + h, b:b + w], m, (r0, c0), (H, W), job.index)
+    comps = tile_components(mext, values, stat_e[a:a + h, b:b + w], m, (r0, c0), job.index)
     comps.complete = comps.complete[keep_mask(comps.complete, params, job.spacing)]
     t4 = time.perf_counter()
     return {

@@ -61,7 +61,7 @@ from pydantic import Field, model_validator
 from scipy import special
 
 from pipeline.boxsum import centered_box_sum
-from pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
+from pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 
 #: Core rows / columns processed at once (bounds the float64 intermediates of a tile).
 STRIP_ROWS = 256
@@ -344,8 +344,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
         raise ValueError(f"apwf needs (rows, cols, p) channels or (rows, cols, p, p) covariances with p = 2 or 3, "
                          f"got shape {block.shape}")
     b = int(prm.background)
-    if b // 2 > halo:
-        raise ValueError(f"window {b} needs a halo of {b // 2}, block has {halo}")
+    check_windows(halo, b)
     p = block.shape[2]
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo

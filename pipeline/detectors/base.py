@@ -72,6 +72,25 @@ class DetectorParams(BaseModel):
         return self.background**2 - self.guard**2
 
 
+def check_windows(halo: int, *sides: int) -> None:
+    """Each window side must be odd and fit in the block's halo (``side // 2 <= halo``)."""
+    for m in sides:
+        if m % 2 != 1:
+            raise ValueError(f"window side must be odd, got {m}")
+        if m // 2 > halo:
+            raise ValueError(f"window {m} needs a halo of {m // 2}, block has {halo}")
+
+
+def float_block(block: np.ndarray, ndim: int = 2) -> np.ndarray:
+    """A C-contiguous float32/float64 view or copy of a detector's input block."""
+    block = np.asarray(block)
+    if block.ndim != ndim:
+        raise ValueError(f"block must be {ndim}-D, got shape {block.shape}")
+    if block.dtype != np.float32 and block.dtype != np.float64:
+        block = block.astype(np.float64)
+    return np.ascontiguousarray(block)
+
+
 def with_defaults(base: type[DetectorParams], name: str, **defaults: Any) -> type[DetectorParams]:
     """A subclass of ``base`` whose listed fields have other defaults (constraints kept).
 

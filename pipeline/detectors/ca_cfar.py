@@ -31,7 +31,7 @@ from scipy import stats
 
 from pipeline import boxsum
 from pipeline.boxsum import box_stream, box_stream_row
-from pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
+from pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 
 
 class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-4, guard=41, background=81,
@@ -137,11 +137,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: CAParams, p
     aligned on global columns.
     """
     b, g, t = int(p.background), int(p.guard), int(p.target)
-    for m in (b, g, t):
-        if m % 2 != 1:
-            raise ValueError(f"window side must be odd, got {m}")
-        if m // 2 > halo:
-            raise ValueError(f"window {m} needs a halo of {m // 2}, block has {halo}")
+    check_windows(halo, b, g, t)
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     xs = block if block.dtype in (np.float32, np.float64) else block.astype(np.float64)

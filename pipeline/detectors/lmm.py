@@ -141,7 +141,7 @@ from numba import njit
 from pydantic import Field
 from scipy import special
 
-from .base import DetectorParams, DetectorSpec, with_defaults
+from .base import DetectorParams, DetectorSpec, float_block, with_defaults
 
 __all__ = ["LMMParams", "SPEC", "prepare", "detect", "em_fit_points", "mixture_threshold_log",
            "mixture_sf_log", "LMM_NOTES"]
@@ -676,12 +676,7 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
     coordinates of ``block[0, 0]``) is used by the grid form only (global node positions). ``_iters=True`` also returns the
     per-pixel EM iteration counts (for tests / benchmarks).
     """
-    block = np.asarray(block)
-    if block.ndim != 2:
-        raise ValueError(f"block must be 2-D, got shape {block.shape}")
-    if block.dtype != np.float32 and block.dtype != np.float64:
-        block = block.astype(np.float64)
-    block = np.ascontiguousarray(block)
+    block = float_block(block)
     halo = int(halo)
     rb, rg, rt = int(params.background) // 2, int(params.guard) // 2, int(params.target) // 2
     grid = prep["method"] == "grid"

@@ -130,7 +130,7 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy import optimize, special
 
-from .base import DetectorParams, DetectorSpec, with_defaults
+from .base import DetectorParams, DetectorSpec, float_block, with_defaults
 
 __all__ = [
     "OSParams",
@@ -639,12 +639,7 @@ def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: b
     not needed: every pixel's maths depends only on its own window. ``_screen=False``
     turns off the (exact) histogram screen; for tests and benchmarks.
     """
-    block = np.asarray(block)
-    if block.ndim != 2:
-        raise ValueError(f"block must be 2-D, got shape {block.shape}")
-    if block.dtype != np.float32 and block.dtype != np.float64:
-        block = block.astype(np.float64)
-    block = np.ascontiguousarray(block)
+    block = float_block(block)
     halo = int(halo)
     rb, rg, rt = int(params.background) // 2, int(params.guard) // 2, int(params.target) // 2
     if halo < rb:

@@ -36,7 +36,7 @@ from numba.extending import intrinsic, models, register_model
 from pydantic import Field
 from scipy import stats
 
-from pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
+from pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 
 
 class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", pfa=1e-3, guard=21,
@@ -929,11 +929,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: TwoParamete
     sums: their blocks are aligned on global coordinates).
     """
     b, g, t = int(p.background), int(p.guard), int(p.target)
-    for m in (b, g, t):
-        if m % 2 != 1:
-            raise ValueError(f"window side must be odd, got {m}")
-        if m // 2 > halo:
-            raise ValueError(f"window {m} needs a halo of {m // 2}, block has {halo}")
+    check_windows(halo, b, g, t)
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     mode = _MODE[p.domain]
