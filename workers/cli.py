@@ -102,6 +102,12 @@ def cmd_detect(a) -> int:
     return 0
 
 
+def cmd_worker(a) -> int:
+    from workers.worker import serve
+
+    return serve(a.scheduler, gpus=a.gpus, cpus=a.cpus, name=a.name, memory_limit=a.memory_limit)
+
+
 def cmd_evaluate(a) -> int:
     from pipeline.scoring import evaluate, format_scores
 
@@ -209,6 +215,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: start a local cluster)")
     s.add_argument("--device", choices=["auto", "cpu", "gpu"], default="auto")
     s.set_defaults(func=cmd_detect)
+
+    s = sub.add_parser("worker", help="start this machine's Dask workers for a scheduler: one per GPU, "
+                                      "plus CPU workers")
+    s.add_argument("--scheduler", required=True, help="scheduler address, e.g. tcp://10.0.0.1:8786")
+    s.add_argument("--gpus", default="all", help="all (default), none, or a comma list of GPU IDs (0,1)")
+    s.add_argument("--cpus", type=int, default=None,
+                   help="single-threaded CPU worker processes (default: all cores without GPUs, else 0)")
+    s.add_argument("--name", help="worker name prefix (default: the host name)")
+    s.add_argument("--memory-limit", help="per-worker memory limit, e.g. 8GiB (default: Dask's auto)")
+    s.set_defaults(func=cmd_worker)
 
     s = sub.add_parser("evaluate", help="score detections against truth")
     s.add_argument("detections")

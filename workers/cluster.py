@@ -2,7 +2,10 @@
 
 The local default is one single-threaded worker *process* per core (the detectors are
 Numba/NumPy code that holds the GIL for parts of its work; processes scale, threads
-would not), so a run uses every core of the machine.
+would not), so a run uses every core of the machine; each advertises the resource
+``CPU=1``. With ``gpus=True`` on a machine with GPUs, the local cluster is instead one
+process per GPU, pinned by ``CUDA_VISIBLE_DEVICES`` before it starts and advertising
+``GPU=1`` (see :mod:`workers.gpus`), plus ``cpu_workers`` CPU processes if asked.
 """
 
 from __future__ import annotations
@@ -35,12 +38,16 @@ def connect(
     n_workers: int | None = None,
     dashboard_address: str = ":8787",
     echo: bool = True,
+    gpus: bool = False,
+    cpu_workers: int = 0,
 ) -> Iterator["distributed.Client"]:  # noqa: F821
     """Yield a connected :class:`distributed.Client`.
 
     ``scheduler``: address of an existing scheduler (``tcp://host:8786``); otherwise a
     :class:`distributed.LocalCluster` with ``n_workers`` processes (default: all cores)
     is started for the duration of the block, and its dashboard address is printed.
+    ``gpus``: start one pinned worker per visible GPU instead (when there are any), plus
+    ``cpu_workers`` CPU workers.
     """
     from distributed import Client, LocalCluster
 
@@ -59,18 +66,34 @@ def connect(
         finally:
             client.close()
         return
-    n = n_workers or os.cpu_count() or 1
-    cluster = LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=dashboard_address,
-        silence_logs=logging.ERROR,
-    )
+    from workers.gpus import visible_gpus, worker_specs
+
+    gpu_ids = visible_gpus() if gpus else []
+    if gpu_ids:
+        from distributed import Scheduler, SpecCluster
+
+        cluster = SpecCluster(
+            workers=worker_specs(gpu_ids, cpu_workers, prefix="local-", silence_logs=logging.ERROR),
+            scheduler={"cls": Scheduler, "options": {"dashboard_address": dashboard_address}},
+            silence_logs=logging.ERROR,
+        )
+        what = f"{len(gpu_ids)} GPU worker processes" + (f" and {cpu_workers} CPU" if cpu_workers else "")
+    else:
+        n = n_workers or os.cpu_count() or 1
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=dashboard_address,
+            silence_logs=logging.ERROR,
+            resources={"CPU": 1},
+        )
+        what = f"{n} worker processes"
     client = Client(cluster)
+    if gpu_ids:
+        client.wait_for_workers(len(gpu_ids) + cpu_workers, timeout=120)
     if echo:
-        print(f"sarship: local Dask cluster, {n} worker processes, dashboard {dashboard_url(client)}",
-              file=sys.stderr)
+        print(f"sarship: local Dask cluster, {what}, dashboard {dashboard_url(client)}", file=sys.stderr)
     try:
         yield client
     finally:

@@ -28,6 +28,7 @@ from pipeline.detections import collection, features, keep_mask, write_json
 from pipeline.errors import InputError
 from pipeline.inputs import intensity_source, make_reader, polarimetric_source
 from pipeline.scene import Scene, finalize_scene, open_scene, tile_slices
+from workers.routing import plan
 from workers.tasks import TileJob, run_tile, run_tile_stats
 
 OUTPUTS = ("mask.zarr", "detections.geojson", "run.json")
@@ -190,7 +191,7 @@ def run_detection(
     params = parse_settings(spec, settings)
     if device not in ("auto", "cpu", "gpu"):
         raise InputError(f"--device must be auto, cpu or gpu, got '{device}'")
-    if device == "gpu":
+    if device == "gpu" and not spec.gpu:
         raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation in this version")
     scene = open_scene(scene_path)
     if spec.input == "polarimetric":
@@ -235,10 +236,13 @@ def run_detection(
             if client is None:
                 from workers.cluster import connect
 
-                client = stack.enter_context(connect(scheduler))
+                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and spec.gpu))
+            placement = plan(device, detector, spec.gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
+            jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
             if spec.scene_pass is not None:
                 t_pass = time.perf_counter()
-                stats = _execute(client, jobs, detector, progress, None, run_tile_stats, "scene statistics")
+                stats = _execute(client, jobs, detector, progress, None, run_tile_stats, "scene statistics",
+                                 placement.submit)
                 scene_values = spec.reduce([s["stats"] for s in sorted(stats, key=lambda s: s["index"])],
                                            params, prep)
                 prep = {**prep, **scene_values}
@@ -246,7 +250,7 @@ def run_detection(
                 scene_pass = {"tiles": len(stats), "seconds": round(time.perf_counter() - t_pass, 4),
                               "values": scene_values}
             t_prep = time.perf_counter()
-            results = _execute(client, jobs, detector, progress, on_tile)
+            results = _execute(client, jobs, detector, progress, on_tile, submit=placement.submit)
         t_tiles = time.perf_counter()
         comps = {r["index"]: r["components"] for r in results}
         records = merge_tiles(comps)
@@ -281,8 +285,9 @@ def run_detection(
                 "halo_px": halo,
                 "merge_radius_px": mr,
                 "per_tile": [
-                    {"index": list(r["index"]), "worker": r["worker"], "detected_px": r["detected_px"],
-                     **{k: round(r[k], 6) for k in ("read_s", "detect_s", "write_s", "label_s")}}
+                    {"index": list(r["index"]), "worker": r["worker"], "device": r["device"],
+                     "detected_px": r["detected_px"],
+                     **{k: round(r[k], 6) for k in ("read_s", "detect_s", "write_s", "label_s", "h2d_s", "d2h_s")}}
                     for r in sorted(results, key=lambda r: r["index"])
                 ],
             },
@@ -296,7 +301,10 @@ def run_detection(
                 "read_cpu_s": round(sum(r["read_s"] for r in results), 4),
                 "mpx_per_s": round(H * W / max(t_tiles - t_prep, 1e-9) / 1e6, 3),
             },
-            "device": "cpu",
+            "device": placement.device,
+            "device_requested": device,
+            "placement": {"reason": placement.reason,
+                          "restriction": {k: v for k, v in placement.submit.items() if k != "allow_other_workers"}},
             "cluster": {"dashboard": dashboard, "workers": sorted({r["worker"] for r in results})},
             "versions": _versions(),
             "warnings": warnings,
@@ -315,12 +323,14 @@ def run_detection(
 
 
 def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile, fn=run_tile,
-             stage: str = "detect") -> list[dict]:
+             stage: str = "detect", submit: dict | None = None) -> list[dict]:
+    """One future per tile, each carrying the placement's restriction (``submit``)."""
     from distributed import as_completed
 
     tag = "stats" if fn is run_tile_stats else "tile"
     futures = client.map(fn, jobs, pure=False, key=[
-        f"sarship-{detector}-{tag}-{j.index[0]}-{j.index[1]}-{uuid.uuid4().hex[:6]}" for j in jobs])
+        f"sarship-{detector}-{tag}-{j.index[0]}-{j.index[1]}-{uuid.uuid4().hex[:6]}" for j in jobs],
+        **(submit or {}))
     prog = Progress(len(jobs), f"{stage} {detector}", progress)
     results = []
     try:

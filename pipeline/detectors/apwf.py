@@ -62,6 +62,7 @@ from scipy import special
 
 from pipeline.boxsum import centered_box_sum
 from pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
+from pipeline.gpu import is_device_array
 
 #: Core rows / columns processed at once (bounds the float64 intermediates of a tile).
 STRIP_ROWS = 256
@@ -336,7 +337,9 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
 
     Returns (mask = y > T, stat = y as float32). The core is processed in strips of
     :data:`STRIP_ROWS` x :data:`STRIP_COLS` pixels (sub-blocks with their own origin:
-    the box sums, hence y, are the same bit for bit).
+    the box sums, hence y, are the same bit for bit). A CuPy ``block`` runs on its GPU
+    (:func:`pipeline.gpu.polsar.apwf`: the same window sums bit for bit, the same adjugate
+    arithmetic) and returns CuPy arrays.
     """
     cov = block.ndim == 4
     if not ((block.ndim == 3 and block.shape[2] in (2, 3))
@@ -346,6 +349,11 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
     b = int(prm.background)
     check_windows(halo, b)
     p = block.shape[2]
+    if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.polsar)
+        from pipeline.gpu.polsar import apwf
+
+        return apwf(block, halo, origin, b, int(prm.guard), prm.estimator == "ring",
+                    float(prep["n_samples"]), float(prep["thresholds"][str(p)]))
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     n = float(prep["n_samples"])
@@ -380,4 +388,5 @@ SPEC = DetectorSpec(
     detect=detect,
     input="polarimetric",
     needs_looks=False,
+    gpu=True,
 )

@@ -128,6 +128,9 @@ class DetectorSpec:
     #: ``halo_fn(params) -> int`` for detectors whose context is not ``background // 2``.
     halo_fn: Optional[Callable[[Any], int]] = None
     halo_rule: str = "background // 2"
+    #: ``detect`` (and ``scene_pass``) accept a CuPy block and run on its GPU
+    #: (:mod:`pipeline.gpu`); otherwise GPU workers run the CPU code for this detector.
+    gpu: bool = False
 
     def halo(self, params: DetectorParams) -> int:
         """Pixels of context each side of a tile: half the largest window by default."""
@@ -145,6 +148,7 @@ class DetectorSpec:
             "input": self.input,
             "halo": self.halo_rule,
             "scene_wide_pass": self.scene_pass is not None,
+            "gpu": self.gpu,
             "halo_default_px": self.halo(self.params()),
             "parameters": schema.get("properties", {}),
             "defaults": defaults,

@@ -32,6 +32,7 @@ from scipy import stats
 from pipeline import boxsum
 from pipeline.boxsum import box_stream, box_stream_row
 from pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
+from pipeline.gpu import is_device_array
 
 
 class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-4, guard=41, background=81,
@@ -132,12 +133,19 @@ _detect_strip = _make_detect_strip(hashlib.sha256(Path(boxsum.__file__).read_byt
 def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: CAParams, prep: dict):
     """CA-CFAR on one padded tile; returns (mask, x_t / ring mean).
 
+    A CuPy ``block`` runs on its GPU (:func:`pipeline.gpu.cfar.ca_cfar`) and returns CuPy
+    arrays, bit-identical to the CPU's.
+
     The core is processed in column strips of ``boxsum.STRIP`` pixels (the window streams
     of a strip stay in L2); strips change nothing in the sums, whose column blocks are
     aligned on global columns.
     """
     b, g, t = int(p.background), int(p.guard), int(p.target)
     check_windows(halo, b, g, t)
+    if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.cfar), same sums and rule
+        from pipeline.gpu.cfar import ca_cfar
+
+        return ca_cfar(block, halo, origin, b, g, t, int(prep["n_ring"]), float(prep["threshold"]))
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     xs = block if block.dtype in (np.float32, np.float64) else block.astype(np.float64)
@@ -161,4 +169,5 @@ SPEC = DetectorSpec(
     detect=detect,
     input="intensity",
     needs_looks=True,
+    gpu=True,
 )

@@ -52,6 +52,7 @@ from scipy import stats
 
 from pipeline.boxsum import centered_box_sum
 from pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
+from pipeline.gpu import is_device_array, to_host
 
 #: Fixed bins of ln SPAN_P for the scene-wide histogram (``span_rule="pfa"``).
 LN_BINS = np.linspace(-60.0, 60.0, 12001)
@@ -236,9 +237,18 @@ def _pcdm_kernel(C, p, span_out, psh_out):
 
 
 def span_psh(block: np.ndarray, halo_px: int, origin, p: PCDMParams) -> tuple[np.ndarray, np.ndarray]:
-    """SPAN_P and PSH (float64) of the core of a padded polarimetric block (rows, cols, p)."""
+    """SPAN_P and PSH (float64) of the core of a padded polarimetric block (rows, cols, p).
+
+    A CuPy ``block`` runs on its GPU (:func:`pipeline.gpu.polsar.pcdm_span_psh`): SPAN_P is
+    bit-identical to the CPU's (same sums and order); PSH uses CUDA's ``acos``/``cos``,
+    within a few ulp of the CPU's.
+    """
     if not (block.ndim in (3, 4) and block.shape[2] in (2, 3)):
         raise ValueError("pcdm needs (rows, cols, p) complex channels or (rows, cols, p, p) covariances, p = 2 or 3")
+    if is_device_array(block):  # CuPy block: the GPU twin, CuPy results
+        from pipeline.gpu.polsar import pcdm_span_psh
+
+        return pcdm_span_psh(block, halo_px, origin, p.looks_window)
     r = p.looks_window // 2
     C = covariance_planes(block, p.looks_window, halo_px, origin)
     # C covers the block minus r each side; the core plus a 1-pixel margin starts at halo - r - 1
@@ -258,11 +268,14 @@ def span_psh(block: np.ndarray, halo_px: int, origin, p: PCDMParams) -> tuple[np
 def scene_pass(block, halo_px, origin, p: PCDMParams, prep: dict) -> dict:
     """A tile's share of the scene-wide SPAN_P statistics: min, max, ln-histogram."""
     span, _ = span_psh(block, halo_px, origin, p)
+    xp = np
+    if is_device_array(span):  # reduce on the device, bring back the numbers only
+        import cupy as xp
     out = {"min": float(span.min()), "max": float(span.max()), "n": int(span.size)}
     if p.span_rule == "pfa":
         pos = span[span > 0]
-        hist, _ = np.histogram(np.log(pos), bins=LN_BINS)
-        out["hist"] = hist
+        hist, _ = xp.histogram(xp.log(pos), bins=xp.asarray(LN_BINS))
+        out["hist"] = to_host(hist).astype(np.int64)
         out["zeros"] = int(span.size - pos.size)
     return out
 
@@ -303,6 +316,9 @@ def detect(block, halo_px, origin, p: PCDMParams, prep: dict):
     if "t_span" not in prep:
         raise ValueError("pcdm needs the scene-wide T_SPAN (run its scene pass first)")
     span, psh = span_psh(block, halo_px, origin, p)
+    xp = np
+    if is_device_array(span):  # same element-wise rule with CuPy
+        import cupy as xp
     t = float(prep["t_span"])
     m_span = span > t
     if p.combine == "and":
@@ -311,7 +327,7 @@ def detect(block, halo_px, origin, p: PCDMParams, prep: dict):
         mask = m_span | (psh > p.psh_threshold)
     else:
         mask = m_span
-    stat = (span / t if t > 0 else np.where(span > 0, np.inf, 0.0)).astype(np.float32)
+    stat = (span / t if t > 0 else xp.where(span > 0, xp.inf, 0.0)).astype(xp.float32)
     return mask, stat
 
 
@@ -328,4 +344,5 @@ SPEC = DetectorSpec(
     reduce=reduce,
     halo_fn=halo,
     halo_rule="1 + looks_window // 2",
+    gpu=True,
 )

@@ -37,6 +37,7 @@ from pydantic import Field
 from scipy import stats
 
 from pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
+from pipeline.gpu import is_device_array
 
 
 class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", pfa=1e-3, guard=21,
@@ -926,10 +927,17 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: TwoParamete
     mu = s1 / N, var = (s2 - s1 * mu) / (N - 1), d = x_t - mu, statistic d / sqrt(var)
     (inf if var <= 0 < d, 0 if var <= 0 and d <= 0), mask = statistic > threshold. Fused
     and streamed in column strips of at most ``STRIP`` pixels (which change nothing in the
-    sums: their blocks are aligned on global coordinates).
+    sums: their blocks are aligned on global coordinates). A CuPy ``block`` runs on its GPU
+    (:func:`pipeline.gpu.cfar.two_parameter`, same sums and arithmetic; the ``db`` domain's
+    logarithm may differ in the last bit) and returns CuPy arrays.
     """
     b, g, t = int(p.background), int(p.guard), int(p.target)
     check_windows(halo, b, g, t)
+    if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.cfar), same sums and rule
+        from pipeline.gpu.cfar import two_parameter
+
+        return two_parameter(block, halo, origin, b, g, t, float(prep["n_ring"]), float(prep["threshold"]),
+                             p.domain)
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     mode = _MODE[p.domain]
@@ -969,4 +977,5 @@ SPEC = DetectorSpec(
     detect=detect,
     input="intensity",
     needs_looks=False,
+    gpu=True,
 )

@@ -1,0 +1,218 @@
+"""GPU kernels and end-to-end GPU runs, against the CPU measured in the same run.
+
+Kernel rows: each detector's public ``detect`` on a CuPy block already on the device
+(the whole mirror-extended 1000 x 1000 scene of the thesis, or 4096 x 4096), timed with
+CUDA events (median of 10 after 2 warm-ups), then the same call on the NumPy block on one
+CPU core (best of 3): ``x CPU`` is the ratio. ``min bytes`` counts one read of the input
+and one write of the mask and statistic; ``% copy`` is ``min bytes / time`` over the
+device-to-device copy bandwidth measured in the same run (bytes read + written). The
+kernels write double-precision window sums between passes, so they move several times the
+minimum: the column says how far from the memory bound each one is.
+
+End-to-end rows: ``sarship detect`` (``run_detection``, local cluster with one pinned
+worker per GPU) on a Sentinel-1 IW GRD sized band, 25000 x 16700 float32 (4.2e8 px) of
+simulated gamma clutter in a Zarr scene: Zarr read, transfer, detect, mask write,
+labelling, merge, outputs. With ``--gpus 2`` (two visible GPUs) the same run on 1 and 2
+GPUs gives the scaling.
+
+Usage: python bench/bench_gpu.py [--sizes 1000,4096] [--band 25000x16700] [--gpus 1|2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(__file__))
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+from common import best_of, machine  # noqa: E402
+
+from pipeline import detectors  # noqa: E402
+from pipeline.windows import mirror_pad  # noqa: E402
+
+CASES = [
+    ("ca_cfar", {"looks": 1.0}, "default (guard 41, background 81)", "intensity"),
+    ("two_parameter", {}, "default (guard 21, background 41)", "intensity"),
+    ("apwf", {"estimator": "window", "guard": 1, "background": 31, "pfa": 1e-6}, "thesis 31x31 window",
+     "quadpol"),
+    ("apwf", {}, "ring guard 41 / background 61", "quadpol"),
+    ("pcdm", {"looks_window": 1, "span_rule": "fraction"}, "thesis: single-look C", "quadpol"),
+    ("pcdm", {}, "default: 3x3 boxcar", "quadpol"),
+]
+
+
+def copy_bandwidth(cp) -> float:
+    """Device-to-device copy, bytes read + written per second (median of 10)."""
+    a = cp.empty(2**28, cp.uint8)
+    b = cp.empty_like(a)
+    ts = []
+    for _ in range(12):
+        e0, e1 = cp.cuda.Event(), cp.cuda.Event()
+        e0.record()
+        b[...] = a
+        e1.record()
+        e1.synchronize()
+        ts.append(cp.cuda.get_elapsed_time(e0, e1) / 1e3)
+    return 2 * a.nbytes / float(np.median(ts[2:]))
+
+
+def gpu_time(cp, fn) -> float:
+    for _ in range(2):
+        fn()
+    cp.cuda.Device().synchronize()
+    ts = []
+    for _ in range(10):
+        e0, e1 = cp.cuda.Event(), cp.cuda.Event()
+        e0.record()
+        fn()
+        e1.record()
+        e1.synchronize()
+        ts.append(cp.cuda.get_elapsed_time(e0, e1) / 1e3)
+    return float(np.median(ts))
+
+
+def box_passes(cp, n: int = 4096, m: int = 81) -> list[str]:
+    """Time of each window-sum pass on an n x n float32 block (to see which one dominates)."""
+    from pipeline.gpu import box
+
+    x = cp.asarray(np.random.default_rng(0).random((n + m - 1, n + m - 1), dtype=np.float32))
+    H = box._hsum(cp, x, m, 0, n)
+    rows = []
+    for label, fn in [("horizontal, direct", lambda: box._hsum(cp, x, m, 0, n)),
+                      ("horizontal, transposed", lambda: box._hsum_transposed(cp, x, m, 0, n)),
+                      ("vertical", lambda: box._vsum(cp, H, m, 0, n))]:
+        t = gpu_time(cp, fn)
+        rows.append(f"# box-sum pass {label}, {n}x{n}, m={m}: {t * 1e3:.2f} ms")
+        print(rows[-1], flush=True)
+    return rows
+
+
+def _inputs(n: int):
+    from pipeline.simulate import SimConfig, simulate_array
+
+    rng = np.random.default_rng(0)
+    inten = rng.gamma(1.0, 1.0, (n, n)).astype(np.float32)
+    cfg = SimConfig(kind="quadpol", shape=(n, n), ships=max(4, n // 100), seed=1, clutter="rayleigh", scr_db=10.0)
+    arrs, _ = simulate_array(cfg)
+    X = np.stack([arrs["hh"], arrs["hv"], arrs["vv"]], -1).astype(np.complex64)
+    return {"intensity": inten, "quadpol": X}
+
+
+def kernels(sizes: list[int], bw: float, cp) -> list[str]:
+    rows = []
+    for n in sizes:
+        data = _inputs(n)
+        for name, kw, label, kind in CASES:
+            spec = detectors.get(name)
+            p = spec.params(**kw)
+            prep = spec.prepare(p)
+            h = spec.halo(p)
+            x = data[kind]
+            blk = mirror_pad(x, h)
+            origin = (-h, -h)
+            if spec.scene_pass is not None:
+                prep = {**prep, **spec.reduce([spec.scene_pass(blk, h, origin, p, prep)], p, prep)}
+            dblk = cp.asarray(blk)
+            tg = gpu_time(cp, lambda: spec.detect(dblk, h, origin, p, prep))
+            tc = best_of(lambda: spec.detect(blk, h, origin, p, prep), repeat=1 if n > 2000 else 3)
+            mbytes = x.nbytes + n * n * 5  # input once, mask (1 B) + stat (4 B)
+            rows.append(f"| {name} | {label} | {n}x{n} | {tg * 1e3:.2f} | {n * n / tg / 1e6:,.0f} | "
+                        f"{tc:.3f} | {tc / tg:,.0f}x | {mbytes / 1e6:.0f} MB | {100 * mbytes / tg / bw:.0f}% |")
+            print(rows[-1], flush=True)
+            del dblk
+            cp.get_default_memory_pool().free_all_blocks()
+    return rows
+
+
+def write_band(path: Path, shape: tuple[int, int], tile: int) -> None:
+    """Gamma clutter (L = 1) with a few bright ships, written tile by tile on 16 threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pipeline.scene import create_scene, finalize_scene, tile_slices
+
+    g = create_scene(path, shape, {"intensity": np.dtype(np.float32)}, tile=tile,
+                     attrs={"kind": "intensity", "looks": 1.0})
+    arr = g["intensity"]
+
+    def one(t):
+        i, j, r0, r1, c0, c1 = t
+        rng = np.random.default_rng([i, j])
+        x = rng.standard_exponential((r1 - r0, c1 - c0), dtype=np.float32)
+        for _ in range(3):
+            a, b = rng.integers(0, max(r1 - r0 - 20, 1)), rng.integers(0, max(c1 - c0 - 60, 1))
+            x[a: a + 12, b: b + 50] += 200.0
+        arr[r0:r1, c0:c1] = x
+
+    with ThreadPoolExecutor(16) as ex:
+        list(ex.map(one, tile_slices(shape, tile)))
+    finalize_scene(path)
+
+
+def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int) -> list[str]:
+    from workers.cluster import connect
+    from workers.gpus import visible_gpus
+    from workers.run import run_detection
+
+    rows = []
+    vis = visible_gpus()
+    with tempfile.TemporaryDirectory(dir=os.environ.get("SARSHIP_BENCH_TMP")) as td:
+        scene = Path(td) / "band.zarr"
+        t = time.perf_counter()
+        write_band(scene, band, tile)
+        print(f"# band {band[0]}x{band[1]} written in {time.perf_counter() - t:.1f} s", flush=True)
+        for k in n_gpus:
+            if k > len(vis):
+                continue
+            os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(vis[:k])
+            with connect(gpus=True, echo=False, dashboard_address=":0") as client:
+                for rep in range(2):  # first: compile + warm caches; second: measured
+                    t = time.perf_counter()
+                    run = run_detection(scene, "ca_cfar", out_dir=Path(td) / f"out{k}", client=client,
+                                        device="gpu", progress=False)
+                    el = time.perf_counter() - t
+                per = run["tiles"]["per_tile"]
+                ker = sum(p["detect_s"] - p["h2d_s"] - p["d2h_s"] for p in per)
+                rows.append(f"| ca_cfar e2e | {k} GPU | {band[0]}x{band[1]} | {el:.2f} s | "
+                            f"{band[0] * band[1] / el / 1e6:,.0f} Mpx/s | read {sum(p['read_s'] for p in per):.1f} s, "
+                            f"h2d {sum(p['h2d_s'] for p in per):.2f} s, kernel {ker:.2f} s, "
+                            f"d2h {sum(p['d2h_s'] for p in per):.2f} s, write {sum(p['write_s'] for p in per):.1f} s, "
+                            f"label {sum(p['label_s'] for p in per):.1f} s (task sums); "
+                            f"{run['detections']} detections |")
+                print(rows[-1], flush=True)
+            os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(vis)
+    return rows
+
+
+def main() -> None:
+    import cupy as cp
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sizes", default="1000,4096")
+    ap.add_argument("--band", default="25000x16700")
+    ap.add_argument("--gpus", default="1", help="comma list of GPU counts for the end-to-end rows")
+    ap.add_argument("--tile", type=int, default=4096)
+    ap.add_argument("--skip-kernels", action="store_true")
+    a = ap.parse_args()
+    props = cp.cuda.runtime.getDeviceProperties(0)
+    print(f"# {datetime.date.today()} {props['name'].decode()} x{cp.cuda.runtime.getDeviceCount()}; host {machine()}")
+    bw = copy_bandwidth(cp)
+    print(f"# device-to-device copy: {bw / 1e12:.2f} TB/s (read + write)")
+    if not a.skip_kernels:
+        box_passes(cp)
+        print("| detector | setting | size | GPU ms | Mpx/s | CPU s (1 core) | x CPU | min bytes | % copy |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        kernels([int(s) for s in a.sizes.split(",")], bw, cp)
+    if a.band != "none":
+        r, c = (int(v) for v in a.band.lower().split("x"))
+        end_to_end((r, c), [int(k) for k in a.gpus.split(",")], a.tile)
+
+
+if __name__ == "__main__":
+    main()

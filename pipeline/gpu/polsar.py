@@ -1,0 +1,92 @@
+"""GPU twins of the polarimetric detectors' per-pixel maths (``apwf``, ``pcdm``).
+
+Blocks are CuPy arrays of complex channels ``(rows, cols, p)`` or covariance matrices
+``(rows, cols, p, p)`` (complex64 as the scene stores them; other complex types are cast to
+complex64). Products of X X^H and the window sums are formed with the CPU's arithmetic and
+order (bit-identical sums); the adjugate and quadratic form repeat ``apwf._pwf``. For
+covariance input the CPU solves ``S y = C`` with LAPACK while the GPU uses the adjugate:
+those statistics agree to rounding (relative ~1e-12), not bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.gpu import kernels
+from pipeline.gpu.box import centered_box_sum
+
+
+def _complex_block(cp, block):
+    if block.dtype != cp.complex64:
+        block = block.astype(cp.complex64)
+    return cp.ascontiguousarray(block)
+
+
+def _planes(cp, block, scale1: float):
+    """(p^2, rows, cols) float64 planes of X X^H (or of C for covariance blocks)."""
+    rows, cols, p = block.shape[:3]
+    n = rows * cols
+    planes = cp.empty((p * p, rows, cols), cp.float64)
+    x = block.view(cp.float32)
+    if block.ndim == 4:
+        kernels.launch("cov_planes", n, (x, np.int64(cols), np.int64(rows), np.int64(cols), np.int32(p), planes))
+    else:
+        kernels.launch("xxh_planes", n, (x, np.int64(cols), np.int64(rows), np.int64(cols), np.int32(p),
+                                         np.float64(scale1), planes))
+    return planes
+
+
+def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float, thr: float):
+    """Adaptive PWF (see :mod:`pipeline.detectors.apwf`): y = N X^H S^-1 X > T."""
+    import cupy as cp
+
+    block = _complex_block(cp, block)
+    cov = block.ndim == 4
+    p = block.shape[2]
+    h = block.shape[0] - 2 * halo
+    w = block.shape[1] - 2 * halo
+    r = b // 2
+    off = halo - r
+    sub = block[off: off + h + 2 * r, off: off + w + 2 * r]
+    o = (int(origin[0]) + off, int(origin[1]) + off)
+    prods = _planes(cp, cp.ascontiguousarray(sub), 1.0)
+    S = cp.empty((p * p, h, w), cp.float64)
+    for q in range(p * p):
+        S[q] = centered_box_sum(prods[q], b, r, o)
+        if ring:
+            S[q] -= centered_box_sum(prods[q], g, r, o)
+    core = cp.ascontiguousarray(block[halo: halo + h, halo: halo + w])
+    Cp = cp.ascontiguousarray(prods[:, r: r + h, r: r + w]) if cov else S  # core covariance planes
+    mask = cp.empty((h, w), cp.bool_)
+    stat = cp.empty((h, w), cp.float32)
+    thr32 = np.float32(thr)
+    above = np.nextafter(thr32, np.float32(np.inf))
+    n = h * w
+    kernels.launch("apwf_decide", n, (S, np.int64(n), core.view(cp.float32), np.int64(w), np.int64(w), np.int32(p),
+                                      np.int32(1 if cov else 0), Cp, np.float64(n_samples), np.float64(thr),
+                                      np.float32(above), mask, stat))
+    return mask, stat
+
+
+def pcdm_span_psh(block, halo_px: int, origin, looks_window: int):
+    """SPAN_P and PSH (float64, CuPy) of the core (see :func:`pipeline.detectors.pcdm.span_psh`)."""
+    import cupy as cp
+
+    block = _complex_block(cp, block)
+    p = block.shape[2]
+    r = looks_window // 2
+    planes = _planes(cp, block, 1.0 if block.ndim == 4 else math.sqrt(2.0) if p == 3 else 1.0)
+    if r > 0:
+        nw = float(looks_window * looks_window)
+        planes = cp.stack([centered_box_sum(pl, looks_window, r, (origin[0], origin[1])) / nw for pl in planes])
+    off = halo_px - r - 1
+    h = block.shape[0] - 2 * halo_px
+    w = block.shape[1] - 2 * halo_px
+    C = cp.ascontiguousarray(planes[:, off: off + h + 2, off: off + w + 2])
+    span = cp.empty((h, w), cp.float64)
+    psh = cp.empty((h, w), cp.float64)
+    kernels.launch("pcdm_kernel", h * w, (C, np.int64(w + 2), np.int64((h + 2) * (w + 2)), np.int64(h),
+                                          np.int64(w), np.int32(p), span, psh))
+    return span, psh

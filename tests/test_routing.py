@@ -1,0 +1,149 @@
+"""Tile placement (GPU / CPU workers) and ``sarship worker``, on CPU-only machines.
+
+The GPU side of routing (tiles landing on pinned GPU workers) is in tests/test_gpu.py and
+runs where a GPU exists; here: the placement rules, a real ``dask scheduler`` with
+``sarship worker`` CPU processes next to a worker that advertises ``GPU=1``, and errors.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+from conftest import blobs_scene as _blobs, write_scene
+
+from pipeline.errors import InputError
+from workers.gpus import parse_gpus, worker_specs
+from workers.routing import plan
+
+GPU_W = {"tcp://a:1": {"resources": {"GPU": 1}}}
+CPU_W = {"tcp://b:1": {"resources": {"CPU": 1}}, "tcp://b:2": {"resources": {"CPU": 1}}}
+PLAIN_W = {"tcp://c:1": {"resources": {}}}
+
+
+def test_plan_rules():
+    assert plan("auto", "ca_cfar", True, {**GPU_W, **CPU_W}).submit == {"resources": {"GPU": 1}}
+    assert plan("gpu", "ca_cfar", True, GPU_W).device == "gpu"
+    p = plan("auto", "os_cfar", False, {**GPU_W, **CPU_W})
+    assert p.device == "cpu" and p.submit == {"resources": {"CPU": 1}} and "no GPU code" in p.reason
+    assert plan("cpu", "ca_cfar", True, {**GPU_W, **CPU_W}).submit == {"resources": {"CPU": 1}}
+    assert plan("auto", "ca_cfar", True, CPU_W).device == "cpu"
+    # plain workers (no resources) cannot match a resource restriction: an address list
+    p = plan("cpu", "ca_cfar", True, {**GPU_W, **CPU_W, **PLAIN_W})
+    assert p.submit["workers"] == sorted([*CPU_W, *PLAIN_W]) and p.submit["allow_other_workers"] is False
+    assert plan("auto", "ca_cfar", True, PLAIN_W).submit == {}  # a plain cluster: unrestricted
+    assert plan("cpu", "ca_cfar", True, GPU_W).submit == {}  # GPU-only cluster runs CPU code too
+    with pytest.raises(InputError, match="no GPU worker"):
+        plan("gpu", "ca_cfar", True, CPU_W)
+    with pytest.raises(InputError, match="no GPU implementation"):
+        plan("gpu", "os_cfar", False, GPU_W)
+    with pytest.raises(InputError, match="auto, cpu or gpu"):
+        plan("tpu", "ca_cfar", True, GPU_W)
+
+
+def test_worker_specs_pin_and_advertise():
+    specs = worker_specs(["0", "3"], 2, prefix="h-")
+    assert list(specs) == ["h-gpu0", "h-gpu3", "h-cpu0", "h-cpu1"]
+    g = specs["h-gpu3"]["options"]
+    assert g["env"]["CUDA_VISIBLE_DEVICES"] == "3" and g["resources"] == {"GPU": 1} and g["nthreads"] == 1
+    c = specs["h-cpu1"]["options"]
+    assert c["resources"] == {"CPU": 1} and c["env"]["CUDA_VISIBLE_DEVICES"] == ""  # hidden, NVML-safe
+
+
+def test_parse_gpus(monkeypatch):
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,5")
+    assert parse_gpus("all") == ["2", "5"] and parse_gpus("5") == ["5"] and parse_gpus("none") == []
+    with pytest.raises(InputError, match="GPU 7 not visible"):
+        parse_gpus("7")
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "-1")
+    assert parse_gpus("all") == []
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    assert parse_gpus("all") == []
+    with pytest.raises(InputError, match="no GPU is visible"):
+        parse_gpus("0")
+
+
+@pytest.fixture
+def blobs_scene(tmp_path):
+    return write_scene(tmp_path / "s.zarr", {"intensity": _blobs((300, 260))}, tile=64, looks=1.0)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _cli(*args, timeout=300):
+    return subprocess.run([sys.executable, "-m", "workers.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env={**os.environ, "CUDA_VISIBLE_DEVICES": "-1"})
+
+
+def test_mixed_cluster_cpu_tiles_avoid_gpu_worker(tmp_path, blobs_scene):
+    """Real processes: ``dask scheduler``, ``sarship worker --gpus none --cpus 2`` and a
+    ``dask worker`` advertising GPU=1. CPU tiles must all run on the two CPU workers;
+    ``--device gpu`` for a detector without GPU code is refused with a clear message."""
+    port = _free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": "-1"}
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                               "--port", str(port), "--dashboard-address", ":0"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    try:
+        time.sleep(2)
+        procs.append(subprocess.Popen([sys.executable, "-m", "workers.cli", "worker", "--scheduler", addr,
+                                       "--gpus", "none", "--cpus", "2", "--name", "cpuhost"],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
+        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
+                                       "--resources", "GPU=1", "--name", "gpuhost-gpu0", "--no-dashboard"],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
+        from distributed import Client
+
+        with Client(addr, timeout="30s") as client:
+            client.wait_for_workers(3, timeout=120)
+            names = {w["name"]: w["resources"] for w in client.scheduler_info(n_workers=-1)["workers"].values()}
+        assert names["cpuhost-cpu0"] == {"CPU": 1} and names["gpuhost-gpu0"] == {"GPU": 1}
+        out = _cli("detect", str(blobs_scene), "--detector", "ca_cfar", "--out", str(tmp_path / "o"),
+                   "--scheduler", addr, "--device", "cpu")
+        assert out.returncode == 0, out.stderr
+        run = json.loads((tmp_path / "o" / "run.json").read_text())
+        per = run["tiles"]["per_tile"]
+        assert len(per) > 4
+        assert {t["worker"] for t in per} <= {"cpuhost-cpu0", "cpuhost-cpu1"}
+        assert {t["device"] for t in per} == {"cpu"} and run["device"] == "cpu"
+        assert run["placement"]["restriction"] == {"resources": {"CPU": 1}}
+        bad = _cli("detect", str(blobs_scene), "--detector", "os_cfar", "--out", str(tmp_path / "p"),
+                   "--scheduler", addr, "--device", "gpu")
+        assert bad.returncode == 2 and "no GPU implementation" in bad.stderr and "Traceback" not in bad.stderr
+        assert not (tmp_path / "p" / "run.json").exists()
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def test_gpu_device_without_gpu_workers_is_refused(tmp_path, blobs_scene, client):
+    from workers.run import run_detection
+
+    with pytest.raises(InputError, match="no GPU worker"):
+        run_detection(blobs_scene, "ca_cfar", out_dir=tmp_path / "o", client=client, device="gpu", progress=False)
+    assert not (tmp_path / "o" / "run.json").exists()
+
+
+def test_worker_cli_errors():
+    out = _cli("worker", "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--gpus", "none", "--cpus", "1",
+               timeout=60)
+    assert out.returncode == 2 and "cannot reach Dask scheduler" in out.stderr and "Traceback" not in out.stderr
+    out = _cli("worker", "--scheduler", "tcp://127.0.0.1:1", "--gpus", "0", timeout=60)
+    assert out.returncode == 2 and "no GPU is visible" in out.stderr
+    out = _cli("worker", "--scheduler", "tcp://127.0.0.1:1", "--gpus", "none", "--cpus", "0", timeout=60)
+    assert out.returncode == 2 and "nothing to start" in out.stderr

@@ -1,0 +1,91 @@
+"""GPU discovery and pinning, without creating a CUDA context in the calling process.
+
+One Dask worker process per GPU, pinned by ``CUDA_VISIBLE_DEVICES`` set in the worker's
+environment before it starts (dask-cuda's discipline), one thread, advertising the
+resource ``GPU=1``; CPU workers advertise ``CPU=1`` per thread. dask-cuda itself is not a
+dependency: it pins exact dask releases (through rapids-dask-dependency) and what we need
+from it is this module; ``sarship worker`` runs the same ``distributed.Nanny`` processes.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+
+from pipeline.errors import InputError
+
+
+def visible_gpus() -> list[str]:
+    """IDs of the GPUs this process may use (as ``CUDA_VISIBLE_DEVICES`` entries).
+
+    ``CUDA_VISIBLE_DEVICES`` if set; else NVML (``pynvml``), else ``nvidia-smi -L``; [] when
+    none answers. None of these creates a CUDA context.
+    """
+    env = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if env is not None:
+        ids = [s.strip() for s in env.split(",") if s.strip()]
+        return [] if not ids or ids[0] in ("-1", "NoDevFiles") else ids  # "" and "-1" hide all
+    try:
+        import pynvml
+
+        pynvml.nvmlInit()
+        try:
+            return [str(i) for i in range(pynvml.nvmlDeviceGetCount())]
+        finally:
+            pynvml.nvmlShutdown()
+    except Exception:
+        pass
+    exe = shutil.which("nvidia-smi")
+    if exe:
+        try:
+            out = subprocess.run([exe, "-L"], capture_output=True, text=True, timeout=20).stdout
+            return [str(i) for i, line in enumerate(l for l in out.splitlines() if l.startswith("GPU "))]
+        except Exception:
+            return []
+    return []
+
+
+def parse_gpus(text: str) -> list[str]:
+    """``--gpus``: ``all`` (every visible GPU), ``none``, or a comma list of IDs."""
+    t = (text or "").strip().lower()
+    if t == "none":
+        return []
+    vis = visible_gpus()
+    if t in ("all", ""):
+        return vis
+    ids = [s.strip() for s in t.split(",") if s.strip()]
+    bad = [i for i in ids if vis and i not in vis]
+    if bad:
+        raise InputError(f"--gpus: GPU {', '.join(bad)} not visible (visible: {', '.join(vis) or 'none'})")
+    if not vis:
+        raise InputError(f"--gpus {text}: no GPU is visible on this machine")
+    return ids
+
+
+def worker_specs(gpu_ids: list[str], cpus: int, prefix: str, memory_limit: str | None = None,
+                 **options) -> dict[str, dict]:
+    """``distributed.SpecCluster``-style worker specs: one pinned process per GPU, ``cpus``
+    single-threaded CPU processes (``options``: more ``Nanny`` keyword arguments)."""
+    from distributed import Nanny
+
+    specs: dict[str, dict] = {}
+    for gid in gpu_ids:
+        name = f"{prefix}gpu{gid}"
+        env = {"CUDA_VISIBLE_DEVICES": str(gid), "SARSHIP_DEVICE": "gpu"}
+        specs[name] = {"cls": Nanny, "options": {"name": name, "nthreads": 1, "resources": {"GPU": 1},
+                                                  "env": env, **_mem(memory_limit), **options}}
+    for k in range(cpus):
+        name = f"{prefix}cpu{k}"
+        # a CPU worker must not grab a GPU by accident: hide them. An empty value, not "-1":
+        # Dask's NVML monitor parses the first entry as a device index and "-1" fails the
+        # worker's start (the Nanny applies ``env`` after the child has read Dask's config,
+        # so the monitor cannot be switched off from here).
+        env = {"CUDA_VISIBLE_DEVICES": "", "SARSHIP_DEVICE": "cpu"} if gpu_ids else {"SARSHIP_DEVICE": "cpu"}
+        specs[name] = {"cls": Nanny, "options": {"name": name, "nthreads": 1, "resources": {"CPU": 1},
+                                                  "env": env, **_mem(memory_limit), **options}}
+    return specs
+
+
+def _mem(limit: str | None) -> dict:
+    return {} if limit is None else {"memory_limit": limit}

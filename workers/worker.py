@@ -1,0 +1,69 @@
+"""``sarship worker``: this machine's Dask workers for a scheduler, pinned per GPU.
+
+One worker process per GPU (``CUDA_VISIBLE_DEVICES`` set before the process starts, one
+thread, resource ``GPU=1``) and ``--cpus`` single-threaded CPU worker processes (resource
+``CPU=1`` each), all under one command that stops them together on SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import sys
+
+from pipeline.errors import InputError
+from workers.gpus import parse_gpus, worker_specs
+
+
+async def _reachable(address: str, timeout: float = 10.0) -> None:
+    from distributed.comm import connect
+
+    try:
+        comm = await connect(address, timeout=timeout)
+        await comm.close()
+    except Exception as exc:
+        raise InputError(f"cannot reach Dask scheduler at '{address}': {exc}") from None
+
+
+async def _main(address: str, specs: dict[str, dict], echo: bool) -> None:
+    await _reachable(address)
+    nannies = [s["cls"](address, **s["options"]) for s in specs.values()]
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    await asyncio.gather(*nannies)
+    if echo:
+        for name, s in specs.items():
+            res = s["options"]["resources"]
+            pin = s["options"]["env"].get("CUDA_VISIBLE_DEVICES")
+            where = f"GPU {pin}" if "GPU" in res else "CPU"
+            print(f"sarship: worker {name} ({where}, resources {res}) -> {address}", file=sys.stderr, flush=True)
+    finished = asyncio.ensure_future(asyncio.gather(*(n.finished() for n in nannies)))
+    stopped = asyncio.ensure_future(stop.wait())
+    await asyncio.wait([finished, stopped], return_when=asyncio.FIRST_COMPLETED)
+    await asyncio.gather(*(n.close(timeout=20) for n in nannies), return_exceptions=True)
+    for f in (finished, stopped):
+        f.cancel()
+
+
+def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str | None = None,
+          memory_limit: str | None = None, echo: bool = True) -> int:
+    """Start the workers and block until they stop (or SIGINT/SIGTERM)."""
+    if not scheduler:
+        raise InputError("--scheduler ADDRESS is required (e.g. tcp://10.0.0.1:8786)")
+    gpu_ids = parse_gpus(gpus)
+    if cpus is None:
+        cpus = 0 if gpu_ids else (os.cpu_count() or 1)
+    if cpus < 0:
+        raise InputError(f"--cpus must be >= 0, got {cpus}")
+    if not gpu_ids and cpus == 0:
+        raise InputError("nothing to start: no GPU selected (--gpus) and --cpus 0")
+    prefix = f"{name or socket.gethostname()}-"
+    from workers.cluster import _quiet
+
+    _quiet()
+    asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit), echo))
+    return 0
