@@ -40,6 +40,7 @@ from pipeline.windows import mirror_pad  # noqa: E402
 CASES = [
     ("ca_cfar", {"looks": 1.0}, "default (guard 41, background 81)", "intensity"),
     ("two_parameter", {}, "default (guard 21, background 41)", "intensity"),
+    ("os_cfar", {"looks": 1.0}, "default (guard 21, background 41, k = 3N/4)", "intensity"),
     ("apwf", {"estimator": "window", "guard": 1, "background": 31, "pfa": 1e-6}, "thesis 31x31 window",
      "quadpol"),
     ("apwf", {}, "ring guard 41 / background 61", "quadpol"),
@@ -155,7 +156,7 @@ def write_band(path: Path, shape: tuple[int, int], tile: int) -> None:
     finalize_scene(path)
 
 
-def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int) -> list[str]:
+def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int, threads: list[int]) -> list[str]:
     from workers.cluster import connect
     from workers.gpus import visible_gpus
     from workers.run import run_detection
@@ -167,11 +168,11 @@ def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int) -> list[str]
         t = time.perf_counter()
         write_band(scene, band, tile)
         print(f"# band {band[0]}x{band[1]} written in {time.perf_counter() - t:.1f} s", flush=True)
-        for k in n_gpus:
+        for k, nt in [(k, nt) for k in n_gpus for nt in threads]:
             if k > len(vis):
                 continue
             os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(vis[:k])
-            with connect(gpus=True, echo=False, dashboard_address=":0") as client:
+            with connect(gpus=True, echo=False, dashboard_address=":0", gpu_threads=nt) as client:
                 for rep in range(2):  # first: compile + warm caches; second: measured
                     t = time.perf_counter()
                     run = run_detection(scene, "ca_cfar", out_dir=Path(td) / f"out{k}", client=client,
@@ -179,7 +180,7 @@ def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int) -> list[str]
                     el = time.perf_counter() - t
                 per = run["tiles"]["per_tile"]
                 ker = sum(p["detect_s"] - p["h2d_s"] - p["d2h_s"] for p in per)
-                rows.append(f"| ca_cfar e2e | {k} GPU | {band[0]}x{band[1]} | {el:.2f} s | "
+                rows.append(f"| ca_cfar e2e | {k} GPU, {nt} thread(s) each | {band[0]}x{band[1]} | {el:.2f} s | "
                             f"{band[0] * band[1] / el / 1e6:,.0f} Mpx/s | read {sum(p['read_s'] for p in per):.1f} s, "
                             f"h2d {sum(p['h2d_s'] for p in per):.2f} s, kernel {ker:.2f} s, "
                             f"d2h {sum(p['d2h_s'] for p in per):.2f} s, write {sum(p['write_s'] for p in per):.1f} s, "
@@ -198,6 +199,7 @@ def main() -> None:
     ap.add_argument("--band", default="25000x16700")
     ap.add_argument("--gpus", default="1", help="comma list of GPU counts for the end-to-end rows")
     ap.add_argument("--tile", type=int, default=4096)
+    ap.add_argument("--gpu-threads", default="1,2", help="comma list of tile tasks per GPU worker")
     ap.add_argument("--skip-kernels", action="store_true")
     a = ap.parse_args()
     props = cp.cuda.runtime.getDeviceProperties(0)
@@ -211,7 +213,8 @@ def main() -> None:
         kernels([int(s) for s in a.sizes.split(",")], bw, cp)
     if a.band != "none":
         r, c = (int(v) for v in a.band.lower().split("x"))
-        end_to_end((r, c), [int(k) for k in a.gpus.split(",")], a.tile)
+        end_to_end((r, c), [int(k) for k in a.gpus.split(",")], a.tile,
+                   [int(t) for t in a.gpu_threads.split(",")])
 
 
 if __name__ == "__main__":

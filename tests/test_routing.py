@@ -50,7 +50,9 @@ def test_worker_specs_pin_and_advertise():
     specs = worker_specs(["0", "3"], 2, prefix="h-")
     assert list(specs) == ["h-gpu0", "h-gpu3", "h-cpu0", "h-cpu1"]
     g = specs["h-gpu3"]["options"]
-    assert g["env"]["CUDA_VISIBLE_DEVICES"] == "3" and g["resources"] == {"GPU": 1} and g["nthreads"] == 1
+    assert g["env"]["CUDA_VISIBLE_DEVICES"] == "3" and g["resources"] == {"GPU": 2} and g["nthreads"] == 2
+    one = worker_specs(["0"], 0, prefix="h-", gpu_threads=1)["h-gpu0"]["options"]
+    assert one["resources"] == {"GPU": 1} and one["nthreads"] == 1
     c = specs["h-cpu1"]["options"]
     assert c["resources"] == {"CPU": 1} and c["env"]["CUDA_VISIBLE_DEVICES"] == ""  # hidden, NVML-safe
 
@@ -87,7 +89,7 @@ def _cli(*args, timeout=300):
 def test_mixed_cluster_cpu_tiles_avoid_gpu_worker(tmp_path, blobs_scene):
     """Real processes: ``dask scheduler``, ``sarship worker --gpus none --cpus 2`` and a
     ``dask worker`` advertising GPU=1. CPU tiles must all run on the two CPU workers;
-    ``--device gpu`` for a detector without GPU code is refused with a clear message."""
+    ``--device gpu`` for a detector without GPU code (lmm, in this version) is refused."""
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
     env = {**os.environ, "CUDA_VISIBLE_DEVICES": "-1"}
@@ -117,7 +119,7 @@ def test_mixed_cluster_cpu_tiles_avoid_gpu_worker(tmp_path, blobs_scene):
         assert {t["worker"] for t in per} <= {"cpuhost-cpu0", "cpuhost-cpu1"}
         assert {t["device"] for t in per} == {"cpu"} and run["device"] == "cpu"
         assert run["placement"]["restriction"] == {"resources": {"CPU": 1}}
-        bad = _cli("detect", str(blobs_scene), "--detector", "os_cfar", "--out", str(tmp_path / "p"),
+        bad = _cli("detect", str(blobs_scene), "--detector", "lmm", "--out", str(tmp_path / "p"),
                    "--scheduler", addr, "--device", "gpu")
         assert bad.returncode == 2 and "no GPU implementation" in bad.stderr and "Traceback" not in bad.stderr
         assert not (tmp_path / "p" / "run.json").exists()

@@ -105,7 +105,8 @@ def cmd_detect(a) -> int:
 def cmd_worker(a) -> int:
     from workers.worker import serve
 
-    return serve(a.scheduler, gpus=a.gpus, cpus=a.cpus, name=a.name, memory_limit=a.memory_limit)
+    return serve(a.scheduler, gpus=a.gpus, cpus=a.cpus, name=a.name, memory_limit=a.memory_limit,
+                 gpu_threads=a.gpu_threads)
 
 
 def cmd_evaluate(a) -> int:
@@ -222,6 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gpus", default="all", help="all (default), none, or a comma list of GPU IDs (0,1)")
     s.add_argument("--cpus", type=int, default=None,
                    help="single-threaded CPU worker processes (default: all cores without GPUs, else 0)")
+    s.add_argument("--gpu-threads", type=int, default=2,
+                   help="tiles a GPU worker runs at once (default 2: one tile's Zarr I/O overlaps the "
+                        "other's GPU work; 1: strictly one)")
     s.add_argument("--name", help="worker name prefix (default: the host name)")
     s.add_argument("--memory-limit", help="per-worker memory limit, e.g. 8GiB (default: Dask's auto)")
     s.set_defaults(func=cmd_worker)

@@ -5,7 +5,7 @@ Numba/NumPy code that holds the GIL for parts of its work; processes scale, thre
 would not), so a run uses every core of the machine; each advertises the resource
 ``CPU=1``. With ``gpus=True`` on a machine with GPUs, the local cluster is instead one
 process per GPU, pinned by ``CUDA_VISIBLE_DEVICES`` before it starts and advertising
-``GPU=1`` (see :mod:`workers.gpus`), plus ``cpu_workers`` CPU processes if asked.
+``GPU`` (see :mod:`workers.gpus`), plus ``cpu_workers`` CPU processes if asked.
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ def connect(
     echo: bool = True,
     gpus: bool = False,
     cpu_workers: int = 0,
+    gpu_threads: int | None = None,
 ) -> Iterator["distributed.Client"]:  # noqa: F821
     """Yield a connected :class:`distributed.Client`.
 
@@ -73,7 +74,8 @@ def connect(
         from distributed import Scheduler, SpecCluster
 
         cluster = SpecCluster(
-            workers=worker_specs(gpu_ids, cpu_workers, prefix="local-", silence_logs=logging.ERROR),
+            workers=worker_specs(gpu_ids, cpu_workers, prefix="local-", silence_logs=logging.ERROR,
+                                 gpu_threads=gpu_threads or int(os.environ.get("SARSHIP_GPU_THREADS", "2"))),
             scheduler={"cls": Scheduler, "options": {"dashboard_address": dashboard_address}},
             silence_logs=logging.ERROR,
         )

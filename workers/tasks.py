@@ -79,6 +79,19 @@ def _to_device(block):
     return to_device(block)
 
 
+def _mask_and_stat_to_host(mask_d, stat_d) -> tuple[np.ndarray, np.ndarray]:
+    """The mask (1 byte a pixel) and the statistic of the detected pixels only (the only
+    values used downstream), instead of the whole float32 statistic: 5x fewer bytes back."""
+    import cupy as cp
+
+    mask = mask_d.get()
+    idx = cp.flatnonzero(mask_d)
+    stat = np.zeros(mask.shape, np.float32)
+    if idx.size:
+        stat.reshape(-1)[idx.get()] = stat_d.reshape(-1)[idx].get()
+    return mask, stat
+
+
 def run_tile_stats(job: TileJob) -> dict[str, Any]:
     """First pass of a two-pass detector: the tile's contribution to scene-wide statistics."""
     t0 = time.perf_counter()
@@ -106,7 +119,7 @@ def run_tile(job: TileJob) -> dict[str, Any]:
     origin = (er0 - job.halo, ec0 - job.halo)
     h2d = d2h = 0.0
     if gpu:  # one transfer in, the whole detector on the device, mask and statistic back
-        from pipeline.gpu import synchronize, to_host
+        from pipeline.gpu import synchronize
 
         dblock = _to_device(block)
         synchronize()
@@ -114,7 +127,7 @@ def run_tile(job: TileJob) -> dict[str, Any]:
         mask_d, stat_d = spec.detect(dblock, job.halo, origin, params, job.prep)
         synchronize()  # kernel time is detect_s - h2d_s - d2h_s
         tb = time.perf_counter()
-        mask_e, stat_e = to_host(mask_d), to_host(stat_d)
+        mask_e, stat_e = _mask_and_stat_to_host(mask_d, stat_d)
         h2d, d2h = ta - t1, time.perf_counter() - tb
         del dblock, mask_d, stat_d
     else:

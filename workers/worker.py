@@ -1,8 +1,9 @@
 """``sarship worker``: this machine's Dask workers for a scheduler, pinned per GPU.
 
-One worker process per GPU (``CUDA_VISIBLE_DEVICES`` set before the process starts, one
-thread, resource ``GPU=1``) and ``--cpus`` single-threaded CPU worker processes (resource
-``CPU=1`` each), all under one command that stops them together on SIGINT/SIGTERM.
+One worker process per GPU (``CUDA_VISIBLE_DEVICES`` set before the process starts,
+``--gpu-threads`` task slots, resource ``GPU`` = one unit per slot) and ``--cpus``
+single-threaded CPU worker processes (resource ``CPU=1`` each), all under one command that
+stops them together on SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ async def _main(address: str, specs: dict[str, dict], echo: bool) -> None:
 
 
 def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str | None = None,
-          memory_limit: str | None = None, echo: bool = True) -> int:
+          memory_limit: str | None = None, echo: bool = True, gpu_threads: int = 2) -> int:
     """Start the workers and block until they stop (or SIGINT/SIGTERM)."""
     if not scheduler:
         raise InputError("--scheduler ADDRESS is required (e.g. tcp://10.0.0.1:8786)")
@@ -65,5 +66,7 @@ def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str 
     from workers.cluster import _quiet
 
     _quiet()
-    asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit), echo))
+    if gpu_threads < 1:
+        raise InputError(f"--gpu-threads must be >= 1, got {gpu_threads}")
+    asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit, gpu_threads=gpu_threads), echo))
     return 0

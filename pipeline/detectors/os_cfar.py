@@ -130,6 +130,8 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy import optimize, special
 
+from pipeline.gpu import is_device_array
+
 from .base import DetectorParams, DetectorSpec, float_block, with_defaults
 
 __all__ = [
@@ -637,9 +639,13 @@ def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: b
     ``block`` has shape ``(h + 2*halo, w + 2*halo)``; ``halo >= background // 2``.
     ``stat = x_t / X_(k)`` (float32; > alpha where ``mask``; 0 elsewhere). ``origin`` is
     not needed: every pixel's maths depends only on its own window. ``_screen=False``
-    turns off the (exact) histogram screen; for tests and benchmarks.
+    turns off the (exact) histogram screen; for tests and benchmarks. A CuPy ``block`` runs
+    on its GPU (:func:`pipeline.gpu.cfar.os_cfar`: the same exact comparisons, so the same
+    mask and statistic) and returns CuPy arrays.
     """
-    block = float_block(block)
+    gpu = is_device_array(block)
+    if not gpu:
+        block = float_block(block)
     halo = int(halo)
     rb, rg, rt = int(params.background) // 2, int(params.guard) // 2, int(params.target) // 2
     if halo < rb:
@@ -657,6 +663,10 @@ def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: b
     a32 = np.float32(alpha)
     if not float(a32) > alpha:
         a32 = np.nextafter(a32, np.float32(np.inf))
+    if gpu:
+        from pipeline.gpu.cfar import os_cfar
+
+        return os_cfar(block, halo, rb, rg, rt, k, alpha, float(a32))
     mask = np.zeros((h, w), dtype=np.bool_)
     stat = np.zeros((h, w), dtype=np.float32)
     if h and w:
@@ -682,4 +692,5 @@ SPEC = DetectorSpec(
     detect=detect,
     input="intensity",
     needs_looks=True,
+    gpu=True,
 )

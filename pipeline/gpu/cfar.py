@@ -71,3 +71,32 @@ def two_parameter(block, halo: int, origin, b: int, g: int, t: int, n_ring: floa
     kernels.launch("tp_decide", n, (xt, s1b, s1g, s2b, s2g, np.float64(n_ring), np.float64(thr), np.int64(n),
                                     mask, stat))
     return mask, stat
+
+
+def os_cfar(block, halo: int, rb: int, rg: int, rt: int, k: int, alpha: float, stat_floor: float):
+    """OS-CFAR (see :mod:`pipeline.detectors.os_cfar`): x_t > alpha X_(k).
+
+    The decision counts, per pixel, the ring samples below the smallest value ``c`` of the
+    block's type with ``not (alpha * c < x_t)`` (exact comparisons: the CPU's mask); the
+    statistic ``x_t / X_(k)`` is computed for the detected pixels only, with X_(k) found
+    exactly by bisection on order-preserving integer keys of the ring values.
+    """
+    import cupy as cp
+
+    x = _float_block(cp, block)
+    h = x.shape[0] - 2 * halo
+    w = x.shape[1] - 2 * halo
+    f32 = x.dtype == cp.float32
+    mask = cp.empty((h, w), cp.bool_)
+    xt = cp.empty((h, w), cp.float64)
+    stat = cp.zeros((h, w), cp.float32)
+    ld = np.int64(x.shape[1])
+    kernels.launch("os_decide_f32" if f32 else "os_decide_f64", h * w,
+                   (x, ld, np.int64(h), np.int64(w), np.int32(halo), np.int32(rb), np.int32(rg), np.int32(rt),
+                    np.int64(k), np.float64(alpha), mask, xt))
+    idx = cp.flatnonzero(mask).astype(cp.int64)
+    if idx.size:
+        kernels.launch("os_stat_f32" if f32 else "os_stat_f64", int(idx.size),
+                       (x, ld, np.int64(w), np.int32(halo), np.int32(rb), np.int32(rg), np.int64(k), idx,
+                        np.int64(idx.size), xt, np.float64(alpha), np.float32(stat_floor), stat))
+    return mask, stat

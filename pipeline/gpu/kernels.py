@@ -364,6 +364,120 @@ __global__ void pcdm_kernel(const double* __restrict__ C, long long ldc, long lo
     }
 }
 
+/* ---------------------------------------------------------------------------------
+ * os_cfar (pipeline/detectors/os_cfar.py): decision by counting the ring samples below
+ * c, the smallest value of the block's type with not (alpha * c < x_t): x_t > alpha X_(k)
+ * iff at least k ring samples are < c. Exact comparisons only, so the mask is the CPU's.
+ * ------------------------------------------------------------------------------- */
+
+#define OS_DECIDE(NAME, T, NEXT, INF)                                                   \
+__global__ void NAME(const T* __restrict__ x, long long ld, long long h, long long w, int halo, \
+                     int rb, int rg, int rt, long long k, double alpha,                 \
+                     unsigned char* __restrict__ mask, double* __restrict__ xt_out) {   \
+    long long t = (long long)blockIdx.x * blockDim.x + threadIdx.x;                     \
+    if (t >= h * w) return;                                                             \
+    long long i = t / w, j = t % w, ci = i + halo, cj = j + halo;                       \
+    double xt;                                                                          \
+    if (rt == 0) xt = (double)x[ci * ld + cj];                                          \
+    else {                                                                              \
+        double s = 0.0;                                                                 \
+        for (long long a = ci - rt; a <= ci + rt; ++a)                                  \
+            for (long long b = cj - rt; b <= cj + rt; ++b) s += (double)x[a * ld + b];  \
+        xt = s / (double)((2 * rt + 1) * (2 * rt + 1));                                 \
+    }                                                                                   \
+    xt_out[t] = xt;                                                                     \
+    mask[t] = 0;                                                                        \
+    if (!(xt == xt)) return;                                                            \
+    T c = (T)(xt / alpha);                                                              \
+    if (c != c) return;                                                                 \
+    while (alpha * (double)c < xt) c = NEXT(c, INF);                                    \
+    while (true) {                                                                      \
+        T p = NEXT(c, -INF);                                                            \
+        if (p == c || alpha * (double)p < xt) break;                                    \
+        c = p;                                                                          \
+    }                                                                                   \
+    long long n_ring = (long long)(2 * rb + 1) * (2 * rb + 1) - (long long)(2 * rg + 1) * (2 * rg + 1); \
+    long long max_above = n_ring - k, below = 0, above = 0;                             \
+    bool hit = false;                                                                   \
+    for (int a = -rb; a <= rb; ++a) {                                                   \
+        const T* row = x + (ci + a) * ld;                                               \
+        int cnt = 0, tot;                                                               \
+        if (a < -rg || a > rg) {                                                        \
+            for (long long b = cj - rb; b <= cj + rb; ++b) cnt += row[b] < c;           \
+            tot = 2 * rb + 1;                                                           \
+        } else {                                                                        \
+            for (long long b = cj - rb; b < cj - rg; ++b) cnt += row[b] < c;            \
+            for (long long b = cj + rg + 1; b <= cj + rb; ++b) cnt += row[b] < c;       \
+            tot = 2 * (rb - rg);                                                        \
+        }                                                                               \
+        below += cnt;                                                                   \
+        above += tot - cnt;                                                             \
+        if (below >= k) { hit = true; break; }                                          \
+        if (above > max_above) break;                                                   \
+    }                                                                                   \
+    mask[t] = hit;                                                                      \
+}
+
+OS_DECIDE(os_decide_f32, float, nextafterf, __int_as_float(0x7f800000))
+OS_DECIDE(os_decide_f64, double, nextafter, __longlong_as_double(0x7ff0000000000000LL))
+
+/* X_(k) of the ring of each listed pixel, exactly: bisection on order-preserving integer
+ * keys of the values (NaN above everything, as np.partition ranks it), then the statistic
+ * x_t / X_(k) with the CPU's special cases. */
+__device__ __forceinline__ unsigned int key32(float v) {
+    unsigned int u = __float_as_uint(v);
+    if ((u & 0x7fffffffu) > 0x7f800000u) return 0xffffffffu;
+    return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+}
+__device__ __forceinline__ float unkey32(unsigned int k) {
+    if (k == 0xffffffffu) return __int_as_float(0x7fc00000);
+    return __uint_as_float((k & 0x80000000u) ? (k & 0x7fffffffu) : ~k);
+}
+__device__ __forceinline__ unsigned long long key64(double v) {
+    unsigned long long u = (unsigned long long)__double_as_longlong(v);
+    if ((u & 0x7fffffffffffffffULL) > 0x7ff0000000000000ULL) return 0xffffffffffffffffULL;
+    return (u & 0x8000000000000000ULL) ? ~u : (u | 0x8000000000000000ULL);
+}
+__device__ __forceinline__ double unkey64(unsigned long long k) {
+    if (k == 0xffffffffffffffffULL) return __longlong_as_double(0x7ff8000000000000LL);
+    return __longlong_as_double((long long)((k & 0x8000000000000000ULL) ? (k & 0x7fffffffffffffffULL) : ~k));
+}
+
+#define OS_STAT(NAME, T, KT, KEY, UNKEY, KMAX)                                          \
+__global__ void NAME(const T* __restrict__ x, long long ld, long long w, int halo, int rb, int rg, \
+                     long long k, const long long* __restrict__ idx, long long n_idx,   \
+                     const double* __restrict__ xt_arr, double alpha, float stat_floor, \
+                     float* __restrict__ stat) {                                        \
+    long long q = (long long)blockIdx.x * blockDim.x + threadIdx.x;                     \
+    if (q >= n_idx) return;                                                             \
+    long long t = idx[q];                                                               \
+    long long ci = t / w + halo, cj = t % w + halo;                                     \
+    KT lo = 0, hi = KMAX;                                                               \
+    while (lo < hi) {                                                                   \
+        KT mid = lo + (hi - lo) / 2;                                                    \
+        long long cnt = 0;                                                              \
+        for (int a = -rb; a <= rb; ++a) {                                               \
+            const T* row = x + (ci + a) * ld;                                           \
+            for (int b = -rb; b <= rb; ++b) {                                           \
+                if (a >= -rg && a <= rg && b >= -rg && b <= rg) continue;               \
+                cnt += KEY(row[cj + b]) <= mid;                                         \
+            }                                                                           \
+        }                                                                               \
+        if (cnt >= k) hi = mid; else lo = mid + 1;                                      \
+    }                                                                                   \
+    double xk = (double)UNKEY(lo);                                                      \
+    double xt = xt_arr[t];                                                              \
+    float r;                                                                            \
+    if (xk > 0.0) r = (float)(xt / xk);                                                 \
+    else if (xk == 0.0) r = __int_as_float(0x7f800000);                                 \
+    else r = stat_floor;                                                                \
+    if (!((double)r > alpha)) r = stat_floor;                                           \
+    stat[t] = r;                                                                        \
+}
+
+OS_STAT(os_stat_f32, float, unsigned int, key32, unkey32, 0xffffffffu)
+OS_STAT(os_stat_f64, double, unsigned long long, key64, unkey64, 0xffffffffffffffffULL)
+
 }  /* extern "C" */
 """
 
