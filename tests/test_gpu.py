@@ -297,3 +297,21 @@ def test_os_cfar_matches_cpu(cp, dtype, kw):
     assert mc.sum() > 50
     assert np.array_equal(mc, mg)  # exact comparisons only
     assert np.array_equal(sc, sg)
+
+
+@pytest.mark.parametrize("p", [2, 3])
+@pytest.mark.parametrize("coupling", ["joint", "paper"])
+def test_vb_polsar_pixels_match_cpu(cp, p, coupling):
+    spec = detectors.get("vb_polsar")
+    prm = spec.params(coupling=coupling, sample_stride=4)
+    X = _quadpol((400, 380), p, seed=9)
+    prep = spec.prepare(prm)
+    prep = {**prep, **spec.reduce([spec.scene_pass(X, 0, (0, 0), prm, prep)], prm, prep)}
+    mc, sc = spec.detect(X, 0, (0, 0), prm, prep)
+    mg, sg = spec.detect(cp.asarray(X), 0, (0, 0), prm, prep)
+    mg, sg = mg.get(), sg.get()
+    assert mc.sum() > 5
+    thr = float(np.log1p(-prep["alpha0"]) - np.log(prep["alpha0"]))
+    total, far = _flips(mc, sc, mg, thr, rel=1e-5)
+    assert far == 0 and total <= 2, (total, far)
+    np.testing.assert_allclose(sg, sc, rtol=1e-5, atol=1e-5)

@@ -97,7 +97,7 @@ def run_tile_stats(job: TileJob) -> dict[str, Any]:
     t0 = time.perf_counter()
     r0, r1, c0, c1 = job.bounds
     spec, params, block = _read(job, r0, r1, c0, c1)
-    gpu = _on_device(job, spec)
+    gpu = _on_device(job, spec) and spec.scene_pass_gpu
     if gpu:
         block = _to_device(block)
     stats = spec.scene_pass(block, job.halo, (r0 - job.halo, c0 - job.halo), params, job.prep)

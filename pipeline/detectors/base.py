@@ -131,6 +131,8 @@ class DetectorSpec:
     #: ``detect`` (and ``scene_pass``) accept a CuPy block and run on its GPU
     #: (:mod:`pipeline.gpu`); otherwise GPU workers run the CPU code for this detector.
     gpu: bool = False
+    #: with ``gpu``: the scene pass runs on the device too (else on the host block)
+    scene_pass_gpu: bool = True
 
     def halo(self, params: DetectorParams) -> int:
         """Pixels of context each side of a tile: half the largest window by default."""

@@ -478,6 +478,86 @@ __global__ void NAME(const T* __restrict__ x, long long ld, long long w, int hal
 OS_STAT(os_stat_f32, float, unsigned int, key32, unkey32, 0xffffffffu)
 OS_STAT(os_stat_f64, double, unsigned long long, key64, unkey64, 0xffffffffffffffffULL)
 
+/* ---------------------------------------------------------------------------------
+ * vb_polsar pass 2 (pipeline/detectors/vb_polsar.py, _pixels): per pixel, with the
+ * scene-wide mixture fixed, init from SPAN, A-22/23 and A-16..A-19 to A-26, A-27.
+ * ------------------------------------------------------------------------------- */
+
+__device__ double vb_digamma(double x) {
+    double r = 0.0;
+    while (x < 6.0) { r -= 1.0 / x; x += 1.0; }
+    double f = 1.0 / (x * x);
+    return r + log(x) - 0.5 / x - f * (1.0 / 12 - f * (1.0 / 120 - f * (1.0 / 252 - f * (1.0 / 240 - f / 132))));
+}
+
+__device__ double vb_expit(double v) {
+    if (v >= 0) return 1.0 / (1.0 + exp(-v));
+    double e = exp(v);
+    return e / (1.0 + e);
+}
+
+#define VB_KMAX 16
+__global__ void vb_pixels(const float* __restrict__ X, long long n, int p, int K, int D,
+                          const double* __restrict__ c, const double* __restrict__ P,
+                          const double* __restrict__ m, const double* __restrict__ g1,
+                          double t_init, double a0, double b0, int max_iter, double tol, int joint,
+                          unsigned char* __restrict__ mask, float* __restrict__ stat) {
+    long long t = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    if (t >= n) return;
+    const float* px = X + 2 * p * t;
+    double d[6];
+    const double s2 = 1.0 / sqrt(2.0);
+    if (p == 3) {
+        double hr = px[0], hi = px[1], vr = px[2], vi = px[3], wr = px[4], wi = px[5];
+        /* hh = (hr, hi), hv = (vr, vi), vv = (wr, wi) */
+        d[0] = (hr + wr) * s2; d[1] = (hi + wi) * s2;
+        d[2] = (hr - wr) * s2; d[3] = (hi - wi) * s2;
+        d[4] = (2.0 * vr) * s2; d[5] = (2.0 * vi) * s2;
+    } else {
+        for (int q = 0; q < 2 * p; ++q) d[q] = (double)px[q];
+    }
+    double span = 0.0;
+    for (int a = 0; a < D; ++a) span += d[a] * d[a];
+    double g0[VB_KMAX];
+    for (int k = 0; k < K; ++k) {
+        double q = 0.0;
+        for (int a = 0; a < D; ++a) {
+            double da = d[a] - m[k * D + a];
+            for (int b = 0; b < D; ++b) q += da * P[(k * D + a) * D + b] * (d[b] - m[k * D + b]);
+        }
+        g0[k] = c[k] - 0.5 * q;
+    }
+    double ea, ab;
+    if (span > t_init) { ea = 1.0; ab = 0.0; } else { ea = 0.0; ab = 1.0; }
+    double lam = 0.0, lam0 = 0.0;
+    if (joint) {
+        double mx0 = g0[0], mx1 = g1[0];
+        for (int k = 1; k < K; ++k) { mx0 = fmax(mx0, g0[k]); mx1 = fmax(mx1, g1[k]); }
+        double s0 = 0.0, s1 = 0.0;
+        for (int k = 0; k < K; ++k) { s0 += exp(g0[k] - mx0); s1 += exp(g1[k] - mx1); }
+        lam0 = (mx1 + log(s1)) - (mx0 + log(s0));
+    }
+    double rho[VB_KMAX];
+    for (int it = 0; it < max_iter; ++it) {
+        if (!joint) {
+            double mx = -1e300;
+            for (int k = 0; k < K; ++k) { rho[k] = ab * g0[k] + ea * g1[k]; mx = fmax(mx, rho[k]); }
+            double s = 0.0;
+            for (int k = 0; k < K; ++k) { rho[k] = exp(rho[k] - mx); s += rho[k]; }
+            lam0 = 0.0;
+            for (int k = 0; k < K; ++k) lam0 += rho[k] / s * (g1[k] - g0[k]);
+        }
+        lam = lam0 + vb_digamma(ea + a0) - vb_digamma(b0 + ab);
+        double ea_n = vb_expit(lam), ab_n = vb_expit(-lam);
+        double dlt = fabs(ea_n - ea);
+        bool conv = dlt == 0.0 || dlt <= tol * ea;
+        ea = ea_n; ab = ab_n;
+        if (conv) break;
+    }
+    mask[t] = ab <= a0;
+    stat[t] = (float)lam;
+}
+
 }  /* extern "C" */
 """
 

@@ -90,3 +90,26 @@ def pcdm_span_psh(block, halo_px: int, origin, looks_window: int):
     kernels.launch("pcdm_kernel", h * w, (C, np.int64(w + 2), np.int64((h + 2) * (w + 2)), np.int64(h),
                                           np.int64(w), np.int32(p), span, psh))
     return span, psh
+
+
+def vb_pixels(core, c, P, m, g1, t_init: float, a0: float, b0: float, max_iter: int, tol: float,
+              joint: bool):
+    """vb_polsar pass 2 on the device (see :func:`pipeline.detectors.vb_polsar._pixels`):
+    ``core`` (h, w, p) complex channels; the mixture terms as NumPy arrays. CUDA's
+    ``exp``/``log`` differ from the CPU's in the last bits: the log-odds agree to ~1e-12
+    relative, the masks except at pixels within that of the threshold."""
+    import cupy as cp
+
+    core = _complex_block(cp, core)
+    h, w, p = core.shape
+    K, D = np.asarray(m).shape
+    if K > 16:
+        raise ValueError(f"vb_polsar on the GPU supports up to 16 components, got {K}")
+    dev = [cp.asarray(np.ascontiguousarray(a, dtype=np.float64)) for a in (c, P, m, g1)]
+    mask = cp.empty((h, w), cp.bool_)
+    stat = cp.empty((h, w), cp.float32)
+    n = h * w
+    kernels.launch("vb_pixels", n, (core.view(cp.float32), np.int64(n), np.int32(p), np.int32(K), np.int32(D),
+                                    *dev, np.float64(t_init), np.float64(a0), np.float64(b0),
+                                    np.int32(max_iter), np.float64(tol), np.int32(1 if joint else 0), mask, stat))
+    return mask, stat
