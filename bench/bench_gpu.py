@@ -46,6 +46,7 @@ CASES = [
     ("apwf", {}, "ring guard 41 / background 61", "quadpol"),
     ("pcdm", {"looks_window": 1, "span_rule": "fraction"}, "thesis: single-look C", "quadpol"),
     ("pcdm", {}, "default: 3x3 boxcar", "quadpol"),
+    ("vb_polsar", {}, "defaults (pass 2; scene pass on the host)", "quadpol"),
 ]
 
 
