@@ -12,8 +12,9 @@ import zarr
 from scipy import optimize, special, stats
 
 from pipeline import detectors
-from pipeline.detectors.lmm import (LMMParams, SPEC, detect, em_fit_points, mixture_threshold_log,
-                                    prepare)
+from pipeline.detectors.lmm import (LMMParams, SPEC, detect, em_fit_points, fit_threshold, init_z_table,
+                                    mixture_grad_hess, mixture_loglik, mixture_threshold_log, ml_newton,
+                                    predictive_shift, prepare)
 from pipeline.windows import mirror_pad
 from tests.conftest import blobs_scene, write_scene
 
@@ -86,6 +87,173 @@ def test_threshold_solves_sf_equation(pfa):
 
 
 # ---------------------------------------------------------------------------------------
+# ML polish, choice of K', predictive tail
+
+
+def _unpack(th, K):
+    e = np.r_[th[:K - 1], 0.0]
+    a = np.exp(e - e.max())
+    return a / a.sum(), th[K - 1:2 * K - 1].copy(), np.exp(th[2 * K - 1:])
+
+
+def _np_loglik(y, w, a, mu, s):
+    comp = a * stats.norm.pdf((y[:, None] - mu) / s) / s
+    return float(np.sum(w * np.log(comp.sum(1))))
+
+
+def _np_grad(y, w, th, K):
+    """Independent numpy score of the mixture log-likelihood in theta (responsibility form)."""
+    a, mu, s = _unpack(th, K)
+    comp = a * stats.norm.pdf((y[:, None] - mu) / s) / s
+    g = comp / comp.sum(1, keepdims=True)
+    u = (y[:, None] - mu) / s
+    return np.r_[np.sum(w[:, None] * (g - a), 0)[:K - 1], np.sum(w[:, None] * g * u / s, 0),
+                 np.sum(w[:, None] * g * (u * u - 1), 0)]
+
+
+@pytest.mark.parametrize("K", [1, 2, 3, 4])
+def test_grad_hess_matches_finite_differences(K):
+    rng = np.random.default_rng(20 + K)
+    y = rng.normal(0, 1, 60)
+    w = rng.uniform(0.5, 3, 60)
+    th = rng.normal(0, 0.5, 3 * K - 1)
+    p = 3 * K - 1
+    a, mu, s = _unpack(th, K)
+    G, H = np.empty(p), np.empty((p, p))
+    ll = mixture_grad_hess(y, w, y.size, K, a, mu, s, G, H)
+    assert ll == pytest.approx(_np_loglik(y, w, a, mu, s), abs=1e-10)
+    assert mixture_loglik(y, w, y.size, K, a, mu, s) == pytest.approx(ll, abs=1e-10)
+    np.testing.assert_allclose(G, _np_grad(y, w, th, K), atol=1e-9)
+    eps = 1e-5
+    Hn = np.array([(_np_grad(y, w, th + eps * e, K) - _np_grad(y, w, th - eps * e, K)) / (2 * eps)
+                   for e in np.eye(p)])
+    np.testing.assert_allclose(H, Hn, atol=1e-6)
+    assert np.array_equal(H, H.T)
+
+
+def _ref_threshold(y, K, pfa, tol=1e-5, max_iter=200):
+    """Independent reference of the default path on raw samples: EM candidates K' = 1..K
+    (the shared EM), BIC with a numpy log-likelihood, the best candidate's ML by scipy BFGS
+    on a numpy score, observed information by differences of that score, plug-in root by
+    brentq, predictive shift 0.5 dS^T A^-1 dS / (f S) with scipy's normal functions."""
+    n = y.size
+    w = np.ones(n)
+    iz = init_z_table(K)
+    cands = []
+    for k1 in range(1, K + 1):
+        a, mu, s = np.empty(k1), np.empty(k1), np.empty(k1)
+        em_fit_points(y, w, n, k1, iz[k1 - 1, :k1], max_iter, tol, a, mu, s)
+        live = a > 0
+        a, mu, s = a[live], mu[live], s[live]
+        bic = -2 * _np_loglik(y, w, a, mu, s) + (3 * a.size - 1) * math.log(n)
+        cands.append((bic, a.size, a, mu, s))
+    _, k1, a, mu, s = min(cands, key=lambda c: c[0])
+    th0 = np.r_[np.log(a[:-1] / a[-1]), mu, np.log(s)]
+    res = optimize.minimize(lambda th: -_np_loglik(y, w, *_unpack(th, k1)), th0,
+                            jac=lambda th: -_np_grad(y, w, th, k1), method="BFGS", options=dict(gtol=1e-10))
+    th = res.x
+    p = 3 * k1 - 1
+    eps = 1e-5
+    A = -np.array([(_np_grad(y, w, th + eps * e, k1) - _np_grad(y, w, th - eps * e, k1)) / (2 * eps)
+                   for e in np.eye(p)])
+    A = 0.5 * (A + A.T)
+    a, mu, s = _unpack(th, k1)
+    sf = lambda t: float(np.sum(a * stats.norm.sf((t - mu) / s)))
+    zq = -special.ndtri(pfa)
+    t = optimize.brentq(lambda t: math.log(sf(t)) - math.log(pfa), min(mu + s * zq) - 1e-6,
+                        max(mu + s * zq) + 1e-6, xtol=1e-14)
+    u = (t - mu) / s
+    S, f = sf(t), float(np.sum(a * stats.norm.pdf(u) / s))
+    dS = np.r_[(a * (stats.norm.sf(u) - S))[:-1], a * stats.norm.pdf(u) / s, a * stats.norm.pdf(u) * u]
+    return t + 0.5 * dS @ np.linalg.solve(A, dS) / (f * S), k1
+
+
+def test_default_fit_matches_independent_reference():
+    """fit_threshold (select='bic', tail='predictive', raw samples) equals the independent
+    reference on rings of 2- and 3-component clutter, K' included; ml_newton's result is
+    a maximum (zero score, positive definite information); detect's exact form uses it."""
+    rng = np.random.default_rng(31)
+    K, pfa = 3, 1e-3
+    z, lp = float(-special.ndtri(pfa)), math.log(pfa)
+    iz = init_z_table(K)
+    chosen = set()
+    for clutter, n in [(([0.7, 0.3], [0.0, 1.0], [0.5, 0.8]), 600), (([0.5, 0.3, 0.2], [-1.0, 0.5, 2.0],
+                                                                        [0.5, 0.4, 0.6]), 900),
+                       (([1.0], [0.3], [0.7]), 300)]:
+        for _ in range(2):
+            y = _mixture(rng, n, *clutter)
+            a, mu, s = np.empty(K), np.empty(K), np.empty(K)
+            t, work, k1 = fit_threshold(y, np.ones(n), n, K, iz, 200, 1e-5, 0.0, True, True, z, lp, a, mu, s)
+            t_ref, k_ref = _ref_threshold(y, K, pfa)
+            assert k1 == k_ref and work > 0
+            assert abs(t - t_ref) < 1e-6, (t, t_ref)
+            chosen.add(k1)
+            # the ML: score ~ 0 and information positive definite at the returned fit
+            th = np.r_[np.log(a[:k1 - 1] / a[k1 - 1]), mu[:k1], np.log(s[:k1])]
+            assert np.abs(_np_grad(y, np.ones(n), th, k1)).max() < 1e-5
+    assert chosen == {1, 2, 3}
+    # plumbing: detect's exact form (default select / tail) decides with this threshold
+    p = LMMParams(method="exact", guard=5, background=13, pfa=1e-2)
+    x = _scene(rng, 24, 2)
+    halo = 6
+    pad = mirror_pad(x, halo)
+    _, stat = detect(pad, halo, (-halo, -halo), p, prepare(p))
+    for (i, j) in [(0, 0), (10, 17), (23, 23)]:
+        win = pad[i:i + 13, j:j + 13].astype(float).copy()
+        win[4:9, 4:9] = np.nan
+        t_ref, _ = _ref_threshold(np.log(win[np.isfinite(win)]), 3, 1e-2)
+        r = float(x[i, j]) / math.exp(t_ref)
+        assert (stat[i, j] == pytest.approx(r, rel=1e-6)) if r > 1.0 else (stat[i, j] == 0.0)
+
+
+def test_newton_from_em_and_degenerate_rings():
+    """ml_newton raises the likelihood of the EM fit and converges; rings the mixture cannot
+    resolve (constant, two-valued) fall back to finite plug-in thresholds."""
+    rng = np.random.default_rng(32)
+    y = _mixture(rng, 2000, [0.7, 0.3], [0.0, 1.0], [0.5, 0.8])
+    _, a, mu, s = _fit(y, 2, tol=1e-4, max_iter=200)
+    w = np.ones(y.size)
+    ll_em = mixture_loglik(y, w, y.size, 2, a, mu, s)
+    A = np.empty((5, 5))
+    steps, ok, ll = ml_newton(y, w, y.size, 2, a, mu, s, A, 30)
+    assert ok and 0 < steps < 30 and ll >= ll_em
+    assert np.all(np.linalg.eigvalsh(A) > 0)
+    z, lp = float(-special.ndtri(1e-5)), math.log(1e-5)
+    iz = init_z_table(3)
+    for y in (np.full(500, 2.0), np.r_[np.zeros(250), np.ones(250)]):
+        t, _, k1 = fit_threshold(y, np.ones(y.size), y.size, 3, iz, 200, 1e-5, 0.0, True, True, z, lp,
+                                 np.empty(3), np.empty(3), np.empty(3))
+        assert np.isfinite(t) and t >= y.max() - 1e-9 and k1 >= 1
+
+
+def test_predictive_shift_one_component():
+    """K' = 1 in closed form: ML mean m and sd s, information diag(n/s^2, 2n) in (mu, ln s),
+    so shift = phi(z) s (1 + z^2/2) / (2 n PFA); fit_threshold returns m + s z + shift.
+    Its calibration on lognormal clutter (sampling distribution of (m, s) exact: normal and
+    chi-square), n = 1240, PFA 1e-5: E[S(t)] / PFA = 1.008 (plug-in m + s z: 1.092)."""
+    rng = np.random.default_rng(33)
+    n, pfa = 1240, 1e-5
+    z = float(-special.ndtri(pfa))
+    y = rng.normal(0.3, 0.7, n)
+    m, s = y.mean(), y.std()
+    shift = stats.norm.pdf(z) * s * (1 + z * z / 2) / (2 * n * pfa)
+    t, _, k1 = fit_threshold(y, np.ones(n), n, 1, init_z_table(1), 200, 1e-5, 0.0, True, True, z, math.log(pfa),
+                             np.empty(1), np.empty(1), np.empty(1))
+    assert k1 == 1 and t == pytest.approx(m + s * z + shift, abs=1e-9)
+    jac = np.ones(1)
+    A = np.diag([n / s ** 2, 2.0 * n])
+    assert predictive_shift(m + s * z, 1, np.ones(1), np.array([m]), np.array([s]), jac, A) == \
+        pytest.approx(shift, rel=1e-7)
+    M = 2_000_000
+    mh = rng.normal(0, 1 / math.sqrt(n), M)
+    sh = np.sqrt(rng.chisquare(n - 1, M) / n)
+    c = stats.norm.pdf(z) * (1 + z * z / 2) / (2 * n * pfa)
+    pred = stats.norm.sf(mh + sh * (z + c)).mean() / pfa
+    plug = stats.norm.sf(mh + sh * z).mean() / pfa
+    assert abs(pred - 1) < 0.02 and plug > 1.07, (pred, plug)
+
+
+# ---------------------------------------------------------------------------------------
 # detector
 
 
@@ -95,8 +263,9 @@ def test_spec_registered_and_params():
     assert p.components == 3 and p.method in ("exact", "fast", "grid") and SPEC.input == "intensity"
     assert SPEC.halo(LMMParams(method="fast")) == p.background // 2
     assert SPEC.halo(LMMParams(method="grid", grid_step=8)) == p.background // 2 + 8
+    assert p.select == "bic" and p.tail == "predictive"
     for bad in (dict(components=0), dict(components=7), dict(method="nope"), dict(tol=0.0),
-                dict(grid_step=0), dict(grid_refine=-1.0)):
+                dict(grid_step=0), dict(grid_refine=-1.0), dict(select="aic"), dict(tail="exact")):
         with pytest.raises(Exception):
             LMMParams(**bad)
     prep = prepare(LMMParams(pfa=1e-5))
@@ -147,9 +316,11 @@ def test_tiling_invariance_direct(method, extra):
 
 
 def test_exact_matches_bruteforce_pixel():
-    """A few pixels against an independent numpy EM + scipy threshold on the same ring."""
+    """The thesis path (K fixed, plug-in tail): a few pixels against an independent numpy EM
+    + scipy threshold on the same ring."""
     rng = np.random.default_rng(12)
-    p = LMMParams(method="exact", guard=5, background=13, pfa=1e-2, components=2, tol=1e-9, max_iter=3000)
+    p = LMMParams(method="exact", guard=5, background=13, pfa=1e-2, components=2, tol=1e-9, max_iter=3000,
+                  select="fixed", tail="plugin")
     prep = prepare(p)
     x = _scene(rng, 30, 2)
     halo = 6
@@ -257,7 +428,8 @@ def _count_parallel(x, halo, p, prep, size):
 
 
 def test_false_alarm_rate_fast():
-    """iid 2-component lognormal-mixture clutter, M = 512^2, PFA 4e-3, K = 2: the same
+    """The thesis path (K = 2 fixed, plug-in tail; the default path: test_default_*).
+    iid 2-component lognormal-mixture clutter, M = 512^2, PFA 4e-3, K = 2: the same
     expected count (1049) and bound as M = 1024^2 at PFA 1e-3 (measured there: 1118), at a
     quarter of the cost.
 
@@ -270,7 +442,8 @@ def test_false_alarm_rate_fast():
     rng = np.random.default_rng(7)
     shape = (size + 2 * halo, size + 2 * halo)
     x = np.exp(_mixture(rng, shape, [0.7, 0.3], [0.0, 1.0], [0.5, 0.8])).astype(np.float32)
-    p = LMMParams(method="fast", pfa=pfa, guard=11, background=41, components=2)
+    p = LMMParams(method="fast", pfa=pfa, guard=11, background=41, components=2, select="fixed",
+                  tail="plugin")
     prep = prepare(p)
     expected = size * size * pfa
     bound = 5.0 * math.sqrt(1.5 * expected)
@@ -282,7 +455,7 @@ def test_false_alarm_rate_fast():
 
 @pytest.mark.parametrize("refine", [1.0, 0.0])
 def test_false_alarm_rate_grid(refine):
-    """Same clutter, ring and bound as the fast test, grid form (grid_step 8). Measured:
+    """Same clutter, ring, bound and thesis path as the fast test, grid form (grid_step 8). Measured:
     1079 (refine 1) / 1059 (refine 0, pure interpolation) for 1049 expected; the threshold
     for 1.3 * PFA is rejected (1411 / 1400)."""
     size, halo = 1024, 28
@@ -290,7 +463,7 @@ def test_false_alarm_rate_grid(refine):
     shape = (size + 2 * halo, size + 2 * halo)
     x = np.exp(_mixture(rng, shape, [0.7, 0.3], [0.0, 1.0], [0.5, 0.8])).astype(np.float32)
     p = LMMParams(method="grid", pfa=1e-3, guard=11, background=41, components=2, grid_step=8,
-                  grid_refine=refine)
+                  grid_refine=refine, select="fixed", tail="plugin")
     assert SPEC.halo(p) == halo
     prep = prepare(p)
     expected = size * size * 1e-3
@@ -298,6 +471,89 @@ def test_false_alarm_rate_grid(refine):
     n = _count_parallel(x, halo, p, prep, size)
     assert abs(n - expected) <= bound, (n, expected, bound)
     wrong = dict(prep, z=float(-special.ndtri(1.3e-3)), log_pfa=math.log(1.3e-3))
+    assert abs(_count_parallel(x, halo, p, wrong, size) - expected) > bound
+
+
+
+C2 = ([0.7, 0.3], [0.0, 1.0], [0.5, 0.8])
+C3 = ([0.5, 0.3, 0.2], [-1.0, 0.5, 2.0], [0.5, 0.4, 0.6])
+
+
+def _true_sf(t, clutter):
+    a, mu, s = map(np.asarray, clutter)
+    return np.sum(a * stats.norm.sf((np.asarray(t)[:, None] - mu) / s), 1)
+
+
+@pytest.mark.parametrize("name", ["C2", "C3"])
+def test_default_fit_is_calibrated_ring_level(name):
+    """The false-alarm probability of a threshold is exact here: for iid clutter and a CUT
+    independent of its ring, P(FA) = E[S_true(t)] over rings. M = 6000 independent default
+    rings (N = 1240, guard 21 / background 41), each binned as in the fast / grid forms
+    (h = 1/8 neper) and fitted by fit_threshold, the function every form calls.
+
+    Measured E[S_true(t)] / PFA here (M = 6000; standard errors ~0.008 at PFA 1e-3,
+    0.02-0.04 at 1e-5; the module docstring's table has M = 20000 and more clutters):
+
+    =================================  ===========  ===========  ===========  ===========
+    fit / threshold                    C2, 1e-3     C2, 1e-5     C3, 1e-3     C3, 1e-5
+    =================================  ===========  ===========  ===========  ===========
+    K = 3 fixed, plug-in (old)         1.27         2.33         1.15         1.89
+    default (BIC K' <= 3, predictive)  1.14         1.35         1.05         1.12
+    =================================  ===========  ===========  ===========  ===========
+
+    Asserted: default within the count tests' relative bound 5 sqrt(1.5 * 1049) / 1049 =
+    0.19 at PFA 1e-3 (the old K = 3 plug-in fails it on C2); at PFA 1e-5 (the detector's
+    default, not reachable by counting in CI) the default stays within [0.8, 1.5] and the
+    old path fails it (the residual +35 % on C2 is the O(1/N) bias of the ML tail, which
+    the first-order predictive correction does not remove: see the module docstring)."""
+    clutter = {"C2": C2, "C3": C3}[name]
+    rng = np.random.default_rng(41)
+    M, N, h = 6000, 41 * 41 - 21 * 21, 0.125
+    Y = _mixture(rng, (M, N), *clutter)
+    rings = []
+    for y in Y:
+        b, cnt = np.unique(np.floor(y / h), return_counts=True)
+        rings.append(((b + 0.5) * h, cnt.astype(float)))
+    iz = init_z_table(3)
+    a, mu, s = np.empty(3), np.empty(3), np.empty(3)
+    for pfa in (1e-3, 1e-5):
+        z, lp = float(-special.ndtri(pfa)), math.log(pfa)
+        ratio = {}
+        for label, sel, pred in [("default", True, True), ("old", False, False)]:
+            t = np.array([fit_threshold(yv, wv, yv.size, 3, iz, 200, 1e-5, h * h / 12, sel, pred, z, lp,
+                                        a, mu, s)[0] for yv, wv in rings])
+            ratio[label] = float(_true_sf(t, clutter).mean() / pfa)
+        if pfa == 1e-3:
+            assert abs(ratio["default"] - 1) <= 0.19, ratio
+            if name == "C2":
+                assert abs(ratio["old"] - 1) > 0.19, ratio
+        else:
+            assert 0.8 <= ratio["default"] <= 1.5 and ratio["old"] > 1.5, ratio
+
+
+@pytest.mark.parametrize("name", ["C2", "C3"])
+def test_default_false_alarm_count(name):
+    """End to end with every default (components 3, select 'bic', tail 'predictive', grid form
+    with step guard // 4 = 5 and refine 2, guard 21 / background 41, N = 1240) but the PFA:
+    512^2 px of iid 2- or 3-component lognormal-mixture clutter at PFA 4e-3, expected 1049
+    false alarms, the bound of the other count tests (5 sqrt(1.5 * 1049) = 198).
+    Measured: C2 1121 (+6.9 %), C3 1057 (+0.8 %); the old default (K = 3 fixed, plug-in) at
+    PFA 4e-3: 1182 / 1097 (at PFA 1e-3, 1024^2 px: 1324 (+26 %, outside) / 1189, the new
+    default there 1186 / 1059). The bound can fail: the threshold for 1.25 PFA is rejected
+    (measured 1385 / 1328)."""
+    clutter = {"C2": C2, "C3": C3}[name]
+    size, pfa = 512, 4e-3
+    p = LMMParams(pfa=pfa)
+    assert (p.components, p.method, p.select, p.tail, p.guard, p.background) == (3, "grid", "bic", "predictive", 21, 41)
+    halo = SPEC.halo(p)
+    rng = np.random.default_rng(7)
+    x = np.exp(_mixture(rng, (size + 2 * halo, size + 2 * halo), *clutter)).astype(np.float32)
+    prep = prepare(p)
+    expected = size * size * pfa
+    bound = 5.0 * math.sqrt(1.5 * expected)
+    n = _count_parallel(x, halo, p, prep, size)
+    assert abs(n - expected) <= bound, (n, expected, bound)
+    wrong = dict(prep, z=float(-special.ndtri(1.25 * pfa)), log_pfa=math.log(1.25 * pfa))
     assert abs(_count_parallel(x, halo, p, wrong, size) - expected) > bound
 
 
