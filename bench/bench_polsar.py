@@ -19,6 +19,7 @@ import argparse
 import datetime
 import os
 import sys
+import time
 
 import numpy as np
 
@@ -37,7 +38,7 @@ CASES = [
      "MATLAB 11.4 s / Titan V 0.67 s"),
     ("pcdm", {}, "default: 3x3 boxcar, lognormal rule", "MATLAB 11.4 s / Titan V 0.67 s"),
     ("vb_polsar", {}, "defaults (scene pass included)", "(not timed in the thesis)"),
-    ("lmm", {"method": "grid"}, "grid (step 8), |HH|^2 intensity", "MATLAB 37.5 s / Titan V 1.73 s"),
+    ("lmm", {}, "defaults (grid, BIC K' <= 3, predictive tail), |HH|^2", "MATLAB 37.5 s / Titan V 1.73 s"),
 ]
 
 
@@ -67,7 +68,12 @@ def main() -> None:
             else:
                 def run_all():
                     return spec.detect(blk, h, (-h, -h), p, prep)
-            t = best_of(run_all, 1 if name == "lmm" else 3)
+            if name == "lmm" and n > 2000:  # one timed call (compiled on the smaller size)
+                t0 = time.perf_counter()
+                run_all()
+                t = time.perf_counter() - t0
+            else:
+                t = best_of(run_all, 1 if name == "lmm" else 3)
             print(f"{name:<10} {label:<42} {n:>6} {t:8.3f} {n * n / t / 1e6:7.1f}  {thesis}")
 
 

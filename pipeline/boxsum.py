@@ -296,6 +296,21 @@ def _box_sum(x, m, g0r, g0c, strip, out):
             box_stream_row(xs, m, g0c + c0, stream, i, out[i, c0:c1])
 
 
+def window_input(block, m: int, halo: int):
+    """``(sub, off)``: the part of a padded block that the ``m x m`` windows centred on the
+    core read (``block[off:off + h + m - 1, off:off + w + m - 1]``, ``off = halo - m // 2``),
+    after checking that ``m`` is odd and fits in the halo. Any array type (NumPy or CuPy)."""
+    if m % 2 != 1:
+        raise ValueError(f"window side must be odd, got {m}")
+    r = m // 2
+    if r > halo:
+        raise ValueError(f"window {m} needs a halo of {r}, block has {halo}")
+    h = block.shape[0] - 2 * halo
+    w = block.shape[1] - 2 * halo
+    off = halo - r
+    return block[off: off + h + m - 1, off: off + w + m - 1], off
+
+
 def centered_box_sum(block: np.ndarray, m: int, halo: int, origin: tuple[int, int]) -> np.ndarray:
     """Sum over the ``m x m`` window centred on each core pixel of a padded block.
 
@@ -312,15 +327,9 @@ def centered_box_sum(block: np.ndarray, m: int, halo: int, origin: tuple[int, in
     -------
     (h, w) float64 array of window sums, bit-identical for any tiling of the scene.
     """
-    if m % 2 != 1:
-        raise ValueError(f"window side must be odd, got {m}")
-    r = m // 2
-    if r > halo:
-        raise ValueError(f"window {m} needs a halo of {r}, block has {halo}")
+    sub, off = window_input(block, m, halo)
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
-    off = halo - r
-    sub = block[off: off + h + m - 1, off: off + w + m - 1]
     if sub.dtype not in (np.float32, np.float64):
         sub = sub.astype(np.float64)
     out = np.empty((h, w), np.float64)

@@ -13,6 +13,7 @@ import os
 
 import numpy as np
 
+from pipeline.boxsum import window_input
 from pipeline.gpu import kernels
 
 _I32 = np.int32
@@ -78,13 +79,5 @@ def box_sum(x, m: int, g0r: int, g0c: int):
 
 def centered_box_sum(block, m: int, halo: int, origin: tuple[int, int]):
     """GPU twin of :func:`pipeline.boxsum.centered_box_sum` (same arguments, same bits)."""
-    if m % 2 != 1:
-        raise ValueError(f"window side must be odd, got {m}")
-    r = m // 2
-    if r > halo:
-        raise ValueError(f"window {m} needs a halo of {r}, block has {halo}")
-    h = block.shape[0] - 2 * halo
-    w = block.shape[1] - 2 * halo
-    off = halo - r
-    sub = block[off: off + h + m - 1, off: off + w + m - 1]
+    sub, off = window_input(block, m, halo)
     return box_sum(sub, m, int(origin[0]) + off, int(origin[1]) + off)
