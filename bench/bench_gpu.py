@@ -47,7 +47,13 @@ CASES = [
     ("pcdm", {"looks_window": 1, "span_rule": "fraction"}, "thesis: single-look C", "quadpol"),
     ("pcdm", {}, "default: 3x3 boxcar", "quadpol"),
     ("vb_polsar", {}, "defaults (pass 2; scene pass on the host)", "quadpol"),
+    ("lmm", {}, "defaults: grid (step 5), BIC K' <= 3, predictive tail", "intensity"),
+    ("lmm", {"method": "fast"}, "fast form: histogram fit at every pixel", "intensity"),
+    ("lmm", {"method": "exact"}, "exact form: fit on the 1240 raw ring samples of every pixel", "intensity"),
 ]
+
+#: Per-case limits: (GPU timed repeats, CPU reference on sizes up to, largest size run).
+LIMITS = {("lmm", "fast"): (1, 0, 1000), ("lmm", "exact"): (1, 0, 1000), ("lmm", None): (3, 1000, 4096)}
 
 
 def copy_bandwidth(cp) -> float:
@@ -65,12 +71,12 @@ def copy_bandwidth(cp) -> float:
     return 2 * a.nbytes / float(np.median(ts[2:]))
 
 
-def gpu_time(cp, fn) -> float:
-    for _ in range(2):
+def gpu_time(cp, fn, reps: int = 10) -> float:
+    for _ in range(2 if reps > 1 else 1):
         fn()
     cp.cuda.Device().synchronize()
     ts = []
-    for _ in range(10):
+    for _ in range(reps):
         e0, e1 = cp.cuda.Event(), cp.cuda.Event()
         e0.record()
         fn()
@@ -107,11 +113,16 @@ def _inputs(n: int):
     return {"intensity": inten, "quadpol": X}
 
 
-def kernels(sizes: list[int], bw: float, cp) -> list[str]:
+def kernels(sizes: list[int], bw: float, cp, only: set[str] | None = None) -> list[str]:
     rows = []
     for n in sizes:
         data = _inputs(n)
         for name, kw, label, kind in CASES:
+            if only and name not in only:
+                continue
+            reps, cpu_max, size_max = LIMITS.get((name, kw.get("method")), (10, 10**9, 10**9))
+            if n > size_max:
+                continue
             spec = detectors.get(name)
             p = spec.params(**kw)
             prep = spec.prepare(p)
@@ -122,11 +133,16 @@ def kernels(sizes: list[int], bw: float, cp) -> list[str]:
             if spec.scene_pass is not None:
                 prep = {**prep, **spec.reduce([spec.scene_pass(blk, h, origin, p, prep)], p, prep)}
             dblk = cp.asarray(blk)
-            tg = gpu_time(cp, lambda: spec.detect(dblk, h, origin, p, prep))
-            tc = best_of(lambda: spec.detect(blk, h, origin, p, prep), repeat=1 if n > 2000 else 3)
+            tg = gpu_time(cp, lambda: spec.detect(dblk, h, origin, p, prep), reps)
+            if n <= cpu_max:
+                tc = best_of(lambda: spec.detect(blk, h, origin, p, prep),
+                             repeat=1 if (n > 2000 or name == "lmm") else 3)
+                cpu = f"{tc:.3f} | {tc / tg:,.0f}x"
+            else:
+                cpu = "- | -"
             mbytes = x.nbytes + n * n * 5  # input once, mask (1 B) + stat (4 B)
-            rows.append(f"| {name} | {label} | {n}x{n} | {tg * 1e3:.2f} | {n * n / tg / 1e6:,.0f} | "
-                        f"{tc:.3f} | {tc / tg:,.0f}x | {mbytes / 1e6:.0f} MB | {100 * mbytes / tg / bw:.0f}% |")
+            rows.append(f"| {name} | {label} | {n}x{n} | {tg * 1e3:.2f} | {n * n / tg / 1e6:,.2f} | "
+                        f"{cpu} | {mbytes / 1e6:.0f} MB | {100 * mbytes / tg / bw:.0f}% |")
             print(rows[-1], flush=True)
             del dblk
             cp.get_default_memory_pool().free_all_blocks()
@@ -212,7 +228,7 @@ def thesis_scenes(cases=None, devices=("gpu", "cpu")) -> list[str]:
         for dev in devices:
             os.environ["CUDA_VISIBLE_DEVICES"] = vis[0] if dev == "gpu" else ""
             with connect(gpus=dev == "gpu", echo=False, dashboard_address=":0") as client:
-                for name, kw, label, kind in (cases or CASES):
+                for name, kw, label, kind in (cases or [c for c in CASES if c[1].get("method") not in ("fast", "exact")]):
                     settings = {k: v for k, v in kw.items()}
                     best = float("inf")
                     for _ in range(3):
@@ -238,6 +254,7 @@ def main() -> None:
     ap.add_argument("--gpu-threads", default="1,2", help="comma list of tile tasks per GPU worker")
     ap.add_argument("--skip-kernels", action="store_true")
     ap.add_argument("--skip-thesis-e2e", action="store_true")
+    ap.add_argument("--only", default="", help="comma list of detectors for the kernel rows (default: all)")
     a = ap.parse_args()
     props = cp.cuda.runtime.getDeviceProperties(0)
     print(f"# {datetime.date.today()} {props['name'].decode()} x{cp.cuda.runtime.getDeviceCount()}; host {machine()}")
@@ -247,7 +264,7 @@ def main() -> None:
         box_passes(cp)
         print("| detector | setting | size | GPU ms | Mpx/s | CPU s (1 core) | x CPU | min bytes | % copy |")
         print("|---|---|---|---|---|---|---|---|---|")
-        kernels([int(s) for s in a.sizes.split(",")], bw, cp)
+        kernels([int(s) for s in a.sizes.split(",")], bw, cp, {s for s in a.only.split(",") if s} or None)
     if not a.skip_thesis_e2e:
         print("| detector | setting | scene | device asked | best of 3 (wall, with scene pass) | ran on | detections |")
         print("|---|---|---|---|---|---|---|")

@@ -249,6 +249,8 @@ from numba import njit
 from pydantic import Field
 from scipy import special
 
+from pipeline.gpu import is_device_array
+
 from .base import DetectorParams, DetectorSpec, float_block, with_defaults
 
 __all__ = ["LMMParams", "SPEC", "prepare", "detect", "em_fit_points", "mixture_threshold_log",
@@ -1178,9 +1180,15 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
 
     ``stat = x_t / T`` (float32, > 1 where ``mask``; 0 elsewhere). ``origin`` (scene
     coordinates of ``block[0, 0]``) is used by the grid form only (global node positions). ``_iters=True`` also returns the
-    per-pixel EM iteration counts (for tests / benchmarks).
+    per-pixel EM iteration counts (for tests / benchmarks). A CuPy ``block`` runs on its
+    GPU (:mod:`pipeline.gpu.lmm`: the same fits, one CUDA thread per ring) and returns CuPy
+    arrays (``_iters`` is not available there).
     """
-    block = float_block(block)
+    gpu = is_device_array(block)
+    if not gpu:
+        block = float_block(block)
+    elif block.ndim != 2:
+        raise ValueError(f"block must be 2-D, got shape {block.shape}")
     halo = int(halo)
     rb, rg, rt = int(params.background) // 2, int(params.guard) // 2, int(params.target) // 2
     grid = prep["method"] == "grid"
@@ -1195,6 +1203,16 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
     K = int(prep["components"])
     if int(prep.get("n_ring", n_ring)) != n_ring or K != int(params.components):
         raise ValueError("prep does not match the parameters")
+    if gpu:  # CuPy block: the GPU twin (pipeline.gpu.lmm), one thread per ring fit
+        from pipeline.gpu.lmm import detect as detect_gpu
+
+        if halo > need:
+            d = halo - need
+            block = block[d: block.shape[0] - d, d: block.shape[1] - d]
+            origin = (int(origin[0]) + d, int(origin[1]) + d)
+            halo = need
+        return detect_gpu(block, halo, origin, rb, rg, rt, K, prep, prep["method"], step,
+                          float(prep.get("grid_refine", params.grid_refine)))
     mask = np.zeros((h, w), dtype=np.bool_)
     stat = np.zeros((h, w), dtype=np.float32)
     iters = np.zeros((h, w), dtype=np.int32)
@@ -1245,4 +1263,5 @@ SPEC = DetectorSpec(
     needs_looks=False,
     halo_fn=_halo,
     halo_rule="background // 2 (+ grid_step for method='grid')",
+    gpu=True,
 )
