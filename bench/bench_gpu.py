@@ -102,6 +102,37 @@ def box_passes(cp, n: int = 4096, m: int = 81) -> list[str]:
     return rows
 
 
+def transfers(cp) -> list[str]:
+    """Host-to-device copy of one 4096^2 float32 tile with an 81-px halo: from pageable
+    memory (what a task does), from pinned memory, and pinned including the copy of the
+    tile into the pinned buffer (what using pinned memory in a task would cost)."""
+    import cupyx
+
+    n = 4096 + 80
+    x = np.random.default_rng(0).random((n, n), dtype=np.float32)
+    pinned = cupyx.empty_pinned(x.shape, x.dtype)
+    pinned[...] = x
+    d = cp.empty(x.shape, x.dtype)
+    rows = []
+
+    def pageable():
+        d.set(x)
+
+    def from_pinned():
+        d.set(pinned)
+
+    def via_pinned():
+        pinned[...] = x
+        d.set(pinned)
+
+    for label, fn in [("pageable", pageable), ("pinned", from_pinned), ("pinned incl. host copy", via_pinned)]:
+        t = best_of(lambda: (fn(), cp.cuda.Device().synchronize()), repeat=5)
+        rows.append(f"# h2d of a {n}x{n} float32 tile ({x.nbytes / 1e6:.0f} MB), {label}: {t * 1e3:.1f} ms "
+                    f"({x.nbytes / t / 1e9:.1f} GB/s)")
+        print(rows[-1], flush=True)
+    return rows
+
+
 def _inputs(n: int):
     from pipeline.simulate import SimConfig, simulate_array
 
@@ -173,7 +204,8 @@ def write_band(path: Path, shape: tuple[int, int], tile: int) -> None:
     finalize_scene(path)
 
 
-def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int, threads: list[int]) -> list[str]:
+def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int, threads: list[int],
+               dets: tuple[str, ...] = ("ca_cfar",)) -> list[str]:
     from workers.cluster import connect
     from workers.gpus import visible_gpus
     from workers.run import run_detection
@@ -185,19 +217,19 @@ def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int, threads: lis
         t = time.perf_counter()
         write_band(scene, band, tile)
         print(f"# band {band[0]}x{band[1]} written in {time.perf_counter() - t:.1f} s", flush=True)
-        for k, nt in [(k, nt) for k in n_gpus for nt in threads]:
+        for det, k, nt in [(d, k, nt) for d in dets for k in n_gpus for nt in threads]:
             if k > len(vis):
                 continue
             os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(vis[:k])
             with connect(gpus=True, echo=False, dashboard_address=":0", gpu_threads=nt) as client:
                 for rep in range(2):  # first: compile + warm caches; second: measured
                     t = time.perf_counter()
-                    run = run_detection(scene, "ca_cfar", out_dir=Path(td) / f"out{k}", client=client,
+                    run = run_detection(scene, det, {}, out_dir=Path(td) / f"out{k}", client=client,
                                         device="gpu", progress=False)
                     el = time.perf_counter() - t
                 per = run["tiles"]["per_tile"]
                 ker = sum(p["detect_s"] - p["h2d_s"] - p["d2h_s"] for p in per)
-                rows.append(f"| ca_cfar e2e | {k} GPU, {nt} thread(s) each | {band[0]}x{band[1]} | {el:.2f} s | "
+                rows.append(f"| {det} e2e | {k} GPU, {nt} thread(s) each | {band[0]}x{band[1]} | {el:.2f} s | "
                             f"{band[0] * band[1] / el / 1e6:,.0f} Mpx/s | read {sum(p['read_s'] for p in per):.1f} s, "
                             f"h2d {sum(p['h2d_s'] for p in per):.2f} s, kernel {ker:.2f} s, "
                             f"d2h {sum(p['d2h_s'] for p in per):.2f} s, write {sum(p['write_s'] for p in per):.1f} s, "
@@ -255,24 +287,32 @@ def main() -> None:
     ap.add_argument("--skip-kernels", action="store_true")
     ap.add_argument("--skip-thesis-e2e", action="store_true")
     ap.add_argument("--only", default="", help="comma list of detectors for the kernel rows (default: all)")
+    ap.add_argument("--band-detectors", default="ca_cfar", help="comma list of detectors for the band rows")
+    ap.add_argument("--skip-slow", action="store_true",
+                    help="skip the lmm fast/exact rows and lmm's CPU reference (minutes each)")
     a = ap.parse_args()
     props = cp.cuda.runtime.getDeviceProperties(0)
     print(f"# {datetime.date.today()} {props['name'].decode()} x{cp.cuda.runtime.getDeviceCount()}; host {machine()}")
     bw = copy_bandwidth(cp)
     print(f"# device-to-device copy: {bw / 1e12:.2f} TB/s (read + write)")
+    only = {s for s in a.only.split(",") if s} or None
+    if a.skip_slow:
+        LIMITS.update({("lmm", "fast"): (1, 0, 0), ("lmm", "exact"): (1, 0, 0), ("lmm", None): (3, 0, 4096)})
     if not a.skip_kernels:
+        transfers(cp)
         box_passes(cp)
         print("| detector | setting | size | GPU ms | Mpx/s | CPU s (1 core) | x CPU | min bytes | % copy |")
         print("|---|---|---|---|---|---|---|---|---|")
-        kernels([int(s) for s in a.sizes.split(",")], bw, cp, {s for s in a.only.split(",") if s} or None)
+        kernels([int(s) for s in a.sizes.split(",")], bw, cp, only)
     if not a.skip_thesis_e2e:
         print("| detector | setting | scene | device asked | best of 3 (wall, with scene pass) | ran on | detections |")
         print("|---|---|---|---|---|---|---|")
-        thesis_scenes()
+        thesis_scenes([c for c in CASES if c[1].get("method") not in ("fast", "exact")
+                       and (only is None or c[0] in only)])
     if a.band != "none":
         r, c = (int(v) for v in a.band.lower().split("x"))
         end_to_end((r, c), [int(k) for k in a.gpus.split(",")], a.tile,
-                   [int(t) for t in a.gpu_threads.split(",")])
+                   [int(t) for t in a.gpu_threads.split(",")], tuple(a.band_detectors.split(",")))
 
 
 if __name__ == "__main__":
