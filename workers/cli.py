@@ -109,6 +109,27 @@ def cmd_worker(a) -> int:
                  gpu_threads=a.gpu_threads)
 
 
+def cmd_serve(a) -> int:
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    over = {k: v for k, v in {"host": a.host, "port": a.port, "scheduler": a.scheduler, "data": a.data,
+                               "workers": a.workers, "concurrency": a.concurrency}.items() if v is not None}
+    try:
+        settings = Settings(**over)
+    except ValidationError as exc:
+        e = exc.errors()[0]
+        raise InputError(f"setting '{'.'.join(str(x) for x in e['loc'])}': {e['msg']}") from None
+    import uvicorn
+
+    from service.app import create_app
+
+    print(f"sarship: serving on http://{settings.host}:{settings.port} (data {settings.data})", file=sys.stderr)
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="warning")
+    return 0
+
+
 def cmd_evaluate(a) -> int:
     from pipeline.scoring import evaluate, format_scores
 
@@ -229,6 +250,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--name", help="worker name prefix (default: the host name)")
     s.add_argument("--memory-limit", help="per-worker memory limit, e.g. 8GiB (default: Dask's auto)")
     s.set_defaults(func=cmd_worker)
+
+    s = sub.add_parser("serve", help="the job API (OGC API - Processes shape) with a local Dask cluster or "
+                                     "--scheduler; settings also from SARSHIP_* environment variables",
+                       description="Settings (flag, or environment variable): --data / SARSHIP_DATA (job store, "
+                                   "scenes, outputs; default ./sarship-data), --host / SARSHIP_HOST (127.0.0.1), "
+                                   "--port / SARSHIP_PORT (8080), --scheduler / SARSHIP_SCHEDULER, --workers / "
+                                   "SARSHIP_WORKERS (local cluster size), --concurrency / SARSHIP_CONCURRENCY (jobs at "
+                                   "once, 2), SARSHIP_LEASE_S (30), SARSHIP_ALLOWED_ROOTS (JSON list of folders jobs "
+                                   "may read scenes from), SARSHIP_SYNC_TIMEOUT_S (600).")
+    s.add_argument("--host")
+    s.add_argument("--port", type=int)
+    s.add_argument("--scheduler", help="Dask scheduler address (default: start a local cluster)")
+    s.add_argument("--data", help="data folder (default ./sarship-data)")
+    s.add_argument("--workers", type=_positive_int, help="local cluster worker processes (default: all cores)")
+    s.add_argument("--concurrency", type=_positive_int, help="jobs run at once by this API process (default 2)")
+    s.set_defaults(func=cmd_serve)
 
     s = sub.add_parser("evaluate", help="score detections against truth")
     s.add_argument("detections")

@@ -1,0 +1,154 @@
+"""Job runner: threads of one API process that claim jobs from the store and run them on the
+Dask cluster with :func:`workers.run.run_detection` (outputs in ``DATA/jobs/ID``).
+
+Each running job holds a lease in the store, renewed by a heartbeat and at every finished
+tile (which also records ``progress``); if the job is dismissed meanwhile, the next tile
+callback raises :class:`Dismissed` and ``run_detection`` cancels the job's Dask futures and
+removes its partial outputs.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import socket
+import threading
+import time
+import traceback
+import uuid
+from pathlib import Path
+from typing import Any, Optional
+
+from pipeline.errors import InputError
+from service.settings import Settings
+from service.store import JobStore
+
+log = logging.getLogger("sarship.service")
+
+
+class Dismissed(Exception):
+    """The job was dismissed (or re-claimed elsewhere) while it ran."""
+
+
+def scene_path(settings: Settings, scene: str) -> Path:
+    """The scene store a job names: a scene id (``DATA/scenes/ID.zarr``) or a path inside
+    an allowed root. Raises :class:`InputError` (a 4xx for the API) otherwise."""
+    if not isinstance(scene, str) or not scene.strip():
+        raise InputError("input 'scene' must be a scene id or a path")
+    s = scene.strip()
+    if "://" in s:
+        raise InputError(f"input 'scene': only local paths and scene ids are accepted, got '{s}'")
+    roots = settings.roots()
+    cand = Path(s)
+    if not cand.is_absolute() and "/" not in s and "\\" not in s and not s.endswith(".zarr"):
+        cand = settings.scenes_dir / f"{s}.zarr"  # a scene id
+    try:
+        real = cand.resolve(strict=True)
+    except (OSError, RuntimeError):
+        raise InputError(f"input 'scene': no scene '{s}'") from None
+    if not any(real == r or r in real.parents for r in roots):
+        raise InputError(f"input 'scene': '{s}' is outside the allowed scene folders")
+    return real
+
+
+class Runner:
+    """``settings.concurrency`` worker threads plus a lease heartbeat."""
+
+    def __init__(self, settings: Settings, store: JobStore, client):
+        self.settings = settings
+        self.store = store
+        self.client = client
+        self.owner = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._running: dict[str, float] = {}
+        self._lock = threading.Lock()
+        self.wake = threading.Event()
+
+    def start(self) -> None:
+        for k in range(self.settings.concurrency):
+            t = threading.Thread(target=self._loop, name=f"sarship-runner-{k}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        hb = threading.Thread(target=self._heartbeat, name="sarship-lease", daemon=True)
+        hb.start()
+        self._threads.append(hb)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.wake.set()
+        for t in self._threads:
+            t.join(timeout=5)
+
+    def _heartbeat(self) -> None:
+        period = max(self.settings.lease_s / 3.0, 0.5)
+        while not self._stop.wait(period):
+            with self._lock:
+                ids = list(self._running)
+            for job_id in ids:
+                self.store.renew(job_id, self.owner, self.settings.lease_s)
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                job = self.store.claim(self.owner, self.settings.lease_s)
+            except Exception:  # a locked database under load: try again shortly
+                log.exception("claim failed")
+                job = None
+            if job is None:
+                self.wake.wait(0.5)
+                self.wake.clear()
+                continue
+            self._run(job)
+
+    def _run(self, job: dict) -> None:
+        from workers.run import run_detection
+
+        job_id = job["id"]
+        with self._lock:
+            self._running[job_id] = time.time()
+        out_dir = self.settings.jobs_dir / job_id
+        inputs = dict(job["inputs"])
+        # a previous attempt killed mid-run left its temporary folder: the job is ours now
+        for stale in out_dir.glob(".sarship-partial-*") if out_dir.is_dir() else ():
+            shutil.rmtree(stale, ignore_errors=True)
+
+        def on_tile(done: int, total: int) -> None:
+            pct = int(100 * done / max(total, 1))
+            if not self.store.renew(job_id, self.owner, self.settings.lease_s, min(pct, 99)):
+                raise Dismissed(job_id)
+
+        try:
+            scene = scene_path(self.settings, inputs.pop("scene", ""))
+            device = inputs.pop("device", "auto")
+            run = run_detection(scene, job["process"], inputs, out_dir=out_dir, client=self.client,
+                                device=device, progress=False, on_tile=on_tile)
+            summary: dict[str, Any] = {"detections": run["detections"], "detected_px": run["detected_px"],
+                                       "outputs": run["outputs"], "timings": run["timings"]}
+            self.store.finish(job_id, self.owner, "successful",
+                              f"{run['detections']} detections in {run['timings']['total_s']:.1f} s", summary)
+        except Dismissed:
+            log.info("job %s dismissed while running", job_id)
+        except InputError as exc:
+            self.store.finish(job_id, self.owner, "failed", str(exc))
+        except Exception as exc:  # never lose the job: record why it failed
+            log.error("job %s failed: %s", job_id, traceback.format_exc())
+            self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}")
+        finally:
+            with self._lock:
+                self._running.pop(job_id, None)
+
+    def running(self) -> list[str]:
+        with self._lock:
+            return list(self._running)
+
+
+def wait_final(store: JobStore, job_id: str, timeout: float) -> Optional[dict]:
+    """Poll the store until the job is final (or ``timeout``): the job row."""
+    t_end = time.time() + timeout
+    while True:
+        job = store.get(job_id)
+        if job is None or job["status"] in ("successful", "failed", "dismissed") or time.time() > t_end:
+            return job
+        time.sleep(0.2)

@@ -1,0 +1,179 @@
+"""Durable job store: one SQLite file, safe for several API processes.
+
+A job accepted is a row committed before the API answers ``201``, so it survives any crash.
+Runners *claim* jobs with a lease (``lease_owner``, ``lease_until``) in one ``BEGIN
+IMMEDIATE`` transaction, so two processes never run the same job at once; a runner renews
+its lease while the job runs. A job whose lease has expired (its runner died, even by
+``kill -9``) is claimable again and re-run from scratch in the same row (``attempts`` counts
+the runs): it stays exactly once in the job list. Outputs are written by
+:func:`workers.run.run_detection` to a temporary folder and renamed into place when
+complete, so a re-run never sees half-written outputs.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+import uuid
+from contextlib import contextmanager
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterator, Optional
+
+STATUSES = ("accepted", "running", "successful", "failed", "dismissed")
+FINAL = ("successful", "failed", "dismissed")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    process TEXT NOT NULL,
+    inputs TEXT NOT NULL,
+    status TEXT NOT NULL,
+    progress INTEGER NOT NULL DEFAULT 0,
+    message TEXT NOT NULL DEFAULT '',
+    created REAL NOT NULL,
+    started REAL,
+    finished REAL,
+    updated REAL NOT NULL,
+    lease_owner TEXT,
+    lease_until REAL,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    result TEXT
+);
+CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, created);
+"""
+
+
+def iso(t: Optional[float]) -> Optional[str]:
+    """RFC 3339 UTC timestamp of a POSIX time (None stays None)."""
+    if t is None:
+        return None
+    return datetime.fromtimestamp(t, tz=timezone.utc).isoformat().replace("+00:00", "Z")
+
+
+class JobStore:
+    """Jobs in SQLite (WAL mode, one connection per thread)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._local = threading.local()
+        self._conn().executescript(_SCHEMA)  # (executescript commits by itself)
+
+    def _conn(self) -> sqlite3.Connection:
+        c = getattr(self._local, "conn", None)
+        if c is None:
+            c = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
+            c.row_factory = sqlite3.Row
+            c.execute("PRAGMA journal_mode=WAL")
+            c.execute("PRAGMA synchronous=FULL")
+            self._local.conn = c
+        return c
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        c = self._conn()
+        c.execute("BEGIN IMMEDIATE")
+        try:
+            yield c
+        except BaseException:
+            c.execute("ROLLBACK")
+            raise
+        c.execute("COMMIT")
+
+    # ------------------------------------------------------------------ jobs
+
+    def create(self, process: str, inputs: dict[str, Any]) -> dict:
+        now = time.time()
+        job_id = uuid.uuid4().hex
+        with self._tx() as c:
+            c.execute("INSERT INTO jobs (id, process, inputs, status, created, updated) VALUES (?, ?, ?, ?, ?, ?)",
+                      (job_id, process, json.dumps(inputs), "accepted", now, now))
+        return self.get(job_id)
+
+    def get(self, job_id: str) -> Optional[dict]:
+        row = self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return _row(row)
+
+    def list(self, limit: int = 1000, offset: int = 0, status: Optional[str] = None) -> list[dict]:
+        if status:
+            rows = self._conn().execute("SELECT * FROM jobs WHERE status = ? ORDER BY created DESC LIMIT ? OFFSET ?",
+                                        (status, limit, offset)).fetchall()
+        else:
+            rows = self._conn().execute("SELECT * FROM jobs ORDER BY created DESC LIMIT ? OFFSET ?",
+                                        (limit, offset)).fetchall()
+        return [_row(r) for r in rows]
+
+    def counts(self) -> dict[str, int]:
+        rows = self._conn().execute("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall()
+        out = {s: 0 for s in STATUSES}
+        out.update({r["status"]: r["n"] for r in rows})
+        return out
+
+    def claim(self, owner: str, lease_s: float) -> Optional[dict]:
+        """Take the oldest job that is accepted, or running with an expired lease (its runner
+        died): mark it running under ``owner`` until ``now + lease_s``."""
+        now = time.time()
+        with self._tx() as c:
+            row = c.execute(
+                "SELECT id FROM jobs WHERE status = 'accepted' OR (status = 'running' AND lease_until < ?) "
+                "ORDER BY created LIMIT 1", (now,)).fetchone()
+            if row is None:
+                return None
+            c.execute("UPDATE jobs SET status = 'running', lease_owner = ?, lease_until = ?, started = ?, "
+                      "updated = ?, attempts = attempts + 1, progress = 0, message = ? WHERE id = ?",
+                      (owner, now + lease_s, now, now, "running", row["id"]))
+        return self.get(row["id"])
+
+    def renew(self, job_id: str, owner: str, lease_s: float, progress: Optional[int] = None) -> bool:
+        """Extend the lease (and record progress); False if the job is no longer ours to run
+        (dismissed, or re-claimed after our lease lapsed)."""
+        now = time.time()
+        with self._tx() as c:
+            if progress is None:
+                cur = c.execute("UPDATE jobs SET lease_until = ?, updated = ? WHERE id = ? AND lease_owner = ? "
+                                "AND status = 'running'", (now + lease_s, now, job_id, owner))
+            else:
+                cur = c.execute("UPDATE jobs SET lease_until = ?, updated = ?, progress = ? WHERE id = ? AND "
+                                "lease_owner = ? AND status = 'running'",
+                                (now + lease_s, now, int(progress), job_id, owner))
+            return cur.rowcount == 1
+
+    def finish(self, job_id: str, owner: str, status: str, message: str, result: Optional[dict] = None) -> bool:
+        """Final state of a job this runner holds; False if it is not ours any more."""
+        assert status in ("successful", "failed")
+        now = time.time()
+        with self._tx() as c:
+            cur = c.execute("UPDATE jobs SET status = ?, message = ?, result = ?, finished = ?, updated = ?, "
+                            "progress = CASE WHEN ? = 'successful' THEN 100 ELSE progress END, lease_owner = NULL, "
+                            "lease_until = NULL WHERE id = ? AND lease_owner = ? AND status = 'running'",
+                            (status, message, json.dumps(result) if result is not None else None, now, now, status,
+                             job_id, owner))
+            return cur.rowcount == 1
+
+    def dismiss(self, job_id: str) -> Optional[dict]:
+        """Cancel: accepted or running -> dismissed (a running job's runner stops at its next
+        tile). Final jobs are returned unchanged."""
+        now = time.time()
+        with self._tx() as c:
+            c.execute("UPDATE jobs SET status = 'dismissed', message = 'dismissed by request', finished = ?, "
+                      "updated = ?, lease_owner = NULL, lease_until = NULL WHERE id = ? AND status IN "
+                      "('accepted', 'running')", (now, now, job_id))
+        return self.get(job_id)
+
+    def close(self) -> None:
+        c = getattr(self._local, "conn", None)
+        if c is not None:
+            c.close()
+            self._local.conn = None
+
+
+def _row(row) -> Optional[dict]:
+    if row is None:
+        return None
+    d = dict(row)
+    d["inputs"] = json.loads(d["inputs"])
+    d["result"] = json.loads(d["result"]) if d["result"] else None
+    return d

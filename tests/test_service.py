@@ -1,0 +1,232 @@
+"""The job API against a real ``sarship serve`` (uvicorn on loopback, a real local Dask
+cluster, SQLite store): OGC state machine, results, errors, sync execution, dismissal, and
+durability across ``kill -9``."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+httpx = pytest.importorskip("httpx")
+from conftest import blobs_scene, write_scene  # noqa: E402
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    def __init__(self, data: Path, port: int, **env):
+        self.data, self.port = data, port
+        self.url = f"http://127.0.0.1:{port}"
+        self.env = {**os.environ, "SARSHIP_WORKERS": "2", "SARSHIP_LEASE_S": "4", "CUDA_VISIBLE_DEVICES": "",
+                    **env}
+        self.proc = None
+
+    def start(self, timeout: float = 120.0) -> "Server":
+        self.log = open(self.data.parent / f"server-{self.port}-{time.time_ns()}.log", "w")
+        self.proc = subprocess.Popen([sys.executable, "-m", "workers.cli", "serve", "--data", str(self.data),
+                                      "--port", str(self.port)], stdout=self.log, stderr=subprocess.STDOUT,
+                                     env=self.env, start_new_session=True)
+        t_end = time.time() + timeout
+        while time.time() < t_end:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited: {Path(self.log.name).read_text()[-2000:]}")
+            try:
+                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.3)
+        raise RuntimeError("server did not become ready")
+
+    def kill(self, sig=signal.SIGKILL) -> None:
+        if self.proc and self.proc.poll() is None:
+            os.killpg(self.proc.pid, sig)  # the whole session: uvicorn and its Dask workers
+            self.proc.wait(timeout=30)
+
+    def stop(self) -> None:
+        self.kill(signal.SIGTERM)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    data = tmp_path_factory.mktemp("svc") / "data"
+    (data / "scenes").mkdir(parents=True)
+    write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
+                tile=128, looks=2.0)
+    srv = Server(data, _free_port()).start()
+    yield srv
+    srv.stop()
+
+
+def _wait(url: str, job_id: str, timeout: float = 120.0) -> dict:
+    t_end = time.time() + timeout
+    while time.time() < t_end:
+        st = httpx.get(f"{url}/jobs/{job_id}").json()
+        if st["status"] in ("successful", "failed", "dismissed"):
+            return st
+        time.sleep(0.2)
+    raise AssertionError(f"job {job_id} did not finish: {st}")
+
+
+def _problem(r, status: int, *words: str) -> None:
+    assert r.status_code == status, (r.status_code, r.text)
+    body = r.json()
+    assert {"type", "title", "detail"} <= set(body), body
+    for w in words:
+        assert w in body["detail"], (w, body)
+
+
+def test_ogc_state_machine_and_results(server):
+    u = server.url
+    land = httpx.get(u + "/").json()
+    assert {"service-desc", "http://www.opengis.net/def/rel/ogc/1.0/processes"} <= {x["rel"] for x in land["links"]}
+    assert any(c.endswith("/conf/core") for c in httpx.get(u + "/conformance").json()["conformsTo"])
+    procs = {p["id"] for p in httpx.get(u + "/processes").json()["processes"]}
+    assert {"ca_cfar", "os_cfar", "two_parameter", "apwf", "lmm", "pcdm", "vb_polsar"} <= procs
+    desc = httpx.get(u + "/processes/ca_cfar").json()
+    assert desc["inputs"]["pfa"]["schema"]["exclusiveMaximum"] == 0.5 and "scene" in desc["inputs"]
+    r = httpx.post(u + "/processes/ca_cfar/execution", headers={"Prefer": "respond-async"},
+                   json={"inputs": {"scene": "s1", "pfa": 1e-4, "guard": 11, "background": 31, "min_area_px": 1}})
+    assert r.status_code == 201, r.text
+    job_id = r.json()["jobID"]
+    assert r.headers["location"].endswith(f"/jobs/{job_id}") and r.json()["status"] in ("accepted", "running")
+    st = _wait(u, job_id)
+    assert st["status"] == "successful" and st["progress"] == 100 and st["finished"] >= st["started"], st
+    res = httpx.get(f"{u}/jobs/{job_id}/results").json()
+    assert set(res) == {"detections", "mask", "metrics"}
+    det = httpx.get(res["detections"]["href"])
+    assert det.headers["content-type"].startswith("application/geo+json")
+    fc = det.json()
+    assert fc["type"] == "FeatureCollection" and len(fc["features"]) >= 5
+    met = httpx.get(res["metrics"]["href"]).json()
+    assert met["detector"] == "ca_cfar" and met["detections"] == len(fc["features"])
+    tif = httpx.get(res["mask"]["href"])
+    assert tif.status_code == 200
+    import io
+
+    import tifffile
+
+    m = tifffile.imread(io.BytesIO(tif.content))
+    assert m.shape == (300, 260) and m.dtype == np.uint8 and m.sum() == met["detected_px"]
+    listed = [j["jobID"] for j in httpx.get(u + "/jobs").json()["jobs"]]
+    assert listed.count(job_id) == 1
+
+
+def test_sync_execution_returns_results(server):
+    r = httpx.post(server.url + "/processes/os_cfar/execution", headers={"Prefer": "respond-sync"},
+                   json={"inputs": {"scene": "s1", "guard": 11, "background": 31}}, timeout=120)
+    assert r.status_code == 200, r.text
+    assert set(r.json()) == {"detections", "mask", "metrics"}
+
+
+def test_bad_requests_are_problems(server):
+    u = server.url
+    _problem(httpx.get(u + "/processes/nope"), 404, "nope")
+    _problem(httpx.post(u + "/processes/nope/execution", json={"inputs": {"scene": "s1"}}), 404)
+    ex = u + "/processes/ca_cfar/execution"
+    _problem(httpx.post(ex, json={"inputs": {"scene": "s1", "pfa": 2}}), 400, "pfa")
+    _problem(httpx.post(ex, json={"inputs": {"scene": "s1", "bogus": 1}}), 400, "bogus")
+    _problem(httpx.post(ex, json={"inputs": {"scene": "s1", "guard": 10}}), 400, "odd")
+    _problem(httpx.post(ex, json={"inputs": {"pfa": 1e-3}}), 400, "scene")
+    _problem(httpx.post(ex, json={"inputs": {"scene": "s1", "device": "tpu"}}), 400, "device")
+    _problem(httpx.post(ex, content=b"{not json", headers={"content-type": "application/json"}), 400, "JSON")
+    _problem(httpx.post(ex, json=[1, 2]), 400, "inputs")
+    _problem(httpx.post(ex, json={"inputs": {"scene": "../../../etc"}}), 400, "scene")
+    _problem(httpx.post(ex, json={"inputs": {"scene": "/etc"}}), 400, "outside")
+    _problem(httpx.post(ex, json={"inputs": {"scene": "s3://bucket/x.zarr"}}), 400, "local")
+    outside = server.data.parent / "elsewhere.zarr"
+    outside.mkdir(exist_ok=True)
+    link = server.data / "scenes" / "link.zarr"
+    if not link.exists():
+        link.symlink_to(outside)
+    _problem(httpx.post(ex, json={"inputs": {"scene": "link"}}), 400, "outside")  # symlink out of the root
+    _problem(httpx.get(u + "/jobs/doesnotexist"), 404, "doesnotexist")
+    _problem(httpx.get(u + "/jobs/doesnotexist/results"), 404)
+    _problem(httpx.get(u + "/jobs?status=weird"), 400, "status")
+    # nothing of the above was accepted as a job
+    assert all(j["processID"] in ("ca_cfar", "os_cfar") for j in httpx.get(u + "/jobs").json()["jobs"])
+
+
+def test_dismiss(server):
+    u = server.url
+    slow = {"scene": "s1", "method": "exact", "guard": 5, "background": 13}  # ~10 s per 128^2 tile
+    ids = [httpx.post(u + "/processes/lmm/execution", json={"inputs": slow}).json()["jobID"] for _ in range(3)]
+    last = httpx.delete(f"{u}/jobs/{ids[-1]}")
+    assert last.status_code == 200 and last.json()["status"] == "dismissed"
+    first = httpx.delete(f"{u}/jobs/{ids[0]}").json()
+    assert first["status"] == "dismissed"
+    _problem(httpx.get(f"{u}/jobs/{ids[0]}/results"), 404, "dismissed")
+    httpx.delete(f"{u}/jobs/{ids[1]}")
+    time.sleep(1.0)
+    for i in ids:  # dismissed stays dismissed: the runner does not overwrite it
+        assert httpx.get(f"{u}/jobs/{i}").json()["status"] == "dismissed"
+
+
+def test_jobs_survive_kill_9(tmp_path):
+    """Jobs accepted, some running, when the server is killed with SIGKILL: after a restart
+    each job runs to success exactly once in the job list, and no output is half-written."""
+    data = tmp_path / "data"
+    (data / "scenes").mkdir(parents=True)
+    write_scene(data / "scenes" / "s2.zarr", {"intensity": blobs_scene((400, 400), looks=2.0, seed=5)},
+                tile=64, looks=2.0)
+    srv = Server(data, _free_port(), SARSHIP_CONCURRENCY="1").start()
+    try:
+        ids = [httpx.post(srv.url + "/processes/lmm/execution", json={"inputs": {"scene": "s2"}}).json()["jobID"]
+               for _ in range(4)]  # lmm defaults: a few seconds each on 2 workers
+        t_end = time.time() + 60
+        while httpx.get(f"{srv.url}/jobs/{ids[0]}").json()["status"] != "running" and time.time() < t_end:
+            time.sleep(0.1)
+        srv.kill()  # SIGKILL, mid-run
+    finally:
+        srv.kill()
+    srv2 = Server(data, _free_port()).start()
+    try:
+        for i in ids:
+            st = _wait(srv2.url, i, timeout=180)
+            assert st["status"] == "successful", st
+        jobs = httpx.get(srv2.url + "/jobs").json()["jobs"]
+        assert sorted(j["jobID"] for j in jobs) == sorted(ids)  # each exactly once
+        assert next(j for j in jobs if j["jobID"] == ids[0])["attempts"] == 2  # re-run after the kill
+        for i in ids:
+            out = data / "jobs" / i
+            assert {"detections.geojson", "mask.zarr", "run.json"} <= {p.name for p in out.iterdir()}
+            assert not [p for p in out.iterdir() if p.name.startswith(".sarship-partial")]
+    finally:
+        srv2.stop()
+
+
+def test_two_api_processes_share_a_store_without_running_a_job_twice(tmp_path):
+    data = tmp_path / "data"
+    (data / "scenes").mkdir(parents=True)
+    write_scene(data / "scenes" / "s3.zarr", {"intensity": blobs_scene((200, 180), looks=2.0, seed=6)},
+                tile=64, looks=2.0)
+    a = Server(data, _free_port(), SARSHIP_WORKERS="1").start()
+    b = Server(data, _free_port(), SARSHIP_WORKERS="1").start()
+    try:
+        ids = []
+        for k in range(8):
+            srv = a if k % 2 == 0 else b
+            r = httpx.post(srv.url + "/processes/os_cfar/execution",
+                           json={"inputs": {"scene": "s3", "guard": 11, "background": 31}})
+            assert r.status_code == 201
+            ids.append(r.json()["jobID"])
+        for i in ids:
+            assert _wait(a.url, i)["status"] == "successful"
+        jobs = {j["jobID"]: j for j in httpx.get(b.url + "/jobs").json()["jobs"]}
+        assert sorted(jobs) == sorted(ids)
+        assert all(jobs[i]["attempts"] == 1 for i in ids), [jobs[i]["attempts"] for i in ids]  # never twice
+    finally:
+        a.stop()
+        b.stop()
