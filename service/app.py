@@ -23,6 +23,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from pipeline import __version__, detectors
 from pipeline.errors import InputError
+from service.metrics import Metrics
 from service.runner import Runner, scene_path, wait_final
 from service.settings import Settings
 from service.store import FINAL, JobStore, iso
@@ -132,6 +133,9 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         settings.scenes_dir.mkdir(parents=True, exist_ok=True)
         settings.jobs_dir.mkdir(parents=True, exist_ok=True)
         store = JobStore(settings.db_path)
+        metrics = Metrics()
+        metrics.watch_store(store)
+        app.state.metrics = metrics
         with contextlib.ExitStack() as stack:
             c = client
             if c is None:
@@ -139,7 +143,7 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
 
                 c = stack.enter_context(connect(settings.scheduler, n_workers=settings.workers,
                                                 dashboard_address=":0", echo=True))
-            runner = Runner(settings, store, c)
+            runner = Runner(settings, store, c, metrics)
             runner.start()
             app.state.store, app.state.client, app.state.runner = store, c, runner
             try:
@@ -150,6 +154,26 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
     app = FastAPI(title="sarship", version=__version__, lifespan=lifespan,
                   description="Ship detection in SAR scenes: OGC API - Processes shaped job API")
     app.state.settings = settings
+
+    open_paths = ("/livez", "/readyz", "/metrics")
+
+    @app.middleware("http")
+    async def _auth(request: Request, call_next):
+        """Bearer tokens (settings.tokens): required for POST/DELETE, and for reads when
+        ``protect_reads``; 401 without a token, 403 with a wrong one."""
+        if settings.tokens and request.url.path not in open_paths and (
+                request.method not in ("GET", "HEAD", "OPTIONS") or settings.protect_reads):
+            auth = request.headers.get("authorization", "")
+            if not auth.lower().startswith("bearer "):
+                r = problem(401, "unauthorized", "this request needs 'Authorization: Bearer TOKEN'")
+                r.headers["WWW-Authenticate"] = "Bearer"
+                return r
+            import hmac
+
+            tok = auth[7:].strip()
+            if not any(hmac.compare_digest(tok, t) for t in settings.tokens):
+                return problem(403, "forbidden", "the token is not valid")
+        return await call_next(request)
 
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem):
@@ -219,6 +243,7 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         inputs = validate_inputs(settings, process_id, body)
         st = store(request)
         job = st.create(process_id, inputs)
+        request.app.state.metrics.requests.labels(process_id).inc()
         request.app.state.runner.wake.set()
         b = _base(request)
         prefer = request.headers.get("prefer", "").lower()
@@ -285,6 +310,12 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         finished(request, job_id)
         return FileResponse(mask_geotiff(settings.jobs_dir / job_id), media_type="image/tiff; application=geotiff",
                             filename=f"{job_id}-mask.tif")
+
+    @app.get("/metrics")
+    def prometheus(request: Request):
+        from fastapi.responses import Response
+
+        return Response(request.app.state.metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
 
     @app.get("/livez")
     def livez():

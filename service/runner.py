@@ -55,10 +55,11 @@ def scene_path(settings: Settings, scene: str) -> Path:
 class Runner:
     """``settings.concurrency`` worker threads plus a lease heartbeat."""
 
-    def __init__(self, settings: Settings, store: JobStore, client):
+    def __init__(self, settings: Settings, store: JobStore, client, metrics=None):
         self.settings = settings
         self.store = store
         self.client = client
+        self.metrics = metrics
         self.owner = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -116,6 +117,8 @@ class Runner:
 
         def on_tile(done: int, total: int) -> None:
             pct = int(100 * done / max(total, 1))
+            if self.metrics is not None:
+                self.metrics.tiles.inc()
             if not self.store.renew(job_id, self.owner, self.settings.lease_s, min(pct, 99)):
                 raise Dismissed(job_id)
 
@@ -128,16 +131,26 @@ class Runner:
                                        "outputs": run["outputs"], "timings": run["timings"]}
             self.store.finish(job_id, self.owner, "successful",
                               f"{run['detections']} detections in {run['timings']['total_s']:.1f} s", summary)
+            if self.metrics is not None:
+                H, W = run["scene"]["shape"]
+                self.metrics.pixels.inc(H * W)
+                self.metrics.duration.labels(job["process"], "successful").observe(run["timings"]["total_s"])
         except Dismissed:
             log.info("job %s dismissed while running", job_id)
         except InputError as exc:
             self.store.finish(job_id, self.owner, "failed", str(exc))
+            self._observe_failure(job)
         except Exception as exc:  # never lose the job: record why it failed
             log.error("job %s failed: %s", job_id, traceback.format_exc())
             self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}")
+            self._observe_failure(job)
         finally:
             with self._lock:
                 self._running.pop(job_id, None)
+
+    def _observe_failure(self, job: dict) -> None:
+        if self.metrics is not None:
+            self.metrics.duration.labels(job["process"], "failed").observe(time.time() - (job["started"] or time.time()))
 
     def running(self) -> list[str]:
         with self._lock:

@@ -23,6 +23,10 @@ class Settings(BaseSettings):
     allowed_roots: list[Path] = Field(default_factory=list,
                                       description="folders a job may name scenes in (besides DATA/scenes)")
     sync_timeout_s: float = Field(600.0, gt=0.0, description="longest wait of a 'Prefer: respond-sync' execution")
+    tokens: list[str] = Field(default_factory=list,
+                              description="API tokens (Authorization: Bearer TOKEN); when set, POST and DELETE need one")
+    protect_reads: bool = Field(False, description="with tokens set, GET requests need one too "
+                                                   "(/livez, /readyz and /metrics stay open)")
 
     @property
     def db_path(self) -> Path:

@@ -230,3 +230,52 @@ def test_two_api_processes_share_a_store_without_running_a_job_twice(tmp_path):
     finally:
         a.stop()
         b.stop()
+
+
+def test_metrics_and_readiness(server):
+    u = server.url
+    assert httpx.get(u + "/livez").json() == {"status": "ok"}
+    ready = httpx.get(u + "/readyz").json()
+    assert ready["status"] == "ok" and ready["checks"]["workers"] == 2
+    dash = httpx.get(u + "/dashboard", follow_redirects=False)
+    assert dash.status_code == 307 and dash.headers["location"].startswith("http")
+    r = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1", "guard": 11, "background": 31}})
+    assert _wait(u, r.json()["jobID"])["status"] == "successful"
+    text = httpx.get(u + "/metrics").text
+    lines = {ln.split(" ")[0]: ln for ln in text.splitlines() if ln and not ln.startswith("#")}
+    assert 'sarship_build_info{version="' in text
+    assert float(lines['sarship_jobs{status="successful"}'].split()[-1]) >= 1
+    assert float(lines["sarship_tiles_processed_total"].split()[-1]) >= 9  # 3 x 3 tiles of 128 px
+    assert float(lines["sarship_pixels_processed_total"].split()[-1]) >= 300 * 260
+    assert 'sarship_job_duration_seconds_count{process="ca_cfar",status="successful"}' in lines
+    assert "jobID" not in text and r.json()["jobID"] not in text  # no job IDs as labels
+
+
+def test_tokens(tmp_path):
+    data = tmp_path / "data"
+    (data / "scenes").mkdir(parents=True)
+    write_scene(data / "scenes" / "s4.zarr", {"intensity": blobs_scene((100, 90), looks=2.0, seed=7)},
+                tile=64, looks=2.0)
+    srv = Server(data, _free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a", "t0ken-b"]').start()
+    try:
+        ex = srv.url + "/processes/ca_cfar/execution"
+        body = {"inputs": {"scene": "s4", "guard": 5, "background": 15}}
+        r = httpx.post(ex, json=body)
+        _problem(r, 401, "Bearer")
+        assert r.headers["www-authenticate"] == "Bearer"
+        _problem(httpx.post(ex, json=body, headers={"Authorization": "Bearer wrong"}), 403)
+        ok = httpx.post(ex, json=body, headers={"Authorization": "Bearer t0ken-b"})
+        assert ok.status_code == 201
+        assert httpx.get(srv.url + "/jobs").status_code == 200  # reads public by default
+        _problem(httpx.delete(f"{srv.url}/jobs/{ok.json()['jobID']}"), 401)
+        assert httpx.get(srv.url + "/metrics").status_code == 200
+    finally:
+        srv.stop()
+    srv = Server(data, _free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a"]',
+                 SARSHIP_PROTECT_READS="true").start()
+    try:
+        _problem(httpx.get(srv.url + "/jobs"), 401)
+        assert httpx.get(srv.url + "/jobs", headers={"Authorization": "Bearer t0ken-a"}).status_code == 200
+        assert httpx.get(srv.url + "/livez").status_code == 200
+    finally:
+        srv.stop()

@@ -258,7 +258,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "--port / SARSHIP_PORT (8080), --scheduler / SARSHIP_SCHEDULER, --workers / "
                                    "SARSHIP_WORKERS (local cluster size), --concurrency / SARSHIP_CONCURRENCY (jobs at "
                                    "once, 2), SARSHIP_LEASE_S (30), SARSHIP_ALLOWED_ROOTS (JSON list of folders jobs "
-                                   "may read scenes from), SARSHIP_SYNC_TIMEOUT_S (600).")
+                                   "may read scenes from), SARSHIP_SYNC_TIMEOUT_S (600), SARSHIP_TOKENS (JSON list "
+                                   "of API tokens: POST/DELETE need 'Authorization: Bearer TOKEN'), "
+                                   "SARSHIP_PROTECT_READS (false: reads public).")
     s.add_argument("--host")
     s.add_argument("--port", type=int)
     s.add_argument("--scheduler", help="Dask scheduler address (default: start a local cluster)")

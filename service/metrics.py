@@ -1,0 +1,45 @@
+"""Prometheus metrics of one API process (``GET /metrics``), prefix ``sarship_``.
+
+Job counts by status are read from the shared store at scrape time (so every API process
+reports the same totals); durations, tiles and pixels are this process's own counters. No
+job IDs as labels (unbounded cardinality).
+"""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.core import GaugeMetricFamily
+
+from pipeline import __version__
+
+
+class _JobCounts:
+    def __init__(self, store):
+        self.store = store
+
+    def collect(self):
+        g = GaugeMetricFamily("sarship_jobs", "jobs in the store by status", labels=["status"])
+        for status, n in self.store.counts().items():
+            g.add_metric([status], n)
+        yield g
+
+
+class Metrics:
+    def __init__(self):
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.build = Gauge("sarship_build_info", "build information", ["version"], registry=r)
+        self.build.labels(__version__).set(1)
+        self.duration = Histogram("sarship_job_duration_seconds", "wall time of finished jobs",
+                                  ["process", "status"], registry=r,
+                                  buckets=(0.5, 1, 2, 5, 10, 30, 60, 120, 300, 600, 1800, 3600))
+        self.tiles = Counter("sarship_tiles_processed", "tiles processed by this API process's jobs", registry=r)
+        self.pixels = Counter("sarship_pixels_processed", "scene pixels processed by successful jobs", registry=r)
+        self.requests = Counter("sarship_jobs_submitted", "jobs accepted by this API process", ["process"],
+                                registry=r)
+
+    def watch_store(self, store) -> None:
+        self.registry.register(_JobCounts(store))
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)
