@@ -27,6 +27,10 @@ from service.store import JobStore
 log = logging.getLogger("sarship.service")
 
 
+#: The process name of scene-ingest jobs (uploads), listed with the detector jobs.
+INGEST = "ingest"
+
+
 class Dismissed(Exception):
     """The job was dismissed (or re-claimed elsewhere) while it ran."""
 
@@ -122,6 +126,11 @@ class Runner:
             if not self.store.renew(job_id, self.owner, self.settings.lease_s, min(pct, 99)):
                 raise Dismissed(job_id)
 
+        if job["process"] == INGEST:
+            self._ingest(job)
+            with self._lock:
+                self._running.pop(job_id, None)
+            return
         try:
             scene = scene_path(self.settings, inputs.pop("scene", ""))
             device = inputs.pop("device", "auto")
@@ -147,6 +156,31 @@ class Runner:
         finally:
             with self._lock:
                 self._running.pop(job_id, None)
+
+    def _ingest(self, job: dict) -> None:
+        """An uploaded file to the scene store ``DATA/scenes/ID.zarr`` (written aside and
+        renamed into place by :func:`pipeline.readers.ingest`'s atomic store)."""
+        from pipeline.readers import ingest
+
+        job_id, inputs = job["id"], job["inputs"]
+
+        def progress(done: int, total: int) -> None:
+            if not self.store.renew(job_id, self.owner, self.settings.lease_s, int(99 * done / max(total, 1))):
+                raise Dismissed(job_id)
+
+        out = self.settings.scenes_dir / f"{inputs['scene_id']}.zarr"
+        try:
+            if not out.exists():
+                ingest([inputs["upload"]], out, progress=progress)
+            self.store.finish(job_id, self.owner, "successful", f"scene {inputs['scene_id']} ready",
+                              {"scene": inputs["scene_id"]})
+        except Dismissed:
+            pass
+        except InputError as exc:
+            self.store.finish(job_id, self.owner, "failed", str(exc))
+        except Exception as exc:
+            log.error("ingest %s failed: %s", job_id, traceback.format_exc())
+            self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}")
 
     def _observe_failure(self, job: dict) -> None:
         if self.metrics is not None:

@@ -23,6 +23,7 @@ class Settings(BaseSettings):
     allowed_roots: list[Path] = Field(default_factory=list,
                                       description="folders a job may name scenes in (besides DATA/scenes)")
     sync_timeout_s: float = Field(600.0, gt=0.0, description="longest wait of a 'Prefer: respond-sync' execution")
+    max_upload_mb: float = Field(4096.0, gt=0.0, description="largest scene upload (POST /scenes), MiB")
     tokens: list[str] = Field(default_factory=list,
                               description="API tokens (Authorization: Bearer TOKEN); when set, POST and DELETE need one")
     protect_reads: bool = Field(False, description="with tokens set, GET requests need one too "
@@ -39,6 +40,10 @@ class Settings(BaseSettings):
     @property
     def scenes_dir(self) -> Path:
         return self.data / "scenes"
+
+    @property
+    def uploads_dir(self) -> Path:
+        return self.data / "uploads"
 
     def roots(self) -> list[Path]:
         """Resolved folders scenes may come from."""

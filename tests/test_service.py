@@ -65,7 +65,7 @@ def server(tmp_path_factory):
     (data / "scenes").mkdir(parents=True)
     write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
                 tile=128, looks=2.0)
-    srv = Server(data, _free_port()).start()
+    srv = Server(data, _free_port(), SARSHIP_MAX_UPLOAD_MB="1").start()
     yield srv
     srv.stop()
 
@@ -279,3 +279,45 @@ def test_tokens(tmp_path):
         assert httpx.get(srv.url + "/livez").status_code == 200
     finally:
         srv.stop()
+
+
+def test_scene_upload_ingest_and_detect(server, tmp_path):
+    import io
+
+    import tifffile
+
+    u = server.url
+    x = blobs_scene((120, 110), looks=2.0, seed=9)
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, x)
+    raw = buf.getvalue()
+    r = httpx.post(u + "/scenes?filename=pass1.tif", content=raw, headers={"content-type": "application/octet-stream"})
+    assert r.status_code == 201, r.text
+    doc = r.json()
+    import hashlib
+
+    assert doc["sha256"] == hashlib.sha256(raw).hexdigest() and doc["bytes"] == len(raw)
+    assert _wait(u, doc["jobID"])["status"] == "successful"
+    sc = httpx.get(f"{u}/scenes/{doc['sceneID']}").json()
+    assert sc["status"] == "ready" and sc["shape"] == [120, 110]
+    assert doc["sceneID"] in {s["sceneID"] for s in httpx.get(u + "/scenes").json()["scenes"]}
+    # the same content again (multipart this time): the same scene, no new ingest
+    again = httpx.post(u + "/scenes", files={"file": ("copy.tif", raw, "image/tiff")})
+    assert again.status_code == 200 and again.json()["sceneID"] == doc["sceneID"]
+    job = httpx.post(u + "/processes/ca_cfar/execution",
+                     json={"inputs": {"scene": doc["sceneID"], "guard": 11, "background": 31}}).json()
+    assert _wait(u, job["jobID"])["status"] == "successful"
+    # garbage: accepted as bytes, its ingest fails with the reader's message, and is listed as failed
+    bad = httpx.post(u + "/scenes?filename=junk.tif", content=b"not a tiff at all" * 10)
+    assert bad.status_code == 201
+    st = _wait(u, bad.json()["jobID"])
+    assert st["status"] == "failed" and st["message"] and "internal error" not in st["message"], st
+    listed = {s["sceneID"]: s for s in httpx.get(u + "/scenes").json()["scenes"]}
+    assert listed[bad.json()["sceneID"]]["status"] == "failed"
+    # too large (limit 1 MiB here), no name, empty: 4xx problems and nothing left behind
+    big = np.zeros(2**21 // 4 + 10, np.float32).tobytes()
+    _problem(httpx.post(u + "/scenes?filename=big.npy", content=big), 413, "limit")
+    _problem(httpx.post(u + "/scenes", content=raw), 400, "name")
+    _problem(httpx.post(u + "/scenes?filename=e.tif", content=b""), 400, "empty")
+    assert not [p for p in (server.data / "uploads").iterdir() if p.name.startswith(".upload-")]
+    _problem(httpx.get(u + "/scenes/nosuchscene"), 404, "nosuchscene")
