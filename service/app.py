@@ -184,6 +184,12 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         title = {404: "not found", 405: "method not allowed"}.get(exc.status_code, "error")
         return problem(exc.status_code, title, str(exc.detail))
 
+    @app.exception_handler(Exception)
+    async def _internal(request: Request, exc: Exception):
+        # a bug, not bad input: still a problem document, and logged with its traceback
+        log.exception("internal error on %s %s", request.method, request.url.path)
+        return problem(500, "internal error", f"{type(exc).__name__}: {exc}")
+
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
         parts = []
