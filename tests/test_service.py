@@ -321,3 +321,25 @@ def test_scene_upload_ingest_and_detect(server, tmp_path):
     _problem(httpx.post(u + "/scenes?filename=e.tif", content=b""), 400, "empty")
     assert not [p for p in (server.data / "uploads").iterdir() if p.name.startswith(".upload-")]
     _problem(httpx.get(u + "/scenes/nosuchscene"), 404, "nosuchscene")
+
+
+def test_preview_png(server):
+    import io
+
+    from PIL import Image
+
+    u = server.url
+    r = httpx.post(u + "/processes/ca_cfar/execution",
+                   json={"inputs": {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1}})
+    job_id = r.json()["jobID"]
+    assert _wait(u, job_id)["status"] == "successful"
+    png = httpx.get(f"{u}/jobs/{job_id}/preview.png?size=128")
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    img = np.asarray(Image.open(io.BytesIO(png.content)).convert("RGB"))
+    assert max(img.shape[:2]) <= 128 and img.shape[:2] == (-(-300 // 3), -(-260 // 3))
+    red = (img[..., 0] == 255) & (img[..., 1] == 40)
+    yellow = (img[..., 0] == 255) & (img[..., 1] == 220)
+    assert red.sum() > 0 and yellow.sum() > 0  # detected pixels and their boxes are drawn
+    full = np.asarray(Image.open(io.BytesIO(httpx.get(f"{u}/jobs/{job_id}/preview.png?size=1024").content)))
+    assert full.shape[:2] == (300, 260)
+    _problem(httpx.get(f"{u}/jobs/{job_id}/preview.png?size=5"), 400, "size")
