@@ -99,6 +99,12 @@ def process_description(name: str, base: str) -> dict:
                         for k, v in results_doc({"id": "ID"}, base).items()}}
 
 
+def known_process(name: str) -> None:
+    """A 404 problem unless ``name`` is a detector (process)."""
+    if name not in detectors.names():
+        raise Problem(404, "no such process", f"no process '{name}' (known: {', '.join(detectors.names())})")
+
+
 def validate_inputs(settings: Settings, name: str, body: Any) -> dict:
     """The job's inputs, validated now (so that bad input is a 400, not a failed job)."""
     from workers.run import parse_settings
@@ -234,14 +240,12 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
 
     @app.get("/processes/{process_id}")
     def process(request: Request, process_id: str):
-        if process_id not in detectors.names():
-            raise Problem(404, "no such process", f"no process '{process_id}' (known: {', '.join(detectors.names())})")
+        known_process(process_id)
         return process_description(process_id, _base(request))
 
     @app.post("/processes/{process_id}/execution")
     async def execute(request: Request, process_id: str):
-        if process_id not in detectors.names():
-            raise Problem(404, "no such process", f"no process '{process_id}' (known: {', '.join(detectors.names())})")
+        known_process(process_id)
         try:
             body = json.loads(await request.body() or b"null")
         except (ValueError, UnicodeDecodeError):

@@ -958,18 +958,26 @@ def _exact_kernel(block, halo, h, w, rb, rg, rt, K, init_zs, max_iter, tol, sele
 
 @njit(nogil=True, cache=True)
 def _bin_index(block, inv_h):
-    """Global ln-x bin of every value (floor(ln x / h)), offset to >= 0; -1 if unusable."""
+    """Global ln-x bin of every value (floor(ln x / h)), offset to >= 0; -1 if unusable;
+    with the offset and the smallest and largest bin used (bmax = -1: none)."""
     H, Wd = block.shape
     off = 1 + int(math.ceil(800.0 * inv_h))  # ln of positive float64 > -745
     B = np.empty((H, Wd), np.int32)
+    bmin = 1 << 30
+    bmax = -1
     for r in range(H):
         for c in range(Wd):
             x = np.float64(block[r, c])
             if x > 0.0 and x < np.inf:
-                B[r, c] = int(math.floor(math.log(x) * inv_h)) + off
+                b = int(math.floor(math.log(x) * inv_h)) + off
+                B[r, c] = b
+                if b < bmin:
+                    bmin = b
+                if b > bmax:
+                    bmax = b
             else:
                 B[r, c] = -1
-    return B, off
+    return B, off, bmin, bmax
 
 
 @njit(nogil=True, cache=True)
@@ -984,18 +992,7 @@ def _col(hist, B, r0, r1, c, d):
 def _fast_kernel(block, halo, h, w, rb, rg, rt, K, init_zs, max_iter, tol, select, predictive, z,
                  log_pfa, nmin, bw, mask, stat, iters):
     inv_h = 1.0 / bw
-    B, off = _bin_index(block, inv_h)
-    H, Wd = block.shape
-    bmin = 1 << 30
-    bmax = -1
-    for r in range(H):
-        for c in range(Wd):
-            b = B[r, c]
-            if b >= 0:
-                if b < bmin:
-                    bmin = b
-                if b > bmax:
-                    bmax = b
+    B, off, bmin, bmax = _bin_index(block, inv_h)
     if bmax < 0:
         return
     hist = np.zeros(bmax + 1, np.int64)
@@ -1081,18 +1078,7 @@ def _grid_kernel(block, halo, h, w, rb, rg, rt, K, init_zs, max_iter, tol, selec
     bilinearly interpolated. ``(g0r, g0c)``: global coordinates of the core's [0, 0];
     ``halo >= rb + step - 1`` so the ring of every needed node lies in the block."""
     inv_h = 1.0 / bw
-    B, off = _bin_index(block, inv_h)
-    H, Wd = block.shape
-    bmin = 1 << 30
-    bmax = -1
-    for r in range(H):
-        for c in range(Wd):
-            b = B[r, c]
-            if b >= 0:
-                if b < bmin:
-                    bmin = b
-                if b > bmax:
-                    bmax = b
+    B, off, bmin, bmax = _bin_index(block, inv_h)
     if bmax < 0:
         return
     hist = np.zeros(bmax + 1, np.int64)
