@@ -1,0 +1,131 @@
+"""Scene routes: uploads (``POST /scenes``, ingested by a background job) and the scene list."""
+
+from __future__ import annotations
+
+import os
+import uuid
+from pathlib import Path
+from typing import Optional
+
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse
+
+from service.common import Problem, base_url, settings_of, store_of
+from service.runner import INGEST
+from service.settings import Settings
+
+router = APIRouter()
+
+
+@router.post("/scenes")
+async def upload(request: Request, filename: Optional[str] = None):
+    """A scene file, streamed to disk (raw body with ``?filename=``, or multipart field
+    ``file``), checked against the size limit as it arrives, named by its SHA-256, and
+    ingested to ``DATA/scenes/ID.zarr`` by an ``ingest`` job. The same content uploaded
+    twice is the same scene."""
+    import hashlib
+    import re
+
+    settings = settings_of(request)
+    limit = int(settings.max_upload_mb * 2**20)
+    clen = request.headers.get("content-length")
+    if clen and clen.isdigit() and int(clen) > limit + 2**16:
+        raise Problem(413, "too large", f"upload of {int(clen)} bytes exceeds the limit of {limit} bytes")
+    settings.uploads_dir.mkdir(parents=True, exist_ok=True)
+    tmp = settings.uploads_dir / f".upload-{uuid.uuid4().hex}"
+    h = hashlib.sha256()
+    n = 0
+
+    def take(chunk: bytes, out) -> None:
+        nonlocal n
+        n += len(chunk)
+        if n > limit:
+            raise Problem(413, "too large", f"upload exceeds the limit of {limit} bytes")
+        h.update(chunk)
+        out.write(chunk)
+
+    try:
+        with open(tmp, "wb") as out:
+            if request.headers.get("content-type", "").startswith("multipart/form-data"):
+                form = await request.form()
+                f = form.get("file")
+                if f is None or isinstance(f, str):
+                    raise Problem(400, "missing file", "multipart upload needs a file field named 'file'")
+                filename = filename or f.filename
+                while chunk := await f.read(1 << 20):
+                    take(chunk, out)
+            else:
+                async for chunk in request.stream():
+                    take(chunk, out)
+        if n == 0:
+            raise Problem(400, "empty upload", "the upload is empty")
+        name = Path(filename or "").name
+        ext = "".join(Path(name).suffixes).lower()
+        if not name or not re.fullmatch(r"(\.[a-z0-9]{1,8}){1,3}", ext):
+            raise Problem(400, "missing filename", "give the file name with its extension (?filename=scene.tif "
+                                                   "or the multipart file name): it selects the reader")
+        scene_id = h.hexdigest()[:16]
+        final = settings.uploads_dir / f"{scene_id}{ext}"
+        if final.exists():
+            tmp.unlink()
+        else:
+            os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    b = base_url(request)
+    doc = {"sceneID": scene_id, "sha256": h.hexdigest(), "bytes": n, "filename": name,
+           "links": [{"href": f"{b}/scenes/{scene_id}", "rel": "self", "type": "application/json"}]}
+    if (settings.scenes_dir / f"{scene_id}.zarr").exists():
+        return JSONResponse({**doc, "status": "ready"}, status_code=200)
+    job = store_of(request).create(INGEST, {"upload": str(final), "scene_id": scene_id, "filename": name,
+                                         "sha256": h.hexdigest(), "bytes": n})
+    request.app.state.runner.wake.set()
+    return JSONResponse({**doc, "status": "ingesting", "jobID": job["id"],
+                         "links": doc["links"] + [{"href": f"{b}/jobs/{job['id']}", "rel": "monitor",
+                                                   "type": "application/json"}]},
+                        status_code=201, headers={"Location": f"{b}/scenes/{scene_id}"})
+
+
+def scene_doc(settings: Settings, scene_id: str, b: str) -> Optional[dict]:
+    from pipeline.scene import open_scene
+
+    p = settings.scenes_dir / f"{scene_id}.zarr"
+    if not p.is_dir():
+        return None
+    try:
+        sc = open_scene(p)
+    except Exception as exc:
+        return {"sceneID": scene_id, "status": "unreadable", "detail": str(exc)}
+    return {"sceneID": scene_id, "status": "ready", "shape": list(sc.shape), "kind": sc.kind,
+            "looks": sc.looks, "variables": list(sc.variables), "tile": sc.tile,
+            "links": [{"href": f"{b}/scenes/{scene_id}", "rel": "self", "type": "application/json"}]}
+
+
+@router.get("/scenes")
+
+
+def scenes(request: Request):
+    settings = settings_of(request)
+    b = base_url(request)
+    ready = [scene_doc(settings, p.name[:-5], b) for p in sorted(settings.scenes_dir.glob("*.zarr"))]
+    pending = [{"sceneID": j["inputs"]["scene_id"], "status": "ingesting" if j["status"] != "failed" else "failed",
+                "jobID": j["id"], "message": j["message"]}
+               for j in store_of(request).list(limit=10000) if j["process"] == INGEST
+               and j["status"] in ("accepted", "running", "failed")
+               and not (settings.scenes_dir / f"{j['inputs']['scene_id']}.zarr").exists()]
+    return {"scenes": [d for d in ready if d] + pending}
+
+
+@router.get("/scenes/{scene_id}")
+
+
+def scene(request: Request, scene_id: str):
+    doc = scene_doc(settings_of(request), scene_id, base_url(request)) if scene_id.replace("_", "").replace("-", "").isalnum() else None
+    if doc is None:
+        for j in store_of(request).list(limit=10000):
+            if j["process"] == INGEST and j["inputs"].get("scene_id") == scene_id:
+                return {"sceneID": scene_id, "status": "ingesting" if j["status"] in ("accepted", "running")
+                        else j["status"], "jobID": j["id"], "message": j["message"]}
+        raise Problem(404, "no such scene", f"no scene '{scene_id}'")
+    return doc
