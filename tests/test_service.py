@@ -4,59 +4,14 @@ durability across ``kill -9``."""
 
 from __future__ import annotations
 
-import os
-import signal
-import socket
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 httpx = pytest.importorskip("httpx")
 from conftest import blobs_scene, write_scene  # noqa: E402
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Server:
-    def __init__(self, data: Path, port: int, **env):
-        self.data, self.port = data, port
-        self.url = f"http://127.0.0.1:{port}"
-        self.env = {**os.environ, "SARSHIP_WORKERS": "2", "SARSHIP_LEASE_S": "4", "CUDA_VISIBLE_DEVICES": "",
-                    **env}
-        self.proc = None
-
-    def start(self, timeout: float = 120.0) -> "Server":
-        self.log = open(self.data.parent / f"server-{self.port}-{time.time_ns()}.log", "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "workers.cli", "serve", "--data", str(self.data),
-                                      "--port", str(self.port)], stdout=self.log, stderr=subprocess.STDOUT,
-                                     env=self.env, start_new_session=True)
-        t_end = time.time() + timeout
-        while time.time() < t_end:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited: {Path(self.log.name).read_text()[-2000:]}")
-            try:
-                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
-                    return self
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.3)
-        raise RuntimeError("server did not become ready")
-
-    def kill(self, sig=signal.SIGKILL) -> None:
-        if self.proc and self.proc.poll() is None:
-            os.killpg(self.proc.pid, sig)  # the whole session: uvicorn and its Dask workers
-            self.proc.wait(timeout=30)
-
-    def stop(self) -> None:
-        self.kill(signal.SIGTERM)
+from svc import Server, check_problem, free_port, wait_job  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -65,27 +20,9 @@ def server(tmp_path_factory):
     (data / "scenes").mkdir(parents=True)
     write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
                 tile=128, looks=2.0)
-    srv = Server(data, _free_port(), SARSHIP_MAX_UPLOAD_MB="1").start()
+    srv = Server(data, free_port(), SARSHIP_MAX_UPLOAD_MB="1").start()
     yield srv
     srv.stop()
-
-
-def _wait(url: str, job_id: str, timeout: float = 120.0) -> dict:
-    t_end = time.time() + timeout
-    while time.time() < t_end:
-        st = httpx.get(f"{url}/jobs/{job_id}").json()
-        if st["status"] in ("successful", "failed", "dismissed"):
-            return st
-        time.sleep(0.2)
-    raise AssertionError(f"job {job_id} did not finish: {st}")
-
-
-def _problem(r, status: int, *words: str) -> None:
-    assert r.status_code == status, (r.status_code, r.text)
-    body = r.json()
-    assert {"type", "title", "detail"} <= set(body), body
-    for w in words:
-        assert w in body["detail"], (w, body)
 
 
 def test_ogc_state_machine_and_results(server):
@@ -102,7 +39,7 @@ def test_ogc_state_machine_and_results(server):
     assert r.status_code == 201, r.text
     job_id = r.json()["jobID"]
     assert r.headers["location"].endswith(f"/jobs/{job_id}") and r.json()["status"] in ("accepted", "running")
-    st = _wait(u, job_id)
+    st = wait_job(u, job_id)
     assert st["status"] == "successful" and st["progress"] == 100 and st["finished"] >= st["started"], st
     res = httpx.get(f"{u}/jobs/{job_id}/results").json()
     assert set(res) == {"detections", "mask", "metrics"}
@@ -133,28 +70,28 @@ def test_sync_execution_returns_results(server):
 
 def test_bad_requests_are_problems(server):
     u = server.url
-    _problem(httpx.get(u + "/processes/nope"), 404, "nope")
-    _problem(httpx.post(u + "/processes/nope/execution", json={"inputs": {"scene": "s1"}}), 404)
+    check_problem(httpx.get(u + "/processes/nope"), 404, "nope")
+    check_problem(httpx.post(u + "/processes/nope/execution", json={"inputs": {"scene": "s1"}}), 404)
     ex = u + "/processes/ca_cfar/execution"
-    _problem(httpx.post(ex, json={"inputs": {"scene": "s1", "pfa": 2}}), 400, "pfa")
-    _problem(httpx.post(ex, json={"inputs": {"scene": "s1", "bogus": 1}}), 400, "bogus")
-    _problem(httpx.post(ex, json={"inputs": {"scene": "s1", "guard": 10}}), 400, "odd")
-    _problem(httpx.post(ex, json={"inputs": {"pfa": 1e-3}}), 400, "scene")
-    _problem(httpx.post(ex, json={"inputs": {"scene": "s1", "device": "tpu"}}), 400, "device")
-    _problem(httpx.post(ex, content=b"{not json", headers={"content-type": "application/json"}), 400, "JSON")
-    _problem(httpx.post(ex, json=[1, 2]), 400, "inputs")
-    _problem(httpx.post(ex, json={"inputs": {"scene": "../../../etc"}}), 400, "scene")
-    _problem(httpx.post(ex, json={"inputs": {"scene": "/etc"}}), 400, "outside")
-    _problem(httpx.post(ex, json={"inputs": {"scene": "s3://bucket/x.zarr"}}), 400, "local")
+    check_problem(httpx.post(ex, json={"inputs": {"scene": "s1", "pfa": 2}}), 400, "pfa")
+    check_problem(httpx.post(ex, json={"inputs": {"scene": "s1", "bogus": 1}}), 400, "bogus")
+    check_problem(httpx.post(ex, json={"inputs": {"scene": "s1", "guard": 10}}), 400, "odd")
+    check_problem(httpx.post(ex, json={"inputs": {"pfa": 1e-3}}), 400, "scene")
+    check_problem(httpx.post(ex, json={"inputs": {"scene": "s1", "device": "tpu"}}), 400, "device")
+    check_problem(httpx.post(ex, content=b"{not json", headers={"content-type": "application/json"}), 400, "JSON")
+    check_problem(httpx.post(ex, json=[1, 2]), 400, "inputs")
+    check_problem(httpx.post(ex, json={"inputs": {"scene": "../../../etc"}}), 400, "scene")
+    check_problem(httpx.post(ex, json={"inputs": {"scene": "/etc"}}), 400, "outside")
+    check_problem(httpx.post(ex, json={"inputs": {"scene": "s3://bucket/x.zarr"}}), 400, "local")
     outside = server.data.parent / "elsewhere.zarr"
     outside.mkdir(exist_ok=True)
     link = server.data / "scenes" / "link.zarr"
     if not link.exists():
         link.symlink_to(outside)
-    _problem(httpx.post(ex, json={"inputs": {"scene": "link"}}), 400, "outside")  # symlink out of the root
-    _problem(httpx.get(u + "/jobs/doesnotexist"), 404, "doesnotexist")
-    _problem(httpx.get(u + "/jobs/doesnotexist/results"), 404)
-    _problem(httpx.get(u + "/jobs?status=weird"), 400, "status")
+    check_problem(httpx.post(ex, json={"inputs": {"scene": "link"}}), 400, "outside")  # symlink out of the root
+    check_problem(httpx.get(u + "/jobs/doesnotexist"), 404, "doesnotexist")
+    check_problem(httpx.get(u + "/jobs/doesnotexist/results"), 404)
+    check_problem(httpx.get(u + "/jobs?status=weird"), 400, "status")
     # nothing of the above was accepted as a job
     assert all(j["processID"] in ("ca_cfar", "os_cfar") for j in httpx.get(u + "/jobs").json()["jobs"])
 
@@ -167,7 +104,7 @@ def test_dismiss(server):
     assert last.status_code == 200 and last.json()["status"] == "dismissed"
     first = httpx.delete(f"{u}/jobs/{ids[0]}").json()
     assert first["status"] == "dismissed"
-    _problem(httpx.get(f"{u}/jobs/{ids[0]}/results"), 404, "dismissed")
+    check_problem(httpx.get(f"{u}/jobs/{ids[0]}/results"), 404, "dismissed")
     httpx.delete(f"{u}/jobs/{ids[1]}")
     time.sleep(1.0)
     for i in ids:  # dismissed stays dismissed: the runner does not overwrite it
@@ -181,7 +118,7 @@ def test_jobs_survive_kill_9(tmp_path):
     (data / "scenes").mkdir(parents=True)
     write_scene(data / "scenes" / "s2.zarr", {"intensity": blobs_scene((400, 400), looks=2.0, seed=5)},
                 tile=64, looks=2.0)
-    srv = Server(data, _free_port(), SARSHIP_CONCURRENCY="1").start()
+    srv = Server(data, free_port(), SARSHIP_CONCURRENCY="1").start()
     try:
         ids = [httpx.post(srv.url + "/processes/lmm/execution", json={"inputs": {"scene": "s2"}}).json()["jobID"]
                for _ in range(4)]  # lmm defaults: a few seconds each on 2 workers
@@ -191,10 +128,10 @@ def test_jobs_survive_kill_9(tmp_path):
         srv.kill()  # SIGKILL, mid-run
     finally:
         srv.kill()
-    srv2 = Server(data, _free_port()).start()
+    srv2 = Server(data, free_port()).start()
     try:
         for i in ids:
-            st = _wait(srv2.url, i, timeout=180)
+            st = wait_job(srv2.url, i, timeout=180)
             assert st["status"] == "successful", st
         jobs = httpx.get(srv2.url + "/jobs").json()["jobs"]
         assert sorted(j["jobID"] for j in jobs) == sorted(ids)  # each exactly once
@@ -212,8 +149,8 @@ def test_two_api_processes_share_a_store_without_running_a_job_twice(tmp_path):
     (data / "scenes").mkdir(parents=True)
     write_scene(data / "scenes" / "s3.zarr", {"intensity": blobs_scene((200, 180), looks=2.0, seed=6)},
                 tile=64, looks=2.0)
-    a = Server(data, _free_port(), SARSHIP_WORKERS="1").start()
-    b = Server(data, _free_port(), SARSHIP_WORKERS="1").start()
+    a = Server(data, free_port(), SARSHIP_WORKERS="1").start()
+    b = Server(data, free_port(), SARSHIP_WORKERS="1").start()
     try:
         ids = []
         for k in range(8):
@@ -223,7 +160,7 @@ def test_two_api_processes_share_a_store_without_running_a_job_twice(tmp_path):
             assert r.status_code == 201
             ids.append(r.json()["jobID"])
         for i in ids:
-            assert _wait(a.url, i)["status"] == "successful"
+            assert wait_job(a.url, i)["status"] == "successful"
         jobs = {j["jobID"]: j for j in httpx.get(b.url + "/jobs").json()["jobs"]}
         assert sorted(jobs) == sorted(ids)
         assert all(jobs[i]["attempts"] == 1 for i in ids), [jobs[i]["attempts"] for i in ids]  # never twice
@@ -240,7 +177,7 @@ def test_metrics_and_readiness(server):
     dash = httpx.get(u + "/dashboard", follow_redirects=False)
     assert dash.status_code == 307 and dash.headers["location"].startswith("http")
     r = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1", "guard": 11, "background": 31}})
-    assert _wait(u, r.json()["jobID"])["status"] == "successful"
+    assert wait_job(u, r.json()["jobID"])["status"] == "successful"
     text = httpx.get(u + "/metrics").text
     lines = {ln.split(" ")[0]: ln for ln in text.splitlines() if ln and not ln.startswith("#")}
     assert 'sarship_build_info{version="' in text
@@ -256,25 +193,25 @@ def test_tokens(tmp_path):
     (data / "scenes").mkdir(parents=True)
     write_scene(data / "scenes" / "s4.zarr", {"intensity": blobs_scene((100, 90), looks=2.0, seed=7)},
                 tile=64, looks=2.0)
-    srv = Server(data, _free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a", "t0ken-b"]').start()
+    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a", "t0ken-b"]').start()
     try:
         ex = srv.url + "/processes/ca_cfar/execution"
         body = {"inputs": {"scene": "s4", "guard": 5, "background": 15}}
         r = httpx.post(ex, json=body)
-        _problem(r, 401, "Bearer")
+        check_problem(r, 401, "Bearer")
         assert r.headers["www-authenticate"] == "Bearer"
-        _problem(httpx.post(ex, json=body, headers={"Authorization": "Bearer wrong"}), 403)
+        check_problem(httpx.post(ex, json=body, headers={"Authorization": "Bearer wrong"}), 403)
         ok = httpx.post(ex, json=body, headers={"Authorization": "Bearer t0ken-b"})
         assert ok.status_code == 201
         assert httpx.get(srv.url + "/jobs").status_code == 200  # reads public by default
-        _problem(httpx.delete(f"{srv.url}/jobs/{ok.json()['jobID']}"), 401)
+        check_problem(httpx.delete(f"{srv.url}/jobs/{ok.json()['jobID']}"), 401)
         assert httpx.get(srv.url + "/metrics").status_code == 200
     finally:
         srv.stop()
-    srv = Server(data, _free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a"]',
+    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a"]',
                  SARSHIP_PROTECT_READS="true").start()
     try:
-        _problem(httpx.get(srv.url + "/jobs"), 401)
+        check_problem(httpx.get(srv.url + "/jobs"), 401)
         assert httpx.get(srv.url + "/jobs", headers={"Authorization": "Bearer t0ken-a"}).status_code == 200
         assert httpx.get(srv.url + "/livez").status_code == 200
     finally:
@@ -297,7 +234,7 @@ def test_scene_upload_ingest_and_detect(server, tmp_path):
     import hashlib
 
     assert doc["sha256"] == hashlib.sha256(raw).hexdigest() and doc["bytes"] == len(raw)
-    assert _wait(u, doc["jobID"])["status"] == "successful"
+    assert wait_job(u, doc["jobID"])["status"] == "successful"
     sc = httpx.get(f"{u}/scenes/{doc['sceneID']}").json()
     assert sc["status"] == "ready" and sc["shape"] == [120, 110]
     assert doc["sceneID"] in {s["sceneID"] for s in httpx.get(u + "/scenes").json()["scenes"]}
@@ -306,21 +243,21 @@ def test_scene_upload_ingest_and_detect(server, tmp_path):
     assert again.status_code == 200 and again.json()["sceneID"] == doc["sceneID"]
     job = httpx.post(u + "/processes/ca_cfar/execution",
                      json={"inputs": {"scene": doc["sceneID"], "guard": 11, "background": 31}}).json()
-    assert _wait(u, job["jobID"])["status"] == "successful"
+    assert wait_job(u, job["jobID"])["status"] == "successful"
     # garbage: accepted as bytes, its ingest fails with the reader's message, and is listed as failed
     bad = httpx.post(u + "/scenes?filename=junk.tif", content=b"not a tiff at all" * 10)
     assert bad.status_code == 201
-    st = _wait(u, bad.json()["jobID"])
+    st = wait_job(u, bad.json()["jobID"])
     assert st["status"] == "failed" and st["message"] and "internal error" not in st["message"], st
     listed = {s["sceneID"]: s for s in httpx.get(u + "/scenes").json()["scenes"]}
     assert listed[bad.json()["sceneID"]]["status"] == "failed"
     # too large (limit 1 MiB here), no name, empty: 4xx problems and nothing left behind
     big = np.zeros(2**21 // 4 + 10, np.float32).tobytes()
-    _problem(httpx.post(u + "/scenes?filename=big.npy", content=big), 413, "limit")
-    _problem(httpx.post(u + "/scenes", content=raw), 400, "name")
-    _problem(httpx.post(u + "/scenes?filename=e.tif", content=b""), 400, "empty")
+    check_problem(httpx.post(u + "/scenes?filename=big.npy", content=big), 413, "limit")
+    check_problem(httpx.post(u + "/scenes", content=raw), 400, "name")
+    check_problem(httpx.post(u + "/scenes?filename=e.tif", content=b""), 400, "empty")
     assert not [p for p in (server.data / "uploads").iterdir() if p.name.startswith(".upload-")]
-    _problem(httpx.get(u + "/scenes/nosuchscene"), 404, "nosuchscene")
+    check_problem(httpx.get(u + "/scenes/nosuchscene"), 404, "nosuchscene")
 
 
 def test_preview_png(server):
@@ -332,7 +269,7 @@ def test_preview_png(server):
     r = httpx.post(u + "/processes/ca_cfar/execution",
                    json={"inputs": {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1}})
     job_id = r.json()["jobID"]
-    assert _wait(u, job_id)["status"] == "successful"
+    assert wait_job(u, job_id)["status"] == "successful"
     png = httpx.get(f"{u}/jobs/{job_id}/preview.png?size=128")
     assert png.status_code == 200 and png.headers["content-type"] == "image/png"
     img = np.asarray(Image.open(io.BytesIO(png.content)).convert("RGB"))
@@ -342,4 +279,4 @@ def test_preview_png(server):
     assert red.sum() > 0 and yellow.sum() > 0  # detected pixels and their boxes are drawn
     full = np.asarray(Image.open(io.BytesIO(httpx.get(f"{u}/jobs/{job_id}/preview.png?size=1024").content)))
     assert full.shape[:2] == (300, 260)
-    _problem(httpx.get(f"{u}/jobs/{job_id}/preview.png?size=5"), 400, "size")
+    check_problem(httpx.get(f"{u}/jobs/{job_id}/preview.png?size=5"), 400, "size")

@@ -1,0 +1,72 @@
+"""Helpers for tests against a real ``sarship serve`` process (uvicorn on loopback, its own
+local Dask cluster, SQLite store): start/kill the server, wait for jobs, check problem bodies."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    def __init__(self, data: Path, port: int, **env):
+        self.data, self.port = data, port
+        self.url = f"http://127.0.0.1:{port}"
+        self.env = {**os.environ, "SARSHIP_WORKERS": "2", "SARSHIP_LEASE_S": "4", "CUDA_VISIBLE_DEVICES": "",
+                    **env}
+        self.proc = None
+
+    def start(self, timeout: float = 120.0) -> "Server":
+        self.log = open(self.data.parent / f"server-{self.port}-{time.time_ns()}.log", "w")
+        self.proc = subprocess.Popen([sys.executable, "-m", "workers.cli", "serve", "--data", str(self.data),
+                                      "--port", str(self.port)], stdout=self.log, stderr=subprocess.STDOUT,
+                                     env=self.env, start_new_session=True)
+        t_end = time.time() + timeout
+        while time.time() < t_end:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited: {Path(self.log.name).read_text()[-2000:]}")
+            try:
+                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.3)
+        raise RuntimeError("server did not become ready")
+
+    def kill(self, sig=signal.SIGKILL) -> None:
+        if self.proc and self.proc.poll() is None:
+            os.killpg(self.proc.pid, sig)  # the whole session: uvicorn and its Dask workers
+            self.proc.wait(timeout=30)
+
+    def stop(self) -> None:
+        self.kill(signal.SIGTERM)
+
+
+def wait_job(url: str, job_id: str, timeout: float = 120.0) -> dict:
+    t_end = time.time() + timeout
+    while time.time() < t_end:
+        st = httpx.get(f"{url}/jobs/{job_id}").json()
+        if st["status"] in ("successful", "failed", "dismissed"):
+            return st
+        time.sleep(0.2)
+    raise AssertionError(f"job {job_id} did not finish: {st}")
+
+
+def check_problem(r, status: int, *words: str) -> None:
+    assert r.status_code == status, (r.status_code, r.text)
+    body = r.json()
+    assert {"type", "title", "detail"} <= set(body), body
+    for w in words:
+        assert w in body["detail"], (w, body)
