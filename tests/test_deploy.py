@@ -1,0 +1,139 @@
+"""The deployment files (docker-compose.yml, deploy/) against the code they start.
+
+No Docker engine runs here, so the containers themselves are not started. What is checked:
+every ``sarship`` command line in the compose file and the systemd units parses with the
+real CLI parser (a renamed flag breaks this test, not a deployment), the compose topology is
+consistent (shared data volume, scheduler address, health checks), and the same topology
+runs for real as processes: ``dask scheduler`` + ``sarship worker --gpus none`` +
+``sarship serve --scheduler`` running a job end to end.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import subprocess
+import sys
+import time
+
+import pytest
+
+yaml = pytest.importorskip("yaml")
+httpx = pytest.importorskip("httpx")
+from conftest import REPO, blobs_scene, write_scene  # noqa: E402
+from svc import Server, free_port, wait_job  # noqa: E402
+
+COMPOSE = REPO / "docker-compose.yml"
+DEPLOY = REPO / "deploy"
+
+
+def _compose() -> dict:
+    return yaml.safe_load(COMPOSE.read_text())
+
+
+def _sarship_argv(svc: dict) -> list[str] | None:
+    """The ``sarship`` arguments of a compose service (None when it runs something else)."""
+    entry = svc.get("entrypoint", ["sarship"])
+    if not str(svc.get("image", "")).startswith("sarship") or entry != ["sarship"]:
+        return None
+    return [os.path.expandvars(str(a)).replace("${SARSHIP_CPU_WORKERS:-2}", "2") for a in svc["command"]]
+
+
+def test_compose_commands_parse_with_the_cli():
+    from workers.cli import build_parser
+
+    services = _compose()["services"]
+    for name, svc in services.items():
+        argv = _sarship_argv(svc)
+        if argv is None:
+            continue
+        build_parser().parse_args(argv)  # SystemExit (a test error) on an unknown flag
+        if argv[0] in ("worker", "serve"):
+            assert "tcp://scheduler:8786" in argv, (name, argv)
+    assert {"worker", "serve"} <= {(_sarship_argv(s) or ["-"])[0] for s in services.values()}
+    assert services["scheduler"]["entrypoint"] == ["dask", "scheduler"]
+    assert "8786" in services["scheduler"]["command"]
+
+
+def test_compose_shares_one_data_volume_and_builds_existing_dockerfiles():
+    doc = _compose()
+    for name, svc in doc["services"].items():
+        if name == "prometheus":
+            continue
+        vols = svc.get("volumes") or doc["x-sarship"]["volumes"]
+        assert "data:/data" in vols, (name, vols)
+        build = svc.get("build") or doc["x-sarship"]["build"]
+        assert (REPO / build["dockerfile"]).is_file(), build
+    assert "data" in doc["volumes"]
+    prom = yaml.safe_load((DEPLOY / "prometheus.yml").read_text())
+    targets = {t for sc in prom["scrape_configs"] for c in sc["static_configs"] for t in c["targets"]}
+    assert "api:8080" in targets
+    for df in ("Dockerfile", "Dockerfile.gpu"):
+        text = (DEPLOY / df).read_text()
+        for path in ("pipeline", "workers", "service", "pyproject.toml"):
+            assert path in text and (REPO / path).exists()
+
+
+def test_systemd_units_parse_with_the_cli():
+    from workers.cli import build_parser
+
+    env = {}
+    for line in (DEPLOY / "systemd" / "sarship.env").read_text().splitlines():
+        if line and not line.startswith("#"):
+            k, v = line.split("=", 1)
+            env[k] = v
+    n = 0
+    for unit in sorted((DEPLOY / "systemd").glob("*.service")):
+        text = unit.read_text()
+        assert "[Service]" in text and "[Install]" in text, unit
+        exec_line = next(ln for ln in text.splitlines() if ln.startswith("ExecStart="))
+        argv = shlex.split(exec_line[len("ExecStart="):])
+        for k, v in env.items():
+            argv = [a.replace("${" + k + "}", v) for a in argv]
+        assert not any("${" in a for a in argv), (unit.name, argv)
+        if argv[0].endswith("/sarship"):
+            build_parser().parse_args(argv[1:])
+            n += 1
+    assert n == 2
+
+
+def test_compose_topology_as_processes(tmp_path):
+    """``dask scheduler``, ``sarship worker --gpus none --cpus 1`` and ``sarship serve
+    --scheduler``: the compose services, run as local processes. A job runs on the external
+    worker (not on a cluster of the API's own) and its results are served."""
+    port = free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
+    data = tmp_path / "data"
+    write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene((260, 240), looks=2.0, seed=4)},
+                tile=128, looks=2.0)
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                               "--port", str(port), "--dashboard-address", ":0"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    srv = None
+    try:
+        time.sleep(2)
+        procs.append(subprocess.Popen([sys.executable, "-m", "workers.cli", "worker", "--scheduler", addr,
+                                       "--gpus", "none", "--cpus", "1", "--name", "box"],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
+        srv = Server(data, free_port(), SARSHIP_SCHEDULER=addr).start()
+        r = httpx.post(srv.url + "/processes/ca_cfar/execution",
+                       json={"inputs": {"scene": "s1", "pfa": 1e-4, "min_area_px": 1}})
+        assert r.status_code == 201, r.text
+        st = wait_job(srv.url, r.json()["jobID"])
+        assert st["status"] == "successful", st
+        met = httpx.get(f"{srv.url}/jobs/{st['jobID']}/results/metrics").json()
+        assert {t["worker"] for t in met["tiles"]["per_tile"]} == {"box-cpu0"}
+        assert httpx.get(srv.url + "/readyz").json()["checks"]["workers"] == 1
+        assert json.loads(httpx.get(f"{srv.url}/jobs/{st['jobID']}/results/detections").text)["features"]
+    finally:
+        if srv is not None:
+            srv.stop()
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
