@@ -565,22 +565,25 @@ THREADS = 256
 
 
 @functools.lru_cache(maxsize=None)
-def _module(device_id: int):
+def compiled(source: str, std: str, device_id: int):
+    """``source`` compiled by NVRTC for ``device_id`` (once per process and device), without
+    fused multiply-adds so the sums match the CPU's bit for bit."""
     import cupy as cp
 
-    return cp.RawModule(code=SOURCE, options=("--fmad=false", "-std=c++14"))
+    return cp.RawModule(code=source, options=("--fmad=false", f"-std={std}"))
 
 
-def get(name: str):
-    """The compiled kernel ``name`` for the current device."""
+def get(name: str, source: str = SOURCE, std: str = "c++14"):
+    """The compiled kernel ``name`` of ``source`` (default: this module's) for the current device."""
     import cupy as cp
 
-    return _module(cp.cuda.Device().id).get_function(name)
+    return compiled(source, std, cp.cuda.Device().id).get_function(name)
 
 
-def launch(name: str, n: int, args: tuple) -> None:
-    """Launch ``name`` over ``n`` threads (1-D grid of :data:`THREADS`-thread blocks)."""
+def launch(name: str, n: int, args: tuple, *, source: str = SOURCE, std: str = "c++14",
+           threads: int = THREADS) -> None:
+    """Launch ``name`` over ``n`` threads (1-D grid of ``threads``-thread blocks)."""
     if n <= 0:
         return
-    blocks = (int(n) + THREADS - 1) // THREADS
-    get(name)((blocks,), (THREADS,), args)
+    blocks = (int(n) + threads - 1) // threads
+    get(name, source, std)((blocks,), (threads,), args)

@@ -14,9 +14,9 @@ masks to the CPU tests' agreement rule (<= 0.1 % of pixels).
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
+
+from pipeline.gpu import kernels
 
 SOURCE = r"""
 #define KMAX 6
@@ -541,20 +541,8 @@ __global__ void lmm_grid_pixels(const double* X, long long ld, long long h, long
 THREADS = 128
 
 
-@functools.lru_cache(maxsize=None)
-def _module(device_id: int):
-    import cupy as cp
-
-    return cp.RawModule(code=SOURCE, options=("--fmad=false", "-std=c++17"))
-
-
 def _launch(name: str, n: int, args: tuple) -> None:
-    import cupy as cp
-
-    if n <= 0:
-        return
-    fn = _module(cp.cuda.Device().id).get_function(name)
-    fn(((int(n) + THREADS - 1) // THREADS,), (THREADS,), args)
+    kernels.launch(name, n, args, source=SOURCE, std="c++17", threads=THREADS)
 
 
 #: Largest histogram scratch (bytes) one launch may use; cells are fitted in chunks.
