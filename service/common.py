@@ -39,7 +39,8 @@ def results_doc(job: dict, base: str) -> dict:
     u = f"{base}/jobs/{job['id']}/results"
     return {"detections": {"href": f"{u}/detections", "type": "application/geo+json"},
             "mask": {"href": f"{u}/mask", "type": "image/tiff; application=geotiff"},
-            "metrics": {"href": f"{u}/metrics", "type": "application/json"}}
+            "metrics": {"href": f"{u}/metrics", "type": "application/json"},
+            "stac": {"href": f"{u}/stac", "type": "application/geo+json"}}
 
 
 

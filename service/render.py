@@ -1,82 +1,216 @@
-"""Products rendered from a finished job's outputs: the quicklook PNG and the mask GeoTIFF."""
+"""Scene quicklooks of a finished job: the intensity in dB, grey-stretched with one range per job.
+
+Every picture of a job (the preview PNG, every XYZ tile of :mod:`service.tiles`) uses the same
+2-98 % dB stretch, computed once from a decimated read of the scene and cached in the job
+folder, so neighbouring tiles and the preview match. The band is the one the job's detector
+read when that was a single channel (``run.json`` ``channel``), else
+:func:`pipeline.inputs.intensity_source`'s choice (``intensity``, else ``|hh|^2`` ... for complex
+and quad-pol scenes, else ``c11`` for covariance scenes).
+
+Reads are strided (``zarr`` slicing with a step), so a decimated picture of a 25000-pixel scene
+holds only the decimated pixels in memory; :func:`grey_base` keeps a small decimated grey
+image (at most :data:`BASE_MAX` pixels a side) in the job folder for the coarse zoom levels.
+"""
 
 from __future__ import annotations
 
 import json
-import os
-import uuid
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from service.cache import build_once
+
+#: Longest side of the cached decimated grey image that serves the coarse zooms (and gives the
+#: stretch): 2048 px = 4 MiB of uint8 at most, ~4 M samples for the percentiles.
+BASE_MAX = 2048
+#: Rows read per strided strip (in output pixels) when decimating the whole scene.
+STRIP_OUT = 256
+
+
+@dataclass(frozen=True)
+class Source:
+    """Where a job's quicklook intensity comes from."""
+
+    path: str
+    var: str
+    transform: str  # "real" or "abs2"
+    shape: tuple[int, int]
+
+
+def job_run(job_dir: Path) -> dict:
+    return json.loads((job_dir / "run.json").read_text())
+
+
+def scene_source(job_dir: Path) -> Source:
+    """The scene band a job's quicklooks show (see the module doc)."""
+    from pipeline.inputs import intensity_source
+    from pipeline.scene import open_scene
+
+    run = job_run(job_dir)
+    scene = open_scene(run["scene"]["path"])
+    ch = run.get("channel")
+    var, transform = intensity_source(scene, ch if isinstance(ch, str) and ch in scene.variables else None)
+    return Source(str(scene.path), var, transform, tuple(scene.shape))
+
+
+def strided_reader(src: Source) -> Callable[[int, int, int, int, int], np.ndarray]:
+    """``read(r0, r1, c0, c1, step)`` -> float32 intensity of rows ``r0:r1:step``, columns
+    ``c0:c1:step`` (only the chunks under the window are decompressed; only the picked pixels
+    are kept)."""
+    import zarr
+
+    arr = zarr.open_array(f"{src.path}/{src.var}", mode="r")
+
+    def read(r0: int, r1: int, c0: int, c1: int, step: int = 1) -> np.ndarray:
+        a = arr[r0:r1:step, c0:c1:step]
+        if src.transform == "abs2":
+            return (a.real.astype(np.float32) ** 2 + a.imag.astype(np.float32) ** 2).astype(np.float32)
+        return np.asarray(a, dtype=np.float32)
+
+    return read
+
+
+def to_db(x: np.ndarray) -> np.ndarray:
+    """10 log10 x, NaN where x is not positive or not finite."""
+    with np.errstate(all="ignore"):
+        return (10.0 * np.log10(np.where(np.isfinite(x) & (x > 0), x, np.nan))).astype(np.float32)
+
+
+def percentile_range(db: np.ndarray, lo_pct: float = 2.0, hi_pct: float = 98.0) -> tuple[float, float]:
+    """The ``lo_pct``-``hi_pct`` % range of the finite values (0, 1 when there are none; widened
+    to a non-empty range when constant)."""
+    fin = db[np.isfinite(db)]
+    if fin.size == 0:
+        return 0.0, 1.0
+    lo, hi = (float(v) for v in np.percentile(fin, [lo_pct, hi_pct]))
+    if hi <= lo:
+        hi = lo + 1e-3
+    return lo, hi
+
+
+def stretch(db: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """dB to uint8 grey, linear between ``lo`` (0) and ``hi`` (255); NaN (no signal) is black."""
+    g = (np.nan_to_num(db, nan=lo) - lo) * (255.0 / (hi - lo))
+    return np.clip(g + 0.5, 0, 255).astype(np.uint8)
+
+
+def base_step(shape: tuple[int, int], base_max: int = BASE_MAX) -> int:
+    """Power-of-two decimation of the cached grey base: the smallest with max side <= base_max."""
+    step = 1
+    while -(-max(shape) // step) > base_max:
+        step *= 2
+    return step
+
+
+def _decimate(read, shape: tuple[int, int], step: int) -> np.ndarray:
+    H, W = shape
+    rows = STRIP_OUT * step
+    return np.concatenate([read(r0, min(r0 + rows, H), 0, W, step) for r0 in range(0, H, rows)])
+
+
+_mem_lock = threading.Lock()
+_mem: "OrderedDict[tuple, object]" = OrderedDict()
+
+
+def _memo(key: tuple, make: Callable[[], object], size: int = 32):
+    """A small in-process LRU over products already on disk (saves re-reading them per tile)."""
+    with _mem_lock:
+        if key in _mem:
+            _mem.move_to_end(key)
+            return _mem[key]
+    v = make()
+    with _mem_lock:
+        _mem[key] = v
+        while len(_mem) > size:
+            _mem.popitem(last=False)
+    return v
+
+
+def _base_path(job_dir: Path, base_max: int) -> Path:
+    return job_dir / f"quicklook-base-{base_max}.npy"
+
+
+def job_stretch(job_dir: Path) -> dict:
+    """The job's quicklook settings, made once (``JOB/quicklook.json``): the band (``path``,
+    ``var``, ``transform``, ``shape``) and the scene-wide 2-98 % dB range ``lo``, ``hi``, taken
+    from the scene decimated by ``step`` (a power of two, at most :data:`BASE_MAX` px a side);
+    that decimated grey image is kept too (:func:`grey_base`)."""
+    out = job_dir / "quicklook.json"
+
+    def build(tmp: Path) -> None:
+        src = scene_source(job_dir)
+        step = base_step(src.shape)
+        db = to_db(_decimate(strided_reader(src), src.shape, step))
+        lo, hi = percentile_range(db)
+        build_once(_base_path(job_dir, BASE_MAX), lambda t: _save_npy(t, stretch(db, lo, hi)))
+        tmp.write_text(json.dumps({"lo": lo, "hi": hi, "percentiles": [2, 98], "step": step, "path": src.path,
+                                   "var": src.var, "transform": src.transform, "shape": list(src.shape)}))
+
+    return _memo(("stretch", str(out)), lambda: json.loads(build_once(out, build).read_text()))
+
+
+def source_of(meta: dict) -> Source:
+    return Source(meta["path"], meta["var"], meta["transform"], (int(meta["shape"][0]), int(meta["shape"][1])))
+
+
+def grey_base(job_dir: Path, base_max: int = BASE_MAX) -> tuple[int, np.ndarray]:
+    """``(step, grey)``: the scene decimated by ``step`` = :func:`base_step` (rows and columns
+    ``0, step, 2 step, ...``) in the job's stretch, made once (``JOB/quicklook-base-N.npy``)."""
+    meta = job_stretch(job_dir)
+    src = source_of(meta)
+    step = base_step(src.shape, base_max)
+    path = _base_path(job_dir, base_max)
+
+    def build(tmp: Path) -> None:
+        _save_npy(tmp, stretch(to_db(_decimate(strided_reader(src), src.shape, step)), meta["lo"], meta["hi"]))
+
+    return step, _memo(("base", str(path)), lambda: np.load(build_once(path, build)))
+
+
+def _save_npy(path: Path, a: np.ndarray) -> None:
+    with open(path, "wb") as fh:
+        np.save(fh, a)
 
 
 def preview_png(job_dir: Path, size: int) -> Path:
-    """Quicklook of a finished job (made once per size, atomically): the scene's intensity
-    in dB (2-98 % stretch) decimated to at most ``size`` pixels a side, detected pixels in
-    red, detection boxes in yellow."""
-    out = job_dir / f"preview-{size}.png"
-    if out.exists():
-        return out
-    import numpy as np
+    """Quicklook of a finished job (made once per size, atomically): the scene's intensity in dB
+    (the job's 2-98 % stretch) decimated to at most ``size`` pixels a side, detected pixels in red
+    (max-pooled, so that small ships stay visible), detection boxes in yellow. Read in strips:
+    memory is the output plus a strip of mask rows."""
     import zarr
     from PIL import Image, ImageDraw
 
-    from pipeline.inputs import intensity_source, make_reader
-    from pipeline.scene import open_scene
+    from service.cog import maxpool
 
-    run = json.loads((job_dir / "run.json").read_text())
-    scene = open_scene(run["scene"]["path"])
-    H, W = scene.shape
-    step = max(1, -(-max(H, W) // size))
-    var, transform = intensity_source(scene)
-    read = make_reader(str(scene.path), var, transform)
-    rows = []
-    for r0 in range(0, H, 1024 * step):  # bounded memory: strips of rows, decimated as read
-        r1 = min(r0 + 1024 * step, H)
-        rows.append(read(r0, r1, 0, W)[::step, ::step])
-    x = np.concatenate(rows).astype(np.float32)
-    with np.errstate(all="ignore"):
-        db = 10.0 * np.log10(np.where(x > 0, x, np.nan))
-    fin = np.isfinite(db)
-    lo, hi = (np.percentile(db[fin], [2, 98]) if fin.any() else (0.0, 1.0))
-    g = np.clip((np.nan_to_num(db, nan=lo) - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
-    rgb = np.stack([g, g, g], -1)
-    m = zarr.open_group(str(job_dir / "mask.zarr"), mode="r")["mask"]
-    mrows = [np.asarray(m[r0: min(r0 + 1024 * step, H), :])[::step, ::step] for r0 in range(0, H, 1024 * step)]
-    mk = np.concatenate(mrows).astype(bool)
-    rgb[mk] = (255, 40, 40)
-    img = Image.fromarray(rgb)
-    draw = ImageDraw.Draw(img)
-    fc = json.loads((job_dir / "detections.geojson").read_text())
-    for f in fc.get("features", []):
-        bb = f["properties"].get("bbox_px")
-        if bb:
-            r0, c0, r1, c1 = bb
-            draw.rectangle([c0 // step - 2, r0 // step - 2, c1 // step + 2, r1 // step + 2], outline=(255, 220, 0))
-    tmp = job_dir / f".preview-{uuid.uuid4().hex[:8]}.png"
-    img.save(tmp, format="PNG")
-    os.replace(tmp, out)
-    return out
+    def build(tmp: Path) -> None:
+        meta = job_stretch(job_dir)
+        src = source_of(meta)
+        H, W = src.shape
+        step = max(1, -(-max(H, W) // size))
+        read = strided_reader(src)
+        m = zarr.open_group(str(job_dir / "mask.zarr"), mode="r")["mask"]
+        rows = step * max(1, 512 // step)
+        greys, marks = [], []
+        for r0 in range(0, H, rows):
+            r1 = min(r0 + rows, H)
+            greys.append(stretch(to_db(read(r0, r1, 0, W, step)), meta["lo"], meta["hi"]))
+            marks.append(maxpool(np.asarray(m[r0:r1, :], np.uint8), step) > 0)
+        g = np.concatenate(greys)
+        rgb = np.stack([g, g, g], -1)
+        rgb[np.concatenate(marks)] = (255, 40, 40)
+        img = Image.fromarray(rgb)
+        draw = ImageDraw.Draw(img)
+        fc = json.loads((job_dir / "detections.geojson").read_text())
+        for f in fc.get("features", []):
+            bb = f["properties"].get("bbox_px")
+            if bb:
+                r0, c0, r1, c1 = bb
+                draw.rectangle([c0 // step - 2, r0 // step - 2, c1 // step + 2, r1 // step + 2], outline=(255, 220, 0))
+        img.save(tmp, format="PNG")
 
-
-def mask_geotiff(job_dir: Path) -> Path:
-    """The job's mask as a tiled, deflate-compressed GeoTIFF (made once, atomically)."""
-    out = job_dir / "mask.tif"
-    if out.exists():
-        return out
-    import numpy as np
-    import tifffile
-    import zarr
-
-    g = zarr.open_group(str(job_dir / "mask.zarr"), mode="r")
-    arr = g["mask"]
-    tmp = job_dir / f".mask-{uuid.uuid4().hex[:8]}.tif"
-    extratags = []
-    tr = g.attrs.get("transform")
-    if tr:  # ModelPixelScale + ModelTiepoint for a north-up affine (a, b, c, d, e, f)
-        a, b, c, d, e, f = tr[:6]
-        if b == 0 and d == 0:
-            extratags = [(33550, "d", 3, (a, -e, 0.0)), (33922, "d", 6, (0.0, 0.0, 0.0, c, f, 0.0))]
-    data = np.asarray(arr[...], dtype=np.uint8)
-    tifffile.imwrite(tmp, data, tile=(256, 256), compression="zlib", extratags=extratags,
-                     metadata=None, photometric="minisblack")
-    os.replace(tmp, out)
-    return out
+    return build_once(job_dir / f"preview-{size}.png", build)

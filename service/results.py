@@ -1,57 +1,182 @@
-"""Result routes of finished jobs: the results document, detections (GeoJSON), the mask,
-the run metrics and the quicklook."""
+"""Result routes of finished jobs: the results document, detections (GeoJSON), the mask (COG, or
+Zarr with ``?f=zarr``), the run metrics with scores, the STAC item, the quicklook and XYZ tiles.
+
+Every product is derived from the job's immutable outputs, made once and cached in the job
+folder (:mod:`service.cache`); responses of products carry an ``ETag`` (job ID and finished
+time) and ``Cache-Control: immutable`` (``private`` when reads need a token).
+"""
 
 from __future__ import annotations
 
+import contextlib
 import json
+from typing import Iterator, Optional
 
 from fastapi import APIRouter, Request
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, JSONResponse, Response
 
 from service.common import Problem, base_url, finished, results_doc, settings_of
-from service.render import mask_geotiff, preview_png
+from service.openapi import Results, media
+from service.store import iso
 
 router = APIRouter()
 
+COG = "image/tiff; application=geotiff; profile=cloud-optimized"
+_IMMUTABLE = {"Cache-Control": {"description": "immutable: job outputs never change", "schema": {"type": "string"}},
+              "ETag": {"description": "job and product", "schema": {"type": "string"}}}
+_MASK_DOC = {200: {"description": "the mask: a Cloud-Optimized GeoTIFF (f=tif, default) or a zipped Zarr v3 store "
+                                  "(f=zarr)", "headers": _IMMUTABLE,
+                   "content": {COG: {"schema": {"type": "string", "format": "binary"}},
+                               "application/zip": {"schema": {"type": "string", "format": "binary"}}}}}
+_PNG_DOC = {200: {**media("image/png", "PNG image")[200], "headers": _IMMUTABLE}}
 
-@router.get("/jobs/{job_id}/results")
+#: ``f`` values of GET /jobs/{id}/results/mask (the OGC API convention for a format choice:
+#: a plain link picks the format, caches key on the URL; no Accept negotiation).
+MASK_FORMATS = {"tif": "cog", "tiff": "cog", "geotiff": "cog", "cog": "cog", "zarr": "zarr"}
 
 
+def _job_dir(request: Request, job_id: str):
+    return settings_of(request).jobs_dir / job_id
+
+
+def _cache_headers(request: Request, job: dict, tag: str) -> dict:
+    scope = "private" if settings_of(request).protect_reads else "public"
+    return {"Cache-Control": f"{scope}, max-age=31536000, immutable",
+            "ETag": f'"{job["id"]}-{int((job["finished"] or 0) * 1000)}-{tag}"'}
+
+
+def _not_modified(request: Request, headers: dict) -> Optional[Response]:
+    inm = request.headers.get("if-none-match")
+    if inm and (inm.strip() == "*" or headers["ETag"] in [t.strip().removeprefix("W/") for t in inm.split(",")]):
+        return Response(status_code=304, headers=headers)
+    return None
+
+
+@contextlib.contextmanager
+def _scene_readable(job_id: str) -> Iterator[None]:
+    """Quicklooks read the job's scene: one removed since the job ran is a 404 problem, not a 500."""
+    from pipeline.errors import InputError
+
+    try:
+        yield
+    except InputError as exc:
+        raise Problem(404, "scene unavailable", f"job '{job_id}': its scene can no longer be read ({exc})") from None
+
+
+@router.get("/jobs/{job_id}/results", responses={200: {"model": Results, "description": "the results document"}})
 def results(request: Request, job_id: str):
     return results_doc(finished(request, job_id), base_url(request))
 
 
-@router.get("/jobs/{job_id}/results/detections")
-
-
+@router.get("/jobs/{job_id}/results/detections",
+            responses=media("application/geo+json", "detected ships: a GeoJSON FeatureCollection",
+                            schema={"type": "object"}))
 def detections_out(request: Request, job_id: str):
     finished(request, job_id)
-    return FileResponse(settings_of(request).jobs_dir / job_id / "detections.geojson", media_type="application/geo+json",
+    return FileResponse(_job_dir(request, job_id) / "detections.geojson", media_type="application/geo+json",
                         filename=f"{job_id}-detections.geojson")
 
 
 @router.get("/jobs/{job_id}/results/metrics")
-
-
 def metrics_out(request: Request, job_id: str):
+    """run.json, plus ``scores`` (``sarship evaluate``'s) when the scene has ground truth."""
+    from service.scores import job_scores
+
     finished(request, job_id)
-    return json.loads((settings_of(request).jobs_dir / job_id / "run.json").read_text())
+    d = _job_dir(request, job_id)
+    run = json.loads((d / "run.json").read_text())
+    scores = job_scores(d, run)
+    if scores is not None:
+        run["scores"] = scores
+    return run
 
 
-@router.get("/jobs/{job_id}/results/mask")
+@router.get("/jobs/{job_id}/results/mask", responses=_MASK_DOC)
+def mask_out(request: Request, job_id: str, f: str = "tif"):
+    """The mask as a Cloud-Optimized GeoTIFF (default; ``f=tif|tiff|geotiff|cog``) or, with
+    ``f=zarr``, the mask's Zarr v3 store as a zip (``application/zip``)."""
+    from service.cog import mask_cog, mask_zarr_zip
+
+    fmt = MASK_FORMATS.get(f.lower())
+    if fmt is None:
+        raise Problem(400, "invalid request", f"'f' must be one of {', '.join(MASK_FORMATS)} (got {f!r})")
+    job = finished(request, job_id)
+    headers = _cache_headers(request, job, f"mask-{fmt}")
+    nm = _not_modified(request, headers)
+    if nm is not None:
+        return nm
+    d = _job_dir(request, job_id)
+    if fmt == "zarr":
+        return FileResponse(mask_zarr_zip(d), media_type="application/zip", filename=f"{job_id}-mask.zarr.zip",
+                            headers=headers)
+    return FileResponse(mask_cog(d), media_type=COG, filename=f"{job_id}-mask.tif", headers=headers)
 
 
-def mask_out(request: Request, job_id: str):
-    finished(request, job_id)
-    return FileResponse(mask_geotiff(settings_of(request).jobs_dir / job_id), media_type="image/tiff; application=geotiff",
-                        filename=f"{job_id}-mask.tif")
+@router.get("/jobs/{job_id}/results/stac",
+            responses=media("application/geo+json", "the job's STAC 1.0.0 Item", schema={"type": "object"}))
+def stac_out(request: Request, job_id: str):
+    """The job's STAC Item (application/geo+json), see :mod:`service.stac`."""
+    from service.stac import stac_item
+
+    job = finished(request, job_id)
+    d = _job_dir(request, job_id)
+    run = json.loads((d / "run.json").read_text())
+    item = stac_item(job, run, base_url(request), settings_of(request).scenes_dir, iso(job["finished"]))
+    return JSONResponse(item, media_type="application/geo+json")
 
 
-@router.get("/jobs/{job_id}/preview.png")
-
-
+@router.get("/jobs/{job_id}/preview.png", responses=_PNG_DOC)
 def preview(request: Request, job_id: str, size: int = 1024):
+    from service.render import preview_png
+
     if not 64 <= size <= 4096:
         raise Problem(400, "invalid request", f"'size' must be in 64..4096, got {size}")
+    job = finished(request, job_id)
+    headers = _cache_headers(request, job, f"preview-{size}")
+    nm = _not_modified(request, headers)
+    if nm is not None:
+        return nm
+    with _scene_readable(job_id):
+        png = preview_png(_job_dir(request, job_id), size)
+    return FileResponse(png, media_type="image/png", headers=headers)
+
+
+def _shape(request: Request, job_id: str) -> tuple[int, int]:
+    run = json.loads((_job_dir(request, job_id) / "run.json").read_text())
+    return int(run["scene"]["shape"][0]), int(run["scene"]["shape"][1])
+
+
+@router.get("/jobs/{job_id}/tiles.json")
+def tiles_json(request: Request, job_id: str):
+    """TileJSON 3.0.0 of the job's XYZ quicklook tiles (see :mod:`service.tiles`)."""
+    from service.tiles import tilejson
+
     finished(request, job_id)
-    return FileResponse(preview_png(settings_of(request).jobs_dir / job_id, size), media_type="image/png")
+    return tilejson(base_url(request), job_id, _shape(request, job_id))
+
+
+@router.get("/jobs/{job_id}/tiles/{z}/{x}/{y}.png", responses=_PNG_DOC)
+def tile(request: Request, job_id: str, z: int, x: int, y: int, layers: Optional[str] = None):
+    """XYZ tile (z, x, y) of the job's quicklook: 256 x 256 RGBA PNG, ``layers`` a comma list of
+    ``scene``, ``mask`` (default both)."""
+    from service.tiles import cached_tile, max_zoom, parse_layers, tile_counts
+
+    try:
+        lay = parse_layers(layers)
+    except ValueError as exc:
+        raise Problem(400, "invalid request", str(exc)) from None
+    job = finished(request, job_id)
+    shape = _shape(request, job_id)
+    Z = max_zoom(shape)
+    if not 0 <= z <= Z:
+        raise Problem(404, "no such tile", f"zoom {z} is outside 0..{Z} for this {shape[0]}x{shape[1]} scene")
+    nx, ny = tile_counts(shape, z)
+    if not (0 <= x < nx and 0 <= y < ny):
+        raise Problem(404, "no such tile", f"tile {z}/{x}/{y}: at zoom {z} x is in 0..{nx - 1} and y in 0..{ny - 1}")
+    headers = _cache_headers(request, job, f"tile-{z}-{x}-{y}-{'+'.join(lay)}")
+    nm = _not_modified(request, headers)
+    if nm is not None:
+        return nm
+    with _scene_readable(job_id):
+        png = cached_tile(_job_dir(request, job_id), headers["ETag"], shape, z, x, y, lay)
+    return Response(png, media_type="image/png", headers=headers)

@@ -42,7 +42,7 @@ def test_ogc_state_machine_and_results(server):
     st = wait_job(u, job_id)
     assert st["status"] == "successful" and st["progress"] == 100 and st["finished"] >= st["started"], st
     res = httpx.get(f"{u}/jobs/{job_id}/results").json()
-    assert set(res) == {"detections", "mask", "metrics"}
+    assert set(res) == {"detections", "mask", "metrics", "stac"}
     det = httpx.get(res["detections"]["href"])
     assert det.headers["content-type"].startswith("application/geo+json")
     fc = det.json()
@@ -65,7 +65,7 @@ def test_sync_execution_returns_results(server):
     r = httpx.post(server.url + "/processes/os_cfar/execution", headers={"Prefer": "respond-sync"},
                    json={"inputs": {"scene": "s1", "guard": 11, "background": 31}}, timeout=120)
     assert r.status_code == 200, r.text
-    assert set(r.json()) == {"detections", "mask", "metrics"}
+    assert set(r.json()) == {"detections", "mask", "metrics", "stac"}
 
 
 def test_bad_requests_are_problems(server):
