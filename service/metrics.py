@@ -1,14 +1,15 @@
 """Prometheus metrics of one API process (``GET /metrics``), prefix ``sarship_``.
 
-Job counts by status are read from the shared store at scrape time (so every API process
-reports the same totals); durations, tiles and pixels are this process's own counters. No
-job IDs as labels (unbounded cardinality).
+Job counts by status and the inbox figures (ingest backlog, passes by status, quarantined
+total, last and next scan) are read from the shared store at scrape time (so every API
+process reports the same totals); durations, tiles and pixels are this process's own
+counters. No job IDs or file names as labels (unbounded cardinality).
 """
 
 from __future__ import annotations
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
-from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from pipeline import __version__
 
@@ -22,6 +23,27 @@ class _JobCounts:
         for status, n in self.store.counts().items():
             g.add_metric([status], n)
         yield g
+
+
+class _InboxFigures:
+    def __init__(self, db):
+        self.db = db
+
+    def collect(self):
+        counts = self.db.counts()
+        st = self.db.state()
+        yield GaugeMetricFamily("sarship_ingest_backlog", "inbox files seen but not yet ingested (waiting for "
+                                "their writer to finish, or ingesting)", value=self.db.backlog(counts))
+        g = GaugeMetricFamily("sarship_inbox_passes", "inbox passes by status", labels=["status"])
+        for status, n in counts.items():
+            g.add_metric([status], n)
+        yield g
+        yield CounterMetricFamily("sarship_inbox_quarantined", "inbox files moved to the quarantine folder",
+                                  value=counts.get("quarantined", 0))
+        yield GaugeMetricFamily("sarship_inbox_last_scan_timestamp_seconds", "when the inbox was last scanned "
+                                "(0: never)", value=st["last_scan"] or 0.0)
+        yield GaugeMetricFamily("sarship_inbox_next_scan_timestamp_seconds", "when the next inbox scan is due "
+                                "(0: none planned)", value=st["next_scan"] or 0.0)
 
 
 class Metrics:
@@ -39,7 +61,11 @@ class Metrics:
                                 registry=r)
 
     def watch_store(self, store) -> None:
+        """Report the job counts and the inbox figures of the shared store."""
+        from service.inbox_store import InboxStore
+
         self.registry.register(_JobCounts(store))
+        self.registry.register(_InboxFigures(InboxStore(store)))
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

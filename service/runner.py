@@ -22,13 +22,11 @@ from typing import Any, Optional
 
 from pipeline.errors import InputError
 from service.settings import Settings
-from service.store import JobStore
+from service.store import INGEST, JobStore
 
 log = logging.getLogger("sarship.service")
 
-
-#: The process name of scene-ingest jobs (uploads), listed with the detector jobs.
-INGEST = "ingest"
+__all__ = ["INGEST", "Dismissed", "Runner", "scene_path", "wait_final"]
 
 
 class Dismissed(Exception):
@@ -158,8 +156,11 @@ class Runner:
                 self._running.pop(job_id, None)
 
     def _ingest(self, job: dict) -> None:
-        """An uploaded file to the scene store ``DATA/scenes/ID.zarr`` (written aside and
-        renamed into place by :func:`pipeline.readers.ingest`'s atomic store)."""
+        """A scene file (an upload, input ``upload``, or an inbox pass, input ``path``) to the
+        scene store ``DATA/scenes/ID.zarr`` (written aside and renamed into place by
+        :func:`pipeline.readers.ingest`'s atomic store). A failure caused by the file itself
+        (the reader's :class:`InputError`) records ``{"bad_input": true}`` as the job's result,
+        so that the inbox quarantines the file; other failures do not."""
         from pipeline.readers import ingest
 
         job_id, inputs = job["id"], job["inputs"]
@@ -171,20 +172,21 @@ class Runner:
         out = self.settings.scenes_dir / f"{inputs['scene_id']}.zarr"
         try:
             if not out.exists():
-                ingest([inputs["upload"]], out, progress=progress)
+                ingest([inputs.get("path") or inputs["upload"]], out, progress=progress)
             self.store.finish(job_id, self.owner, "successful", f"scene {inputs['scene_id']} ready",
                               {"scene": inputs["scene_id"]})
         except Dismissed:
             pass
         except InputError as exc:
-            self.store.finish(job_id, self.owner, "failed", str(exc))
+            self.store.finish(job_id, self.owner, "failed", str(exc), {"bad_input": True})
         except Exception as exc:
             log.error("ingest %s failed: %s", job_id, traceback.format_exc())
             self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}")
 
     def _observe_failure(self, job: dict) -> None:
         if self.metrics is not None:
-            self.metrics.duration.labels(job["process"], "failed").observe(time.time() - (job["started"] or time.time()))
+            took = time.time() - (job["started"] or time.time())
+            self.metrics.duration.labels(job["process"], "failed").observe(took)
 
     def running(self) -> list[str]:
         with self._lock:

@@ -11,7 +11,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from service.common import Problem, base_url, settings_of, store_of
-from service.runner import INGEST
+from service.inbox_files import scene_key
 from service.settings import Settings
 
 router = APIRouter()
@@ -64,7 +64,7 @@ async def upload(request: Request, filename: Optional[str] = None):
         if not name or not re.fullmatch(r"(\.[a-z0-9]{1,8}){1,3}", ext):
             raise Problem(400, "missing filename", "give the file name with its extension (?filename=scene.tif "
                                                    "or the multipart file name): it selects the reader")
-        scene_id = h.hexdigest()[:16]
+        scene_id = scene_key(h.hexdigest())
         final = settings.uploads_dir / f"{scene_id}{ext}"
         if final.exists():
             tmp.unlink()
@@ -78,8 +78,9 @@ async def upload(request: Request, filename: Optional[str] = None):
            "links": [{"href": f"{b}/scenes/{scene_id}", "rel": "self", "type": "application/json"}]}
     if (settings.scenes_dir / f"{scene_id}.zarr").exists():
         return JSONResponse({**doc, "status": "ready"}, status_code=200)
-    job = store_of(request).create(INGEST, {"upload": str(final), "scene_id": scene_id, "filename": name,
-                                         "sha256": h.hexdigest(), "bytes": n})
+    # an ingest of this content already under way (an earlier upload, an inbox pass) is reused
+    job, _ = store_of(request).create_ingest({"upload": str(final), "scene_id": scene_id, "filename": name,
+                                              "sha256": h.hexdigest(), "bytes": n})
     request.app.state.runner.wake.set()
     return JSONResponse({**doc, "status": "ingesting", "jobID": job["id"],
                          "links": doc["links"] + [{"href": f"{b}/jobs/{job['id']}", "rel": "monitor",
@@ -103,29 +104,35 @@ def scene_doc(settings: Settings, scene_id: str, b: str) -> Optional[dict]:
 
 
 @router.get("/scenes")
-
-
 def scenes(request: Request):
+    """Ready scenes (``DATA/scenes/*.zarr``) and the scenes still ingesting or whose ingest
+    failed (the newest ingest job of each, found through the store's ingest-job index: the
+    cost does not grow with the number of detection jobs)."""
     settings = settings_of(request)
     b = base_url(request)
     ready = [scene_doc(settings, p.name[:-5], b) for p in sorted(settings.scenes_dir.glob("*.zarr"))]
-    pending = [{"sceneID": j["inputs"]["scene_id"], "status": "ingesting" if j["status"] != "failed" else "failed",
-                "jobID": j["id"], "message": j["message"]}
-               for j in store_of(request).list(limit=10000) if j["process"] == INGEST
-               and j["status"] in ("accepted", "running", "failed")
-               and not (settings.scenes_dir / f"{j['inputs']['scene_id']}.zarr").exists()]
-    return {"scenes": [d for d in ready if d] + pending}
+    pending: dict[str, dict] = {}
+    for j in store_of(request).ingest_jobs(("accepted", "running", "failed")):  # newest first
+        sid = j["inputs"].get("scene_id")
+        if sid in pending or not sid or (settings.scenes_dir / f"{sid}.zarr").exists():
+            continue
+        pending[sid] = pending_doc(sid, j)
+    return {"scenes": [d for d in ready if d] + list(pending.values())}
+
+
+def pending_doc(scene_id: str, job: dict) -> dict:
+    """A scene that is not (yet) in the scene store, from its newest ingest job."""
+    status = "ingesting" if job["status"] in ("accepted", "running") else job["status"]
+    return {"sceneID": scene_id, "status": status, "jobID": job["id"], "message": job["message"]}
 
 
 @router.get("/scenes/{scene_id}")
-
-
 def scene(request: Request, scene_id: str):
-    doc = scene_doc(settings_of(request), scene_id, base_url(request)) if scene_id.replace("_", "").replace("-", "").isalnum() else None
+    ok = scene_id.replace("_", "").replace("-", "").isalnum()
+    doc = scene_doc(settings_of(request), scene_id, base_url(request)) if ok else None
     if doc is None:
-        for j in store_of(request).list(limit=10000):
-            if j["process"] == INGEST and j["inputs"].get("scene_id") == scene_id:
-                return {"sceneID": scene_id, "status": "ingesting" if j["status"] in ("accepted", "running")
-                        else j["status"], "jobID": j["id"], "message": j["message"]}
+        job = store_of(request).ingest_job_for_scene(scene_id) if ok else None
+        if job is not None:
+            return pending_doc(scene_id, job)
         raise Problem(404, "no such scene", f"no scene '{scene_id}'")
     return doc

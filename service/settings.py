@@ -1,13 +1,99 @@
 """Service settings: environment variables with the ``SARSHIP_`` prefix, overridden by
-``sarship serve`` flags (``sarship serve --help`` lists them)."""
+``sarship serve`` flags (``sarship serve --help`` lists them).
+
+The inbox settings (``SARSHIP_INBOX*``) are checked here, at start-up, so that a bad cron
+expression, an unknown detector or a bad detector parameter stops ``sarship serve`` with one
+line naming the setting and the key (exit 2) instead of failing pass after pass later.
+"""
 
 from __future__ import annotations
 
+import json
+import re
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Any, Optional
 
-from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import Field, ValidationInfo, field_validator
+from pydantic_core import PydanticCustomError
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+#: Inputs an inbox detector entry may carry besides the detector's own parameters.
+INBOX_JOB_INPUTS = ("device", "channel")
+#: Scan interval used when neither an interval nor a cron expression is set.
+DEFAULT_INBOX_INTERVAL_S = 30.0
+
+
+def _bad(detail: str) -> PydanticCustomError:
+    """A validation error whose message is exactly ``detail`` (no "Value error, " prefix)."""
+    return PydanticCustomError("value_error", "{detail}", {"detail": detail})
+
+
+def parse_inbox_detectors(value: Any) -> list[dict[str, Any]]:
+    """The detector jobs submitted for each new pass, validated against the detectors'
+    parameter models: a JSON list of objects ``[{"detector": "os_cfar", "pfa": 1e-6}]``
+    (``device``/``channel`` allowed besides the parameters), a JSON list of names, or a comma
+    list of names (``os_cfar,ca_cfar``: the detectors' defaults). Raises ``ValueError`` naming
+    the entry and the bad key."""
+    from pipeline import detectors
+    from pipeline.errors import InputError
+    from workers.run import parse_settings
+
+    if value is None:
+        return []
+    if isinstance(value, str):
+        text = value.strip()
+        if not text:
+            return []
+        if text[0] in "[{":
+            try:
+                value = json.loads(text)
+            except ValueError as exc:
+                raise ValueError(f"not valid JSON ({exc})") from None
+        else:
+            value = [n for n in re.split(r"[,\s]+", text) if n]
+    if isinstance(value, dict):
+        value = [value]
+    if not isinstance(value, list):
+        raise ValueError("expected a list of detectors (JSON list of objects, or a comma list of names)")
+    out: list[dict[str, Any]] = []
+    for i, entry in enumerate(value):
+        where = f"entry {i}"
+        if isinstance(entry, str):
+            entry = {"detector": entry}
+        if not isinstance(entry, dict):
+            raise ValueError(f"{where}: expected a detector name or an object {{\"detector\": NAME, ...}}")
+        entry = dict(entry)
+        name = entry.get("detector")
+        if not isinstance(name, str):
+            raise ValueError(f"{where}: key 'detector' (a detector name) is required")
+        if name not in detectors.names():
+            raise ValueError(f"{where}: unknown detector '{name}' (known: {', '.join(detectors.names())})")
+        where = f"entry {i} ({name})"
+        if "scene" in entry:
+            raise ValueError(f"{where}: key 'scene' is not allowed (the inbox sets it to each new scene)")
+        device = entry.get("device", "auto")
+        if device not in ("auto", "cpu", "gpu"):
+            raise ValueError(f"{where}: key 'device' must be auto, cpu or gpu, got {device!r}")
+        params = {k: v for k, v in entry.items() if k != "detector" and k not in INBOX_JOB_INPUTS}
+        for k, v in params.items():
+            if isinstance(v, (dict, list)) or v is None:
+                raise ValueError(f"{where}: parameter '{k}' must be a number or a string, got {v!r}")
+        try:
+            parse_settings(detectors.get(name), params)
+        except InputError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        out.append(entry)
+    return out
+
+
+def check_cron(expr: str) -> str:
+    """``expr`` if croniter accepts it (5 fields, or 6 with seconds); ``ValueError`` otherwise."""
+    from croniter import croniter
+
+    if not croniter.is_valid(expr):
+        raise ValueError(f"'{expr}' is not a valid cron expression (5 fields: minute hour day month weekday, "
+                         "e.g. '*/10 * * * *')")
+    return expr
 
 
 class Settings(BaseSettings):
@@ -25,9 +111,74 @@ class Settings(BaseSettings):
     sync_timeout_s: float = Field(600.0, gt=0.0, description="longest wait of a 'Prefer: respond-sync' execution")
     max_upload_mb: float = Field(4096.0, gt=0.0, description="largest scene upload (POST /scenes), MiB")
     tokens: list[str] = Field(default_factory=list,
-                              description="API tokens (Authorization: Bearer TOKEN); when set, POST and DELETE need one")
+                              description="API tokens (Authorization: Bearer TOKEN); "
+                                          "when set, POST and DELETE need one")
     protect_reads: bool = Field(False, description="with tokens set, GET requests need one too "
                                                    "(/livez, /readyz and /metrics stay open)")
+    # ---------------------------------------------------------------- scheduled ingest
+    inbox: Annotated[list[Path], NoDecode] = Field(
+        default_factory=list, description="inbox folders watched for new passes (JSON list or comma list); "
+                                          "empty: the ingest loop is off")
+    inbox_interval_s: Optional[float] = Field(
+        None, gt=0.0, description=f"seconds between inbox scans (default {DEFAULT_INBOX_INTERVAL_S:g} when no cron)")
+    inbox_cron: Optional[str] = Field(
+        None, description="cron expression (UTC) of the inbox scans, instead of an interval")
+    inbox_detectors: Annotated[list[dict[str, Any]], NoDecode] = Field(
+        default_factory=list, description="detector jobs submitted for each new pass: JSON list like "
+                                          "[{\"detector\": \"os_cfar\", \"pfa\": 1e-6}] or a comma list of names; "
+                                          "empty: ingest only")
+    inbox_settle_s: float = Field(
+        5.0, ge=0.0, description="a file is taken when its size and mtime have not changed for this long "
+                                 "(at once when FILE.done exists)")
+    inbox_quarantine: Optional[Path] = Field(
+        None, description="where files that fail to ingest are moved (default DATA/quarantine)")
+
+    @field_validator("inbox", mode="before")
+    @classmethod
+    def _inbox_list(cls, v: Any) -> Any:
+        if isinstance(v, str):
+            text = v.strip()
+            if not text:
+                return []
+            if text.startswith("["):
+                try:
+                    return json.loads(text)
+                except ValueError as exc:
+                    raise _bad(f"not a valid JSON list of folders ({exc})") from None
+            return [p for p in re.split(r"[,:]", text) if p.strip()]
+        return v
+
+    @field_validator("inbox")
+    @classmethod
+    def _inbox_folders(cls, v: list[Path]) -> list[Path]:
+        out = []
+        for p in v:
+            if not p.is_dir():
+                raise _bad(f"inbox folder '{p}' does not exist or is not a folder")
+            rp = p.resolve()
+            if rp not in out:
+                out.append(rp)
+        return out
+
+    @field_validator("inbox_detectors", mode="before")
+    @classmethod
+    def _detectors(cls, v: Any) -> list[dict[str, Any]]:
+        try:
+            return parse_inbox_detectors(v)
+        except ValueError as exc:
+            raise _bad(str(exc)) from None
+
+    @field_validator("inbox_cron")
+    @classmethod
+    def _cron(cls, v: Optional[str], info: ValidationInfo) -> Optional[str]:
+        if v is None or not v.strip():
+            return None
+        if info.data.get("inbox_interval_s") is not None:
+            raise _bad("set either inbox_interval_s or inbox_cron, not both")
+        try:
+            return check_cron(v.strip())
+        except ValueError as exc:
+            raise _bad(str(exc)) from None
 
     @property
     def db_path(self) -> Path:
@@ -44,6 +195,18 @@ class Settings(BaseSettings):
     @property
     def uploads_dir(self) -> Path:
         return self.data / "uploads"
+
+    @property
+    def quarantine_dir(self) -> Path:
+        """Where the inbox moves files that failed to ingest."""
+        return self.inbox_quarantine if self.inbox_quarantine is not None else self.data / "quarantine"
+
+    @property
+    def inbox_schedule(self) -> dict[str, Optional[Any]]:
+        """``{"interval_s": s, "cron": None}`` or ``{"interval_s": None, "cron": expr}``."""
+        if self.inbox_cron:
+            return {"interval_s": None, "cron": self.inbox_cron}
+        return {"interval_s": self.inbox_interval_s or DEFAULT_INBOX_INTERVAL_S, "cron": None}
 
     def roots(self) -> list[Path]:
         """Resolved folders scenes may come from."""

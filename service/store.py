@@ -8,6 +8,10 @@ its lease while the job runs. A job whose lease has expired (its runner died, ev
 the runs): it stays exactly once in the job list. Outputs are written by
 :func:`workers.run.run_detection` to a temporary folder and renamed into place when
 complete, so a re-run never sees half-written outputs.
+
+The scheduled ingest keeps its pass records and its loop lease in the same file (tables
+``inbox_passes`` and ``inbox_state``, :mod:`service.inbox_store`), so that a pass and the
+jobs it creates are written in one transaction.
 """
 
 from __future__ import annotations
@@ -43,7 +47,15 @@ CREATE TABLE IF NOT EXISTS jobs (
     result TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, created);
+-- ingest jobs by scene id and by status: GET /scenes and GET /scenes/{id} without a scan of
+-- the job table (partial indexes: only ingest rows are indexed)
+CREATE INDEX IF NOT EXISTS jobs_ingest_scene ON jobs (json_extract(inputs, '$.scene_id'), created)
+    WHERE process = 'ingest';
+CREATE INDEX IF NOT EXISTS jobs_ingest_status ON jobs (status, created) WHERE process = 'ingest';
 """
+
+#: The process name of scene-ingest jobs (uploads and inbox passes).
+INGEST = "ingest"
 
 
 def iso(t: Optional[float]) -> Optional[str]:
@@ -86,12 +98,34 @@ class JobStore:
     # ------------------------------------------------------------------ jobs
 
     def create(self, process: str, inputs: dict[str, Any]) -> dict:
-        now = time.time()
-        job_id = uuid.uuid4().hex
         with self._tx() as c:
-            c.execute("INSERT INTO jobs (id, process, inputs, status, created, updated) VALUES (?, ?, ?, ?, ?, ?)",
-                      (job_id, process, json.dumps(inputs), "accepted", now, now))
+            job_id = insert_job(c, process, inputs)
         return self.get(job_id)
+
+    def create_ingest(self, inputs: dict[str, Any]) -> tuple[dict, bool]:
+        """The ingest job of ``inputs["scene_id"]``: the one already accepted or running for
+        that scene (so one scene is never written by two jobs at once), else a new one; and
+        whether it is new."""
+        with self._tx() as c:
+            job_id = active_ingest(c, inputs["scene_id"])
+            new = job_id is None
+            if new:
+                job_id = insert_job(c, INGEST, inputs)
+        return self.get(job_id), new
+
+    def ingest_jobs(self, statuses: tuple[str, ...]) -> list[dict]:
+        """Ingest jobs in ``statuses``, newest first (the partial index ``jobs_ingest_status``)."""
+        marks = ", ".join("?" * len(statuses))
+        rows = self._conn().execute(f"SELECT * FROM jobs WHERE process = 'ingest' AND status IN ({marks}) "
+                                    "ORDER BY created DESC", statuses).fetchall()
+        return [_row(r) for r in rows]
+
+    def ingest_job_for_scene(self, scene_id: str) -> Optional[dict]:
+        """The newest ingest job of a scene (the expression index ``jobs_ingest_scene``)."""
+        row = self._conn().execute("SELECT * FROM jobs WHERE process = 'ingest' AND "
+                                   "json_extract(inputs, '$.scene_id') = ? ORDER BY created DESC LIMIT 1",
+                                   (scene_id,)).fetchone()
+        return _row(row)
 
     def get(self, job_id: str) -> Optional[dict]:
         row = self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
@@ -168,6 +202,23 @@ class JobStore:
         if c is not None:
             c.close()
             self._local.conn = None
+
+
+def insert_job(c: sqlite3.Connection, process: str, inputs: dict[str, Any]) -> str:
+    """Insert an accepted job inside the caller's transaction (so that callers can record the
+    job's ID in the same transaction that creates it); its ID."""
+    now = time.time()
+    job_id = uuid.uuid4().hex
+    c.execute("INSERT INTO jobs (id, process, inputs, status, created, updated) VALUES (?, ?, ?, ?, ?, ?)",
+              (job_id, process, json.dumps(inputs), "accepted", now, now))
+    return job_id
+
+
+def active_ingest(c: sqlite3.Connection, scene_id: str) -> Optional[str]:
+    """The ID of an accepted or running ingest job of ``scene_id`` (inside a transaction)."""
+    row = c.execute("SELECT id FROM jobs WHERE process = 'ingest' AND json_extract(inputs, '$.scene_id') = ? "
+                    "AND status IN ('accepted', 'running') ORDER BY created LIMIT 1", (scene_id,)).fetchone()
+    return row["id"] if row else None
 
 
 def _row(row) -> Optional[dict]:

@@ -115,7 +115,10 @@ def cmd_serve(a) -> int:
     from service.settings import Settings
 
     over = {k: v for k, v in {"host": a.host, "port": a.port, "scheduler": a.scheduler, "data": a.data,
-                               "workers": a.workers, "concurrency": a.concurrency}.items() if v is not None}
+                               "workers": a.workers, "concurrency": a.concurrency, "inbox": a.inbox,
+                               "inbox_interval_s": a.inbox_interval, "inbox_cron": a.inbox_cron,
+                               "inbox_detectors": a.inbox_detectors, "inbox_settle_s": a.inbox_settle,
+                               "inbox_quarantine": a.inbox_quarantine}.items() if v is not None}
     try:
         settings = Settings(**over)
     except ValidationError as exc:
@@ -260,13 +263,32 @@ def build_parser() -> argparse.ArgumentParser:
                                    "once, 2), SARSHIP_LEASE_S (30), SARSHIP_ALLOWED_ROOTS (JSON list of folders jobs "
                                    "may read scenes from), SARSHIP_SYNC_TIMEOUT_S (600), SARSHIP_TOKENS (JSON list "
                                    "of API tokens: POST/DELETE need 'Authorization: Bearer TOKEN'), "
-                                   "SARSHIP_PROTECT_READS (false: reads public).")
+                                   "SARSHIP_PROTECT_READS (false: reads public). Scheduled ingest: --inbox / "
+                                   "SARSHIP_INBOX (JSON or comma list of folders; none: off), --inbox-interval / "
+                                   "SARSHIP_INBOX_INTERVAL_S (30) or --inbox-cron / SARSHIP_INBOX_CRON (UTC), "
+                                   "--inbox-detectors / SARSHIP_INBOX_DETECTORS, --inbox-settle / "
+                                   "SARSHIP_INBOX_SETTLE_S (5), --inbox-quarantine / SARSHIP_INBOX_QUARANTINE "
+                                   "(DATA/quarantine).")
     s.add_argument("--host")
     s.add_argument("--port", type=int)
     s.add_argument("--scheduler", help="Dask scheduler address (default: start a local cluster)")
     s.add_argument("--data", help="data folder (default ./sarship-data)")
     s.add_argument("--workers", type=_positive_int, help="local cluster worker processes (default: all cores)")
     s.add_argument("--concurrency", type=_positive_int, help="jobs run at once by this API process (default 2)")
+    s.add_argument("--inbox", action="append", metavar="FOLDER",
+                   help="inbox folder watched for new passes (repeat for several); new files are ingested once "
+                        "(scene id = content hash) and the --inbox-detectors jobs submitted for them")
+    s.add_argument("--inbox-interval", type=float, metavar="SECONDS", help="seconds between inbox scans (default 30)")
+    s.add_argument("--inbox-cron", metavar="EXPR", help="cron expression of the inbox scans, in UTC (instead of an "
+                                                        "interval), e.g. '*/10 * * * *'")
+    s.add_argument("--inbox-detectors", metavar="SPEC",
+                   help="detector jobs for each new pass: a JSON list like '[{\"detector\": \"os_cfar\", "
+                        "\"pfa\": 1e-6}]' or a comma list of names (default: none, ingest only)")
+    s.add_argument("--inbox-settle", type=float, metavar="SECONDS",
+                   help="take a file once its size and mtime are unchanged this long (default 5), or at once "
+                        "when FILE.done exists")
+    s.add_argument("--inbox-quarantine", metavar="FOLDER",
+                   help="where files that fail to ingest go, with NAME.reason.txt (default DATA/quarantine)")
     s.set_defaults(func=cmd_serve)
 
     s = sub.add_parser("evaluate", help="score detections against truth")

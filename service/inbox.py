@@ -1,0 +1,307 @@
+"""Scheduled ingest of satellite passes: the inbox loop.
+
+One thread per API process; only the holder of the inbox lease (a row in the shared SQLite
+store, taken with ``BEGIN IMMEDIATE``, renewed while it works and taken over when it expires)
+does anything, so a deployment of several API processes on one store runs one loop. A new
+leader scans at once (catching up on what arrived while no one led), then on the schedule
+(``SARSHIP_INBOX_INTERVAL_S`` or ``SARSHIP_INBOX_CRON``, UTC) or when ``POST /ingest/scan``
+asks. Every tick (at most a second apart) the leader also:
+
+1. re-checks the ``waiting`` files: a file is taken once its size and mtime have been the
+   same for ``SARSHIP_INBOX_SETTLE_S`` seconds, or at once when ``FILE.done`` exists;
+2. takes a complete file: streams it through SHA-256 (in this thread, never the event loop's;
+   the lease is renewed between chunks), and records it as a pass whose scene key is the
+   first 16 hex digits, the scheme of ``POST /scenes``: an ``ingest`` job is created in the
+   same transaction (or the pass is a ``duplicate`` of an earlier file of that content);
+3. follows the ingest jobs (the runners of any API process run them): a success submits the
+   configured detector jobs, created in the transaction that marks the pass ``submitted``; a
+   failure caused by the file moves it to the quarantine folder with ``NAME.reason.txt``
+   beside it, and the loop goes on.
+
+Ingested files are left where they are: the scene store holds the data from then on, the
+pass record (path, size, mtime, content hash) keeps the loop from taking them again, an inbox
+may be a read-only or shared mount, and moving a multi-gigabyte pass out of it could mean a
+copy across file systems. Delete them whenever convenient; a file whose size or mtime changes
+is a new version and is looked at again (by content: the same content is a ``duplicate``).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+from service.inbox_files import (Signature, list_passes, marker, move_into, quarantine_target, scene_key,
+                                 settled, sha256_of, signature, write_reason)
+from service.inbox_store import InboxStore
+from service.settings import DEFAULT_INBOX_INTERVAL_S, Settings
+from service.store import JobStore, iso
+
+log = logging.getLogger("sarship.inbox")
+
+
+class LostLease(Exception):
+    """Another process leads the inbox now (this one stalled past its lease), or we stop."""
+
+
+class Schedule:
+    """When the inbox is scanned: every ``interval_s`` seconds, or at the times of a cron
+    expression (evaluated in UTC: pass schedules are in UTC)."""
+
+    def __init__(self, interval_s: Optional[float] = None, cron: Optional[str] = None):
+        self.cron = cron
+        self.interval_s = None if cron else (interval_s or DEFAULT_INBOX_INTERVAL_S)
+
+    def next_after(self, t: float) -> float:
+        if self.cron:
+            from croniter import croniter
+
+            return float(croniter(self.cron, datetime.fromtimestamp(t, timezone.utc)).get_next(float))
+        return t + self.interval_s
+
+
+class Inbox:
+    """The inbox loop of one API process (see the module docstring)."""
+
+    def __init__(self, settings: Settings, store: JobStore, owner: str,
+                 wake_runner: Optional[Callable[[], None]] = None):
+        self.settings = settings
+        self.store = store
+        self.db = InboxStore(store)
+        self.owner = owner
+        self.wake_runner = wake_runner or (lambda: None)
+        self.enabled = bool(settings.inbox)
+        sched = settings.inbox_schedule
+        self.schedule = Schedule(sched["interval_s"], sched["cron"])
+        self.lease_s = settings.lease_s
+        base = min(self.schedule.interval_s or 1.0, settings.inbox_settle_s or 1.0)
+        self.tick_s = min(1.0, max(0.1, base / 2))
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._leading = False
+        self._renewed = 0.0
+        self._missing: set[Path] = set()
+
+    # ------------------------------------------------------------------ life cycle
+
+    def start(self) -> None:
+        if not self.enabled:
+            return
+        self.settings.quarantine_dir.mkdir(parents=True, exist_ok=True)
+        self._thread = threading.Thread(target=self._loop, name="sarship-inbox", daemon=True)
+        self._thread.start()
+        log.info("inbox: watching %s (%s)", ", ".join(map(str, self.settings.inbox)),
+                 f"cron {self.schedule.cron} UTC" if self.schedule.cron else f"every {self.schedule.interval_s:g} s")
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=30)
+            try:
+                self.db.release(self.owner)
+            except Exception:  # the store may be gone at shutdown: the lease then just expires
+                log.exception("inbox: could not release the lease")
+
+    def request_scan(self) -> None:
+        """A scan now, by whichever process leads (``POST /ingest/scan``)."""
+        self.db.request_scan()
+        self._wake.set()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.tick()
+            except LostLease:
+                self._leading = False
+            except Exception:  # the store locked for long, a file system error: log, go on
+                log.exception("inbox: tick failed")
+            self._wake.wait(self.tick_s)
+            self._wake.clear()
+
+    def tick(self) -> None:
+        """One round: lead or not; if leading, scan when due, then follow waiting files and
+        ingest jobs."""
+        now = time.time()
+        if not self.db.lead(self.owner, self.lease_s, now):
+            if self._leading:
+                log.warning("inbox: lease lost to another process")
+            self._leading = False
+            return
+        if not self._leading:
+            log.info("inbox: %s leads the inbox loop", self.owner)
+        new_leader, self._leading, self._renewed = not self._leading, True, now
+        st = self.db.state()
+        if new_leader or st["scan_requested"] or st["next_scan"] is None or now >= st["next_scan"]:
+            self.scan(now)
+        self.follow_waiting()
+        self.advance()
+
+    def _busy(self) -> None:
+        """Called often during long work: stop promptly, keep the lease, or give up if it
+        went to another process."""
+        if self._stop.is_set():
+            raise LostLease("stopping")
+        now = time.time()
+        if now - self._renewed > self.lease_s / 3:
+            if not self.db.lead(self.owner, self.lease_s, now):
+                raise LostLease("lease lost")
+            self._renewed = now
+
+    # ------------------------------------------------------------------ scanning
+
+    def scan(self, now: float) -> int:
+        """Record every new file (or new version of a file) in the inboxes as ``waiting``;
+        the number recorded."""
+        self.db.scan_started(self.schedule.next_after(now))
+        known = self.db.latest_by_path()
+        skip = (self.settings.quarantine_dir.resolve(), self.settings.data.resolve())
+        added = 0
+        for root in self.settings.inbox:
+            if not root.is_dir():
+                if root not in self._missing:
+                    log.warning("inbox: folder %s is missing; it is scanned again when it is back", root)
+                    self._missing.add(root)
+                continue
+            self._missing.discard(root)
+            for p in list_passes(root, skip):
+                self._busy()
+                row = known.get(str(p))
+                if row is not None and row["status"] == "waiting":
+                    continue  # followed by follow_waiting
+                sig = signature(p)
+                if sig is None:
+                    continue
+                if row is not None and row["status"] != "quarantined" and _sig(row) == sig:
+                    continue  # this version was handled; a quarantined file put back is tried again
+                self.db.add_waiting(str(p), sig, now)
+                added += 1
+        self.db.scan_done(now)
+        return added
+
+    def follow_waiting(self) -> None:
+        """Take the waiting files that are complete; restart the settle time of those that
+        changed; forget those that vanished."""
+        for row in self.db.rows("waiting"):
+            self._busy()
+            p = Path(row["path"])
+            sig = signature(p)
+            now = time.time()
+            if sig is None:
+                self.db.forget(row["id"])
+                continue
+            has_marker = marker(p).exists()
+            if sig != _sig(row):
+                self.db.changed(row["id"], sig, now)
+                if not has_marker:
+                    continue
+                row = {**row, "stable_since": now}
+            if settled(row["stable_since"], now, self.settings.inbox_settle_s, has_marker):
+                self._take(row, p, sig, has_marker)
+
+    def _take(self, row: dict, p: Path, sig: Signature, has_marker: bool) -> None:
+        try:
+            sha = sha256_of(p, on_chunk=self._busy)
+        except OSError as exc:  # vanished or unreadable mid-way: looked at again next round
+            log.warning("inbox: cannot read %s: %s", p, exc)
+            return
+        after = signature(p)
+        if after != sig and not has_marker:  # written to while we hashed: not complete after all
+            if after is None:
+                self.db.forget(row["id"])
+            else:
+                self.db.changed(row["id"], after, time.time())
+            return
+        key = scene_key(sha)
+        ready = (self.settings.scenes_dir / f"{key}.zarr").is_dir()
+        inputs = {"path": str(p), "scene_id": key, "filename": p.name, "sha256": sha, "bytes": sig.size,
+                  "origin": "inbox"}
+        status = self.db.take(row["id"], sig, sha, key, ready, self.settings.inbox_detectors, inputs)
+        if status is not None:
+            log.info("inbox: %s -> %s (scene %s)", p, status, key)
+        if status == "ingesting":
+            self.wake_runner()
+
+    # ------------------------------------------------------------------ following jobs
+
+    def advance(self) -> None:
+        """Move passes on as their ingest jobs finish; submit the detector jobs of ingested
+        passes."""
+        for row in self.db.rows("ingesting"):
+            self._busy()
+            job = self.store.get(row["ingest_job"]) if row["ingest_job"] else None
+            if job is None:
+                self.db.mark(row["id"], "ingesting", "failed", f"its ingest job {row['ingest_job']} is gone")
+            elif job["status"] == "successful":
+                if self.db.mark(row["id"], "ingesting", "ingested"):
+                    log.info("inbox: %s ingested as scene %s", row["path"], row["scene_id"])
+            elif job["status"] == "failed":
+                if (job["result"] or {}).get("bad_input"):
+                    self._quarantine(row, job["message"])
+                else:
+                    self.db.mark(row["id"], "ingesting", "failed", f"ingest failed: {job['message']}")
+            elif job["status"] == "dismissed":
+                self.db.mark(row["id"], "ingesting", "failed", "its ingest job was dismissed")
+        for row in self.db.to_submit():
+            self._busy()
+
+            def job_of(entry: dict[str, Any], scene: str = row["scene_id"]) -> tuple[str, dict[str, Any]]:
+                return entry["detector"], {"scene": scene, **{k: v for k, v in entry.items() if k != "detector"}}
+
+            ids = self.db.submit(row["id"], job_of)
+            if ids:
+                log.info("inbox: scene %s: submitted %s", row["scene_id"], ", ".join(ids))
+                self.wake_runner()
+
+    def _quarantine(self, row: dict, reason: str) -> None:
+        """Move a file that failed to ingest to the quarantine folder, ``NAME.reason.txt``
+        beside it; then record the pass ``quarantined``. Each step can be redone after a crash:
+        the destination is recorded before the move, and the move is skipped once done."""
+        src = Path(row["path"])
+        dest = Path(row["quarantine"]) if row["quarantine"] else quarantine_target(
+            self.settings.quarantine_dir, src, row["key"])
+        if not row["quarantine"] and not self.db.set_quarantine(row["id"], str(dest)):
+            return
+        try:
+            if src.exists() or src.is_symlink():
+                move_into(src, dest)
+            note = "" if dest.exists() else " (the file was gone before it could be moved)"
+            write_reason(dest, {"reason": reason + note, "file": str(src), "sha256": row["sha256"],
+                                "scene": row["key"], "ingest_job": row["ingest_job"], "time": iso(time.time())})
+            marker(src).unlink(missing_ok=True)
+        except OSError as exc:
+            self.db.mark(row["id"], "ingesting", "failed", f"{reason}; it could not be quarantined: {exc}")
+            log.error("inbox: %s could not be quarantined: %s", src, exc)
+            return
+        if self.db.mark(row["id"], "ingesting", "quarantined", reason):
+            log.warning("inbox: %s quarantined to %s: %s", src, dest, reason)
+
+    # ------------------------------------------------------------------ reading
+
+    def status(self, limit: int = 100) -> dict[str, Any]:
+        """The ``GET /ingest`` document (from the store: the same in every API process)."""
+        from service.inbox_store import pass_doc
+
+        st = self.db.state()
+        counts = self.db.counts()
+        leader = st["owner"] if st["owner"] and (st["lease_until"] or 0) > time.time() else None
+        return {"enabled": self.enabled, "inboxes": [str(p) for p in self.settings.inbox],
+                "schedule": self.settings.inbox_schedule, "leader": leader,
+                "last_scan": iso(st["last_scan"]), "next_scan": iso(st["next_scan"]) if self.enabled else None,
+                "backlog": self.db.backlog(counts), "counts": counts,
+                "passes": [pass_doc(r) for r in self.db.list(limit)]}
+
+
+def _sig(row: dict) -> Signature:
+    return Signature(row["size"], row["mtime_ns"], row["nfiles"])
+
+
+def start_inbox(settings: Settings, store: JobStore, runner) -> Inbox:
+    """The inbox loop of this API process, started (idle unless ``settings.inbox``)."""
+    inbox = Inbox(settings, store, runner.owner, runner.wake.set)
+    inbox.start()
+    return inbox
