@@ -137,3 +137,25 @@ def test_compose_topology_as_processes(tmp_path):
                 p.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+def test_compose_api_environment_is_valid_settings(tmp_path, monkeypatch):
+    """The API container's SARSHIP_* environment (with compose's ``${VAR:-default}`` defaults)
+    validates as service settings; the inbox folder is the container's mount point, made here."""
+    import re
+
+    from service.settings import Settings
+
+    env = _compose()["services"]["api"]["environment"]
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    for k in [k for k in os.environ if k.startswith("SARSHIP_")]:
+        monkeypatch.delenv(k)
+    for k, v in env.items():
+        v = re.sub(r"\$\{[A-Z_]+:-([^}]*)\}", r"\1", str(v))
+        monkeypatch.setenv(k, str(inbox) if v == "/inbox" else v)
+    s = Settings()
+    assert s.inbox == [inbox] and [d["detector"] for d in s.inbox_detectors] == ["os_cfar"]
+    assert s.concurrency == 2 and s.tokens == []
+    mounts = _compose()["services"]["api"]["volumes"]
+    assert any(m.endswith(":/inbox") for m in mounts)

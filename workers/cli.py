@@ -200,6 +200,28 @@ def cmd_demo(a) -> int:
 # ----------------------------------------------------------------------------- parser
 
 
+def _settings_help() -> str:
+    """Every service setting with its environment variable, default and meaning, generated from
+    :class:`service.settings.Settings` so that ``sarship serve --help`` cannot fall behind it."""
+    import textwrap
+
+    from pydantic_core import PydanticUndefined
+
+    from service.settings import Settings
+
+    lines = ["settings (environment variable: default, meaning):"]
+    for name, f in Settings.model_fields.items():
+        if f.default_factory is not None:
+            default = repr(f.default_factory())
+        elif f.default is PydanticUndefined:
+            default = "required"
+        else:
+            default = "none" if f.default is None else str(f.default)
+        lines.append(f"  SARSHIP_{name.upper()}: {default}")
+        lines += textwrap.wrap(f.description or "", width=88, initial_indent="      ", subsequent_indent="      ")
+    return "\n".join(lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="sarship", description="Ship detection in SAR scenes on Dask (see CONTRACT.md).")
     p.add_argument("--version", action="version", version=f"sarship {__import__('pipeline').__version__}")
@@ -256,19 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("serve", help="the job API (OGC API - Processes shape) with a local Dask cluster or "
                                      "--scheduler; settings also from SARSHIP_* environment variables",
-                       description="Settings (flag, or environment variable): --data / SARSHIP_DATA (job store, "
-                                   "scenes, outputs; default ./sarship-data), --host / SARSHIP_HOST (127.0.0.1), "
-                                   "--port / SARSHIP_PORT (8080), --scheduler / SARSHIP_SCHEDULER, --workers / "
-                                   "SARSHIP_WORKERS (local cluster size), --concurrency / SARSHIP_CONCURRENCY (jobs at "
-                                   "once, 2), SARSHIP_LEASE_S (30), SARSHIP_ALLOWED_ROOTS (JSON list of folders jobs "
-                                   "may read scenes from), SARSHIP_SYNC_TIMEOUT_S (600), SARSHIP_TOKENS (JSON list "
-                                   "of API tokens: POST/DELETE need 'Authorization: Bearer TOKEN'), "
-                                   "SARSHIP_PROTECT_READS (false: reads public). Scheduled ingest: --inbox / "
-                                   "SARSHIP_INBOX (JSON or comma list of folders; none: off), --inbox-interval / "
-                                   "SARSHIP_INBOX_INTERVAL_S (30) or --inbox-cron / SARSHIP_INBOX_CRON (UTC), "
-                                   "--inbox-detectors / SARSHIP_INBOX_DETECTORS, --inbox-settle / "
-                                   "SARSHIP_INBOX_SETTLE_S (5), --inbox-quarantine / SARSHIP_INBOX_QUARANTINE "
-                                   "(DATA/quarantine).")
+                       description="Every setting is a flag below or a SARSHIP_* environment variable "
+                                   "(flags win); the full list follows.",
+                       epilog=_settings_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("--host")
     s.add_argument("--port", type=int)
     s.add_argument("--scheduler", help="Dask scheduler address (default: start a local cluster)")
