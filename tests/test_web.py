@@ -1,0 +1,311 @@
+"""The web page (``/ui/``) end to end: a real ``sarship serve`` (uvicorn, local Dask cluster,
+SQLite store) with API tokens, driven in Debian's headless Chromium through Playwright.
+
+In the browser: enter the token, fill the form built from the process schemas, submit, see the
+job go live to ``successful`` in the list, open it by keyboard, see every detection listed and
+drawn as a box on the map of the job's quicklook tiles (tile PNGs answered 200), pick one in the
+table (the tiles' red mask pixels lie under its box); a bad parameter shows the API's problem
+detail beside the form, as text; a running job is dismissed from the list in a narrow window; the
+ingest panel follows passes dropped in the inbox (one ingested, one quarantined with its reason)
+and the new scene joins the form. The page must raise no JavaScript error and log no console error.
+Without a browser: the page's cache headers and the landing page's HTML redirect.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+httpx = pytest.importorskip("httpx")
+sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+Image = pytest.importorskip("PIL.Image")
+from conftest import blobs_scene, write_scene  # noqa: E402
+from svc import Server, free_port, wait_job  # noqa: E402
+
+CHROMIUM = Path("/usr/bin/chromium")
+TOKEN = "web-test-token"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+TILE_RE = re.compile(r"/jobs/[0-9a-f]+/tiles/\d+/\d+/\d+\.png$")
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    data = tmp_path_factory.mktemp("web") / "data"
+    (data / "scenes").mkdir(parents=True)
+    # wider than tall, 2 rows x 3 columns of map tiles at full resolution: rows and columns cannot be
+    # mixed up unseen
+    write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene((300, 600), looks=2.0, seed=3, n=24)},
+                tile=128, looks=2.0)
+    # small tiles: a job of many short tasks, so a dismissed job does not hold the workers long
+    write_scene(data / "scenes" / "small_tiles.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=4)},
+                tile=32, looks=2.0)
+    inbox = data.parent / "inbox"
+    inbox.mkdir()
+    srv = Server(data, free_port(), SARSHIP_TOKENS=f'["{TOKEN}"]', SARSHIP_INBOX=str(inbox),
+                 SARSHIP_INBOX_INTERVAL_S="600").start()
+    srv.inbox = inbox
+    yield srv
+    srv.stop()
+
+
+class Watched:
+    """A page whose JavaScript errors, console errors and HTTP answers are recorded."""
+
+    def __init__(self, page):
+        self.page = page
+        self.errors: list[str] = []
+        self.responses: list[tuple[str, int]] = []
+        #: (status, URL) of the bad requests a test makes on purpose (the browser logs them as errors)
+        self.expected: set[tuple[int, str]] = set()
+        page.on("pageerror", lambda exc: self.errors.append(f"page error: {exc}"))
+        page.on("console", self._console)
+        page.on("response", lambda r: self.responses.append((r.url, r.status)))
+
+    def _console(self, msg) -> None:
+        if msg.type not in ("error", "warning"):
+            return
+        url = (msg.location or {}).get("url", "")
+        if msg.type == "error" and any(f"status of {st} " in msg.text and url == u for st, u in self.expected):
+            return
+        self.errors.append(f"console {msg.type}: {msg.text} ({url})")
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    if not CHROMIUM.exists():
+        pytest.skip(f"{CHROMIUM} is absent (Debian's chromium package drives these tests)")
+    profile = tmp_path_factory.mktemp("chromium-profile")
+    with sync_api.sync_playwright() as p:
+        ctx = p.chromium.launch_persistent_context(str(profile), executable_path=str(CHROMIUM), headless=True,
+                                                   args=ARGS, viewport={"width": 1280, "height": 900})
+        ctx.set_default_timeout(20_000)
+        yield ctx
+        ctx.close()
+
+
+@pytest.fixture
+def page(browser, server):
+    pg = browser.new_page()
+    w = Watched(pg)
+    yield w
+    pg.close()
+    assert not w.errors, w.errors
+
+
+def open_ui(w: Watched, url: str) -> None:
+    w.page.goto(url + "/ui/")
+    w.page.wait_for_selector("body[data-ready=true]")
+    w.page.wait_for_selector("#param-pfa")
+
+
+def set_token(w: Watched) -> None:
+    pg = w.page
+    pg.click("details.token summary")
+    pg.fill("#token", TOKEN)
+    pg.click("#token-form button[type=submit]")
+    assert "token is set" in pg.inner_text("#token-state")
+
+
+def job_ids(url: str) -> list[str]:
+    return [j["jobID"] for j in httpx.get(url + "/jobs").json()["jobs"]]
+
+
+def test_submit_see_it_finish_and_its_detections(server, page, tmp_path):
+    u, pg = server.url, page.page
+    open_ui(page, u)
+    assert pg.get_attribute("#dashboard-link", "href") == "../dashboard"
+    assert httpx.get(u + "/dashboard").status_code == 307  # the page's link leads to the Dask dashboard
+    ing = httpx.get(u + "/ingest")
+    if ing.status_code == 404 or not ing.json()["enabled"]:
+        pg.wait_for_selector("#ingest-state:has-text('not configured')")
+    else:
+        pg.wait_for_selector("#ingest-state:has-text('enabled')")
+    # the form is generated from the schemas: ranges and defaults of ca_cfar's inputs
+    desc = httpx.get(u + "/processes/ca_cfar").json()["inputs"]
+    assert pg.get_attribute("#param-guard", "min") == str(desc["guard"]["schema"]["minimum"])
+    assert pg.input_value("#param-guard") == str(desc["guard"]["schema"]["default"])
+    assert pg.input_value("#param-device") == "auto"
+    assert pg.locator("label[for=param-guard]").count() == 1
+
+    pg.select_option("#scene-select", "s1")
+    pg.select_option("#process", "ca_cfar")
+    pg.fill("#param-guard", "11")
+    pg.fill("#param-background", "31")
+    pg.fill("#param-min_area_px", "1")
+    before = set(job_ids(u))
+    page.expected.add((401, u + "/processes/ca_cfar/execution"))
+    pg.click("#submit-btn")  # no token yet: POST needs one
+    pg.wait_for_selector("#submit-error:not([hidden])")
+    assert "401" in pg.inner_text("#submit-error") and "Bearer" in pg.inner_text("#submit-error")
+    assert set(job_ids(u)) == before
+
+    set_token(page)
+    pg.click("#submit-btn")
+    link = pg.wait_for_selector("#submit-ok a")
+    job_id = link.inner_text()
+    assert pg.locator("#submit-error").is_hidden()
+    # the job appears in the list and goes live to successful
+    row = f"#jobs-table tr[data-job-id='{job_id}']"
+    pg.wait_for_selector(row)
+    pg.wait_for_selector(f"{row}[data-status=successful]", timeout=60_000)
+    assert pg.inner_text(f"{row} .c-status") == "successful" and "100%" in pg.inner_text(f"{row} .c-prog")
+    assert httpx.get(f"{u}/jobs/{job_id}").json()["status"] == "successful"
+
+    # open it with the keyboard
+    pg.focus(f"{row} a.job-link")
+    pg.keyboard.press("Enter")
+    pg.wait_for_selector("#map[data-ready=true]")
+    fc = httpx.get(f"{u}/jobs/{job_id}/results/detections").json()
+    n = len(fc["features"])
+    assert n >= 5
+    assert pg.locator("#det-table tbody tr").count() == n
+    assert pg.locator("#map path.det-box").count() == n
+    assert f"({n})" in pg.inner_text("#det-h")
+    first = fc["features"][0]["properties"]
+    assert pg.inner_text("#det-table tbody tr:first-child td:nth-child(4)") == str(first["area_px"])
+    # the outputs are linked
+    for key in httpx.get(f"{u}/jobs/{job_id}/results").json():
+        assert pg.locator("#job-result ul.links a", has_text=key).count() >= 1, key
+    # quicklook tiles: loaded with 200, none failed
+    pg.wait_for_selector("#map img.leaflet-tile-loaded")
+    tiles = [(url, st) for url, st in page.responses if TILE_RE.search(url)]
+    assert tiles and all(st == 200 for _, st in tiles), tiles
+
+    # choosing a detection in the table selects its box and zooms the map in on it; the tiles
+    # there show its mask pixels in red right under the box (tiles and boxes line up)
+    zoom0 = float(pg.get_attribute("#map", "data-zoom"))
+    # the largest ship in the top row of tiles, right of the first column (tile x > y)
+    big = max((i for i in range(n) if fc["features"][i]["properties"]["centroid_px"][1] > 300
+               and fc["features"][i]["properties"]["centroid_px"][0] < 250),
+              key=lambda i: fc["features"][i]["properties"]["area_px"])
+    pg.click(f"#det-table tbody tr:nth-child({big + 1}) button.det-go")
+    pg.wait_for_selector(f"#det-table tbody tr.selected[aria-current=true][data-det='{big}']")
+    box = pg.locator("#map path.det-box[stroke='#00e5ff']")
+    assert box.count() == 1
+    pg.wait_for_function("z => Number(document.querySelector('#map').dataset.zoom) > z", arg=zoom0)
+    pg.wait_for_function("() => !document.querySelector('#map .leaflet-zoom-anim') && "
+                         "[...document.querySelectorAll('#map img.leaflet-tile')].every(t => "
+                         "t.classList.contains('leaflet-tile-loaded'))")
+    pg.wait_for_timeout(300)  # the tiles' fade-in
+    b, m = box.bounding_box(), pg.locator("#map").bounding_box()
+    shot = Image.open(io.BytesIO(pg.locator("#map").screenshot())).convert("RGB")
+    sx, sy = shot.width / m["width"], shot.height / m["height"]
+    cx, cy = b["x"] + b["width"] / 2 - m["x"], b["y"] + b["height"] / 2 - m["y"]
+    r, g, bl = shot.getpixel((int(cx * sx), int(cy * sy)))
+    assert r > 150 and r > g + 60 and r > bl + 60, (r, g, bl)
+    pg.screenshot(path=str(tmp_path / "job.png"), full_page=True)
+
+
+def test_bad_parameter_shows_the_problem(server, page):
+    u, pg = server.url, page.page
+    open_ui(page, u)
+    set_token(page)
+    pg.select_option("#scene-select", "s1")
+    pg.fill("#param-guard", "10")  # an integer in range, but windows are odd: only the API knows
+    before = set(job_ids(u))
+    page.expected.add((400, u + "/processes/ca_cfar/execution"))
+    pg.click("#submit-btn")
+    pg.wait_for_selector("#submit-error:not([hidden])")
+    api = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1", "guard": 10}}, headers=AUTH)
+    assert api.status_code == 400
+    shown = pg.inner_text("#submit-error")
+    assert api.json()["detail"] in shown and "400" in shown
+    assert pg.get_attribute("#param-guard", "aria-invalid") == "true"
+    assert set(job_ids(u)) == before
+    # a scene outside the allowed folders: the API's detail again
+    pg.fill("#param-guard", "41")
+    pg.fill("#scene-path", "/etc")
+    pg.click("#submit-btn")
+    pg.wait_for_function("() => document.querySelector('#submit-error').innerText.includes('outside')")
+    assert pg.get_attribute("#scene-path", "aria-invalid") == "true"
+    # text from the API is text: markup echoed in a problem detail is shown, not parsed
+    pg.fill("#scene-path", "<b id=injected>x</b>")
+    pg.click("#submit-btn")
+    pg.wait_for_function("() => document.querySelector('#submit-error').innerText.includes('<b id=injected>')")
+    assert pg.locator("#injected").count() == 0
+
+
+def test_dismiss_a_running_job_from_the_list_in_a_narrow_window(server, page, tmp_path):
+    u, pg = server.url, page.page
+    pg.set_viewport_size({"width": 380, "height": 800})
+    open_ui(page, u)
+    set_token(page)
+    # the page fits the narrow window (tables scroll inside their own box)
+    assert pg.evaluate("() => document.documentElement.scrollWidth <= window.innerWidth + 1")
+    pg.select_option("#scene-select", "small_tiles")
+    pg.select_option("#process", "lmm")  # per-pixel mixture fits: a few seconds for this scene
+    pg.wait_for_selector("#params legend:has-text('lmm')")
+    assert pg.input_value("#param-method") == "grid"  # a choice from the schema's pattern
+    pg.click("#submit-btn")
+    job_id = pg.wait_for_selector("#submit-ok a").inner_text()
+    row = f"#jobs-table tr[data-job-id='{job_id}']"
+    pg.wait_for_selector(f"{row} button:has-text('Dismiss')")
+    assert pg.locator("#jobs-table tbody tr").first.get_attribute("data-job-id") == job_id  # newest first
+    pg.click(f"{row} button:has-text('Dismiss')")
+    pg.wait_for_selector(f"{row}[data-status=dismissed]")
+    assert pg.locator(f"{row} button").count() == 0
+    assert wait_job(u, job_id)["status"] == "dismissed"
+    pg.screenshot(path=str(tmp_path / "narrow.png"), full_page=True)
+
+
+def test_ingest_panel_follows_the_inbox(server, page, tmp_path):
+    """Two passes land in the inbox (complete: ``.done`` markers); "Scan now" finds them
+    before the scheduled scan (600 s away); the panel shows one ingested and one quarantined
+    with the reason, and the new scene joins the form's scene list."""
+    u, pg = server.url, page.page
+    np.save(server.inbox / "pass1.npy", blobs_scene((200, 180), looks=2.0, seed=11))
+    (server.inbox / "pass1.npy.done").touch()
+    (server.inbox / "broken.npy").write_bytes(b"this is not a numpy file")
+    (server.inbox / "broken.npy.done").touch()
+    open_ui(page, u)
+    set_token(page)
+    pg.wait_for_selector("#ingest-state:has-text('enabled')")
+    assert str(server.inbox) in pg.inner_text("#ingest-info")
+    pg.click("#ingest-scan")
+    pg.wait_for_selector("#ingest-scan-msg:has-text('scan requested')")
+    good = pg.wait_for_selector("#ingest-table tr[data-status=ingested]:has-text('pass1.npy')", timeout=60_000)
+    bad = pg.wait_for_selector("#ingest-table tr[data-status=quarantined]:has-text('broken.npy')", timeout=60_000)
+    passes = {p["file"].rsplit("/", 1)[-1]: p for p in httpx.get(u + "/ingest").json()["passes"]}
+    assert passes["broken.npy"]["reason"] and passes["broken.npy"]["reason"] in bad.inner_text()
+    scene = passes["pass1.npy"]["sceneID"]
+    assert scene and scene in good.inner_text()
+    # the ingested scene joins the form's list once its ingest job has finished
+    pg.wait_for_selector(f"#scene-select option[value='{scene}']:not([disabled])", state="attached", timeout=30_000)
+    assert pg.inner_text("#ingest-backlog") == "0"
+    pg.screenshot(path=str(tmp_path / "ingest.png"), full_page=True)
+
+
+def test_page_caching_and_landing_redirect(server):
+    u = server.url
+    page = httpx.get(u + "/ui/")
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+    assert page.headers["cache-control"] == "no-cache"
+    assert httpx.get(u + "/ui/", headers={"If-None-Match": page.headers["etag"]}).status_code == 304
+    assets = re.findall(r'(?:src|href)="(static/[^"]+\?v=[0-9a-f]+)"', page.text)
+    assert len(assets) == 4, assets  # app.js, app.css, leaflet.js, leaflet.css: all served here, no CDN
+    links = re.findall(r'(?:src|href)="([^"]+)"', page.text)
+    assert not [x for x in links if "//" in x], links  # nothing from elsewhere
+    for a in assets:
+        r = httpx.get(f"{u}/ui/{a}")
+        assert r.status_code == 200 and "immutable" in r.headers["cache-control"], (a, r.headers)
+    stale = httpx.get(f"{u}/ui/static/app.js?v=old")
+    assert stale.status_code == 200 and stale.headers["cache-control"] == "no-cache"
+    for bad in ("/ui/static/nope.js", "/ui/static/../web.py", "/ui/static/%2e%2e/web.py"):
+        r = httpx.get(u + bad)
+        assert r.status_code == 404 and r.json()["title"], bad
+    assert httpx.get(u + "/ui").headers["location"].endswith("/ui/")
+    # browsers asking for HTML land on the page; JSON clients keep the landing document
+    html = httpx.get(u + "/", headers={"Accept": "text/html,application/xhtml+xml,*/*;q=0.8"})
+    assert html.status_code == 303 and html.headers["location"].endswith("/ui/")
+    forced = httpx.get(u + "/?f=json", headers={"Accept": "text/html"})
+    assert forced.status_code == 200 and forced.json()["title"] == "sarship"
+    land = httpx.get(u + "/").json()
+    assert any(x["rel"] == "alternate" and x["type"] == "text/html" and x["href"].endswith("/ui/")
+               for x in land["links"])
+    assert httpx.get(u + "/", headers={"Accept": "application/json"}).status_code == 200
