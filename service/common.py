@@ -59,12 +59,16 @@ def job_or_404(request: Request, job_id: str) -> dict:
     return job
 
 
-def finished(request: Request, job_id: str) -> dict:
-    """The job if it finished successfully; else a 404 problem saying why there is no result."""
+def finished(request: Request, job_id: str, ingest_ok: bool = False) -> dict:
+    """The job if it finished successfully; else a 404 problem saying why there is no result.
+    An ``ingest`` job's only result is its scene: without ``ingest_ok`` it is a 404 too."""
     job = job_or_404(request, job_id)
     if job["status"] != "successful":
         detail = {"failed": f"job failed: {job['message']}", "dismissed": "job was dismissed"}.get(
             job["status"], f"result not ready (job is {job['status']})")
         raise Problem(404, "result not ready" if job["status"] not in ("failed", "dismissed") else "no result",
                       detail)
+    if job["process"] == "ingest" and not ingest_ok:
+        raise Problem(404, "no such result", f"job '{job_id}' ingested a scene; it has no detection products "
+                                             f"(the scene is /scenes/{job['inputs'].get('scene_id', '')})")
     return job

@@ -65,7 +65,11 @@ def _scene_readable(job_id: str) -> Iterator[None]:
 
 @router.get("/jobs/{job_id}/results", responses={200: {"model": Results, "description": "the results document"}})
 def results(request: Request, job_id: str):
-    return results_doc(finished(request, job_id), base_url(request))
+    job = finished(request, job_id, ingest_ok=True)
+    b = base_url(request)
+    if job["process"] == "ingest":  # an ingest job's result is its scene
+        return {"scene": {"href": f"{b}/scenes/{job['inputs'].get('scene_id', '')}", "type": "application/json"}}
+    return results_doc(job, b)
 
 
 @router.get("/jobs/{job_id}/results/detections",

@@ -235,6 +235,12 @@ def test_scene_upload_ingest_and_detect(server, tmp_path):
 
     assert doc["sha256"] == hashlib.sha256(raw).hexdigest() and doc["bytes"] == len(raw)
     assert wait_job(u, doc["jobID"])["status"] == "successful"
+    # an ingest job's result is its scene; it has no detection products
+    res = httpx.get(f"{u}/jobs/{doc['jobID']}/results").json()
+    assert res["scene"]["href"].endswith(f"/scenes/{doc['sceneID']}"), res
+    for product in ("detections", "metrics", "mask", "stac"):
+        check_problem(httpx.get(f"{u}/jobs/{doc['jobID']}/results/{product}"), 404, "ingest")
+    check_problem(httpx.get(f"{u}/jobs/{doc['jobID']}/tiles.json"), 404, "ingest")
     sc = httpx.get(f"{u}/scenes/{doc['sceneID']}").json()
     assert sc["status"] == "ready" and sc["shape"] == [120, 110]
     assert doc["sceneID"] in {s["sceneID"] for s in httpx.get(u + "/scenes").json()["scenes"]}
