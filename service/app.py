@@ -11,9 +11,10 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
-from fastapi import FastAPI, Request
+import anyio
+from fastapi import FastAPI, Header, Path, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -21,9 +22,14 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from pipeline import __version__, detectors
 from pipeline.errors import InputError
 from service import results, scenes
+from service.auth import BearerAuth
 from service.common import (Problem, base_url, job_or_404, problem, results_doc, status_doc,
                             store_of)
 from service.metrics import Metrics
+from service.openapi import (EXECUTE_BODY, JOB_STATUSES, PREFER_DOC, Conformance, JobList, Landing,
+                             ProcessDescription, ProcessList, Results, StatusInfo, problems)
+from service.openapi import install as install_openapi
+from service.openapi import media
 from service.runner import Runner, scene_path, wait_final
 from service.settings import Settings
 from service.store import FINAL, JobStore
@@ -79,17 +85,23 @@ def validate_inputs(settings: Settings, name: str, body: Any) -> dict:
 
     if not isinstance(body, dict) or not isinstance(body.get("inputs"), dict):
         raise Problem(400, "bad request", "the body must be a JSON object {\"inputs\": {\"scene\": ..., ...}}")
+    if body.get("response", "document") not in ("document", "raw"):
+        raise Problem(400, "bad request", f"'response' must be 'document' or 'raw', got {body['response']!r}")
+    if not isinstance(body.get("outputs", {}), dict):
+        raise Problem(400, "bad request", "'outputs' must be an object (output name -> options)")
     inputs = dict(body["inputs"])
     if "scene" not in inputs:
         raise Problem(400, "missing input", "input 'scene' is required (a scene id or a path)")
     device = inputs.get("device", "auto")
     if device not in ("auto", "cpu", "gpu"):
         raise Problem(400, "invalid input", f"input 'device' must be auto, cpu or gpu, got {device!r}")
+    if not isinstance(inputs.get("channel", ""), (str, type(None))):
+        raise Problem(400, "invalid input", f"input 'channel' must be a variable name, got {inputs['channel']!r}")
     spec = detectors.get(name)
     params = {k: v for k, v in inputs.items() if k not in RESERVED}
     for k, v in params.items():
-        if isinstance(v, (dict, list)):
-            raise Problem(400, "invalid input", f"parameter '{k}' must be a number or a string, got {type(v).__name__}")
+        if isinstance(v, (dict, list, bool)):
+            raise Problem(400, "invalid input", f"parameter '{k}' must be a number or a string, got {json.dumps(v)}")
     try:
         parse_settings(spec, params)
         scene_path(settings, inputs["scene"])
@@ -119,10 +131,14 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
                                                 dashboard_address=":0", echo=True))
             runner = Runner(settings, store, c, metrics)
             runner.start()
+            from service.inbox import start_inbox  # scheduled ingest (idle without SARSHIP_INBOX)
+
+            app.state.inbox = start_inbox(settings, store, runner)
             app.state.store, app.state.client, app.state.runner = store, c, runner
             try:
                 yield
             finally:
+                app.state.inbox.stop()
                 runner.stop()
 
     app = FastAPI(title="sarship", version=__version__, lifespan=lifespan,
@@ -131,23 +147,8 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
 
     open_paths = ("/livez", "/readyz", "/metrics")
 
-    @app.middleware("http")
-    async def _auth(request: Request, call_next):
-        """Bearer tokens (settings.tokens): required for POST/DELETE, and for reads when
-        ``protect_reads``; 401 without a token, 403 with a wrong one."""
-        if settings.tokens and request.url.path not in open_paths and (
-                request.method not in ("GET", "HEAD", "OPTIONS") or settings.protect_reads):
-            auth = request.headers.get("authorization", "")
-            if not auth.lower().startswith("bearer "):
-                r = problem(401, "unauthorized", "this request needs 'Authorization: Bearer TOKEN'")
-                r.headers["WWW-Authenticate"] = "Bearer"
-                return r
-            import hmac
-
-            tok = auth[7:].strip()
-            if not any(hmac.compare_digest(tok, t) for t in settings.tokens):
-                return problem(403, "forbidden", "the token is not valid")
-        return await call_next(request)
+    # bearer tokens (settings.tokens) for POST/DELETE, and for reads with protect_reads (service/auth.py)
+    app.add_middleware(BearerAuth, tokens=settings.tokens, protect_reads=settings.protect_reads, open_paths=open_paths)
 
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem):
@@ -156,7 +157,10 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
         title = {404: "not found", 405: "method not allowed"}.get(exc.status_code, "error")
-        return problem(exc.status_code, title, str(exc.detail))
+        r = problem(exc.status_code, title, str(exc.detail))
+        for k, v in (exc.headers or {}).items():  # e.g. 405's Allow (RFC 9110 requires it)
+            r.headers[k] = v
+        return r
 
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception):
@@ -172,9 +176,15 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
             parts.append(f"'{loc}': {e.get('msg', 'invalid')}" if loc else e.get("msg", "invalid"))
         return problem(400, "invalid request", "; ".join(parts))
 
-    @app.get("/")
+    install_openapi(app, tokens=bool(settings.tokens), protect_reads=settings.protect_reads, open_paths=open_paths)
+    process_param = Path(description="the process (detector) id", json_schema_extra={"enum": detectors.names()})
+    location_header = {"description": "the job's status URL", "schema": {"type": "string"}}
+
+    @app.get("/", responses={200: {"model": Landing}})
     def landing(request: Request):
         b = base_url(request)
+        if "text/html" in request.headers.get("accept", "") and request.query_params.get("f") != "json":
+            return RedirectResponse(f"{b}/ui/", status_code=303)  # a browser: the web page (?f=json: this)
         return {"title": "sarship", "description": "Ship detection in SAR scenes", "version": __version__,
                 "links": [{"href": f"{b}/", "rel": "self", "type": "application/json"},
                           {"href": f"{b}/openapi.json", "rel": "service-desc",
@@ -185,25 +195,34 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
                            "type": "application/json"},
                           {"href": f"{b}/jobs", "rel": "http://www.opengis.net/def/rel/ogc/1.0/job-list",
                            "type": "application/json"},
-                          {"href": f"{b}/dashboard", "rel": "related", "title": "Dask dashboard"}]}
+                          {"href": f"{b}/dashboard", "rel": "related", "title": "Dask dashboard"},
+                          {"href": f"{b}/ui/", "rel": "alternate", "type": "text/html", "title": "web page"}]}
 
-    @app.get("/conformance")
+    @app.get("/conformance", responses={200: {"model": Conformance}})
     def conformance():
         return {"conformsTo": CONFORMANCE}
 
-    @app.get("/processes")
+    @app.get("/processes", responses={200: {"model": ProcessList}})
     def processes(request: Request):
         b = base_url(request)
         return {"processes": [process_summary(n, b) for n in detectors.names()],
                 "links": [{"href": f"{b}/processes", "rel": "self", "type": "application/json"}]}
 
-    @app.get("/processes/{process_id}")
-    def process(request: Request, process_id: str):
+    @app.get("/processes/{process_id}", responses={200: {"model": ProcessDescription}, **problems(404)})
+    def process(request: Request, process_id: str = process_param):
         known_process(process_id)
         return process_description(process_id, base_url(request))
 
-    @app.post("/processes/{process_id}/execution")
-    async def execute(request: Request, process_id: str):
+    @app.post("/processes/{process_id}/execution", status_code=201,
+              responses={201: {"model": StatusInfo, "description": "job accepted (asynchronous execution)",
+                               "headers": {"Location": location_header}},
+                         200: {"model": Results, "description": "the results document (Prefer: respond-sync)",
+                               "headers": {"Location": location_header}},
+                         **problems(400, 404, 422)},
+              openapi_extra={"requestBody": EXECUTE_BODY})
+    async def execute(request: Request, process_id: str = process_param,
+                      prefer: Optional[str] = Header(None, alias="Prefer", description=PREFER_DOC,
+                                                     examples=["respond-async", "respond-sync"])):
         known_process(process_id)
         try:
             body = json.loads(await request.body() or b"null")
@@ -211,14 +230,13 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
             raise Problem(400, "bad request", "the body is not valid JSON") from None
         inputs = validate_inputs(settings, process_id, body)
         st = store_of(request)
-        job = st.create(process_id, inputs)
+        # the commit waits on the disk (fsync): off the event loop, so status polls are not held up
+        job = await anyio.to_thread.run_sync(st.create, process_id, inputs)
         request.app.state.metrics.requests.labels(process_id).inc()
         request.app.state.runner.wake.set()
         b = base_url(request)
-        prefer = request.headers.get("prefer", "").lower()
+        prefer = (prefer or "").lower()
         if "respond-sync" in prefer:
-            import anyio
-
             job = await anyio.to_thread.run_sync(wait_final, st, job["id"], settings.sync_timeout_s)
             if job["status"] == "successful":
                 return JSONResponse(results_doc(job, b), headers={"Preference-Applied": "respond-sync",
@@ -231,26 +249,26 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
             headers["Preference-Applied"] = "respond-async"
         return JSONResponse(status_doc(job, b), status_code=201, headers=headers)
 
-    @app.get("/jobs")
-    def jobs(request: Request, limit: int = 1000, status: Optional[str] = None):
-        if status is not None and status not in ("accepted", "running", "successful", "failed", "dismissed"):
-            raise Problem(400, "invalid request", f"'status' must be a job status, got {status!r}")
-        if not 1 <= limit <= 10000:
-            raise Problem(400, "invalid request", f"'limit' must be in 1..10000, got {limit}")
+    @app.get("/jobs", responses={200: {"model": JobList}})
+    def jobs(request: Request, limit: int = Query(1000, ge=1, le=10000, description="most jobs listed, newest first"),
+             status: Optional[Literal[JOB_STATUSES]] = Query(None, description="only jobs in this status")):
         b = base_url(request)
         return {"jobs": [status_doc(j, b) for j in store_of(request).list(limit=limit, status=status)],
                 "links": [{"href": f"{b}/jobs", "rel": "self", "type": "application/json"}]}
 
-    @app.get("/jobs/{job_id}")
-    def job(request: Request, job_id: str):
+    @app.get("/jobs/{job_id}", responses={200: {"model": StatusInfo}})
+    async def job(request: Request, job_id: str):
+        # the route clients poll: on the event loop, no threadpool hop (a primary-key read of
+        # the WAL-mode store, ~40 us, never waits for writers)
         return status_doc(job_or_404(request, job_id), base_url(request))
 
-    @app.delete("/jobs/{job_id}")
+    @app.delete("/jobs/{job_id}", responses={200: {"model": StatusInfo, "description": "the job, dismissed (a "
+                                                   "finished job is returned unchanged)"}})
     def dismiss(request: Request, job_id: str):
         job_or_404(request, job_id)
         return status_doc(store_of(request).dismiss(job_id), base_url(request))
 
-    @app.get("/metrics")
+    @app.get("/metrics", responses=media("text/plain; version=0.0.4", "Prometheus text format"))
     def prometheus(request: Request):
         from fastapi.responses import Response
 
@@ -277,7 +295,7 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         ok = checks.get("store") == "ok" and n > 0
         return JSONResponse({"status": "ok" if ok else "not ready", "checks": checks}, status_code=200 if ok else 503)
 
-    @app.get("/dashboard")
+    @app.get("/dashboard", responses={307: {"description": "redirect to the Dask dashboard"}, **problems(404)})
     def dashboard(request: Request):
         link = None
         with contextlib.suppress(Exception):
@@ -288,4 +306,10 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
 
     app.include_router(results.router)
     app.include_router(scenes.router)
+    from service import ingest_routes  # GET /ingest, POST /ingest/scan
+
+    app.include_router(ingest_routes.router)
+    from service import web  # the web page (/ui/) and its static files
+
+    app.include_router(web.router)
     return app
