@@ -11,16 +11,12 @@ import pytest
 
 httpx = pytest.importorskip("httpx")
 from conftest import blobs_scene, write_scene  # noqa: E402
-from svc import Server, check_problem, free_port, wait_job  # noqa: E402
+from svc import Server, check_problem, data_with_scene, free_port, wait_job  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    data = tmp_path_factory.mktemp("svc") / "data"
-    (data / "scenes").mkdir(parents=True)
-    write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
-                tile=128, looks=2.0)
-    srv = Server(data, free_port(), SARSHIP_MAX_UPLOAD_MB="1").start()
+    srv = Server(data_with_scene(tmp_path_factory, "svc"), free_port(), SARSHIP_MAX_UPLOAD_MB="1").start()
     yield srv
     srv.stop()
 
