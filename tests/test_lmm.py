@@ -578,18 +578,18 @@ def test_tiled_equals_untiled_dask(tmp_path, client):
         fc = json.loads((out / "detections.geojson").read_text())
         return r, fc["features"], zarr.open_array(str(out / "mask.zarr" / "mask"), mode="r")[:]
 
-    r1, whole, mask1 = run(4096, "whole")
     p = LMMParams(**settings)
     assert p.method == "grid" and LMMParams().method == "grid"
     h = SPEC.halo(p)
     assert h == 15 + 8
-    ref, _ = detect(mirror_pad(x, h), h, (-h, -h), p, prepare(p))
+    ref, _ = detect(mirror_pad(x, h), h, (-h, -h), p, prepare(p))  # the whole scene as one block
+    # tiles narrower than the halo (13 < 23) and the store's own chunks (64, ragged at the edge)
+    r1, feats64, mask1 = run(64, "t64")
     np.testing.assert_array_equal(mask1.astype(bool), ref)
     assert r1["detections"] > 5
-    for tile in (13, 29, 64):
-        r, feats, mask = run(tile, f"t{tile}")
-        np.testing.assert_array_equal(mask, mask1)
-        assert feats == whole
+    r, feats, mask = run(13, "t13")
+    np.testing.assert_array_equal(mask, mask1)
+    assert feats == feats64  # ships across tile borders joined the same way for both tilings
 
 
 def test_ships_on_simulated_scene(tmp_path, client):

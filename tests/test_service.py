@@ -94,7 +94,11 @@ def test_bad_requests_are_problems(server):
 
 def test_dismiss(server):
     u = server.url
-    slow = {"scene": "s1", "method": "exact", "guard": 5, "background": 13}  # ~10 s per 128^2 tile
+    # many short tasks (lmm exact, ~0.6 s per 32^2 tile, ~25 s per job): a job is still running
+    # when it is dismissed, and what it already sent to the workers ends within a second
+    write_scene(server.data / "scenes" / "s1_tiles32.zarr",
+                {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)}, tile=32, looks=2.0)
+    slow = {"scene": "s1_tiles32", "method": "exact", "guard": 5, "background": 13}
     ids = [httpx.post(u + "/processes/lmm/execution", json={"inputs": slow}).json()["jobID"] for _ in range(3)]
     last = httpx.delete(f"{u}/jobs/{ids[-1]}")
     assert last.status_code == 200 and last.json()["status"] == "dismissed"
