@@ -286,3 +286,35 @@ def test_preview_png(server):
     full = np.asarray(Image.open(io.BytesIO(httpx.get(f"{u}/jobs/{job_id}/preview.png?size=1024").content)))
     assert full.shape[:2] == (300, 260)
     check_problem(httpx.get(f"{u}/jobs/{job_id}/preview.png?size=5"), 400, "size")
+
+
+def test_serve_start_problems_are_one_line(tmp_path):
+    """What the operator got wrong stops ``sarship serve`` before it starts: exit 2, one line
+    naming the problem, no traceback (service/preflight.py)."""
+    import socket
+    import subprocess
+    import sys
+
+    (tmp_path / "afile").write_text("not a folder")
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "jobs.sqlite").write_bytes(b"garbage " * 64)
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    cases = [(["--data", str(tmp_path / "afile")], "is not a folder"),
+             (["--data", str(tmp_path / "afile" / "sub")], "Not a directory"),
+             (["--data", str(tmp_path / "bad")], "not a database"),
+             (["--data", str(tmp_path / "ok"), "--port", str(busy.getsockname()[1])], "Address already in use"),
+             (["--data", str(tmp_path / "ok"), "--host", "no-such-host.invalid"], "cannot resolve"),
+             (["--data", str(tmp_path / "ok"), "--scheduler", f"tcp://127.0.0.1:{free_port()}"],
+              "cannot reach Dask scheduler")]
+    try:
+        for args, words in cases:
+            r = subprocess.run([sys.executable, "-m", "workers.cli", "serve", *args], capture_output=True, text=True,
+                               timeout=60)
+            lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+            assert r.returncode == 2 and len(lines) == 1 and words in lines[0], (args, r.returncode, r.stderr)
+            assert lines[0].startswith("sarship serve: error: ") and "Traceback" not in r.stderr
+    finally:
+        busy.close()
+    assert (tmp_path / "bad" / "jobs.sqlite").read_bytes() == b"garbage " * 64  # a bad store is left as it was

@@ -124,6 +124,9 @@ def cmd_serve(a) -> int:
     except ValidationError as exc:
         e = exc.errors()[0]
         raise InputError(f"setting '{'.'.join(str(x) for x in e['loc'])}': {e['msg']}") from None
+    from service.preflight import preflight
+
+    preflight(settings)  # a bad data folder, store, address or scheduler: one line, exit 2
     import uvicorn
 
     from service.app import create_app
