@@ -103,7 +103,11 @@ class Settings(BaseSettings):
     host: str = Field("127.0.0.1", description="address the API listens on")
     port: int = Field(8080, ge=0, le=65535, description="port the API listens on")
     scheduler: Optional[str] = Field(None, description="Dask scheduler address (default: a local cluster)")
-    workers: Optional[int] = Field(None, ge=1, description="local cluster worker processes (default: all cores)")
+    workers: Optional[int] = Field(None, ge=1, description="local cluster CPU worker processes (default: all cores; "
+                                                           "with GPU workers, all cores less two per GPU, at least 1)")
+    gpus: str = Field("all", description="local cluster GPUs: all (one pinned worker per visible GPU), none, or a "
+                                         "comma list of GPU IDs; tiles go to GPU workers unless a job asks "
+                                         "device=cpu")
     concurrency: int = Field(2, ge=1, le=64, description="jobs this API process runs at once")
     lease_s: float = Field(30.0, gt=1.0, description="job lease: a job whose runner stops renewing it is re-run")
     allowed_roots: list[Path] = Field(default_factory=list,
@@ -179,6 +183,17 @@ class Settings(BaseSettings):
             return check_cron(v.strip())
         except ValueError as exc:
             raise _bad(str(exc)) from None
+
+    def local_workers(self) -> tuple[list[str], int]:
+        """The local cluster (no ``scheduler``): the GPU IDs that get a pinned worker each, and
+        the number of single-threaded CPU workers. Raises ``InputError`` for GPUs not visible."""
+        import os
+
+        from workers.gpus import parse_gpus
+
+        gpu_ids = parse_gpus(self.gpus)
+        cores = os.cpu_count() or 1
+        return gpu_ids, self.workers or (max(1, cores - 2 * len(gpu_ids)) if gpu_ids else cores)
 
     @property
     def db_path(self) -> Path:

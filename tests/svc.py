@@ -14,13 +14,14 @@ from pathlib import Path
 import httpx
 
 
-def data_with_scene(tmp_path_factory, name: str, shape: tuple[int, int] = (300, 260), seed: int = 3,
-                    tile: int = 128, **blobs) -> Path:
-    """A fresh service data folder holding one small scene ``s1`` (gamma clutter, L = 2, bright
-    blobs; ``blobs`` go to ``conftest.blobs_scene``), written with the project's store code."""
+def data_with_scene(root: Path, shape: tuple[int, int] = (300, 260), seed: int = 3, tile: int = 128,
+                    **blobs) -> Path:
+    """A fresh service data folder ``root/data`` holding one small scene ``s1`` (gamma clutter,
+    L = 2, bright blobs; ``blobs`` go to ``conftest.blobs_scene``), written with the project's
+    store code."""
     from conftest import blobs_scene, write_scene
 
-    data = tmp_path_factory.mktemp(name) / "data"
+    data = root / "data"
     (data / "scenes").mkdir(parents=True)
     write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene(shape, looks=2.0, seed=seed, **blobs)},
                 tile=tile, looks=2.0)

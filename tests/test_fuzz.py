@@ -64,7 +64,7 @@ CHECKS = [
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    data = data_with_scene(tmp_path_factory, "fuzz")
+    data = data_with_scene(tmp_path_factory.mktemp("fuzz"))
     # sync executions wait at most 5 s (then answer 201 with the status): the run stays bounded
     srv = Server(data, free_port(), SARSHIP_MAX_UPLOAD_MB="1", SARSHIP_SYNC_TIMEOUT_S="5").start()
     yield srv

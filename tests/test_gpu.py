@@ -353,3 +353,39 @@ def test_lmm_matches_cpu(cp, method, n, kw):
     assert diff <= max(1, int(0.001 * mc.size)), (diff, int(mc.sum()), int(mg.sum()))  # the CPU forms' rule
     both = mc & mg
     np.testing.assert_allclose(sg[both], sc[both], rtol=1e-6)
+
+
+def test_service_local_cluster_has_gpu_workers(tmp_path):
+    """``sarship serve`` alone on a GPU machine: its local cluster has one pinned worker per
+    GPU besides the CPU workers; a job's tiles run on the GPU (device auto) or on the CPU
+    workers (device cpu), with identical masks."""
+    import zarr
+
+    sys.path.insert(0, os.path.dirname(__file__))
+    import httpx
+    from svc import Server, data_with_scene, free_port, wait_job
+
+    data = data_with_scene(tmp_path, shape=(700, 600), tile=256)
+    from workers.gpus import visible_gpus
+
+    gpus = visible_gpus()  # NVML: no CUDA context in this process
+    srv = Server(data, free_port(), SARSHIP_WORKERS="2", CUDA_VISIBLE_DEVICES=",".join(gpus)).start()
+    try:
+        n_gpu = len(gpus)
+        assert httpx.get(srv.url + "/readyz").json()["checks"]["workers"] == n_gpu + 2
+        runs = {}
+        for device in ("auto", "cpu"):
+            r = httpx.post(srv.url + "/processes/ca_cfar/execution",
+                           json={"inputs": {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1,
+                                            "device": device}})
+            st = wait_job(srv.url, r.json()["jobID"])
+            assert st["status"] == "successful", st
+            run = httpx.get(f"{srv.url}/jobs/{st['jobID']}/results/metrics").json()
+            runs[device] = (run, zarr.open_array(str(data / "jobs" / st["jobID"] / "mask.zarr" / "mask"), mode="r")[:])
+        auto, cpu = runs["auto"][0], runs["cpu"][0]
+        assert auto["device"] == "gpu" and {t["device"] for t in auto["tiles"]["per_tile"]} == {"gpu"}, auto
+        assert cpu["device"] == "cpu" and {t["device"] for t in cpu["tiles"]["per_tile"]} == {"cpu"}, cpu
+        np.testing.assert_array_equal(runs["auto"][1], runs["cpu"][1])
+        assert auto["detections"] == cpu["detections"] > 5
+    finally:
+        srv.stop()

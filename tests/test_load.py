@@ -17,7 +17,7 @@ N_JOBS = 20
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    data = data_with_scene(tmp_path_factory, "load", shape=(128, 128), seed=4, n=4)  # one tile
+    data = data_with_scene(tmp_path_factory.mktemp("load"), shape=(128, 128), seed=4, n=4)  # one tile
     srv = Server(data, free_port(), SARSHIP_CONCURRENCY="2").start()
     yield srv
     srv.stop()

@@ -22,7 +22,7 @@ SMALL = {"scene": "s1", "pfa": 1e-4, "guard": 11, "background": 31, "min_area_px
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    srv = Server(data_with_scene(tmp_path_factory, "owslib"), free_port()).start()
+    srv = Server(data_with_scene(tmp_path_factory.mktemp("owslib")), free_port()).start()
     yield srv
     srv.stop()
 

@@ -83,7 +83,7 @@ def _free_port() -> int:
 
 def _cli(*args, timeout=300):
     return subprocess.run([sys.executable, "-m", "workers.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, env={**os.environ, "CUDA_VISIBLE_DEVICES": "-1"})
+                          timeout=timeout, env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})
 
 
 def test_mixed_cluster_cpu_tiles_avoid_gpu_worker(tmp_path, blobs_scene):
@@ -93,7 +93,7 @@ def test_mixed_cluster_cpu_tiles_avoid_gpu_worker(tmp_path, blobs_scene):
     code in this version)."""
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
-    env = {**os.environ, "CUDA_VISIBLE_DEVICES": "-1"}
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}  # "" hides GPUs ("-1" fails Dask's NVML monitor on GPU hosts)
     procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
                                "--port", str(port), "--dashboard-address", ":0"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]

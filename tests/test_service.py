@@ -16,7 +16,7 @@ from svc import Server, check_problem, data_with_scene, free_port, wait_job  # n
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    srv = Server(data_with_scene(tmp_path_factory, "svc"), free_port(), SARSHIP_MAX_UPLOAD_MB="1").start()
+    srv = Server(data_with_scene(tmp_path_factory.mktemp("svc")), free_port(), SARSHIP_MAX_UPLOAD_MB="1").start()
     yield srv
     srv.stop()
 
@@ -291,6 +291,7 @@ def test_preview_png(server):
 def test_serve_start_problems_are_one_line(tmp_path):
     """What the operator got wrong stops ``sarship serve`` before it starts: exit 2, one line
     naming the problem, no traceback (service/preflight.py)."""
+    import os
     import socket
     import subprocess
     import sys
@@ -307,11 +308,12 @@ def test_serve_start_problems_are_one_line(tmp_path):
              (["--data", str(tmp_path / "ok"), "--port", str(busy.getsockname()[1])], "Address already in use"),
              (["--data", str(tmp_path / "ok"), "--host", "no-such-host.invalid"], "cannot resolve"),
              (["--data", str(tmp_path / "ok"), "--scheduler", f"tcp://127.0.0.1:{free_port()}"],
-              "cannot reach Dask scheduler")]
+              "cannot reach Dask scheduler"),
+             (["--data", str(tmp_path / "ok"), "--gpus", "0"], "no GPU is visible")]  # (GPUs hidden below)
     try:
         for args, words in cases:
             r = subprocess.run([sys.executable, "-m", "workers.cli", "serve", *args], capture_output=True, text=True,
-                               timeout=60)
+                               timeout=60, env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})
             lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
             assert r.returncode == 2 and len(lines) == 1 and words in lines[0], (args, r.returncode, r.stderr)
             assert lines[0].startswith("sarship serve: error: ") and "Traceback" not in r.stderr

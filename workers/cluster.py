@@ -38,7 +38,7 @@ def connect(
     n_workers: int | None = None,
     dashboard_address: str = ":8787",
     echo: bool = True,
-    gpus: bool = False,
+    gpus: bool | list[str] = False,
     cpu_workers: int = 0,
     gpu_threads: int | None = None,
 ) -> Iterator["distributed.Client"]:  # noqa: F821
@@ -47,8 +47,8 @@ def connect(
     ``scheduler``: address of an existing scheduler (``tcp://host:8786``); otherwise a
     :class:`distributed.LocalCluster` with ``n_workers`` processes (default: all cores)
     is started for the duration of the block, and its dashboard address is printed.
-    ``gpus``: start one pinned worker per visible GPU instead (when there are any), plus
-    ``cpu_workers`` CPU workers.
+    ``gpus``: start one pinned worker per visible GPU instead (when there are any), or per
+    GPU of a list of IDs, plus ``cpu_workers`` CPU workers.
     """
     from distributed import Client, LocalCluster
 
@@ -69,7 +69,7 @@ def connect(
         return
     from workers.gpus import visible_gpus, worker_specs
 
-    gpu_ids = visible_gpus() if gpus else []
+    gpu_ids = list(gpus) if isinstance(gpus, list) else (visible_gpus() if gpus else [])
     if gpu_ids:
         from distributed import Scheduler, SpecCluster
 
