@@ -127,9 +127,12 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
             if c is None:
                 from workers.cluster import connect
 
-                gpu_ids, n_cpu = settings.local_workers() if not settings.scheduler else ([], None)
-                c = stack.enter_context(connect(settings.scheduler, n_workers=n_cpu, dashboard_address=":0",
-                                                echo=True, gpus=gpu_ids, cpu_workers=n_cpu or 0))
+                if settings.scheduler:
+                    c = stack.enter_context(connect(settings.scheduler, dashboard_address=":0", echo=True))
+                else:  # one pinned worker per GPU (SARSHIP_GPUS) besides the CPU workers
+                    gpu_ids, n_cpu = settings.local_workers()
+                    c = stack.enter_context(connect(None, n_workers=n_cpu, dashboard_address=":0", echo=True,
+                                                    gpus=gpu_ids, cpu_workers=n_cpu))
             runner = Runner(settings, store, c, metrics)
             runner.start()
             from service.inbox import start_inbox  # scheduled ingest (idle without SARSHIP_INBOX)

@@ -359,15 +359,13 @@ def test_service_local_cluster_has_gpu_workers(tmp_path):
     """``sarship serve`` alone on a GPU machine: its local cluster has one pinned worker per
     GPU besides the CPU workers; a job's tiles run on the GPU (device auto) or on the CPU
     workers (device cpu), with identical masks."""
-    import zarr
-
-    sys.path.insert(0, os.path.dirname(__file__))
     import httpx
+    import zarr
     from svc import Server, data_with_scene, free_port, wait_job
 
-    data = data_with_scene(tmp_path, shape=(700, 600), tile=256)
     from workers.gpus import visible_gpus
 
+    data = data_with_scene(tmp_path, shape=(700, 600), tile=256)
     gpus = visible_gpus()  # NVML: no CUDA context in this process
     srv = Server(data, free_port(), SARSHIP_WORKERS="2", CUDA_VISIBLE_DEVICES=",".join(gpus)).start()
     try:
