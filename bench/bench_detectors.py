@@ -25,11 +25,10 @@ import time
 import numpy as np
 from scipy import ndimage
 
-sys.path.insert(0, os.path.dirname(__file__))
 from common import best_of, machine  # noqa: E402
 
-from pipeline import detectors  # noqa: E402
-from pipeline.windows import padded_block  # noqa: E402
+from sarship.pipeline import detectors  # noqa: E402
+from sarship.pipeline.windows import padded_block  # noqa: E402
 
 
 def ref_ca(x, p, prep):
@@ -92,7 +91,7 @@ def main() -> None:
     if not a.no_dask:
         from distributed import Client, LocalCluster
 
-        from pipeline.scene import create_scene, finalize_scene
+        from sarship.pipeline.scene import create_scene, finalize_scene
 
         cluster = LocalCluster(n_workers=os.cpu_count(), threads_per_worker=1, dashboard_address=":0",
                                silence_logs=logging.ERROR)
@@ -114,7 +113,7 @@ def main() -> None:
         r_mpx = xr.size / 1e6 / t_r
         d_mpx = float("nan")
         if client is not None:
-            from workers.run import run_detection
+            from sarship.workers.jobs import run_detection
 
             run_detection(f"{tmp}/s.zarr", name, {}, out_dir=f"{tmp}/o", client=client, progress=False)
             t0 = time.perf_counter()

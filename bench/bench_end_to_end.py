@@ -22,7 +22,6 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
 from common import TreeMemory, machine  # noqa: E402
 
 
@@ -50,8 +49,8 @@ def main() -> None:
     a = ap.parse_args()
     from distributed import Client, LocalCluster
 
-    from pipeline.readers import ingest
-    from workers.run import run_detection
+    from sarship.pipeline.readers import ingest
+    from sarship.workers.jobs import run_detection
 
     work = tempfile.mkdtemp(prefix="sarship-e2e-", dir=a.workdir)
     try:

@@ -30,12 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 from common import best_of, machine  # noqa: E402
 
-from pipeline import detectors  # noqa: E402
-from pipeline.windows import mirror_pad  # noqa: E402
+from sarship.pipeline import detectors  # noqa: E402
+from sarship.pipeline.windows import mirror_pad  # noqa: E402
 
 CASES = [
     ("ca_cfar", {"looks": 1.0}, "default (guard 41, background 81)", "intensity"),
@@ -88,7 +86,7 @@ def gpu_time(cp, fn, reps: int = 10) -> float:
 
 def box_passes(cp, n: int = 4096, m: int = 81) -> list[str]:
     """Time of each window-sum pass on an n x n float32 block (to see which one dominates)."""
-    from pipeline.gpu import box
+    from sarship.pipeline.gpu import box
 
     x = cp.asarray(np.random.default_rng(0).random((n + m - 1, n + m - 1), dtype=np.float32))
     H = box._hsum(cp, x, m, 0, n)
@@ -134,7 +132,7 @@ def transfers(cp) -> list[str]:
 
 
 def _inputs(n: int):
-    from pipeline.simulate import SimConfig, simulate_array
+    from sarship.pipeline.simulate import SimConfig, simulate_array
 
     rng = np.random.default_rng(0)
     inten = rng.gamma(1.0, 1.0, (n, n)).astype(np.float32)
@@ -184,7 +182,7 @@ def write_band(path: Path, shape: tuple[int, int], tile: int) -> None:
     """Gamma clutter (L = 1) with a few bright ships, written tile by tile on 16 threads."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from pipeline.scene import create_scene, finalize_scene, tile_slices
+    from sarship.pipeline.scene import create_scene, finalize_scene, tile_slices
 
     g = create_scene(path, shape, {"intensity": np.dtype(np.float32)}, tile=tile,
                      attrs={"kind": "intensity", "looks": 1.0})
@@ -206,9 +204,9 @@ def write_band(path: Path, shape: tuple[int, int], tile: int) -> None:
 
 def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int, threads: list[int],
                dets: tuple[str, ...] = ("ca_cfar",)) -> list[str]:
-    from workers.cluster import connect
-    from workers.gpus import visible_gpus
-    from workers.run import run_detection
+    from sarship.workers.cluster import connect
+    from sarship.workers.gpus import visible_gpus
+    from sarship.workers.jobs import run_detection
 
     rows = []
     vis = visible_gpus()
@@ -243,10 +241,10 @@ def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int, threads: lis
 def thesis_scenes(cases=None, devices=("gpu", "cpu")) -> list[str]:
     """End to end per detector on 1000 x 1000 scenes (the thesis' size) in Zarr: local
     cluster with one pinned GPU worker, then the same with CPU workers (all host cores)."""
-    from pipeline.simulate import SimConfig, simulate
-    from workers.cluster import connect
-    from workers.gpus import visible_gpus
-    from workers.run import run_detection
+    from sarship.pipeline.simulate import SimConfig, simulate
+    from sarship.workers.cluster import connect
+    from sarship.workers.gpus import visible_gpus
+    from sarship.workers.jobs import run_detection
 
     rows = []
     vis = visible_gpus()

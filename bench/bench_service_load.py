@@ -16,7 +16,7 @@ was lost: every job reached ``successful``, appears exactly once in ``GET /jobs`
 (``attempts == 1``), and the store holds no other job; the exit status is 1 if not.
 
 Reference, measured in the same run after the server is stopped: the same jobs run by
-``workers.run.run_detection`` directly on a LocalCluster of the same size, ``--concurrency``
+``workers.jobs.run_detection`` directly on a LocalCluster of the same size, ``--concurrency``
 at a time, without the service; ``ratio`` = service Mpx/s / reference Mpx/s shows what the
 API, the SQLite store and the runner cost.
 
@@ -44,7 +44,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [os.path.dirname(__file__), str(REPO)]  # bench helpers; the project even when not installed
 from common import machine  # noqa: E402
 
 PARAMS = {"pfa": 1e-4, "guard": 11, "background": 31, "min_area_px": 1}
@@ -52,7 +51,7 @@ PARAMS = {"pfa": 1e-4, "guard": 11, "background": 31, "min_area_px": 1}
 
 def make_scene(path: Path, side: int, tile: int, seed: int = 1) -> None:
     """An L = 2 gamma clutter scene with a few bright ships, written with the project's store."""
-    from pipeline.scene import create_scene, finalize_scene
+    from sarship.pipeline.scene import create_scene, finalize_scene
 
     rng = np.random.default_rng(seed)
     x = rng.gamma(2.0, 0.5, (side, side)).astype(np.float32)
@@ -82,7 +81,7 @@ def start_cluster(workers: int, log: Path) -> tuple[subprocess.Popen, str]:
     sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
                               "--port", str(port), "--dashboard-address", ":0"], stdout=out,
                              stderr=subprocess.STDOUT, env=env, cwd=REPO, start_new_session=True)
-    wk = subprocess.Popen([sys.executable, "-m", "workers.cli", "worker", "--scheduler", addr, "--gpus", "none",
+    wk = subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler", addr, "--gpus", "none",
                            "--cpus", str(workers)], stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO,
                           start_new_session=True)
     t_end = time.time() + 120
@@ -105,7 +104,7 @@ def start_server(data: Path, port: int, workers: int, concurrency: int, log: Pat
            "CUDA_VISIBLE_DEVICES": ""}
     if scheduler:
         env["SARSHIP_SCHEDULER"] = scheduler
-    proc = subprocess.Popen([sys.executable, "-m", "workers.cli", "serve", "--data", str(data), "--port", str(port)],
+    proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(data), "--port", str(port)],
                             stdout=open(log, "w"), stderr=subprocess.STDOUT, env=env, cwd=REPO, start_new_session=True)
     t_end = time.time() + 180
     while time.time() < t_end:
@@ -288,7 +287,7 @@ def reference(scene: Path, work: Path, n: int, workers: int, concurrency: int) -
     """Wall time of the same ``n`` jobs by ``run_detection`` on a LocalCluster, no service."""
     from distributed import Client, LocalCluster
 
-    from workers.run import run_detection
+    from sarship.workers.jobs import run_detection
 
     with LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=":0",
                       silence_logs=logging.ERROR) as cluster, Client(cluster) as client:

@@ -5,7 +5,7 @@ Both run CA-CFAR (default parameters) over the same Zarr scene on the same local
 
 - ``sarship``: one task per output tile reads tile + halo straight from the store,
   detects, writes its mask chunk, labels and returns component moments
-  (``workers.run.run_detection``, detections and run.json included);
+  (``workers.jobs.run_detection``, detections and run.json included);
 - ``map_overlap``: ``da.from_zarr`` -> ``map_overlap(depth=halo, boundary="reflect")`` ->
   ``to_zarr`` (mask only: no labelling, no detections). Note dask's ``reflect`` repeats the
   edge pixel (numpy ``symmetric``), not the thesis' mirror; only the timing is compared.
@@ -26,12 +26,11 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
 from common import TreeMemory, machine  # noqa: E402
 
 
 def _mask_block(block, halo, p, prep):
-    from pipeline.detectors import ca_cfar
+    from sarship.pipeline.detectors import ca_cfar
 
     mask, _ = ca_cfar.detect(block, halo, (0, 0), p, prep)  # origin only fixes rounding order
     out = np.zeros(block.shape, np.uint8)
@@ -47,9 +46,9 @@ def main() -> None:
     import dask.array as da
     from distributed import Client, LocalCluster
 
-    from pipeline.detectors import ca_cfar
-    from pipeline.scene import create_scene, finalize_scene
-    from workers.run import run_detection
+    from sarship.pipeline.detectors import ca_cfar
+    from sarship.pipeline.scene import create_scene, finalize_scene
+    from sarship.workers.jobs import run_detection
 
     work = tempfile.mkdtemp(prefix="sarship-tiling-")
     try:

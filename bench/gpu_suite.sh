@@ -7,7 +7,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 logs="${1:-gpu-logs}"
 mkdir -p "$logs"
-export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+export PYTHONUNBUFFERED=1  # sarship must be installed (pip install -e .[gpu])
 nvidia-smi -L | tee "$logs/gpus.txt"
 python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_gpu.py 2>&1 | tee "$logs/gpu_tests.log"
 tests_rc=${PIPESTATUS[0]}

@@ -15,17 +15,17 @@ Datasets (see ``shared/data/README.md``; cite the originals when quoting numbers
   ``CENTRE_RADIUS_PX`` of the chip centre), per band; ``extra`` = mean number of other
   detections per chip (other ships or false alarms -- not annotated).
 
-Every chip is ingested with :func:`pipeline.readers.ingest` (JPEG amplitude -> intensity;
+Every chip is ingested with :func:`sarship.pipeline.readers.ingest` (JPEG amplitude -> intensity;
 GRD with ``channels=["vh", "vv"]``, the band chosen at detection with the ``channel``
 setting) at ``tile`` = the chip side, and every detector runs through
-:func:`workers.run.run_detection` on ONE shared Dask ``LocalCluster``.
+:func:`sarship.workers.jobs.run_detection` on ONE shared Dask ``LocalCluster``.
 
 Sweep. The detection mask depends only on (pfa, guard, background, looks); ``min_area_px``
 and ``merge_px`` act afterwards on the mask's connected components. So each mask setting is
 run once through ``run_detection`` (with ``min_area_px=1, merge_px=0``) and its
 ``mask.zarr`` is post-processed for every (min_area_px, merge_px) with the pipeline's own
-component code (:func:`pipeline.components.tile_components` + ``merge_tiles`` +
-:func:`pipeline.detections.keep_mask`, bbox/centroid as ``features`` writes them) -- identical to what ``run_detection``
+component code (:func:`sarship.pipeline.components.tile_components` + ``merge_tiles`` +
+:func:`sarship.pipeline.ship_features.keep_mask`, bbox/centroid as ``features`` writes them) -- identical to what ``run_detection``
 returns for a one-tile scene; a self-check at start-up asserts that on a few chips.
 
 Looks: ``scene`` = the scene's ``looks`` attribute (MoLC estimate for the JPEGs, 0.4-1.2
@@ -110,8 +110,8 @@ def _safe(name: str) -> str:
 
 def ingest_all(data: Path, work: Path, limit: int | None = None) -> list[Chip]:
     """Ingest every chip of the three datasets into ``work``; attach the truth."""
-    from pipeline.readers import ingest
-    from pipeline.truth import load_voc, read_mask, ships_from_mask
+    from sarship.pipeline.readers import ingest
+    from sarship.pipeline.truth import load_voc, read_mask, ships_from_mask
 
     chips: list[Chip] = []
     work.mkdir(parents=True, exist_ok=True)
@@ -155,7 +155,7 @@ def run_mask(client, chip: Chip, detector: str, settings: dict, out_root: Path) 
     """One ``run_detection`` on the chip (one tile); returns its mask and run.json."""
     import zarr
 
-    from workers.run import run_detection
+    from sarship.workers.jobs import run_detection
 
     out = Path(tempfile.mkdtemp(prefix="run-", dir=out_root))
     try:
@@ -180,7 +180,7 @@ class _Filter:
 
 def components(mask: np.ndarray, merge_px: int) -> np.ndarray:
     """Component moment records of a one-tile scene mask, as ``run_detection`` builds them."""
-    from pipeline.components import merge_radius, merge_tiles, tile_components
+    from sarship.pipeline.components import merge_radius, merge_tiles, tile_components
 
     r = merge_radius(merge_px)
     h, w = mask.shape
@@ -192,11 +192,11 @@ def components(mask: np.ndarray, merge_px: int) -> np.ndarray:
 
 
 def detections(records: np.ndarray, min_area_px: int, spacing=None) -> list:
-    """Kept records as :class:`pipeline.truth.Ship`: the ``bbox_px`` / ``centroid_px`` /
-    ``area_px`` that :func:`pipeline.detections.features` writes, computed vectorised
+    """Kept records as :class:`sarship.pipeline.truth.Ship`: the ``bbox_px`` / ``centroid_px`` /
+    ``area_px`` that :func:`sarship.pipeline.ship_features.features` writes, computed vectorised
     (features() is per-record Python; the self-check compares both)."""
-    from pipeline.detections import keep_mask
-    from pipeline.truth import Ship
+    from sarship.pipeline.ship_features import keep_mask
+    from sarship.pipeline.truth import Ship
 
     kept = records[keep_mask(records, _Filter(min_area_px), spacing)]
     n = kept["n"].astype(np.float64)
@@ -227,7 +227,7 @@ def centre_hit(ships: list, shape: tuple[int, int], radius: float = CENTRE_RADIU
 
 def chip_scores(chip: Chip, mask: np.ndarray, min_areas=MIN_AREAS, merges=MERGES) -> dict:
     """Scores of one chip's mask for every (min_area_px, merge_px)."""
-    from pipeline.scoring import pixel_counts, score
+    from sarship.pipeline.scoring import pixel_counts, score
 
     out = {}
     px = pixel_counts(mask, chip.truth_mask) if chip.truth_mask is not None else None
@@ -248,7 +248,7 @@ def chip_scores(chip: Chip, mask: np.ndarray, min_areas=MIN_AREAS, merges=MERGES
 
 def summarise(dataset: str, per_chip: list[dict], names: list[str] | None = None) -> dict:
     """Aggregate one dataset's per-chip scores of one setting."""
-    from pipeline.scoring import aggregate
+    from sarship.pipeline.scoring import aggregate
 
     if dataset == "grd":
         n = len(per_chip)
@@ -267,7 +267,7 @@ def summarise(dataset: str, per_chip: list[dict], names: list[str] | None = None
 
 def mask_settings(detector: str, pfas, windows, looks, extra=EXTRA) -> list[dict]:
     out = []
-    from pipeline import detectors
+    from sarship.pipeline import detectors
 
     needs_looks = detectors.get(detector).needs_looks
     for pfa, (g, b), L, ex in itertools.product(pfas, windows, looks if needs_looks else ("scene",),
@@ -336,7 +336,7 @@ def sweep(client, chips: list[Chip], detectors_: list[str], grid: dict, work: Pa
 
 def self_check(client, chips: list[Chip], detectors_: list[str], work: Path) -> None:
     """Local post-processing == run_detection's own detections (default min_area/merge)."""
-    from pipeline import detectors
+    from sarship.pipeline import detectors
 
     runs_root = work / "runs"
     runs_root.mkdir(exist_ok=True)
@@ -415,7 +415,7 @@ def same_setting(r: dict, st: dict) -> bool:
 
 def default_row(rows: list[dict], detector: str) -> dict | None:
     """The row of the code's current defaults (looks default = the scene attribute)."""
-    from pipeline import detectors
+    from sarship.pipeline import detectors
 
     d = detectors.get(detector).params()
     for r in rows:

@@ -25,7 +25,7 @@ into a ring of ``m + 4`` rows, so no full-size float64 intermediate is ever writ
 working set stays in L2 (wide tiles are cut into column strips, which changes nothing in
 the sums: column blocks are aligned on global coordinates). Detectors that need several
 windows run one stream per window in lockstep and decide row by row
-(:mod:`pipeline.detectors.ca_cfar`).
+(:mod:`sarship.pipeline.detectors.ca_cfar`).
 
 Exact order of the additions (what the tests pin down, for every input):
 
@@ -321,7 +321,7 @@ def centered_box_sum(block: np.ndarray, m: int, halo: int, origin: tuple[int, in
     m : int
         Odd window side, ``m // 2 <= halo``.
     halo, origin
-        As in :mod:`pipeline.detectors.base`.
+        As in :mod:`sarship.pipeline.detectors.base`.
 
     Returns
     -------

@@ -18,8 +18,8 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.scene import COVARIANCE2_VARS, COVARIANCE_VARS, Scene
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.scene import COVARIANCE2_VARS, COVARIANCE_VARS, Scene
 
 _PREFERENCE = ("intensity", "hh", "vv", "vh", "hv", "c11")
 

@@ -47,7 +47,7 @@ from typing import Iterable
 
 import numpy as np
 
-from pipeline.errors import InputError
+from sarship.pipeline.errors import InputError
 
 #: Bounds of the returned estimate (the root finder's bracket).
 MIN_LOOKS = 0.05

@@ -1,8 +1,8 @@
-"""`sarship ingest`: turn SAR images into a scene store (see :mod:`pipeline.scene`).
+"""`sarship ingest`: turn SAR images into a scene store (see :mod:`sarship.pipeline.scene`).
 
 :func:`ingest` reads one or more inputs and writes a Zarr v3 scene of square ``tile x tile``
 zstd chunks, **tile by tile**, into a temporary sibling that is renamed into place only when
-complete (:func:`pipeline.scene.atomic_store`): a failure leaves nothing behind and an
+complete (:func:`sarship.pipeline.scene.atomic_store`): a failure leaves nothing behind and an
 existing scene at ``out`` untouched.
 
 Inputs (files recognised by their first bytes; PolSARpro folders by their file names)
@@ -137,7 +137,7 @@ Looks
 ``enl`` metadata item, the SNAP sidecar, or a Zarr scene's attribute:
 ``"attribute"``, with ``looks_note`` saying where); else 1 for SLC/quad-pol
 (``"single-look complex"``); else estimated after writing with
-:func:`pipeline.looks.estimate_looks` (MoLC) on at most ``LOOKS_SAMPLE_TILES`` tiles spread
+:func:`sarship.pipeline.looks.estimate_looks` (MoLC) on at most ``LOOKS_SAMPLE_TILES`` tiles spread
 over the scene, each cut to at most ``LOOKS_SAMPLE_SIDE`` square (``intensity``, or ``c11``
 for covariance): ``"estimated: MoLC ..."``. Covariance scenes are first tested for rank one
 on the same sample (median of the largest ``1 - |c_ij|^2 / (c_ii c_jj)`` below
@@ -160,8 +160,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.scene import (
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.scene import (
     COMPLEX_CHANNELS,
     DEFAULT_TILE,
     Scene,
@@ -1493,7 +1493,7 @@ def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks):
     attrs["source"] = [s.name for s in srcs]
     attrs["tile"] = tile
     attrs["sample_dtype"] = str(srcs[0].dtype)
-    from pipeline import __version__
+    from sarship.pipeline import __version__
 
     attrs["sarship_version"] = __version__
     meta: dict[str, Any] = {}
@@ -1609,7 +1609,7 @@ def _estimate_scene_looks(store: Path, var: str, shape, tile) -> dict[str, Any]:
     """Looks by MoLC on a bounded sample of tiles re-read from the store."""
     import zarr
 
-    from pipeline.looks import estimate_looks
+    from sarship.pipeline.looks import estimate_looks
 
     arr = zarr.open_array(str(store / var), mode="r")
     picks = _sample_windows(shape, tile)

@@ -31,7 +31,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from pipeline.errors import InputError
+from sarship.pipeline.errors import InputError
 
 #: Default tile (chunk) side in pixels.
 DEFAULT_TILE = 2048

@@ -51,8 +51,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.truth import (
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.truth import (
     Ship,
     detections_scene,
     load_detections,
@@ -242,7 +242,7 @@ def evaluate(
     ``TRUTH``: a CONTRACT GeoJSON, a VOC xml file, a folder of VOC xml, or a mask image.
     For a folder, the xml whose stem is the detections' scene name is used (the scene is
     read from the detections file's ``scene`` member or the ``run.json`` beside it, see
-    :func:`pipeline.truth.detections_scene`); when the detections name no scene the folder
+    :func:`sarship.pipeline.truth.detections_scene`); when the detections name no scene the folder
     must hold exactly one xml. Otherwise: :class:`InputError`.
 
     Pixel scores: only for a mask truth, with the detection mask ``mask_path``, by default

@@ -117,7 +117,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from pipeline.errors import InputError
+from sarship.pipeline.errors import InputError
 
 __all__ = [
     "SimConfig", "validate", "ship_catalogue", "simulate_tile", "truth_collection",
@@ -1306,8 +1306,8 @@ def simulate(out: str | os.PathLike, cfg: SimConfig, tile: int = 2048,
     total)`` is called after each tile. On any failure nothing is left behind (the store is
     written to a temporary sibling and renamed; the truth likewise). Returns the store path.
     """
-    from pipeline import __version__
-    from pipeline.scene import atomic_store, create_scene, finalize_scene, tile_slices
+    from sarship.pipeline import __version__
+    from sarship.pipeline.scene import atomic_store, create_scene, finalize_scene, tile_slices
 
     cfg = validate(cfg)
     if isinstance(tile, bool) or not isinstance(tile, (int, np.integer)) or not 16 <= tile <= 65536:

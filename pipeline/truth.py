@@ -36,7 +36,7 @@ Mask images (PNG, TIFF, BMP, GIF, JPEG ...; also a 2-D ``.npy`` or a Zarr ``mask
     mean pixel index + 0.5 (continuous coordinates: pixel (r, c) spans [r, r+1) x [c, c+1)).
     Touching ships merge into one component (a known limit of mask truth).
 
-Unreadable input of any kind raises :class:`pipeline.errors.InputError` with a one-line
+Unreadable input of any kind raises :class:`sarship.pipeline.errors.InputError` with a one-line
 message naming the file and the problem.
 """
 
@@ -53,7 +53,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from pipeline.errors import InputError
+from sarship.pipeline.errors import InputError
 
 GEOJSON_SUFFIXES = (".geojson", ".json")
 VOC_SUFFIXES = (".xml",)

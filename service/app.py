@@ -19,20 +19,20 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from pipeline import __version__, detectors
-from pipeline.errors import InputError
-from service import results, scenes
-from service.auth import BearerAuth
-from service.common import (Problem, base_url, job_or_404, problem, results_doc, status_doc,
+from sarship.pipeline import __version__, detectors
+from sarship.pipeline.errors import InputError
+from sarship.service import results, scenes
+from sarship.service.auth import BearerAuth
+from sarship.service.common import (Problem, base_url, job_or_404, problem, results_doc, status_doc,
                             store_of)
-from service.metrics import Metrics
-from service.openapi import (EXECUTE_BODY, JOB_STATUSES, PREFER_DOC, Conformance, JobList, Landing,
+from sarship.service.metrics import Metrics
+from sarship.service.openapi import (EXECUTE_BODY, JOB_STATUSES, PREFER_DOC, Conformance, JobList, Landing,
                              ProcessDescription, ProcessList, Results, StatusInfo, problems)
-from service.openapi import install as install_openapi
-from service.openapi import media
-from service.runner import Runner, scene_path, wait_final
-from service.settings import Settings
-from service.store import FINAL, JobStore
+from sarship.service.openapi import install as install_openapi
+from sarship.service.openapi import media
+from sarship.service.runner import Runner, scene_path, wait_final
+from sarship.service.settings import Settings
+from sarship.service.store import FINAL, JobStore
 
 log = logging.getLogger("sarship.service")
 
@@ -81,7 +81,7 @@ def known_process(name: str) -> None:
 
 def validate_inputs(settings: Settings, name: str, body: Any) -> dict:
     """The job's inputs, validated now (so that bad input is a 400, not a failed job)."""
-    from workers.run import parse_settings
+    from sarship.workers.jobs import parse_settings
 
     if not isinstance(body, dict) or not isinstance(body.get("inputs"), dict):
         raise Problem(400, "bad request", "the body must be a JSON object {\"inputs\": {\"scene\": ..., ...}}")
@@ -125,7 +125,7 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         with contextlib.ExitStack() as stack:
             c = client
             if c is None:
-                from workers.cluster import connect
+                from sarship.workers.cluster import connect
 
                 if settings.scheduler:
                     c = stack.enter_context(connect(settings.scheduler, dashboard_address=":0", echo=True))
@@ -135,7 +135,7 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
                                                     gpus=gpu_ids, cpu_workers=n_cpu))
             runner = Runner(settings, store, c, metrics)
             runner.start()
-            from service.inbox import start_inbox  # scheduled ingest (idle without SARSHIP_INBOX)
+            from sarship.service.inbox import start_inbox  # scheduled ingest (idle without SARSHIP_INBOX)
 
             app.state.inbox = start_inbox(settings, store, runner)
             app.state.store, app.state.client, app.state.runner = store, c, runner
@@ -310,10 +310,10 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
 
     app.include_router(results.router)
     app.include_router(scenes.router)
-    from service import ingest_routes  # GET /ingest, POST /ingest/scan
+    from sarship.service import ingest_routes  # GET /ingest, POST /ingest/scan
 
     app.include_router(ingest_routes.router)
-    from service import web  # the web page (/ui/) and its static files
+    from sarship.service import web  # the web page (/ui/) and its static files
 
     app.include_router(web.router)
     return app

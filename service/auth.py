@@ -15,7 +15,7 @@ from __future__ import annotations
 import hmac
 from typing import Any, Awaitable, Callable
 
-from service.common import problem
+from sarship.service.common import problem
 
 Scope = dict[str, Any]
 ASGIApp = Callable[[Scope, Callable, Callable], Awaitable[None]]

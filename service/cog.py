@@ -18,7 +18,7 @@ checks exactly these points)::
   and ``BLOCK_TRAILER=LAST_4_BYTES_REPEATED``, as GDAL writes them;
 - overviews halve the size until the smallest fits one tile (GDAL's default), so level k has
   ``ceil(H / 2^k) x ceil(W / 2^k)`` pixels and the levels line up with the XYZ zoom levels
-  of :mod:`service.tiles` (XYZ tile (z, x, y) is COG tile (y, x) of level Z - z);
+  of :mod:`sarship.service.tiles` (XYZ tile (z, x, y) is COG tile (y, x) of level Z - z);
 - overviews are **max-pooled** (2 x 2 maximum, cascaded): a ship of a few pixels would vanish
   from a nearest-neighbour or averaged overview, while the maximum keeps every detected pixel
   visible at every zoom (a mask overview pixel is set iff any full-resolution pixel under it is);
@@ -50,8 +50,8 @@ from typing import Any, BinaryIO, Optional
 
 import numpy as np
 
-from pipeline import __version__
-from service.cache import build_once
+from sarship.pipeline import __version__
+from sarship.service.cache import build_once
 
 #: Tile side of every level (and of the XYZ tiles, so that the two pyramids coincide).
 TILE = 256

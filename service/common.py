@@ -6,8 +6,8 @@ from __future__ import annotations
 from fastapi import Request
 from fastapi.responses import JSONResponse
 
-from service.settings import Settings
-from service.store import JobStore, iso
+from sarship.service.settings import Settings
+from sarship.service.store import JobStore, iso
 
 
 class Problem(Exception):

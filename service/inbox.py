@@ -34,11 +34,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from service.inbox_files import (Signature, list_passes, marker, move_into, quarantine_target, scene_key,
+from sarship.service.inbox_files import (Signature, list_passes, marker, move_into, quarantine_target, scene_key,
                                  settled, sha256_of, signature, write_reason)
-from service.inbox_store import InboxStore
-from service.settings import DEFAULT_INBOX_INTERVAL_S, Settings
-from service.store import JobStore, iso
+from sarship.service.inbox_store import InboxStore
+from sarship.service.settings import DEFAULT_INBOX_INTERVAL_S, Settings
+from sarship.service.store import JobStore, iso
 
 log = logging.getLogger("sarship.inbox")
 
@@ -284,7 +284,7 @@ class Inbox:
 
     def status(self, limit: int = 100) -> dict[str, Any]:
         """The ``GET /ingest`` document (from the store: the same in every API process)."""
-        from service.inbox_store import pass_doc
+        from sarship.service.inbox_store import pass_doc
 
         st = self.db.state()
         counts = self.db.counts()

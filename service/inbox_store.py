@@ -23,8 +23,8 @@ import json
 import time
 from typing import Any, Callable, Optional
 
-from service.inbox_files import Signature
-from service.store import INGEST, JobStore, active_ingest, insert_job, iso
+from sarship.service.inbox_files import Signature
+from sarship.service.store import INGEST, JobStore, active_ingest, insert_job, iso
 
 STATUSES = ("waiting", "ingesting", "ingested", "submitted", "duplicate", "quarantined", "failed")
 #: Passes that hold their scene key (a new file of the same content is a duplicate of them).

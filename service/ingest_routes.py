@@ -9,9 +9,9 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
-from service.common import Problem, settings_of, store_of
-from service.inbox import Inbox
-from service.inbox_store import STATUSES
+from sarship.service.common import Problem, settings_of, store_of
+from sarship.service.inbox import Inbox
+from sarship.service.inbox_store import STATUSES
 
 router = APIRouter()
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from pipeline import __version__
+from sarship.pipeline import __version__
 
 
 class _JobCounts:
@@ -62,7 +62,7 @@ class Metrics:
 
     def watch_store(self, store) -> None:
         """Report the job counts and the inbox figures of the shared store."""
-        from service.inbox_store import InboxStore
+        from sarship.service.inbox_store import InboxStore
 
         self.registry.register(_JobCounts(store))
         self.registry.register(_InboxFigures(InboxStore(store)))

@@ -3,7 +3,7 @@
 Anything that can stop the service because of what the operator gave it (a data folder that
 cannot be created or written, a job store that is not a SQLite database, a port already in
 use or an address that does not resolve, an unreachable Dask scheduler, GPUs that are not
-there) is found here and raised as one :class:`~pipeline.errors.InputError` naming the
+there) is found here and raised as one :class:`~sarship.pipeline.errors.InputError` naming the
 setting, so that ``sarship serve`` exits 2 with one line (CONTRACT.md "Command line") instead of a traceback from
 inside the ASGI server's start-up. The application's own start-up (``service.app``) then
 repeats the same steps, which cannot fail for these reasons any more.
@@ -17,8 +17,8 @@ import sqlite3
 import tempfile
 from pathlib import Path
 
-from pipeline.errors import InputError
-from service.settings import Settings
+from sarship.pipeline.errors import InputError
+from sarship.service.settings import Settings
 
 
 def check_folder(path: Path, what: str) -> None:
@@ -37,7 +37,7 @@ def check_folder(path: Path, what: str) -> None:
 def check_store(path: Path) -> None:
     """Open (or create) the job store and its tables; a file that is not a SQLite database, or
     one that is locked or read-only, is refused."""
-    from service.store import JobStore
+    from sarship.service.store import JobStore
 
     try:
         JobStore(path)
@@ -64,7 +64,7 @@ def check_listen(host: str, port: int) -> None:
 
 def check_scheduler(address: str) -> None:
     """Connect to the Dask scheduler once (10 s at most)."""
-    from workers.cluster import connect
+    from sarship.workers.cluster import connect
 
     with connect(address, echo=False):
         pass

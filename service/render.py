@@ -1,10 +1,10 @@
 """Scene quicklooks of a finished job: the intensity in dB, grey-stretched with one range per job.
 
-Every picture of a job (the preview PNG, every XYZ tile of :mod:`service.tiles`) uses the same
+Every picture of a job (the preview PNG, every XYZ tile of :mod:`sarship.service.tiles`) uses the same
 2-98 % dB stretch, computed once from a decimated read of the scene and cached in the job
 folder, so neighbouring tiles and the preview match. The band is the one the job's detector
 read when that was a single channel (``run.json`` ``channel``), else
-:func:`pipeline.inputs.intensity_source`'s choice (``intensity``, else ``|hh|^2`` ... for complex
+:func:`sarship.pipeline.inputs.intensity_source`'s choice (``intensity``, else ``|hh|^2`` ... for complex
 and quad-pol scenes, else ``c11`` for covariance scenes).
 
 Reads are strided (``zarr`` slicing with a step), so a decimated picture of a 25000-pixel scene
@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from service.cache import build_once
+from sarship.service.cache import build_once
 
 #: Longest side of the cached decimated grey image that serves the coarse zooms (and gives the
 #: stretch): 2048 px = 4 MiB of uint8 at most, ~4 M samples for the percentiles.
@@ -48,8 +48,8 @@ def job_run(job_dir: Path) -> dict:
 
 def scene_source(job_dir: Path) -> Source:
     """The scene band a job's quicklooks show (see the module doc)."""
-    from pipeline.inputs import intensity_source
-    from pipeline.scene import open_scene
+    from sarship.pipeline.inputs import intensity_source
+    from sarship.pipeline.scene import open_scene
 
     run = job_run(job_dir)
     scene = open_scene(run["scene"]["path"])
@@ -185,7 +185,7 @@ def preview_png(job_dir: Path, size: int) -> Path:
     import zarr
     from PIL import Image, ImageDraw
 
-    from service.cog import maxpool
+    from sarship.service.cog import maxpool
 
     def build(tmp: Path) -> None:
         meta = job_stretch(job_dir)

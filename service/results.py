@@ -2,7 +2,7 @@
 Zarr with ``?f=zarr``), the run metrics with scores, the STAC item, the quicklook and XYZ tiles.
 
 Every product is derived from the job's immutable outputs, made once and cached in the job
-folder (:mod:`service.cache`); responses of products carry an ``ETag`` (job ID and finished
+folder (:mod:`sarship.service.cache`); responses of products carry an ``ETag`` (job ID and finished
 time) and ``Cache-Control: immutable`` (``private`` when reads need a token).
 """
 
@@ -15,9 +15,9 @@ from typing import Iterator, Optional
 from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 
-from service.common import Problem, base_url, finished, results_doc, settings_of
-from service.openapi import Results, media
-from service.store import iso
+from sarship.service.common import Problem, base_url, finished, results_doc, settings_of
+from sarship.service.openapi import Results, media
+from sarship.service.store import iso
 
 router = APIRouter()
 
@@ -55,7 +55,7 @@ def _not_modified(request: Request, headers: dict) -> Optional[Response]:
 @contextlib.contextmanager
 def _scene_readable(job_id: str) -> Iterator[None]:
     """Quicklooks read the job's scene: one removed since the job ran is a 404 problem, not a 500."""
-    from pipeline.errors import InputError
+    from sarship.pipeline.errors import InputError
 
     try:
         yield
@@ -84,7 +84,7 @@ def detections_out(request: Request, job_id: str):
 @router.get("/jobs/{job_id}/results/metrics")
 def metrics_out(request: Request, job_id: str):
     """run.json, plus ``scores`` (``sarship evaluate``'s) when the scene has ground truth."""
-    from service.scores import job_scores
+    from sarship.service.scores import job_scores
 
     finished(request, job_id)
     d = _job_dir(request, job_id)
@@ -99,7 +99,7 @@ def metrics_out(request: Request, job_id: str):
 def mask_out(request: Request, job_id: str, f: str = "tif"):
     """The mask as a Cloud-Optimized GeoTIFF (default; ``f=tif|tiff|geotiff|cog``) or, with
     ``f=zarr``, the mask's Zarr v3 store as a zip (``application/zip``)."""
-    from service.cog import mask_cog, mask_zarr_zip
+    from sarship.service.cog import mask_cog, mask_zarr_zip
 
     fmt = MASK_FORMATS.get(f.lower())
     if fmt is None:
@@ -119,8 +119,8 @@ def mask_out(request: Request, job_id: str, f: str = "tif"):
 @router.get("/jobs/{job_id}/results/stac",
             responses=media("application/geo+json", "the job's STAC 1.0.0 Item", schema={"type": "object"}))
 def stac_out(request: Request, job_id: str):
-    """The job's STAC Item (application/geo+json), see :mod:`service.stac`."""
-    from service.stac import stac_item
+    """The job's STAC Item (application/geo+json), see :mod:`sarship.service.stac`."""
+    from sarship.service.stac import stac_item
 
     job = finished(request, job_id)
     d = _job_dir(request, job_id)
@@ -131,7 +131,7 @@ def stac_out(request: Request, job_id: str):
 
 @router.get("/jobs/{job_id}/preview.png", responses=_PNG_DOC)
 def preview(request: Request, job_id: str, size: int = 1024):
-    from service.render import preview_png
+    from sarship.service.render import preview_png
 
     if not 64 <= size <= 4096:
         raise Problem(400, "invalid request", f"'size' must be in 64..4096, got {size}")
@@ -152,8 +152,8 @@ def _shape(request: Request, job_id: str) -> tuple[int, int]:
 
 @router.get("/jobs/{job_id}/tiles.json")
 def tiles_json(request: Request, job_id: str):
-    """TileJSON 3.0.0 of the job's XYZ quicklook tiles (see :mod:`service.tiles`)."""
-    from service.tiles import tilejson
+    """TileJSON 3.0.0 of the job's XYZ quicklook tiles (see :mod:`sarship.service.tiles`)."""
+    from sarship.service.tiles import tilejson
 
     finished(request, job_id)
     return tilejson(base_url(request), job_id, _shape(request, job_id))
@@ -163,7 +163,7 @@ def tiles_json(request: Request, job_id: str):
 def tile(request: Request, job_id: str, z: int, x: int, y: int, layers: Optional[str] = None):
     """XYZ tile (z, x, y) of the job's quicklook: 256 x 256 RGBA PNG, ``layers`` a comma list of
     ``scene``, ``mask`` (default both)."""
-    from service.tiles import cached_tile, max_zoom, parse_layers, tile_counts
+    from sarship.service.tiles import cached_tile, max_zoom, parse_layers, tile_counts
 
     try:
         lay = parse_layers(layers)

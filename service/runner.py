@@ -1,5 +1,5 @@
 """Job runner: threads of one API process that claim jobs from the store and run them on the
-Dask cluster with :func:`workers.run.run_detection` (outputs in ``DATA/jobs/ID``).
+Dask cluster with :func:`sarship.workers.jobs.run_detection` (outputs in ``DATA/jobs/ID``).
 
 Each running job holds a lease in the store, renewed by a heartbeat and at every finished
 tile (which also records ``progress``); if the job is dismissed meanwhile, the next tile
@@ -20,9 +20,9 @@ import uuid
 from pathlib import Path
 from typing import Any, Optional
 
-from pipeline.errors import InputError
-from service.settings import Settings
-from service.store import INGEST, JobStore
+from sarship.pipeline.errors import InputError
+from sarship.service.settings import Settings
+from sarship.service.store import INGEST, JobStore
 
 log = logging.getLogger("sarship.service")
 
@@ -106,7 +106,7 @@ class Runner:
             self._run(job)
 
     def _run(self, job: dict) -> None:
-        from workers.run import run_detection
+        from sarship.workers.jobs import run_detection
 
         job_id = job["id"]
         with self._lock:
@@ -158,10 +158,10 @@ class Runner:
     def _ingest(self, job: dict) -> None:
         """A scene file (an upload, input ``upload``, or an inbox pass, input ``path``) to the
         scene store ``DATA/scenes/ID.zarr`` (written aside and renamed into place by
-        :func:`pipeline.readers.ingest`'s atomic store). A failure caused by the file itself
+        :func:`sarship.pipeline.readers.ingest`'s atomic store). A failure caused by the file itself
         (the reader's :class:`InputError`) records ``{"bad_input": true}`` as the job's result,
         so that the inbox quarantines the file; other failures do not."""
-        from pipeline.readers import ingest
+        from sarship.pipeline.readers import ingest
 
         job_id, inputs = job["id"], job["inputs"]
 

@@ -10,9 +10,9 @@ from typing import Optional
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
-from service.common import Problem, base_url, settings_of, store_of
-from service.inbox_files import scene_key
-from service.settings import Settings
+from sarship.service.common import Problem, base_url, settings_of, store_of
+from sarship.service.inbox_files import scene_key
+from sarship.service.settings import Settings
 
 router = APIRouter()
 
@@ -89,7 +89,7 @@ async def upload(request: Request, filename: Optional[str] = None):
 
 
 def scene_doc(settings: Settings, scene_id: str, b: str) -> Optional[dict]:
-    from pipeline.scene import open_scene
+    from sarship.pipeline.scene import open_scene
 
     p = settings.scenes_dir / f"{scene_id}.zarr"
     if not p.is_dir():

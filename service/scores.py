@@ -3,7 +3,7 @@
 The truth convention is ``sarship simulate``'s: a GeoJSON beside the store named
 ``<scene path>.truth.geojson`` (the simulator also records that file's name in the scene's
 ``truth`` attribute, which is honoured when it names a file beside the store). The scores are
-:func:`pipeline.scoring.evaluate`'s, exactly what ``sarship evaluate DETECTIONS --truth TRUTH``
+:func:`sarship.pipeline.scoring.evaluate`'s, exactly what ``sarship evaluate DETECTIONS --truth TRUTH``
 prints with ``--json`` (n_truth, n_hit, pd, precision, fom, f1, ...), computed once and cached in
 the job folder (``scores.json``, written atomically).
 """
@@ -15,7 +15,7 @@ import logging
 from pathlib import Path
 from typing import Optional
 
-from service.cache import build_once
+from sarship.service.cache import build_once
 
 log = logging.getLogger("sarship.service")
 
@@ -40,8 +40,8 @@ def job_scores(job_dir: Path, run: dict) -> Optional[dict]:
         return None
 
     def build(tmp: Path) -> None:
-        from pipeline.errors import InputError
-        from pipeline.scoring import evaluate
+        from sarship.pipeline.errors import InputError
+        from sarship.pipeline.scoring import evaluate
 
         try:
             scores = evaluate(job_dir / "detections.geojson", truth, mask_path=job_dir / "mask.zarr")

@@ -34,9 +34,9 @@ def parse_inbox_detectors(value: Any) -> list[dict[str, Any]]:
     (``device``/``channel`` allowed besides the parameters), a JSON list of names, or a comma
     list of names (``os_cfar,ca_cfar``: the detectors' defaults). Raises ``ValueError`` naming
     the entry and the bad key."""
-    from pipeline import detectors
-    from pipeline.errors import InputError
-    from workers.run import parse_settings
+    from sarship.pipeline import detectors
+    from sarship.pipeline.errors import InputError
+    from sarship.workers.jobs import parse_settings
 
     if value is None:
         return []
@@ -189,7 +189,7 @@ class Settings(BaseSettings):
         the number of single-threaded CPU workers. Raises ``InputError`` for GPUs not visible."""
         import os
 
-        from workers.gpus import parse_gpus
+        from sarship.workers.gpus import parse_gpus
 
         gpu_ids = parse_gpus(self.gpus)
         cores = os.cpu_count() or 1

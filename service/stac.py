@@ -2,7 +2,7 @@
 
 - ``id`` is the job ID; ``geometry`` and ``bbox`` are the scene footprint in WGS84 lon/lat
   (its border, sampled along each edge, through the scene's ``transform`` + ``crs`` or ``gcps``
-  with :class:`pipeline.detections.Georeference`, pyproj for projected CRSs); a scene without
+  with :class:`sarship.pipeline.ship_features.Georeference`, pyproj for projected CRSs); a scene without
   georeference has a null geometry and no bbox, as the Item spec allows.
 - ``properties.datetime`` is the scene's ``acquired`` time when the scene knows it (RFC 3339,
   UTC when the attribute has no zone), else the job's finished time; ``created`` is always the
@@ -35,7 +35,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Optional
 
-from pipeline import __version__
+from sarship.pipeline import __version__
 
 STAC_VERSION = "1.0.0"
 SAR_EXT = "https://stac-extensions.github.io/sar/v1.1.0/schema.json"
@@ -69,7 +69,7 @@ def rfc3339(value: Any) -> Optional[str]:
 
 def footprint(attrs: dict, shape: tuple[int, int], n: int = 16) -> tuple[Optional[dict], Optional[list]]:
     """``(geometry, bbox)`` of the scene border in WGS84, or ``(None, None)`` without georeference."""
-    from pipeline.detections import Georeference
+    from sarship.pipeline.ship_features import Georeference
 
     geo = {k: attrs[k] for k in ("crs", "transform", "gcps") if k in attrs}
     if not geo:
@@ -150,7 +150,7 @@ def _epsg_code(crs: Any) -> Optional[str]:
 
 def stac_item(job: dict, run: dict, base: str, scenes_dir: Path, finished: Optional[str]) -> dict:
     """The STAC Item of a finished job (see the module doc). ``run``: the job's run.json."""
-    from pipeline.scene import open_scene
+    from sarship.pipeline.scene import open_scene
 
     jid = job["id"]
     u = f"{base}/jobs/{jid}"

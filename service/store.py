@@ -6,11 +6,11 @@ IMMEDIATE`` transaction, so two processes never run the same job at once; a runn
 its lease while the job runs. A job whose lease has expired (its runner died, even by
 ``kill -9``) is claimable again and re-run from scratch in the same row (``attempts`` counts
 the runs): it stays exactly once in the job list. Outputs are written by
-:func:`workers.run.run_detection` to a temporary folder and renamed into place when
+:func:`sarship.workers.jobs.run_detection` to a temporary folder and renamed into place when
 complete, so a re-run never sees half-written outputs.
 
 The scheduled ingest keeps its pass records and its loop lease in the same file (tables
-``inbox_passes`` and ``inbox_state``, :mod:`service.inbox_store`), so that a pass and the
+``inbox_passes`` and ``inbox_state``, :mod:`sarship.service.inbox_store`), so that a pass and the
 jobs it creates are written in one transaction.
 """
 

@@ -9,7 +9,7 @@ grid instead of Web Mercator:
   scene pixel; at zoom z a tile covers ``256 * 2^(Z - z)`` scene pixels a side;
 - tile (z, x, y) covers scene rows ``y*s .. (y+1)*s`` and columns ``x*s .. (x+1)*s``
   (``s = 256 * 2^(Z - z)``); it exists when ``0 <= z <= Z`` and its top-left is in the scene;
-- a tile is a 256 x 256 RGBA PNG: the scene in dB, grey (:mod:`service.render`'s one stretch per
+- a tile is a 256 x 256 RGBA PNG: the scene in dB, grey (:mod:`sarship.service.render`'s one stretch per
   job), detected pixels red; outside the scene transparent.
 
 Reads are bounded by the tile: the grey of tile pixel (i, j) is the scene pixel
@@ -18,7 +18,7 @@ decimated grey base when f is a multiple of its step (the coarse zooms, where a 
 would decompress the whole scene) and else straight from the scene's Zarr window (fine zooms:
 at most ``256 f`` pixels a side). The mask is max-pooled (a tile pixel is red when any mask
 pixel under it is set, so ships stay visible at every zoom): it is exactly one tile of the
-job's COG (:mod:`service.cog`), whose overview k is the mask max-pooled by 2^k on the same
+job's COG (:mod:`sarship.service.cog`), whose overview k is the mask max-pooled by 2^k on the same
 256-pixel grid, so the deepest zoom reads one full-resolution tile and zoom 0 one overview tile.
 
 Rendered PNGs are kept in an in-memory LRU (:data:`CACHE_TILES` tiles, a few tens of MiB):
@@ -38,8 +38,8 @@ from typing import Optional
 
 import numpy as np
 
-from service.cog import TILE, cog_tile, mask_cog
-from service.render import grey_base, job_stretch, source_of, strided_reader, stretch, to_db
+from sarship.service.cog import TILE, cog_tile, mask_cog
+from sarship.service.render import grey_base, job_stretch, source_of, strided_reader, stretch, to_db
 
 LAYERS = ("scene", "mask")
 MASK_RGBA = (255, 40, 40, 255)

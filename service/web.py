@@ -23,7 +23,7 @@ from fastapi.responses import RedirectResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.staticfiles import StaticFiles
 
-from service.common import Problem
+from sarship.service.common import Problem
 
 #: The page's files (installed with the package: pyproject ``[tool.setuptools.package-data]``).
 STATIC = Path(__file__).with_name("static")

@@ -28,7 +28,7 @@ def client():
 
 def write_scene(path, arrays: dict, tile: int = 256, **attrs):
     """Write arrays into a scene store with the project's own store code."""
-    from pipeline.scene import create_scene, finalize_scene
+    from sarship.pipeline.scene import create_scene, finalize_scene
 
     shape = next(iter(arrays.values())).shape
     g = create_scene(path, shape, {k: v.dtype for k, v in arrays.items()}, tile=tile,

@@ -44,7 +44,7 @@ class Server:
 
     def start(self, timeout: float = 120.0) -> "Server":
         self.log = open(self.data.parent / f"server-{self.port}-{time.time_ns()}.log", "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "workers.cli", "serve", "--data", str(self.data),
+        self.proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(self.data),
                                       "--port", str(self.port)], stdout=self.log, stderr=subprocess.STDOUT,
                                      env=self.env, start_new_session=True)
         t_end = time.time() + timeout

@@ -11,15 +11,15 @@ import pytest
 import zarr
 from scipy import special
 
-from pipeline import detectors
-from pipeline.detectors import apwf
-from pipeline.errors import InputError
-from pipeline.inputs import polarimetric_source
-from pipeline.scene import open_scene
-from pipeline.simulate import SimConfig, sea_covariance, simulate
-from pipeline.windows import mirror_pad, padded_block
+from sarship.pipeline import detectors
+from sarship.pipeline.detectors import apwf
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.inputs import polarimetric_source
+from sarship.pipeline.scene import open_scene
+from sarship.pipeline.simulate import SimConfig, sea_covariance, simulate
+from sarship.pipeline.windows import mirror_pad, padded_block
 from tests.conftest import write_scene
-from workers.run import run_detection
+from sarship.workers.jobs import run_detection
 
 
 def _cn(rng, shape):
@@ -223,7 +223,7 @@ def test_detects_simulated_quadpol_ships(tmp_path, client):
     scene = tmp_path / "q.zarr"
     truth = tmp_path / "q.truth.geojson"
     simulate(scene, cfg, tile=1024, truth_path=truth)
-    from pipeline.scoring import evaluate
+    from sarship.pipeline.scoring import evaluate
 
     run_detection(scene, "apwf", {"pfa": "1e-6"}, out_dir=tmp_path / "o", client=client, progress=False)
     s = evaluate(tmp_path / "o" / "detections.geojson", truth)

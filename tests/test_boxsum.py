@@ -14,10 +14,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline import boxsum
-from pipeline.boxsum import centered_box_sum
-from pipeline.detectors import ca_cfar
-from pipeline.windows import mirror_pad
+from sarship.pipeline import boxsum
+from sarship.pipeline.boxsum import centered_box_sum
+from sarship.pipeline.detectors import ca_cfar
+from sarship.pipeline.windows import mirror_pad
 
 
 def _vh_ref(a: np.ndarray, m: int, g0: int, zero_start: bool) -> np.ndarray:

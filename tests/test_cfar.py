@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from pipeline.detectors import ca_cfar, two_parameter
-from pipeline.windows import mirror_pad
+from sarship.pipeline.detectors import ca_cfar, two_parameter
+from sarship.pipeline.windows import mirror_pad
 
 M_SIDE = 2048
 

@@ -18,7 +18,7 @@ ENV.pop("SARSHIP_DEBUG", None)
 
 
 def sarship(*args, cwd=None, timeout=240):
-    return subprocess.run([sys.executable, "-m", "workers.cli", *map(str, args)], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "sarship", *map(str, args)], capture_output=True,
                           text=True, cwd=cwd, env=ENV, timeout=timeout)
 
 

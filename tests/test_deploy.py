@@ -41,7 +41,7 @@ def _sarship_argv(svc: dict) -> list[str] | None:
 
 
 def test_compose_commands_parse_with_the_cli():
-    from workers.cli import build_parser
+    from sarship.cli import build_parser
 
     services = _compose()["services"]
     for name, svc in services.items():
@@ -76,7 +76,7 @@ def test_compose_shares_one_data_volume_and_builds_existing_dockerfiles():
 
 
 def test_systemd_units_parse_with_the_cli():
-    from workers.cli import build_parser
+    from sarship.cli import build_parser
 
     env = {}
     for line in (DEPLOY / "systemd" / "sarship.env").read_text().splitlines():
@@ -114,7 +114,7 @@ def test_compose_topology_as_processes(tmp_path):
     srv = None
     try:
         time.sleep(2)
-        procs.append(subprocess.Popen([sys.executable, "-m", "workers.cli", "worker", "--scheduler", addr,
+        procs.append(subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler", addr,
                                        "--gpus", "none", "--cpus", "1", "--name", "box"],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
         srv = Server(data, free_port(), SARSHIP_SCHEDULER=addr).start()
@@ -144,7 +144,7 @@ def test_compose_api_environment_is_valid_settings(tmp_path, monkeypatch):
     validates as service settings; the inbox folder is the container's mount point, made here."""
     import re
 
-    from service.settings import Settings
+    from sarship.service.settings import Settings
 
     env = _compose()["services"]["api"]["environment"]
     inbox = tmp_path / "inbox"

@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.scoring import evaluate, match
-from pipeline.simulate import SimConfig, simulate
-from pipeline.truth import load_detections, load_ships
+from sarship.pipeline.scoring import evaluate, match
+from sarship.pipeline.simulate import SimConfig, simulate
+from sarship.pipeline.truth import load_detections, load_ships
 from tests.conftest import write_scene
-from workers.run import run_detection
+from sarship.workers.jobs import run_detection
 
 SENSIBLE = {
     "ca_cfar": {"pfa": "1e-6", "min_area_px": "2", "merge_px": "5"},

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from pyproj import Transformer
 
-from pipeline.components import MOMENT_DTYPE
-from pipeline.detections import Georeference, features
+from sarship.pipeline.components import MOMENT_DTYPE
+from sarship.pipeline.ship_features import Georeference, features
 
 
 def _record(r0, c0, r1, c1):

@@ -20,8 +20,8 @@ import time
 import numpy as np
 import pytest
 
-from pipeline import detectors
-from pipeline.gpu import available
+from sarship.pipeline import detectors
+from sarship.pipeline.gpu import available
 
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
@@ -58,9 +58,9 @@ def _run_both(name, block, halo, origin, **kw):
 @pytest.mark.parametrize("m,halo,origin", [(3, 1, (0, 0)), (41, 20, (-20, -20)), (81, 40, (1234, 567)),
                                            (61, 45, (-7, 999)), (5, 2, (13, 4))])
 def test_box_sum_bit_identical(cp, dtype, m, halo, origin, hsum, monkeypatch):
-    from pipeline.boxsum import centered_box_sum as cpu
-    from pipeline.gpu import box
-    from pipeline.gpu.box import centered_box_sum as gpu
+    from sarship.pipeline.boxsum import centered_box_sum as cpu
+    from sarship.pipeline.gpu import box
+    from sarship.pipeline.gpu.box import centered_box_sum as gpu
 
     monkeypatch.setattr(box, "HSUM", hsum)
     rng = np.random.default_rng(m)
@@ -111,7 +111,7 @@ def test_two_parameter_matches_cpu(cp, domain):
 
 
 def _quadpol(shape, p=3, seed=2):
-    from pipeline.simulate import SimConfig, simulate_array
+    from sarship.pipeline.simulate import SimConfig, simulate_array
 
     cfg = SimConfig(kind="quadpol", shape=shape, ships=6, seed=seed, clutter="rayleigh", scr_db=10.0)
     arrs, _ = simulate_array(cfg)
@@ -150,7 +150,7 @@ def test_apwf_covariance_input_matches_cpu(cp):
 @pytest.mark.parametrize("p", [2, 3])
 @pytest.mark.parametrize("lw", [1, 3])
 def test_pcdm_span_psh_matches_cpu(cp, p, lw):
-    from pipeline.detectors.pcdm import span_psh
+    from sarship.pipeline.detectors.pcdm import span_psh
 
     prm = detectors.get("pcdm").params(looks_window=lw)
     halo = 1 + lw // 2
@@ -181,7 +181,7 @@ def test_pcdm_scene_pass_and_detect_match_cpu(cp):
 
 
 def _scene(tmp_path, name="s.zarr", shape=(1536, 1280), tile=512):
-    from pipeline.simulate import SimConfig, simulate
+    from sarship.pipeline.simulate import SimConfig, simulate
 
     cfg = SimConfig(kind="intensity", shape=shape, ships=10, seed=8, clutter="gamma", looks=1)
     simulate(tmp_path / name, cfg, tile=tile, truth_path=tmp_path / f"{name}.truth.geojson")
@@ -189,7 +189,7 @@ def _scene(tmp_path, name="s.zarr", shape=(1536, 1280), tile=512):
 
 
 def test_local_gpu_cluster_equals_cpu_run(tmp_path):
-    from workers.run import run_detection
+    from sarship.workers.jobs import run_detection
 
     scene = _scene(tmp_path)
     g = run_detection(scene, "ca_cfar", out_dir=tmp_path / "g", device="gpu", progress=False)
@@ -213,8 +213,8 @@ def test_mixed_cluster_routes_each_tile(tmp_path):
 
     from distributed import Client, Scheduler, SpecCluster
 
-    from workers.gpus import visible_gpus, worker_specs
-    from workers.run import run_detection
+    from sarship.workers.gpus import visible_gpus, worker_specs
+    from sarship.workers.jobs import run_detection
 
     scene = _scene(tmp_path)
     specs = worker_specs(visible_gpus()[:1], 1, prefix="mix-", silence_logs=logging.ERROR)
@@ -250,13 +250,13 @@ def test_sarship_worker_processes_with_dask_scheduler(tmp_path):
     work = None
     try:
         time.sleep(3)
-        work = subprocess.Popen([sys.executable, "-m", "workers.cli", "worker", "--scheduler",
+        work = subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler",
                                  f"tcp://127.0.0.1:{port}", "--gpus", "all", "--cpus", "1", "--name", "w"],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
         from distributed import Client
 
         with Client(f"tcp://127.0.0.1:{port}", timeout="30s") as client:
-            from workers.gpus import visible_gpus
+            from sarship.workers.gpus import visible_gpus
 
             try:
                 client.wait_for_workers(len(visible_gpus()) + 1, timeout=90)
@@ -266,7 +266,7 @@ def test_sarship_worker_processes_with_dask_scheduler(tmp_path):
             info = client.scheduler_info(n_workers=-1)["workers"]
             res = sorted((w["name"], tuple(sorted(w["resources"].items()))) for w in info.values())
             assert ("w-cpu0", (("CPU", 1.0),)) in res or ("w-cpu0", (("CPU", 1),)) in res
-        out = subprocess.run([sys.executable, "-m", "workers.cli", "detect", str(scene), "--detector", "ca_cfar",
+        out = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
                               "--out", str(tmp_path / "o"), "--scheduler", f"tcp://127.0.0.1:{port}",
                               "--device", "gpu"], capture_output=True, text=True, env=env, timeout=300)
         assert out.returncode == 0, out.stderr
@@ -336,7 +336,7 @@ def _lmm_scene(n, seed=12):
     ("grid", 120, {"guard": 11, "background": 31, "components": 2}),
 ])
 def test_lmm_matches_cpu(cp, method, n, kw):
-    from pipeline.windows import mirror_pad
+    from sarship.pipeline.windows import mirror_pad
 
     spec = detectors.get("lmm")
     p = spec.params(method=method, pfa=1e-3, **kw)
@@ -363,7 +363,7 @@ def test_service_local_cluster_has_gpu_workers(tmp_path):
     import zarr
     from svc import Server, data_with_scene, free_port, wait_job
 
-    from workers.gpus import visible_gpus
+    from sarship.workers.gpus import visible_gpus
 
     data = data_with_scene(tmp_path, shape=(700, 600), tile=256)
     gpus = visible_gpus()  # NVML: no CUDA context in this process

@@ -23,8 +23,8 @@ httpx = pytest.importorskip("httpx")
 from conftest import blobs_scene  # noqa: E402
 from svc import Server, check_problem, free_port, wait_job  # noqa: E402
 
-from service.inbox import Schedule  # noqa: E402
-from service.inbox_files import (Signature, list_passes, marker, move_into, quarantine_target,  # noqa: E402
+from sarship.service.inbox import Schedule  # noqa: E402
+from sarship.service.inbox_files import (Signature, list_passes, marker, move_into, quarantine_target,  # noqa: E402
                                  scene_key, settled, sha256_of, signature, write_reason)
 
 DETECTOR = [{"detector": "os_cfar", "guard": 11, "background": 31}]
@@ -145,7 +145,7 @@ def test_signature_and_quarantine_moves(tmp_path):
 def test_inbox_settings_are_validated(tmp_path, monkeypatch):
     from pydantic import ValidationError
 
-    from service.settings import Settings
+    from sarship.service.settings import Settings
 
     for k in list(os.environ):
         if k.startswith("SARSHIP_"):
@@ -198,7 +198,7 @@ def test_serve_exits_2_on_bad_inbox_settings(tmp_path):
              "detector": ({"SARSHIP_INBOX_DETECTORS": "os_cfar,nope"}, "nope"),
              "parameter": ({"SARSHIP_INBOX_DETECTORS": '[{"detector": "os_cfar", "pfa": 2}]'}, "'pfa'")}
     env = {k: v for k, v in os.environ.items() if not k.startswith("SARSHIP_")}
-    procs = {name: subprocess.Popen([sys.executable, "-m", "workers.cli", "serve", "--data", str(tmp_path / "d"),
+    procs = {name: subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(tmp_path / "d"),
                                      "--port", str(free_port()), "--inbox", str(inbox)],
                                     env={**env, **extra}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for name, (extra, _) in cases.items()}
@@ -216,8 +216,8 @@ def test_serve_exits_2_on_bad_inbox_settings(tmp_path):
 def test_pass_records_change_once(tmp_path):
     """The store's transitions are compare-and-set: taking a pass, marking it and submitting
     its jobs happen once however often (or by however many loops) they are attempted."""
-    from service.inbox_store import InboxStore
-    from service.store import JobStore
+    from sarship.service.inbox_store import InboxStore
+    from sarship.service.store import JobStore
 
     jobs = JobStore(tmp_path / "jobs.sqlite")
     db = InboxStore(jobs)
@@ -250,7 +250,7 @@ def test_pass_records_change_once(tmp_path):
 def test_scene_lookups_use_the_ingest_indexes(tmp_path):
     """GET /scenes and GET /scenes/{id} find ingest jobs through indexes, not by reading the
     job table (which holds every detection job too)."""
-    from service.store import JobStore
+    from sarship.service.store import JobStore
 
     jobs = JobStore(tmp_path / "jobs.sqlite")
     for k in range(50):
@@ -359,7 +359,7 @@ def test_bad_files_are_quarantined_and_the_loop_goes_on(server):
 def test_a_zarr_scene_folder_is_one_pass(server, tmp_path):
     from conftest import write_scene
 
-    from pipeline.scene import open_scene
+    from sarship.pipeline.scene import open_scene
 
     z = write_scene(tmp_path / "pass.zarr", {"intensity": blobs_scene((180, 170), looks=2.0, seed=15)}, tile=64,
                     looks=2.0)
@@ -480,6 +480,6 @@ def test_two_processes_one_store_kill_9_and_restart(tmp_path):
 
 
 def _iso(t: float) -> str:
-    from service.store import iso
+    from sarship.service.store import iso
 
     return iso(t)

@@ -16,9 +16,9 @@ import tifffile
 import zarr
 from PIL import Image
 
-from pipeline.errors import InputError
-from pipeline.readers import GREY_TOLERANCE_DN, ingest
-from pipeline.scene import open_scene
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.readers import GREY_TOLERANCE_DN, ingest
+from sarship.pipeline.scene import open_scene
 
 REPO = Path(__file__).resolve().parents[1]
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
@@ -527,9 +527,9 @@ _RSS_SCRIPT = textwrap.dedent(
     """
     import json, resource, sys
     import numpy, zarr, tifffile, scipy.special, scipy.optimize, PIL.Image  # preload libraries
-    import pipeline.readers, pipeline.looks
+    import sarship.pipeline.readers, sarship.pipeline.looks
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    sc = pipeline.readers.ingest([sys.argv[1]], sys.argv[2], tile=1024)
+    sc = sarship.pipeline.readers.ingest([sys.argv[1]], sys.argv[2], tile=1024)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(json.dumps({"growth_mb": (peak - base) / 1024.0, "shape": list(sc.shape), "looks": sc.looks}))
     """

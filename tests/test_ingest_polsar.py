@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.readers import C3_BASIS, PAULI_U, ingest, t3_to_c3
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.readers import C3_BASIS, PAULI_U, ingest, t3_to_c3
 
 REAL_POLSAR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "polsar"
 
@@ -350,7 +350,7 @@ def test_failure_keeps_existing_scene(tmp_path):
     (bad / "C33.bin").write_bytes(b"\0" * 10)
     with pytest.raises(InputError, match="C33.bin"):
         ingest([bad], out, tile=32)
-    from pipeline.scene import open_scene
+    from sarship.pipeline.scene import open_scene
     np.testing.assert_array_equal(stored(open_scene(out), 3), before)
 
 
@@ -358,14 +358,14 @@ def test_cli_ingest_folder(tmp_path):
     C, _ = looked((16, 24), seed=12)
     d = write_folder(tmp_path / "C3", C)
     env = dict(os.environ)
-    r = subprocess.run([sys.executable, "-m", "workers.cli", "ingest", str(d), "--out", str(tmp_path / "c.zarr")],
+    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(d), "--out", str(tmp_path / "c.zarr")],
                        capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[1])
     if r.returncode != 0 and "No module named" in r.stderr:
-        pytest.skip(f"workers.cli not runnable as a module: {r.stderr.strip()[:200]}")
+        pytest.skip(f"sarship not runnable as a module: {r.stderr.strip()[:200]}")
     assert r.returncode == 0, r.stderr
     assert "kind=covariance" in r.stdout
     (d / "C11.bin").write_bytes(b"\0" * 8)
-    r = subprocess.run([sys.executable, "-m", "workers.cli", "ingest", str(d), "--out", str(tmp_path / "e.zarr")],
+    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(d), "--out", str(tmp_path / "e.zarr")],
                        capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[1])
     assert r.returncode == 2 and "C11.bin" in r.stderr and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1

@@ -11,11 +11,11 @@ import pytest
 import zarr
 from scipy import optimize, special, stats
 
-from pipeline import detectors
-from pipeline.detectors.lmm import (LMMParams, SPEC, detect, em_fit_points, fit_threshold, init_z_table,
+from sarship.pipeline import detectors
+from sarship.pipeline.detectors.lmm import (LMMParams, SPEC, detect, em_fit_points, fit_threshold, init_z_table,
                                     mixture_grad_hess, mixture_loglik, mixture_threshold_log, ml_newton,
                                     predictive_shift, prepare)
-from pipeline.windows import mirror_pad
+from sarship.pipeline.windows import mirror_pad
 from tests.conftest import blobs_scene, write_scene
 
 
@@ -562,7 +562,7 @@ def test_default_false_alarm_count(name):
 
 
 def test_tiled_equals_untiled_dask(tmp_path, client):
-    from workers.run import run_detection
+    from sarship.workers.jobs import run_detection
 
     x = blobs_scene((301, 257), looks=2.0, seed=1)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=2.0)
@@ -593,9 +593,9 @@ def test_tiled_equals_untiled_dask(tmp_path, client):
 
 
 def test_ships_on_simulated_scene(tmp_path, client):
-    from pipeline.scoring import evaluate
-    from pipeline.simulate import SimConfig, simulate
-    from workers.run import run_detection
+    from sarship.pipeline.scoring import evaluate
+    from sarship.pipeline.simulate import SimConfig, simulate
+    from sarship.workers.jobs import run_detection
 
     cfg = SimConfig(kind="intensity", shape=(768, 768), ships=10, seed=5, looks=4.0, clutter="gamma",
                     scr_db=12.0, length_m=(30.0, 150.0))

@@ -7,8 +7,8 @@ import pytest
 from scipy.optimize import brentq
 from scipy.special import polygamma
 
-from pipeline.errors import InputError
-from pipeline.looks import block_log_variances, estimate_looks
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.looks import block_log_variances, estimate_looks
 
 
 def gamma_clutter(L: float, shape=(512, 512), seed=0, mean=1.0) -> np.ndarray:

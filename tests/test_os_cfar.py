@@ -10,8 +10,8 @@ from numpy.lib.stride_tricks import sliding_window_view
 from pydantic import ValidationError
 from scipy import integrate, special, stats
 
-from pipeline.detectors import os_cfar
-from pipeline.detectors.os_cfar import (
+from sarship.pipeline.detectors import os_cfar
+from sarship.pipeline.detectors.os_cfar import (
     SPEC,
     OSParams,
     default_k,

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline.detectors import pcdm
-from pipeline.scoring import evaluate
-from pipeline.simulate import SimConfig, simulate, simulate_array
-from pipeline.windows import mirror_pad
+from sarship.pipeline.detectors import pcdm
+from sarship.pipeline.scoring import evaluate
+from sarship.pipeline.simulate import SimConfig, simulate, simulate_array
+from sarship.pipeline.windows import mirror_pad
 from tests.conftest import write_scene
-from workers.run import run_detection
+from sarship.workers.jobs import run_detection
 
 
 def test_closed_form_eigenvalues_match_eigvalsh():
@@ -140,7 +140,7 @@ def test_parameters_validated():
 def test_covariance_input_equals_channel_input():
     """A C3 (lexicographic) scene gives the same pcdm and apwf results as its channels:
     pcdm exactly up to float32 storage, apwf for rank-one (single-look) covariances."""
-    from pipeline.detectors import apwf
+    from sarship.pipeline.detectors import apwf
 
     rng = np.random.default_rng(0)
     X = (rng.normal(size=(40, 37, 3)) + 1j * rng.normal(size=(40, 37, 3))).astype(np.complex64)

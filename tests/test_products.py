@@ -17,7 +17,7 @@ import pytest
 tifffile = pytest.importorskip("tifffile")
 from conftest import blobs_scene, write_scene  # noqa: E402
 
-from service import cog, render, stac, tiles  # noqa: E402
+from sarship.service import cog, render, stac, tiles  # noqa: E402
 
 
 def make_job(tmp: Path, scene_arrays: dict, mask: np.ndarray, tile: int = 128, attrs: dict | None = None,

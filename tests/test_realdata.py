@@ -1,7 +1,7 @@
 """Detector scores on real SAR chips (../shared/data/real), with the detectors' DEFAULT parameters.
 
 What is checked, per core detector (``ca_cfar``, ``os_cfar``, ``two_parameter``), each run through
-:func:`workers.run.run_detection` on the session's two-process Dask cluster (``client``):
+:func:`sarship.workers.jobs.run_detection` on the session's two-process Dask cluster (``client``):
 
 - SAR-Ship-Dataset (Wang et al., Remote Sensing 11(7):765, 2019; 12 JPEG chips, 68 VOC boxes) and
   HRSID (Wei et al., IEEE Access 8:120234, 2020; 18 JPEG chips, truth = mask components):
@@ -105,7 +105,7 @@ def _side(p: Path) -> int:
 
 
 def _code_defaults(detector: str) -> dict:
-    from pipeline import detectors
+    from sarship.pipeline import detectors
 
     d = detectors.get(detector).params()
     return {k: getattr(d, k) for k in ("pfa", "guard", "background", "looks", "min_area_px", "merge_px")}
@@ -118,9 +118,9 @@ def _why(detector: str) -> str:
 
 def _detect(client, scene, detector: str, out: Path, **settings):
     """Default-parameter run on one chip (one tile); returns (detections as Ships, mask, run)."""
-    from pipeline.scene import open_scene
-    from pipeline.truth import load_detections, read_mask
-    from workers.run import run_detection
+    from sarship.pipeline.scene import open_scene
+    from sarship.pipeline.truth import load_detections, read_mask
+    from sarship.workers.jobs import run_detection
 
     shape = open_scene(scene).shape
     run = run_detection(scene, detector, settings, out_dir=out, tile=max(shape), client=client, progress=False)
@@ -143,8 +143,8 @@ def centre_hit(ships, shape, radius: float = CENTRE_RADIUS_PX) -> bool:
 
 @pytest.fixture(scope="module")
 def ssdd_scenes(tmp_path_factory):
-    from pipeline.readers import ingest
-    from pipeline.truth import load_voc
+    from sarship.pipeline.readers import ingest
+    from sarship.pipeline.truth import load_voc
 
     _needs(SSDD)
     d = tmp_path_factory.mktemp("ssdd")
@@ -158,8 +158,8 @@ def ssdd_scenes(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def hrsid_scenes(tmp_path_factory):
-    from pipeline.readers import ingest
-    from pipeline.truth import read_mask, ships_from_mask
+    from sarship.pipeline.readers import ingest
+    from sarship.pipeline.truth import read_mask, ships_from_mask
 
     _needs(HRSID)
     d = tmp_path_factory.mktemp("hrsid")
@@ -176,7 +176,7 @@ def hrsid_scenes(tmp_path_factory):
 def grd_scenes(tmp_path_factory):
     import tifffile
 
-    from pipeline.readers import ingest
+    from sarship.pipeline.readers import ingest
 
     _needs(OSS)
     files = sorted(Path(f) for f in glob.glob(str(OSS / "S1A_IW_GRDH_*" / "Patch" / "*.tif")))
@@ -198,7 +198,7 @@ def grd_scenes(tmp_path_factory):
 
 @pytest.mark.parametrize("detector", DETECTORS)
 def test_sar_ship_dataset_scores(client, ssdd_scenes, tmp_path, detector):
-    from pipeline.scoring import aggregate, score
+    from sarship.pipeline.scoring import aggregate, score
 
     per = []
     for i, (name, scene, truth) in enumerate(ssdd_scenes):
@@ -214,7 +214,7 @@ def test_sar_ship_dataset_scores(client, ssdd_scenes, tmp_path, detector):
 
 @pytest.mark.parametrize("detector", DETECTORS)
 def test_hrsid_scores(client, hrsid_scenes, tmp_path, detector):
-    from pipeline.scoring import aggregate, pixel_counts, score
+    from sarship.pipeline.scoring import aggregate, pixel_counts, score
 
     per = []
     for i, (name, scene, truth, tmask) in enumerate(hrsid_scenes):
@@ -275,8 +275,8 @@ def test_opensarship_chip_without_centre_ship():
 
 def test_cli_end_to_end(client, tmp_path):
     """sarship ingest + detect (on the test cluster) + evaluate --json on one chip."""
-    from pipeline.scoring import score
-    from pipeline.truth import load_voc
+    from sarship.pipeline.scoring import score
+    from sarship.pipeline.truth import load_voc
 
     _needs(SSDD)
     jpg = SSDD / "Gao_ship_hh_0201611139301040015.jpg"
@@ -287,7 +287,7 @@ def test_cli_end_to_end(client, tmp_path):
     env = dict(os.environ, PYTHONWARNINGS="ignore")
 
     exe = shutil.which("sarship")
-    cmd = [exe] if exe else [sys.executable, "-m", "workers.cli"]  # the console script, else its module
+    cmd = [exe] if exe else [sys.executable, "-m", "sarship"]  # the console script, else its module
 
     def sarship(*args):
         r = subprocess.run([*cmd, *args], capture_output=True, text=True, env=env, timeout=120)

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 import zarr
 
-from pipeline.readers import ingest
-from workers.run import run_detection
+from sarship.pipeline.readers import ingest
+from sarship.workers.jobs import run_detection
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 pytestmark = [

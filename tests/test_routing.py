@@ -17,9 +17,9 @@ import time
 import pytest
 from conftest import blobs_scene as _blobs, write_scene
 
-from pipeline.errors import InputError
-from workers.gpus import parse_gpus, worker_specs
-from workers.routing import plan
+from sarship.pipeline.errors import InputError
+from sarship.workers.gpus import parse_gpus, worker_specs
+from sarship.workers.routing import plan
 
 GPU_W = {"tcp://a:1": {"resources": {"GPU": 1}}}
 CPU_W = {"tcp://b:1": {"resources": {"CPU": 1}}, "tcp://b:2": {"resources": {"CPU": 1}}}
@@ -82,7 +82,7 @@ def _free_port() -> int:
 
 
 def _cli(*args, timeout=300):
-    return subprocess.run([sys.executable, "-m", "workers.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "sarship", *args], capture_output=True, text=True,
                           timeout=timeout, env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})
 
 
@@ -99,7 +99,7 @@ def test_mixed_cluster_cpu_tiles_avoid_gpu_worker(tmp_path, blobs_scene):
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
     try:
         time.sleep(2)
-        procs.append(subprocess.Popen([sys.executable, "-m", "workers.cli", "worker", "--scheduler", addr,
+        procs.append(subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler", addr,
                                        "--gpus", "none", "--cpus", "2", "--name", "cpuhost"],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
         procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
@@ -131,7 +131,7 @@ def test_mixed_cluster_cpu_tiles_avoid_gpu_worker(tmp_path, blobs_scene):
 
 
 def test_gpu_device_without_gpu_workers_is_refused(tmp_path, blobs_scene, client):
-    from workers.run import run_detection
+    from sarship.workers.jobs import run_detection
 
     with pytest.raises(InputError, match="no GPU worker"):
         run_detection(blobs_scene, "ca_cfar", out_dir=tmp_path / "o", client=client, device="gpu", progress=False)

@@ -9,10 +9,10 @@ import pytest
 import xarray as xr
 import zarr
 
-from pipeline.errors import InputError
-from pipeline.scene import atomic_store, create_scene, finalize_scene, open_scene
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.scene import atomic_store, create_scene, finalize_scene, open_scene
 from tests.conftest import blobs_scene, write_scene
-from workers.run import run_detection
+from sarship.workers.jobs import run_detection
 
 
 def test_sharded_tiles_read_by_xarray_and_detect(tmp_path, client):

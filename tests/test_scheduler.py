@@ -58,7 +58,7 @@ def test_detect_on_existing_scheduler(tmp_path, dask_processes):
     x = blobs_scene((300, 260), looks=2.0, seed=3)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=2.0)
     out = tmp_path / "o"
-    res = subprocess.run([sys.executable, "-m", "workers.cli", "detect", str(scene), "--detector", "ca_cfar",
+    res = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
                           "--scheduler", dask_processes, "--out", str(out), "--tile", "64",
                           "--set", "guard=11", "--set", "background=31", "--set", "min_area_px=1"],
                          capture_output=True, text=True, timeout=300)
@@ -74,7 +74,7 @@ def test_detect_on_existing_scheduler(tmp_path, dask_processes):
 def test_unreachable_scheduler(tmp_path):
     x = np.ones((32, 32), np.float32)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=32, looks=1.0)
-    res = subprocess.run([sys.executable, "-m", "workers.cli", "detect", str(scene), "--detector", "ca_cfar",
+    res = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
                           "--scheduler", "tcp://127.0.0.1:9", "--out", str(tmp_path / "o"),
                           "--set", "guard=5", "--set", "background=9"],
                          capture_output=True, text=True, timeout=120)

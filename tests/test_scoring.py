@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.scoring import aggregate, evaluate, format_scores, match, score
-from pipeline.truth import (
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.scoring import aggregate, evaluate, format_scores, match, score
+from sarship.pipeline.truth import (
     Ship,
     detections_scene,
     load_detections,

@@ -312,7 +312,7 @@ def test_serve_start_problems_are_one_line(tmp_path):
              (["--data", str(tmp_path / "ok"), "--gpus", "0"], "no GPU is visible")]  # (GPUs hidden below)
     try:
         for args, words in cases:
-            r = subprocess.run([sys.executable, "-m", "workers.cli", "serve", *args], capture_output=True, text=True,
+            r = subprocess.run([sys.executable, "-m", "sarship", "serve", *args], capture_output=True, text=True,
                                timeout=60, env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})
             lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
             assert r.returncode == 2 and len(lines) == 1 and words in lines[0], (args, r.returncode, r.stderr)

@@ -25,7 +25,7 @@ GEO_ATTRS = {"sensor": "SENTINEL-1A IW", "product": "S1A_IW_GRDH_1SDV_20210601T1
 
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
-    from pipeline.simulate import SimConfig, simulate, validate
+    from sarship.pipeline.simulate import SimConfig, simulate, validate
 
     data = tmp_path_factory.mktemp("res") / "data"
     (data / "scenes").mkdir(parents=True)
@@ -119,7 +119,7 @@ def rgba(r) -> np.ndarray:
 
 
 def test_tiles_and_tilejson(env):
-    from service.cog import maxpool
+    from sarship.service.cog import maxpool
 
     srv, jobs = env
     jid = jobs["geo"]
@@ -164,7 +164,7 @@ def test_tiles_and_tilejson(env):
 
 
 def test_stac_item(env):
-    from pipeline import __version__
+    from sarship.pipeline import __version__
 
     srv, jobs = env
     jid = jobs["geo"]
@@ -203,7 +203,7 @@ def test_stac_item(env):
     assert sim["geometry"] is None and "bbox" not in sim
     assert not any(k.startswith("sar:") for k in sim["properties"])
     assert not any("/sar/" in e for e in sim["stac_extensions"])
-    from pipeline.scene import open_scene
+    from sarship.pipeline.scene import open_scene
 
     assert sim["properties"]["datetime"] == open_scene(srv.data / "scenes" / "sim.zarr").attrs["acquired"]
     check_problem(httpx.get(f"{srv.url}/jobs/nosuchjob/results/stac"), 404, "nosuchjob")

@@ -28,9 +28,9 @@ import numpy as np
 import pytest
 from scipy import special, stats
 
-from pipeline import simulate as sim
-from pipeline.errors import InputError
-from pipeline.simulate import (SimConfig, sea_covariance, ship_catalogue, simulate,
+from sarship.pipeline import simulate as sim
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.simulate import (SimConfig, sea_covariance, ship_catalogue, simulate,
                                simulate_array, simulate_tile, truth_collection, validate)
 
 ALL_ON = dict(land=True, sidelobes=True, ambiguities=True, stripes=True, rfi=True)
@@ -417,7 +417,7 @@ def test_validate_normalises():
 def test_simulate_writes_store_and_truth(tmp_path):
     import xarray as xr
 
-    from pipeline.scene import open_scene
+    from sarship.pipeline.scene import open_scene
 
     cfg = SimConfig(shape=(300, 200), ships=5, seed=4, clutter="rayleigh", looks=3.0,
                     pixel_spacing_m=(20.0, 20.0), **ALL_ON)

@@ -14,11 +14,11 @@ import pytest
 import zarr
 from scipy import ndimage
 
-from pipeline import detectors
-from pipeline.components import merge_radius
-from pipeline.windows import mirror_pad, padded_block, reflect_index
+from sarship.pipeline import detectors
+from sarship.pipeline.components import merge_radius
+from sarship.pipeline.windows import mirror_pad, padded_block, reflect_index
 from tests.conftest import blobs_scene, write_scene
-from workers.run import run_detection
+from sarship.workers.jobs import run_detection
 
 SETTINGS = {
     "two_parameter": {"pfa": "1e-3", "guard": "11", "background": "31", "domain": "db"},

@@ -4,7 +4,7 @@
 results of the plain pipeline, to the last bit, for every input: y = the tile as float64,
 transformed (identity, sqrt(max(x, 0)) or 10 log10(max(x, 1e-30)), by numpy); the window
 sums of y and y * y over the background and guard windows (and of y over the target
-window) in the van Herk order of :mod:`pipeline.boxsum` (stated below with
+window) in the van Herk order of :mod:`sarship.pipeline.boxsum` (stated below with
 ``np.add.accumulate``, a strictly sequential running sum, one block at a time); then
 s1 = s1b - s1g, s2 = s2b - s2g, mu = s1 / N, var = (s2 - s1 mu) / (N - 1), d = x_t - mu,
 statistic d / sqrt(var) (inf if var <= 0 < d, else 0 if var <= 0), mask = statistic > t.
@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 from numba import njit, uint64
 
-from pipeline.boxsum import centered_box_sum
-from pipeline.detectors import two_parameter as tp
-from pipeline.windows import mirror_pad
+from sarship.pipeline.boxsum import centered_box_sum
+from sarship.pipeline.detectors import two_parameter as tp
+from sarship.pipeline.windows import mirror_pad
 from tests.test_boxsum import box_sum_ref
 
 
@@ -294,8 +294,8 @@ def test_transform_matches_numpy_bit_for_bit(dtype):
 
 def test_fused_kernel_equals_in_module_reference_fallback():
     """detect() and its plain fallback detect_reference() agree bit for bit."""
-    from pipeline.detectors import two_parameter as tp
-    from pipeline.windows import mirror_pad
+    from sarship.pipeline.detectors import two_parameter as tp
+    from sarship.pipeline.windows import mirror_pad
 
     rng = np.random.default_rng(42)
     for domain in ("intensity", "amplitude", "db"):

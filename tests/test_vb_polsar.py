@@ -9,11 +9,11 @@ import pytest
 import zarr
 from scipy import integrate, stats
 
-from pipeline.detectors import vb_polsar as V
-from pipeline.scoring import evaluate
-from pipeline.simulate import SimConfig, simulate, simulate_array
+from sarship.pipeline.detectors import vb_polsar as V
+from sarship.pipeline.scoring import evaluate
+from sarship.pipeline.simulate import SimConfig, simulate, simulate_array
 from tests.conftest import write_scene
-from workers.run import run_detection
+from sarship.workers.jobs import run_detection
 
 
 def _hyper(x, **kw):

@@ -5,7 +5,7 @@ Numba/NumPy code that holds the GIL for parts of its work; processes scale, thre
 would not), so a run uses every core of the machine; each advertises the resource
 ``CPU=1``. With ``gpus=True`` on a machine with GPUs, the local cluster is instead one
 process per GPU, pinned by ``CUDA_VISIBLE_DEVICES`` before it starts and advertising
-``GPU`` (see :mod:`workers.gpus`), plus ``cpu_workers`` CPU processes if asked.
+``GPU`` (see :mod:`sarship.workers.gpus`), plus ``cpu_workers`` CPU processes if asked.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import os
 import sys
 from typing import Iterator
 
-from pipeline.errors import InputError
+from sarship.pipeline.errors import InputError
 
 
 def _quiet() -> None:
@@ -67,7 +67,7 @@ def connect(
         finally:
             client.close()
         return
-    from workers.gpus import visible_gpus, worker_specs
+    from sarship.workers.gpus import visible_gpus, worker_specs
 
     gpu_ids = list(gpus) if isinstance(gpus, list) else (visible_gpus() if gpus else [])
     if gpu_ids:

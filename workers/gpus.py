@@ -14,7 +14,7 @@ import os
 import shutil
 import subprocess
 
-from pipeline.errors import InputError
+from sarship.pipeline.errors import InputError
 
 
 def visible_gpus() -> list[str]:

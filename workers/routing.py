@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from pipeline.errors import InputError
+from sarship.pipeline.errors import InputError
 
 
 @dataclass(frozen=True)

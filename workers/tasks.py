@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import detectors
-from pipeline.components import tile_components
-from pipeline.detections import keep_mask
-from pipeline.inputs import make_reader
-from pipeline.windows import padded_block
+from sarship.pipeline import detectors
+from sarship.pipeline.components import tile_components
+from sarship.pipeline.ship_features import keep_mask
+from sarship.pipeline.inputs import make_reader
+from sarship.pipeline.windows import padded_block
 
 
 @dataclass(frozen=True)
@@ -73,7 +73,7 @@ def _on_device(job: TileJob, spec) -> bool:
 
 
 def _to_device(block):
-    from pipeline.gpu import init_device, to_device
+    from sarship.pipeline.gpu import init_device, to_device
 
     init_device()
     return to_device(block)
@@ -119,7 +119,7 @@ def run_tile(job: TileJob) -> dict[str, Any]:
     origin = (er0 - job.halo, ec0 - job.halo)
     h2d = d2h = 0.0
     if gpu:  # one transfer in, the whole detector on the device, mask and statistic back
-        from pipeline.gpu import synchronize
+        from sarship.pipeline.gpu import synchronize
 
         dblock = _to_device(block)
         synchronize()

@@ -14,8 +14,8 @@ import signal
 import socket
 import sys
 
-from pipeline.errors import InputError
-from workers.gpus import parse_gpus, worker_specs
+from sarship.pipeline.errors import InputError
+from sarship.workers.gpus import parse_gpus, worker_specs
 
 
 async def _reachable(address: str, timeout: float = 10.0) -> None:
@@ -63,7 +63,7 @@ def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str 
     if not gpu_ids and cpus == 0:
         raise InputError("nothing to start: no GPU selected (--gpus) and --cpus 0")
     prefix = f"{name or socket.gethostname()}-"
-    from workers.cluster import _quiet
+    from sarship.workers.cluster import _quiet
 
     _quiet()
     if gpu_threads < 1:

@@ -1,21 +1,21 @@
-"""Detector registry: name -> :class:`~pipeline.detectors.base.DetectorSpec`."""
+"""Detector registry: name -> :class:`~sarship.pipeline.detectors.base.DetectorSpec`."""
 
 from __future__ import annotations
 
 import importlib
 
-from pipeline.detectors.base import DetectorParams, DetectorSpec
-from pipeline.errors import InputError
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec
+from sarship.pipeline.errors import InputError
 
 #: Module of each detector, by CONTRACT name.
 _MODULES = {
-    "two_parameter": "pipeline.detectors.two_parameter",
-    "ca_cfar": "pipeline.detectors.ca_cfar",
-    "os_cfar": "pipeline.detectors.os_cfar",
-    "apwf": "pipeline.detectors.apwf",
-    "lmm": "pipeline.detectors.lmm",
-    "pcdm": "pipeline.detectors.pcdm",
-    "vb_polsar": "pipeline.detectors.vb_polsar",
+    "two_parameter": "sarship.pipeline.detectors.two_parameter",
+    "ca_cfar": "sarship.pipeline.detectors.ca_cfar",
+    "os_cfar": "sarship.pipeline.detectors.os_cfar",
+    "apwf": "sarship.pipeline.detectors.apwf",
+    "lmm": "sarship.pipeline.detectors.lmm",
+    "pcdm": "sarship.pipeline.detectors.pcdm",
+    "vb_polsar": "sarship.pipeline.detectors.vb_polsar",
 }
 
 

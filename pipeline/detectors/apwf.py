@@ -3,7 +3,7 @@
 Source: thesis 000_5bc9398123fbbeaa.txt, chapter 2 (ALGORITHMS.md section A).
 
 Model. The scattering vector of a pixel, X = [S_hh, S_hv, S_vv]^T (quad-pol, p = 3) or
-two channels (dual-pol, p = 2, e.g. [S_vh, S_vv]; order: :func:`pipeline.inputs.polarimetric_source`),
+two channels (dual-pol, p = 2, e.g. [S_vh, S_vv]; order: :func:`sarship.pipeline.inputs.polarimetric_source`),
 is zero-mean circular complex Gaussian over sea clutter with covariance Sigma = E[X X^H]
 (eq 2-1 to 2-3). The polarimetric whitening filter (PWF) is the quadratic form
 
@@ -23,7 +23,7 @@ of X X^H over N clutter cells of a sliding window centred on the cell under test
 
 Window sums of the p^2 real numbers of X X^H (the p powers |X_i|^2 and the real and
 imaginary parts of the p(p-1)/2 upper-triangle products X_i X_j^*) are box sums
-(:func:`pipeline.boxsum.centered_box_sum`: O(1) per pixel whatever the window, and
+(:func:`sarship.pipeline.boxsum.centered_box_sum`: O(1) per pixel whatever the window, and
 bit-identical for any tiling), the speed-up the thesis missed (it forms the 3 x N by N x 3
 product per pixel). Then, per pixel in Numba, y = N X^H S^-1 X with S the window sum
 (S / N the covariance estimate), from the closed-form adjugate of the Hermitian 2x2 / 3x3
@@ -60,9 +60,9 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy import special
 
-from pipeline.boxsum import centered_box_sum
-from pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
-from pipeline.gpu import is_device_array
+from sarship.pipeline.boxsum import centered_box_sum
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
+from sarship.pipeline.gpu import is_device_array
 
 #: Core rows / columns processed at once (bounds the float64 intermediates of a tile).
 STRIP_ROWS = 256
@@ -338,7 +338,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
     Returns (mask = y > T, stat = y as float32). The core is processed in strips of
     :data:`STRIP_ROWS` x :data:`STRIP_COLS` pixels (sub-blocks with their own origin:
     the box sums, hence y, are the same bit for bit). A CuPy ``block`` runs on its GPU
-    (:func:`pipeline.gpu.polsar.apwf`: the same window sums bit for bit, the same adjugate
+    (:func:`sarship.pipeline.gpu.polsar.apwf`: the same window sums bit for bit, the same adjugate
     arithmetic) and returns CuPy arrays.
     """
     cov = block.ndim == 4
@@ -350,7 +350,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
     check_windows(halo, b)
     p = block.shape[2]
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.polsar)
-        from pipeline.gpu.polsar import apwf
+        from sarship.pipeline.gpu.polsar import apwf
 
         return apwf(block, halo, origin, b, int(prm.guard), prm.estimator == "ring",
                     float(prep["n_samples"]), float(prep["thresholds"][str(p)]))

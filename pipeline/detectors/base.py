@@ -17,7 +17,7 @@ A detector is a :class:`DetectorSpec`. Its maths is two pure functions:
 
 Results must not depend on where the tile starts: the whole scene processed as one block
 and the same scene processed in tiles give bit-identical masks (tests check it). Window
-sums therefore use :mod:`pipeline.boxsum`, whose association order is fixed by global
+sums therefore use :mod:`sarship.pipeline.boxsum`, whose association order is fixed by global
 pixel coordinates.
 """
 
@@ -129,7 +129,7 @@ class DetectorSpec:
     halo_fn: Optional[Callable[[Any], int]] = None
     halo_rule: str = "background // 2"
     #: ``detect`` (and ``scene_pass``) accept a CuPy block and run on its GPU
-    #: (:mod:`pipeline.gpu`); otherwise GPU workers run the CPU code for this detector.
+    #: (:mod:`sarship.pipeline.gpu`); otherwise GPU workers run the CPU code for this detector.
     gpu: bool = False
     #: with ``gpu``: the scene pass runs on the device too (else on the host block)
     scene_pass_gpu: bool = True

@@ -16,7 +16,7 @@ For n = 1 this is the classical result that the CUT over the ring mean is F(2L, 
 Its large-N limit is the gamma quantile T -> Q^{-1}(L, PFA)/L used by tools that ignore
 the estimation noise of m (they overshoot the PFA by a factor of 2-10 for N ~ 100-500).
 
-Window sums use :mod:`pipeline.boxsum` (O(1) per pixel, tiling-invariant), streamed row by
+Window sums use :mod:`sarship.pipeline.boxsum` (O(1) per pixel, tiling-invariant), streamed row by
 row for the guard and background windows together and fused with the decision.
 """
 
@@ -29,10 +29,10 @@ import numpy as np
 from numba import njit
 from scipy import stats
 
-from pipeline import boxsum
-from pipeline.boxsum import box_stream, box_stream_row
-from pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
-from pipeline.gpu import is_device_array
+from sarship.pipeline import boxsum
+from sarship.pipeline.boxsum import box_stream, box_stream_row
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
+from sarship.pipeline.gpu import is_device_array
 
 
 class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-4, guard=41, background=81,
@@ -79,7 +79,7 @@ def _decide_row(xt, bg, gd, inv, thr, mask, stat):
 
 
 def _make_detect_strip(boxsum_stamp: str):
-    """The fused kernel. Its machine code includes that of the :mod:`pipeline.boxsum`
+    """The fused kernel. Its machine code includes that of the :mod:`sarship.pipeline.boxsum`
     streams, but numba's on-disk cache only watches this file: ``boxsum_stamp`` (a hash of
     ``boxsum.py``) is a closure variable, and closure variables are part of numba's cache
     key, so an edited ``boxsum.py`` gets a fresh compilation instead of stale cached code.
@@ -90,7 +90,7 @@ def _make_detect_strip(boxsum_stamp: str):
                      mask, stat):
         """Columns [c0, c1) of the core: window sums streamed row by row, then the decision.
 
-        One :mod:`pipeline.boxsum` stream per window (the additions of ``centered_box_sum``),
+        One :mod:`sarship.pipeline.boxsum` stream per window (the additions of ``centered_box_sum``),
         all in lockstep, so no full-size float64 intermediate is ever written.
         """
         boxsum_stamp  # noqa: B018 (keeps the stamp in the closure, hence in the cache key)
@@ -133,7 +133,7 @@ _detect_strip = _make_detect_strip(hashlib.sha256(Path(boxsum.__file__).read_byt
 def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: CAParams, prep: dict):
     """CA-CFAR on one padded tile; returns (mask, x_t / ring mean).
 
-    A CuPy ``block`` runs on its GPU (:func:`pipeline.gpu.cfar.ca_cfar`) and returns CuPy
+    A CuPy ``block`` runs on its GPU (:func:`sarship.pipeline.gpu.cfar.ca_cfar`) and returns CuPy
     arrays, bit-identical to the CPU's.
 
     The core is processed in column strips of ``boxsum.STRIP`` pixels (the window streams
@@ -143,7 +143,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: CAParams, p
     b, g, t = int(p.background), int(p.guard), int(p.target)
     check_windows(halo, b, g, t)
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.cfar), same sums and rule
-        from pipeline.gpu.cfar import ca_cfar
+        from sarship.pipeline.gpu.cfar import ca_cfar
 
         return ca_cfar(block, halo, origin, b, g, t, int(prep["n_ring"]), float(prep["threshold"]))
     h = block.shape[0] - 2 * halo

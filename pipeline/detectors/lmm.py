@@ -249,7 +249,7 @@ from numba import njit
 from pydantic import Field
 from scipy import special
 
-from pipeline.gpu import is_device_array
+from sarship.pipeline.gpu import is_device_array
 
 from .base import DetectorParams, DetectorSpec, float_block, with_defaults
 
@@ -1167,7 +1167,7 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
     ``stat = x_t / T`` (float32, > 1 where ``mask``; 0 elsewhere). ``origin`` (scene
     coordinates of ``block[0, 0]``) is used by the grid form only (global node positions). ``_iters=True`` also returns the
     per-pixel EM iteration counts (for tests / benchmarks). A CuPy ``block`` runs on its
-    GPU (:mod:`pipeline.gpu.lmm`: the same fits, one CUDA thread per ring) and returns CuPy
+    GPU (:mod:`sarship.pipeline.gpu.lmm`: the same fits, one CUDA thread per ring) and returns CuPy
     arrays (``_iters`` is not available there).
     """
     gpu = is_device_array(block)
@@ -1190,7 +1190,7 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
     if int(prep.get("n_ring", n_ring)) != n_ring or K != int(params.components):
         raise ValueError("prep does not match the parameters")
     if gpu:  # CuPy block: the GPU twin (pipeline.gpu.lmm), one thread per ring fit
-        from pipeline.gpu.lmm import detect as detect_gpu
+        from sarship.pipeline.gpu.lmm import detect as detect_gpu
 
         if halo > need:
             d = halo - need

@@ -130,7 +130,7 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy import optimize, special
 
-from pipeline.gpu import is_device_array
+from sarship.pipeline.gpu import is_device_array
 
 from .base import DetectorParams, DetectorSpec, float_block, with_defaults
 
@@ -640,7 +640,7 @@ def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: b
     ``stat = x_t / X_(k)`` (float32; > alpha where ``mask``; 0 elsewhere). ``origin`` is
     not needed: every pixel's maths depends only on its own window. ``_screen=False``
     turns off the (exact) histogram screen; for tests and benchmarks. A CuPy ``block`` runs
-    on its GPU (:func:`pipeline.gpu.cfar.os_cfar`: the same exact comparisons, so the same
+    on its GPU (:func:`sarship.pipeline.gpu.cfar.os_cfar`: the same exact comparisons, so the same
     mask and statistic) and returns CuPy arrays.
     """
     gpu = is_device_array(block)
@@ -664,7 +664,7 @@ def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: b
     if not float(a32) > alpha:
         a32 = np.nextafter(a32, np.float32(np.inf))
     if gpu:
-        from pipeline.gpu.cfar import os_cfar
+        from sarship.pipeline.gpu.cfar import os_cfar
 
         return os_cfar(block, halo, rb, rg, rt, k, alpha, float(a32))
     mask = np.zeros((h, w), dtype=np.bool_)

@@ -25,7 +25,7 @@ Per pixel:
    (default: the text says PSH refines the SPAN result), ``or``, or ``span`` (SPAN alone).
 
 T_SPAN is a scene-wide statistic, computed by a reduction over all tiles before any tile
-is thresholded (two-pass run; see :class:`~pipeline.detectors.base.DetectorSpec`), so tiles
+is thresholded (two-pass run; see :class:`~sarship.pipeline.detectors.base.DetectorSpec`), so tiles
 agree:
 
 - ``span_rule="fraction"`` (the thesis): ``T_SPAN = span_fraction * (max - min)`` of SPAN_P
@@ -50,9 +50,9 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy import stats
 
-from pipeline.boxsum import centered_box_sum
-from pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
-from pipeline.gpu import is_device_array, to_host
+from sarship.pipeline.boxsum import centered_box_sum
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
+from sarship.pipeline.gpu import is_device_array, to_host
 
 #: Fixed bins of ln SPAN_P for the scene-wide histogram (``span_rule="pfa"``).
 LN_BINS = np.linspace(-60.0, 60.0, 12001)
@@ -239,14 +239,14 @@ def _pcdm_kernel(C, p, span_out, psh_out):
 def span_psh(block: np.ndarray, halo_px: int, origin, p: PCDMParams) -> tuple[np.ndarray, np.ndarray]:
     """SPAN_P and PSH (float64) of the core of a padded polarimetric block (rows, cols, p).
 
-    A CuPy ``block`` runs on its GPU (:func:`pipeline.gpu.polsar.pcdm_span_psh`): SPAN_P is
+    A CuPy ``block`` runs on its GPU (:func:`sarship.pipeline.gpu.polsar.pcdm_span_psh`): SPAN_P is
     bit-identical to the CPU's (same sums and order); PSH uses CUDA's ``acos``/``cos``,
     within a few ulp of the CPU's.
     """
     if not (block.ndim in (3, 4) and block.shape[2] in (2, 3)):
         raise ValueError("pcdm needs (rows, cols, p) complex channels or (rows, cols, p, p) covariances, p = 2 or 3")
     if is_device_array(block):  # CuPy block: the GPU twin, CuPy results
-        from pipeline.gpu.polsar import pcdm_span_psh
+        from sarship.pipeline.gpu.polsar import pcdm_span_psh
 
         return pcdm_span_psh(block, halo_px, origin, p.looks_window)
     r = p.looks_window // 2

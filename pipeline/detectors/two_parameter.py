@@ -36,8 +36,8 @@ from numba.extending import intrinsic, models, register_model
 from pydantic import Field
 from scipy import stats
 
-from pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
-from pipeline.gpu import is_device_array
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
+from sarship.pipeline.gpu import is_device_array
 
 
 class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", pfa=1e-3, guard=21,
@@ -893,11 +893,11 @@ def _decide_reference(xt, s1b, s1g, s2b, s2g, n_ring, thr, mask, stat):
 
 
 def detect_reference(block: np.ndarray, halo: int, origin: tuple[int, int], p: TwoParameterParams, prep: dict):
-    """The same detector written plainly with :func:`pipeline.boxsum.centered_box_sum`
+    """The same detector written plainly with :func:`sarship.pipeline.boxsum.centered_box_sum`
     (bit-identical to :func:`detect`, ~6x slower). :func:`detect` falls back to it when the
     fused kernel cannot be used: window sizes beyond its exact-division range, or a Numba /
     LLVM release on which the kernel's vector intrinsics fail to compile."""
-    from pipeline.boxsum import centered_box_sum
+    from sarship.pipeline.boxsum import centered_box_sum
 
     x = _transform_reference(block, p.domain)
     x2 = x * x
@@ -928,13 +928,13 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: TwoParamete
     (inf if var <= 0 < d, 0 if var <= 0 and d <= 0), mask = statistic > threshold. Fused
     and streamed in column strips of at most ``STRIP`` pixels (which change nothing in the
     sums: their blocks are aligned on global coordinates). A CuPy ``block`` runs on its GPU
-    (:func:`pipeline.gpu.cfar.two_parameter`, same sums and arithmetic; the ``db`` domain's
+    (:func:`sarship.pipeline.gpu.cfar.two_parameter`, same sums and arithmetic; the ``db`` domain's
     logarithm may differ in the last bit) and returns CuPy arrays.
     """
     b, g, t = int(p.background), int(p.guard), int(p.target)
     check_windows(halo, b, g, t)
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.cfar), same sums and rule
-        from pipeline.gpu.cfar import two_parameter
+        from sarship.pipeline.gpu.cfar import two_parameter
 
         return two_parameter(block, halo, origin, b, g, t, float(prep["n_ring"]), float(prep["threshold"]),
                              p.domain)

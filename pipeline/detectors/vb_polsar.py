@@ -223,8 +223,8 @@ from numba import njit
 from pydantic import Field
 from scipy import optimize, special, stats
 
-from pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
-from pipeline.gpu import is_device_array
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
+from sarship.pipeline.gpu import is_device_array
 
 LN2PI = math.log(2.0 * math.pi)
 
@@ -760,7 +760,7 @@ def reduce(parts: list[dict], p: VBPolSARParams, prep: dict) -> dict:
 def detect(block, halo_px, origin, p: VBPolSARParams, prep: dict):
     """Per-pixel VB updates with the scene-wide mixture; A-27 decision.
 
-    A CuPy ``block`` runs the same updates on its GPU (:func:`pipeline.gpu.polsar.vb_pixels`;
+    A CuPy ``block`` runs the same updates on its GPU (:func:`sarship.pipeline.gpu.polsar.vb_pixels`;
     the scene pass, a grid sample, stays on the host) and returns CuPy arrays.
     """
     if "mixture" not in prep:
@@ -776,7 +776,7 @@ def detect(block, halo_px, origin, p: VBPolSARParams, prep: dict):
     if terms["m"].shape[1] != 2 * x.shape[2]:
         raise ValueError("vb_polsar: the mixture's dimension does not match the block's channels")
     if is_device_array(core):  # CuPy block: the same per-pixel updates on its GPU
-        from pipeline.gpu.polsar import vb_pixels
+        from sarship.pipeline.gpu.polsar import vb_pixels
 
         return vb_pixels(core, terms["c"], terms["P"], terms["m"], terms["g1"], float(prep["t_init"]),
                          float(prep["alpha0"]), float(prep["beta0"]), int(p.max_iter), float(p.tol),

@@ -1,17 +1,17 @@
 """GPU twins of the single-channel CFAR detectors (``ca_cfar``, ``two_parameter``).
 
 Each takes the same arguments as the CPU ``detect`` with a CuPy ``block`` and returns CuPy
-``(mask, stat)``; the window sums are those of :mod:`pipeline.gpu.box` (bit-identical to
+``(mask, stat)``; the window sums are those of :mod:`sarship.pipeline.gpu.box` (bit-identical to
 the CPU's) and the decision repeats the CPU kernel's arithmetic (see
-:mod:`pipeline.gpu.kernels`).
+:mod:`sarship.pipeline.gpu.kernels`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.gpu import kernels
-from pipeline.gpu.box import centered_box_sum
+from sarship.pipeline.gpu import kernels
+from sarship.pipeline.gpu.box import centered_box_sum
 
 
 def _float_block(cp, block):
@@ -23,7 +23,7 @@ def _float_block(cp, block):
 
 
 def ca_cfar(block, halo: int, origin, b: int, g: int, t: int, n_ring: int, thr: float):
-    """CA-CFAR (see :mod:`pipeline.detectors.ca_cfar`): x_t / ring mean > T."""
+    """CA-CFAR (see :mod:`sarship.pipeline.detectors.ca_cfar`): x_t / ring mean > T."""
     import cupy as cp
 
     x = _float_block(cp, block)
@@ -47,7 +47,7 @@ _MODES = {"intensity": 0, "amplitude": 1, "db": 2}
 
 
 def two_parameter(block, halo: int, origin, b: int, g: int, t: int, n_ring: float, thr: float, domain: str):
-    """Two-parameter CFAR (see :mod:`pipeline.detectors.two_parameter`)."""
+    """Two-parameter CFAR (see :mod:`sarship.pipeline.detectors.two_parameter`)."""
     import cupy as cp
 
     x = _float_block(cp, block)
@@ -74,7 +74,7 @@ def two_parameter(block, halo: int, origin, b: int, g: int, t: int, n_ring: floa
 
 
 def os_cfar(block, halo: int, rb: int, rg: int, rt: int, k: int, alpha: float, stat_floor: float):
-    """OS-CFAR (see :mod:`pipeline.detectors.os_cfar`): x_t > alpha X_(k).
+    """OS-CFAR (see :mod:`sarship.pipeline.detectors.os_cfar`): x_t > alpha X_(k).
 
     The decision counts, per pixel, the ring samples below the smallest value ``c`` of the
     block's type with ``not (alpha * c < x_t)`` (exact comparisons: the CPU's mask); the

@@ -1,4 +1,4 @@
-"""GPU twin of ``lmm`` (:mod:`pipeline.detectors.lmm`): exact, fast and grid forms.
+"""GPU twin of ``lmm`` (:mod:`sarship.pipeline.detectors.lmm`): exact, fast and grid forms.
 
 One CUDA thread fits one ring (a pixel's, or a grid node's): the same EM for K' = 1..K,
 BIC order, damped-Newton ML polish, predictive tail shift and safeguarded Newton threshold
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.gpu import kernels
+from sarship.pipeline.gpu import kernels
 
 SOURCE = r"""
 #define KMAX 6
@@ -550,7 +550,7 @@ SCRATCH_BYTES = 256 * 2**20
 
 
 def _init_zs(K: int) -> "np.ndarray":
-    from pipeline.detectors.lmm import init_z_table
+    from sarship.pipeline.detectors.lmm import init_z_table
 
     t = np.zeros((K, 6))
     t[:, :K] = init_z_table(K)

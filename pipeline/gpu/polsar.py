@@ -14,8 +14,8 @@ import math
 
 import numpy as np
 
-from pipeline.gpu import kernels
-from pipeline.gpu.box import centered_box_sum
+from sarship.pipeline.gpu import kernels
+from sarship.pipeline.gpu.box import centered_box_sum
 
 
 def _complex_block(cp, block):
@@ -39,7 +39,7 @@ def _planes(cp, block, scale1: float):
 
 
 def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float, thr: float):
-    """Adaptive PWF (see :mod:`pipeline.detectors.apwf`): y = N X^H S^-1 X > T."""
+    """Adaptive PWF (see :mod:`sarship.pipeline.detectors.apwf`): y = N X^H S^-1 X > T."""
     import cupy as cp
 
     block = _complex_block(cp, block)
@@ -71,7 +71,7 @@ def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float,
 
 
 def pcdm_span_psh(block, halo_px: int, origin, looks_window: int):
-    """SPAN_P and PSH (float64, CuPy) of the core (see :func:`pipeline.detectors.pcdm.span_psh`)."""
+    """SPAN_P and PSH (float64, CuPy) of the core (see :func:`sarship.pipeline.detectors.pcdm.span_psh`)."""
     import cupy as cp
 
     block = _complex_block(cp, block)
@@ -94,7 +94,7 @@ def pcdm_span_psh(block, halo_px: int, origin, looks_window: int):
 
 def vb_pixels(core, c, P, m, g1, t_init: float, a0: float, b0: float, max_iter: int, tol: float,
               joint: bool):
-    """vb_polsar pass 2 on the device (see :func:`pipeline.detectors.vb_polsar._pixels`):
+    """vb_polsar pass 2 on the device (see :func:`sarship.pipeline.detectors.vb_polsar._pixels`):
     ``core`` (h, w, p) complex channels; the mixture terms as NumPy arrays. CUDA's
     ``exp``/``log`` differ from the CPU's in the last bits: the log-odds agree to ~1e-12
     relative, the masks except at pixels within that of the threshold."""

@@ -8,13 +8,14 @@ shows progress on stderr. ``SARSHIP_DEBUG=1`` prints tracebacks of unexpected er
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import InputError
+from sarship.pipeline.errors import InputError
 
 
 class _Parser(argparse.ArgumentParser):
@@ -52,7 +53,7 @@ def _settings(pairs: list[str]) -> dict[str, str]:
 
 
 def _progress(label: str):
-    from workers.run import Progress
+    from sarship.workers.jobs import Progress
 
     return Progress.callback(label)
 
@@ -61,7 +62,7 @@ def _progress(label: str):
 
 
 def cmd_simulate(a) -> int:
-    from pipeline.simulate import SimConfig, simulate, validate
+    from sarship.pipeline.simulate import SimConfig, simulate, validate
 
     cfg = validate(SimConfig(
         kind=a.kind, shape=a.shape, ships=a.ships, seed=a.seed, looks=a.looks, clutter=a.clutter,
@@ -77,7 +78,7 @@ def cmd_simulate(a) -> int:
 
 
 def cmd_ingest(a) -> int:
-    from pipeline.readers import ingest
+    from sarship.pipeline.readers import ingest
 
     channels = a.channels.split(",") if a.channels else None
     band: Any = a.band
@@ -91,7 +92,7 @@ def cmd_ingest(a) -> int:
 
 
 def cmd_detect(a) -> int:
-    from workers.run import run_detection
+    from sarship.workers.jobs import run_detection
 
     run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile,
                         scheduler=a.scheduler, device=a.device, progress=True)
@@ -103,7 +104,7 @@ def cmd_detect(a) -> int:
 
 
 def cmd_worker(a) -> int:
-    from workers.worker import serve
+    from sarship.workers.worker import serve
 
     return serve(a.scheduler, gpus=a.gpus, cpus=a.cpus, name=a.name, memory_limit=a.memory_limit,
                  gpu_threads=a.gpu_threads)
@@ -112,7 +113,7 @@ def cmd_worker(a) -> int:
 def cmd_serve(a) -> int:
     from pydantic import ValidationError
 
-    from service.settings import Settings
+    from sarship.service.settings import Settings
 
     over = {k: v for k, v in {"host": a.host, "port": a.port, "scheduler": a.scheduler, "data": a.data,
                                "workers": a.workers, "gpus": a.gpus, "concurrency": a.concurrency, "inbox": a.inbox,
@@ -124,12 +125,12 @@ def cmd_serve(a) -> int:
     except ValidationError as exc:
         e = exc.errors()[0]
         raise InputError(f"setting '{'.'.join(str(x) for x in e['loc'])}': {e['msg']}") from None
-    from service.preflight import preflight
+    from sarship.service.preflight import preflight
 
     preflight(settings)  # a bad data folder, store, address or scheduler: one line, exit 2
     import uvicorn
 
-    from service.app import create_app
+    from sarship.service.app import create_app
 
     print(f"sarship: serving on http://{settings.host}:{settings.port} (data {settings.data})", file=sys.stderr)
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="warning")
@@ -137,7 +138,7 @@ def cmd_serve(a) -> int:
 
 
 def cmd_evaluate(a) -> int:
-    from pipeline.scoring import evaluate, format_scores
+    from sarship.pipeline.scoring import evaluate, format_scores
 
     det = Path(a.detections)
     mask = a.mask
@@ -152,7 +153,7 @@ def cmd_evaluate(a) -> int:
 
 
 def cmd_detectors(a) -> int:
-    from pipeline import detectors
+    from sarship.pipeline import detectors
 
     info = [detectors.get(n).describe() for n in detectors.names()]
     if a.json:
@@ -169,9 +170,9 @@ def cmd_detectors(a) -> int:
 
 def cmd_demo(a) -> int:
     """Simulate a scene with ships, detect them on a local Dask cluster, score them."""
-    from pipeline.scoring import evaluate, format_scores
-    from pipeline.simulate import SimConfig, simulate, validate
-    from workers.run import run_detection
+    from sarship.pipeline.scoring import evaluate, format_scores
+    from sarship.pipeline.simulate import SimConfig, simulate, validate
+    from sarship.workers.jobs import run_detection
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -187,7 +188,7 @@ def cmd_demo(a) -> int:
                         scheduler=a.scheduler, progress=True)
     det = out / "detect" / "detections.geojson"
     scores = evaluate(det, truth)
-    from pipeline.detections import write_json
+    from sarship.pipeline.ship_features import write_json
 
     write_json(out / "scores.json", scores)
     print(format_scores(scores))
@@ -205,12 +206,12 @@ def cmd_demo(a) -> int:
 
 def _settings_help() -> str:
     """Every service setting with its environment variable, default and meaning, generated from
-    :class:`service.settings.Settings` so that ``sarship serve --help`` cannot fall behind it."""
+    :class:`sarship.service.settings.Settings` so that ``sarship serve --help`` cannot fall behind it."""
     import textwrap
 
     from pydantic_core import PydanticUndefined
 
-    from service.settings import Settings
+    from sarship.service.settings import Settings
 
     lines = ["settings (environment variable: default, meaning):"]
     for name, f in Settings.model_fields.items():
@@ -227,7 +228,7 @@ def _settings_help() -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="sarship", description="Ship detection in SAR scenes on Dask (see CONTRACT.md).")
-    p.add_argument("--version", action="version", version=f"sarship {__import__('pipeline').__version__}")
+    p.add_argument("--version", action="version", version=f"sarship {__import__('sarship').__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     s = sub.add_parser("simulate", help="simulate a scene with ground truth")
@@ -352,6 +353,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"sarship {a.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `sarship detectors | head`: the reader left; nothing to report
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except Exception as exc:  # unexpected: one line unless debugging
         if os.environ.get("SARSHIP_DEBUG"):
             raise

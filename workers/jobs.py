@@ -22,14 +22,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from pipeline import __version__, detectors
-from pipeline.components import merge_radius, merge_tiles
-from pipeline.detections import collection, features, keep_mask, write_json
-from pipeline.errors import InputError
-from pipeline.inputs import intensity_source, make_reader, polarimetric_source
-from pipeline.scene import Scene, finalize_scene, open_scene, tile_slices
-from workers.routing import plan
-from workers.tasks import TileJob, run_tile, run_tile_stats
+from sarship.pipeline import __version__, detectors
+from sarship.pipeline.components import merge_radius, merge_tiles
+from sarship.pipeline.ship_features import collection, features, keep_mask, write_json
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.inputs import intensity_source, make_reader, polarimetric_source
+from sarship.pipeline.scene import Scene, finalize_scene, open_scene, tile_slices
+from sarship.workers.routing import plan
+from sarship.workers.tasks import TileJob, run_tile, run_tile_stats
 
 OUTPUTS = ("mask.zarr", "detections.geojson", "run.json")
 
@@ -70,7 +70,7 @@ def resolve_looks(spec, params, scene: Scene, var: str, transform: str) -> tuple
         return params, "parameter" if params.looks is not None else "not used"
     if scene.looks is not None:
         return params.model_copy(update={"looks": scene.looks}), "scene attribute"
-    from pipeline.looks import estimate_looks
+    from sarship.pipeline.looks import estimate_looks
 
     read = make_reader(str(scene.path), var, transform)
     H, W = scene.shape
@@ -215,7 +215,7 @@ def run_detection(
     try:
         import zarr
 
-        from pipeline.scene import _zstd, chunking
+        from sarship.pipeline.scene import _zstd, chunking
 
         g = zarr.open_group(str(tmp / "mask.zarr"), mode="w", zarr_format=3)
         g.create_array("mask", shape=(H, W), dtype="uint8", **chunking(tile),
@@ -234,7 +234,7 @@ def run_detection(
         scene_pass = None
         with contextlib.ExitStack() as stack:
             if client is None:
-                from workers.cluster import connect
+                from sarship.workers.cluster import connect
 
                 client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and spec.gpu))
             placement = plan(device, detector, spec.gpu, client.scheduler_info(n_workers=-1).get("workers", {}))

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.components import MOMENT_DTYPE, shape_from_moments
+from sarship.pipeline.components import MOMENT_DTYPE, shape_from_moments
 
 
 def keep_mask(records: np.ndarray, params: Any, spacing: tuple[float, float] | None) -> np.ndarray:
