@@ -381,7 +381,7 @@ def test_too_many_ships_and_bad_configs(monkeypatch):
     with pytest.raises(InputError, match="length_m"):   # a 400 px ship in a 100 px scene
         validate(SimConfig(shape=(100, 100), length_m=(20.0, 4000.0)))
     # past the cheap bound of validate(), placement itself reports that ships do not fit
-    monkeypatch.setattr(sim, "max_ships", lambda cfg: 10**6)
+    monkeypatch.setattr(sim.config, "max_ships", lambda cfg: 10**6)
     with pytest.raises(InputError, match="ships: could not place"):
         ship_catalogue(SimConfig(shape=(120, 120), ships=30, length_m=(300.0, 400.0)))
 

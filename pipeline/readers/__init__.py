@@ -1,0 +1,40 @@
+"""Readers: SAR inputs into the scene store (:func:`ingest`, ``sarship ingest``).
+
+Modules:
+
+- :mod:`~sarship.pipeline.readers.entry`: :func:`ingest` (argument checks, format sniffing,
+  the tile loop of file inputs, atomic write); its docstring gives the contract and the
+  attributes written.
+- :mod:`~sarship.pipeline.readers.tiff`: TIFF / GeoTIFF / BigTIFF, GeoTIFF georeference,
+  SNAP sidecar.
+- :mod:`~sarship.pipeline.readers.image`: PNG / JPEG amplitude.
+- :mod:`~sarship.pipeline.readers.npy`: ``.npy`` arrays.
+- :mod:`~sarship.pipeline.readers.polsarpro`: PolSARpro C3 / T3 / C2 folders, the covariance
+  convention (``C3_BASIS``, ``PAULI_U``, :func:`t3_to_c3`).
+- :mod:`~sarship.pipeline.readers.zarr_input`: a Zarr scene as input.
+- :mod:`~sarship.pipeline.readers.plan`: which variables a set of sources gives (the ``auto``
+  quantity rule, band and channel names).
+- :mod:`~sarship.pipeline.readers.writing`: tile-by-tile writing and the looks of a written
+  scene.
+- :mod:`~sarship.pipeline.readers.common`: the source base class and checks they share.
+"""
+
+from sarship.pipeline.readers.common import PROBE_SIDE
+from sarship.pipeline.readers.entry import INGEST_KINDS, ROW_BAND_BYTES, ingest
+from sarship.pipeline.readers.image import GREY_TOLERANCE_DN
+from sarship.pipeline.readers.polsarpro import C3_BASIS, PAULI_U, t3_to_c3
+from sarship.pipeline.readers.writing import LOOKS_SAMPLE_SIDE, LOOKS_SAMPLE_TILES, RANK_ONE_TOL
+
+__all__ = [
+    "C3_BASIS",
+    "GREY_TOLERANCE_DN",
+    "INGEST_KINDS",
+    "LOOKS_SAMPLE_SIDE",
+    "LOOKS_SAMPLE_TILES",
+    "PAULI_U",
+    "PROBE_SIDE",
+    "RANK_ONE_TOL",
+    "ROW_BAND_BYTES",
+    "ingest",
+    "t3_to_c3",
+]

@@ -1,0 +1,292 @@
+"""`sarship ingest`: turn SAR images into a scene store (see :mod:`sarship.pipeline.scene`).
+
+:func:`ingest` reads one or more inputs and writes a Zarr v3 scene of square ``tile x tile``
+zstd chunks, **tile by tile**, into a temporary sibling that is renamed into place only when
+complete (:func:`sarship.pipeline.scene.atomic_store`): a failure leaves nothing behind and an
+existing scene at ``out`` untouched.
+
+Inputs are files recognised by their first bytes, or PolSARpro folders by their file
+names; what each format accepts is in the docstring of its module:
+:mod:`sarship.pipeline.readers.tiff` (TIFF / GeoTIFF / BigTIFF, GeoTIFF georeference, SNAP
+sidecar), :mod:`sarship.pipeline.readers.image` (PNG / JPEG), :mod:`sarship.pipeline.readers.npy`,
+:mod:`sarship.pipeline.readers.polsarpro` (C3 / T3 / C2 folders; the covariance convention)
+and :mod:`sarship.pipeline.readers.zarr_input` (a Zarr scene). How real samples are taken
+(the ``auto`` rule), band and channel names and stacking: :mod:`sarship.pipeline.readers.plan`.
+Looks: :mod:`sarship.pipeline.readers.writing`.
+
+Anything else, and any file that cannot be read, raises :class:`InputError` with one line
+naming the file and the problem.
+
+Attributes written
+------------------
+``kind``, ``looks``, ``looks_source``, ``tile``, ``source`` (input file names),
+``channels``, ``quantity`` (what the input samples were), ``quantity_rule``,
+``sample_dtype``, ``sarship_version``; and when known ``intensity_band``,
+``pixel_spacing_m`` ([azimuth, range]; for map-projected GeoTIFFs [row, column] ground
+spacing) with ``pixel_spacing_source``, ``crs`` ("EPSG:n") + ``transform`` (GDAL order
+``[c, a, b, f, d, e]``, PixelIsPoint shifted to PixelIsArea as GDAL does) or ``gcps``,
+``sensor``, ``acquired`` (ISO 8601), ``product``, ``polarisations``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.readers.common import _Source, _one_line
+from sarship.pipeline.readers.image import _open_image
+from sarship.pipeline.readers.npy import _open_npy
+from sarship.pipeline.readers.plan import _plan
+from sarship.pipeline.readers.polsarpro import _open_polsarpro, _polsarpro_folder
+from sarship.pipeline.readers.tiff import _open_tiff
+from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles
+from sarship.pipeline.readers.zarr_input import _ingest_zarr
+from sarship.pipeline.scene import (
+    DEFAULT_TILE,
+    Scene,
+    atomic_store,
+    create_scene,
+    finalize_scene,
+    open_scene,
+)
+
+#: ``kind`` values accepted by :func:`ingest`.
+INGEST_KINDS = ("auto", "amplitude", "intensity", "slc", "quadpol", "covariance")
+
+#: A source that prefers whole tile rows (stripped TIFF) is read a tile row at a time when
+#: the row band is at most this many bytes; otherwise tile by tile.
+ROW_BAND_BYTES = 256 * 2**20
+
+
+def _sniff(p: Path) -> str:
+    if p.is_dir():
+        if (p / "zarr.json").exists() or (p / ".zgroup").exists():
+            return "zarr"
+        if _polsarpro_folder(p) is not None:
+            return "polsarpro"
+        raise InputError(f"'{p}' is a folder but not a Zarr scene (no zarr.json) nor a PolSARpro "
+                         "C3/T3/C2 folder (no C11.bin or T11.bin)")
+    if _polsarpro_folder(p) is not None:
+        return "polsarpro"
+    if p.name.lower() == "config.txt":
+        raise InputError(f"'{p}': a config.txt, but its folder holds no PolSARpro C11.bin or T11.bin")
+    if re.fullmatch(r"[ct]\d\d(_real|_imag)?\.bin", p.name.lower()) and _polsarpro_folder(p.parent):
+        raise InputError(f"'{p}' is one element of a PolSARpro folder: pass the folder '{p.parent}' "
+                         "(or its config.txt)")
+    try:
+        with open(p, "rb") as f:
+            head = f.read(16)
+    except OSError as exc:
+        raise InputError(f"'{p}': cannot open ({_one_line(exc)})") from None
+    if not head:
+        raise InputError(f"'{p}' is empty")
+    if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        return "tiff"
+    if head[:8] == b"\x89PNG\r\n\x1a\n":
+        return "image"
+    if head[:3] == b"\xff\xd8\xff":
+        return "image"
+    if head[:6] == b"\x93NUMPY":
+        return "npy"
+    if head[:4] == b"PK\x03\x04" and p.suffix.lower() == ".npz":
+        raise InputError(f"'{p}': .npz archives are not supported; save one array with np.save")
+    raise InputError(
+        f"'{p}': unrecognised format (expected TIFF/GeoTIFF, PNG, JPEG, .npy or a Zarr scene)"
+    )
+
+
+def _open_source(p: Path) -> _Source:
+    fmt = _sniff(p)
+    try:
+        if fmt == "tiff":
+            return _open_tiff(p)
+        if fmt == "image":
+            return _open_image(p)
+        if fmt == "npy":
+            return _open_npy(p)
+        if fmt == "polsarpro":
+            return _open_polsarpro(_polsarpro_folder(p))
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"'{p}': cannot read as {fmt.upper()} ({_one_line(exc)})") from None
+    raise InputError(f"'{p}': a Zarr scene cannot be combined with other inputs")
+
+
+# --------------------------------------------------------------------------------------
+# the command
+# --------------------------------------------------------------------------------------
+
+
+class _CallbackError(Exception):
+    """An exception raised by the caller's progress callback: re-raised unchanged by ingest."""
+
+    def __init__(self, exc: Exception):
+        super().__init__(str(exc))
+        self.exc = exc
+
+
+def _check_args(inputs, out, kind, tile, looks, channels):
+    if kind not in INGEST_KINDS:
+        raise InputError(f"--kind must be one of {', '.join(INGEST_KINDS)}; got '{kind}'")
+    try:
+        tile_i = int(tile)
+    except (TypeError, ValueError):
+        raise InputError(f"--tile must be a positive number of pixels, got {tile!r}") from None
+    if (isinstance(tile, float) and not tile.is_integer()) or tile_i < 1:
+        raise InputError(f"--tile must be a positive number of pixels, got {tile!r}")
+    if looks is not None:
+        try:
+            lv = float(looks)
+        except (TypeError, ValueError):
+            raise InputError(f"--looks must be a positive number, got {looks!r}") from None
+        if not (math.isfinite(lv) and lv > 0):
+            raise InputError(f"--looks must be a positive number, got {looks!r}")
+    if isinstance(inputs, (str, os.PathLike)):
+        inputs = [inputs]
+    paths = [Path(p) for p in inputs]
+    if not paths:
+        raise InputError("ingest needs at least one input")
+    for p in paths:
+        if not p.exists():
+            raise InputError(f"input '{p}' does not exist")
+    if channels is not None and isinstance(channels, str):
+        channels = [c for c in re.split(r"[,\s]+", channels) if c]
+    outp = Path(out)
+    for p in paths:
+        try:
+            if outp.exists() and p.resolve() == outp.resolve():
+                raise InputError(f"--out '{outp}' is also an input")
+        except OSError:
+            pass
+    if outp.exists() and not (outp.is_dir() and ((outp / "zarr.json").exists() or (outp / ".zgroup").exists())):
+        raise InputError(f"--out '{outp}' exists and is not a Zarr scene: refusing to overwrite it")
+    return paths, outp, tile_i, channels
+
+
+def ingest(
+    inputs: list[str | Path],
+    out: str | Path,
+    kind: str = "auto",
+    tile: int = DEFAULT_TILE,
+    progress: Callable[[int, int], None] | None = None,
+    band: str | int | None = None,
+    channels: list[str] | None = None,
+    looks: float | None = None,
+) -> Scene:
+    """Write the scene store ``out`` from ``inputs`` (see the module docstring); return it opened.
+
+    ``progress(done, total)`` is called after each tile. Raises :class:`InputError` (one
+    line naming the file and the problem) on any bad input; nothing is left at ``out`` then.
+    """
+    paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels)
+    user_progress = progress
+
+    def progress(done: int, total: int) -> None:  # noqa: F811 - the caller's, exceptions passed through
+        if user_progress is not None:
+            try:
+                user_progress(done, total)
+            except Exception as exc:  # e.g. a job cancelled by the service
+                raise _CallbackError(exc) from exc
+
+    try:
+        fmts = [_sniff(p) for p in paths]
+        if "polsarpro" in fmts and len(paths) > 1:
+            raise InputError(f"'{paths[fmts.index('polsarpro')]}': a PolSARpro folder cannot be combined "
+                             "with other inputs")
+        if "zarr" in fmts:
+            if len(paths) > 1:
+                raise InputError(f"'{paths[fmts.index('zarr')]}': a Zarr scene cannot be combined with other inputs")
+            _ingest_zarr(paths[0], outp, tile, progress, looks)
+            return open_scene(outp)
+        srcs: list[_Source] = []
+        try:
+            for p in paths:
+                srcs.append(_open_source(p))
+            _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks)
+        finally:
+            for s in srcs:
+                s.close()
+        return open_scene(outp)
+    except InputError:
+        raise
+    except _CallbackError as exc:
+        raise exc.exc from None
+    except MemoryError:
+        raise InputError("ingest ran out of memory (a PNG/JPEG is decoded whole: convert it to a tiled GeoTIFF)") from None
+    except Exception as exc:  # never let a raw traceback escape
+        raise InputError(f"ingest of {', '.join(str(p) for p in paths)} failed: {_one_line(exc)}") from None
+
+
+def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks):
+    plan = _plan(srcs, kind, band, channels)
+    H, W = srcs[0].shape
+    attrs = dict(plan.attrs)
+    attrs["kind"] = plan.kind
+    attrs["source"] = [s.name for s in srcs]
+    attrs["tile"] = tile
+    attrs["sample_dtype"] = str(srcs[0].dtype)
+    from sarship.pipeline import __version__
+
+    attrs["sarship_version"] = __version__
+    meta: dict[str, Any] = {}
+    for s in srcs:  # first file that knows wins
+        for k, v in s.meta.items():
+            meta.setdefault(k, v)
+    for k in ("crs", "transform", "gcps", "pixel_spacing_m", "pixel_spacing_source", "sensor",
+              "acquired", "product"):
+        if k in meta:
+            attrs[k] = meta[k]
+    if meta.get("pols"):
+        attrs["polarisations"] = meta["pols"]
+    if meta.get("sidecar"):
+        attrs["metadata_sidecar"] = meta["sidecar"]
+    # looks that need no pixels
+    if looks is not None:
+        attrs["looks"], attrs["looks_source"] = float(looks), "argument"
+    elif meta.get("looks") is not None:
+        attrs["looks"], attrs["looks_source"] = float(meta["looks"]), "attribute"
+        attrs["looks_note"] = meta.get("looks_note", "")
+    elif plan.kind in ("slc", "quadpol"):
+        attrs["looks"], attrs["looks_source"] = 1.0, "single-look complex"
+
+    row_band: dict[int, tuple[int, int, np.ndarray]] = {}
+
+    def read_src(k: int, s: _Source, r0, r1, c0, c1):
+        if s.prefers_rows:
+            nbytes = (r1 - r0) * W * max(1, s.nbands) * s.dtype.itemsize
+            if nbytes <= ROW_BAND_BYTES:
+                cached = row_band.get(k)
+                if cached is None or cached[0] != r0:
+                    row_band[k] = (r0, r1, s.read(r0, r1, 0, W))
+                return row_band[k][2][:, c0:c1]
+        return s.read(r0, r1, c0, c1)
+
+    last_row = [-1]
+
+    def read_tile(r0, r1, c0, c1):
+        if r0 != last_row[0]:  # new tile row: drop the previous row's maps and bands
+            for s in srcs:
+                s.release()
+            row_band.clear()
+            last_row[0] = r0
+        arrs = [read_src(k, s, r0, r1, c0, c1) for k, s in enumerate(srcs)]
+        return plan.compute(arrs)
+
+    with atomic_store(outp) as tmp:
+        g = create_scene(tmp, (H, W), plan.variables, tile=tile, attrs=attrs)
+        _write_tiles(g, (H, W), tile, plan.variables, read_tile, progress)
+        row_band.clear()
+        for s in srcs:
+            s.release()
+        if "looks" not in attrs and plan.kind == "covariance":
+            attrs.update(_rank_one_looks(tmp, list(plan.variables), (H, W), tile))
+        if "looks" not in attrs:
+            attrs.update(_estimate_scene_looks(tmp, plan.looks_var, (H, W), tile))
+        finalize_scene(tmp, attrs)
