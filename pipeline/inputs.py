@@ -136,3 +136,25 @@ def make_reader(path: str, var: str | tuple[str, ...], transform: str
         return np.asarray(a, dtype=np.float32)
 
     return read
+
+
+def span(x: np.ndarray) -> np.ndarray:
+    """Sum over the trailing axis of |x|^2 (float32): the span of stacked channels.
+
+    Plain sum of the channels' powers (|hh|^2 + |hv|^2 + |vv|^2 for quad-pol), not the
+    lexicographic |hh|^2 + 2|hv|^2 + |vv|^2 of the simulator's SCR definition.
+    """
+    xr = x.real.astype(np.float32)
+    xi = x.imag.astype(np.float32)
+    return (xr * xr + xi * xi).sum(axis=-1, dtype=np.float32)
+
+
+def pixel_power(values: np.ndarray) -> np.ndarray:
+    """The power of each pixel of what a detector read, for the detections' ``peak`` and
+    ``mean``: intensity as it is (2-D), the :func:`span` of stacked complex channels
+    (``(rows, cols, p)``), the trace of covariance matrices (``(rows, cols, p, p)``)."""
+    if values.ndim == 3:
+        return span(values)
+    if values.ndim == 4:
+        return np.trace(values, axis1=2, axis2=3).real.astype(np.float32)
+    return values

@@ -43,7 +43,7 @@ The result is clipped to [MIN_LOOKS, MAX_LOOKS].
 
 from __future__ import annotations
 
-from typing import Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -149,3 +149,17 @@ def estimate_looks(intensity_blocks: Iterable[np.ndarray], block: int = 32) -> f
     if f(hi) >= 0:  # smoother than MAX_LOOKS looks
         return hi
     return float(brentq(f, lo, hi, xtol=1e-6, rtol=1e-8))
+
+
+def estimate_scene_looks(read: Callable[[int, int, int, int], np.ndarray], shape: tuple[int, int],
+                         side: int = 512, grid: int = 4) -> float:
+    """:func:`estimate_looks` on a ``grid`` x ``grid`` sample of ``side`` x ``side`` blocks
+    spread evenly over a scene of ``shape``, read with ``read(r0, r1, c0, c1)`` (intensity):
+    16 blocks of 512^2 by default, whatever the scene's size, so the estimate costs the same
+    on a chip and on a full product."""
+    H, W = shape
+    blocks = []
+    for r in np.linspace(0, max(H - side, 0), grid).astype(int):
+        for c in np.linspace(0, max(W - side, 0), grid).astype(int):
+            blocks.append(read(int(r), min(int(r) + side, H), int(c), min(int(c) + side, W)))
+    return float(estimate_looks(blocks))

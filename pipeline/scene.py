@@ -1,4 +1,4 @@
-"""The scene store of CONTRACT.md: a Zarr v3 group of square-chunked 2-D tiles.
+"""The scene store (docs/interfaces/files.md): a Zarr v3 group of square-chunked 2-D tiles.
 
 A scene is a Zarr v3 group readable with :func:`xarray.open_zarr`. Each variable is a
 2-D array on dims ``(y, x)`` stored in ``tile x tile`` squares (Zarr v3 shards of 512x512
@@ -36,7 +36,7 @@ from sarship.pipeline.errors import InputError
 #: Default tile (chunk) side in pixels.
 DEFAULT_TILE = 2048
 
-#: Scene kinds of CONTRACT.md.
+#: Scene kinds (docs/interfaces/files.md).
 KINDS = ("intensity", "slc", "quadpol", "covariance")
 
 #: Complex channel names a scene may hold.
@@ -184,6 +184,22 @@ def finalize_scene(path: str | os.PathLike, attrs: dict[str, Any] | None = None)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         zarr.consolidate_metadata(str(path))
+
+
+def create_mask_store(path: str | os.PathLike, shape: tuple[int, int], tile: int,
+                      attrs: dict[str, Any] | None = None):
+    """Create the detection mask store at ``path``: a group with one ``uint8`` array ``mask``
+    (1 = detected), chunked like a scene of tile side ``tile`` (one shard per tile, so one
+    tile task writes exactly one chunk or shard), zstd compressed, fill value 0. Returns the
+    zarr array."""
+    import zarr
+
+    g = zarr.open_group(str(path), mode="w", zarr_format=3)
+    arr = g.create_array("mask", shape=tuple(int(s) for s in shape), dtype="uint8", **chunking(tile),
+                         compressors=_zstd(), dimension_names=("y", "x"), fill_value=0)
+    if attrs:
+        g.attrs.update(_jsonable(attrs))
+    return arr
 
 
 def tile_slices(shape: tuple[int, int], tile: int) -> Iterator[tuple[int, int, int, int, int, int]]:

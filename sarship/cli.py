@@ -1,4 +1,4 @@
-"""The ``sarship`` command line (CONTRACT.md, "Command line").
+"""The ``sarship`` command line (docs/interfaces/cli.md).
 
 Every command: ``--help``; exit 0 on success; exit 2 with one line on stderr naming the
 problem for bad input or arguments (no traceback; nothing partial left behind); long work
@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from sarship.pipeline.errors import InputError
+from sarship.workers.request import DEVICES
 
 
 class _Parser(argparse.ArgumentParser):
@@ -227,7 +228,7 @@ def _settings_help() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="sarship", description="Ship detection in SAR scenes on Dask (see CONTRACT.md).")
+    p = _Parser(prog="sarship", description="Ship detection in SAR scenes on Dask (see docs/interfaces/cli.md).")
     p.add_argument("--version", action="version", version=f"sarship {__import__('sarship').__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
@@ -264,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="sarship-out", help="output folder (default ./sarship-out)")
     s.add_argument("--tile", type=_positive_int, help="processing tile side (default: the scene's chunk)")
     s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: start a local cluster)")
-    s.add_argument("--device", choices=["auto", "cpu", "gpu"], default="auto")
+    s.add_argument("--device", choices=list(DEVICES), default="auto")
     s.set_defaults(func=cmd_detect)
 
     s = sub.add_parser("worker", help="start this machine's Dask workers for a scheduler: one per GPU, "

@@ -1,4 +1,4 @@
-"""The FastAPI application: OGC API - Processes 1.0 shaped job API (CONTRACT.md "REST API").
+"""The FastAPI application: OGC API - Processes 1.0 shaped job API (docs/interfaces/rest.md).
 
 ``create_app(settings)`` opens the job store, connects to Dask (a local cluster, or
 ``settings.scheduler``) and starts the job runner for the application's lifetime.
@@ -33,6 +33,7 @@ from sarship.service.openapi import media
 from sarship.service.runner import Runner, scene_path, wait_final
 from sarship.service.settings import Settings
 from sarship.service.store import FINAL, JobStore
+from sarship.workers.request import DEVICES, JobRequest
 
 log = logging.getLogger("sarship.service")
 
@@ -43,10 +44,9 @@ COMMON_INPUTS = {
     "scene": {"title": "scene", "description": "scene id (uploaded) or path of a scene store inside an allowed folder",
               "schema": {"type": "string"}, "minOccurs": 1, "maxOccurs": 1},
     "device": {"title": "device", "description": "where tiles run: auto (GPU workers if any), gpu or cpu",
-               "schema": {"type": "string", "enum": ["auto", "cpu", "gpu"], "default": "auto"},
+               "schema": {"type": "string", "enum": list(DEVICES), "default": "auto"},
                "minOccurs": 0, "maxOccurs": 1},
 }
-RESERVED = ("scene", "device", "channel")
 
 
 def process_summary(name: str, base: str) -> dict:
@@ -80,34 +80,23 @@ def known_process(name: str) -> None:
 
 
 def validate_inputs(settings: Settings, name: str, body: Any) -> dict:
-    """The job's inputs, validated now (so that bad input is a 400, not a failed job)."""
-    from sarship.workers.jobs import parse_settings
-
+    """The job's inputs, validated now (so that bad input is a 400, not a failed job): the
+    execution body's envelope here, the inputs by :class:`~sarship.workers.request.JobRequest`
+    (the same model the command line and the runner use), the scene against the allowed
+    folders."""
     if not isinstance(body, dict) or not isinstance(body.get("inputs"), dict):
         raise Problem(400, "bad request", "the body must be a JSON object {\"inputs\": {\"scene\": ..., ...}}")
     if body.get("response", "document") not in ("document", "raw"):
         raise Problem(400, "bad request", f"'response' must be 'document' or 'raw', got {body['response']!r}")
     if not isinstance(body.get("outputs", {}), dict):
         raise Problem(400, "bad request", "'outputs' must be an object (output name -> options)")
-    inputs = dict(body["inputs"])
-    if "scene" not in inputs:
-        raise Problem(400, "missing input", "input 'scene' is required (a scene id or a path)")
-    device = inputs.get("device", "auto")
-    if device not in ("auto", "cpu", "gpu"):
-        raise Problem(400, "invalid input", f"input 'device' must be auto, cpu or gpu, got {device!r}")
-    if not isinstance(inputs.get("channel", ""), (str, type(None))):
-        raise Problem(400, "invalid input", f"input 'channel' must be a variable name, got {inputs['channel']!r}")
-    spec = detectors.get(name)
-    params = {k: v for k, v in inputs.items() if k not in RESERVED}
-    for k, v in params.items():
-        if isinstance(v, (dict, list, bool)):
-            raise Problem(400, "invalid input", f"parameter '{k}' must be a number or a string, got {json.dumps(v)}")
     try:
-        parse_settings(spec, params)
-        scene_path(settings, inputs["scene"])
+        request = JobRequest.from_inputs(name, body["inputs"])
+        scene_path(settings, request.scene)
     except InputError as exc:
-        raise Problem(400, "invalid input", str(exc)) from None
-    return inputs
+        title = "missing input" if "is required" in str(exc) else "invalid input"
+        raise Problem(400, title, str(exc)) from None
+    return dict(body["inputs"])
 
 
 def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:

@@ -1,9 +1,9 @@
 """Job runner: threads of one API process that claim jobs from the store and run them on the
-Dask cluster with :func:`sarship.workers.jobs.run_detection` (outputs in ``DATA/jobs/ID``).
+Dask cluster with :func:`sarship.workers.jobs.run_request` (outputs in ``DATA/jobs/ID``).
 
 Each running job holds a lease in the store, renewed by a heartbeat and at every finished
 tile (which also records ``progress``); if the job is dismissed meanwhile, the next tile
-callback raises :class:`Dismissed` and ``run_detection`` cancels the job's Dask futures and
+callback raises :class:`Dismissed` and ``run_request`` cancels the job's Dask futures and
 removes its partial outputs.
 """
 
@@ -106,7 +106,8 @@ class Runner:
             self._run(job)
 
     def _run(self, job: dict) -> None:
-        from sarship.workers.jobs import run_detection
+        from sarship.workers.jobs import run_request
+        from sarship.workers.request import JobRequest
 
         job_id = job["id"]
         with self._lock:
@@ -130,10 +131,10 @@ class Runner:
                 self._running.pop(job_id, None)
             return
         try:
-            scene = scene_path(self.settings, inputs.pop("scene", ""))
-            device = inputs.pop("device", "auto")
-            run = run_detection(scene, job["process"], inputs, out_dir=out_dir, client=self.client,
-                                device=device, progress=False, on_tile=on_tile)
+            request = JobRequest.from_inputs(job["process"], inputs)
+            scene = scene_path(self.settings, request.scene)
+            run = run_request(request.model_copy(update={"scene": str(scene)}), out_dir=out_dir,
+                              client=self.client, progress=False, on_tile=on_tile)
             summary: dict[str, Any] = {"detections": run["detections"], "detected_px": run["detected_px"],
                                        "outputs": run["outputs"], "timings": run["timings"]}
             self.store.finish(job_id, self.owner, "successful",

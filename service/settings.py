@@ -17,8 +17,6 @@ from pydantic import Field, ValidationInfo, field_validator
 from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-#: Inputs an inbox detector entry may carry besides the detector's own parameters.
-INBOX_JOB_INPUTS = ("device", "channel")
 #: Scan interval used when neither an interval nor a cron expression is set.
 DEFAULT_INBOX_INTERVAL_S = 30.0
 
@@ -36,7 +34,7 @@ def parse_inbox_detectors(value: Any) -> list[dict[str, Any]]:
     the entry and the bad key."""
     from sarship.pipeline import detectors
     from sarship.pipeline.errors import InputError
-    from sarship.workers.jobs import parse_settings
+    from sarship.workers.request import JobRequest
 
     if value is None:
         return []
@@ -71,15 +69,9 @@ def parse_inbox_detectors(value: Any) -> list[dict[str, Any]]:
         where = f"entry {i} ({name})"
         if "scene" in entry:
             raise ValueError(f"{where}: key 'scene' is not allowed (the inbox sets it to each new scene)")
-        device = entry.get("device", "auto")
-        if device not in ("auto", "cpu", "gpu"):
-            raise ValueError(f"{where}: key 'device' must be auto, cpu or gpu, got {device!r}")
-        params = {k: v for k, v in entry.items() if k != "detector" and k not in INBOX_JOB_INPUTS}
-        for k, v in params.items():
-            if isinstance(v, (dict, list)) or v is None:
-                raise ValueError(f"{where}: parameter '{k}' must be a number or a string, got {v!r}")
-        try:
-            parse_settings(detectors.get(name), params)
+        inputs = {k: v for k, v in entry.items() if k != "detector"}
+        try:  # the job each new pass gets, validated by the model every job request uses
+            JobRequest.from_inputs(name, {**inputs, "scene": "inbox-pass"})
         except InputError as exc:
             raise ValueError(f"{where}: {exc}") from None
         out.append(entry)

@@ -32,6 +32,36 @@ def dashboard_url(client) -> str | None:
         return None
 
 
+def _sarship_version() -> str:
+    """This process's sarship version (run on every worker by :func:`check_versions`)."""
+    from sarship.pipeline import __version__
+
+    return __version__
+
+
+def check_versions(client) -> None:
+    """Refuse a cluster whose workers run another sarship than this client.
+
+    Tile tasks travel pickled by module path (``sarship.workers.tasks.run_tile``) and run
+    the workers' own copy of the detectors, so a worker with another version (or none)
+    would fail or, worse, compute with other maths: every process of a cluster must run the
+    same sarship version. :class:`InputError` naming the workers otherwise.
+    """
+    from sarship.pipeline import __version__
+
+    try:
+        got = client.run(_sarship_version)
+    except Exception as exc:
+        raise InputError(f"the cluster's workers cannot run sarship ({type(exc).__name__}: {exc}); "
+                         f"install sarship {__version__} on every worker") from None
+    other = {w: v for w, v in got.items() if v != __version__}
+    if other:
+        info = client.scheduler_info(n_workers=-1).get("workers", {})
+        names = ", ".join(sorted(f"{info.get(w, {}).get('name', w)} at {w} ({v})" for w, v in other.items()))
+        raise InputError(f"workers run another sarship version than this client ({__version__}): {names}; "
+                         f"every process of a cluster must run the same version")
+
+
 @contextlib.contextmanager
 def connect(
     scheduler: str | None = None,
@@ -58,6 +88,11 @@ def connect(
             client = Client(scheduler, timeout="10s")
         except Exception as exc:
             raise InputError(f"cannot reach Dask scheduler at '{scheduler}': {exc}") from None
+        try:
+            check_versions(client)
+        except BaseException:
+            client.close()
+            raise
         if echo:
             n = len(client.scheduler_info().get("workers", {}))
             print(f"sarship: using Dask scheduler {scheduler} ({n} workers), dashboard {dashboard_url(client)}",

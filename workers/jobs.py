@@ -1,6 +1,6 @@
 """``sarship detect``: submit one task per output tile to Dask, merge, write the outputs.
 
-Outputs (CONTRACT.md) in ``DIR``: ``mask.zarr`` (a Zarr v3 group with the uint8 array
+Outputs (docs/interfaces/files.md) in ``DIR``: ``mask.zarr`` (a Zarr v3 group with the uint8 array
 ``mask`` chunked like the tiles), ``detections.geojson`` and ``run.json``. They are written
 under a temporary folder inside ``DIR`` and renamed into place only when the run has
 succeeded, so a failed or interrupted run leaves the previous outputs (or nothing) behind.
@@ -20,66 +20,30 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
 
-from sarship.pipeline import __version__, detectors
+from sarship.pipeline import __version__
 from sarship.pipeline.components import merge_radius, merge_tiles
 from sarship.pipeline.ship_features import collection, features, keep_mask, write_json
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.inputs import intensity_source, make_reader, polarimetric_source
-from sarship.pipeline.scene import Scene, finalize_scene, open_scene, tile_slices
+from sarship.pipeline.scene import Scene, create_mask_store, finalize_scene, open_scene, tile_slices
+from sarship.workers.request import JobRequest
 from sarship.workers.routing import plan
 from sarship.workers.tasks import TileJob, run_tile, run_tile_stats
 
 OUTPUTS = ("mask.zarr", "detections.geojson", "run.json")
 
 
-def parse_settings(spec, settings: dict[str, Any]):
-    """Validate ``--set`` values with the detector's pydantic model; one-line errors."""
-    from pydantic import ValidationError
-
-    clean = {}
-    for k, v in settings.items():
-        if isinstance(v, str) and v.lower() in ("none", "null", ""):
-            v = None
-        clean[k] = v
-    try:
-        return spec.params(**clean)
-    except ValidationError as exc:
-        raise InputError(format_validation(exc, spec.name)) from None
-
-
-def format_validation(exc, detector: str) -> str:
-    msgs = []
-    for e in exc.errors():
-        loc = ".".join(str(x) for x in e.get("loc", ()))
-        msg = e.get("msg", "invalid").removeprefix("Value error, ")
-        if e.get("type") == "extra_forbidden":
-            msgs.append(f"unknown parameter '{loc}' for detector '{detector}'")
-        elif loc:
-            got = e.get("input")
-            msgs.append(f"parameter '{loc}': {msg} (got {got!r})")
-        else:
-            msgs.append(msg)
-    return "; ".join(msgs)
-
-
 def resolve_looks(spec, params, scene: Scene, var: str, transform: str) -> tuple[Any, str]:
-    """Fill ``looks`` from the scene attribute, else estimate it from a sample of tiles."""
+    """Fill ``looks`` from the parameter, else the scene attribute, else an estimate from a
+    sample of the scene (:func:`sarship.pipeline.looks.estimate_scene_looks`)."""
     if not spec.needs_looks or params.looks is not None:
         return params, "parameter" if params.looks is not None else "not used"
     if scene.looks is not None:
         return params.model_copy(update={"looks": scene.looks}), "scene attribute"
-    from sarship.pipeline.looks import estimate_looks
+    from sarship.pipeline.looks import estimate_scene_looks
 
-    read = make_reader(str(scene.path), var, transform)
-    H, W = scene.shape
-    blocks = []
-    side = 512
-    for r in np.linspace(0, max(H - side, 0), 4).astype(int):
-        for c in np.linspace(0, max(W - side, 0), 4).astype(int):
-            blocks.append(read(int(r), min(int(r) + side, H), int(c), min(int(c) + side, W)))
-    L = float(estimate_looks(blocks))
+    L = estimate_scene_looks(make_reader(str(scene.path), var, transform), scene.shape)
     return params.model_copy(update={"looks": L}), "estimated from the scene (MoLC, median over blocks)"
 
 
@@ -181,18 +145,33 @@ def run_detection(
 ) -> dict[str, Any]:
     """Run ``detector`` on a scene store; returns the ``run.json`` content.
 
-    ``client``: a connected ``distributed.Client`` (else one is made: ``scheduler`` or a
-    local cluster). ``tile``: processing/output tile side (default: the scene's chunk).
+    ``settings``: the detector's parameters (and optionally ``channel``), validated as a
+    :class:`~sarship.workers.request.JobRequest`. ``client``: a connected
+    ``distributed.Client`` (else one is made: ``scheduler`` or a local cluster). ``tile``:
+    processing/output tile side (default: the scene's chunk).
     """
+    request = JobRequest.from_inputs(detector, {**(settings or {}), "scene": str(scene_path), "device": device})
+    return run_request(request, out_dir, tile=tile, client=client, scheduler=scheduler, progress=progress,
+                       on_tile=on_tile)
+
+
+def run_request(
+    request: JobRequest,
+    out_dir: str | os.PathLike = "sarship-out",
+    tile: int | None = None,
+    client=None,
+    scheduler: str | None = None,
+    progress: bool = True,
+    on_tile: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Run a validated :class:`~sarship.workers.request.JobRequest`; its ``scene`` is the
+    path of a scene store. Returns the ``run.json`` content (see :func:`run_detection`)."""
     t_start = time.perf_counter()
-    spec = detectors.get(detector)
-    settings = dict(settings or {})
-    channel = settings.pop("channel", None)
-    params = parse_settings(spec, settings)
-    if device not in ("auto", "cpu", "gpu"):
-        raise InputError(f"--device must be auto, cpu or gpu, got '{device}'")
+    spec, detector, device, channel = request.spec, request.detector, request.device, request.channel
+    params = request.detector_params()
     if device == "gpu" and not spec.gpu:
         raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation in this version")
+    scene_path = request.scene
     scene = open_scene(scene_path)
     if spec.input == "polarimetric":
         var, transform = polarimetric_source(scene, channel)
@@ -211,17 +190,11 @@ def run_detection(
     mr = merge_radius(params.merge_px)
     H, W = scene.shape
     out_dir = Path(out_dir)
+    created = not out_dir.exists()
     tmp = _prepare_out(out_dir)
     try:
-        import zarr
-
-        from sarship.pipeline.scene import _zstd, chunking
-
-        g = zarr.open_group(str(tmp / "mask.zarr"), mode="w", zarr_format=3)
-        g.create_array("mask", shape=(H, W), dtype="uint8", **chunking(tile),
-                       compressors=_zstd(), dimension_names=("y", "x"), fill_value=0)
         geo = {k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs}
-        g.attrs.update({"detector": detector, "scene": str(scene.path), **geo})
+        create_mask_store(tmp / "mask.zarr", (H, W), tile, {"detector": detector, "scene": str(scene.path), **geo})
         jobs = [
             TileJob(
                 scene_path=str(scene.path), var=var, transform=transform, scene_shape=(H, W),
@@ -319,6 +292,9 @@ def run_detection(
         return run
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        if created:  # a failed run leaves no trace, not even the empty folder it made
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()
         raise
 
 

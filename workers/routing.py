@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from sarship.pipeline.errors import InputError
+from sarship.workers.request import DEVICES
 
 
 @dataclass(frozen=True)
@@ -32,8 +33,8 @@ def plan(requested: str, detector: str, has_gpu: bool, workers: dict[str, dict])
       CPU code on their GPU workers' processes.
     * ``auto``: ``gpu`` when the detector has GPU code and a GPU worker exists, else ``cpu``.
     """
-    if requested not in ("auto", "cpu", "gpu"):
-        raise InputError(f"--device must be auto, cpu or gpu, got '{requested}'")
+    if requested not in DEVICES:
+        raise InputError(f"--device must be one of {', '.join(DEVICES)}, got '{requested}'")
     gpu = [a for a, w in workers.items() if float((w.get("resources") or {}).get("GPU", 0)) > 0]
     cpu_res = [a for a, w in workers.items() if float((w.get("resources") or {}).get("CPU", 0)) > 0]
     plain = [a for a, w in workers.items() if not (w.get("resources") or {})]

@@ -17,7 +17,7 @@ import numpy as np
 from sarship.pipeline import detectors
 from sarship.pipeline.components import tile_components
 from sarship.pipeline.ship_features import keep_mask
-from sarship.pipeline.inputs import make_reader
+from sarship.pipeline.inputs import make_reader, pixel_power
 from sarship.pipeline.windows import padded_block
 
 
@@ -37,17 +37,6 @@ class TileJob:
     mask_path: str | None
     spacing: tuple[float, float] | None
     device: str = "cpu"  # "gpu": move the block to this worker's GPU once, detect there
-
-
-def span(x: np.ndarray) -> np.ndarray:
-    """Sum over the trailing axis of |x|^2 (float32): the span of stacked channels.
-
-    Plain sum of the channels' powers (|hh|^2 + |hv|^2 + |vv|^2 for quad-pol), not the
-    lexicographic |hh|^2 + 2|hv|^2 + |vv|^2 of the simulator's SCR definition.
-    """
-    xr = x.real.astype(np.float32)
-    xi = x.imag.astype(np.float32)
-    return (xr * xr + xi * xi).sum(axis=-1, dtype=np.float32)
 
 
 def _worker_name() -> str:
@@ -145,11 +134,7 @@ def run_tile(job: TileJob) -> dict[str, Any]:
     mext = np.zeros((h + 2 * m, w + 2 * m), bool)
     mext[m - a: m - a + mask_e.shape[0], m - b: m - b + mask_e.shape[1]] = mask_e
     hb = job.halo
-    values = block[hb + a: hb + a + h, hb + b: hb + b + w]
-    if values.ndim == 3:  # stacked complex channels: span = sum of |channel|^2
-        values = span(values)
-    elif values.ndim == 4:  # covariance matrices: span = trace
-        values = np.trace(values, axis1=2, axis2=3).real.astype(np.float32)
+    values = pixel_power(block[hb + a: hb + a + h, hb + b: hb + b + w])
     comps = tile_components(mext, values, stat_e[a:a + h, b:b + w], m, (r0, c0), job.index)
     comps.complete = comps.complete[keep_mask(comps.complete, params, job.spacing)]
     t4 = time.perf_counter()

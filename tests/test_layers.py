@@ -1,0 +1,138 @@
+"""The layers import downward only: ``sarship.pipeline`` (pure array code) <- ``sarship.workers``
+(cluster, routing, the orchestration of a run) <- ``sarship.service`` (HTTP, store, ingest, web)
+<- ``sarship.cli`` (the command line).
+
+Every import statement of every module is parsed (also those inside functions, which is where
+the slow imports sit), relative imports resolved, so a late ``from sarship.service import x`` in
+a worker module fails here as surely as one at the top.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+#: repository folder -> the package it installs as (pyproject.toml's package-dir)
+ROOTS = {"pipeline": "sarship.pipeline", "workers": "sarship.workers", "service": "sarship.service",
+         "sarship": "sarship"}
+#: what each layer may import of the project
+ALLOWED = {
+    "sarship.pipeline": {"sarship.pipeline"},
+    "sarship.workers": {"sarship.pipeline", "sarship.workers"},
+    "sarship.service": {"sarship.pipeline", "sarship.workers", "sarship.service"},
+    "sarship": {"sarship.pipeline", "sarship.workers", "sarship.service", "sarship"},
+}
+#: third-party packages a layer must not use: no cluster and no web in the science
+FORBIDDEN_THIRD_PARTY = {
+    "sarship.pipeline": {"distributed", "dask", "fastapi", "starlette", "uvicorn", "httpx", "prometheus_client"},
+    "sarship.workers": {"fastapi", "starlette", "uvicorn", "prometheus_client"},
+}
+
+
+def _modules():
+    for folder, package in ROOTS.items():
+        for path in sorted((REPO / folder).rglob("*.py")):
+            rel = path.relative_to(REPO / folder).with_suffix("")
+            parts = [p for p in rel.parts if p != "__init__"]
+            name = ".".join([package, *parts])
+            is_pkg = path.name == "__init__.py"
+            yield path, name, is_pkg
+
+
+def _imports(path: Path, name: str, is_pkg: bool) -> list[tuple[int, str]]:
+    """``(line, absolute module name)`` of every import in the file."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    package = name if is_pkg else name.rpartition(".")[0]
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            out.append((node.lineno, mod))
+            out += [(node.lineno, f"{mod}.{a.name}") for a in node.names if a.name != "*"]
+    return out
+
+
+def _layer(module: str) -> str:
+    for layer in ("sarship.pipeline", "sarship.workers", "sarship.service"):
+        if module == layer or module.startswith(layer + "."):
+            return layer
+    return "sarship"
+
+
+def _project(module: str) -> str | None:
+    """The project layer ``module`` belongs to, or None for third-party modules."""
+    if module == "sarship" or module.startswith("sarship."):
+        return _layer(module)
+    return None
+
+
+MODULES = list(_modules())
+
+
+def test_every_layer_has_modules():
+    layers = {_layer(name) for _, name, _ in MODULES}
+    assert layers == set(ALLOWED), layers
+    assert len(MODULES) > 40
+
+
+def test_layers_import_downward_only():
+    bad = []
+    for path, name, is_pkg in MODULES:
+        layer = _layer(name)
+        for line, mod in _imports(path, name, is_pkg):
+            top = mod.split(".")[0]
+            where = f"{path.relative_to(REPO)}:{line}"
+            if top in ("pipeline", "workers", "service"):
+                bad.append(f"{where}: imports '{mod}' by its repository folder, not as sarship.{mod}")
+                continue
+            target = _project(mod)
+            if target is None:
+                if top in FORBIDDEN_THIRD_PARTY.get(layer, ()):
+                    bad.append(f"{where}: {layer} must not use '{top}'")
+                continue
+            if target not in ALLOWED[layer]:
+                bad.append(f"{where}: {layer} imports {mod} (a layer above it)")
+            if mod.startswith("sarship.cli") and name != "sarship.__main__":
+                bad.append(f"{where}: only sarship.__main__ may import the command line")
+    assert not bad, "imports against the layers:\n" + "\n".join(bad)
+
+
+def test_checker_sees_a_violation(tmp_path):
+    """The parser finds an upward import inside a function and resolves relative imports."""
+    src = tmp_path / "x.py"
+    src.write_text("def f():\n    from ..service import app\n    import sarship.workers.jobs\n")
+    found = dict((m, ln) for ln, m in _imports(src, "sarship.pipeline.x", False))
+    assert found["sarship.service"] == 2 and found["sarship.service.app"] == 2
+    assert "sarship.workers.jobs" in found
+    assert _project("sarship.service.app") not in ALLOWED["sarship.pipeline"]
+
+
+@pytest.mark.parametrize("layer", ["sarship.pipeline", "sarship.workers"])
+def test_lower_layers_import_alone(layer):
+    """Importing every module of a lower layer loads nothing of the layers above it."""
+    import importlib
+
+    names = [n for _, n, _ in MODULES if _layer(n) == layer and ".gpu" not in n]
+    code = ("import importlib, sys\n"
+            f"for n in {names!r}:\n    importlib.import_module(n)\n"
+            "print(sorted({m for m in sys.modules if m.startswith('sarship.')}))\n")
+    import subprocess
+
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO.parent,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    loaded = ast.literal_eval(out.stdout.strip().splitlines()[-1])
+    above = [m for m in loaded if _layer(m) not in ALLOWED[layer] and m != "sarship"]
+    assert not above, f"importing {layer} loaded {above}"
+    assert importlib.util.find_spec("sarship") is not None

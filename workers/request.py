@@ -1,0 +1,121 @@
+"""One detection job request, validated once for every way a job arrives.
+
+``sarship detect`` (the command line), ``POST /processes/{id}/execution`` (the REST API),
+the scheduled ingest's detector list and the service's job runner all describe a job the
+same way: a scene, a detector, where its tiles run (``device``), optionally which scene
+variable it reads (``channel``), and the detector's parameters. :class:`JobRequest` is that
+envelope; :meth:`JobRequest.from_inputs` builds it from a flat mapping (the REST ``inputs``
+object, the ``--set`` pairs plus the command line's own options, a stored job) and turns every
+problem into one :class:`~sarship.pipeline.errors.InputError` line naming the input.
+
+The detector's parameters are checked against its own pydantic model
+(:attr:`~sarship.pipeline.detectors.base.DetectorSpec.params`) by :func:`parse_params`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, Mapping, Optional, get_args
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from sarship.pipeline import detectors
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec
+from sarship.pipeline.errors import InputError
+
+#: Where a job's tiles run: ``auto`` (GPU workers when the cluster has any and the detector
+#: has GPU code, else CPU workers), ``gpu`` or ``cpu`` (forced).
+Device = Literal["auto", "cpu", "gpu"]
+DEVICES: tuple[str, ...] = get_args(Device)
+#: Inputs of a job that are not detector parameters.
+RESERVED = ("scene", "device", "channel")
+
+
+def format_validation(exc: ValidationError, detector: str) -> str:
+    """One line for the errors of a detector's parameter model."""
+    msgs = []
+    for e in exc.errors():
+        loc = ".".join(str(x) for x in e.get("loc", ()))
+        msg = e.get("msg", "invalid").removeprefix("Value error, ")
+        if e.get("type") == "extra_forbidden":
+            msgs.append(f"unknown parameter '{loc}' for detector '{detector}'")
+        elif loc:
+            msgs.append(f"parameter '{loc}': {msg} (got {e.get('input')!r})")
+        else:
+            msgs.append(msg)
+    return "; ".join(msgs)
+
+
+def parse_params(spec: DetectorSpec, settings: Mapping[str, Any]) -> DetectorParams:
+    """``settings`` validated by the detector's parameter model; ``"none"``/``"null"``/``""``
+    (as the command line's ``--set key=none`` writes them) mean unset. :class:`InputError`
+    with one line naming every bad parameter otherwise."""
+    clean = {}
+    for k, v in settings.items():
+        if isinstance(v, str) and v.lower() in ("none", "null", ""):
+            v = None
+        clean[k] = v
+    try:
+        return spec.params(**clean)
+    except ValidationError as exc:
+        raise InputError(format_validation(exc, spec.name)) from None
+
+
+class JobRequest(BaseModel):
+    """A detection job: scene, detector, device, channel and the detector's parameters.
+
+    Build it with :meth:`from_inputs` (one-line :class:`InputError` on any problem); the
+    parsed detector parameters are :meth:`detector_params`. ``scene`` is kept as given: the
+    command line opens it as a path, the service resolves it within its allowed folders.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scene: str = Field(min_length=1, description="scene store path, or scene id (service)")
+    detector: str = Field(description="detector name (sarship detectors)")
+    device: Device = Field("auto", description="where tiles run: auto, gpu or cpu")
+    channel: Optional[str] = Field(None, min_length=1, description="scene variable the detector reads")
+    params: dict[str, Any] = Field(default_factory=dict, description="the detector's parameters")
+
+    @classmethod
+    def from_inputs(cls, detector: str, inputs: Mapping[str, Any]) -> "JobRequest":
+        """The request of ``detector`` with the flat ``inputs`` (``scene``, ``device``,
+        ``channel`` and parameters), validated: unknown detector, missing scene, bad device or
+        channel, parameter values that are not numbers or strings, and every parameter the
+        detector's model refuses, each named in one line (:class:`InputError`)."""
+        if not isinstance(detector, str) or detector not in detectors.names():
+            raise InputError(f"unknown detector '{detector}' (known: {', '.join(detectors.names())})")
+        if not isinstance(inputs, Mapping):
+            raise InputError("inputs must be an object (scene, device, channel and parameters)")
+        scene = inputs.get("scene")
+        if scene is None:
+            raise InputError("input 'scene' is required (a scene id or a path)")
+        if not isinstance(scene, str) or not scene.strip():
+            raise InputError(f"input 'scene' must be a scene id or a path, got {scene!r}")
+        device = inputs.get("device", "auto")
+        if device not in DEVICES:
+            raise InputError(f"input 'device' must be {', '.join(DEVICES[:-1])} or {DEVICES[-1]}, got {device!r}")
+        channel = inputs.get("channel")
+        if channel is not None and (not isinstance(channel, str) or not channel):
+            raise InputError(f"input 'channel' must be a scene variable name, got {channel!r}")
+        params = {k: v for k, v in inputs.items() if k not in RESERVED}
+        for k, v in params.items():
+            if isinstance(v, (bool, dict, list)) or not isinstance(v, (int, float, str, type(None))):
+                raise InputError(f"parameter '{k}' must be a number or a string, got {v!r}")
+        req = cls(scene=scene, detector=detector, device=device, channel=channel, params=params)
+        req.detector_params()  # every parameter checked now, not when a tile runs
+        return req
+
+    @property
+    def spec(self) -> DetectorSpec:
+        return detectors.get(self.detector)
+
+    def detector_params(self) -> DetectorParams:
+        """The detector's parameters, parsed by its model (:func:`parse_params`)."""
+        return parse_params(self.spec, self.params)
+
+    def inputs(self) -> dict[str, Any]:
+        """The flat inputs (the inverse of :meth:`from_inputs`): what a job store keeps."""
+        out: dict[str, Any] = {"scene": self.scene, "device": self.device}
+        if self.channel is not None:
+            out["channel"] = self.channel
+        return {**out, **self.params}
