@@ -1,4 +1,4 @@
-"""Polarimetric detectors of 000_5bc9398123fbbeaa.txt against the thesis' timings.
+"""Polarimetric detectors of the thesis (Sun 2020, docs/references.md#sun2020) against its timings.
 
 Quad-pol complex-Gaussian sea clutter (reflection-symmetric covariance, eq 2-3) with ships,
 1000 x 1000 (the thesis' scenes) and 4096 x 4096, one core, each detector's pure function on

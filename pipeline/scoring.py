@@ -1,4 +1,4 @@
-"""Object-level and pixel-level scores of detections against truth (CONTRACT.md "Scores").
+"""Object-level and pixel-level scores of detections against truth (docs/interfaces/files.md, "Scores").
 
 Matching (:func:`match`)
     A detection *can* match a truth ship when its centroid lies in the truth box
@@ -61,7 +61,7 @@ from sarship.pipeline.truth import (
     truth_kind,
 )
 
-#: Minimum IoU for a box-overlap match (CONTRACT.md).
+#: Minimum IoU for a box-overlap match (docs/interfaces/files.md).
 IOU_MIN = 0.1
 #: Float tolerance on the IoU comparison.
 IOU_TOL = 1e-9
@@ -239,7 +239,7 @@ def evaluate(
 ) -> dict:
     """Back-end of ``sarship evaluate DETECTIONS.geojson --truth TRUTH``.
 
-    ``TRUTH``: a CONTRACT GeoJSON, a VOC xml file, a folder of VOC xml, or a mask image.
+    ``TRUTH``: a truth GeoJSON (docs/interfaces/files.md), a VOC xml file, a folder of VOC xml, or a mask image.
     For a folder, the xml whose stem is the detections' scene name is used (the scene is
     read from the detections file's ``scene`` member or the ``run.json`` beside it, see
     :func:`sarship.pipeline.truth.detections_scene`); when the detections name no scene the folder

@@ -1,4 +1,4 @@
-"""Discrimination of components and the CONTRACT ``detections.geojson``.
+"""Discrimination of components and ``detections.geojson`` (docs/interfaces/files.md).
 
 Size filters: ``min_area_px`` / ``max_area_px`` on the pixel count, ``min_length_m`` /
 ``max_length_m`` on the moment length in metres (only when the scene's pixel spacing is
@@ -114,7 +114,7 @@ def _outline(props: dict, spacing, geo: "Georeference | None") -> dict | None:
 
 
 def features(records: np.ndarray, spacing: tuple[float, float] | None, geo: dict | None = None) -> list[dict]:
-    """One GeoJSON Feature per component record (CONTRACT properties).
+    """One GeoJSON Feature per component record (the properties of docs/interfaces/files.md).
 
     ``geo``: the scene's georeference attributes (``crs`` + ``transform``, or ``gcps``);
     geometry is the oriented ship rectangle in WGS84 lon/lat (:class:`Georeference`), or

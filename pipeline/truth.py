@@ -3,7 +3,7 @@
 Sources read by :func:`load_ships`:
 
 GeoJSON (``.geojson`` / ``.json``)
-    A FeatureCollection in the CONTRACT.md schema: per Feature, ``properties.bbox_px``
+    A FeatureCollection in the schema of docs/interfaces/files.md: per Feature, ``properties.bbox_px``
     ``[row0, col0, row1, col1]`` (half-open, scene pixels), ``properties.centroid_px``
     ``[row, col]`` (continuous coordinates; the box centre is used when it is absent) and an
     optional ``difficult`` (in ``properties``, or on the Feature itself). All other
@@ -90,7 +90,7 @@ class Ship:
         return max(0.0, r1 - r0) * max(0.0, c1 - c0)
 
     def to_feature(self) -> dict:
-        """A GeoJSON Feature in the CONTRACT schema (``geometry`` null: pixel coordinates only)."""
+        """A GeoJSON Feature in the detections schema (docs/interfaces/files.md) (``geometry`` null: pixel coordinates only)."""
         props = {k: _jsonable(v) for k, v in self.properties.items()}
         props["bbox_px"] = [_num(v) for v in self.bbox]
         props["centroid_px"] = [float(v) for v in self.centroid]
@@ -226,7 +226,7 @@ def _ship_from_feature(feat: Any, where: str) -> Ship:
 
 
 def load_geojson(path: str | os.PathLike) -> list[Ship]:
-    """Ships of a CONTRACT-schema FeatureCollection (truth or detections)."""
+    """Ships of a FeatureCollection in the detections schema (truth or detections)."""
     p = Path(path)
     _check_exists(p)
     feats = _feature_collection(p)
@@ -234,7 +234,7 @@ def load_geojson(path: str | os.PathLike) -> list[Ship]:
 
 
 def load_detections(path: str | os.PathLike) -> list[Ship]:
-    """Detections of a ``detections.geojson`` (CONTRACT schema)."""
+    """Detections of a ``detections.geojson`` (docs/interfaces/files.md)."""
     p = Path(path)
     _check_exists(p)
     if p.is_dir():
@@ -296,7 +296,7 @@ def ships_to_geojson(ships: Iterable[Ship], **members: Any) -> dict:
 
 
 def write_geojson(path: str | os.PathLike, ships: Iterable[Ship], **members: Any) -> None:
-    """Write ``ships`` as a CONTRACT-schema FeatureCollection (atomically: temp file + rename)."""
+    """Write ``ships`` as a FeatureCollection in the detections schema (atomically: temp file + rename)."""
     p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
     tmp.write_text(json.dumps(ships_to_geojson(ships, **members), allow_nan=False), encoding="utf-8")

@@ -1,6 +1,6 @@
 """Halo geometry: cutting a tile plus its mirror-extended context out of a scene.
 
-The thesis (000_5bc9398123fbbeaa.txt, Algorithm 1, step 1) mirror-extends the image at its
+The thesis (Sun 2020, docs/references.md#sun2020; Algorithm 1, step 1) mirror-extends the image at its
 borders by the sliding-window size. We use the mirror *without* repeating the edge pixel
 (numpy ``pad(mode="reflect")``, scipy.ndimage ``mode="mirror"``): scene pixel ``-k`` is
 pixel ``k``. For halos wider than the scene the reflection repeats (a triangle wave of

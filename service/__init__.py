@@ -1,2 +1,2 @@
 """sarship service: FastAPI job API (OGC API - Processes shape), durable SQLite job store,
-job runner on the Dask cluster (CONTRACT.md, "REST API")."""
+job runner on the Dask cluster (docs/interfaces/rest.md)."""

@@ -10,6 +10,7 @@ document instead; and no route would declare its problem (``application/problem+
 responses. Clients (and the schemathesis fuzzing in ``tests/test_fuzz.py``) read this schema,
 so it has to be right. The models here are used only to *document* responses
 (``responses=``): routes return plain dicts, so status polling pays no validation cost.
+The API as users see it is described in ``docs/interfaces/rest.md``.
 """
 
 from __future__ import annotations
@@ -21,13 +22,15 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel, ConfigDict, Field
 
+from sarship.workers.request import DEVICES
+
 PROBLEM_MEDIA = "application/problem+json"
 PROBLEM_REF = "#/components/schemas/Problem"
 JOB_STATUSES = ("accepted", "running", "successful", "failed", "dismissed")
 
 
 class Problem(BaseModel):
-    """An RFC 7807 problem document: every error answer of the service."""
+    """An RFC 7807 problem document: every error answer of the service (docs/interfaces/rest.md)."""
 
     model_config = ConfigDict(extra="allow")
     type: str = Field(description="problem type URI ('about:blank': the title says it)")
@@ -123,10 +126,11 @@ EXECUTE_BODY: dict[str, Any] = {
                 "required": ["scene"],
                 "description": "'scene' (a scene id or a path inside an allowed folder), optional 'device' and "
                                "'channel', and the detector's parameters (GET /processes/{processId} lists them "
-                               "with their schemas)",
+                               "with their schemas; docs/interfaces/rest.md and docs/algorithms/ in the sarship "
+                               "repository describe them)",
                 "properties": {
                     "scene": {"type": "string", "minLength": 1},
-                    "device": {"type": "string", "enum": ["auto", "cpu", "gpu"], "default": "auto"},
+                    "device": {"type": "string", "enum": list(DEVICES), "default": "auto"},
                     "channel": {"type": ["string", "null"]},
                 },
                 "additionalProperties": {"type": ["number", "string", "null"]},

@@ -4,7 +4,7 @@ Anything that can stop the service because of what the operator gave it (a data 
 cannot be created or written, a job store that is not a SQLite database, a port already in
 use or an address that does not resolve, an unreachable Dask scheduler, GPUs that are not
 there) is found here and raised as one :class:`~sarship.pipeline.errors.InputError` naming the
-setting, so that ``sarship serve`` exits 2 with one line (CONTRACT.md "Command line") instead of a traceback from
+setting, so that ``sarship serve`` exits 2 with one line (docs/interfaces/cli.md) instead of a traceback from
 inside the ASGI server's start-up. The application's own start-up (``service.app``) then
 repeats the same steps, which cannot fail for these reasons any more.
 """

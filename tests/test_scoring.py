@@ -171,7 +171,7 @@ def test_score_arithmetic():
 
 
 def test_thesis_fom_figure():
-    # ALGORITHMS.md: 118 ships, 117 detected, 6 false alarms -> FoM 0.943
+    # thesis (docs/references.md#sun2020) table 2.2: 118 ships, 117 detected, 6 false alarms -> FoM 0.943
     truth = [box(20 * i, 0, 20 * i + 5, 5) for i in range(118)]
     dets = [box(20 * i, 0, 20 * i + 5, 5) for i in range(117)]
     dets += [box(5000 + 20 * i, 5000, 5000 + 20 * i + 5, 5005) for i in range(6)]

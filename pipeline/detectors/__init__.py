@@ -7,7 +7,7 @@ import importlib
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec
 from sarship.pipeline.errors import InputError
 
-#: Module of each detector, by CONTRACT name.
+#: Module of each detector, by its public name (docs/algorithms/README.md).
 _MODULES = {
     "two_parameter": "sarship.pipeline.detectors.two_parameter",
     "ca_cfar": "sarship.pipeline.detectors.ca_cfar",

@@ -1,6 +1,7 @@
 """Adaptive polarimetric whitening filter + CFAR (``apwf``), exact threshold.
 
-Source: thesis 000_5bc9398123fbbeaa.txt, chapter 2 (ALGORITHMS.md section A).
+Source: chapter 2 of Sun Tianyu's Tsinghua thesis (2020); docs/algorithms/apwf.md, bibliography
+in docs/references.md.
 
 Model. The scattering vector of a pixel, X = [S_hh, S_hv, S_vv]^T (quad-pol, p = 3) or
 two channels (dual-pol, p = 2, e.g. [S_vh, S_vv]; order: :func:`sarship.pipeline.inputs.polarimetric_source`),
@@ -17,7 +18,7 @@ of X X^H over N clutter cells of a sliding window centred on the cell under test
 
 * ``estimator="ring"`` (default): the ring between the ``guard`` and ``background`` windows,
   N = background^2 - guard^2; the CUT and the ship around it are not in the estimate
-  (ALGORITHMS.md: the better default).
+  (the better default).
 * ``estimator="window"``: the thesis' reading, the whole ``background`` window including
   the CUT, N = background^2 (``guard`` is not used).
 
@@ -71,7 +72,7 @@ STRIP_COLS = 1024
 
 class APWFParams(with_defaults(DetectorParams, "APWFDefaults", pfa=1e-6, guard=41, background=61,
                                min_area_px=2, merge_px=5)):
-    """Parameters of ``apwf`` (shared CONTRACT names plus ``estimator``)."""
+    """Parameters of ``apwf`` (the shared parameters plus ``estimator``)."""
 
     estimator: Literal["ring", "window"] = Field(
         "ring",
@@ -382,7 +383,8 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
 SPEC = DetectorSpec(
     name="apwf",
     summary="Adaptive polarimetric whitening filter + CFAR (quad- or dual-pol SLC), exact threshold",
-    reference="000_5bc9398123fbbeaa.txt ch. 2, eq 2-6, 2-8, 2-9, 2-10; Novak & Burl 1990 (PWF)",
+    reference="Sun 2020 (Tsinghua thesis) ch. 2, eq 2-6, 2-8, 2-9, 2-10; Novak & Burl 1990 (PWF); "
+              "docs/algorithms/apwf.md",
     params=APWFParams,
     prepare=prepare,
     detect=detect,

@@ -19,6 +19,9 @@ Results must not depend on where the tile starts: the whole scene processed as o
 and the same scene processed in tiles give bit-identical masks (tests check it). Window
 sums therefore use :mod:`sarship.pipeline.boxsum`, whose association order is fixed by global
 pixel coordinates.
+
+How to add a detector (module, registry entry, scene pass, GPU twin, tests):
+docs/adding-a-detector.md.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class DetectorParams(BaseModel):
-    """Parameters shared by every detector (CONTRACT.md names)."""
+    """Parameters shared by every detector (their names are public: docs/algorithms/README.md)."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
@@ -95,7 +98,7 @@ def with_defaults(base: type[DetectorParams], name: str, **defaults: Any) -> typ
     """A subclass of ``base`` whose listed fields have other defaults (constraints kept).
 
     Detectors tune their own defaults (see ``bench/REALDATA.md``) while sharing one
-    definition, with its bounds and validators, of every CONTRACT parameter.
+    definition, with its bounds and validators, of every shared parameter.
     """
     from pydantic import create_model
     from pydantic.fields import FieldInfo

@@ -1,7 +1,7 @@
 r"""Polarimetric covariance difference matrix detector (``pcdm``), thesis chapter 4.
 
-Source: 000_5bc9398123fbbeaa.txt, chapter 4 (eq 4-4, 4-7, 4-8, Algorithm 4); digest in
-ALGORITHMS.md section C.
+Source: chapter 4 of Sun Tianyu's Tsinghua thesis (2020; eq 4-4, 4-7, 4-8, Algorithm 4);
+docs/algorithms/pcdm.md, bibliography in docs/references.md.
 
 Per pixel:
 
@@ -9,7 +9,7 @@ Per pixel:
    lexicographic scattering vector
    ``k = [S_HH, sqrt(2) S_HV, S_VV]`` (quad-pol, p = 3) or ``k = [S_1, S_2]`` of the two
    channels of a dual-pol scene (p = 2). ``<.>`` is a ``looks_window`` x ``looks_window``
-   boxcar (default 1: the single-look ``k k^H``, as the thesis' GPU kernel computes it).
+   boxcar (default 3; 1 is the single-look ``k k^H``, as the thesis' GPU kernel computes it).
 2. The polarimetric covariance difference matrix (eq 4-7)
 
        P_mn(i, j) = sum over the 8 neighbours (di, dj) of | C_mn(i, j) - C_mn(i+di, j+dj) |,
@@ -334,7 +334,7 @@ def detect(block, halo_px, origin, p: PCDMParams, prep: dict):
 SPEC = DetectorSpec(
     name="pcdm",
     summary="Polarimetric covariance difference matrix: SPAN_P (scene-wide threshold) AND PSH",
-    reference="000_5bc9398123fbbeaa.txt ch. 4, eq 4-4, 4-7, 4-8, Algorithm 4",
+    reference="Sun 2020 (Tsinghua thesis) ch. 4, eq 4-4, 4-7, 4-8, Algorithm 4; docs/algorithms/pcdm.md",
     params=PCDMParams,
     prepare=prepare,
     detect=detect,

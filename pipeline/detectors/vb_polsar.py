@@ -1,7 +1,7 @@
 r"""Variational-Bayes PolSAR ship detection (``vb_polsar``), thesis appendix A.
 
-Source: 000_5bc9398123fbbeaa.txt, appendix A (a translated paper: eq A-1..A-27, Algorithm 6);
-digest in ALGORITHMS.md section D.
+Source: appendix A of Sun Tianyu's Tsinghua thesis (2020), a translated paper (eq A-1..A-27,
+Algorithm 6); docs/algorithms/vb_polsar.md, bibliography in docs/references.md.
 
 Model (A-3..A-10)
 -----------------
@@ -793,7 +793,8 @@ def detect(block, halo_px, origin, p: VBPolSARParams, prep: dict):
 SPEC = DetectorSpec(
     name="vb_polsar",
     summary="Variational-Bayes PolSAR ship detection: D = A*D + C, Beta-Bernoulli ships, VB-GMM clutter",
-    reference="000_5bc9398123fbbeaa.txt appendix A, eq A-1..A-27, Algorithm 6",
+    reference="Sun 2020 (Tsinghua thesis) appendix A (translated paper), eq A-1..A-27, Algorithm 6; "
+              "docs/algorithms/vb_polsar.md",
     params=VBPolSARParams,
     prepare=prepare,
     detect=detect,
