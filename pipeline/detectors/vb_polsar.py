@@ -3,6 +3,11 @@ r"""Variational-Bayes PolSAR ship detection (``vb_polsar``), thesis appendix A.
 Source: appendix A of Sun Tianyu's Tsinghua thesis (2020), a translated paper (eq A-1..A-27,
 Algorithm 6); docs/algorithms/vb_polsar.md, bibliography in docs/references.md.
 
+About 800 lines on purpose: the appendix's updates, their printed typos and what we did
+about each sit beside the code that implements them (this docstring and the functions'),
+because the maths cannot be checked against the paper without them; the detector's GPU pass
+lives in :mod:`sarship.pipeline.gpu.polsar`.
+
 Model (A-3..A-10)
 -----------------
 Pixel vector ``d`` = real and imaginary parts of the Pauli scattering vector (A-2, A-3):

@@ -5,6 +5,10 @@
  * Everything comes from the public API (relative to this page: the API root is "../"), so the
  * page works behind a path prefix. Text from the API is only ever put into the page as text
  * nodes (textContent / append(string)); links from the API are restricted to http(s).
+ *
+ * One file of about 840 lines, on purpose: the page is served as static files with no build
+ * step and no bundler, and its four views share one small state and fetch helpers inside one
+ * closure; split into ES modules it would gain imports, not clarity.
  */
 'use strict';
 
