@@ -57,7 +57,7 @@ def _hsum4(x, r, m, g0, H, d0, d1, d2, d3, suf):
     Four rows are scanned together with independent accumulators: a prefix/suffix scan is
     a chain of dependent additions, and four interleaved chains keep the floating-point
     units busy. Each row's additions happen in exactly the order of the one-row scan
-    :func:`_hsum1`. ``suf`` is a (4, m) float64 scratch buffer.
+    :func:`hsum_row`. ``suf`` is a (4, m) float64 scratch buffer.
 
     Inner loops index with unsigned integers (every index there is >= 0): numba then skips
     its negative-index wraparound, which otherwise costs more than the additions.
@@ -130,8 +130,18 @@ def _hsum4(x, r, m, g0, H, d0, d1, d2, d3, suf):
 
 
 @njit(nogil=True, cache=True)
-def _hsum1(x, r, m, g0, H, d, suf):
-    """H[d, i] = sum(x[r, i:i+m]) for i < H.shape[1]; x[:, 0] is global column g0.
+def _term(v, square):
+    """v, or (``square``) v * v in float64."""
+    if square:
+        v = np.float64(v)
+        return v * v
+    return v
+
+
+@njit(nogil=True, cache=True)
+def hsum_row(x, r, m, g0, H, d, suf, square=False):
+    """H[d, i] = sum(x[r, i:i+m]) for i < H.shape[1], or (``square``) of the squares; x[:, 0]
+    is global column g0.
 
     Along the row, blocks ``[s, s + m)`` start where the global column is a multiple of m:
     suffix ``S[e] = 0.0 + x[e]``, ``S[c] = S[c + 1] + x[c]`` from the block end down; prefix
@@ -150,7 +160,7 @@ def _hsum1(x, r, m, g0, H, d, suf):
             e = s + m - 1
             a0 = 0.0
             for c in range(e, i_lo - 1, -1):
-                a0 = a0 + x0[uint64(c)]
+                a0 = a0 + _term(x0[uint64(c)], square)
                 u0[uint64(c - s)] = a0
             i0 = i_lo
             if i0 == s:
@@ -158,9 +168,9 @@ def _hsum1(x, r, m, g0, H, d, suf):
                 i0 += 1
             p0 = 0.0
             for c in range(s + m, i0 + m - 1):
-                p0 = p0 + x0[uint64(c)]
+                p0 = p0 + _term(x0[uint64(c)], square)
             for i in range(i0, i_hi):
-                p0 = p0 + x0[uint64(i + m - 1)]
+                p0 = p0 + _term(x0[uint64(i + m - 1)], square)
                 h0[uint64(i)] = u0[uint64(i - s)] + p0
         s += m
 
@@ -179,8 +189,10 @@ def _hsum1(x, r, m, g0, H, d, suf):
 #        pre has been started for the current block.
 # When output row i opens a block [s, s + m), the block's horizontal sums are turned into
 # vertical suffix sums in place; each later output row i of the block adds the horizontal
-# sums of row i + m - 1 (next block) to pre and is suffix[i] + pre. Horizontal sums are
-# computed four rows at a time, at most three rows ahead of need: the rows alive at once
+# sums of row i + m - 1 (next block) to pre and is suffix[i] + pre (vertical_row and
+# vertical_steady: the vertical pass on a filled ring, shared with the fused kernel of
+# ``two_parameter``, which fills its rings itself). Horizontal sums are computed four rows
+# at a time, at most three rows ahead of need (row i + m - 1): the rows alive at once
 # (suffix rows not yet emitted, next-block rows) span at most m + 3 rows, so the ring never
 # overwrites a row still needed.
 
@@ -191,20 +203,33 @@ _ST_PRE = 3
 
 
 @njit(nogil=True, cache=True)
-def box_stream(m, w, g0r):
-    """A stream of ``m x m`` window sums over ``w`` output columns; x row 0 is global row ``g0r``.
-
-    Feed it to :func:`box_stream_row` for output rows 0, 1, 2, ... in order. Detectors that
-    need several windows run one stream per window in lockstep (see ``ca_cfar``).
-    """
+def stream_state(m, g0r):
+    """The state of a vertical stream of window ``m`` whose input row 0 is global row ``g0r``
+    (see :func:`vertical_row`)."""
     st = np.empty(4, np.int64)
     s0 = -(g0r % m)
     st[_ST_BLOCK] = s0
     st[_ST_DONE] = 0
     st[_ST_BASE] = s0
     st[_ST_PRE] = 0
+    return st
+
+
+@njit(nogil=True, cache=True)
+def ring_slot(st, r, Rz):
+    """The slot of input row ``r`` in a ring of ``Rz`` rows of horizontal sums."""
+    return (r - st[_ST_BASE]) % Rz
+
+
+@njit(nogil=True, cache=True)
+def box_stream(m, w, g0r):
+    """A stream of ``m x m`` window sums over ``w`` output columns; x row 0 is global row ``g0r``.
+
+    Feed it to :func:`box_stream_row` for output rows 0, 1, 2, ... in order. Detectors that
+    need several windows run one stream per window in lockstep (see ``ca_cfar``).
+    """
     return (np.empty((m + 4, w), np.float64), np.empty(w, np.float64),
-            np.empty((4, m), np.float64), st)
+            np.empty((4, m), np.float64), stream_state(m, g0r))
 
 
 @njit(nogil=True, cache=True)
@@ -212,17 +237,79 @@ def _stream_fill(x, m, g0c, H, suf, st, r):
     """Make sure the horizontal sums of x rows up to ``r`` are in the ring."""
     R = x.shape[0]
     Rz = H.shape[0]
-    base = st[_ST_BASE]
     done = st[_ST_DONE]
     while done <= r:
         if done + 4 <= R:
-            _hsum4(x, done, m, g0c, H, (done - base) % Rz, (done + 1 - base) % Rz,
-                   (done + 2 - base) % Rz, (done + 3 - base) % Rz, suf)
+            _hsum4(x, done, m, g0c, H, ring_slot(st, done, Rz), ring_slot(st, done + 1, Rz),
+                   ring_slot(st, done + 2, Rz), ring_slot(st, done + 3, Rz), suf)
             done += 4
         else:
-            _hsum1(x, done, m, g0c, H, (done - base) % Rz, suf)
+            hsum_row(x, done, m, g0c, H, ring_slot(st, done, Rz), suf)
             done += 1
     st[_ST_DONE] = done
+
+
+@njit(nogil=True, cache=True)
+def vertical_row(H, st, m, i, pre, dst):
+    """The vertical pass for output row i, except the steady case; call for i = 0, 1, 2, ...
+    in order, the horizontal sums of input rows i .. i + m - 1 being in the ring ``H``
+    (:func:`ring_slot`), ``pre`` the running prefix of the stream (``st``).
+
+    Opens a row block when row i starts one (vertical suffix sums in place). Returns True
+    when row i is steady (left to the caller: :func:`vertical_steady`, or the same additions
+    in vector code); otherwise writes the window sums of row i into ``dst`` and returns False.
+    """
+    Rz, n = H.shape
+    s = st[_ST_BLOCK]
+    if i == 0 or i == s + m:  # output row i opens a block
+        if i > 0:
+            s += m
+        st[_ST_BLOCK] = s
+        st[_ST_PRE] = 0
+        e = s + m - 1
+        # vertical suffix sums of the block, in place, down to the first row still needed
+        b = ring_slot(st, e, Rz)
+        for r in range(e - 1, i - 1, -1):
+            a = ring_slot(st, r, Rz)
+            for c in range(n):
+                H[a, c] = H[b, c] + H[a, c]
+            b = a
+        # prefix of the next block up to row i + m - 2 (only when a tile starts mid-block)
+        for r in range(s + m, i + m - 1):
+            a = ring_slot(st, r, Rz)
+            if st[_ST_PRE] == 0:
+                st[_ST_PRE] = 1
+                for c in range(n):
+                    pre[c] = H[a, c]
+            else:
+                for c in range(n):
+                    pre[c] = pre[c] + H[a, c]
+    a = ring_slot(st, i, Rz)
+    if i == s:  # the window starting the block is the whole block: suffix alone
+        for c in range(n):
+            dst[c] = H[a, c]
+        return False
+    if st[_ST_PRE] == 1:
+        return True
+    st[_ST_PRE] = 1  # the prefix starts at row i + m - 1
+    b = ring_slot(st, i + m - 1, Rz)
+    for c in range(n):
+        p = H[b, c]
+        pre[c] = p
+        dst[c] = H[a, c] + p
+    return False
+
+
+@njit(nogil=True, cache=True)
+def vertical_steady(H, st, m, i, pre, dst):
+    """A steady row i of :func:`vertical_row`: ``pre += H[i + m - 1]``, ``dst = H[i] + pre``."""
+    Rz, n = H.shape
+    a = ring_slot(st, i, Rz)
+    b = ring_slot(st, i + m - 1, Rz)
+    for c in range(n):
+        p = pre[c] + H[b, c]
+        pre[c] = p
+        dst[c] = H[a, c] + p
 
 
 @njit(nogil=True, cache=True)
@@ -234,54 +321,9 @@ def box_stream_row(x, m, g0c, stream, i, dst):
     :func:`centered_box_sum`, bit for bit.
     """
     H, pre, suf, st = stream
-    Rz = H.shape[0]
-    n = H.shape[1]
-    base = st[_ST_BASE]
-    s = st[_ST_BLOCK]
-    if i == 0 or i == s + m:  # output row i opens a block
-        if i > 0:
-            s += m
-        st[_ST_BLOCK] = s
-        st[_ST_PRE] = 0
-        e = s + m - 1
-        _stream_fill(x, m, g0c, H, suf, st, e)
-        # vertical suffix sums of the block, in place, down to the first row still needed
-        b = (e - base) % Rz
-        for r in range(e - 1, i - 1, -1):
-            a = (r - base) % Rz
-            for c in range(n):
-                H[a, c] = H[b, c] + H[a, c]
-            b = a
-        # prefix of the next block up to row i + m - 2 (only when a tile starts mid-block)
-        for r in range(s + m, i + m - 1):
-            _stream_fill(x, m, g0c, H, suf, st, r)
-            a = (r - base) % Rz
-            if st[_ST_PRE] == 0:
-                st[_ST_PRE] = 1
-                for c in range(n):
-                    pre[c] = H[a, c]
-            else:
-                for c in range(n):
-                    pre[c] = pre[c] + H[a, c]
-    a = (i - base) % Rz
-    if i == s:
-        for c in range(n):
-            dst[c] = H[a, c]
-        return
-    r = i + m - 1
-    _stream_fill(x, m, g0c, H, suf, st, r)
-    b = (r - base) % Rz
-    if st[_ST_PRE] == 0:
-        st[_ST_PRE] = 1
-        for c in range(n):
-            p = H[b, c]
-            pre[c] = p
-            dst[c] = H[a, c] + p
-    else:
-        for c in range(n):
-            p = pre[c] + H[b, c]
-            pre[c] = p
-            dst[c] = H[a, c] + p
+    _stream_fill(x, m, g0c, H, suf, st, i + m - 1)
+    if vertical_row(H, st, m, i, pre, dst):
+        vertical_steady(H, st, m, i, pre, dst)
 
 
 @njit(nogil=True, cache=True)

@@ -17,16 +17,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from boxsum_helpers import SPECIAL, assert_bits, box_sum_ref, cfar_cases, tiles, values
 from numba import njit, uint64
 
+from sarship.pipeline import simd
 from sarship.pipeline.boxsum import centered_box_sum
 from sarship.pipeline.detectors import two_parameter as tp
 from sarship.pipeline.windows import mirror_pad
-from tests.test_boxsum import box_sum_ref
-
-
-# the reference summation order is the one of tests/test_boxsum.py
-_box_ref = box_sum_ref
 
 
 def _transform(block, domain):
@@ -51,7 +48,7 @@ def _decide(xt, s1b, s1g, s2b, s2g, prep):
     return s > float(prep["threshold"]), s.astype(np.float32)
 
 
-def two_parameter_ref(block, halo, origin, p, prep, box=_box_ref):
+def two_parameter_ref(block, halo, origin, p, prep, box=box_sum_ref):
     """The plain pipeline; ``box`` = the numpy reference or ``boxsum.centered_box_sum``."""
     y = _transform(block, p.domain)
     with np.errstate(all="ignore"):
@@ -65,45 +62,10 @@ def two_parameter_ref(block, halo, origin, p, prep, box=_box_ref):
     return _decide(xt, s1b, s1g, s2b, s2g, prep)
 
 
-def assert_bits(got, ref):
-    assert got.shape == ref.shape and got.dtype == ref.dtype, (got.shape, ref.shape, got.dtype, ref.dtype)
-    if got.dtype == np.bool_:
-        np.testing.assert_array_equal(got, ref)
-        return
-    nan_g, nan_r = np.isnan(got), np.isnan(ref)
-    np.testing.assert_array_equal(nan_g, nan_r)
-    if got[~nan_g].tobytes() != ref[~nan_r].tobytes():
-        d = np.flatnonzero((got != ref) & ~nan_g)
-        raise AssertionError(f"{d.size} values differ, first at {np.unravel_index(d[0], got.shape)}: "
-                             f"{got.flat[d[0]]!r} != {ref.flat[d[0]]!r}")
-
-
-def _values(rng, shape, kind, dtype):
-    if kind == "int16":
-        return rng.integers(-1000, 1000, shape).astype(np.int16)
-    if kind == "gamma":
-        x = rng.gamma(1.5, 1.0, shape)
-    elif kind == "wide":  # magnitudes over 16 decades: any change of order shows
-        x = rng.standard_normal(shape) * 10.0 ** rng.integers(-8, 9, shape)
-    elif kind == "decades":  # positive, over 80 decades (the dB domain's range)
-        x = 10.0 ** rng.uniform(-40, 40, shape)
-    elif kind == "flat":  # constant: var = 0 exactly
-        x = np.full(shape, 3.0)
-    else:  # special values
-        x = rng.gamma(2.0, 1.0, shape)
-        u = rng.random(shape)
-        x[u < 0.05] = 0.0
-        x[(u >= 0.05) & (u < 0.08)] = -0.0
-        x[(u >= 0.08) & (u < 0.09)] = -2.5
-        x[(u >= 0.09) & (u < 0.095)] = 1e30
-        x[(u >= 0.095) & (u < 0.097)] = 1e-35
-        if kind == "nonfinite":
-            x[(u >= 0.097) & (u < 0.098)] = np.inf
-            x[(u >= 0.098) & (u < 0.099)] = -np.inf
-            x[(u >= 0.099) & (u < 0.0995)] = np.nan
-    return x.astype(dtype)
-
-
+#: inputs of the "special" kind also hold 1e-35 (below the ``db`` floor); "nonfinite" ones
+#: fewer infinities and NaNs than in tests/test_boxsum.py
+_SPECIAL = SPECIAL + ((0.095, 0.097, 1e-35),)
+_NONFINITE = ((0.097, 0.098, np.inf), (0.098, 0.099, -np.inf), (0.099, 0.0995, np.nan))
 KINDS = [("gamma", np.float32), ("wide", np.float64), ("special", np.float32), ("nonfinite", np.float64),
          ("decades", np.float64), ("wide", np.float32), ("special", np.float64), ("nonfinite", np.float32),
          ("flat", np.float32), ("int16", None)]
@@ -111,32 +73,16 @@ DOMAINS = ["intensity", "amplitude", "db"]
 
 
 def _cases(seed, n):
-    rng = np.random.default_rng(seed)
-    for k in range(n):
-        t = int(rng.choice([1, 1, 1, 3, 5]))
-        g = t + 2 * int(rng.integers(0, 12))
-        b = g + 2 * int(rng.integers(1, 20))
-        if k % 7 == 0:
-            t, g, b = 1, 21, 41  # the defaults
-        elif k % 7 == 3:
-            t, g, b = 3, 21, 41
-        halo = b // 2 + int(rng.choice([0, 0, 3]))
-        if k % 5 == 0:
-            h, w = 1, 1
-        elif k % 5 == 1:
-            h, w = int(rng.integers(1, 8)), int(rng.integers(1, 8))
-        else:
-            h, w = int(rng.integers(1, 150)), int(rng.integers(1, 150))
-        origin = (int(rng.integers(-400, 900)), int(rng.integers(-400, 900)))
-        kind, dtype = KINDS[k % len(KINDS)]
-        block = _values(rng, (h + 2 * halo, w + 2 * halo), kind, dtype)
+    fixed = {0: (1, 21, 41), 3: (3, 21, 41)}  # the defaults, and with a target window
+    for rng, k, block, halo, origin, (t, g, b) in cfar_cases(seed, n, KINDS, fixed, special=_SPECIAL,
+                                                             nonfinite=_NONFINITE):
         p = tp.TwoParameterParams(pfa=float(rng.choice([1e-1, 1e-2, 1e-5])), target=t, guard=g, background=b,
                                   domain=DOMAINS[(k // len(KINDS)) % 3 if k % 2 else k % 3],
                                   threshold=str(rng.choice(["student", "gaussian"])), min_area_px=1)
         yield block, halo, origin, p
 
 
-def _check(block, halo, origin, p, box=_box_ref):
+def _check(block, halo, origin, p, box=box_sum_ref):
     prep = tp.prepare(p)
     mask, stat = tp.detect(block, halo, origin, p, prep)
     ref_mask, ref_stat = two_parameter_ref(block, halo, origin, p, prep, box)
@@ -180,7 +126,7 @@ def test_kernel_default_windows_on_a_large_tile(domain, target):
 
 def test_kernel_non_contiguous_input():
     rng = np.random.default_rng(8)
-    big = _values(rng, (120, 150), "gamma", np.float64)
+    big = values(rng, (120, 150), "gamma", np.float64)
     block = big[3:110, 140:10:-1]  # strided, reversed columns
     for domain in DOMAINS:
         p = tp.TwoParameterParams(guard=5, background=13, target=3, domain=domain)
@@ -198,14 +144,10 @@ def test_kernel_tiling_invariant(domain):
         halo = p.background // 2 + 2
         P = mirror_pad(x, halo)
         whole_m, whole_s = tp.detect(P, halo, (-halo, -halo), p, prep)
-        for th, tw in [(1, 1), (5, 9), (13, 4), (40, 83)]:
-            for r0 in range(0, 97, th):
-                for c0 in range(0, 83, tw):
-                    r1, c1 = min(r0 + th, 97), min(c0 + tw, 83)
-                    blk = P[r0: r1 + 2 * halo, c0: c1 + 2 * halo]
-                    m, s = tp.detect(blk, halo, (r0 - halo, c0 - halo), p, prep)
-                    assert_bits(m, whole_m[r0:r1, c0:c1])
-                    assert_bits(s, whole_s[r0:r1, c0:c1])
+        for core, blk, origin in tiles(P, halo, x.shape):
+            m, s = tp.detect(blk, halo, origin, p, prep)
+            assert_bits(m, whole_m[core])
+            assert_bits(s, whole_s[core])
 
 
 def test_kernel_empty_tiles():
@@ -218,14 +160,14 @@ def test_kernel_empty_tiles():
 
 @njit
 def _divn(a, n, out):
-    nv = tp._vsplat(n)
-    yv = tp._vsplat(1.0 / n)
+    nv = simd.vsplat(n)
+    yv = simd.vsplat(1.0 / n)
     for j in range(0, a.size, 4):
-        tp._vstore(out, uint64(j), tp._vdivn(tp._vload(a, uint64(j)), nv, yv))
+        simd.vstore(out, uint64(j), simd.vdivn(simd.vload(a, uint64(j)), nv, yv))
 
 
 def test_division_by_integer_is_correctly_rounded():
-    """``_vdivn`` (FMA correction instead of the divider) equals IEEE division, including
+    """``simd.vdivn`` (FMA correction instead of the divider) equals IEEE division, including
     near rounding boundaries, for the divisors the kernel uses (ring sizes, N - 1, t^2)."""
     rng = np.random.default_rng(11)
     N = 1 << 16

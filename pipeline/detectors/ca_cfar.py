@@ -1,9 +1,9 @@
 """Cell-averaging CFAR (``ca_cfar``) for L-look gamma intensity, with its exact threshold.
 
 Model. Sea clutter intensity in a homogeneous neighbourhood is L-look gamma with unknown
-mean mu: x ~ Gamma(L, mu/L) (ALGORITHMS.md, "CFAR families"; Goldstein 1973; Novak & Hesse
-1991). The cell under test (CUT) is the mean of the ``target`` window, n = target^2 cells:
-x_t ~ Gamma(nL, mu/(nL)). The clutter level is the mean of the N = background^2 - guard^2
+mean mu: x ~ Gamma(L, mu/L) (docs/algorithms/cfar.md; Finn & Johnson 1968; Goldstein 1973;
+Novak & Hesse 1991). The cell under test (CUT) is the mean of the ``target`` window,
+n = target^2 cells: x_t ~ Gamma(nL, mu/(nL)). The clutter level is the mean of the N = background^2 - guard^2
 cells of the ring between the guard and background windows: m ~ Gamma(NL, mu/(NL)).
 
 Threshold. The ratio of two independent scaled chi-square means is Fisher-Snedecor:
@@ -37,7 +37,7 @@ from sarship.pipeline.gpu import is_device_array
 
 class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-4, guard=41, background=81,
                              min_area_px=20, merge_px=2)):
-    """Parameters of ``ca_cfar`` (all shared names of CONTRACT.md).
+    """Parameters of ``ca_cfar`` (the shared parameters of docs/algorithms/README.md).
 
     Defaults chosen on real data (SAR-Ship-Dataset, HRSID, OpenSARShip; bench/REALDATA.md).
     """
@@ -163,7 +163,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: CAParams, p
 SPEC = DetectorSpec(
     name="ca_cfar",
     summary="Cell-averaging CFAR for L-look gamma intensity, exact F-distributed threshold",
-    reference="Goldstein 1973; Novak & Hesse 1991; ALGORITHMS.md 'CFAR families'",
+    reference="Finn & Johnson 1968; Goldstein 1973; Novak & Hesse 1991; docs/algorithms/cfar.md",
     params=CAParams,
     prepare=prepare,
     detect=detect,

@@ -683,9 +683,8 @@ SPEC = DetectorSpec(
         "(default k = 3N/4); exact alpha for L-look gamma clutter"
     ),
     reference=(
-        "H. Rohling, Radar CFAR thresholding in clutter and multiple target situations, "
-        "IEEE Trans. AES 19(4):608-621, 1983; P. P. Gandhi & S. A. Kassam, Analysis of CFAR "
-        "processors in nonhomogeneous background, IEEE Trans. AES 24(4):427-445, 1988"
+        "Rohling 1983, IEEE Trans. AES 19(4):608-621; Gandhi & Kassam 1988, IEEE Trans. AES "
+        "24(4):427-445; docs/algorithms/cfar.md"
     ),
     params=OSParams,
     prepare=prepare,
