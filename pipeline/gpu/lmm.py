@@ -1,15 +1,18 @@
 """GPU twin of ``lmm`` (:mod:`sarship.pipeline.detectors.lmm`): exact, fast and grid forms.
 
-One CUDA thread fits one ring (a pixel's, or a grid node's): the same EM for K' = 1..K,
-BIC order, damped-Newton ML polish, predictive tail shift and safeguarded Newton threshold
-as the CPU's ``fit_threshold``, transcribed operation for operation (double precision, no
-FMA contraction). The ring's points are read in the CPU's order: raw ring samples in
-row-major order (exact form), or the ring histogram's non-empty bins in ascending order
-(fast and grid forms; the histogram of each thread lives in a global scratch array, bins
-by threads so that neighbouring threads' counts are adjacent). CUDA's ``exp``/``log``/
-``erfc`` differ from glibc's in the last bits, so thresholds agree to ~1e-12 relative
-except where the BIC choice or a Newton acceptance sits on a tie; the tests hold the GPU
-masks to the CPU tests' agreement rule (<= 0.1 % of pixels).
+The CPU detector calls :func:`detect` for a CuPy block, with everything it needs as
+arguments; this module depends on the pure per-ring maths (:mod:`sarship.pipeline.lmm_fit`)
+and never imports the detector module. One CUDA thread fits one ring (a pixel's, or a grid
+node's): the same EM for K' = 1..K, BIC order, damped-Newton ML polish, predictive tail
+shift and safeguarded Newton threshold as :func:`sarship.pipeline.lmm_fit.fit_threshold`,
+transcribed operation for operation (double precision, no FMA contraction). The ring's
+points are read in the CPU's order: raw ring samples in row-major order (exact form), or the
+ring histogram's non-empty bins in ascending order (fast and grid forms; the histogram of
+each thread lives in a global scratch array, bins by threads so that neighbouring threads'
+counts are adjacent). CUDA's ``exp``/``log``/``erfc`` differ from glibc's in the last bits,
+so thresholds agree to ~1e-12 relative except where the BIC choice or a Newton acceptance
+sits on a tie; the tests hold the GPU masks to the CPU tests' agreement rule (<= 0.1 % of
+pixels).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from sarship.pipeline.gpu import kernels
+from sarship.pipeline.lmm_fit import init_z_table
 
 SOURCE = r"""
 #define KMAX 6
@@ -49,6 +53,24 @@ struct HistSrc {      /* non-empty histogram bins, ascending: centre ((b - off) 
     }
 };
 
+/* one point's log-sum-exp over the live components (live == nullptr: all), as the CPU's
+ * _point_terms: lt[k] <- exp(l_k - mx) with l_k = ca[k] - u_k^2 / 2, u_k = (yj - mu[k]) inv[k];
+ * *tot <- sum of lt[k]; returns mx = max_k l_k */
+__device__ __forceinline__ double point_terms(double yj, int K, const double* mu, const double* ca,
+                                              const double* inv, const bool* live, double* lt, double* tot) {
+    double mx = -INFINITY;
+    for (int k = 0; k < K; ++k) if (!live || live[k]) {
+        double u = (yj - mu[k]) * inv[k];
+        double t = ca[k] - 0.5 * u * u;
+        lt[k] = t;
+        if (t > mx) mx = t;
+    }
+    double sum = 0.0;
+    for (int k = 0; k < K; ++k) if (!live || live[k]) { double e = exp(lt[k] - mx); lt[k] = e; sum += e; }
+    *tot = sum;
+    return mx;
+}
+
 template <class S>
 __device__ int em_fit(const S& src, int K, const double* init_z, int max_iter, double tol,
                       double* a, double* mu, double* s) {
@@ -79,15 +101,8 @@ __device__ int em_fit(const S& src, int K, const double* init_z, int max_iter, d
         }
         double ll = 0.0;
         src.each([&](double yj, double wj) {
-            double mx = -INFINITY;
-            for (int k = 0; k < K; ++k) if (live[k]) {
-                double u = (yj - mu[k]) * inv[k];
-                double t = ca[k] - 0.5 * u * u;
-                lt[k] = t;
-                if (t > mx) mx = t;
-            }
-            double tot = 0.0;
-            for (int k = 0; k < K; ++k) if (live[k]) { double e = exp(lt[k] - mx); lt[k] = e; tot += e; }
+            double tot;
+            double mx = point_terms(yj, K, mu, ca, inv, live, lt, &tot);
             ll += wj * (mx + log(tot));
             double r = wj / tot;
             for (int k = 0; k < K; ++k) if (live[k]) {
@@ -158,15 +173,8 @@ __device__ double loglik(const S& src, int K, const double* a, const double* mu,
     for (int k = 0; k < K; ++k) { ca[k] = log(a[k]) - log(s[k]); inv[k] = 1.0 / s[k]; }
     double ll = 0.0, W = 0.0;
     src.each([&](double yj, double wj) {
-        double mx = -INFINITY;
-        for (int k = 0; k < K; ++k) {
-            double u = (yj - mu[k]) * inv[k];
-            double t = ca[k] - 0.5 * u * u;
-            lt[k] = t;
-            if (t > mx) mx = t;
-        }
-        double tot = 0.0;
-        for (int k = 0; k < K; ++k) tot += exp(lt[k] - mx);
+        double tot;
+        double mx = point_terms(yj, K, mu, ca, inv, nullptr, lt, &tot);
         ll += wj * (mx + log(tot));
         W += wj;
     });
@@ -183,15 +191,8 @@ __device__ double grad_hess(const S& src, int K, const double* a, const double* 
     double ll = 0.0, W = 0.0;
     src.each([&](double yj, double w) {
         W += w;
-        double mx = -INFINITY;
-        for (int k = 0; k < K; ++k) {
-            double u = (yj - mu[k]) * inv[k];
-            double t = ca[k] - 0.5 * u * u;
-            lt[k] = t;
-            if (t > mx) mx = t;
-        }
-        double tot = 0.0;
-        for (int k = 0; k < K; ++k) { double e = exp(lt[k] - mx); lt[k] = e; tot += e; }
+        double tot;
+        double mx = point_terms(yj, K, mu, ca, inv, nullptr, lt, &tot);
         ll += w * (mx + log(tot));
         double rt = 1.0 / tot;
         for (int q = 0; q < p; ++q) Gj[q] = 0.0;
@@ -550,8 +551,7 @@ SCRATCH_BYTES = 256 * 2**20
 
 
 def _init_zs(K: int) -> "np.ndarray":
-    from sarship.pipeline.detectors.lmm import init_z_table
-
+    """:func:`~sarship.pipeline.lmm_fit.init_z_table` in rows of KMAX = 6 (the kernels' layout)."""
     t = np.zeros((K, 6))
     t[:, :K] = init_z_table(K)
     return t
