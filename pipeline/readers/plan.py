@@ -7,9 +7,10 @@ Real bands are *detected* data, stored as float32 intensity (amplitude is square
 ``kind="auto"`` a file's real bands are taken, first rule that applies:
 
 1. as (re, im) pairs of SLC channels when a SNAP metadata sidecar says
-   ``SAMPLE_TYPE=COMPLEX`` and there are two bands per polarisation (OpenSARShip SLC chips),
-   or when the sampled values include negative numbers and the band count is even
-   (negative values cannot be amplitude or intensity; an odd count is refused);
+   ``SAMPLE_TYPE=COMPLEX`` and there are two bands per polarisation (OpenSARShip SLC chips)
+   or the file's metadata says complex, or when the sampled values (NaN and the GDAL no-data
+   value left out) include negative numbers and the band count is even (negative values
+   cannot be amplitude or intensity; an odd count is refused);
 2. as the file says: a tifffile JSON description or GDAL metadata item ``kind`` /
    ``sample_type`` / ``quantity`` / ``unit(s)`` or a band description naming
    ``amplitude``/``magnitude`` or ``intensity``/``power``/``sigma0``/``beta0``/``gamma0``;
@@ -22,19 +23,32 @@ Real bands are *detected* data, stored as float32 intensity (amplitude is square
 6. other floating-point samples: intensity.
 
 ``.npy`` 2-D/3-D real arrays are intensity unless ``kind="amplitude"`` (the contract; rules
-1 (negative values) and 4-5 are not applied to them). The rule taken is recorded in the
-``quantity_rule`` attribute. ``kind="amplitude"`` or ``"intensity"`` forces the choice;
+1 and 4-5 are not applied to them, but negative sampled values are refused). The rule taken
+is recorded in the ``quantity_rule`` attribute. ``kind="amplitude"`` or ``"intensity"``
+forces the choice, except where the data contradict it: complex samples, bands the metadata
+says are (re, im) pairs (rule 1's sidecar / metadata cases) or negative values in the probe
+are refused with one line naming the file, the kind asked and what the data is;
 ``kind="slc"`` or ``"quadpol"`` pairs real bands as (re, im) (an even count is required).
 
+Detected (amplitude / intensity) data are also checked as each tile is written: a tile with
+a negative value (NaN and the no-data value allowed) aborts the ingest with one line, and
+the atomic store leaves nothing at ``out`` (a probe can miss a few negative pixels).
+
 Several real bands are stored as ``intensity_<name>`` each (names from ``channels``, else
-the sidecar/band-description polarisations, else polarisation tokens in the file names when
-several files are stacked, else ``b0, b1, ...``) and ``intensity`` = the band chosen by
-``band`` (name or index; default band 0).
+the sidecar/band-description polarisations (when their count is the band count; for a
+single band or complex channel of a product with several, the one polarisation token of the
+file name or its two enclosing folders that is among them), else polarisation tokens in
+the file names when several files are stacked, else ``b0, b1, ...``) and ``intensity`` =
+the band chosen by ``band`` (name or index; default band 0).
+
+A single real band keeps the name ``intensity``; its polarisation, when the metadata gives
+it, is the ``channels`` attribute.
 
 Several input files are stacked as channels; they must have equal shapes. Complex channel
-names come from ``channels``, else polarisation tokens in the file names (``hh``, ``hv``,
-``vh``, ``vv``), else by count (1: ``hh``; 2: ``vh, vv``; 3: ``hh, hv, vv``;
-4: ``hh, hv, vh, vv``). Complex channels must be named among ``hh, hv, vh, vv``.
+names come from ``channels``, else the sidecar polarisations (as for real bands), else
+polarisation tokens in the file names (``hh``, ``hv``, ``vh``, ``vv``), else by count
+(1: ``hh``; 2: ``vh, vv``; 3: ``hh, hv, vv``; 4: ``hh, hv, vh, vv``). Complex channels must
+be named among ``hh, hv, vh, vv``.
 ``kind`` attribute: ``quadpol`` when ``hh, hv, vv`` are all present, else ``slc``.
 """
 
@@ -73,13 +87,31 @@ def _pols_from_names(srcs: list[_Source]) -> list[str] | None:
     return pols if len(set(pols)) == len(pols) else None
 
 
+def _meta_pols(n: int, srcs: list[_Source]) -> list[str] | None:
+    """Channel names from the single source's metadata (sidecar / band descriptions): its
+    polarisations when there are ``n``; for one channel of a product with several, the one
+    polarisation token of the file's name or enclosing folders that is among them."""
+    if len(srcs) != 1 or not srcs[0].meta.get("pols"):
+        return None
+    pols = list(srcs[0].meta["pols"])
+    if len(pols) == n:
+        return pols
+    if n == 1:
+        parts = [srcs[0].path.stem, *[d.name for d in list(srcs[0].path.parents)[:2]]]
+        toks = {t for part in parts for t in _POL_RE.findall(part.lower().replace("-", "_"))}
+        toks &= set(pols)
+        if len(toks) == 1:
+            return [toks.pop()]
+    return None
+
+
 def _complex_names(n: int, srcs: list[_Source], channels: list[str] | None) -> list[str]:
     if channels is not None:
         names = [str(c).lower() for c in channels]
         if len(names) != n:
             raise InputError(f"--channels names {len(names)} channel(s) but the input has {n} complex channel(s)")
-    elif len(srcs) == 1 and srcs[0].meta.get("pols") and len(srcs[0].meta["pols"]) == n:
-        names = list(srcs[0].meta["pols"])
+    elif (mp := _meta_pols(n, srcs)) is not None:
+        names = mp
     elif len(srcs) > 1 and (pn := _pols_from_names(srcs)) is not None and len(pn) == n:
         names = pn
     else:
@@ -100,8 +132,8 @@ def _real_names(n: int, srcs: list[_Source], channels: list[str] | None) -> list
         names = [str(c) for c in channels]
         if len(names) != n:
             raise InputError(f"--channels names {len(names)} band(s) but the input has {n} band(s)")
-    elif len(srcs) == 1 and srcs[0].meta.get("pols") and len(srcs[0].meta["pols"]) == n:
-        names = list(srcs[0].meta["pols"])
+    elif (mp := _meta_pols(n, srcs)) is not None:
+        names = mp
     elif len(srcs) > 1 and (pn := _pols_from_names(srcs)) is not None and len(pn) == n:
         names = pn
     else:
@@ -114,43 +146,108 @@ def _real_names(n: int, srcs: list[_Source], channels: list[str] | None) -> list
     return names
 
 
-def _auto_quantity(s: _Source) -> tuple[str, str]:
-    """("amplitude" | "intensity" | "pairs", rule) for a real source under kind auto."""
-    if s.fmt == "npy":
-        return "intensity", ".npy real arrays are intensity (the contract)"
-    sample = None
+def _pairs_from_metadata(s: _Source) -> str | None:
+    """Why the file's metadata says its real bands are (re, im) pairs, or None."""
     side = s.meta.get("sample_type")
     npol = len(s.meta.get("pols") or [])
     if side == "COMPLEX" and npol and s.nbands == 2 * npol:
-        return "pairs", f"SNAP metadata SAMPLE_TYPE=COMPLEX with {s.nbands} bands = (re, im) x {npol} polarisations"
+        return f"SNAP metadata SAMPLE_TYPE=COMPLEX with {s.nbands} bands = (re, im) x {npol} polarisations"
+    hint = s.meta.get("kind_hint")
+    if hint and hint[0] == "complex" and s.nbands % 2 == 0:
+        return hint[1] + f": {s.nbands} real bands = (re, im) pairs"
+    return None
+
+
+def _sample_min(s: _Source, sample: np.ndarray) -> float | None:
+    """The smallest sampled value, NaN and the declared no-data value left out (None: none)."""
+    if not (np.issubdtype(sample.dtype, np.floating) or np.issubdtype(sample.dtype, np.signedinteger)):
+        return None
+    if "nodata" in s.meta:
+        sample = sample[sample != s.meta["nodata"]]
+    fin = sample[np.isfinite(sample)] if np.issubdtype(sample.dtype, np.floating) else sample
+    return float(fin.min()) if fin.size else None
+
+
+def _negative_error(s: _Source, asked: str, vmin: float, where: str) -> InputError:
+    pairs = " (re, im) pairs? use --kind slc;" if s.nbands % 2 == 0 else ""
+    return InputError(
+        f"'{s.path}': {asked}, but the data has negative values (min {vmin:g} in {where}), so it is neither "
+        f"amplitude nor intensity:{pairs} dB? convert to linear power first"
+    )
+
+
+def _check_real_kind(s: _Source, kind: str) -> None:
+    """Refuse ``--kind amplitude|intensity`` for a file whose data contradict it: (re, im) band
+    pairs by its metadata, or negative values in the bounded probe (a damaged file is left
+    to fail while writing)."""
+    why = _pairs_from_metadata(s)
+    if why:
+        raise InputError(
+            f"'{s.path}': --kind {kind}, but the data is complex (bands re/im: {why}): use --kind slc "
+            "or leave --kind auto"
+        )
+    if s.fmt == "image":
+        return
+    try:
+        sample = s.probe()
+    except InputError:
+        return  # unreadable pixels: reported with their position by the tile loop
+    vmin = _sample_min(s, sample)
+    if vmin is not None and vmin < 0:
+        raise _negative_error(s, f"--kind {kind}", vmin, "the sample read")
+
+
+def _auto_quantity(s: _Source) -> tuple[str, str]:
+    """("amplitude" | "intensity" | "pairs", rule) for a real source under kind auto."""
+    sample = None
+    if s.fmt != "npy":
+        why = _pairs_from_metadata(s)
+        if why:
+            return "pairs", why
     hint = s.meta.get("kind_hint")
     if hint and hint[0] == "complex":
-        if s.nbands % 2 == 0:
-            return "pairs", hint[1] + f": {s.nbands} real bands = (re, im) pairs"
         raise InputError(f"'{s.path}': metadata says complex but it has an odd number ({s.nbands}) of real bands")
     if s.fmt != "image":
         sample = s.probe()
-        if "nodata" in s.meta:
-            sample = sample[sample != s.meta["nodata"]]
-        fin = sample[np.isfinite(sample)] if np.issubdtype(sample.dtype, np.floating) else sample
-        if fin.size and fin.min() < 0:
+        vmin = _sample_min(s, sample)
+        if vmin is not None and vmin < 0:
+            if s.fmt == "npy":
+                raise _negative_error(s, ".npy real arrays are intensity", vmin, "the sample read")
             if s.nbands % 2 == 0:
                 return "pairs", (f"negative samples cannot be amplitude or intensity: {s.nbands} "
                                  "real bands taken as (re, im) pairs")
             raise InputError(
-                f"'{s.path}': real samples include negative values, so they are neither amplitude nor "
-                f"intensity (dB? convert to linear), and {s.nbands} band(s) cannot be (re, im) pairs; "
-                "pass --kind intensity to store them as they are"
+                f"'{s.path}': real samples include negative values (sampled min {vmin:g}), so they are "
+                f"neither amplitude nor intensity (dB? convert to linear power first), and {s.nbands} "
+                "band(s) cannot be (re, im) pairs"
             )
+    if s.fmt == "npy":
+        return "intensity", ".npy real arrays are intensity (the contract)"
     if hint:
         return hint[0], hint[1]
     if np.issubdtype(s.dtype, np.integer):
         return "amplitude", f"integer samples ({s.dtype}) are amplitude digital numbers"
+    if "nodata" in s.meta:
+        sample = sample[sample != s.meta["nodata"]]
     fin = sample[np.isfinite(sample)]
     if fin.size and fin.max() > 1 and np.all(fin == np.floor(fin)):
         return "amplitude", (f"{s.dtype} samples are all whole numbers (digital numbers stored as float): "
                              "amplitude")
     return "intensity", f"{s.dtype} samples are intensity"
+
+
+def _check_tile(s: _Source, a: np.ndarray, asked: str) -> None:
+    """Abort on a tile of detected data with negative values (NaN and no-data allowed)."""
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.signedinteger)):
+        return
+    neg = a < 0
+    if not neg.any():
+        return
+    if "nodata" in s.meta:
+        neg &= a != s.meta["nodata"]
+        if not neg.any():
+            return
+    raise _negative_error(s, asked, float(a[neg].min()), "a tile being written")
 
 
 def _to_f32_intensity(a: np.ndarray, amplitude: bool, nodata: float | None = None) -> np.ndarray:
@@ -211,8 +308,8 @@ def _plan(srcs: list[_Source], kind: str, band, channels, ) -> _Plan:
     if all(cplx):
         if kind in ("amplitude", "intensity"):
             raise InputError(
-                f"'{srcs[0].path}' holds complex samples; --kind {kind} does not apply "
-                "(use auto, slc or quadpol; detectors derive intensity themselves)"
+                f"'{srcs[0].path}': --kind {kind}, but the data is complex ({srcs[0].dtype} samples): "
+                "use --kind slc (or quadpol) or leave --kind auto; detectors derive intensity themselves"
             )
         parts = [(k, b, None) for k, s in enumerate(srcs) for b in range(s.nbands)]  # (src, band, im)
         rule = "complex samples: SLC channels"
@@ -227,6 +324,8 @@ def _plan(srcs: list[_Source], kind: str, band, channels, ) -> _Plan:
                     )
                 quants.append(("pairs", f"--kind {kind}: real bands are (re, im) pairs"))
         elif kind in ("amplitude", "intensity"):
+            for s in srcs:
+                _check_real_kind(s, kind)
             quants = [(kind, f"--kind {kind}") for s in srcs]
         else:
             quants = [_auto_quantity(s) for s in srcs]
@@ -242,7 +341,8 @@ def _plan(srcs: list[_Source], kind: str, band, channels, ) -> _Plan:
         if q == "pairs":
             parts = [(k, b, b + 1) for k, s in enumerate(srcs) for b in range(0, s.nbands, 2)]
         else:
-            return _plan_detected(srcs, q == "amplitude", rule, band, channels)
+            asked = f"--kind {kind}" if kind in ("amplitude", "intensity") else f"read as {q} ({rule})"
+            return _plan_detected(srcs, q == "amplitude", rule, band, channels, asked)
     # complex channels ------------------------------------------------------------------
     names = _complex_names(len(parts), srcs, channels)
     is_quad = {"hh", "hv", "vv"} <= set(names)
@@ -269,7 +369,7 @@ def _plan(srcs: list[_Source], kind: str, band, channels, ) -> _Plan:
     return _Plan("quadpol" if is_quad else "slc", variables, compute, attrs, None)
 
 
-def _plan_detected(srcs, amplitude: bool, rule: str, band, channels) -> _Plan:
+def _plan_detected(srcs, amplitude: bool, rule: str, band, channels, asked: str = "detected data") -> _Plan:
     bands = [(k, b) for k, s in enumerate(srcs) for b in range(s.nbands)]
     n = len(bands)
     attrs: dict[str, Any] = {
@@ -283,8 +383,11 @@ def _plan_detected(srcs, amplitude: bool, rule: str, band, channels) -> _Plan:
             raise InputError(f"--band {band}: the input has a single band")
         if channels:
             attrs["channels"] = [str(channels[0])]
+        elif (mp := _meta_pols(1, srcs)) is not None:
+            attrs["channels"] = mp
 
         def compute(arrs):
+            _check_tile(srcs[0], arrs[0], asked)
             return {"intensity": _to_f32_intensity(arrs[0][:, :, 0], amplitude, srcs[0].meta.get("nodata"))}
 
         return _Plan("intensity", {"intensity": np.float32}, compute, attrs, "intensity")
@@ -307,6 +410,8 @@ def _plan_detected(srcs, amplitude: bool, rule: str, band, channels) -> _Plan:
     attrs["intensity_band"] = names[sel]
 
     def compute(arrs):
+        for k, a in enumerate(arrs):
+            _check_tile(srcs[k], a, asked)
         out = {}
         for nm, (k, b) in zip(names, bands):
             out[f"intensity_{nm}"] = _to_f32_intensity(arrs[k][:, :, b], amplitude, srcs[k].meta.get("nodata"))

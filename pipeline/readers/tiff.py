@@ -17,12 +17,16 @@ metre-based EPSG code when that key is absent); for geographic CRSs (degrees, e.
 it is approximated on the WGS84 ellipsoid at the scene-centre latitude and
 ``pixel_spacing_source`` says so.
 
-SNAP sidecar: a SNAP/BEAM ``Abstracted_Metadata`` XML named ``<folder>.xml`` in the file's
-folder or its parent (the OpenSARShip layout ``<product>/Patch/<chip>.tif`` +
-``<product>/<product>.xml``), or ``<stem>.xml`` beside the file, gives ``sensor``
-(MISSION + ACQUISITION_MODE), ``acquired`` (first_line_time), ``product``,
-``polarisations`` (channel names), ``pixel_spacing_m`` (azimuth_spacing, range_spacing) and
-the nominal looks (azimuth_looks x range_looks).
+SNAP sidecar: a SNAP/BEAM ``Abstracted_Metadata`` XML found by :func:`_find_sidecar`: in the
+chip's folder ``<stem>.xml``, then in the chip's folder and up to ``SIDECAR_LEVELS`` folders
+above it (nearest first, never above ``stop`` when a caller gives one) a file named
+``Metedata.xml`` (OpenSARShip's own spelling), ``Metadata.xml`` or ``<folder>.xml`` (the
+OpenSARShip layout ``<product>/Patch/<chip>.tif`` + ``<product>/Metedata.xml`` or
+``<product>/<product>.xml``); files without ``Abstracted_Metadata`` are skipped. It gives
+``sensor`` (MISSION + ACQUISITION_MODE), ``acquired`` (first_line_time), ``product``,
+``polarisations`` (``mdsN_tx_rx_polar``, else the ``Band_*`` ``polarization`` items; they name
+the channels), ``SAMPLE_TYPE`` (COMPLEX: (re, im) band pairs), ``pixel_spacing_m``
+(azimuth_spacing, range_spacing) and the nominal looks (azimuth_looks x range_looks).
 """
 
 from __future__ import annotations
@@ -345,10 +349,42 @@ def _geotiff(page, shape: tuple[int, int]) -> dict[str, Any]:
     return out
 
 
-def _snap_sidecar(p: Path) -> dict[str, Any]:
-    """SNAP ``Abstracted_Metadata`` next to an OpenSARShip-style chip (see module doc)."""
-    cands = [p.with_suffix(".xml"), p.parent / (p.parent.name + ".xml"),
-             p.parent.parent / (p.parent.parent.name + ".xml")]
+#: How many folders above the chip's own folder :func:`_find_sidecar` looks in.
+SIDECAR_LEVELS = 3
+
+#: Sidecar names looked for in each folder (besides ``<stem>.xml`` and ``<folder>.xml``).
+SIDECAR_NAMES = ("Metedata.xml", "metedata.xml", "Metadata.xml", "metadata.xml")
+
+
+def _sidecar_candidates(p: Path, levels: int = SIDECAR_LEVELS, stop: Path | None = None) -> list[Path]:
+    """Candidate sidecar files for the chip ``p``, nearest first (see the module docstring).
+
+    The search climbs at most ``levels`` folders above the chip's folder, and never above
+    ``stop`` (the folder the user gave) when that is one of the chip's folders.
+    """
+    here = Path(os.path.abspath(p)).parent  # the folders as given (symbolic links not followed)
+    stop_r = None if stop is None else Path(os.path.abspath(stop))
+    if stop_r is not None and stop_r != here and stop_r not in here.parents:
+        stop_r = None  # not an enclosing folder: no extra bound
+    cands = [p.with_suffix(".xml")]
+    d = here
+    for _ in range(levels + 1):
+        names = list(SIDECAR_NAMES)
+        if d.name:
+            names.append(d.name + ".xml")
+        for n in names:
+            c = d / n
+            if c not in cands:
+                cands.append(c)
+        if d == stop_r or d.parent == d:
+            break
+        d = d.parent
+    return cands
+
+
+def _snap_sidecar(p: Path, stop: Path | None = None) -> dict[str, Any]:
+    """SNAP ``Abstracted_Metadata`` of an OpenSARShip-style chip (see module doc); {} if none."""
+    cands = _sidecar_candidates(p, stop=stop)
     for c in cands:
         try:
             if not c.is_file() or c.stat().st_size > 16 * 2**20:
@@ -360,7 +396,11 @@ def _snap_sidecar(p: Path) -> dict[str, Any]:
         if am is None:
             continue
         a = {e.get("name"): e.get("value") for e in am.findall("attrib")}
-        out: dict[str, Any] = {"sidecar": c.name}
+        try:
+            rel = os.path.relpath(c, p.parent)
+        except ValueError:
+            rel = str(c)
+        out: dict[str, Any] = {"sidecar": rel}
         mission, mode = a.get("MISSION"), a.get("ACQUISITION_MODE")
         if mission:
             out["sensor"] = f"{mission} {mode}".strip() if mode else mission
@@ -375,7 +415,13 @@ def _snap_sidecar(p: Path) -> dict[str, Any]:
                 except ValueError:
                     pass
         pols = [a.get(f"mds{i}_tx_rx_polar", "") for i in range(1, 5)]
-        pols = [v.lower() for v in pols if v and v.strip() and v.strip() != "-"]
+        pols = [v.strip().lower() for v in pols if v and v.strip() and v.strip() != "-"]
+        if not pols:  # no mdsN_tx_rx_polar: the polarisations of the Band_* elements, in order
+            for b in am:
+                if b.tag.startswith("Band_"):
+                    v = next((e.get("value") for e in b.findall("attrib") if e.get("name") == "polarization"), None)
+                    if v and v.strip().lower() not in pols:
+                        pols.append(v.strip().lower())
         if pols and all(v in COMPLEX_CHANNELS for v in pols) and len(set(pols)) == len(pols):
             out["pols"] = pols
         st = (a.get("SAMPLE_TYPE") or "").upper()
