@@ -10,6 +10,11 @@ Caching: ``index.html`` names its assets with ``?v=DIGEST`` (a digest of all sta
 itself served with ``Cache-Control: no-cache`` (revalidated by ETag on every load), and an
 asset requested with the current digest is immutable for a year. So a new release is picked up
 on the next page load, and repeated loads cost one conditional request.
+
+``/docs`` is the API's Swagger UI (FastAPI's page) with its script and style sheet from the
+vendored ``swagger-ui-dist`` (``static/vendor/swagger-ui/``), so it too works offline; the app
+is created with ``docs_url=None`` (FastAPI's own page loads them from a CDN) and ``redoc_url=None``
+(ReDoc is not vendored).
 """
 
 from __future__ import annotations
@@ -19,7 +24,8 @@ import hashlib
 from pathlib import Path
 
 from fastapi import APIRouter, Request
-from fastapi.responses import RedirectResponse, Response
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.staticfiles import StaticFiles
 
@@ -87,5 +93,28 @@ async def ui_static(request: Request, path: str) -> Response:
         raise
     fresh = request.query_params.get("v") == asset_version()
     resp.headers["Cache-Control"] = IMMUTABLE if fresh else NO_CACHE
+    resp.headers["X-Content-Type-Options"] = "nosniff"
+    return resp
+
+
+#: The vendored Swagger UI (swagger-ui-dist, version in static/vendor/swagger-ui/README.md).
+SWAGGER = "ui/static/vendor/swagger-ui"
+
+
+@router.get("/docs")
+def api_docs(request: Request) -> HTMLResponse:
+    """The API docs (Swagger UI) with every file served here: nothing from the internet."""
+    root = request.scope.get("root_path", "").rstrip("/")
+    v = asset_version()
+    resp = get_swagger_ui_html(
+        openapi_url=root + (request.app.openapi_url or "/openapi.json"),
+        title=f"{request.app.title} - API docs",
+        swagger_js_url=f"{root}/{SWAGGER}/swagger-ui-bundle.js?v={v}",
+        swagger_css_url=f"{root}/{SWAGGER}/swagger-ui.css?v={v}",
+        swagger_favicon_url=f"{root}/{SWAGGER}/favicon-32x32.png?v={v}",
+        # no validator badge: it would ask validator.swagger.io about the spec
+        swagger_ui_parameters={"validatorUrl": None},
+    )
+    resp.headers["Cache-Control"] = NO_CACHE
     resp.headers["X-Content-Type-Options"] = "nosniff"
     return resp

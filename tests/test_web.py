@@ -7,7 +7,11 @@ drawn as a box on the map of the job's quicklook tiles (tile PNGs answered 200),
 table (the tiles' red mask pixels lie under its box); a bad parameter shows the API's problem
 detail beside the form, as text; a running job is dismissed from the list in a narrow window; the
 ingest panel follows passes dropped in the inbox (one ingested, one quarantined with its reason)
-and the new scene joins the form. The page must raise no JavaScript error and log no console error.
+and the new scene joins the form; a scene file uploaded from the page (refused without a token,
+with the API's detail shown) is ingested and chosen in the form, and a detection runs on it; a
+file that cannot be ingested shows why; a job on a scene with ground truth shows its scores; the
+API docs (``/docs``, Swagger UI) render with the browser limited to the server. The page must
+raise no JavaScript error and log no console error.
 Without a browser: the page's cache headers and the landing page's HTML redirect.
 """
 
@@ -309,3 +313,109 @@ def test_page_caching_and_landing_redirect(server):
     assert any(x["rel"] == "alternate" and x["type"] == "text/html" and x["href"].endswith("/ui/")
                for x in land["links"])
     assert httpx.get(u + "/", headers={"Accept": "application/json"}).status_code == 200
+
+
+def test_api_docs_render_offline(server, page):
+    """``/docs`` (Swagger UI) renders the operations with the browser limited to the server:
+    its script and style sheet are the vendored swagger-ui-dist, not a CDN's."""
+    u, pg = server.url, page.page
+    elsewhere: list[str] = []
+
+    def only_here(route):
+        if route.request.url.startswith(u + "/") or route.request.url.startswith("data:"):
+            route.continue_()
+        else:
+            elsewhere.append(route.request.url)
+            route.abort()
+
+    pg.route("**/*", only_here)
+    pg.goto(u + "/docs")
+    pg.wait_for_selector(".opblock-summary-path:has-text('/processes')")
+    assert pg.locator(".opblock").count() >= 10
+    assert pg.locator(".swagger-ui .info .title:has-text('sarship')").count() == 1
+    assert not elsewhere, elsewhere
+    assert [url for url, _ in page.responses if "/ui/static/vendor/swagger-ui/swagger-ui-bundle.js" in url]
+    assert httpx.get(u + "/redoc").status_code == 404  # ReDoc (CDN only) is off
+
+
+def test_upload_a_scene_then_detect_on_it(server, page, tmp_path):
+    u, pg = server.url, page.page
+    f = tmp_path / "upload-me.npy"
+    np.save(f, blobs_scene((200, 240), looks=2.0, seed=21, n=10))
+    open_ui(page, u)
+    pg.evaluate("() => window.localStorage.removeItem('sarship.token')")  # earlier tests saved one
+    pg.reload()
+    pg.wait_for_selector("body[data-ready=true]")
+    # without a token the API refuses the upload: its problem detail is shown
+    page.expected.add((401, u + "/scenes?filename=upload-me.npy"))
+    pg.set_input_files("#upload-file", str(f))
+    pg.click("#upload-btn")
+    pg.wait_for_selector("#upload-error:not([hidden])")
+    assert "401" in pg.inner_text("#upload-error") and "Bearer" in pg.inner_text("#upload-error")
+
+    set_token(page)
+    pg.set_input_files("#upload-file", str(f))
+    pg.click("#upload-btn")
+    pg.wait_for_selector("#upload-state[data-scene]", timeout=90_000)
+    assert pg.locator("#upload-error").is_hidden()
+    scene = pg.get_attribute("#upload-state", "data-scene")
+    assert scene in pg.inner_text("#upload-state") and "ready" in pg.inner_text("#upload-state")
+    assert httpx.get(f"{u}/scenes/{scene}").json()["status"] == "ready"
+    # the new scene is listed and chosen in the form: submit a detection on it
+    assert pg.locator(f"#scene-select option[value='{scene}']:not([disabled])").count() == 1
+    assert pg.input_value("#scene-select") == scene
+    pg.select_option("#process", "ca_cfar")
+    pg.fill("#param-guard", "11")
+    pg.fill("#param-background", "31")
+    pg.fill("#param-min_area_px", "1")
+    pg.click("#submit-btn")
+    job_id = pg.wait_for_selector("#submit-ok a").inner_text()
+    st = wait_job(u, job_id)
+    assert st["status"] == "successful", st
+    assert httpx.get(f"{u}/jobs/{job_id}/results/metrics").json()["scene"]["path"].endswith(f"{scene}.zarr")
+
+
+def test_upload_of_a_bad_file_shows_why(server, page, tmp_path):
+    u, pg = server.url, page.page
+    f = tmp_path / "broken.npy"
+    f.write_bytes(b"not a numpy file at all")
+    open_ui(page, u)
+    set_token(page)
+    pg.set_input_files("#upload-file", str(f))
+    pg.click("#upload-btn")
+    pg.wait_for_selector("#upload-error:not([hidden])", timeout=90_000)
+    assert "ingest failed" in pg.inner_text("#upload-error")
+    assert pg.locator("#upload-state[data-scene]").count() == 0
+
+
+def test_job_view_shows_scores_when_the_scene_has_truth(server, page, tmp_path):
+    import subprocess
+    import sys
+
+    u, pg = server.url, page.page
+    scene = server.data / "scenes" / "truthy.zarr"
+    if not scene.exists():
+        subprocess.run([sys.executable, "-m", "sarship", "simulate", str(scene), "--shape", "512x512", "--ships", "5",
+                        "--seed", "2"], check=True, capture_output=True)
+    assert Path(f"{scene}.truth.geojson").is_file()
+    r = httpx.post(u + "/processes/os_cfar/execution", json={"inputs": {"scene": "truthy"}}, headers=AUTH)
+    assert r.status_code == 201, r.text
+    job_id = r.json()["jobID"]
+    assert wait_job(u, job_id)["status"] == "successful"
+    scores = httpx.get(f"{u}/jobs/{job_id}/results/metrics").json()["scores"]
+    pg.goto(f"{u}/ui/#/jobs/{job_id}")
+    pg.wait_for_selector("#scores")
+    shown = {pg.locator("#scores dt").nth(i).inner_text(): pg.locator("#scores dd").nth(i).inner_text()
+             for i in range(pg.locator("#scores dt").count())}
+    assert shown["n_truth"] == "5" == str(scores["n_truth"])
+    for k in ("pd", "precision"):
+        assert k in shown and abs(float(shown[k]) - scores[k]) < 1e-3, (k, shown, scores)
+    pg.screenshot(path=str(tmp_path / "scores.png"), full_page=True)
+    # a scene without truth: no scores on its job view
+    r = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1"}}, headers=AUTH)
+    other = r.json()["jobID"]
+    assert wait_job(u, other)["status"] == "successful"
+    pg.goto(f"{u}/ui/#/jobs/{other}")
+    pg.wait_for_selector("#map[data-ready=true]")
+    assert "scores" not in httpx.get(f"{u}/jobs/{other}/results/metrics").json()
+    assert pg.locator("#scores").count() == 0

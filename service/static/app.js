@@ -1,13 +1,14 @@
-/* sarship web page: jobs (live), submit form built from the process schemas, job view with the
- * quicklook tiles on a Leaflet map (CRS.Simple over the scene's pixel grid) and the detections
- * drawn and listed, scheduled-ingest state.
+/* sarship web page: jobs (live), submit form built from the process schemas, scene upload (with
+ * its ingest job followed), job view with the quicklook tiles on a Leaflet map (CRS.Simple over
+ * the scene's pixel grid), the detections drawn and listed and the scores when the scene has
+ * ground truth, scheduled-ingest state.
  *
  * Everything comes from the public API (relative to this page: the API root is "../"), so the
  * page works behind a path prefix. Text from the API is only ever put into the page as text
  * nodes (textContent / append(string)); links from the API are restricted to http(s).
  *
- * One file of about 840 lines, on purpose: the page is served as static files with no build
- * step and no bundler, and its four views share one small state and fetch helpers inside one
+ * One file of about 970 lines, on purpose: the page is served as static files with no build
+ * step and no bundler, and its views share one small state and fetch helpers inside one
  * closure; split into ES modules it would gain imports, not clarity.
  */
 'use strict';
@@ -364,6 +365,94 @@
     $('submit-form').addEventListener('submit', submitJob);
   }
 
+  // ---------------------------------------------------------------- scene upload
+
+  /** POST a file to /scenes (raw body, ?filename=) with upload progress; resolves to the JSON
+   * answer, rejects with ApiError (the problem document) or Error (network). */
+  function postScene(file, onProgress) {
+    return new Promise((resolve, reject) => {
+      const xhr = new XMLHttpRequest();
+      xhr.open('POST', api(`scenes?filename=${encodeURIComponent(file.name)}`));
+      xhr.setRequestHeader('Accept', 'application/json');
+      xhr.setRequestHeader('Content-Type', 'application/octet-stream');
+      for (const [k, v] of Object.entries(authHeaders())) xhr.setRequestHeader(k, v);
+      xhr.upload.addEventListener('progress', (ev) => { if (ev.lengthComputable) onProgress(ev.loaded / ev.total); });
+      xhr.addEventListener('load', () => {
+        let body = null;
+        try { body = JSON.parse(xhr.responseText); } catch (e) { body = null; }
+        if (xhr.status >= 200 && xhr.status < 300 && body) { resolve(body); return; }
+        const p = (body && typeof body === 'object') ? body : {};
+        reject(new ApiError(xhr.status, p.title || xhr.statusText || 'error', p.detail || xhr.responseText || `HTTP ${xhr.status}`));
+      });
+      xhr.addEventListener('error', () => reject(new Error('the upload failed (network error)')));
+      xhr.addEventListener('abort', () => reject(new Error('the upload was aborted')));
+      xhr.send(file);
+    });
+  }
+
+  const sleep = (ms) => new Promise((r) => { setTimeout(r, ms); });
+
+  function initUpload() {
+    const form = $('upload-form');
+    const input = $('upload-file');
+    const btn = $('upload-btn');
+    const err = $('upload-error');
+    const state = $('upload-state');
+    const bar = $('upload-bar');
+    const pct = $('upload-pct');
+    const setPct = (f) => { const v = Math.round(100 * f); bar.value = v; pct.textContent = `${v}%`; };
+    const say = (...parts) => state.replaceChildren(...parts);
+    form.addEventListener('submit', async (ev) => {
+      ev.preventDefault();
+      showProblem(err, null);
+      input.removeAttribute('aria-invalid');
+      const file = input.files && input.files[0];
+      if (!file) {
+        input.setAttribute('aria-invalid', 'true');
+        showProblem(err, new Error('choose a file first'));
+        return;
+      }
+      btn.disabled = true;
+      $('upload-progress').hidden = false;
+      setPct(0);
+      say(`uploading ${file.name}…`);
+      try {
+        const doc = await postScene(file, setPct);
+        setPct(1);
+        const sid = doc.sceneID;
+        const sceneEl = h('code', { id: 'upload-scene' }, sid);
+        if (doc.status !== 'ready' && doc.jobID) {
+          const jobA = h('a', { href: `#/jobs/${encodeURIComponent(doc.jobID)}`, class: 'job-chip', title: doc.jobID }, doc.jobID.slice(0, 8));
+          say('scene ', sceneEl, ': ingesting (job ', jobA, ')…');
+          pollSoon();
+          for (;;) {  // the ingest job: until it is final
+            await sleep(FAST_MS);
+            const j = await getJSON(api(`jobs/${encodeURIComponent(doc.jobID)}`));
+            if (j.status === 'successful') break;
+            if (!ACTIVE.has(j.status)) throw new ApiError('', `ingest ${j.status}`, j.message || j.status);
+            say('scene ', sceneEl, `: ingesting (job `, jobA, `, ${j.status} ${Number(j.progress) || 0}%)…`);
+          }
+        }
+        await loadScenes();
+        const sel = $('scene-select');
+        if ([...sel.options].some((o) => o.value === sid && !o.disabled)) {
+          sel.value = sid;
+          $('scene-path').value = '';
+        }
+        say('scene ', sceneEl, ' is ready: selected in the form above.');
+        state.dataset.scene = sid;
+        input.value = '';
+      } catch (e) {
+        say('');
+        showProblem(err, e);
+        loadScenes();
+      } finally {
+        btn.disabled = false;
+        pollSoon();
+      }
+    });
+  }
+
   // ---------------------------------------------------------------- jobs list
 
   const rows = new Map();  // jobID -> <tr>
@@ -575,11 +664,47 @@
     const mapEl = h('div', { id: 'map', class: 'map', role: 'region', 'aria-label': 'Scene quicklook with detections (arrow keys pan, + and - zoom)' });
     const mapNote = h('p', { id: 'map-note', class: 'hint' });
     const table = detectionsTable(feats);
+    const scoresBox = h('div', { id: 'scores-box' });
     box.replaceChildren(
-      h('h3', {}, 'Outputs'), linkList,
+      h('h3', {}, 'Outputs'), linkList, scoresBox,
       h('h3', { id: 'det-h' }, `Detections (${feats.length})`),
       mapEl, mapNote, table);
+    loadScores(id, links, scoresBox);  // beside the map, not before it
     await buildMap(id, mapEl, mapNote, feats, links, jobUrl);
+  }
+
+  /** Scores first, in this order; then any other number of the scores document. */
+  const SCORE_KEYS = ['n_truth', 'n_detections', 'n_hit', 'n_missed', 'n_false', 'pd', 'precision', 'f1', 'fom'];
+
+  /** The scores against the scene's ground truth (the metrics document's ``scores``, present
+   * only when the scene has a truth file); nothing shown when there is none. */
+  async function loadScores(id, links, el) {
+    if (!links.metrics || !links.metrics.href) return;
+    let met;
+    try {
+      met = await getJSON(links.metrics.href);
+    } catch (e) {
+      if (current.id !== id) return;
+      const p = h('div', { class: 'problem', role: 'alert' });
+      showProblem(p, e);
+      el.replaceChildren(h('h3', {}, 'Scores'), p);
+      return;
+    }
+    if (current.id !== id || !met || typeof met.scores !== 'object' || met.scores === null) return;
+    const sc = met.scores;
+    const head = h('h3', { id: 'scores-h' }, 'Scores against the ground truth');
+    if (sc.error) {
+      const p = h('div', { class: 'problem', id: 'scores-error' });
+      showProblem(p, new ApiError('', 'scores unavailable', String(sc.error)));
+      el.replaceChildren(head, p);
+      return;
+    }
+    const nums = Object.keys(sc).filter((k) => typeof sc[k] === 'number');
+    const order = SCORE_KEYS.filter((k) => nums.includes(k)).concat(nums.filter((k) => !SCORE_KEYS.includes(k)));
+    const dl = h('dl', { class: 'kv scores', id: 'scores' });
+    dl.replaceChildren(...order.flatMap((k) => [h('dt', {}, k), h('dd', { dataset: { key: k } }, fmtNum(sc[k]))]));
+    const truth = typeof sc.truth === 'string' ? h('p', { class: 'hint' }, `truth: ${sc.truth.split('/').pop()}`) : null;
+    el.replaceChildren(head, dl, truth);
   }
 
   function detectionsTable(feats) {
@@ -826,6 +951,7 @@
   async function start() {
     initToken();
     initForm();
+    initUpload();
     checkDashboard();
     route(null);
     pollJobs();
