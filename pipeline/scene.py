@@ -121,6 +121,11 @@ def open_scene(path: str | os.PathLike) -> Scene:
     p = Path(path)
     if not p.exists():
         raise InputError(f"scene '{p}' does not exist")
+    if p.is_file():
+        if p.suffix.lower() == ".zarr":
+            raise InputError(f"'{p}' is a file, not a Zarr scene store (a folder with zarr.json)")
+        raise InputError(f"'{p}' is a file, not a scene store: make one with "
+                         f"`sarship ingest {p} --out {p.with_suffix('.zarr')}`")
     try:
         g = zarr.open_group(str(p), mode="r")
     except Exception as exc:  # zarr raises several types for non-stores

@@ -53,6 +53,26 @@ def _settings(pairs: list[str]) -> dict[str, str]:
     return out
 
 
+def _spacing(text: str) -> tuple[float, float]:
+    """``AZ,RG`` metres: two positive numbers."""
+    import math
+
+    try:
+        az, rg = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected AZ,RG (two positive numbers of metres, e.g. 2.3,13.9), "
+                                         f"got '{text}'") from None
+    if not (math.isfinite(az) and math.isfinite(rg) and az > 0 and rg > 0):
+        raise argparse.ArgumentTypeError(f"expected two positive numbers of metres, got '{text}'")
+    return az, rg
+
+
+def _print_warnings(command: str, run: dict) -> None:
+    """Every entry of run.json's "warnings", one line each on stderr."""
+    for w in run.get("warnings") or []:
+        print(f"sarship {command}: warning: {w}", file=sys.stderr)
+
+
 def _progress(label: str):
     from sarship.workers.jobs import Progress
 
@@ -72,7 +92,7 @@ def cmd_simulate(a) -> int:
     ))
     out = Path(a.out)
     truth = a.truth or f"{out}.truth.geojson"
-    simulate(out, cfg, tile=a.tile, truth_path=truth, progress=_progress("simulate"))
+    simulate(out, cfg, tile=a.tile, truth_path=truth, progress=_progress("simulate"), overwrite=a.overwrite)
     print(f"scene: {out}")
     print(f"truth: {truth}")
     return 0
@@ -86,7 +106,7 @@ def cmd_ingest(a) -> int:
     if band is not None and band.isdigit():
         band = int(band)
     scene = ingest(a.inputs, a.out, kind=a.kind, tile=a.tile, progress=_progress("ingest"),
-                   band=band, channels=channels, looks=a.looks)
+                   band=band, channels=channels, looks=a.looks, overwrite=a.overwrite, spacing=a.spacing)
     print(f"scene: {scene.path} {scene.shape[0]}x{scene.shape[1]} kind={scene.kind} "
           f"looks={scene.looks} variables={','.join(scene.variables)}")
     return 0
@@ -96,7 +116,8 @@ def cmd_detect(a) -> int:
     from sarship.workers.jobs import run_detection
 
     run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile,
-                        scheduler=a.scheduler, device=a.device, progress=True)
+                        scheduler=a.scheduler, device=a.device, progress=True, overwrite=a.overwrite)
+    _print_warnings("detect", run)
     o = run["outputs"]
     print(f"detections: {o['detections.geojson']} ({run['detections']} ships)")
     print(f"mask: {o['mask.zarr']}")
@@ -176,7 +197,15 @@ def cmd_demo(a) -> int:
     from sarship.workers.jobs import run_detection
 
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out '{out}' exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not a.overwrite:
+        raise InputError(f"output folder '{out}' exists and is not empty: pass --overwrite to replace "
+                         "the demo's outputs in it, or choose another folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create output folder '{out}': {exc.strerror}") from None
     scene = out / "scene.zarr"
     truth = out / "scene.truth.geojson"
     cfg = validate(SimConfig(kind="intensity", shape=a.shape, ships=a.ships, seed=a.seed, looks=a.looks,
@@ -186,7 +215,8 @@ def cmd_demo(a) -> int:
           f"{a.spacing:g} m pixels) with {a.ships} ships of 40-350 m at SCR {a.scr_db:g} dB", file=sys.stderr)
     simulate(scene, cfg, tile=a.tile, truth_path=truth, progress=_progress("simulate"))
     run = run_detection(scene, a.detector, _settings(a.set), out_dir=out / "detect", tile=a.tile,
-                        scheduler=a.scheduler, progress=True)
+                        scheduler=a.scheduler, progress=True, overwrite=a.overwrite)
+    _print_warnings("demo", run)
     det = out / "detect" / "detections.geojson"
     scores = evaluate(det, truth)
     from sarship.pipeline.ship_features import write_json
@@ -246,6 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument(f"--{flag}", action="store_true")
     s.add_argument("--truth", help="truth GeoJSON path (default OUT.zarr.truth.geojson)")
     s.add_argument("--tile", type=_positive_int, default=2048)
+    s.add_argument("--overwrite", action="store_true", help="replace an existing scene store and truth file")
     s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("ingest", help="convert GeoTIFF/TIFF, PNG/JPEG, .npy or Zarr into a scene store")
@@ -256,6 +287,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--channels", help="comma-separated channel names of the bands/files (e.g. vh,vv)")
     s.add_argument("--band", help="band (name or index) used as 'intensity' for multi-band real inputs")
     s.add_argument("--looks", type=float, help="equivalent number of looks (default: from the product or estimated)")
+    s.add_argument("--spacing", type=_spacing, metavar="AZ,RG",
+                   help="pixel spacing in metres, azimuth,range (overrides the product's)")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
     s.set_defaults(func=cmd_ingest)
 
     s = sub.add_parser("detect", help="run a detector on a scene store")
@@ -266,6 +300,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tile", type=_positive_int, help="processing tile side (default: the scene's chunk)")
     s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: start a local cluster)")
     s.add_argument("--device", choices=list(DEVICES), default="auto")
+    s.add_argument("--overwrite", action="store_true",
+                   help="write into an existing non-empty --out folder, replacing its detections.geojson, "
+                        "mask.zarr and run.json")
     s.set_defaults(func=cmd_detect)
 
     s = sub.add_parser("worker", help="start this machine's Dask workers for a scheduler: one per GPU, "
@@ -335,6 +372,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--set", action="append", metavar="KEY=VALUE")
     s.add_argument("--tile", type=_positive_int, default=1024)
     s.add_argument("--scheduler")
+    s.add_argument("--overwrite", action="store_true", help="write into an existing non-empty --out folder, "
+                                                            "replacing the demo's outputs")
     s.set_defaults(func=cmd_demo)
     return p
 

@@ -157,8 +157,11 @@ def test_simulate_detect_evaluate_end_to_end(tmp_path):
     assert res.returncode == 0, res.stderr
     scores = json.loads(res.stdout)
     assert scores["n_truth"] == 6 and scores["fom"] >= 0.8, scores
-    # re-running into the same folder replaces the outputs atomically
+    # re-running into the same folder is refused without --overwrite, then replaces the outputs atomically
     res = sarship("detect", scene, "--detector", "os_cfar", "--out", out, "--tile", "256")
+    assert_clean_error(res, "--overwrite")
+    assert json.loads((out / "run.json").read_text())["detector"] == "ca_cfar"
+    res = sarship("detect", scene, "--detector", "os_cfar", "--out", out, "--tile", "256", "--overwrite")
     assert res.returncode == 0, res.stderr
     assert json.loads((out / "run.json").read_text())["detector"] == "os_cfar"
 

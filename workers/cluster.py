@@ -13,7 +13,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import socket
 import sys
+import warnings
 from typing import Iterator
 
 from sarship.pipeline.errors import InputError
@@ -23,6 +25,31 @@ def _quiet() -> None:
     for name in ("distributed", "distributed.scheduler", "distributed.worker", "distributed.nanny",
                  "distributed.core", "distributed.http.proxy", "bokeh", "tornado"):
         logging.getLogger(name).setLevel(logging.ERROR)
+
+
+def _port_in_use(address: str) -> bool:
+    """Whether the TCP port of a dashboard address like ':8787' cannot be bound here."""
+    host, _, port = address.rpartition(":")
+    try:
+        port_n = int(port)
+    except ValueError:
+        return False
+    if port_n == 0:
+        return False
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host or "", port_n))
+        except OSError:
+            return True
+    return False
+
+
+def _free_dashboard(address: str) -> tuple[str, str]:
+    """The dashboard address to use (``address``, or ':0' = any free port when its port is
+    taken) and a note for the start-up line."""
+    if address and _port_in_use(address):
+        return ":0", f" (port {address.rpartition(':')[2]} is in use)"
+    return address, ""
 
 
 def dashboard_url(client) -> str | None:
@@ -80,7 +107,7 @@ def connect(
     ``gpus``: start one pinned worker per visible GPU instead (when there are any), or per
     GPU of a list of IDs, plus ``cpu_workers`` CPU workers.
     """
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     _quiet()
     if scheduler:
@@ -102,11 +129,30 @@ def connect(
         finally:
             client.close()
         return
-    from sarship.workers.gpus import visible_gpus, worker_specs
+    from sarship.workers.gpus import visible_gpus
 
     gpu_ids = list(gpus) if isinstance(gpus, list) else (visible_gpus() if gpus else [])
+    dashboard_address, note = _free_dashboard(dashboard_address)
+    with warnings.catch_warnings():  # Dask's raw "Port 8787 is already in use" and the like
+        warnings.simplefilter("ignore")
+        client, cluster, what = _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads)
+    if echo:
+        print(f"sarship: local Dask cluster, {what}, dashboard {dashboard_url(client)}{note}", file=sys.stderr)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
+def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads):
+    """Start the local cluster and its client; returns (client, cluster, description)."""
+    from distributed import Client, LocalCluster
+
     if gpu_ids:
         from distributed import Scheduler, SpecCluster
+
+        from sarship.workers.gpus import worker_specs
 
         cluster = SpecCluster(
             workers=worker_specs(gpu_ids, cpu_workers, prefix="local-", silence_logs=logging.ERROR,
@@ -129,10 +175,4 @@ def connect(
     client = Client(cluster)
     if gpu_ids:
         client.wait_for_workers(len(gpu_ids) + cpu_workers, timeout=120)
-    if echo:
-        print(f"sarship: local Dask cluster, {what}, dashboard {dashboard_url(client)}", file=sys.stderr)
-    try:
-        yield client
-    finally:
-        client.close()
-        cluster.close()
+    return client, cluster, what

@@ -101,6 +101,20 @@ def _versions() -> dict[str, str]:
     return out
 
 
+def check_out(out_dir: Path, scene_path: Path, overwrite: bool) -> None:
+    """Refuse an output folder inside (or equal to) the scene store, one whose outputs would
+    replace the scene, and an existing non-empty folder unless ``overwrite``."""
+    out, scene = out_dir.resolve(), scene_path.resolve()
+    if out == scene or scene in out.parents:
+        raise InputError(f"--out '{out_dir}' is inside the scene store '{scene_path}': "
+                         "choose a folder outside it (not even --overwrite writes into an input)")
+    if scene in {out / name for name in OUTPUTS}:
+        raise InputError(f"--out '{out_dir}' would replace the scene '{scene_path}' itself: choose another folder")
+    if not overwrite and out.is_dir() and any(out.iterdir()):
+        raise InputError(f"output folder '{out_dir}' exists and is not empty: pass --overwrite to replace "
+                         f"its {', '.join(OUTPUTS)}, or choose another folder")
+
+
 def _prepare_out(out_dir: Path) -> Path:
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -142,17 +156,20 @@ def run_detection(
     device: str = "auto",
     progress: bool = True,
     on_tile: Callable[[int, int], None] | None = None,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Run ``detector`` on a scene store; returns the ``run.json`` content.
 
     ``settings``: the detector's parameters (and optionally ``channel``), validated as a
     :class:`~sarship.workers.request.JobRequest`. ``client``: a connected
     ``distributed.Client`` (else one is made: ``scheduler`` or a local cluster). ``tile``:
-    processing/output tile side (default: the scene's chunk).
+    processing/output tile side (default: the scene's chunk). ``out_dir`` must not exist or be
+    empty unless ``overwrite`` (then only the three outputs are replaced); it is never allowed
+    inside the scene store.
     """
     request = JobRequest.from_inputs(detector, {**(settings or {}), "scene": str(scene_path), "device": device})
     return run_request(request, out_dir, tile=tile, client=client, scheduler=scheduler, progress=progress,
-                       on_tile=on_tile)
+                       on_tile=on_tile, overwrite=overwrite)
 
 
 def run_request(
@@ -163,6 +180,7 @@ def run_request(
     scheduler: str | None = None,
     progress: bool = True,
     on_tile: Callable[[int, int], None] | None = None,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Run a validated :class:`~sarship.workers.request.JobRequest`; its ``scene`` is the
     path of a scene store. Returns the ``run.json`` content (see :func:`run_detection`)."""
@@ -171,8 +189,11 @@ def run_request(
     params = request.detector_params()
     if device == "gpu" and not spec.gpu:
         raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation in this version")
-    scene_path = request.scene
-    scene = open_scene(scene_path)
+    # absolute paths: the tile tasks run on workers whose working folder may be another one
+    scene = open_scene(request.scene)  # messages name the paths as given
+    check_out(Path(out_dir), Path(request.scene), overwrite)
+    scene = dataclasses.replace(scene, path=Path(request.scene).absolute())
+    out_dir = Path(out_dir).absolute()
     if spec.input == "polarimetric":
         var, transform = polarimetric_source(scene, channel)
     else:
@@ -189,7 +210,6 @@ def run_request(
     halo = spec.halo(params)
     mr = merge_radius(params.merge_px)
     H, W = scene.shape
-    out_dir = Path(out_dir)
     created = not out_dir.exists()
     tmp = _prepare_out(out_dir)
     try:

@@ -132,7 +132,7 @@ class _CallbackError(Exception):
         self.exc = exc
 
 
-def _check_args(inputs, out, kind, tile, looks, channels):
+def _check_args(inputs, out, kind, tile, looks, channels, overwrite=True):
     if kind not in INGEST_KINDS:
         raise InputError(f"--kind must be one of {', '.join(INGEST_KINDS)}; got '{kind}'")
     try:
@@ -161,13 +161,33 @@ def _check_args(inputs, out, kind, tile, looks, channels):
     outp = Path(out)
     for p in paths:
         try:
-            if outp.exists() and p.resolve() == outp.resolve():
-                raise InputError(f"--out '{outp}' is also an input")
+            o, i = outp.resolve(), p.resolve()
         except OSError:
-            pass
+            continue
+        if o == i or i in o.parents:
+            raise InputError(f"--out '{outp}' is " + ("also an input" if o == i else f"inside the input '{p}'")
+                             + ": choose a path outside the inputs (not even --overwrite writes into an input)")
+        if o in i.parents:
+            raise InputError(f"--out '{outp}' holds the input '{p}': choose another path")
     if outp.exists() and not (outp.is_dir() and ((outp / "zarr.json").exists() or (outp / ".zgroup").exists())):
         raise InputError(f"--out '{outp}' exists and is not a Zarr scene: refusing to overwrite it")
+    if outp.exists() and not overwrite:
+        raise InputError(f"--out '{outp}' already exists: pass --overwrite to replace it")
     return paths, outp, tile_i, channels
+
+
+def _check_spacing(spacing) -> list[float] | None:
+    """``spacing``: None, (azimuth, range) metres, or the text 'AZ,RG'; two positive numbers."""
+    if spacing is None:
+        return None
+    parts = [x for x in re.split(r"[,\s]+", spacing.strip()) if x] if isinstance(spacing, str) else list(spacing)
+    try:
+        vals = [float(x) for x in parts]
+    except (TypeError, ValueError):
+        vals = []
+    if len(vals) != 2 or not all(math.isfinite(v) and v > 0 for v in vals):
+        raise InputError(f"--spacing expects two positive numbers of metres AZ,RG (azimuth, range), got {spacing!r}")
+    return vals
 
 
 def ingest(
@@ -179,13 +199,19 @@ def ingest(
     band: str | int | None = None,
     channels: list[str] | None = None,
     looks: float | None = None,
+    overwrite: bool = True,
+    spacing: tuple[float, float] | str | None = None,
 ) -> Scene:
     """Write the scene store ``out`` from ``inputs`` (see the module docstring); return it opened.
 
     ``progress(done, total)`` is called after each tile. Raises :class:`InputError` (one
     line naming the file and the problem) on any bad input; nothing is left at ``out`` then.
+    ``overwrite=False`` refuses an existing ``out``; ``out`` may never be (inside) an input.
+    ``spacing``: (azimuth, range) pixel spacing in metres, overriding what the product says
+    (attribute ``pixel_spacing_m``, ``pixel_spacing_source`` "argument").
     """
-    paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels)
+    paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
+    spacing = _check_spacing(spacing)
     user_progress = progress
 
     def progress(done: int, total: int) -> None:  # noqa: F811 - the caller's, exceptions passed through
@@ -203,13 +229,18 @@ def ingest(
         if "zarr" in fmts:
             if len(paths) > 1:
                 raise InputError(f"'{paths[fmts.index('zarr')]}': a Zarr scene cannot be combined with other inputs")
-            _ingest_zarr(paths[0], outp, tile, progress, looks)
+            if spacing is None:
+                _ingest_zarr(paths[0], outp, tile, progress, looks)
+            else:  # written to a temporary sibling, given the spacing, then renamed
+                with atomic_store(outp) as tmp:
+                    _ingest_zarr(paths[0], tmp, tile, progress, looks)
+                    finalize_scene(tmp, {"pixel_spacing_m": spacing, "pixel_spacing_source": "argument"})
             return open_scene(outp)
         srcs: list[_Source] = []
         try:
             for p in paths:
                 srcs.append(_open_source(p))
-            _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks)
+            _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing)
         finally:
             for s in srcs:
                 s.close()
@@ -224,7 +255,7 @@ def ingest(
         raise InputError(f"ingest of {', '.join(str(p) for p in paths)} failed: {_one_line(exc)}") from None
 
 
-def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks):
+def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing=None):
     plan = _plan(srcs, kind, band, channels)
     H, W = srcs[0].shape
     attrs = dict(plan.attrs)
@@ -243,6 +274,8 @@ def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks):
               "acquired", "product"):
         if k in meta:
             attrs[k] = meta[k]
+    if spacing is not None:
+        attrs["pixel_spacing_m"], attrs["pixel_spacing_source"] = list(spacing), "argument"
     if meta.get("pols"):
         attrs["polarisations"] = meta["pols"]
     if meta.get("sidecar"):

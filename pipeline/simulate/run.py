@@ -45,12 +45,13 @@ def _writable_dir(p: Path, what: str) -> None:
 
 def simulate(out: str | os.PathLike, cfg: SimConfig, tile: int = 2048,
              truth_path: str | os.PathLike | None = None,
-             progress: Optional[Callable[[int, int], None]] = None) -> Path:
+             progress: Optional[Callable[[int, int], None]] = None, overwrite: bool = True) -> Path:
     """Write the scene store ``out`` tile by tile (bounded memory) and its truth GeoJSON.
 
     The truth goes to ``truth_path`` (default ``f"{out}.truth.geojson"``). ``progress(done,
     total)`` is called after each tile. On any failure nothing is left behind (the store is
-    written to a temporary sibling and renamed; the truth likewise). Returns the store path.
+    written to a temporary sibling and renamed; the truth likewise). With ``overwrite=False``
+    an existing store or truth file is refused (:class:`InputError`). Returns the store path.
     """
     from sarship.pipeline import __version__
     from sarship.pipeline.scene import atomic_store, create_scene, finalize_scene, tile_slices
@@ -65,6 +66,12 @@ def simulate(out: str | os.PathLike, cfg: SimConfig, tile: int = 2048,
     _writable_dir(truth.parent if str(truth.parent) else Path("."), "truth")
     if truth.resolve() == out.resolve():
         raise InputError(f"truth path '{truth}' must differ from the scene path")
+    if truth.resolve() == out.resolve() or out.resolve() in truth.resolve().parents:
+        raise InputError(f"truth path '{truth}' must not be inside the scene store '{out}'")
+    if not overwrite:
+        for p, what in ((out, "scene"), (truth, "truth file")):
+            if p.exists() or p.is_symlink():
+                raise InputError(f"{what} '{p}' already exists: pass --overwrite to replace it")
     m = _model(cfg)  # ship placement errors before anything is written
     H, W = cfg.shape
     attrs = {

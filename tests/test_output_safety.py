@@ -1,0 +1,241 @@
+"""Issue 11, data safety and clear errors: no silent replacement of outputs, never a write
+inside an input, absolute paths for remote workers, warnings and dashboard notes on stderr
+as clean lines, a helpful message for a file given as a scene."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import write_scene
+from tests.test_cli import assert_clean_error, listing, sarship
+
+DASK = shutil.which("dask", path=os.path.dirname(sys.executable)) or shutil.which("dask")
+
+
+@pytest.fixture()
+def scene(tmp_path):
+    """A small scene without pixel spacing (so length limits cannot be applied)."""
+    rng = np.random.default_rng(0)
+    x = rng.gamma(2.0, 0.5, (96, 80)).astype(np.float32)
+    x[40:44, 30:36] += 60.0
+    return write_scene(tmp_path / "small.zarr", {"intensity": x}, tile=64, looks=2.0)
+
+
+def _tree(p: Path) -> dict[str, bytes]:
+    return {str(f.relative_to(p)): f.read_bytes() for f in sorted(p.rglob("*")) if f.is_file()}
+
+
+# ----------------------------------------------------------------------------- simulate
+
+
+def test_simulate_refuses_existing_store_and_truth(tmp_path):
+    out = tmp_path / "s.zarr"
+    args = ("simulate", out, "--shape", "64x64", "--ships", "1", "--tile", "64")
+    assert sarship(*args).returncode == 0
+    truth = Path(f"{out}.truth.geojson")
+    before, truth_before = _tree(out), truth.read_bytes()
+    res = sarship(*args, "--seed", "7")
+    assert_clean_error(res, "s.zarr", "--overwrite")
+    assert _tree(out) == before and truth.read_bytes() == truth_before
+    # a truth file alone is protected too
+    other = tmp_path / "t.geojson"
+    other.write_text("keep")
+    res = sarship("simulate", tmp_path / "new.zarr", "--shape", "64x64", "--ships", "1", "--truth", other)
+    assert_clean_error(res, "t.geojson", "--overwrite")
+    assert other.read_text() == "keep" and not (tmp_path / "new.zarr").exists()
+    res = sarship(*args, "--seed", "7", "--overwrite")
+    assert res.returncode == 0, res.stderr
+    assert truth.read_bytes() != truth_before
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]
+
+
+# ----------------------------------------------------------------------------- ingest
+
+
+def test_ingest_refuses_existing_and_inside_input(tmp_path):
+    src = tmp_path / "x.npy"
+    np.save(src, np.random.default_rng(1).gamma(2.0, 0.5, (64, 64)).astype(np.float32))
+    out = tmp_path / "x.zarr"
+    assert sarship("ingest", src, "--out", out).returncode == 0
+    before = _tree(out)
+    res = sarship("ingest", src, "--out", out, "--looks", "3")
+    assert_clean_error(res, "x.zarr", "--overwrite")
+    assert _tree(out) == before
+    res = sarship("ingest", src, "--out", out, "--looks", "3", "--overwrite")
+    assert res.returncode == 0, res.stderr
+    # never inside (or equal to) an input, even with --overwrite
+    for bad in (out, out / "inner.zarr"):
+        res = sarship("ingest", out, "--out", bad, "--overwrite")
+        assert_clean_error(res, "input")
+    res = sarship("ingest", src, "--out", src / "y.zarr", "--overwrite")
+    assert_clean_error(res, "input")
+    assert sorted(os.listdir(out)) == sorted(os.listdir(tmp_path / "x.zarr"))
+    assert not (out / "inner.zarr").exists()
+
+
+def test_ingest_spacing(tmp_path):
+    from sarship.pipeline.scene import open_scene
+
+    src = tmp_path / "x.npy"
+    np.save(src, np.random.default_rng(1).gamma(2.0, 0.5, (64, 64)).astype(np.float32))
+    res = sarship("ingest", src, "--out", tmp_path / "x.zarr", "--spacing", "2.5,10")
+    assert res.returncode == 0, res.stderr
+    sc = open_scene(tmp_path / "x.zarr")
+    assert sc.pixel_spacing_m == (2.5, 10.0) and sc.attrs["pixel_spacing_source"] == "argument"
+    # a Zarr input's spacing is overridden as well
+    res = sarship("ingest", tmp_path / "x.zarr", "--out", tmp_path / "y.zarr", "--spacing", "3,4")
+    assert res.returncode == 0, res.stderr
+    assert open_scene(tmp_path / "y.zarr").pixel_spacing_m == (3.0, 4.0)
+    for bad in ("1", "1,2,3", "0,2", "-1,2", "a,b", "nan,1"):
+        res = sarship("ingest", src, "--out", tmp_path / "z.zarr", "--spacing", bad)
+        assert_clean_error(res, "spacing")
+    assert not (tmp_path / "z.zarr").exists()
+
+
+# ----------------------------------------------------------------------------- detect, demo
+
+
+def test_detect_refuses_nonempty_out_and_inside_scene(scene, tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    res = sarship("detect", scene, "--detector", "ca_cfar", "--out", out)
+    assert_clean_error(res, "'", "--overwrite")
+    assert listing(out) == ["notes.txt"]
+    # never inside the scene store, even with --overwrite
+    before = _tree(scene)
+    for bad in (scene / "run", scene, scene / "intensity"):
+        res = sarship("detect", scene, "--detector", "ca_cfar", "--out", bad, "--overwrite")
+        assert_clean_error(res, "small.zarr", "inside")
+    assert _tree(scene) == before and not (scene / "run").exists()
+    res = sarship("detect", scene, "--detector", "ca_cfar", "--out", out, "--overwrite")
+    assert res.returncode == 0, res.stderr
+    assert listing(out)[:1] == ["detections.geojson"] and (out / "notes.txt").read_text() == "mine"
+    assert {"detections.geojson", "mask.zarr", "run.json", "notes.txt"} == set(os.listdir(out))
+
+
+def test_run_detection_api_overwrite(scene, tmp_path):
+    from sarship.pipeline.errors import InputError
+    from sarship.workers.jobs import run_detection
+
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "run.json").write_text("{}")
+    with pytest.raises(InputError, match="--overwrite"):  # refused before any cluster is used
+        run_detection(scene, "ca_cfar", out_dir=out, client=object(), progress=False)
+    with pytest.raises(InputError, match="inside"):
+        run_detection(scene, "ca_cfar", out_dir=scene / "o", client=object(), progress=False, overwrite=True)
+    assert (out / "run.json").read_text() == "{}"
+
+
+def test_demo_refuses_nonempty_out(tmp_path):
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "keep.txt").write_text("x")
+    res = sarship("demo", "--out", out, "--shape", "256x256", "--ships", "1")
+    assert_clean_error(res, "demo", "--overwrite")
+    assert listing(out) == ["keep.txt"]
+
+
+@pytest.mark.parametrize("name,fmt", [("x.npy", "npy"), ("x.jpg", "jpg"), ("x.tif", "tif")])
+def test_detect_on_a_file_says_ingest(tmp_path, name, fmt):
+    f = tmp_path / name
+    if fmt == "npy":
+        np.save(f, np.ones((8, 8), np.float32))
+    elif fmt == "jpg":
+        f.write_bytes(b"\xff\xd8\xff\xe0" + b"\x00" * 64)
+    else:
+        f.write_bytes(b"II*\x00" + b"\x00" * 64)
+    res = sarship("detect", f, "--detector", "ca_cfar", "--out", tmp_path / "o")
+    assert_clean_error(res, name, "sarship ingest", "--out")
+    assert "GroupNotFound" not in res.stderr and not (tmp_path / "o").exists()
+
+
+def test_detect_prints_run_warnings(scene, tmp_path):
+    out = tmp_path / "o"
+    res = sarship("detect", scene, "--detector", "ca_cfar", "--out", out, "--set", "min_length_m=20")
+    assert res.returncode == 0, res.stderr
+    warnings = json.loads((out / "run.json").read_text())["warnings"]
+    assert warnings
+    lines = [ln for ln in res.stderr.splitlines() if "warning" in ln.lower()]
+    assert lines == [f"sarship detect: warning: {w}" for w in warnings], res.stderr
+    assert "min_length_m" in lines[0]
+
+
+# ----------------------------------------------------------------------------- cluster
+
+
+def test_dashboard_port_taken_is_one_clean_line(scene, tmp_path):
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        sock.bind(("", 8787))
+        sock.listen(1)
+    except OSError:
+        sock.close()
+        pytest.skip("port 8787 is already in use by something else")
+    try:
+        res = sarship("detect", scene, "--detector", "ca_cfar", "--out", tmp_path / "o")
+    finally:
+        sock.close()
+    assert res.returncode == 0, res.stderr
+    assert "UserWarning" not in res.stderr and "site-packages" not in res.stderr, res.stderr
+    dash = [ln for ln in res.stderr.splitlines() if "dashboard" in ln]
+    assert len(dash) == 1 and "http://" in dash[0] and ":8787/" not in dash[0] and "8787" in dash[0], dash
+
+
+@pytest.fixture()
+def remote_cluster(tmp_path):
+    """A `dask scheduler` and a `dask worker` whose working folder is another temporary folder."""
+    if DASK is None:
+        pytest.skip("the 'dask' command is not on PATH")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    sched_file = tmp_path / "scheduler.json"
+    env = {**os.environ, "DASK_DISTRIBUTED__LOGGING__DISTRIBUTED": "error"}
+    procs = [subprocess.Popen([DASK, "scheduler", "--scheduler-file", str(sched_file), "--port", "0",
+                               "--dashboard-address", ":0", "--host", "127.0.0.1"], cwd=elsewhere,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    try:
+        for _ in range(300):
+            if sched_file.exists() and sched_file.stat().st_size > 0:
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail("dask scheduler did not start")
+        address = json.loads(sched_file.read_text())["address"]
+        procs.append(subprocess.Popen([DASK, "worker", address, "--nthreads", "1", "--no-dashboard"],
+                                      cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                      env=env))
+        from distributed import Client
+
+        with Client(address, timeout="20s") as c:
+            c.wait_for_workers(1, timeout=60)
+        yield address
+    finally:
+        for p in procs[::-1]:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def test_relative_scene_with_workers_in_another_folder(scene, tmp_path, remote_cluster):
+    res = subprocess.run([sys.executable, "-m", "sarship", "detect", scene.name, "--detector", "ca_cfar",
+                          "--scheduler", remote_cluster, "--out", "o"], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=300)
+    assert res.returncode == 0, res.stderr
+    run = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert run["detections"] >= 1 and run["tiles"]["count"] == 4
+    assert not (tmp_path / "elsewhere" / "small.zarr").exists() and not (tmp_path / "elsewhere" / "o").exists()
