@@ -79,11 +79,13 @@ def known_process(name: str) -> None:
         raise Problem(404, "no such process", f"no process '{name}' (known: {', '.join(detectors.names())})")
 
 
-def validate_inputs(settings: Settings, name: str, body: Any) -> dict:
+def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[JobStore] = None) -> dict:
     """The job's inputs, validated now (so that bad input is a 400, not a failed job): the
     execution body's envelope here, the inputs by :class:`~sarship.workers.request.JobRequest`
     (the same model the command line and the runner use), the scene against the allowed
-    folders."""
+    folders. With ``store``, a scene id that is not in the scene store yet but whose ingest
+    job is accepted or running (an upload still being ingested) is valid too: see
+    :func:`pending_ingest`."""
     if not isinstance(body, dict) or not isinstance(body.get("inputs"), dict):
         raise Problem(400, "bad request", "the body must be a JSON object {\"inputs\": {\"scene\": ..., ...}}")
     if body.get("response", "document") not in ("document", "raw"):
@@ -92,11 +94,55 @@ def validate_inputs(settings: Settings, name: str, body: Any) -> dict:
         raise Problem(400, "bad request", "'outputs' must be an object (output name -> options)")
     try:
         request = JobRequest.from_inputs(name, body["inputs"])
-        scene_path(settings, request.scene)
+        try:
+            scene_path(settings, request.scene)
+        except InputError:
+            if store is None or pending_ingest(settings, store, request.scene) is None:
+                scene_path(settings, request.scene)  # raises again, unless an ingest finished meanwhile
     except InputError as exc:
         title = "missing input" if "is required" in str(exc) else "invalid input"
-        raise Problem(400, title, str(exc)) from None
+        detail = str(exc)
+        if store is not None and "no scene" in detail and scene_id_like(request_scene(body)):
+            last = store.ingest_job_for_scene(request_scene(body).strip())
+            if last is not None and last["status"] in ("failed", "dismissed"):
+                detail += f" (its ingest job {last['id']} {last['status']}: {last['message']})"
+        raise Problem(400, title, detail) from None
     return dict(body["inputs"])
+
+
+def request_scene(body: dict) -> str:
+    s = body["inputs"].get("scene")
+    return s if isinstance(s, str) else ""
+
+
+def scene_id_like(s: str) -> bool:
+    """A scene id (``DATA/scenes/ID.zarr``) rather than a path."""
+    s = s.strip()
+    return bool(s) and s.replace("_", "").replace("-", "").isalnum()
+
+
+def pending_ingest(settings: Settings, store: JobStore, scene: str) -> Optional[dict]:
+    """The accepted or running ingest job of scene id ``scene`` (an upload being ingested,
+    ``POST /scenes``, or an inbox pass), if the scene is not in the scene store yet."""
+    if not scene_id_like(scene):
+        return None
+    return store.active_ingest(scene.strip())
+
+
+def remove_job_outputs(settings: Settings, job_id: str) -> None:
+    """Remove ``DATA/jobs/ID`` (renamed aside first, so that no reader sees it half-removed)."""
+    import shutil
+    import uuid
+
+    d = settings.jobs_dir / job_id
+    if not d.is_dir():
+        return
+    gone = settings.jobs_dir / f".dismissed-{job_id}-{uuid.uuid4().hex[:6]}"
+    try:
+        d.rename(gone)
+    except OSError:
+        gone = d
+    shutil.rmtree(gone, ignore_errors=True)
 
 
 def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
@@ -135,7 +181,8 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
                 runner.stop()
 
     app = FastAPI(title="sarship", version=__version__, lifespan=lifespan,
-                  description="Ship detection in SAR scenes: OGC API - Processes shaped job API")
+                  description="Ship detection in SAR scenes: OGC API - Processes shaped job API",
+                  docs_url=None, redoc_url=None)  # /docs: web.py, Swagger UI served from here (no CDN)
     app.state.settings = settings
 
     open_paths = ("/livez", "/readyz", "/metrics")
@@ -207,7 +254,9 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         return process_description(process_id, base_url(request))
 
     @app.post("/processes/{process_id}/execution", status_code=201,
-              responses={201: {"model": StatusInfo, "description": "job accepted (asynchronous execution)",
+              responses={201: {"model": StatusInfo, "description": "job accepted (asynchronous execution); a job "
+                                                                "for a scene id whose upload is still being "
+                                                                "ingested waits for that ingest job",
                                "headers": {"Location": location_header}},
                          200: {"model": Results, "description": "the results document (Prefer: respond-sync)",
                                "headers": {"Location": location_header}},
@@ -221,10 +270,16 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
             body = json.loads(await request.body() or b"null")
         except (ValueError, UnicodeDecodeError):
             raise Problem(400, "bad request", "the body is not valid JSON") from None
-        inputs = validate_inputs(settings, process_id, body)
         st = store_of(request)
+        inputs = validate_inputs(settings, process_id, body, st)
+        waits_for, message = None, ""
+        if not (settings.scenes_dir / f"{str(inputs['scene']).strip()}.zarr").exists():
+            dep = pending_ingest(settings, st, str(inputs["scene"]))
+            if dep is not None:  # the scene's upload is still being ingested: run after it
+                waits_for = dep["id"]
+                message = f"waiting for scene {str(inputs['scene']).strip()} (ingest job {dep['id']})"
         # the commit waits on the disk (fsync): off the event loop, so status polls are not held up
-        job = await anyio.to_thread.run_sync(st.create, process_id, inputs)
+        job = await anyio.to_thread.run_sync(lambda: st.create(process_id, inputs, waits_for, message))
         request.app.state.metrics.requests.labels(process_id).inc()
         request.app.state.runner.wake.set()
         b = base_url(request)
@@ -255,11 +310,18 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         # the WAL-mode store, ~40 us, never waits for writers)
         return status_doc(job_or_404(request, job_id), base_url(request))
 
-    @app.delete("/jobs/{job_id}", responses={200: {"model": StatusInfo, "description": "the job, dismissed (a "
-                                                   "finished job is returned unchanged)"}})
+    @app.delete("/jobs/{job_id}", responses={200: {"model": StatusInfo, "description": (
+        "the job, dismissed: an accepted or running job is cancelled; a finished (successful or "
+        "failed) job's results are removed (its results then answer 404); a job already dismissed is "
+        "returned unchanged. The job stays in the job list with status 'dismissed'.")}, **problems(404)})
     def dismiss(request: Request, job_id: str):
-        job_or_404(request, job_id)
-        return status_doc(store_of(request).dismiss(job_id), base_url(request))
+        job, before = store_of(request).dismiss(job_id)
+        if job is None:
+            raise Problem(404, "no such job", f"no job '{job_id}'")
+        if before in ("successful", "failed") and job["process"] != "ingest":
+            # outputs of a finished job (an ingest job's scene is shared by every job of that scene: kept)
+            remove_job_outputs(settings, job_id)
+        return status_doc(job, base_url(request))
 
     @app.get("/metrics", responses=media("text/plain; version=0.0.4", "Prometheus text format"))
     def prometheus(request: Request):
@@ -302,7 +364,7 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
     from sarship.service import ingest_routes  # GET /ingest, POST /ingest/scan
 
     app.include_router(ingest_routes.router)
-    from sarship.service import web  # the web page (/ui/) and its static files
+    from sarship.service import web  # the web page (/ui/), its static files and the API docs (/docs)
 
     app.include_router(web.router)
     return app

@@ -26,6 +26,9 @@ def base_url(request: Request) -> str:
 
 def status_doc(job: dict, base: str) -> dict:
     links = [{"href": f"{base}/jobs/{job['id']}", "rel": "self", "type": "application/json", "title": "status"}]
+    if job["status"] == "accepted" and job.get("waits_for"):
+        links.append({"href": f"{base}/jobs/{job['waits_for']}", "rel": "related", "type": "application/json",
+                      "title": "the ingest job of the job's scene: the job runs when it has succeeded"})
     if job["status"] == "successful":
         links.append({"href": f"{base}/jobs/{job['id']}/results", "rel": "http://www.opengis.net/def/rel/ogc/1.0/results",
                       "type": "application/json", "title": "results"})
@@ -64,7 +67,7 @@ def finished(request: Request, job_id: str, ingest_ok: bool = False) -> dict:
     An ``ingest`` job's only result is its scene: without ``ingest_ok`` it is a 404 too."""
     job = job_or_404(request, job_id)
     if job["status"] != "successful":
-        detail = {"failed": f"job failed: {job['message']}", "dismissed": "job was dismissed"}.get(
+        detail = {"failed": f"job failed: {job['message']}", "dismissed": "job was dismissed (its results, if any, are removed)"}.get(
             job["status"], f"result not ready (job is {job['status']})")
         raise Problem(404, "result not ready" if job["status"] not in ("failed", "dismissed") else "no result",
                       detail)

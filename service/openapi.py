@@ -89,7 +89,8 @@ class StatusInfo(BaseModel):
     processID: str
     type: Literal["process"]
     status: Literal[JOB_STATUSES]  # type: ignore[valid-type]
-    message: str
+    message: str = Field(description="the failure reason or other news, one line; an accepted job whose scene "
+                                     "is still being ingested says 'waiting for scene ID (ingest job JOBID)'")
     progress: int = Field(ge=0, le=100)
     created: str
     started: Optional[str]

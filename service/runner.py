@@ -70,6 +70,9 @@ class Runner:
         self.wake = threading.Event()
 
     def start(self) -> None:
+        # outputs of dismissed jobs renamed aside (DELETE /jobs/ID) but not removed: the process stopped
+        for stale in self.settings.jobs_dir.glob(".dismissed-*") if self.settings.jobs_dir.is_dir() else ():
+            shutil.rmtree(stale, ignore_errors=True)
         for k in range(self.settings.concurrency):
             t = threading.Thread(target=self._loop, name=f"sarship-runner-{k}", daemon=True)
             t.start()
@@ -130,15 +133,23 @@ class Runner:
             with self._lock:
                 self._running.pop(job_id, None)
             return
+        if job.get("waits_for") and not self._ingest_done(job):
+            with self._lock:
+                self._running.pop(job_id, None)
+            return
         try:
             request = JobRequest.from_inputs(job["process"], inputs)
             scene = scene_path(self.settings, request.scene)
             run = run_request(request.model_copy(update={"scene": str(scene)}), out_dir=out_dir,
-                              client=self.client, progress=False, on_tile=on_tile)
+                              client=self.client, progress=False, on_tile=on_tile, overwrite=True)
             summary: dict[str, Any] = {"detections": run["detections"], "detected_px": run["detected_px"],
                                        "outputs": run["outputs"], "timings": run["timings"]}
-            self.store.finish(job_id, self.owner, "successful",
-                              f"{run['detections']} detections in {run['timings']['total_s']:.1f} s", summary)
+            if not self.store.finish(job_id, self.owner, "successful",
+                                     f"{run['detections']} detections in {run['timings']['total_s']:.1f} s",
+                                     summary):
+                after = self.store.get(job_id)
+                if after is not None and after["status"] == "dismissed":  # dismissed as it finished
+                    shutil.rmtree(out_dir, ignore_errors=True)
             if self.metrics is not None:
                 H, W = run["scene"]["shape"]
                 self.metrics.pixels.inc(H * W)
@@ -155,6 +166,31 @@ class Runner:
         finally:
             with self._lock:
                 self._running.pop(job_id, None)
+
+    def _ingest_done(self, job: dict) -> bool:
+        """A job that waited for its scene's ingest job (``waits_for``, see
+        :meth:`JobStore.create`): True when that ingest succeeded (the job runs now); else the
+        job is failed with the ingest's error and False."""
+        scene = job["inputs"].get("scene")
+        dep = self.store.get(job["waits_for"])
+        if dep is not None and dep["status"] == "successful":
+            return True
+        try:  # (an ingest dismissed after it succeeded keeps its scene)
+            scene_path(self.settings, str(scene))
+            return True
+        except InputError:
+            pass
+        if dep is None:
+            why = f"scene {scene}: its ingest job {job['waits_for']} is gone"
+        elif dep["status"] == "failed":
+            why = f"scene {scene} could not be ingested (ingest job {dep['id']}): {dep['message']}"
+        elif dep["status"] == "dismissed":
+            why = f"scene {scene}: its ingest job {dep['id']} was dismissed"
+        else:  # (claim never hands out a job whose ingest is still accepted or running)
+            why = f"scene {scene}: its ingest job {dep['id']} is {dep['status']}"
+        self.store.finish(job["id"], self.owner, "failed", why)
+        self._observe_failure(job)
+        return False
 
     def _ingest(self, job: dict) -> None:
         """A scene file (an upload, input ``upload``, or an inbox pass, input ``path``) to the

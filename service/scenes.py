@@ -105,25 +105,39 @@ def scene_doc(settings: Settings, scene_id: str, b: str) -> Optional[dict]:
 
 @router.get("/scenes")
 def scenes(request: Request):
-    """Ready scenes (``DATA/scenes/*.zarr``) and the scenes still ingesting or whose ingest
-    failed (the newest ingest job of each, found through the store's ingest-job index: the
-    cost does not grow with the number of detection jobs)."""
+    """Ready scenes (``DATA/scenes/*.zarr``), then the scenes still ingesting and those whose
+    newest ingest failed or was dismissed, listed as ``failed`` with the ``reason`` (the newest
+    ingest job of each, found through the store's ingest-job index: the cost does not grow
+    with the number of detection jobs). A failed scene is never usable: a job naming it is a
+    400."""
     settings = settings_of(request)
     b = base_url(request)
     ready = [scene_doc(settings, p.name[:-5], b) for p in sorted(settings.scenes_dir.glob("*.zarr"))]
     pending: dict[str, dict] = {}
-    for j in store_of(request).ingest_jobs(("accepted", "running", "failed")):  # newest first
+    for j in store_of(request).ingest_jobs(("accepted", "running", "failed", "dismissed")):  # newest first
         sid = j["inputs"].get("scene_id")
         if sid in pending or not sid or (settings.scenes_dir / f"{sid}.zarr").exists():
             continue
-        pending[sid] = pending_doc(sid, j)
+        pending[sid] = pending_doc(sid, j, b)
     return {"scenes": [d for d in ready if d] + list(pending.values())}
 
 
-def pending_doc(scene_id: str, job: dict) -> dict:
-    """A scene that is not (yet) in the scene store, from its newest ingest job."""
-    status = "ingesting" if job["status"] in ("accepted", "running") else job["status"]
-    return {"sceneID": scene_id, "status": status, "jobID": job["id"], "message": job["message"]}
+def pending_doc(scene_id: str, job: dict, b: str = "") -> dict:
+    """A scene that is not (yet) in the scene store, from its newest ingest job: ``ingesting``
+    (ingest accepted or running) or ``failed`` with the ``reason`` (the ingest job's error; an
+    ingest dismissed, or one that succeeded but whose scene store is gone, counts as failed)."""
+    links = [{"href": f"{b}/jobs/{job['id']}", "rel": "monitor", "type": "application/json"}]
+    if job["status"] in ("accepted", "running"):
+        return {"sceneID": scene_id, "status": "ingesting", "jobID": job["id"], "message": job["message"],
+                "links": links}
+    if job["status"] == "failed":
+        reason = job["message"] or "ingest failed"
+    elif job["status"] == "dismissed":
+        reason = f"its ingest job was dismissed ({job['message']})" if job["message"] else "its ingest job was dismissed"
+    else:
+        reason = "the scene store is missing (it was removed after its ingest)"
+    return {"sceneID": scene_id, "status": "failed", "reason": reason, "jobID": job["id"], "message": reason,
+            "links": links}
 
 
 @router.get("/scenes/{scene_id}")
@@ -133,6 +147,6 @@ def scene(request: Request, scene_id: str):
     if doc is None:
         job = store_of(request).ingest_job_for_scene(scene_id) if ok else None
         if job is not None:
-            return pending_doc(scene_id, job)
+            return pending_doc(scene_id, job, base_url(request))
         raise Problem(404, "no such scene", f"no scene '{scene_id}'")
     return doc

@@ -9,6 +9,10 @@ the runs): it stays exactly once in the job list. Outputs are written by
 :func:`sarship.workers.jobs.run_detection` to a temporary folder and renamed into place when
 complete, so a re-run never sees half-written outputs.
 
+A job submitted for a scene whose upload is still being ingested records that ingest job in
+``waits_for``: it is not claimed while the ingest job is accepted or running (so this holds
+across restarts too); the runner then runs it, or fails it with the ingest's error.
+
 The scheduled ingest keeps its pass records and its loop lease in the same file (tables
 ``inbox_passes`` and ``inbox_state``, :mod:`sarship.service.inbox_store`), so that a pass and the
 jobs it creates are written in one transaction.
@@ -44,7 +48,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     lease_owner TEXT,
     lease_until REAL,
     attempts INTEGER NOT NULL DEFAULT 0,
-    result TEXT
+    result TEXT,
+    waits_for TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, created);
 -- ingest jobs by scene id and by status: GET /scenes and GET /scenes/{id} without a scan of
@@ -73,6 +78,18 @@ class JobStore:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._local = threading.local()
         self._conn().executescript(_SCHEMA)  # (executescript commits by itself)
+        self._migrate()
+
+    def _migrate(self) -> None:
+        """Columns added since the first schema (a store written by an older version)."""
+        c = self._conn()
+        cols = {r["name"] for r in c.execute("PRAGMA table_info(jobs)").fetchall()}
+        if "waits_for" not in cols:
+            try:
+                c.execute("ALTER TABLE jobs ADD COLUMN waits_for TEXT")
+            except sqlite3.OperationalError as exc:  # another process added it meanwhile
+                if "duplicate column" not in str(exc):
+                    raise
 
     def _conn(self) -> sqlite3.Connection:
         c = getattr(self._local, "conn", None)
@@ -97,10 +114,18 @@ class JobStore:
 
     # ------------------------------------------------------------------ jobs
 
-    def create(self, process: str, inputs: dict[str, Any]) -> dict:
+    def create(self, process: str, inputs: dict[str, Any], waits_for: Optional[str] = None,
+               message: str = "") -> dict:
+        """A new accepted job; with ``waits_for`` (an ingest job's ID) it is not claimed until
+        that job is final."""
         with self._tx() as c:
-            job_id = insert_job(c, process, inputs)
+            job_id = insert_job(c, process, inputs, waits_for, message)
         return self.get(job_id)
+
+    def active_ingest(self, scene_id: str) -> Optional[dict]:
+        """The accepted or running ingest job of ``scene_id``, if any."""
+        job_id = active_ingest(self._conn(), scene_id)
+        return self.get(job_id) if job_id else None
 
     def create_ingest(self, inputs: dict[str, Any]) -> tuple[dict, bool]:
         """The ingest job of ``inputs["scene_id"]``: the one already accepted or running for
@@ -147,13 +172,15 @@ class JobStore:
         return out
 
     def claim(self, owner: str, lease_s: float) -> Optional[dict]:
-        """Take the oldest job that is accepted, or running with an expired lease (its runner
-        died): mark it running under ``owner`` until ``now + lease_s``."""
+        """Take the oldest job that is accepted (and waits for no ingest job still accepted or
+        running), or running with an expired lease (its runner died): mark it running under
+        ``owner`` until ``now + lease_s``."""
         now = time.time()
         with self._tx() as c:
             row = c.execute(
-                "SELECT id FROM jobs WHERE status = 'accepted' OR (status = 'running' AND lease_until < ?) "
-                "ORDER BY created LIMIT 1", (now,)).fetchone()
+                "SELECT id FROM jobs j WHERE (status = 'accepted' AND (waits_for IS NULL OR NOT EXISTS ("
+                "SELECT 1 FROM jobs d WHERE d.id = j.waits_for AND d.status IN ('accepted', 'running')))) "
+                "OR (status = 'running' AND lease_until < ?) ORDER BY created LIMIT 1", (now,)).fetchone()
             if row is None:
                 return None
             c.execute("UPDATE jobs SET status = 'running', lease_owner = ?, lease_until = ?, started = ?, "
@@ -187,15 +214,22 @@ class JobStore:
                              job_id, owner))
             return cur.rowcount == 1
 
-    def dismiss(self, job_id: str) -> Optional[dict]:
-        """Cancel: accepted or running -> dismissed (a running job's runner stops at its next
-        tile). Final jobs are returned unchanged."""
+    def dismiss(self, job_id: str) -> tuple[Optional[dict], Optional[str]]:
+        """Dismiss (OGC API - Processes): accepted or running -> dismissed (a running job's
+        runner stops at its next tile); successful or failed -> dismissed (the caller removes
+        its outputs; ``finished`` keeps the time it finished). A dismissed job stays as it is.
+        The job and the status it had before (None: no such job)."""
         now = time.time()
         with self._tx() as c:
-            c.execute("UPDATE jobs SET status = 'dismissed', message = 'dismissed by request', finished = ?, "
-                      "updated = ?, lease_owner = NULL, lease_until = NULL WHERE id = ? AND status IN "
-                      "('accepted', 'running')", (now, now, job_id))
-        return self.get(job_id)
+            row = c.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            before = row["status"] if row else None
+            if before in ("accepted", "running"):
+                c.execute("UPDATE jobs SET status = 'dismissed', message = 'dismissed by request', finished = ?, "
+                          "updated = ?, lease_owner = NULL, lease_until = NULL WHERE id = ?", (now, now, job_id))
+            elif before in ("successful", "failed"):
+                c.execute("UPDATE jobs SET status = 'dismissed', message = ?, updated = ? WHERE id = ?",
+                          (f"dismissed by request ({before}; its results are removed)", now, job_id))
+        return self.get(job_id), before
 
     def close(self) -> None:
         c = getattr(self._local, "conn", None)
@@ -204,13 +238,15 @@ class JobStore:
             self._local.conn = None
 
 
-def insert_job(c: sqlite3.Connection, process: str, inputs: dict[str, Any]) -> str:
+def insert_job(c: sqlite3.Connection, process: str, inputs: dict[str, Any], waits_for: Optional[str] = None,
+               message: str = "") -> str:
     """Insert an accepted job inside the caller's transaction (so that callers can record the
     job's ID in the same transaction that creates it); its ID."""
     now = time.time()
     job_id = uuid.uuid4().hex
-    c.execute("INSERT INTO jobs (id, process, inputs, status, created, updated) VALUES (?, ?, ?, ?, ?, ?)",
-              (job_id, process, json.dumps(inputs), "accepted", now, now))
+    c.execute("INSERT INTO jobs (id, process, inputs, status, message, created, updated, waits_for) "
+              "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+              (job_id, process, json.dumps(inputs), "accepted", message, now, now, waits_for))
     return job_id
 
 
