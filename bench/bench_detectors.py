@@ -115,9 +115,9 @@ def main() -> None:
         if client is not None:
             from sarship.workers.jobs import run_detection
 
-            run_detection(f"{tmp}/s.zarr", name, {}, out_dir=f"{tmp}/o", client=client, progress=False)
+            run_detection(f"{tmp}/s.zarr", name, {}, out_dir=f"{tmp}/o", client=client, progress=False, overwrite=True)
             t0 = time.perf_counter()
-            run_detection(f"{tmp}/s.zarr", name, {}, out_dir=f"{tmp}/o", client=client, progress=False)
+            run_detection(f"{tmp}/s.zarr", name, {}, out_dir=f"{tmp}/o", client=client, progress=False, overwrite=True)
             d_mpx = npx / (time.perf_counter() - t0)
         k_mpx = npx / t_k
         print(f"{name:<14} {k_mpx:14.1f} {d_mpx:10.1f} {r_mpx:10.2f} {k_mpx / r_mpx:6.1f} "

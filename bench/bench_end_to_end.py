@@ -76,7 +76,7 @@ def main() -> None:
             t_cluster = time.perf_counter() - t
             t = time.perf_counter()
             run = run_detection(os.path.join(work, "scene.zarr"), a.detector, {}, out_dir=os.path.join(work, "out"),
-                                client=client, progress=False)
+                                client=client, progress=False, overwrite=True)
             t_det = time.perf_counter() - t
             client.close()
             cluster.close()

@@ -223,7 +223,7 @@ def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int, threads: lis
                 for rep in range(2):  # first: compile + warm caches; second: measured
                     t = time.perf_counter()
                     run = run_detection(scene, det, {}, out_dir=Path(td) / f"out{k}", client=client,
-                                        device="gpu", progress=False)
+                                        device="gpu", progress=False, overwrite=True)
                     el = time.perf_counter() - t
                 per = run["tiles"]["per_tile"]
                 ker = sum(p["detect_s"] - p["h2d_s"] - p["d2h_s"] for p in per)
@@ -264,7 +264,7 @@ def thesis_scenes(cases=None, devices=("gpu", "cpu")) -> list[str]:
                     for _ in range(3):
                         t = time.perf_counter()
                         run = run_detection(scenes[kind], name, settings, out_dir=Path(td) / "o", client=client,
-                                            device=dev, progress=False)
+                                            device=dev, progress=False, overwrite=True)
                         best = min(best, time.perf_counter() - t)
                     rows.append(f"| {name} | {label} | 1000x1000 e2e | {dev} | {best:.3f} s | {run['device']} | "
                                 f"{run['detections']} detections |")

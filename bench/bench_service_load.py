@@ -291,11 +291,11 @@ def reference(scene: Path, work: Path, n: int, workers: int, concurrency: int) -
 
     with LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=":0",
                       silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
-        run_detection(scene, "ca_cfar", dict(PARAMS), out_dir=work / "warm", client=client, progress=False)
+        run_detection(scene, "ca_cfar", dict(PARAMS), out_dir=work / "warm", client=client, progress=False, overwrite=True)
         t = time.perf_counter()
         with ThreadPoolExecutor(concurrency) as pool:
             list(pool.map(lambda k: run_detection(scene, "ca_cfar", dict(PARAMS), out_dir=work / f"ref{k}",
-                                                  client=client, progress=False), range(n)))
+                                                  client=client, progress=False, overwrite=True), range(n)))
         return time.perf_counter() - t
 
 

@@ -71,7 +71,7 @@ def main() -> None:
                 mem = TreeMemory()
                 with mem.watch():
                     t = time.perf_counter()
-                    run_detection(f"{work}/s.zarr", "ca_cfar", {}, out_dir=f"{work}/o", client=client, progress=False)
+                    run_detection(f"{work}/s.zarr", "ca_cfar", {}, out_dir=f"{work}/o", client=client, progress=False, overwrite=True)
                     results["sarship (tile tasks, + labelling)"] = (time.perf_counter() - t, mem.peak)
                 mem = TreeMemory()
                 with mem.watch():
