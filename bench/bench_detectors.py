@@ -18,7 +18,6 @@ import argparse
 import datetime
 import logging
 import os
-import sys
 import tempfile
 import time
 
