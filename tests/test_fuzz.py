@@ -73,25 +73,29 @@ def server(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def real_ids(server) -> dict[str, str]:
-    """A successful and a dismissed job on the small scene."""
+    """A successful and a dismissed job on the small scene, and a successful job for DELETE to
+    dismiss (dismissing a finished job removes its results, so DELETE gets its own job)."""
     u = server.url
     inputs = {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1}
     ok = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": inputs}).json()["jobID"]
     assert wait_job(u, ok)["status"] == "successful"
+    victim = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": inputs}).json()["jobID"]
+    assert wait_job(u, victim)["status"] == "successful"
     gone = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": inputs}).json()["jobID"]
     httpx.delete(f"{u}/jobs/{gone}")
     wait_job(u, gone)
-    return {"successful": ok, "dismissed": gone}
+    return {"successful": ok, "dismissed": gone, "victim": victim}
 
 
 def steer(doc: dict[str, Any], ids: dict[str, str]) -> dict[str, Any]:
     """The live schema with real ids offered besides arbitrary values (generation only)."""
     doc = copy.deepcopy(doc)
-    known = {"job_id": sorted(ids.values()), "scene_id": ["s1"], "jobID": sorted(ids.values())}
     for item in doc.get("paths", {}).values():
-        for op in item.values():
+        for method, op in item.items():
             if not isinstance(op, dict):
                 continue
+            jobs = sorted([ids["dismissed"], ids["victim" if method.lower() == "delete" else "successful"]])
+            known = {"job_id": jobs, "scene_id": ["s1"], "jobID": jobs}
             for p in op.get("parameters", []):
                 if p.get("in") == "path" and p["name"] in known and p.get("schema", {}).get("type") == "string":
                     p["schema"] = {"anyOf": [{"type": "string", "enum": known[p["name"]]}, p["schema"]]}
