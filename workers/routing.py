@@ -34,7 +34,7 @@ def plan(requested: str, detector: str, has_gpu: bool, workers: dict[str, dict])
     * ``auto``: ``gpu`` when the detector has GPU code and a GPU worker exists, else ``cpu``.
     """
     if requested not in DEVICES:
-        raise InputError(f"--device must be one of {', '.join(DEVICES)}, got '{requested}'")
+        raise InputError(f"--device must be {', '.join(DEVICES[:-1])} or {DEVICES[-1]}, got '{requested}'")
     gpu = [a for a, w in workers.items() if float((w.get("resources") or {}).get("GPU", 0)) > 0]
     cpu_res = [a for a, w in workers.items() if float((w.get("resources") or {}).get("CPU", 0)) > 0]
     plain = [a for a, w in workers.items() if not (w.get("resources") or {})]
