@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import logging
+import os
+import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -49,3 +55,44 @@ def blobs_scene(shape=(301, 257), looks=2.0, seed=0, n=12, amp=40.0):
         hh, ww = int(rng.integers(1, 6)), int(rng.integers(1, 12))
         x[r:r + hh, c:c + ww] += amp * rng.random((hh, ww)).astype(np.float32) + amp / 4
     return x
+
+
+#: the dask command of this interpreter (its bin folder need not be on PATH, e.g. a virtualenv run by path)
+DASK = shutil.which("dask", path=os.path.dirname(sys.executable)) or shutil.which("dask")
+
+
+def dask_processes(tmp_path, workers: dict[str, list[str]], cwd=None):
+    """A `dask scheduler` and one `dask worker` per name (with its extra arguments), started in
+    ``cwd`` (default: this process's folder); a generator yielding the scheduler address."""
+    if DASK is None:
+        pytest.skip("the 'dask' command is not on PATH")
+    sched_file = tmp_path / "scheduler.json"
+    env = {**os.environ, "DASK_DISTRIBUTED__LOGGING__DISTRIBUTED": "error"}
+    procs = [subprocess.Popen([DASK, "scheduler", "--scheduler-file", str(sched_file), "--port", "0",
+                               "--dashboard-address", ":0", "--host", "127.0.0.1"], cwd=cwd,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    try:
+        for _ in range(300):
+            if sched_file.exists() and sched_file.stat().st_size > 0:
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail("dask scheduler did not start")
+        address = json.loads(sched_file.read_text())["address"]
+        for name, extra in workers.items():
+            procs.append(subprocess.Popen([DASK, "worker", address, "--nthreads", "1", "--name", name,
+                                           "--no-dashboard", *extra], cwd=cwd, stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL, env=env))
+        from distributed import Client
+
+        with Client(address, timeout="20s") as c:
+            c.wait_for_workers(len(workers), timeout=60)
+        yield address
+    finally:
+        for p in procs[::-1]:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()

@@ -6,20 +6,17 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.conftest import write_scene
+from tests.conftest import dask_processes, write_scene
 from tests.test_cli import assert_clean_error, listing, sarship
 
-DASK = shutil.which("dask", path=os.path.dirname(sys.executable)) or shutil.which("dask")
 
 
 @pytest.fixture()
@@ -196,39 +193,9 @@ def test_dashboard_port_taken_is_one_clean_line(scene, tmp_path):
 @pytest.fixture()
 def remote_cluster(tmp_path):
     """A `dask scheduler` and a `dask worker` whose working folder is another temporary folder."""
-    if DASK is None:
-        pytest.skip("the 'dask' command is not on PATH")
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    sched_file = tmp_path / "scheduler.json"
-    env = {**os.environ, "DASK_DISTRIBUTED__LOGGING__DISTRIBUTED": "error"}
-    procs = [subprocess.Popen([DASK, "scheduler", "--scheduler-file", str(sched_file), "--port", "0",
-                               "--dashboard-address", ":0", "--host", "127.0.0.1"], cwd=elsewhere,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
-    try:
-        for _ in range(300):
-            if sched_file.exists() and sched_file.stat().st_size > 0:
-                break
-            time.sleep(0.1)
-        else:
-            pytest.fail("dask scheduler did not start")
-        address = json.loads(sched_file.read_text())["address"]
-        procs.append(subprocess.Popen([DASK, "worker", address, "--nthreads", "1", "--no-dashboard"],
-                                      cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                      env=env))
-        from distributed import Client
-
-        with Client(address, timeout="20s") as c:
-            c.wait_for_workers(1, timeout=60)
-        yield address
-    finally:
-        for p in procs[::-1]:
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
+    yield from dask_processes(tmp_path, {"w": []}, cwd=elsewhere)
 
 
 def test_relative_scene_with_workers_in_another_folder(scene, tmp_path, remote_cluster):
