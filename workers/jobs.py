@@ -20,7 +20,6 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable
 
-
 from sarship.pipeline import __version__
 from sarship.pipeline.components import merge_radius, merge_tiles
 from sarship.pipeline.ship_features import collection, features, keep_mask, write_json
