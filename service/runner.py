@@ -209,7 +209,13 @@ class Runner:
         out = self.settings.scenes_dir / f"{inputs['scene_id']}.zarr"
         try:
             if not out.exists():
-                ingest([inputs.get("path") or inputs["upload"]], out, progress=progress)
+                if inputs.get("path"):  # an inbox pass: its product sidecar lies within the inbox
+                    src = Path(inputs["path"])
+                    root = next((d for d in self.settings.inbox
+                                 if Path(os.path.abspath(d)) in Path(os.path.abspath(src)).parents), False)
+                else:  # an upload is one file: nothing beside it in the uploads folder is its
+                    src, root = Path(inputs["upload"]), False
+                ingest([src], out, progress=progress, sidecar_root=root)
             self.store.finish(job_id, self.owner, "successful", f"scene {inputs['scene_id']} ready",
                               {"scene": inputs["scene_id"]})
         except Dismissed:

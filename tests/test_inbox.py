@@ -314,6 +314,31 @@ def test_a_pass_is_ingested_once_and_its_detector_runs(server):
     assert passes(u)["pass1.tif"]["jobs"] == p["jobs"]
 
 
+def test_a_pass_reads_its_sidecar_from_the_inbox_but_never_from_above_it(server):
+    """The SNAP sidecar search of an inbox pass stops at the inbox folder: a ``Metadata.xml``
+    in the folder above the inbox belongs to somebody else; one beside the pass is its own."""
+    from sarship.pipeline.scene import open_scene
+    from test_ingest_checks import snap_xml
+
+    u = server.url
+    above = server.inbox.parent / "Metadata.xml"
+    above.write_text(snap_xml(pols=("VV",), sample_type="DETECTED", az=13.9, rg=2.33))
+    try:
+        (server.inbox / "far.tif").write_bytes(tif_bytes(seed=41))
+        p = wait_pass(u, "far.tif", ("submitted", "quarantined", "failed"))
+        assert wait_job(u, p["ingestJob"])["status"] == "successful", p
+        attrs = open_scene(server.data / "scenes" / f"{p['sceneID']}.zarr").attrs
+        assert "pixel_spacing_m" not in attrs and "metadata_sidecar" not in attrs, attrs
+        (server.inbox / "near.xml").write_text(snap_xml(pols=("VV",), sample_type="DETECTED", az=9.5, rg=8.5))
+        (server.inbox / "near.tif").write_bytes(tif_bytes(seed=42))
+        p = wait_pass(u, "near.tif", ("submitted", "quarantined", "failed"))
+        assert wait_job(u, p["ingestJob"])["status"] == "successful", p
+        attrs = open_scene(server.data / "scenes" / f"{p['sceneID']}.zarr").attrs
+        assert attrs["pixel_spacing_m"] == [9.5, 8.5] and attrs["metadata_sidecar"] == "near.xml", attrs
+    finally:
+        above.unlink()
+
+
 def test_a_file_still_being_written_is_not_taken(server):
     u = server.url
     raw = tif_bytes(seed=12)

@@ -244,6 +244,18 @@ def test_sidecar_search_is_bounded(tmp_path):
     cands = _sidecar_candidates(deep / "c.tif", stop=tmp_path / "a" / "b" / "c")
     assert all(tmp_path / "a" / "b" / "c" in [c.parent, *c.parents] for c in cands)
     assert tmp_path / "a" / "b" / "Metedata.xml" not in cands
+    # ingest honours the bound: with the chip's folder as the root, the product sidecar
+    # 3 levels up is not read; with False, not even one beside the chip
+    sc = ingest([deep / "c.tif"], tmp_path / "o.zarr", sidecar_root=deep)
+    assert "pixel_spacing_m" not in sc.attrs and "metadata_sidecar" not in sc.attrs
+    sc = ingest([deep / "c.tif"], tmp_path / "o.zarr", sidecar_root=tmp_path / "a" / "b")
+    assert sc.attrs["pixel_spacing_m"] == [13.9, 2.33]
+    (deep / "c.xml").write_text(snap_xml(az=7.0, rg=7.0))
+    sc = ingest([deep / "c.tif"], tmp_path / "o.zarr", sidecar_root=False)
+    assert "pixel_spacing_m" not in sc.attrs and "metadata_sidecar" not in sc.attrs
+    sc = ingest([deep / "c.tif"], tmp_path / "o.zarr", sidecar_root=deep)
+    assert sc.attrs["pixel_spacing_m"] == [7.0, 7.0]
+    (deep / "c.xml").unlink()
     # a nearer sidecar wins over one further up; a non-SNAP xml is skipped
     (deep / "Metadata.xml").write_text("<ShipList/>")
     (tmp_path / "a" / "b" / "c" / "Metedata.xml").write_text(snap_xml(az=5.0, rg=4.0))

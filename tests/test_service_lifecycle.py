@@ -155,3 +155,25 @@ def test_dismiss_a_finished_ingest_keeps_its_scene(server):
     assert http.get(f"{u}/scenes/{up['sceneID']}").json()["status"] == "ready"
     job = http.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": up["sceneID"], **CFAR}}).json()
     assert wait_job(u, job["jobID"])["status"] == "successful"
+
+
+def test_an_upload_never_takes_metadata_from_files_around_it(server):
+    """An upload is one file: a SNAP sidecar lying in the service's folders (here one in
+    DATA and one in DATA/uploads, where the reader's product-folder search would find it)
+    is not its metadata."""
+    from sarship.pipeline.scene import open_scene
+    from test_ingest_checks import snap_xml
+
+    (server.data / "uploads").mkdir(exist_ok=True)
+    for folder in (server.data, server.data / "uploads"):
+        (folder / "Metadata.xml").write_text(snap_xml(pols=("VV",), sample_type="DETECTED", az=13.9, rg=2.33,
+                                                      az_looks=4, rg_looks=1))
+    try:
+        up = http.post(server.url + "/scenes?filename=chip.tif", content=tiff_bytes(seed=21)).json()
+        assert wait_job(server.url, up["jobID"])["status"] == "successful"
+        attrs = open_scene(server.data / "scenes" / f"{up['sceneID']}.zarr").attrs
+        assert "pixel_spacing_m" not in attrs and "metadata_sidecar" not in attrs, attrs
+        assert "sensor" not in attrs and attrs.get("channels") != ["vv"], attrs
+    finally:
+        for folder in (server.data, server.data / "uploads"):
+            (folder / "Metadata.xml").unlink()

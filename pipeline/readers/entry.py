@@ -101,11 +101,11 @@ def _sniff(p: Path) -> str:
     )
 
 
-def _open_source(p: Path) -> _Source:
+def _open_source(p: Path, sidecar_root: Path | bool | None = None) -> _Source:
     fmt = _sniff(p)
     try:
         if fmt == "tiff":
-            return _open_tiff(p)
+            return _open_tiff(p, sidecar_root)
         if fmt == "image":
             return _open_image(p)
         if fmt == "npy":
@@ -201,6 +201,7 @@ def ingest(
     looks: float | None = None,
     overwrite: bool = True,
     spacing: tuple[float, float] | str | None = None,
+    sidecar_root: str | Path | bool | None = None,
 ) -> Scene:
     """Write the scene store ``out`` from ``inputs`` (see the module docstring); return it opened.
 
@@ -209,6 +210,9 @@ def ingest(
     ``overwrite=False`` refuses an existing ``out``; ``out`` may never be (inside) an input.
     ``spacing``: (azimuth, range) pixel spacing in metres, overriding what the product says
     (attribute ``pixel_spacing_m``, ``pixel_spacing_source`` "argument").
+    ``sidecar_root``: the SNAP sidecar search of a TIFF input never climbs above this folder
+    (e.g. the inbox the file was dropped in); ``False``: no sidecar is read; ``None``: up to
+    ``SIDECAR_LEVELS`` folders above the file (see :mod:`.tiff`).
     """
     paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
     spacing = _check_spacing(spacing)
@@ -239,7 +243,8 @@ def ingest(
         srcs: list[_Source] = []
         try:
             for p in paths:
-                srcs.append(_open_source(p))
+                srcs.append(_open_source(p, sidecar_root if isinstance(sidecar_root, bool) or sidecar_root is None
+                                         else Path(sidecar_root)))
             _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing)
         finally:
             for s in srcs:

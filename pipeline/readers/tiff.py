@@ -19,7 +19,8 @@ it is approximated on the WGS84 ellipsoid at the scene-centre latitude and
 
 SNAP sidecar: a SNAP/BEAM ``Abstracted_Metadata`` XML found by :func:`_find_sidecar`: in the
 chip's folder ``<stem>.xml``, then in the chip's folder and up to ``SIDECAR_LEVELS`` folders
-above it (nearest first, never above ``stop`` when a caller gives one) a file named
+above it (nearest first, never above ``stop``, the folder the caller's input came from,
+when one is given: the inbox folder of a pass) a file named
 ``Metedata.xml`` (OpenSARShip's own spelling), ``Metadata.xml`` or ``<folder>.xml`` (the
 OpenSARShip layout ``<product>/Patch/<chip>.tif`` + ``<product>/Metedata.xml`` or
 ``<product>/<product>.xml``); files without ``Abstracted_Metadata`` are skipped. It gives
@@ -27,6 +28,8 @@ OpenSARShip layout ``<product>/Patch/<chip>.tif`` + ``<product>/Metedata.xml`` o
 ``polarisations`` (``mdsN_tx_rx_polar``, else the ``Band_*`` ``polarization`` items; they name
 the channels), ``SAMPLE_TYPE`` (COMPLEX: (re, im) band pairs), ``pixel_spacing_m``
 (azimuth_spacing, range_spacing) and the nominal looks (azimuth_looks x range_looks).
+A caller can turn the sidecar off (``sidecar_root=False``: a service upload is one file, so
+nothing beside it belongs to it).
 """
 
 from __future__ import annotations
@@ -100,7 +103,7 @@ class _TiffSource(_Source):
                 pass
 
 
-def _open_tiff(p: Path) -> _Source:
+def _open_tiff(p: Path, sidecar_root: Path | bool | None = None) -> _Source:
     import tifffile
 
     try:
@@ -131,7 +134,7 @@ def _open_tiff(p: Path) -> _Source:
         if not hasattr(page, "tags"):  # a TiffFrame: tags live on the first page
             page = tif.pages.first
         src.prefers_rows = (not src.memmappable) and not bool(getattr(page, "is_tiled", False))
-        src.meta.update(_tiff_metadata(p, tif, page, nb, (H, W)))
+        src.meta.update(_tiff_metadata(p, tif, page, nb, (H, W), sidecar_root))
         return src
     except BaseException:
         tif.close()
@@ -154,7 +157,8 @@ def _check_tiff_complete(p: Path, tif, series) -> None:
         raise InputError(f"'{p}': truncated TIFF (image data end at byte {end}, file has {size} bytes)")
 
 
-def _tiff_metadata(p: Path, tif, page, nbands: int, shape: tuple[int, int]) -> dict[str, Any]:
+def _tiff_metadata(p: Path, tif, page, nbands: int, shape: tuple[int, int],
+                   sidecar_root: Path | bool | None = None) -> dict[str, Any]:
     meta: dict[str, Any] = {}
     items: dict[str, str] = {}
     band_desc: list[str] = []
@@ -226,7 +230,8 @@ def _tiff_metadata(p: Path, tif, page, nbands: int, shape: tuple[int, int]) -> d
                 meta["nodata"] = v
         except ValueError:
             pass
-    side = _snap_sidecar(p)
+    side = {} if sidecar_root is False else _snap_sidecar(
+        p, stop=sidecar_root if isinstance(sidecar_root, Path) else None)
     # the TIFF's own georeference, looks and band names win over the product-level sidecar
     groups = {"pixel_spacing_m": "pixel_spacing_m", "pixel_spacing_source": "pixel_spacing_m",
               "looks": "looks", "looks_note": "looks", "pols": "pols"}
