@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from sarship.pipeline.errors import InputError
+from sarship.pipeline.readers.limits import DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO
 from sarship.workers.request import DEVICES
 
 
@@ -99,14 +100,16 @@ def cmd_simulate(a) -> int:
 
 
 def cmd_ingest(a) -> int:
-    from sarship.pipeline.readers import ingest
+    from sarship.pipeline.readers import InputLimits, ingest
 
     channels = a.channels.split(",") if a.channels else None
     band: Any = a.band
     if band is not None and band.isdigit():
         band = int(band)
+    limits = InputLimits(max_pixels=a.max_pixels, max_chunk_mb=a.max_chunk_mb, max_ratio=a.max_ratio)
     scene = ingest(a.inputs, a.out, kind=a.kind, tile=a.tile, progress=_progress("ingest"),
-                   band=band, channels=channels, looks=a.looks, overwrite=a.overwrite, spacing=a.spacing)
+                   band=band, channels=channels, looks=a.looks, overwrite=a.overwrite, spacing=a.spacing,
+                   limits=limits)
     print(f"scene: {scene.path} {scene.shape[0]}x{scene.shape[1]} kind={scene.kind} "
           f"looks={scene.looks} variables={','.join(scene.variables)}")
     return 0
@@ -155,8 +158,14 @@ def cmd_serve(a) -> int:
     from sarship.service.app import create_app
 
     print(f"sarship: serving on http://{settings.host}:{settings.port} (data {settings.data})", file=sys.stderr)
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="warning")
-    return 0
+    app = create_app(settings)
+    # requests still open at SIGTERM get 10 s to finish (a 'Prefer: respond-sync' wait ends at
+    # once: it answers 201 with the job's status, the job stays in the store)
+    server = uvicorn.Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="warning",
+                                           timeout_graceful_shutdown=10))
+    app.state.should_exit = lambda: server.should_exit
+    server.run()
+    return 0 if server.started else 3  # (uvicorn.run's exit status when the app could not start)
 
 
 def cmd_evaluate(a) -> int:
@@ -290,6 +299,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spacing", type=_spacing, metavar="AZ,RG",
                    help="pixel spacing in metres, azimuth,range (overrides the product's)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
+    s.add_argument("--max-pixels", type=float, default=DEFAULT_MAX_PIXELS,
+                   help=f"refuse an input declaring more rows x columns (default {DEFAULT_MAX_PIXELS:.3g})")
+    s.add_argument("--max-chunk-mb", type=float, default=DEFAULT_MAX_CHUNK_MB,
+                   help=f"refuse a compressed TIFF strip/tile decoding to more MiB (default {DEFAULT_MAX_CHUNK_MB:g})")
+    s.add_argument("--max-ratio", type=float, default=DEFAULT_MAX_RATIO,
+                   help="refuse a compressed/sparse TIFF declaring more decoded bytes per file byte "
+                        f"(default {DEFAULT_MAX_RATIO:g})")
     s.set_defaults(func=cmd_ingest)
 
     s = sub.add_parser("detect", help="run a detector on a scene store")

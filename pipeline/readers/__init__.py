@@ -17,11 +17,13 @@ Modules:
 - :mod:`~sarship.pipeline.readers.writing`: tile-by-tile writing and the looks of a written
   scene.
 - :mod:`~sarship.pipeline.readers.common`: the source base class and checks they share.
+- :mod:`~sarship.pipeline.readers.limits`: what an input may declare, checked from its headers.
 """
 
 from sarship.pipeline.readers.common import PROBE_SIDE
 from sarship.pipeline.readers.entry import INGEST_KINDS, ROW_BAND_BYTES, ingest
 from sarship.pipeline.readers.image import GREY_TOLERANCE_DN
+from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.readers.polsarpro import C3_BASIS, PAULI_U, t3_to_c3
 from sarship.pipeline.readers.writing import LOOKS_SAMPLE_SIDE, LOOKS_SAMPLE_TILES, RANK_ONE_TOL
 
@@ -29,6 +31,7 @@ __all__ = [
     "C3_BASIS",
     "GREY_TOLERANCE_DN",
     "INGEST_KINDS",
+    "InputLimits",
     "LOOKS_SAMPLE_SIDE",
     "LOOKS_SAMPLE_TILES",
     "PAULI_U",

@@ -41,6 +41,7 @@ import numpy as np
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.common import _Source, _one_line
 from sarship.pipeline.readers.image import _open_image
+from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.readers.npy import _open_npy
 from sarship.pipeline.readers.plan import _plan
 from sarship.pipeline.readers.polsarpro import _open_polsarpro, _polsarpro_folder
@@ -101,17 +102,22 @@ def _sniff(p: Path) -> str:
     )
 
 
-def _open_source(p: Path, sidecar_root: Path | bool | None = None) -> _Source:
+def _open_source(p: Path, sidecar_root: Path | bool | None = None, limits: InputLimits | None = None) -> _Source:
     fmt = _sniff(p)
+    limits = limits or InputLimits()
     try:
         if fmt == "tiff":
-            return _open_tiff(p, sidecar_root)
+            return _open_tiff(p, sidecar_root, limits)
         if fmt == "image":
-            return _open_image(p)
-        if fmt == "npy":
-            return _open_npy(p)
-        if fmt == "polsarpro":
-            return _open_polsarpro(_polsarpro_folder(p))
+            return _open_image(p, limits)
+        if fmt in ("npy", "polsarpro"):  # headers only: the pixels are memory-mapped
+            src = _open_npy(p) if fmt == "npy" else _open_polsarpro(_polsarpro_folder(p))
+            try:
+                limits.check_pixels(p, *src.shape)
+            except InputError:
+                src.close()
+                raise
+            return src
     except InputError:
         raise
     except Exception as exc:
@@ -202,6 +208,7 @@ def ingest(
     overwrite: bool = True,
     spacing: tuple[float, float] | str | None = None,
     sidecar_root: str | Path | bool | None = None,
+    limits: InputLimits | None = None,
 ) -> Scene:
     """Write the scene store ``out`` from ``inputs`` (see the module docstring); return it opened.
 
@@ -213,6 +220,9 @@ def ingest(
     ``sidecar_root``: the SNAP sidecar search of a TIFF input never climbs above this folder
     (e.g. the inbox the file was dropped in); ``False``: no sidecar is read; ``None``: up to
     ``SIDECAR_LEVELS`` folders above the file (see :mod:`.tiff`).
+    ``limits``: what an input may declare (pixels, decoded chunk size, compression ratio),
+    checked from its headers before any pixel is decoded (:class:`.limits.InputLimits`;
+    default: its defaults).
     """
     paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
     spacing = _check_spacing(spacing)
@@ -233,6 +243,7 @@ def ingest(
         if "zarr" in fmts:
             if len(paths) > 1:
                 raise InputError(f"'{paths[fmts.index('zarr')]}': a Zarr scene cannot be combined with other inputs")
+            (limits or InputLimits()).check_pixels(paths[0], *open_scene(paths[0]).shape)
             if spacing is None:
                 _ingest_zarr(paths[0], outp, tile, progress, looks)
             else:  # written to a temporary sibling, given the spacing, then renamed
@@ -244,7 +255,7 @@ def ingest(
         try:
             for p in paths:
                 srcs.append(_open_source(p, sidecar_root if isinstance(sidecar_root, bool) or sidecar_root is None
-                                         else Path(sidecar_root)))
+                                         else Path(sidecar_root), limits))
             _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing)
         finally:
             for s in srcs:

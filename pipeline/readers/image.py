@@ -16,6 +16,7 @@ import numpy as np
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.common import _Source, _check_hw, _one_line
+from sarship.pipeline.readers.limits import InputLimits
 
 #: Largest channel difference (digital numbers) of an RGB image still taken as grey.
 GREY_TOLERANCE_DN = 8
@@ -28,11 +29,12 @@ class _ImageSource(_Source):
         return self.data[r0:r1, c0:c1, None]
 
 
-def _open_image(p: Path) -> _Source:
+def _open_image(p: Path, limits: InputLimits | None = None) -> _Source:
     from PIL import Image
 
     try:
         with Image.open(p) as im:
+            (limits or InputLimits()).check_pixels(p, im.size[1], im.size[0])  # from the header
             im.load()
             mode = im.mode
             if mode == "1":

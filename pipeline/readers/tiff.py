@@ -47,6 +47,7 @@ import numpy as np
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.common import _POL_RE, _Source, _check_dtype, _check_hw, _one_line
+from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.scene import COMPLEX_CHANNELS
 
 
@@ -103,7 +104,7 @@ class _TiffSource(_Source):
                 pass
 
 
-def _open_tiff(p: Path, sidecar_root: Path | bool | None = None) -> _Source:
+def _open_tiff(p: Path, sidecar_root: Path | bool | None = None, limits: InputLimits | None = None) -> _Source:
     import tifffile
 
     try:
@@ -126,6 +127,7 @@ def _open_tiff(p: Path, sidecar_root: Path | bool | None = None) -> _Source:
             raise InputError(f"'{p}': TIFF image with no bands (shape {shape})")
         dt = np.dtype(s.dtype)
         _check_dtype(p, dt)
+        (limits or InputLimits()).check_tiff(p, s, nb, dt)  # from the headers, before any decode
         _check_tiff_complete(p, tif, s)
         src = _TiffSource(path=p, shape=(H, W), nbands=nb, dtype=dt.newbyteorder("="), fmt="tiff")
         src.tif, src.series, src.yx = tif, s, (iy, ix)
