@@ -8,9 +8,11 @@ bad input is always a ``4xx``.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
-import json
 import logging
+import sqlite3
+import time
 from typing import Any, Literal, Optional
 
 import anyio
@@ -23,14 +25,15 @@ from sarship.pipeline import __version__, detectors
 from sarship.pipeline.errors import InputError
 from sarship.service import results, scenes
 from sarship.service.auth import BearerAuth
-from sarship.service.common import (Problem, base_url, job_or_404, problem, results_doc, status_doc,
-                            store_of)
+from sarship.service.common import (Problem, base_url, check_text, job_or_404, parse_json_body, problem,
+                                    results_doc, status_doc, storage_problem, store_of)
+from sarship.service.limits import RequestLimits
 from sarship.service.metrics import Metrics
 from sarship.service.openapi import (EXECUTE_BODY, JOB_STATUSES, PREFER_DOC, Conformance, JobList, Landing,
                              ProcessDescription, ProcessList, Results, StatusInfo, problems)
 from sarship.service.openapi import install as install_openapi
 from sarship.service.openapi import media
-from sarship.service.runner import Runner, scene_path, wait_final
+from sarship.service.runner import Runner, scene_path
 from sarship.service.settings import Settings
 from sarship.service.store import FINAL, JobStore
 from sarship.workers.request import DEVICES, JobRequest
@@ -92,6 +95,9 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
         raise Problem(400, "bad request", f"'response' must be 'document' or 'raw', got {body['response']!r}")
     if not isinstance(body.get("outputs", {}), dict):
         raise Problem(400, "bad request", "'outputs' must be an object (output name -> options)")
+    scene = body["inputs"].get("scene")
+    if isinstance(scene, str):  # a NUL or a lone surrogate: no file, no store key can have it
+        check_text(scene, "input 'scene'")
     try:
         request = JobRequest.from_inputs(name, body["inputs"])
         try:
@@ -129,6 +135,21 @@ def pending_ingest(settings: Settings, store: JobStore, scene: str) -> Optional[
     return store.active_ingest(scene.strip())
 
 
+async def wait_sync(request: Request, store: JobStore, job: dict, timeout: float) -> dict:
+    """Wait for a job of a ``Prefer: respond-sync`` execution on the event loop (no worker
+    thread is held): polls the store (a primary-key read) until the job is final, ``timeout``
+    has passed, the client has gone, or the server is shutting down (SIGTERM); the job row
+    then (the caller answers 201 with its status unless it is final)."""
+    t_end = time.monotonic() + timeout
+    while True:
+        now = store.get(job["id"]) or job
+        if now["status"] in FINAL or time.monotonic() > t_end or request.app.state.should_exit():
+            return now
+        if await request.is_disconnected():
+            return now
+        await asyncio.sleep(0.2)
+
+
 def remove_job_outputs(settings: Settings, job_id: str) -> None:
     """Remove ``DATA/jobs/ID`` (renamed aside first, so that no reader sees it half-removed)."""
     import shutil
@@ -160,13 +181,16 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         with contextlib.ExitStack() as stack:
             c = client
             if c is None:
-                from sarship.workers.cluster import connect
+                from sarship.workers.cluster import connect, dashboard_address_on
 
+                # the local cluster's dashboard listens where the API does (never wider: it has
+                # no tokens), on any free port; GET /dashboard redirects to it
+                dash = dashboard_address_on(settings.host)
                 if settings.scheduler:
-                    c = stack.enter_context(connect(settings.scheduler, dashboard_address=":0", echo=True))
+                    c = stack.enter_context(connect(settings.scheduler, dashboard_address=dash, echo=True))
                 else:  # one pinned worker per GPU (SARSHIP_GPUS) besides the CPU workers
                     gpu_ids, n_cpu = settings.local_workers()
-                    c = stack.enter_context(connect(None, n_workers=n_cpu, dashboard_address=":0", echo=True,
+                    c = stack.enter_context(connect(None, n_workers=n_cpu, dashboard_address=dash, echo=True,
                                                     gpus=gpu_ids, cpu_workers=n_cpu))
             runner = Runner(settings, store, c, metrics)
             runner.start()
@@ -184,15 +208,32 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
                   description="Ship detection in SAR scenes: OGC API - Processes shaped job API",
                   docs_url=None, redoc_url=None)  # /docs: web.py, Swagger UI served from here (no CDN)
     app.state.settings = settings
+    app.state.sync_waits = 0  # 'Prefer: respond-sync' executions waiting now
+    # set by `sarship serve` (uvicorn's Server.should_exit): sync waits end at SIGTERM
+    app.state.should_exit = lambda: False
 
     open_paths = ("/livez", "/readyz", "/metrics")
 
-    # bearer tokens (settings.tokens) for POST/DELETE, and for reads with protect_reads (service/auth.py)
+    # body size (max_body_kb; POST /scenes has its own) and NUL in paths, before any route (service/limits.py)
+    app.add_middleware(RequestLimits, max_body=int(settings.max_body_kb * 1024))
+    # bearer tokens (settings.tokens) for POST/DELETE, and for reads with protect_reads (service/auth.py);
+    # added last, so it runs first: a request without a token is refused before its body is read
     app.add_middleware(BearerAuth, tokens=settings.tokens, protect_reads=settings.protect_reads, open_paths=open_paths)
 
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem):
-        return problem(exc.status, exc.title, exc.detail)
+        return problem(exc.status, exc.title, exc.detail, exc.headers)
+
+    async def _storage(request: Request, exc: Exception):
+        # a full disk (or a file-size limit, a quota) or a busy job store: 507 / 503, not a bug
+        p = storage_problem(exc)
+        if p is None:
+            return await _internal(request, exc)
+        log.error("%s %s: %s", request.method, request.url.path, p.detail)
+        return problem(p.status, p.title, p.detail, p.headers)
+
+    app.add_exception_handler(OSError, _storage)
+    app.add_exception_handler(sqlite3.OperationalError, _storage)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
@@ -260,18 +301,42 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
                                "headers": {"Location": location_header}},
                          200: {"model": Results, "description": "the results document (Prefer: respond-sync)",
                                "headers": {"Location": location_header}},
-                         **problems(400, 404, 422)},
+                         **problems(400, 404, 413, 422, 503, 507)},
               openapi_extra={"requestBody": EXECUTE_BODY})
     async def execute(request: Request, process_id: str = process_param,
                       prefer: Optional[str] = Header(None, alias="Prefer", description=PREFER_DOC,
                                                      examples=["respond-async", "respond-sync"])):
         known_process(process_id)
-        try:
-            body = json.loads(await request.body() or b"null")
-        except (ValueError, UnicodeDecodeError):
-            raise Problem(400, "bad request", "the body is not valid JSON") from None
+        # (the body is at most max_body_kb here: service/limits.py); nesting depth checked before parsing
+        body = parse_json_body(await request.body())
         st = store_of(request)
         inputs = validate_inputs(settings, process_id, body, st)
+        prefer = (prefer or "").lower()
+        sync = "respond-sync" in prefer
+        if not sync:
+            return await submit(request, st, process_id, inputs, prefer)
+        if request.app.state.sync_waits >= settings.max_sync_waits:
+            # each waiting request holds a connection: beyond the cap, before any job is created
+            raise Problem(503, "too many synchronous executions",
+                          f"{request.app.state.sync_waits} 'Prefer: respond-sync' executions are waiting "
+                          f"(at most {settings.max_sync_waits}, setting max_sync_waits): try again later, "
+                          "or execute asynchronously and poll the job", {"Retry-After": "10"})
+        request.app.state.sync_waits += 1  # (taken before the job is created: the cap holds under a burst)
+        try:
+            job = await create_job(request, st, process_id, inputs)
+            job = await wait_sync(request, st, job, settings.sync_timeout_s)
+        finally:
+            request.app.state.sync_waits -= 1
+        b = base_url(request)
+        if job["status"] == "successful":
+            return JSONResponse(results_doc(job, b), headers={"Preference-Applied": "respond-sync",
+                                                              "Location": f"{b}/jobs/{job['id']}"})
+        if job["status"] in FINAL:
+            raise Problem(422, f"job {job['status']}", job["message"] or job["status"])
+        return JSONResponse(status_doc(job, b), status_code=201, headers={"Location": f"{b}/jobs/{job['id']}"})
+
+    async def create_job(request: Request, st: JobStore, process_id: str, inputs: dict) -> dict:
+        """The new job, committed to the store (waiting for its scene's ingest job when that still runs)."""
         waits_for, message = None, ""
         if not (settings.scenes_dir / f"{str(inputs['scene']).strip()}.zarr").exists():
             dep = pending_ingest(settings, st, str(inputs["scene"]))
@@ -282,16 +347,11 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         job = await anyio.to_thread.run_sync(lambda: st.create(process_id, inputs, waits_for, message))
         request.app.state.metrics.requests.labels(process_id).inc()
         request.app.state.runner.wake.set()
+        return job
+
+    async def submit(request: Request, st: JobStore, process_id: str, inputs: dict, prefer: str):
+        job = await create_job(request, st, process_id, inputs)
         b = base_url(request)
-        prefer = (prefer or "").lower()
-        if "respond-sync" in prefer:
-            job = await anyio.to_thread.run_sync(wait_final, st, job["id"], settings.sync_timeout_s)
-            if job["status"] == "successful":
-                return JSONResponse(results_doc(job, b), headers={"Preference-Applied": "respond-sync",
-                                                                  "Location": f"{b}/jobs/{job['id']}"})
-            if job["status"] in FINAL:
-                raise Problem(422, f"job {job['status']}", job["message"] or job["status"])
-            return JSONResponse(status_doc(job, b), status_code=201, headers={"Location": f"{b}/jobs/{job['id']}"})
         headers = {"Location": f"{b}/jobs/{job['id']}"}
         if "respond-async" in prefer:
             headers["Preference-Applied"] = "respond-async"
@@ -330,11 +390,16 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         return Response(request.app.state.metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
 
     @app.get("/livez")
-    def livez():
+    async def livez():  # on the event loop: answers however busy the worker threads are
         return {"status": "ok"}
 
+    probe_threads = anyio.CapacityLimiter(2)  # readyz's own threads, not the routes' shared pool
+
     @app.get("/readyz")
-    def readyz(request: Request):
+    async def readyz(request: Request):
+        return await anyio.to_thread.run_sync(ready_check, request, limiter=probe_threads)
+
+    def ready_check(request: Request):
         checks = {}
         try:
             store_of(request).counts()

@@ -17,7 +17,7 @@ import os
 import threading
 import uuid
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable
 
 _locks: dict[str, threading.Lock] = {}
 _locks_guard = threading.Lock()
@@ -64,3 +64,30 @@ def _remove(p: Path) -> None:
     else:
         with contextlib.suppress(FileNotFoundError):
             p.unlink()
+
+
+_trim_lock = threading.Lock()
+
+
+def trim_oldest(files: Iterable[Path], limit_bytes: int) -> int:
+    """Remove the oldest (by modification time: products are written once) of ``files`` until
+    those left take at most ``limit_bytes``; the bytes removed. Files that vanish meanwhile (a
+    concurrent trim, a dismissed job) are skipped."""
+    with _trim_lock:
+        sized = []
+        for p in files:
+            try:
+                st = p.stat()
+            except OSError:
+                continue
+            sized.append((st.st_mtime, st.st_size, p))
+        total = sum(s for _, s, _ in sized)
+        removed = 0
+        for _, size, p in sorted(sized, key=lambda t: t[0]):
+            if total <= limit_bytes:
+                break
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+            total -= size
+            removed += size
+        return removed

@@ -3,6 +3,10 @@ the store, job look-ups and the OGC status and results documents."""
 
 from __future__ import annotations
 
+import errno
+import json
+from typing import Optional
+
 from fastapi import Request
 from fastapi.responses import JSONResponse
 
@@ -11,13 +15,107 @@ from sarship.service.store import JobStore, iso
 
 
 class Problem(Exception):
-    def __init__(self, status: int, title: str, detail: str):
+    def __init__(self, status: int, title: str, detail: str, headers: Optional[dict] = None):
         self.status, self.title, self.detail = status, title, detail
+        self.headers = headers
 
 
-def problem(status: int, title: str, detail: str) -> JSONResponse:
+def problem(status: int, title: str, detail: str, headers: Optional[dict] = None) -> JSONResponse:
+    # a detail may quote the request (a lone surrogate in a JSON string): always encodable as UTF-8
+    detail = str(detail).encode("utf-8", "backslashreplace").decode("utf-8")
     return JSONResponse({"type": "about:blank", "title": title, "detail": detail, "status": status},
-                        status_code=status, media_type="application/problem+json")
+                        status_code=status, media_type="application/problem+json", headers=headers)
+
+
+#: Deepest nesting of arrays and objects accepted in a JSON body (an execution body is 2-3 deep).
+MAX_JSON_DEPTH = 32
+
+
+def json_depth(raw: bytes) -> int:
+    """The deepest nesting of ``[``/``{`` in JSON text ``raw`` (brackets inside strings do not
+    count), found in linear time without parsing, so that a body nested 100000 deep is refused
+    before ``json.loads`` recurses into it."""
+    import numpy as np
+
+    b = np.frombuffer(raw, np.uint8)
+    if not b.size:
+        return 0
+    pos = np.arange(b.size)
+    bs = b == ord("\\")
+    # backslashes right before each character: odd means the character is escaped
+    last_other = np.maximum.accumulate(np.where(bs, -1, pos))
+    run_before = np.empty(b.size, np.int64)
+    run_before[0] = 0
+    run_before[1:] = pos[:-1] - last_other[:-1]
+    quote = (b == ord('"')) & (run_before % 2 == 0)
+    inside = (np.cumsum(quote) % 2 == 1) | quote
+    step = np.zeros(256, np.int32)
+    step[[ord("["), ord("{")]], step[[ord("]"), ord("}")]] = 1, -1
+    return int(max(np.cumsum(np.where(inside, 0, step[b])).max(), 0))
+
+
+def parse_json_body(raw: bytes):
+    """The JSON document of a request body (empty: ``None``); a 400 problem when it is not JSON,
+    is nested deeper than :data:`MAX_JSON_DEPTH`, or holds a string that cannot be a name
+    (:func:`check_text`)."""
+    if not raw:
+        return None
+    if json_depth(raw) > MAX_JSON_DEPTH:
+        raise Problem(400, "bad request", f"the JSON body is nested deeper than {MAX_JSON_DEPTH} levels")
+    try:
+        doc = json.loads(raw)
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        raise Problem(400, "bad request", "the body is not valid JSON") from None
+    _check_strings(doc, "body")
+    return doc
+
+
+def check_text(value: str, what: str) -> None:
+    """A 400 problem when ``value`` holds a NUL character or an unpaired UTF-16 surrogate (valid
+    in a JSON string, but no file name, no store key and no UTF-8 text can hold it)."""
+    if "\x00" in value:
+        raise Problem(400, "invalid input", f"{what} contains a NUL character")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise Problem(400, "invalid input", f"{what} contains an unpaired surrogate (not valid Unicode text)") from None
+
+
+def _check_strings(doc, where: str) -> None:
+    if isinstance(doc, str):
+        check_text(doc, where)
+    elif isinstance(doc, dict):
+        for k, v in doc.items():
+            check_text(k, f"{where}: a key")
+            _check_strings(v, f"{where}.{k}")
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc):
+            _check_strings(v, f"{where}[{i}]")
+
+
+#: errno values of a write that failed for want of space (EFBIG: a file-size limit, RLIMIT_FSIZE)
+_NO_SPACE = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT}
+
+
+def storage_problem(exc: BaseException) -> Optional[Problem]:
+    """The problem for a failure of the data folder's storage: ``507 insufficient storage`` for a
+    disk (or quota, or file-size limit) that is full, from a file write (``OSError``) or from the
+    SQLite job store (``database or disk is full``, or a write I/O error); ``503`` with
+    ``Retry-After`` for a job store that is busy or locked. ``None`` for anything else (a bug)."""
+    import sqlite3
+
+    if isinstance(exc, OSError) and exc.errno in _NO_SPACE:
+        return Problem(507, "insufficient storage", f"the server's data folder is full: {exc.strerror or exc}")
+    if isinstance(exc, sqlite3.OperationalError):
+        code = getattr(exc, "sqlite_errorcode", None)
+        name = getattr(exc, "sqlite_errorname", "") or ""
+        text = str(exc)
+        if code == sqlite3.SQLITE_FULL or "disk is full" in text or name.startswith("SQLITE_IOERR_WRITE") \
+                or name in ("SQLITE_IOERR_FSYNC", "SQLITE_IOERR_TRUNCATE"):
+            return Problem(507, "insufficient storage", f"the job store cannot be written: {text}")
+        if code in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED) or "locked" in text or "busy" in text:
+            return Problem(503, "store busy", f"the job store is busy: {text}; try again", {"Retry-After": "1"})
+    return None
 
 
 def base_url(request: Request) -> str:

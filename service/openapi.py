@@ -151,7 +151,10 @@ PREFER_DOC = ("'respond-async' (default: 201 and the job status) or 'respond-syn
 def problems(*codes: int) -> dict[int | str, dict[str, Any]]:
     """``responses=`` entries: the given statuses answer a problem document."""
     text = {400: "invalid request (the detail names the input)", 401: "a bearer token is needed",
-            403: "the token is not valid", 404: "no such resource", 422: "the job did not succeed"}
+            403: "the token is not valid", 404: "no such resource", 413: "the request body is too large",
+            422: "the job did not succeed",
+            503: "too many synchronous executions waiting, or the job store is busy (see Retry-After)",
+            507: "the server's data folder is full"}
     return {c: _problem_response(text.get(c, "problem")) for c in codes}
 
 

@@ -129,20 +129,49 @@ def stac_out(request: Request, job_id: str):
     return JSONResponse(item, media_type="application/geo+json")
 
 
+#: Sizes the preview is rendered at: a request is rounded down to one of them (so at most
+#: these few PNGs exist per job), capped at the largest.
+PREVIEW_LEVELS = (64, 128, 256, 512, 1024, 2048)
+
+
+def preview_level(size: int) -> int:
+    """The preview size served for ``?size=size`` (64..4096): the largest of
+    :data:`PREVIEW_LEVELS` not above it."""
+    return max(v for v in PREVIEW_LEVELS if v <= max(size, PREVIEW_LEVELS[0]))
+
+
 @router.get("/jobs/{job_id}/preview.png", responses=_PNG_DOC)
 def preview(request: Request, job_id: str, size: int = 1024):
+    """Quicklook PNG, at most ``size`` pixels a side, rendered at a few fixed sizes
+    (:data:`PREVIEW_LEVELS`: ``size`` is rounded down to one) and cached in the job folder; the
+    cached previews of all jobs together take at most ``preview_cache_mb`` (the oldest are
+    removed beyond it)."""
+    from sarship.service.cache import trim_oldest
     from sarship.service.render import preview_png
 
     if not 64 <= size <= 4096:
         raise Problem(400, "invalid request", f"'size' must be in 64..4096, got {size}")
+    level = preview_level(size)
     job = finished(request, job_id)
-    headers = _cache_headers(request, job, f"preview-{size}")
+    headers = _cache_headers(request, job, f"preview-{level}")
     nm = _not_modified(request, headers)
     if nm is not None:
         return nm
-    with _scene_readable(job_id):
-        png = preview_png(_job_dir(request, job_id), size)
-    return FileResponse(png, media_type="image/png", headers=headers)
+    settings = settings_of(request)
+    d = _job_dir(request, job_id)
+    for attempt in range(3):  # a concurrent trim may remove the file between its build and this read
+        built = not (d / f"preview-{level}.png").exists()
+        with _scene_readable(job_id):
+            png = preview_png(d, level)
+        try:
+            data = png.read_bytes()
+            break
+        except FileNotFoundError:
+            if attempt == 2:
+                raise
+    if built:  # a new file in the cache: keep the cache within its size
+        trim_oldest(settings.jobs_dir.glob("*/preview-*.png"), int(settings.preview_cache_mb * 2**20))
+    return Response(data, media_type="image/png", headers=headers)
 
 
 def _shape(request: Request, job_id: str) -> tuple[int, int]:

@@ -10,14 +10,15 @@ from typing import Optional
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
-from sarship.service.common import Problem, base_url, settings_of, store_of
+from sarship.service.common import Problem, base_url, check_text, settings_of, store_of
 from sarship.service.inbox_files import scene_key
+from sarship.service.openapi import problems
 from sarship.service.settings import Settings
 
 router = APIRouter()
 
 
-@router.post("/scenes")
+@router.post("/scenes", responses=problems(400, 413, 507))
 async def upload(request: Request, filename: Optional[str] = None):
     """A scene file, streamed to disk (raw body with ``?filename=``, or multipart field
     ``file``), checked against the size limit as it arrives, named by its SHA-256, and
@@ -27,6 +28,8 @@ async def upload(request: Request, filename: Optional[str] = None):
     import re
 
     settings = settings_of(request)
+    if filename is not None:
+        check_text(filename, "'filename'")
     limit = int(settings.max_upload_mb * 2**20)
     clen = request.headers.get("content-length")
     if clen and clen.isdigit() and int(clen) > limit + 2**16:
@@ -59,6 +62,7 @@ async def upload(request: Request, filename: Optional[str] = None):
                     take(chunk, out)
         if n == 0:
             raise Problem(400, "empty upload", "the upload is empty")
+        check_text(filename or "", "the file name")  # (a multipart file name too)
         name = Path(filename or "").name
         ext = "".join(Path(name).suffixes).lower()
         if not name or not re.fullmatch(r"(\.[a-z0-9]{1,8}){1,3}", ext):
@@ -88,11 +92,22 @@ async def upload(request: Request, filename: Optional[str] = None):
                         status_code=201, headers={"Location": f"{b}/scenes/{scene_id}"})
 
 
+def inside_roots(settings: Settings, p: Path) -> bool:
+    """Whether scene store ``p``, symlinks followed, lies in ``DATA/scenes`` or an allowed root:
+    a store that leads elsewhere (``DATA/scenes/x.zarr -> /elsewhere``) is no scene of this
+    service (a job naming it is refused, see ``runner.scene_path``), so it is not listed."""
+    try:
+        real = p.resolve(strict=True)
+    except (OSError, RuntimeError):
+        return False
+    return any(real == r or r in real.parents for r in settings.roots())
+
+
 def scene_doc(settings: Settings, scene_id: str, b: str) -> Optional[dict]:
     from sarship.pipeline.scene import open_scene
 
     p = settings.scenes_dir / f"{scene_id}.zarr"
-    if not p.is_dir():
+    if not p.is_dir() or not inside_roots(settings, p):
         return None
     try:
         sc = open_scene(p)

@@ -106,6 +106,14 @@ class Settings(BaseSettings):
                                       description="folders a job may name scenes in (besides DATA/scenes)")
     sync_timeout_s: float = Field(600.0, gt=0.0, description="longest wait of a 'Prefer: respond-sync' execution")
     max_upload_mb: float = Field(4096.0, gt=0.0, description="largest scene upload (POST /scenes), MiB")
+    max_body_kb: float = Field(1024.0, gt=0.0, description="largest request body of every other route (the JSON "
+                                                           "of an execution), KiB: 413 beyond it")
+    max_sync_waits: int = Field(8, ge=0, le=10000,
+                                description="'Prefer: respond-sync' executions waiting at once in this API process; "
+                                            "one more is answered 503 with Retry-After (0: no synchronous execution)")
+    preview_cache_mb: float = Field(256.0, ge=0.0,
+                                    description="disk space of the cached preview PNGs of all jobs together, MiB; "
+                                                "beyond it the oldest are removed (0: none kept)")
     tokens: list[str] = Field(default_factory=list,
                               description="API tokens (Authorization: Bearer TOKEN); "
                                           "when set, POST and DELETE need one")

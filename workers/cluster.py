@@ -52,6 +52,26 @@ def _free_dashboard(address: str) -> tuple[str, str]:
     return address, ""
 
 
+def dashboard_address_on(host: str, port: int = 0) -> str:
+    """The dashboard address of a local cluster that listens on the same interface as
+    ``host`` (the API's address, ``sarship serve``): the dashboard has no access control, so
+    it must not be reachable from where the API is not. ``0.0.0.0``/``::``/empty: every
+    interface, as the API; an IPv6 address: ``localhost`` (Dask cannot take an IPv6 literal
+    here). Port 0: any free port."""
+    import ipaddress
+
+    h = (host or "").strip().strip("[]")
+    if h in ("", "0.0.0.0", "::"):
+        return f":{port}"
+    try:
+        ip = ipaddress.ip_address(h)
+    except ValueError:
+        return f"{h}:{port}"  # a host name
+    if ip.version == 6:  # Dask splits the address at ':': no IPv6 literal; loopback is never wider
+        return f"localhost:{port}"
+    return f"{h}:{port}"
+
+
 def dashboard_url(client) -> str | None:
     try:
         return client.dashboard_link
