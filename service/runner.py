@@ -195,10 +195,12 @@ class Runner:
     def _ingest(self, job: dict) -> None:
         """A scene file (an upload, input ``upload``, or an inbox pass, input ``path``) to the
         scene store ``DATA/scenes/ID.zarr`` (written aside and renamed into place by
-        :func:`sarship.pipeline.readers.ingest`'s atomic store). A failure caused by the file itself
-        (the reader's :class:`InputError`) records ``{"bad_input": true}`` as the job's result,
-        so that the inbox quarantines the file; other failures do not."""
-        from sarship.pipeline.readers import ingest
+        :func:`sarship.pipeline.readers.ingest`'s atomic store), in a child process with a memory
+        cap and the service's input limits (:mod:`sarship.service.ingest_proc`): never in this
+        API process. A failure caused by the file itself (refused by the limits, unreadable,
+        beyond the memory cap) records ``{"bad_input": true}`` as the job's result, so that the
+        inbox quarantines the file; other failures do not."""
+        from sarship.service.ingest_proc import IngestCrashed, IngestRefused, ingest_in_child
 
         job_id, inputs = job["id"], job["inputs"]
 
@@ -215,13 +217,19 @@ class Runner:
                                  if Path(os.path.abspath(d)) in Path(os.path.abspath(src)).parents), False)
                 else:  # an upload is one file: nothing beside it in the uploads folder is its
                     src, root = Path(inputs["upload"]), False
-                ingest([src], out, progress=progress, sidecar_root=root)
+                st = self.settings
+                ingest_in_child(src, out, sidecar_root=root, progress=progress, memory_mb=st.ingest_memory_mb or None,
+                                limits={"max_pixels": st.max_pixels, "max_chunk_mb": st.max_chunk_mb,
+                                        "max_ratio": st.max_ratio})
             self.store.finish(job_id, self.owner, "successful", f"scene {inputs['scene_id']} ready",
                               {"scene": inputs["scene_id"]})
         except Dismissed:
             pass
-        except InputError as exc:
+        except IngestRefused as exc:
             self.store.finish(job_id, self.owner, "failed", str(exc), {"bad_input": True})
+        except IngestCrashed as exc:
+            log.error("ingest %s failed: %s", job_id, exc)
+            self.store.finish(job_id, self.owner, "failed", f"ingest failed: {exc}")
         except Exception as exc:
             log.error("ingest %s failed: %s", job_id, traceback.format_exc())
             self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}")

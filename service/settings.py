@@ -17,6 +17,8 @@ from pydantic import Field, ValidationInfo, field_validator
 from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from sarship.pipeline.readers.limits import DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO
+
 #: Scan interval used when neither an interval nor a cron expression is set.
 DEFAULT_INBOX_INTERVAL_S = 30.0
 
@@ -111,6 +113,16 @@ class Settings(BaseSettings):
     max_sync_waits: int = Field(8, ge=0, le=10000,
                                 description="'Prefer: respond-sync' executions waiting at once in this API process; "
                                             "one more is answered 503 with Retry-After (0: no synchronous execution)")
+    max_pixels: float = Field(DEFAULT_MAX_PIXELS, gt=0.0,
+                              description="largest image an ingest takes, rows x columns (checked from the header)")
+    max_chunk_mb: float = Field(DEFAULT_MAX_CHUNK_MB, gt=0.0,
+                                description="largest decoded compressed TIFF strip/tile an ingest takes, MiB")
+    max_ratio: float = Field(DEFAULT_MAX_RATIO, gt=0.0,
+                             description="largest ratio of declared decoded bytes to file size of a compressed or "
+                                         "sparse TIFF an ingest takes")
+    ingest_memory_mb: float = Field(4096.0, ge=0.0,
+                                    description="address-space cap of the child process each ingest runs in, MiB "
+                                                "(0: no cap); an ingest beyond it fails its job, the file is refused")
     preview_cache_mb: float = Field(256.0, ge=0.0,
                                     description="disk space of the cached preview PNGs of all jobs together, MiB; "
                                                 "beyond it the oldest are removed (0: none kept)")

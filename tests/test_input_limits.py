@@ -173,3 +173,45 @@ def test_cli_refuses_in_one_line_and_takes_the_settings(tmp_path):
     res = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out",
                           str(tmp_path / "x.zarr"), "--max-pixels", "2000"], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
+
+
+def _vm_hwm_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmHWM")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs /proc to read the server's peak memory")
+def test_service_ingests_in_a_capped_child_and_moves_on(tmp_path):
+    """Through ``POST /scenes``: the ingest runs in a child process, never in the API process.
+    With the chunk and ratio limits raised (so the crafted strip is decoded), the child hits its
+    memory cap and the job fails naming it; the declared-pixel limit refuses the sparse giant at
+    once; the API process's peak memory stays small; the next good upload is ingested."""
+    httpx = pytest.importorskip("httpx")
+    from svc import Server, data_with_scene, free_port, wait_job
+
+    srv = Server(data_with_scene(tmp_path), free_port(), SARSHIP_MAX_CHUNK_MB="1e6", SARSHIP_MAX_RATIO="1e9",
+                 SARSHIP_INGEST_MEMORY_MB="1024").start()
+    try:
+        u = srv.url
+        strip = crafted_tiff(tmp_path / "strip.tif", 40000, 40000, blob=zlib.compress(bytes(2**16)))
+        sparse = crafted_tiff(tmp_path / "sparse.tif", 200000, 200000, tile=2048, counts_zero=True)
+        jobs = {}
+        for f in (strip, sparse):
+            r = httpx.post(f"{u}/scenes?filename={f.name}", content=f.read_bytes(), timeout=60)
+            assert r.status_code == 201, r.text
+            jobs[f.name] = r.json()["jobID"]
+        st = wait_job(u, jobs["strip.tif"])
+        assert st["status"] == "failed" and "memory cap is 1024 MiB" in st["message"], st
+        st = wait_job(u, jobs["sparse.tif"])
+        assert st["status"] == "failed" and "above the limit of 2e+09 (SARSHIP_MAX_PIXELS)" in st["message"], st
+        x = np.random.default_rng(5).gamma(2.0, 0.5, (90, 80)).astype(np.float32)
+        good = tmp_path / "good.tif"
+        tifffile.imwrite(good, x)
+        r = httpx.post(f"{u}/scenes?filename=good.tif", content=good.read_bytes(), timeout=60)
+        assert wait_job(u, r.json()["jobID"])["status"] == "successful"
+        assert _vm_hwm_mb(srv.proc.pid) < 1024, _vm_hwm_mb(srv.proc.pid)
+        assert not list((srv.data / "scenes").glob(".*partial*"))
+    finally:
+        srv.stop()

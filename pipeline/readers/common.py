@@ -57,7 +57,7 @@ class _Source:
     def read(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         try:
             return self._read(r0, r1, c0, c1)
-        except InputError:
+        except (InputError, MemoryError):
             raise
         except Exception as exc:
             raise InputError(

@@ -266,7 +266,8 @@ def ingest(
     except _CallbackError as exc:
         raise exc.exc from None
     except MemoryError:
-        raise InputError("ingest ran out of memory (a PNG/JPEG is decoded whole: convert it to a tiled GeoTIFF)") from None
+        raise InputError(f"ingest of {', '.join(str(p) for p in paths)} ran out of memory (a PNG/JPEG, or one "
+                         "compressed TIFF strip/tile, is decoded whole: convert it to a tiled GeoTIFF)") from None
     except Exception as exc:  # never let a raw traceback escape
         raise InputError(f"ingest of {', '.join(str(p) for p in paths)} failed: {_one_line(exc)}") from None
 
