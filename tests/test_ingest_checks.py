@@ -326,3 +326,23 @@ def test_real_slc_chip_as_intensity_refused(tmp_path):
         ingest([chip], tmp_path / "o.zarr", kind="intensity")
     assert chip.name in str(e.value) and "complex" in str(e.value) and "\n" not in str(e.value)
     assert leftovers(tmp_path) == []
+
+
+def test_infinite_intensity_is_refused_nan_is_no_data(tmp_path):
+    """Issue 12: +inf in detected data is no measurement (all-inf input ended in an internal
+    JSON error at detection): refused at ingest, wherever it lies; NaN stays a no-data pixel."""
+    x = np.random.default_rng(3).gamma(2.0, 0.5, (300, 280)).astype(np.float32)
+    y = x.copy()
+    y[290:, 5:9] = np.inf  # outside the probe windows of the first tile row: found as the tile is written
+    np.save(tmp_path / "inf.npy", y)
+    with pytest.raises(InputError, match=r"infinite values \(40 pixels"):
+        ingest([tmp_path / "inf.npy"], tmp_path / "o.zarr", tile=128)
+    assert leftovers(tmp_path) == ["inf.npy"]
+    write_tif(tmp_path / "inf.tif", y)
+    with pytest.raises(InputError, match="infinite values"):
+        ingest([tmp_path / "inf.tif"], tmp_path / "o.zarr", kind="amplitude")
+    z = x.copy()
+    z[:40] = np.nan
+    np.save(tmp_path / "nan.npy", z)
+    sc = ingest([tmp_path / "nan.npy"], tmp_path / "n.zarr")
+    assert np.isnan(read(sc, "intensity")[:40]).all() and np.isfinite(read(sc, "intensity")[40:]).all()

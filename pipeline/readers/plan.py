@@ -237,9 +237,16 @@ def _auto_quantity(s: _Source) -> tuple[str, str]:
 
 
 def _check_tile(s: _Source, a: np.ndarray, asked: str) -> None:
-    """Abort on a tile of detected data with negative values (NaN and no-data allowed)."""
+    """Abort on a tile of detected data with negative or infinite values (NaN and no-data
+    allowed: they are absent pixels; an infinite one is not a measurement of anything)."""
     if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.signedinteger)):
         return
+    if np.issubdtype(a.dtype, np.floating):
+        inf = np.isposinf(a)
+        if inf.any() and not ("nodata" in s.meta and np.isposinf(s.meta["nodata"])):
+            raise InputError(f"'{s.path}': {asked}, but the data has infinite values ({int(inf.sum())} pixels in "
+                             "a tile being written): a damaged or unscaled product? Mark absent pixels as NaN "
+                             "or with a declared no-data value")
     neg = a < 0
     if not neg.any():
         return
