@@ -7,7 +7,6 @@ to raise; the limits are settings (``sarship ingest --max-pixels/--max-chunk-mb/
 from __future__ import annotations
 
 import resource
-import struct
 import subprocess
 import sys
 import time
@@ -19,46 +18,7 @@ import pytest
 import tifffile
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers import InputLimits, ingest
-
-
-def crafted_tiff(path: Path, height: int, width: int, *, tile: int | None = None, rows_per_strip: int | None = None,
-                 blob: bytes = b"", counts_zero: bool = False) -> Path:
-    """A little-endian classic TIFF of float32 samples, deflate-compressed, whose every strip or
-    tile points at the same ``blob`` (or declares byte count 0: a sparse file), written by hand
-    so that nothing of the declared size is ever produced."""
-    if tile:
-        n = -(-height // tile) * -(-width // tile)
-    else:
-        rows_per_strip = rows_per_strip or height
-        n = -(-height // rows_per_strip)
-    header = 8
-    n_tags = 12 if tile else 11  # 7 common tags, 4 tile or 3 strip tags, PlanarConfiguration
-    ifd_size = 2 + 12 * n_tags + 4
-    offs_at = header + ifd_size
-    counts_at = offs_at + 4 * n
-    blob_at = counts_at + 4 * n
-    tags = [(256, 4, 1, width), (257, 4, 1, height), (258, 3, 1, 32), (259, 3, 1, 8), (262, 3, 1, 1),
-            (277, 3, 1, 1), (339, 3, 1, 3)]
-    if tile:
-        tags += [(322, 4, 1, tile), (323, 4, 1, tile), (324, 4, n, offs_at if n > 1 else blob_at),
-                 (325, 4, n, counts_at if n > 1 else (0 if counts_zero else len(blob)))]
-    else:
-        tags += [(273, 4, n, offs_at if n > 1 else blob_at), (278, 4, 1, rows_per_strip),
-                 (279, 4, n, counts_at if n > 1 else (0 if counts_zero else len(blob)))]
-    tags.append((284, 3, 1, 1))
-    tags.sort()
-    assert len(tags) == n_tags
-    out = bytearray(b"II*\x00" + struct.pack("<I", header))
-    out += struct.pack("<H", n_tags)
-    for tag, typ, count, value in tags:
-        v = struct.pack("<HH", value, 0) if typ == 3 else struct.pack("<I", value)
-        out += struct.pack("<HHI", tag, typ, count) + v
-    out += struct.pack("<I", 0)
-    out += struct.pack(f"<{n}I", *([blob_at] * n))
-    out += struct.pack(f"<{n}I", *([0 if counts_zero else len(blob)] * n))
-    out += blob
-    path.write_bytes(bytes(out))
-    return path
+from sarship.pipeline.simulate.crafted import crafted_tiff
 
 
 def peak_rss_mb() -> float:
