@@ -190,6 +190,25 @@ def test_dashboard_port_taken_is_one_clean_line(scene, tmp_path):
     assert len(dash) == 1 and "http://" in dash[0] and ":8787/" not in dash[0] and "8787" in dash[0], dash
 
 
+def test_local_cluster_dashboard_listens_on_loopback_only():
+    """The dashboard has no access control: the local cluster of ``sarship detect`` binds it to
+    127.0.0.1 (issue 12: it listened on every interface)."""
+    psutil = pytest.importorskip("psutil")
+    from sarship.workers.cluster import connect
+
+    with connect(None, n_workers=1, echo=False) as client:
+        port = int(client.dashboard_link.split(":")[2].split("/")[0])
+        me = psutil.Process()
+        listening = set()
+        for p in [me, *me.children(recursive=True)]:
+            try:
+                listening |= {c.laddr.ip for c in p.net_connections(kind="inet")
+                              if c.status == psutil.CONN_LISTEN and c.laddr.port == port}
+            except (psutil.NoSuchProcess, psutil.AccessDenied):
+                continue
+    assert listening == {"127.0.0.1"}, listening
+
+
 @pytest.fixture()
 def remote_cluster(tmp_path):
     """A `dask scheduler` and a `dask worker` whose working folder is another temporary folder."""

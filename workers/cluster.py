@@ -45,10 +45,10 @@ def _port_in_use(address: str) -> bool:
 
 
 def _free_dashboard(address: str) -> tuple[str, str]:
-    """The dashboard address to use (``address``, or ':0' = any free port when its port is
-    taken) and a note for the start-up line."""
+    """The dashboard address to use (``address``, or any free port on the same interface when
+    its port is taken) and a note for the start-up line."""
     if address and _port_in_use(address):
-        return ":0", f" (port {address.rpartition(':')[2]} is in use)"
+        return f"{address.rpartition(':')[0]}:0", f" (port {address.rpartition(':')[2]} is in use)"
     return address, ""
 
 
@@ -113,7 +113,7 @@ def check_versions(client) -> None:
 def connect(
     scheduler: str | None = None,
     n_workers: int | None = None,
-    dashboard_address: str = ":8787",
+    dashboard_address: str = "127.0.0.1:8787",
     echo: bool = True,
     gpus: bool | list[str] = False,
     cpu_workers: int = 0,
