@@ -2,7 +2,10 @@
 
 Size filters: ``min_area_px`` / ``max_area_px`` on the pixel count, ``min_length_m`` /
 ``max_length_m`` on the moment length in metres (only when the scene's pixel spacing is
-known; otherwise the metre filters are skipped and ``run.json`` says so).
+known; otherwise the metre filters are skipped and ``run.json`` says so). Unset
+``min_area_px`` / ``min_length_m`` follow the detector's size rule
+(:func:`sarship.pipeline.detectors.base.resolve_size`: metres when the spacing is known,
+pixels otherwise).
 """
 
 from __future__ import annotations
@@ -18,13 +21,33 @@ import numpy as np
 from sarship.pipeline.components import MOMENT_DTYPE, shape_from_moments
 
 
+def lengths_m(records: np.ndarray, spacing: tuple[float, float]) -> np.ndarray:
+    """Moment length in metres of every record: ``shape_from_moments(rec, spacing)["length_m"]``,
+    vectorised with the same operations in the same order (so the same float64 values)."""
+    n = records["n"].astype(np.float64)
+    mr = records["sr"] / n
+    mc = records["sc"] / n
+    vrr = np.maximum(records["srr"] / n - mr * mr, 0.0) + 1.0 / 12.0
+    vcc = np.maximum(records["scc"] / n - mc * mc, 0.0) + 1.0 / 12.0
+    vrc = records["src"] / n - mr * mc
+    az, rg = float(spacing[0]), float(spacing[1])
+    a, b, c = vrr * az * az, vrc * az * rg, vcc * rg * rg
+    tr, det = a + c, a * c - b * b
+    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
+    return np.sqrt(12.0 * (tr / 2.0 + disc))
+
+
 def keep_mask(records: np.ndarray, params: Any, spacing: tuple[float, float] | None) -> np.ndarray:
-    """Which components pass the size filters of ``params``."""
+    """Which components pass the size filters of ``params`` (unset sizes: the detector's size rule)."""
+    if getattr(params, "min_area_px", 1) is None:
+        from sarship.pipeline.detectors.base import resolve_size
+
+        params, _ = resolve_size(params, spacing)
     keep = records["n"] >= params.min_area_px
     if params.max_area_px is not None:
         keep &= records["n"] <= params.max_area_px
     if spacing is not None and (params.min_length_m is not None or params.max_length_m is not None):
-        lengths = np.array([shape_from_moments(r, spacing)["length_m"] for r in records]) if len(records) else np.zeros(0)
+        lengths = lengths_m(records, spacing) if len(records) else np.zeros(0)
         if params.min_length_m is not None:
             keep &= lengths >= params.min_length_m
         if params.max_length_m is not None:
@@ -158,4 +181,4 @@ def _default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-__all__ = ["MOMENT_DTYPE", "keep_mask", "features", "collection", "write_json"]
+__all__ = ["MOMENT_DTYPE", "keep_mask", "lengths_m", "features", "collection", "write_json"]

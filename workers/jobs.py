@@ -22,6 +22,7 @@ from typing import Any, Callable
 
 from sarship.pipeline import __version__
 from sarship.pipeline.components import merge_radius, merge_tiles
+from sarship.pipeline.detectors.base import resolve_size
 from sarship.pipeline.ship_features import collection, features, keep_mask, write_json
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.inputs import intensity_source, make_reader, polarimetric_source
@@ -204,6 +205,8 @@ def run_request(
     prep = spec.prepare(params)
     warnings: list[str] = []
     spacing = scene.pixel_spacing_m
+    # the size rule: metres when the spacing is known, pixels otherwise; given values win
+    params, size_rule = resolve_size(params, spacing)
     if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
         warnings.append("min_length_m/max_length_m ignored: the scene's pixel spacing is unknown")
     halo = spec.halo(params)
@@ -259,6 +262,7 @@ def run_request(
             "parameters": params.model_dump(),
             "channel": var if isinstance(var, str) else list(var),
             "looks_source": looks_source,
+            "size_rule": size_rule,
             "prepared": prep,
             "scene_pass": scene_pass,
             "scene": {

@@ -26,11 +26,25 @@ docs/adding-a-detector.md.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import Any, Callable, ClassVar, Optional
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+AREA_HELP = ("smallest detection kept, in pixels; unset: automatic (the size rule): the detector's pixel "
+             "default when the scene's pixel spacing is unknown, else the pixel count of the detector's "
+             "smallest area in square metres, with min_length_m ('sarship detectors --json': size_defaults)")
+LENGTH_HELP = ("shortest ship kept, in metres (needs the scene's pixel spacing); unset: automatic (the size "
+               "rule): the detector's default length when the spacing is known and min_area_px is unset; "
+               "0 turns it off")
+
+
+#: Smallest ``pfa`` accepted: every detector's threshold is a finite float64 down to it (checked
+#: by tests/test_detectors_api.py); below it a request is refused (a pfa of 1e-320 is not a
+#: probability any threshold can honour: subnormal, its quantiles overflow).
+PFA_MIN = 1e-15
 
 
 class DetectorParams(BaseModel):
@@ -38,7 +52,8 @@ class DetectorParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    pfa: float = Field(1e-5, gt=0.0, lt=0.5, description="probability of false alarm per pixel")
+    pfa: float = Field(1e-5, ge=PFA_MIN, lt=0.5,
+                       description=f"probability of false alarm per pixel ({PFA_MIN:g} to 0.5)")
     target: int = Field(1, ge=1, le=255, description="target window side (odd, pixels)")
     guard: int = Field(41, ge=1, le=511, description="guard window side (odd, pixels)")
     background: int = Field(61, ge=3, le=1023, description="background window side (odd, pixels)")
@@ -46,9 +61,18 @@ class DetectorParams(BaseModel):
         None, gt=0.0, le=1e4,
         description="equivalent number of looks; default: the scene's 'looks' attribute",
     )
-    min_area_px: int = Field(3, ge=1, description="smallest detection kept, in pixels")
+    #: The automatic size rule (:func:`resolve_size`), per detector: with ``min_area_px`` and
+    #: ``min_length_m`` both unset, a scene whose pixel spacing is known keeps components at
+    #: least ``auto_min_length_m`` metres long and ``auto_min_area_m2`` square metres large
+    #: (as a pixel count: ``min_area_px`` = ceil(auto_min_area_m2 / pixel area), at least 1);
+    #: a scene without spacing keeps components of at least ``auto_min_area_px`` pixels.
+    auto_min_area_px: ClassVar[int] = 10
+    auto_min_length_m: ClassVar[float] = 20.0
+    auto_min_area_m2: ClassVar[float] = 200.0
+
+    min_area_px: int | None = Field(None, ge=1, description=AREA_HELP)
     max_area_px: Optional[int] = Field(None, ge=1, description="largest detection kept, in pixels")
-    min_length_m: Optional[float] = Field(None, ge=0.0, description="shortest ship kept (needs pixel spacing)")
+    min_length_m: Optional[float] = Field(None, ge=0.0, description=LENGTH_HELP)
     max_length_m: Optional[float] = Field(None, gt=0.0, description="longest ship kept (needs pixel spacing)")
     merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
 
@@ -62,7 +86,7 @@ class DetectorParams(BaseModel):
             raise ValueError(f"target ({self.target}) must not exceed guard ({self.guard})")
         if self.guard >= self.background:
             raise ValueError(f"background ({self.background}) must be larger than guard ({self.guard})")
-        if self.max_area_px is not None and self.max_area_px < self.min_area_px:
+        if self.max_area_px is not None and self.min_area_px is not None and self.max_area_px < self.min_area_px:
             raise ValueError(f"max_area_px ({self.max_area_px}) must be >= min_area_px ({self.min_area_px})")
         if (self.min_length_m is not None and self.max_length_m is not None
                 and self.max_length_m < self.min_length_m):
@@ -94,11 +118,15 @@ def float_block(block: np.ndarray, ndim: int = 2) -> np.ndarray:
     return np.ascontiguousarray(block)
 
 
-def with_defaults(base: type[DetectorParams], name: str, **defaults: Any) -> type[DetectorParams]:
+def with_defaults(base: type[DetectorParams], name: str, *, auto_min_area_px: int | None = None,
+                  auto_min_length_m: float | None = None, auto_min_area_m2: float | None = None,
+                  **defaults: Any) -> type[DetectorParams]:
     """A subclass of ``base`` whose listed fields have other defaults (constraints kept).
 
     Detectors tune their own defaults (see ``bench/REALDATA.md``) while sharing one
-    definition, with its bounds and validators, of every shared parameter.
+    definition, with its bounds and validators, of every shared parameter. ``auto_*`` set the
+    detector's automatic size rule (:func:`resolve_size`); the help texts of ``min_area_px``
+    and ``min_length_m`` then state its values.
     """
     from pydantic import create_model
     from pydantic.fields import FieldInfo
@@ -107,7 +135,105 @@ def with_defaults(base: type[DetectorParams], name: str, **defaults: Any) -> typ
     for key, value in defaults.items():
         f = base.model_fields[key]
         fields[key] = (f.annotation, FieldInfo.merge_field_infos(f, default=value))
-    return create_model(name, __base__=base, **fields)
+    auto = {k: v for k, v in (("auto_min_area_px", auto_min_area_px), ("auto_min_length_m", auto_min_length_m),
+                              ("auto_min_area_m2", auto_min_area_m2)) if v is not None}
+    if auto:
+        px = auto.get("auto_min_area_px", base.auto_min_area_px)
+        m = auto.get("auto_min_length_m", base.auto_min_length_m)
+        a = auto.get("auto_min_area_m2", base.auto_min_area_m2)
+        helps = {
+            "min_area_px": (f"smallest detection kept, in pixels; unset: automatic (the size rule): {px} px when "
+                            f"the scene's pixel spacing is unknown; when it is known, the pixels of {a:g} m^2 "
+                            "(ceil(area / pixel area), e.g. 2 px at 10 m), with min_length_m"),
+            "min_length_m": (f"shortest ship kept, in metres (needs the scene's pixel spacing); unset: automatic "
+                             f"(the size rule): {m:g} m when the spacing is known and min_area_px is unset; "
+                             "0 turns it off"),
+        }
+        for key, text in helps.items():
+            if key not in fields:
+                f = base.model_fields[key]
+                fields[key] = (f.annotation, FieldInfo.merge_field_infos(f, description=text))
+    model = create_model(name, __base__=base, **fields)
+    for k, v in auto.items():
+        setattr(model, k, v)
+    return model
+
+
+def size_defaults(params: type[DetectorParams]) -> dict:
+    """What :func:`resolve_size` makes of a parameter model's defaults, with pixel spacing
+    known (shown for 10 m x 10 m pixels; ``min_area_m2`` gives the area whose pixel count
+    ``min_area_px`` is at other spacings, None when the pixel default applies at every
+    spacing) and unknown (``sarship detectors --json``: ``size_defaults``)."""
+    p = params()
+    r, rule = resolve_size(p, (10.0, 10.0))
+    metres = p.min_area_px is None and (p.min_length_m is not None or params.auto_min_length_m is not None)
+    u, urule = resolve_size(p, None)
+    return {
+        "spacing_known": {"min_length_m": r.min_length_m, "min_area_m2": params.auto_min_area_m2 if metres else None,
+                          "min_area_px": r.min_area_px, "at_spacing_m": [10.0, 10.0], "rule": rule},
+        "spacing_unknown": {"min_area_px": u.min_area_px, "min_length_m": u.min_length_m, "rule": urule},
+    }
+
+
+def resolve_size(params: DetectorParams, spacing) -> tuple[DetectorParams, str]:
+    """The effective size filter of ``params`` for a scene with pixel ``spacing`` (None: unknown).
+
+    Returns ``(params, rule)``: ``params`` with ``min_area_px`` (and, when the metre rule
+    applies by default, ``min_length_m``) filled in, and a one-line ``rule`` saying which rule
+    applied (``run.json``'s ``size_rule``). The rule, for values left unset (None):
+
+    - explicit values always win: a given ``min_area_px`` is used as it is and the default
+      metre rule is then off (a pixel rule asked for); a given ``min_length_m`` is used where
+      the spacing is known (``min_area_px`` unset: the detector's area in m^2 as pixels);
+    - neither given, spacing known: ``min_length_m`` = the detector's ``auto_min_length_m``
+      and ``min_area_px`` = ceil(``auto_min_area_m2`` / pixel area), at least 1 (sizes in
+      metres mean the same ship at 1 m and at 10 m pixels);
+    - neither given, spacing unknown: ``min_area_px`` = the detector's ``auto_min_area_px``
+      (a given ``min_length_m`` cannot apply: ``run.json`` warns).
+
+    An automatic ``min_area_px`` never exceeds a given ``max_area_px``.
+    """
+    cls = type(params)
+    given = params.model_fields_set
+    area, length = params.min_area_px, params.min_length_m
+
+    def src(name: str) -> str:
+        return "given" if name in given else "detector default"
+
+    def cap(v: int) -> int:
+        return min(v, params.max_area_px) if params.max_area_px is not None else v
+
+    if area is not None:
+        if length is not None and spacing is not None:
+            return params, (f"metres and pixels: min_length_m {length:g} m ({src('min_length_m')}), "
+                            f"min_area_px {area} ({src('min_area_px')})")
+        rule = f"pixels: min_area_px {area} ({src('min_area_px')})"
+        if length is not None:
+            rule += "; min_length_m ignored: the scene's pixel spacing is unknown"
+        return params, rule
+    if spacing is None:
+        px = cap(cls.auto_min_area_px)
+        rule = f"pixels (the default when the scene's pixel spacing is unknown): min_area_px {px}"
+        if length is not None:
+            rule += "; min_length_m ignored: the scene's pixel spacing is unknown"
+        return params.model_copy(update={"min_area_px": px}), rule
+    px = cap(area_px(cls.auto_min_area_m2, spacing))
+    area = f"min_area_px {px} (= {cls.auto_min_area_m2:g} m^2 at {spacing[0]:g} x {spacing[1]:g} m)"
+    if length is not None:
+        return params.model_copy(update={"min_area_px": px}), (
+            f"metres: min_length_m {length:g} m ({src('min_length_m')}), {area}")
+    if cls.auto_min_length_m is None:
+        px = cap(cls.auto_min_area_px)
+        return params.model_copy(update={"min_area_px": px}), f"pixels (the detector's default): min_area_px {px}"
+    return params.model_copy(update={"min_area_px": px, "min_length_m": float(cls.auto_min_length_m)}), (
+        f"metres (the default when the scene's pixel spacing is known): min_length_m "
+        f"{cls.auto_min_length_m:g} m, {area}")
+
+
+def area_px(area_m2: float, spacing) -> int:
+    """Pixels of ``area_m2`` square metres at pixel ``spacing`` (azimuth, range): ceil, at least 1
+    (a relative 1e-9 slack so that an exact multiple is not rounded up by float error)."""
+    return max(1, math.ceil(float(area_m2) / (float(spacing[0]) * float(spacing[1])) * (1.0 - 1e-9)))
 
 
 @dataclass(frozen=True)
@@ -157,4 +283,6 @@ class DetectorSpec:
             "halo_default_px": self.halo(self.params()),
             "parameters": schema.get("properties", {}),
             "defaults": defaults,
+            # min_area_px / min_length_m default to None = this rule (resolve_size)
+            "size_defaults": size_defaults(self.params),
         }

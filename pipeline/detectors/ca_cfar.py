@@ -35,11 +35,15 @@ from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_
 from sarship.pipeline.gpu import is_device_array
 
 
-class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-4, guard=41, background=81,
-                             min_area_px=20, merge_px=2)):
+class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-6, guard=41, background=81, merge_px=4,
+                             auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
     """Parameters of ``ca_cfar`` (the shared parameters of docs/algorithms/README.md).
 
-    Defaults chosen on real data (SAR-Ship-Dataset, HRSID, OpenSARShip; bench/REALDATA.md).
+    Defaults chosen on real data by cross-validation (tuned on half A of SAR-Ship-Dataset,
+    HRSID and OpenSARShip, reported on half B; bench/REALDATA.md). Size rule (unset
+    ``min_area_px`` / ``min_length_m``, :func:`~sarship.pipeline.detectors.base.resolve_size`):
+    ships of at least 25 m and 200 m^2 when the scene's pixel spacing is known, of at least
+    10 px otherwise.
     """
 
 

@@ -41,11 +41,15 @@ from sarship.pipeline.simd import (prefetch, vadd, vcol, vcols, vdiv, vdivn, vlo
                                    vscatter4, vsel_gt, vsplat, vsqrt, vstep, vstore, vstore_stat, vsub)
 
 
-class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", pfa=1e-3, guard=21,
-                                       background=41, min_area_px=15, merge_px=0)):
+class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", pfa=1e-6, guard=41,
+                                       background=81, merge_px=2,
+                                       auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
     """Parameters of ``two_parameter``.
 
-    Defaults chosen on real data (SAR-Ship-Dataset, HRSID, OpenSARShip; bench/REALDATA.md).
+    Defaults chosen on real data by cross-validation (tuned on half A of SAR-Ship-Dataset,
+    HRSID and OpenSARShip, reported on half B; bench/REALDATA.md). Size rule (unset
+    ``min_area_px`` / ``min_length_m``): ships of at least 25 m and 200 m^2 when the scene's
+    pixel spacing is known, of at least 10 px otherwise.
     """
 
     threshold: Literal["student", "gaussian"] = Field(
