@@ -36,6 +36,13 @@ def format_validation(exc: ValidationError, detector: str) -> str:
     for e in exc.errors():
         loc = ".".join(str(x) for x in e.get("loc", ()))
         msg = e.get("msg", "invalid").removeprefix("Value error, ")
+        ctx = e.get("ctx") or {}
+        bounds = {"greater_than": "greater than", "greater_than_equal": "at least", "less_than": "less than",
+                  "less_than_equal": "at most"}
+        if e.get("type") in bounds:  # the limit as a number reads (pydantic writes 1e-15 as 0.000000000000001)
+            limit = next(iter(ctx.values()), None)
+            if isinstance(limit, (int, float)):
+                msg = f"must be {bounds[e['type']]} {limit:g}"
         if e.get("type") == "extra_forbidden":
             msgs.append(f"unknown parameter '{loc}' for detector '{detector}'")
         elif loc:
