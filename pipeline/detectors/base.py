@@ -42,7 +42,7 @@ LENGTH_HELP = ("shortest ship kept, in metres (needs the scene's pixel spacing);
 
 
 #: Smallest ``pfa`` accepted: every detector's threshold is a finite float64 down to it (checked
-#: by tests/test_detectors_api.py); below it a request is refused (a pfa of 1e-320 is not a
+#: by tests/test_pfa_bounds.py); below it a request is refused (a pfa of 1e-320 is not a
 #: probability any threshold can honour: subnormal, its quantiles overflow).
 PFA_MIN = 1e-15
 
