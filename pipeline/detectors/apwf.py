@@ -46,6 +46,23 @@ Threshold (exact for N independent clutter samples; mask = y > T, stat = y):
   N -> infinity limit: with small windows (N ~ 100) it overshoots the PFA several-fold
   (recorded in ``prepare`` as ``threshold_large_n``, not used).
 
+Absent pixels (no data; not in the thesis, which assumes complete data). A pixel whose
+data is not finite (NaN) or has no signal (all channels, or the covariance diagonal, exactly
+0: a zero-filled border or a declared no-data value of 0) is absent
+(:mod:`sarship.pipeline.polsar_absent`): its products are zeroed before the window sums and
+it is not counted, so each pixel's estimate uses its K <= N valid cells (K from the same
+tiling-invariant box sums, of the validity plane): y = K X^H S^-1 X with S the sum over the
+K valid cells, compared with the exact threshold T(K) of the formulas below (N replaced by
+K; the thresholds of the counts present in a tile are computed there). A pixel is not
+tested (decision 0, stat 0) when it is absent itself or when K < ``min_valid(N, p)`` =
+max(ceil(N / 2), p + 1): the threshold is exact for any K > p, so the minimum is about the
+estimate's representativeness, not calibration; half the cells keeps every pixel along a
+straight edge testable (a straight edge through or next to the CUT removes less than half of
+a centred ring or window), while pixels in a corner or a narrow strip of data, whose Sigma
+would come from one side only, are not tested. Where K < N the statistic reported (``stat``)
+is y T(N) / T(K), the same ratio to its threshold, so stat > T(N) wherever mask is set.
+Without absent pixels K = N everywhere and nothing changes, bit for bit.
+
 Neighbouring pixels' speckle is assumed independent (as in the simulator); mirror-extended
 borders (the thesis' choice) repeat samples, so the threshold is approximate within
 background // 2 of the scene edge. Halo: background // 2. Only ``target = 1`` (the CUT is
@@ -54,6 +71,7 @@ one pixel).
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
@@ -63,7 +81,11 @@ from scipy import special
 
 from sarship.pipeline.boxsum import centered_box_sum
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
-from sarship.pipeline.gpu import is_device_array
+from sarship.pipeline.gpu import is_device_array, to_host
+from sarship.pipeline.polsar_absent import present, zero_absent
+
+#: Fewest valid cells in a pixel's estimate, as a fraction of N (see the module docstring).
+MIN_VALID_FRACTION = 0.5
 
 #: Core rows / columns processed at once (bounds the float64 intermediates of a tile).
 STRIP_ROWS = 256
@@ -115,6 +137,38 @@ def pfa_exact(t: float, p: int, n: int, estimator: str = "ring") -> float:
     return float(special.betainc(n - p, p, 1.0 - t / n)) if t < n else 0.0
 
 
+def min_valid(n: int, p: int) -> int:
+    """Fewest valid cells K for which a pixel is tested: max(ceil(N / 2), p + 1)."""
+    return max(int(math.ceil(MIN_VALID_FRACTION * n)), p + 1)
+
+
+def count_thresholds(counts, pfa: float, p: int, estimator: str = "ring") -> np.ndarray:
+    """:func:`threshold` for an array of valid-cell counts K (float64, vectorised; K > p)."""
+    k = np.asarray(counts, np.float64)
+    if estimator == "ring":
+        z = special.betaincinv(k - p + 1, p, pfa)
+        return k * (1.0 - z) / z
+    return k * (1.0 - special.betaincinv(k - p, p, pfa))
+
+
+def threshold_map(K, tested, pfa: float, p: int, estimator: str, n_full: float, thr_full: float):
+    """Per-pixel threshold T(K) (NumPy or CuPy like ``K``): ``thr_full`` where K = N,
+    :func:`count_thresholds` of the tile's distinct partial counts elsewhere, +inf where
+    the pixel is not tested."""
+    xp = np
+    if is_device_array(K):
+        import cupy as xp
+    T = xp.full(K.shape, np.inf, np.float64)
+    T[tested & (K == n_full)] = thr_full
+    part = tested & (K != n_full)
+    if bool(part.any()):
+        kp = K[part]
+        u = xp.unique(kp)
+        tu = xp.asarray(count_thresholds(to_host(u), pfa, p, estimator))
+        T[part] = tu[xp.searchsorted(u, kp)]
+    return T
+
+
 def threshold_large_n(pfa: float, p: int) -> float:
     """Eq 2-10: T with exp(-T) sum_{k<p} T^k/k! = pfa (the N -> infinity limit)."""
     return float(special.gammainccinv(p, pfa))
@@ -126,6 +180,7 @@ def prepare(prm: APWFParams) -> dict:
             else "y/N ~ Beta(p, N-p) (CUT in its own estimate; Sherman-Morrison)")
     return {
         "n_samples": n,
+        "min_valid": {str(p): min_valid(n, p) for p in (2, 3)},
         "estimator": prm.estimator,
         "thresholds": {str(p): threshold(prm.pfa, p, n, prm.estimator) for p in (2, 3)},
         "threshold_large_n": {str(p): threshold_large_n(prm.pfa, p) for p in (2, 3)},
@@ -240,7 +295,8 @@ def _products_cov(C, out):
 
 
 def _cov_to_x_free_stat(C, S, n):
-    """y = N tr(S^-1 C) per pixel (numpy; C (h, w, p, p), S in the products layout)."""
+    """y = N tr(S^-1 C) per pixel (numpy; C (h, w, p, p), S in the products layout; N a
+    number or the per-pixel counts)."""
     h, w, p, _ = C.shape
     M = np.empty((h, w, p, p), np.complex128)
     for d in range(p):
@@ -262,13 +318,21 @@ def _cov_to_x_free_stat(C, S, n):
 
 
 @njit(nogil=True, cache=True)
-def _pwf(x, S, n, thr, mask, stat):
-    """y = N X^H S^-1 X per pixel from the window sums S[q] (layout of :func:`_products`)."""
+def _pwf(x, S, K, T, thr, mask, stat):
+    """y = K X^H S^-1 X per pixel from the window sums S[q] (layout of :func:`_products`)
+    over K[i, j] valid cells, mask = y > T[i, j]; T = +inf: not tested (mask 0, stat 0);
+    where T != thr (K < N) stat = y thr / T."""
     h, w, p = x.shape
     thr32 = np.float32(thr)
     above = np.nextafter(thr32, np.float32(np.inf))
     for i in range(h):
         for j in range(w):
+            t = T[i, j]
+            if not t < np.inf:
+                mask[i, j] = False
+                stat[i, j] = np.float32(0.0)
+                continue
+            n = K[i, j]
             if p == 3:
                 x0 = np.complex128(x[i, j, 0])
                 x1 = np.complex128(x[i, j, 1])
@@ -301,7 +365,9 @@ def _pwf(x, S, n, thr, mask, stat):
                 y = np.inf
             else:
                 y = 0.0
-            m = y > thr
+            m = y > t
+            if t != thr:
+                y = y * (thr / t)
             s = np.float32(y)
             if m and s <= thr32:
                 s = above  # keep stat > threshold wherever mask is set
@@ -310,8 +376,15 @@ def _pwf(x, S, n, thr, mask, stat):
 
 
 def window_sums(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParams) -> np.ndarray:
-    """S[q, i, j]: sums of the p^2 real numbers of X X^H over the clutter cells of each
+    """S[q, i, j]: sums of the p^2 real numbers of X X^H over the valid clutter cells of each
     core pixel (``estimator``: ring or whole window), float64, tiling-invariant."""
+    return window_sums_counts(block, halo, origin, prm)[0]
+
+
+def window_sums_counts(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParams):
+    """``(S, K, ok)``: :func:`window_sums` (absent cells left out), the number K of valid
+    cells in each core pixel's estimate (float64, exact integers) and the core's
+    :func:`~sarship.pipeline.polsar_absent.present` mask."""
     b, g = int(prm.background), int(prm.guard)
     r = b // 2
     off = halo - r
@@ -320,6 +393,9 @@ def window_sums(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWF
     sub = block[off: off + h + 2 * r, off: off + w + 2 * r]
     o = (int(origin[0]) + off, int(origin[1]) + off)
     p = block.shape[2]
+    ok = present(sub)
+    complete = bool(ok.all())
+    sub = zero_absent(sub, ok)
     prods = np.empty((p * p, sub.shape[0], sub.shape[1]), np.float64)
     if block.ndim == 4:
         _products_cov(sub, prods)
@@ -330,13 +406,22 @@ def window_sums(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWF
         S[q] = centered_box_sum(prods[q], b, r, o)
         if prm.estimator == "ring":
             S[q] -= centered_box_sum(prods[q], g, r, o)
-    return S
+    if complete:  # the box sums of a plane of ones: exactly N everywhere
+        K = np.full((h, w), float(prm.n_samples()))
+    else:
+        v = ok.astype(np.float64)
+        K = centered_box_sum(v, b, r, o)
+        if prm.estimator == "ring":
+            K -= centered_box_sum(v, g, r, o)
+    return S, K, ok[r: r + h, r: r + w]
 
 
 def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParams, prep: dict):
     """Adaptive PWF-CFAR on one padded tile ``(h + 2 halo, w + 2 halo, p)``, p = 2 or 3.
 
-    Returns (mask = y > T, stat = y as float32). The core is processed in strips of
+    Returns (mask = y > T, stat = y as float32; absent pixels and pixels with fewer than
+    :func:`min_valid` valid cells: mask 0, stat 0; K < N: y against T(K), stat = y T(N) / T(K),
+    see the module docstring). The core is processed in strips of
     :data:`STRIP_ROWS` x :data:`STRIP_COLS` pixels (sub-blocks with their own origin:
     the box sums, hence y, are the same bit for bit). A CuPy ``block`` runs on its GPU
     (:func:`sarship.pipeline.gpu.polsar.apwf`: the same window sums bit for bit, the same adjugate
@@ -354,11 +439,13 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
         from sarship.pipeline.gpu.polsar import apwf
 
         return apwf(block, halo, origin, b, int(prm.guard), prm.estimator == "ring",
-                    float(prep["n_samples"]), float(prep["thresholds"][str(p)]))
+                    float(prep["n_samples"]), float(prep["thresholds"][str(p)]),
+                    pfa=float(prm.pfa), kmin=min_valid(int(prep["n_samples"]), p))
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     n = float(prep["n_samples"])
     thr = float(prep["thresholds"][str(p)])
+    kmin = min_valid(int(n), p)
     mask = np.empty((h, w), np.bool_)
     stat = np.empty((h, w), np.float32)
     for r0 in range(0, h, STRIP_ROWS):
@@ -366,17 +453,21 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
         for c0 in range(0, w, STRIP_COLS):
             c1 = min(c0 + STRIP_COLS, w)
             sub = block[r0: r1 + 2 * halo, c0: c1 + 2 * halo]
-            S = window_sums(sub, halo, (origin[0] + r0, origin[1] + c0), prm)
-            core = sub[halo: halo + r1 - r0, halo: halo + c1 - c0]
+            S, K, ok = window_sums_counts(sub, halo, (origin[0] + r0, origin[1] + c0), prm)
+            T = threshold_map(K, ok & (K >= kmin), float(prm.pfa), p, prm.estimator, n, thr)
+            core = zero_absent(sub[halo: halo + r1 - r0, halo: halo + c1 - c0], ok)
             if cov:
-                y = _cov_to_x_free_stat(core, S, n)
-                m = y > thr
-                st = y.astype(np.float32)
+                tested = T < np.inf
+                y = _cov_to_x_free_stat(core, S, K)
+                m = tested & (y > T)
+                with np.errstate(invalid="ignore"):
+                    y = np.where(T != thr, y * (thr / T), y)
+                st = np.where(tested, y, 0.0).astype(np.float32)
                 st[m & (st <= np.float32(thr))] = np.nextafter(np.float32(thr), np.float32(np.inf))
                 mask[r0:r1, c0:c1] = m
                 stat[r0:r1, c0:c1] = st
             else:
-                _pwf(core, S, n, thr, mask[r0:r1, c0:c1], stat[r0:r1, c0:c1])
+                _pwf(core, S, K, T, thr, mask[r0:r1, c0:c1], stat[r0:r1, c0:c1])
     return mask, stat
 
 

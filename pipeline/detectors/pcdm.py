@@ -38,6 +38,20 @@ agree:
 
 ``stat`` = SPAN_P / T_SPAN (the detection score). Halo: 1 + ``looks_window // 2`` (the 8
 neighbours of the boxcar-averaged C); the scene border is mirror-extended.
+
+Absent pixels (no data; not in the thesis, which assumes complete data). A pixel whose data
+is not finite (NaN) or has no signal (all channels, or the covariance diagonal, exactly 0) is
+absent (:mod:`sarship.pipeline.polsar_absent`): it is zeroed before the boxcar (so NaN does
+not spread through the block sums) and the valid cells of each pixel's
+``(looks_window + 2)^2`` neighbourhood (its boxcar and those of its 8 neighbours) are counted
+with the same tiling-invariant box sums. The minimum is all of them: a pixel is tested only
+when its C and the 8 neighbours' C are complete ``looks_window^2``-look averages, because
+T_SPAN is one scene-wide threshold fitted to the distribution of complete SPAN_P (fewer
+looks or fewer differences change that distribution, the looks heavily: single-look SPAN_P
+over-alarms 14-180x), and no per-pixel correction exists. Untested pixels (absent ones and
+the band of ``1 + looks_window // 2`` px around them, the detector's own halo) get SPAN_P =
+PSH = NaN from :func:`span_psh`, decision 0 and stat 0, and are left out of the scene pass
+(min, max, histogram and counts). Without absent pixels nothing changes, bit for bit.
 """
 
 from __future__ import annotations
@@ -53,6 +67,7 @@ from scipy import stats
 from sarship.pipeline.boxsum import centered_box_sum
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
 from sarship.pipeline.gpu import is_device_array, to_host
+from sarship.pipeline.polsar_absent import present, zero_absent
 
 #: Fixed bins of ln SPAN_P for the scene-wide histogram (``span_rule="pfa"``).
 LN_BINS = np.linspace(-60.0, 60.0, 12001)
@@ -239,7 +254,8 @@ def _pcdm_kernel(C, p, span_out, psh_out):
 def span_psh(block: np.ndarray, halo_px: int, origin, p: PCDMParams) -> tuple[np.ndarray, np.ndarray]:
     """SPAN_P and PSH (float64) of the core of a padded polarimetric block (rows, cols, p).
 
-    A CuPy ``block`` runs on its GPU (:func:`sarship.pipeline.gpu.polsar.pcdm_span_psh`): SPAN_P is
+    NaN where the pixel is not tested: an absent pixel within ``1 + looks_window // 2`` px
+    (the module docstring). A CuPy ``block`` runs on its GPU (:func:`sarship.pipeline.gpu.polsar.pcdm_span_psh`): SPAN_P is
     bit-identical to the CPU's (same sums and order); PSH uses CUDA's ``acos``/``cos``,
     within a few ulp of the CPU's.
     """
@@ -250,6 +266,9 @@ def span_psh(block: np.ndarray, halo_px: int, origin, p: PCDMParams) -> tuple[np
 
         return pcdm_span_psh(block, halo_px, origin, p.looks_window)
     r = p.looks_window // 2
+    ok = present(block)
+    complete = bool(ok.all())
+    block = zero_absent(block, ok)
     C = covariance_planes(block, p.looks_window, halo_px, origin)
     # C covers the block minus r each side; the core plus a 1-pixel margin starts at halo - r - 1
     off = halo_px - r - 1
@@ -259,24 +278,46 @@ def span_psh(block: np.ndarray, halo_px: int, origin, p: PCDMParams) -> tuple[np
     span = np.empty((h, w))
     psh = np.empty((h, w))
     _pcdm_kernel(C, block.shape[2], span, psh)
+    if not complete:
+        untested = tested_count(ok, p.looks_window, halo_px, origin) < (p.looks_window + 2) ** 2
+        span[untested] = np.nan
+        psh[untested] = np.nan
     return span, psh
+
+
+def tested_count(ok, looks_window: int, halo_px: int, origin):
+    """Valid cells in each core pixel's ``(looks_window + 2)^2`` neighbourhood (float64,
+    exact; NumPy or CuPy like ``ok``): all of them, ``(looks_window + 2)^2``, to be tested."""
+    if is_device_array(ok):
+        import cupy
+
+        from sarship.pipeline.gpu.box import centered_box_sum as box
+
+        v = ok.astype(cupy.float64)
+    else:
+        box = centered_box_sum
+        v = ok.astype(np.float64)
+    return box(v, looks_window + 2, halo_px, (int(origin[0]), int(origin[1])))
 
 
 # --------------------------------------------------------------------------- two passes
 
 
 def scene_pass(block, halo_px, origin, p: PCDMParams, prep: dict) -> dict:
-    """A tile's share of the scene-wide SPAN_P statistics: min, max, ln-histogram."""
+    """A tile's share of the scene-wide SPAN_P statistics: min, max, ln-histogram, over the
+    tested pixels only (``min``/``max`` None when the tile has none)."""
     span, _ = span_psh(block, halo_px, origin, p)
     xp = np
     if is_device_array(span):  # reduce on the device, bring back the numbers only
         import cupy as xp
-    out = {"min": float(span.min()), "max": float(span.max()), "n": int(span.size)}
+    span = span[~xp.isnan(span)]
+    n = int(span.size)
+    out = {"min": float(span.min()) if n else None, "max": float(span.max()) if n else None, "n": n}
     if p.span_rule == "pfa":
         pos = span[span > 0]
         hist, _ = xp.histogram(xp.log(pos), bins=xp.asarray(LN_BINS))
         out["hist"] = to_host(hist).astype(np.int64)
-        out["zeros"] = int(span.size - pos.size)
+        out["zeros"] = int(n - pos.size)
     return out
 
 
@@ -289,11 +330,13 @@ def _hist_quantile(hist: np.ndarray, q: float) -> float:
 
 def reduce(parts: list[dict], p: PCDMParams, prep: dict) -> dict:
     """Scene-wide T_SPAN from the tiles' statistics."""
-    lo = min(d["min"] for d in parts)
-    hi = max(d["max"] for d in parts)
+    los = [d["min"] for d in parts if d["min"] is not None]
+    his = [d["max"] for d in parts if d["max"] is not None]
+    lo = min(los) if los else None  # None: no tested pixel in the scene
+    hi = max(his) if his else None
     out = {"span_min": lo, "span_max": hi}
     if p.span_rule == "fraction":
-        out["t_span"] = p.span_fraction * (hi - lo)
+        out["t_span"] = p.span_fraction * (hi - lo) if los else 0.0
     else:
         hist = np.sum([d["hist"] for d in parts], axis=0)
         if hist.sum() == 0:
@@ -312,7 +355,8 @@ def reduce(parts: list[dict], p: PCDMParams, prep: dict) -> dict:
 
 
 def detect(block, halo_px, origin, p: PCDMParams, prep: dict):
-    """Threshold SPAN_P (scene-wide T_SPAN from the first pass) and PSH."""
+    """Threshold SPAN_P (scene-wide T_SPAN from the first pass) and PSH; untested pixels
+    (NaN from :func:`span_psh`: absent data nearby) are never detected (stat 0)."""
     if "t_span" not in prep:
         raise ValueError("pcdm needs the scene-wide T_SPAN (run its scene pass first)")
     span, psh = span_psh(block, halo_px, origin, p)
@@ -327,8 +371,9 @@ def detect(block, halo_px, origin, p: PCDMParams, prep: dict):
         mask = m_span | (psh > p.psh_threshold)
     else:
         mask = m_span
-    stat = (span / t if t > 0 else xp.where(span > 0, xp.inf, 0.0)).astype(xp.float32)
-    return mask, stat
+    with np.errstate(invalid="ignore"):
+        stat = xp.where(xp.isnan(span), 0.0, span / t if t > 0 else xp.where(span > 0, xp.inf, 0.0))
+    return mask, stat.astype(xp.float32)
 
 
 SPEC = DetectorSpec(

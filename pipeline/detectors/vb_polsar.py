@@ -216,6 +216,16 @@ was shared with another job then, so whole-run times were not re-measured); work
 
 ``stat`` = the final log-odds lambda of the pixel (>= the threshold L = ln((1-alpha0)/alpha0)
 where detected; ``threshold`` and ``calibration`` are in the run's scene-pass values).
+
+Absent pixels (no data; the appendix assumes a complete image). A pixel whose channels are
+not all finite (NaN) or are all exactly 0 (no signal: a zero-filled border, a declared
+no-data value of 0) is absent (:mod:`sarship.pipeline.polsar_absent`). It is left out of both
+scene-wide samples (so ``t_init``, the mixture and the calibration tail are those of the
+pixels with data: a zero border would otherwise add a cluster of vectors at the origin to the
+clutter mixture, and one NaN makes every quantile NaN) and gets decision 0 and stat -inf in
+pass 2 (zeroed before the per-pixel kernels, then overwritten). Pixels are independent given
+the global factors (halo 0), so no per-pixel count is needed: a pixel with data next to an
+absent region is processed exactly as anywhere else.
 """
 
 from __future__ import annotations
@@ -230,6 +240,7 @@ from scipy import optimize, special, stats
 
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
 from sarship.pipeline.gpu import is_device_array
+from sarship.pipeline.polsar_absent import present, zero_absent
 
 LN2PI = math.log(2.0 * math.pi)
 
@@ -693,27 +704,36 @@ def _grid(n0: int, n: int, s: int) -> np.ndarray:
     return np.arange(first, n, s)
 
 
-def _grid_values(core, r0: int, c0: int, s: int):
+def _grid_values(core, r0: int, c0: int, s: int, ok=None):
+    """The grid pixels' channels ``(n, p)`` and global (row, col) ``(n, 2)``; absent pixels
+    (``ok`` False) are left out."""
     ri = _grid(r0, core.shape[0], s)
     ci = _grid(c0, core.shape[1], s)
     rr, cc = np.meshgrid(ri + r0, ci + c0, indexing="ij")
-    return core[np.ix_(ri, ci)], np.stack([rr.ravel(), cc.ravel()], 1)
+    v = core[np.ix_(ri, ci)].reshape(-1, core.shape[2])
+    rc = np.stack([rr.ravel(), cc.ravel()], 1)
+    if ok is not None:
+        keep = ok[np.ix_(ri, ci)].ravel()
+        v, rc = v[keep], rc[keep]
+    return v, rc
 
 
 def scene_pass(block, halo_px, origin, p: VBPolSARParams, prep: dict) -> dict:
     """The tile's share of the scene-wide samples (global grids): the VB sample (d, on the
     ``sample_stride`` grid) and the calibration sample (the channels, on the
-    ``calibration_stride`` grid; only with the tail calibration)."""
+    ``calibration_stride`` grid; only with the tail calibration). Absent pixels
+    (:func:`~sarship.pipeline.polsar_absent.present`) are in neither sample."""
     x = np.asarray(block)
     if x.ndim != 3 or x.shape[2] not in (2, 3):
         raise ValueError("vb_polsar needs a (rows, cols, 2 or 3) block of complex channels")
     hp = int(halo_px)
     core = x[hp: x.shape[0] - hp, hp: x.shape[1] - hp]
     r0, c0 = origin[0] + hp, origin[1] + hp
-    sub, rc = _grid_values(core, r0, c0, p.sample_stride)
+    ok = present(core)
+    sub, rc = _grid_values(core, r0, c0, p.sample_stride, ok)
     out = {"rc": rc.astype(np.int64), "d": pauli_vectors(sub).reshape(-1, 2 * x.shape[2])}
     if _tail_calibrated(p):
-        sub, rc = _grid_values(core, r0, c0, p.calibration_stride)
+        sub, rc = _grid_values(core, r0, c0, p.calibration_stride, ok)
         out["cal_rc"] = rc.astype(np.int32)
         out["cal"] = np.ascontiguousarray(sub.reshape(-1, x.shape[2]))
     return out
@@ -735,7 +755,7 @@ def reduce(parts: list[dict], p: VBPolSARParams, prep: dict) -> dict:
     then the decision threshold (alpha0) from the calibration sample's log-odds tail."""
     d = _sorted(parts, "rc", "d")
     if len(d) < 2 * p.components:
-        raise ValueError(f"vb_polsar: {len(d)} sampled pixels are too few; lower sample_stride")
+        raise ValueError(f"vb_polsar: {len(d)} sampled pixels (with data) are too few; lower sample_stride")
     span = (d ** 2).sum(1)
     res = vb_sample(d, span, p)
     mix = res.pop("mix")
@@ -766,7 +786,9 @@ def detect(block, halo_px, origin, p: VBPolSARParams, prep: dict):
     """Per-pixel VB updates with the scene-wide mixture; A-27 decision.
 
     A CuPy ``block`` runs the same updates on its GPU (:func:`sarship.pipeline.gpu.polsar.vb_pixels`;
-    the scene pass, a grid sample, stays on the host) and returns CuPy arrays.
+    the scene pass, a grid sample, stays on the host) and returns CuPy arrays. Absent pixels
+    (:func:`~sarship.pipeline.polsar_absent.present`) are zeroed for the kernels and then
+    set to mask 0, stat -inf, on both paths.
     """
     if "mixture" not in prep:
         raise ValueError("vb_polsar needs the scene-wide mixture (run its scene pass first)")
@@ -780,18 +802,25 @@ def detect(block, halo_px, origin, p: VBPolSARParams, prep: dict):
     terms = mixture_terms(prep["mixture"])
     if terms["m"].shape[1] != 2 * x.shape[2]:
         raise ValueError("vb_polsar: the mixture's dimension does not match the block's channels")
+    ok = present(core)
+    complete = bool(ok.all())
+    core = zero_absent(core, ok)
     if is_device_array(core):  # CuPy block: the same per-pixel updates on its GPU
         from sarship.pipeline.gpu.polsar import vb_pixels
 
-        return vb_pixels(core, terms["c"], terms["P"], terms["m"], terms["g1"], float(prep["t_init"]),
-                         float(prep["alpha0"]), float(prep["beta0"]), int(p.max_iter), float(p.tol),
-                         p.coupling == "joint")
-    h, w = core.shape[:2]
-    mask = np.zeros((h, w), np.bool_)
-    stat = np.zeros((h, w), np.float32)
-    _pixels(core, terms["c"], np.ascontiguousarray(terms["P"]), terms["m"], terms["g1"],
-            float(prep["t_init"]), float(prep["alpha0"]), float(prep["beta0"]), int(p.max_iter),
-            float(p.tol), p.coupling == "joint", mask, stat)
+        mask, stat = vb_pixels(core, terms["c"], terms["P"], terms["m"], terms["g1"], float(prep["t_init"]),
+                               float(prep["alpha0"]), float(prep["beta0"]), int(p.max_iter), float(p.tol),
+                               p.coupling == "joint")
+    else:
+        h, w = core.shape[:2]
+        mask = np.zeros((h, w), np.bool_)
+        stat = np.zeros((h, w), np.float32)
+        _pixels(np.ascontiguousarray(core), terms["c"], np.ascontiguousarray(terms["P"]), terms["m"], terms["g1"],
+                float(prep["t_init"]), float(prep["alpha0"]), float(prep["beta0"]), int(p.max_iter),
+                float(p.tol), p.coupling == "joint", mask, stat)
+    if not complete:  # absent pixels: never ships (log-odds -inf, as ship_log_odds' never-ships)
+        mask &= ok
+        stat[~ok] = -np.inf
     return mask, stat
 
 

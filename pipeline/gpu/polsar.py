@@ -38,9 +38,19 @@ def _planes(cp, block, scale1: float):
     return planes
 
 
-def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float, thr: float):
-    """Adaptive PWF (see :mod:`sarship.pipeline.detectors.apwf`): y = N X^H S^-1 X > T."""
+def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float, thr: float,
+         pfa: float | None = None, kmin: int | None = None):
+    """Adaptive PWF (see :mod:`sarship.pipeline.detectors.apwf`): y = K X^H S^-1 X > T(K).
+
+    Absent pixels (:func:`sarship.pipeline.polsar_absent.present`) are zeroed before the
+    products and counted out with the same box sums as the CPU (K, exact integers); the
+    per-pixel thresholds come from :func:`sarship.pipeline.detectors.apwf.threshold_map`
+    (host SciPy for the tile's distinct partial counts, as on the CPU). ``pfa`` and ``kmin``
+    are needed only when the tile has absent pixels (``kmin`` default: ``min_valid``)."""
     import cupy as cp
+
+    from sarship.pipeline.detectors.apwf import min_valid, threshold_map
+    from sarship.pipeline.polsar_absent import present, zero_absent
 
     block = _complex_block(cp, block)
     cov = block.ndim == 4
@@ -51,30 +61,54 @@ def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float,
     off = halo - r
     sub = block[off: off + h + 2 * r, off: off + w + 2 * r]
     o = (int(origin[0]) + off, int(origin[1]) + off)
+    ok = present(sub)
+    complete = bool(ok.all())
+    sub = zero_absent(sub, ok)
     prods = _planes(cp, cp.ascontiguousarray(sub), 1.0)
     S = cp.empty((p * p, h, w), cp.float64)
     for q in range(p * p):
         S[q] = centered_box_sum(prods[q], b, r, o)
         if ring:
             S[q] -= centered_box_sum(prods[q], g, r, o)
-    core = cp.ascontiguousarray(block[halo: halo + h, halo: halo + w])
+    if complete:
+        K = cp.full((h, w), float(n_samples))
+    else:
+        v = ok.astype(cp.float64)
+        K = centered_box_sum(v, b, r, o)
+        if ring:
+            K -= centered_box_sum(v, g, r, o)
+    okc = ok[r: r + h, r: r + w]
+    if kmin is None:
+        kmin = min_valid(int(n_samples), p)
+    if pfa is None and not complete:
+        raise ValueError("apwf on a tile with absent pixels needs pfa (per-pixel thresholds)")
+    T = threshold_map(K, okc & (K >= kmin), pfa if pfa is not None else 0.5, p,
+                      "ring" if ring else "window", float(n_samples), float(thr))
+    core = cp.ascontiguousarray(sub[r: r + h, r: r + w])
     Cp = cp.ascontiguousarray(prods[:, r: r + h, r: r + w]) if cov else S  # core covariance planes
     mask = cp.empty((h, w), cp.bool_)
     stat = cp.empty((h, w), cp.float32)
     thr32 = np.float32(thr)
     above = np.nextafter(thr32, np.float32(np.inf))
     n = h * w
-    kernels.launch("apwf_decide", n, (S, np.int64(n), core.view(cp.float32), np.int64(w), np.int64(w), np.int32(p),
-                                      np.int32(1 if cov else 0), Cp, np.float64(n_samples), np.float64(thr),
-                                      np.float32(above), mask, stat))
+    kernels.launch("apwf_decide_valid", n, (S, np.int64(n), core.view(cp.float32), np.int64(w), np.int64(w),
+                                            np.int32(p), np.int32(1 if cov else 0), Cp, cp.ascontiguousarray(K),
+                                            cp.ascontiguousarray(T), np.float64(thr), np.float32(above), mask, stat))
     return mask, stat
 
 
 def pcdm_span_psh(block, halo_px: int, origin, looks_window: int):
-    """SPAN_P and PSH (float64, CuPy) of the core (see :func:`sarship.pipeline.detectors.pcdm.span_psh`)."""
+    """SPAN_P and PSH (float64, CuPy) of the core (see :func:`sarship.pipeline.detectors.pcdm.span_psh`;
+    NaN where not tested: absent data within the halo, found by the same box sums)."""
     import cupy as cp
 
+    from sarship.pipeline.detectors.pcdm import tested_count
+    from sarship.pipeline.polsar_absent import present, zero_absent
+
     block = _complex_block(cp, block)
+    ok = present(block)
+    complete = bool(ok.all())
+    block = cp.ascontiguousarray(zero_absent(block, ok))
     p = block.shape[2]
     r = looks_window // 2
     planes = _planes(cp, block, 1.0 if block.ndim == 4 else math.sqrt(2.0) if p == 3 else 1.0)
@@ -89,6 +123,10 @@ def pcdm_span_psh(block, halo_px: int, origin, looks_window: int):
     psh = cp.empty((h, w), cp.float64)
     kernels.launch("pcdm_kernel", h * w, (C, np.int64(w + 2), np.int64((h + 2) * (w + 2)), np.int64(h),
                                           np.int64(w), np.int32(p), span, psh))
+    if not complete:
+        untested = tested_count(ok, looks_window, halo_px, origin) < (looks_window + 2) ** 2
+        span[untested] = cp.nan
+        psh[untested] = cp.nan
     return span, psh
 
 
