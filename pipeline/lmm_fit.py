@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit
 from scipy import special
 
-__all__ = ["em_fit_points", "fit_threshold", "init_z_table", "mixture_grad_hess", "mixture_loglik", "mixture_sf_log",
+__all__ = ["censored_grad_hess", "censored_loglik", "em_fit_points", "fit_threshold", "init_z_table", "mixture_grad_hess", "mixture_loglik", "mixture_sf_log",
            "mixture_threshold_log", "ml_newton", "predictive_shift"]
 
 
@@ -105,8 +105,41 @@ def _component_terms(K, a, s):
     return ca, inv, np.empty(K), np.ones(K, np.bool_)
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _log_q(u):
+    """ln Q(u), Q = 1 - Phi, accurate in both tails (asymptotic series beyond u = 30)."""
+    if u < 30.0:
+        return math.log(0.5 * math.erfc(u * 0.7071067811865476))
+    iu2 = 1.0 / (u * u)
+    return -0.5 * u * u - math.log(u) - _LOG_SQRT_2PI + math.log(1.0 - iu2 + 3.0 * iu2 * iu2)
+
+
 @njit(nogil=True, cache=True)
-def em_fit_points(y, wt, n_pts, K, init_z, max_iter, tol, a, mu, s):
+def _censored_estep(c, nc, K, a, mu, s, live, lt, sg, sgd, sgdd):
+    """E-step of the censored weight nc (y > c) into the shifted sums; returns nc ln S(c)."""
+    mx = -np.inf
+    for k in range(K):
+        if live[k]:
+            lt[k] = math.log(a[k]) + _log_q((c - mu[k]) / s[k])
+            mx = max(mx, lt[k])
+    tot = 0.0
+    for k in range(K):
+        if live[k]:
+            lt[k] = math.exp(lt[k] - mx)
+            tot += lt[k]
+    for k in range(K):
+        if live[k]:
+            al = (c - mu[k]) / s[k]
+            lam = math.exp(-0.5 * al * al - _LOG_SQRT_2PI - _log_q(al))  # phi / Q
+            g = nc * lt[k] / tot
+            sg[k] += g
+            sgd[k] += g * s[k] * lam
+            sgdd[k] += g * s[k] * s[k] * (1.0 + al * lam)
+    return nc * (mx + math.log(tot))
+
+
+@njit(nogil=True, cache=True)
+def em_fit_points(y, wt, n_pts, K, init_z, max_iter, tol, a, mu, s, c=np.inf, nc=0.0):
     """EM (eq 3-4) on weighted points; returns the iteration count (docs/algorithms/lmm.md, "EM").
 
     Each iteration: E-step with the current parameters (responsibilities g_jk, log-sum-exp
@@ -114,8 +147,18 @@ def em_fit_points(y, wt, n_pts, K, init_z, max_iter, tol, a, mu, s):
     M-step mu = sum g y / sum g, s^2 = sum g y^2 / sum g - mu^2 computed about the
     *previous* mean (shifted sums, no cancellation), a = sum g / W. Stops when the mean
     log-likelihood (of the parameters entering the iteration) changes by < tol.
+
+    Right-censored weight ``nc > 0`` (samples known only to exceed ``c``; docs/algorithms/lmm.md,
+    "Censored ring fit"): the E-step of a censored sample (Dempster, Laird & Rubin 1977, sec
+    4.2; Lee & Scott 2012) gives component k the responsibility ``a_k Q(al_k) / S(c)``,
+    ``al_k = (c - mu_k)/s_k``, and the truncated-normal moments
+    ``E[y - mu_k | y > c] = s_k lam_k``, ``E[(y - mu_k)^2 | y > c] = s_k^2 (1 + al_k lam_k)``
+    (``lam = phi/Q``, the inverse Mills ratio); W includes nc and the log-likelihood gains
+    ``nc ln S(c)``. ``nc = 0``: the uncensored EM, bit for bit.
     """
     W, m, v = _moments(y, wt, n_pts)
+    Wp = W
+    W = Wp + nc
     floor = 1e-4 * v + 1e-12
     sd = math.sqrt(v)
     mz2 = 0.0
@@ -161,7 +204,9 @@ def em_fit_points(y, wt, n_pts, K, init_z, max_iter, tol, a, mu, s):
                     sg[k] += g
                     sgd[k] += g * d
                     sgdd[k] += g * d * d
-        ll = ll / W - _LOG_SQRT_2PI
+        ll = ll / Wp - _LOG_SQRT_2PI
+        if nc > 0.0:
+            ll = (ll * Wp + _censored_estep(c, nc, K, a, mu, s, live, lt, sg, sgd, sgdd)) / W
         for k in range(K):
             if live[k]:
                 if sg[k] < 1e-9 * W:
@@ -342,6 +387,80 @@ def mixture_grad_hess(y, wt, n_pts, K, a, mu, s, G, H):
 
 
 @njit(nogil=True, cache=True)
+def censored_loglik(K, a, mu, s, c, nc):
+    """The censored samples' term ``nc ln S(c)`` of the log-likelihood (0 if nc = 0)."""
+    if not (nc > 0.0):
+        return 0.0
+    mx = -np.inf
+    lq = np.empty(K)
+    for k in range(K):
+        lq[k] = math.log(a[k]) + _log_q((c - mu[k]) / s[k])
+        mx = max(mx, lq[k])
+    tot = 0.0
+    for k in range(K):
+        tot += math.exp(lq[k] - mx)
+    return nc * (mx + math.log(tot))
+
+
+@njit(nogil=True, cache=True)
+def censored_grad_hess(K, a, mu, s, c, nc, G, H):
+    """Adds the gradient and Hessian (in theta, as :func:`mixture_grad_hess`) of the censored
+    term ``nc ln S(c)``, ``S = sum_k a_k Q(u_k)``, ``u_k = (c - mu_k)/s_k``, to ``G`` and ``H``
+    (all of H, both triangles); returns the term. With ``phi_k = phi(u_k)``:
+    ``dS/d eta_m = a_m (Q_m - S)``, ``dS/d mu_k = a_k phi_k / s_k``, ``dS/d lambda_k = a_k phi_k u_k``;
+    ``d2S/d eta_m d eta_n = a_m ([m = n] - a_n)(Q_m - S) - a_m a_n (Q_n - S)``,
+    ``d2S/d eta_m d mu_k = a_m ([m = k] - a_k) phi_k / s_k`` (lambda_k: ``... phi_k u_k``),
+    ``d2S/d mu_k^2 = a_k u_k phi_k / s_k^2``, ``d2S/d mu_k d lambda_k = a_k phi_k (u_k^2 - 1) / s_k``,
+    ``d2S/d lambda_k^2 = a_k phi_k u_k (u_k^2 - 1)``; then
+    ``Hess ln S = Hess S / S - grad S grad S^T / S^2``. S, Q and phi are scaled by exp(-max_k
+    ln(a_k Q_k)) (ratios only), so the far tail does not underflow."""
+    if not (nc > 0.0):
+        return 0.0
+    p = 3 * K - 1
+    lq = np.empty(K)
+    mx = -np.inf
+    for k in range(K):
+        lq[k] = math.log(a[k]) + _log_q((c - mu[k]) / s[k])
+        mx = max(mx, lq[k])
+    Q = np.empty(K)   # Q_k / scale
+    ph = np.empty(K)  # phi_k / scale
+    u = np.empty(K)
+    S = 0.0
+    for k in range(K):
+        u[k] = (c - mu[k]) / s[k]
+        Q[k] = math.exp(lq[k] - mx) / a[k]
+        ph[k] = math.exp(-0.5 * u[k] * u[k] - _LOG_SQRT_2PI - mx)
+        S += a[k] * Q[k]
+    dS = np.zeros(p)
+    HS = np.zeros((p, p))
+    for k in range(K):
+        im = K - 1 + k
+        il = 2 * K - 1 + k
+        if k < K - 1:
+            dS[k] = a[k] * (Q[k] - S)
+        dS[im] = a[k] * ph[k] / s[k]
+        dS[il] = a[k] * ph[k] * u[k]
+        HS[im, im] = a[k] * u[k] * ph[k] / (s[k] * s[k])
+        HS[im, il] = a[k] * ph[k] * (u[k] * u[k] - 1.0) / s[k]
+        HS[il, im] = HS[im, il]
+        HS[il, il] = a[k] * ph[k] * u[k] * (u[k] * u[k] - 1.0)
+        for m in range(K - 1):
+            dk = (1.0 if m == k else 0.0) - a[k]
+            HS[m, im] = a[m] * dk * ph[k] / s[k]
+            HS[im, m] = HS[m, im]
+            HS[m, il] = a[m] * dk * ph[k] * u[k]
+            HS[il, m] = HS[m, il]
+    for m in range(K - 1):
+        for n in range(K - 1):
+            HS[m, n] = a[m] * ((1.0 if m == n else 0.0) - a[n]) * (Q[m] - S) - a[m] * a[n] * (Q[n] - S)
+    for q in range(p):
+        G[q] += nc * dS[q] / S
+        for r in range(p):
+            H[q, r] += nc * (HS[q, r] / S - dS[q] * dS[r] / (S * S))
+    return nc * (mx + math.log(S))
+
+
+@njit(nogil=True, cache=True)
 def _chol_solve(A, b, p, x, L):
     """x = A^-1 b for symmetric positive definite A (p x p) by Cholesky (L: work).
     Returns False, leaving x undefined, if A is not numerically positive definite."""
@@ -394,7 +513,7 @@ def _from_theta(K, th, a, mu, s):
 
 
 @njit(nogil=True, cache=True)
-def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps):
+def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps, c=np.inf, nc=0.0):
     """Maximum likelihood from the start (a, mu, s) (all a_k > 0): damped Newton
     (Levenberg-Marquardt) on theta (see :func:`mixture_grad_hess`). A step is the Newton
     step when the observed information ``A = -Hess`` is positive definite, else (or if it
@@ -402,7 +521,8 @@ def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps):
     x10 until it does. Converged when the Newton decrement ``grad^T A^-1 grad`` (~ twice
     the log-likelihood still to gain) is below 1e-12. (a, mu, s) are updated in place and
     ``A`` (p x p) holds the observed information at them. Returns (steps, converged,
-    log-likelihood)."""
+    log-likelihood). ``nc > 0``: the censored likelihood, plus ``nc ln S(c)``
+    (:func:`censored_grad_hess`)."""
     p = 3 * K - 1
     th = np.empty(p)
     for k in range(K - 1):
@@ -423,6 +543,8 @@ def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps):
     steps = 0
     ok = False
     ll = mixture_grad_hess(y, wt, n_pts, K, a, mu, s, G, H)
+    if nc > 0.0:
+        ll += censored_grad_hess(K, a, mu, s, c, nc, G, H)
     while True:
         for q in range(p):
             for r in range(p):
@@ -455,6 +577,8 @@ def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps):
             lln = -np.inf
             if _from_theta(K, tn, at, mt, st):
                 lln = mixture_loglik(y, wt, n_pts, K, at, mt, st)
+                if nc > 0.0:
+                    lln += censored_loglik(K, at, mt, st, c, nc)
             if lln >= ll - 1e-13 * abs(ll):
                 accepted = True
                 break
@@ -466,6 +590,8 @@ def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps):
         _from_theta(K, th, a, mu, s)
         lam = lam * 0.01 if lam > 1e-8 else 0.0
         ll = mixture_grad_hess(y, wt, n_pts, K, a, mu, s, G, H)
+        if nc > 0.0:
+            ll += censored_grad_hess(K, a, mu, s, c, nc, G, H)
     return steps, ok, ll
 
 
@@ -513,7 +639,7 @@ def _resolved(K, s, res):
 
 @njit(nogil=True, cache=True)
 def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                  a, mu, s):
+                  a, mu, s, cens=0.0, cens_q=0.0):
     """The threshold t = ln T for one ring (weighted points y, wt); returns (t, work, K').
 
     1. EM (:func:`em_fit_points`) for K' = 1..K (``select``), or K' = K only; components
@@ -531,7 +657,79 @@ def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predict
        too: the thesis' EM + eq 3-5, the earlier behaviour bit for bit).
     ``init_zs[K' - 1, :K']``: the initial normal quantiles per K'. (a, mu, s) receive the
     chosen fit (first K' entries). ``work``: EM iterations (all K') + Newton steps.
+
+    ``cens > 0`` (``y`` must then be in ascending order): contamination-robust fit by
+    right-censoring in two passes (docs/algorithms/lmm.md, "Censored ring fit"). Pass 1: the
+    brightest points, at most ``floor(cens * n)`` of the weight and never part of a run of
+    equal values, are censored at ``c1`` = the largest kept point (+ half a bin,
+    ``sqrt(3 shep)``, for a histogram) and the censored fit gives the clutter level ``c2``
+    with ``S(c2) = q`` (``q = cens_q``, or 1/n if 0; predictive, like the threshold).
+    Pass 2: only the points above ``max(c2, c1)`` are censored and the threshold is the
+    fitted clutter mixture's own tail, ``S(t) = PFA``. Every fit uses the censored likelihood
+    ``sum_kept wt ln f(y) + n_c ln S(c)`` (EM, BIC, ML, information, predictive shift; type-I
+    censoring, Cohen 1959; EM: Dempster, Laird & Rubin 1977 sec 4.2). ``cens = 0``: bit for
+    bit the uncensored fit.
     """
+    if not (cens > 0.0):
+        return _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s,
+                         np.inf, 0.0)
+    hb = math.sqrt(3.0 * shep)  # half a bin (0 for raw samples)
+    Wall = 0.0
+    for j in range(n_pts):
+        Wall += wt[j]
+    # pass 1: the brightest points, at most floor(cens W) of the weight, censored
+    nc = 0.0
+    lim = math.floor(cens * Wall)
+    j = n_pts - 1
+    while j > 0 and nc + wt[j] <= lim:
+        nc += wt[j]
+        j -= 1
+    n1 = j + 1
+    while n1 < n_pts and not (y[n1] > y[n1 - 1]):  # keep runs of ties whole
+        nc -= wt[n1]
+        n1 += 1
+    if not (nc > 0.0):
+        return _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s,
+                         np.inf, 0.0)
+    q = cens_q if cens_q > 0.0 else 1.0 / Wall
+    c2, work, _ = _fit_core(y, wt, n1, K, init_zs, max_iter, tol, shep, select, predictive,
+                            _z_of(q), math.log(q), a, mu, s,
+                            y[n1 - 1] + hb, nc)
+    # pass 2: only the points above c2 (the pass-1 clutter fit's 1/W exceedance level) censored
+    n2 = n_pts
+    while n2 > n1 and y[n2 - 1] > c2:
+        n2 -= 1
+    nc = 0.0
+    for j in range(n2, n_pts):
+        nc += wt[j]
+    if not (nc > 0.0):
+        t, w2, m = _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+                             a, mu, s, np.inf, 0.0)
+    else:
+        t, w2, m = _fit_core(y, wt, n2, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+                             a, mu, s, y[n2 - 1] + hb, nc)
+    return t, work + w2, m
+
+
+@njit(nogil=True, cache=True)
+def _z_of(q):
+    """Phi^-1(1 - q) for 0 < q < 1/2: Newton on ln Q(z) = ln q (convex, from above: monotone)."""
+    lq = math.log(q)
+    z = math.sqrt(-2.0 * lq)  # above the root (Q(z) < exp(-z^2/2))
+    for _ in range(60):
+        g = _log_q(z) - lq
+        # d ln Q / dz = -phi/Q
+        d = -math.exp(-0.5 * z * z - _LOG_SQRT_2PI - _log_q(z))
+        zn = z - g / d
+        if abs(zn - z) <= 1e-13 * (1.0 + abs(z)):
+            return zn
+        z = zn
+    return z
+
+
+@njit(nogil=True, cache=True)
+def _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, cy, nc):
+    """:func:`fit_threshold` on the first ``n_pts`` points, weight ``nc`` right-censored at ``cy``."""
     Ka = np.zeros(K, np.int64)
     ca = np.zeros((K, K))
     cm = np.zeros((K, K))
@@ -547,11 +745,11 @@ def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predict
     res = 1.0001e-4 * vy + 1e-12
     if 4.0 / 3.0 * shep > res:
         res = 4.0 / 3.0 * shep
-    lnW = math.log(W)
+    lnW = math.log(W + nc)
     work = 0
     k0 = 1 if select else K
     for Kc in range(k0, K + 1):
-        work += em_fit_points(y, wt, n_pts, Kc, init_zs[Kc - 1, :Kc], max_iter, tol, ta, tm, ts)
+        work += em_fit_points(y, wt, n_pts, Kc, init_zs[Kc - 1, :Kc], max_iter, tol, ta, tm, ts, cy, nc)
         m = 0
         for k in range(Kc):
             if ta[k] > 0.0:
@@ -560,8 +758,10 @@ def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predict
                 cs[Kc - 1, m] = ts[k]
                 m += 1
         Ka[Kc - 1] = m
-        bic[Kc - 1] = -2.0 * mixture_loglik(y, wt, n_pts, m, ca[Kc - 1], cm[Kc - 1], cs[Kc - 1]) \
-            + (3 * m - 1) * lnW
+        ll = mixture_loglik(y, wt, n_pts, m, ca[Kc - 1], cm[Kc - 1], cs[Kc - 1])
+        if nc > 0.0:
+            ll += censored_loglik(m, ca[Kc - 1], cm[Kc - 1], cs[Kc - 1], cy, nc)
+        bic[Kc - 1] = -2.0 * ll + (3 * m - 1) * lnW
     order = np.argsort(bic, kind="mergesort")  # stable: on a tie the smaller K' first
     jac = np.empty(K)
     if predictive:
@@ -575,7 +775,7 @@ def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predict
             if not _resolved(m, s, res):
                 continue
             A = np.empty((3 * m - 1, 3 * m - 1))
-            st, ok, _ = ml_newton(y, wt, n_pts, m, a, mu, s, A, 30)
+            st, ok, _ = ml_newton(y, wt, n_pts, m, a, mu, s, A, 30, cy, nc)
             work += st
             if not (ok and _resolved(m, s, res)):
                 continue

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from concurrent.futures import ThreadPoolExecutor
@@ -343,13 +344,8 @@ def test_exact_matches_bruteforce_pixel():
 def test_fast_agrees_with_exact():
     """Stated tolerance: <= 0.1 % of pixels differ and detections (components) match to 1 each."""
     from scipy import ndimage
-    rng = np.random.default_rng(13)
-    x = _scene(rng, 96, 8)
-    p = dict(guard=7, background=17, pfa=1e-3)
-    halo = 8
-    pad = mirror_pad(x, halo)
-    me, se = detect(pad, halo, (-halo, -halo), LMMParams(method="exact", **p), prepare(LMMParams(method="exact", **p)))
-    mf, sf = detect(pad, halo, (-halo, -halo), LMMParams(method="fast", **p), prepare(LMMParams(method="fast", **p)))
+    x, mf, sf = _agreement_fast()
+    me, se = _run(x, method="exact", **AGREEMENT)
     assert me.sum() > 40
     assert np.mean(me != mf) <= 1e-3, (me.sum(), mf.sum(), (me != mf).sum())
     ne, nf = ndimage.label(me)[1], ndimage.label(mf)[1]
@@ -364,6 +360,21 @@ def _run(x, **kw):
     return detect(mirror_pad(x, h), h, (-h, -h), p, prepare(p))
 
 
+#: the agreement scene's windows (small windows, dense ships: the hard case for fast / grid)
+AGREEMENT = dict(guard=7, background=17, pfa=1e-3)
+
+
+@functools.lru_cache(maxsize=None)
+def _agreement_fast():
+    """The agreement scene (96 x 96, 8 ships) and its fast-form (mask, stat): the reference of
+    three agreement tests, computed once per session (read-only arrays)."""
+    x = _scene(np.random.default_rng(13), 96, 8)
+    m, s = _run(x, method="fast", **AGREEMENT)
+    for v in (x, m, s):
+        v.flags.writeable = False
+    return x, m, s
+
+
 def test_grid_agrees_with_fast():
     """grid_step 1 is the fast form bit for bit; with refinement the grid mask is the fast
     mask restricted to the screened candidates (same stat there); on the agreement scene
@@ -372,10 +383,8 @@ def test_grid_agrees_with_fast():
     detections within 1); pure interpolation (grid_refine 0) is not, and is only required
     to be close."""
     from scipy import ndimage
-    rng = np.random.default_rng(13)
-    x = _scene(rng, 96, 8)
-    p = dict(guard=7, background=17, pfa=1e-3)
-    mf, sf = _run(x, method="fast", **p)
+    x, mf, sf = _agreement_fast()
+    p = AGREEMENT
     m1, s1 = _run(x, method="grid", grid_step=1, **p)
     np.testing.assert_array_equal(m1, mf)
     assert np.array_equal(s1.view(np.uint32), sf.view(np.uint32))
@@ -564,7 +573,8 @@ def test_default_false_alarm_count(name):
 def test_tiled_equals_untiled_dask(tmp_path, client):
     from sarship.workers.jobs import run_detection
 
-    x = blobs_scene((301, 257), looks=2.0, seed=1)
+    # 160 x 141: ragged 64-px tiles at both edges, 13-px tiles narrower than the halo (23)
+    x = blobs_scene((160, 141), looks=2.0, seed=1, n=8)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=2.0)
     # the grid form: its per-pixel maths depends on the global origin (node positions) and
     # its halo comes from SPEC.halo_fn, so this is the stricter check of the tiled pipeline
@@ -616,11 +626,8 @@ def test_default_grid_meets_the_agreement_rule():
     tolerance of the fast form on both test scenes: the small-window dense-ship scene
     (guard 7 -> step 1: the fast form itself) and default windows with ships (step 5)."""
     from scipy import ndimage
-    rng = np.random.default_rng(13)
-    x = _scene(rng, 96, 8)
-    p = dict(guard=7, background=17, pfa=1e-3)
-    mf, _ = _run(x, method="fast", **p)
-    md, _ = _run(x, **p)
+    x, mf, _ = _agreement_fast()
+    md, _ = _run(x, **AGREEMENT)
     np.testing.assert_array_equal(md, mf)
     rng = np.random.default_rng(21)
     n = 120

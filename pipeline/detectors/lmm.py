@@ -17,6 +17,11 @@ and background squares (thesis fig 3.1):
   log domain, raised by the first-order predictive correction for the fit's finite-sample
   error (``tail="predictive"``); ``select="fixed", tail="plugin"`` is the thesis' plug-in
   EM threshold (eq 3-4..3-7 as written);
+- contamination (``censor > 0``, opt-in): the ring's brightest samples are right-censored
+  in two passes and every fit uses the censored likelihood ``sum ln f(y_kept) + n_c ln S(c)``
+  (censored CFAR, Rickard & Dillard 1977; censored EM, Dempster, Laird & Rubin 1977 sec 4.2),
+  so a ship's own pixels in the ring do not shape the clutter tail (docs/algorithms/lmm.md,
+  "Censored ring fit"; a CuPy block is then decided by the CPU kernels);
 - decision: ``ln x_t > t`` with x_t the mean of the target window; ``stat = x_t / T``
   (float32, > 1 where detected, 0 elsewhere).
 
@@ -56,6 +61,8 @@ __all__ = ["LMMParams", "SPEC", "prepare", "detect", "em_fit_points", "mixture_t
 LMM_NOTES = "see docs/algorithms/lmm.md (agreement, calibration) and bench/RESULTS.md (timings)"
 
 DEFAULT_METHOD = "grid"
+#: Default censored fraction of the ring (docs/algorithms/lmm.md, "Censored ring fit").
+DEFAULT_CENSOR = 0.0
 
 
 class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-5, guard=21, background=41,
@@ -84,6 +91,15 @@ class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-5, guard=21,
                       description="'predictive': ML fit (Newton-polished EM) and its threshold raised by the "
                                   "delta-method predictive correction (calibrated PFA); 'plugin': 1 - F(T) = PFA "
                                   "for the EM fit (thesis eq 3-5)")
+    censor: float = Field(DEFAULT_CENSOR, ge=0.0, le=0.5,
+                          description="fraction of each ring's brightest usable samples right-censored in the "
+                                      "fit (censored likelihood; the threshold is the fitted clutter tail), "
+                                      "so that a ship's own pixels in the ring do not enter the clutter model; "
+                                      "0: the uncensored fit")
+    censor_level: float = Field(0.0, ge=0.0, le=0.2,
+                                description="with censor > 0, pass 2 censors only the ring samples above the "
+                                            "pass-1 clutter fit's exceedance level censor_level (0: 1/n, n "
+                                            "the ring's usable samples)")
 
 
 def grid_step(p: LMMParams) -> int:
@@ -102,6 +118,8 @@ def prepare(p: LMMParams) -> dict:
         "init_z": [float(special.ndtri((k + 0.5) / K)) for k in range(K)],
         "select": p.select,
         "tail": p.tail,
+        "censor": float(p.censor),
+        "censor_level": float(p.censor_level),
         "max_iter": int(p.max_iter),
         "tol": float(p.tol),
         "bin_width": float(p.bin_width),
@@ -114,16 +132,16 @@ def prepare(p: LMMParams) -> dict:
 
 # ---------------------------------------------------------------------------------------
 # kernels: per tile, one fit per pixel (exact, fast) or per global node and candidate (grid).
-# ``fit`` = (K, init_zs, max_iter, tol, select, predictive, z, log_pfa): the settings of
+# ``fit`` = (K, init_zs, max_iter, tol, select, predictive, z, log_pfa, censor, censor_level): the settings of
 # :func:`sarship.pipeline.lmm_fit.fit_threshold`, the same for every ring of a tile.
 
 
 @njit(nogil=True, cache=True)
 def _fit(y, wt, n_pts, shep, fit, a, mu, s):
     """``fit_threshold`` of the weighted points with the tile's settings: (t, work)."""
-    K, init_zs, max_iter, tol, select, predictive, z, log_pfa = fit
+    K, init_zs, max_iter, tol, select, predictive, z, log_pfa, cens, cens_q = fit
     t, work, _ = fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                               a, mu, s)
+                               a, mu, s, cens, cens_q)
     return t, work
 
 
@@ -187,6 +205,8 @@ def _exact_kernel(block, halo, h, w, rb, rg, rt, fit, nmin, mask, stat, iters):
                         n += 1
             if n < nmin:
                 continue
+            if fit[8] > 0.0:  # censoring takes the points in ascending order
+                buf[:n].sort()
             t, iters[i, j] = _fit(buf, ones, n, 0.0, fit, a, mu, s)
             _decide(lx, t, i, j, mask, stat)
 
@@ -402,6 +422,12 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
         block = block[d: block.shape[0] - d, d: block.shape[1] - d]
         origin = (int(origin[0]) + d, int(origin[1]) + d)
         halo = need
+    if gpu and float(prep.get("censor", params.censor)) > 0.0:
+        # the GPU twin has no censored fit yet: the CPU kernels decide, CuPy arrays returned
+        import cupy as cp
+
+        mask, stat = detect(cp.asnumpy(block), halo, origin, params, prep)
+        return cp.asarray(mask), cp.asarray(stat)
     if gpu:  # CuPy block: the GPU twin (pipeline.gpu.lmm), one thread per ring fit
         from sarship.pipeline.gpu.lmm import detect as detect_gpu
 
@@ -413,7 +439,8 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
         block = np.ascontiguousarray(block)
         fit = (K, init_z_table(K), int(prep["max_iter"]), float(prep["tol"]),
                prep.get("select", params.select) == "bic", prep.get("tail", params.tail) == "predictive",
-               float(prep["z"]), float(prep["log_pfa"]))
+               float(prep["z"]), float(prep["log_pfa"]), float(prep.get("censor", params.censor)),
+               float(prep.get("censor_level", params.censor_level)))
         args = (block, halo, h, w, rb, rg, rt, fit, max(8, 3 * K))
         if prep["method"] == "exact":
             _exact_kernel(*args, mask, stat, iters)
