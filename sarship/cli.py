@@ -3,6 +3,10 @@
 Every command: ``--help``; exit 0 on success; exit 2 with one line on stderr naming the
 problem for bad input or arguments (no traceback; nothing partial left behind); long work
 shows progress on stderr. ``SARSHIP_DEBUG=1`` prints tracebacks of unexpected errors.
+
+The commands that write outputs (``simulate``, ``ingest``, ``detect``, ``demo``) end in
+order on SIGTERM as on Ctrl-C: the signal unwinds the command (``SystemExit(143)``), so that
+its temporary outputs (``.NAME.partial-*``, ``.sarship-partial-*``) are removed; exit 143.
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ import argparse
 import contextlib
 import json
 import os
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -359,7 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "\"pfa\": 1e-6}]' or a comma list of names (default: none, ingest only)")
     s.add_argument("--inbox-settle", type=float, metavar="SECONDS",
                    help="take a file once its size and mtime are unchanged this long (default 5), or at once "
-                        "when FILE.done exists")
+                        "when FILE.done exists and is not older than the file (the marker is removed then)")
     s.add_argument("--inbox-quarantine", metavar="FOLDER",
                    help="where files that fail to ingest go, with NAME.reason.txt (default DATA/quarantine)")
     s.set_defaults(func=cmd_serve)
@@ -394,9 +399,97 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Commands whose outputs are written aside and renamed into place: SIGTERM unwinds them.
+WRITERS = ("simulate", "ingest", "detect", "demo")
+
+
+def _exit_on_sigterm(command: str) -> None:
+    """SIGTERM raises ``SystemExit(143)`` in the main thread, so that ``finally`` blocks and
+    the atomic stores' clean-up run (the default action would end the process at once)."""
+    import signal
+
+    def stop(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends it at once
+        print(f"sarship {command}: terminated", file=sys.stderr)
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     a = parser.parse_args(argv)
+    if a.command in WRITERS:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            handler = signal.getsignal(signal.SIGTERM)
+            temps = _temporaries(a)
+            existing = {p for folder, pattern in temps for p in _glob(folder, pattern)}
+            _exit_on_sigterm(a.command)
+            try:
+                return _main(a)
+            except SystemExit as exc:
+                if exc.code == 128 + signal.SIGTERM:
+                    # writes still in flight when the signal unwound the command (Zarr's I/O
+                    # thread, a Dask task) may have re-created a temporary output after its
+                    # removal: let them end, then remove what this run left
+                    _drain_zarr()
+                    for folder, pattern in temps:
+                        for p in _glob(folder, pattern):
+                            if p not in existing:
+                                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+                raise
+            finally:  # (main called in-process, e.g. by tests: the caller's handler again)
+                signal.signal(signal.SIGTERM, handler)
+    return _main(a)
+
+
+def _temporaries(a) -> list[tuple[Path, str]]:
+    """Where a writing command's temporary outputs go: (folder, glob pattern) pairs."""
+    out = Path(a.out) if getattr(a, "out", None) else None
+    if out is None:
+        return []
+    if a.command in ("simulate", "ingest"):
+        return [(out.parent, f".{out.name}.partial-*")]
+    if a.command == "detect":
+        return [(out, ".sarship-partial-*")]
+    if a.command == "demo":
+        return [(out, ".scene.zarr.partial-*"), (out / "detect", ".sarship-partial-*")]
+    return []
+
+
+def _glob(folder: Path, pattern: str) -> list[Path]:
+    try:
+        return list(folder.glob(pattern)) if folder.is_dir() else []
+    except OSError:
+        return []
+
+
+def _drain_zarr(timeout: float = 10.0) -> None:
+    """Wait (at most ``timeout``) for the tasks still running on Zarr's I/O event loop."""
+    import asyncio
+
+    try:
+        from zarr.core import sync as zsync
+    except ImportError:
+        return
+    loop = (getattr(zsync, "loop", None) or [None])[0]
+    if loop is None or not loop.is_running():
+        return
+
+    async def drain() -> None:
+        me = asyncio.current_task()
+        tasks = [t for t in asyncio.all_tasks() if t is not me]
+        if tasks:
+            await asyncio.wait(tasks, timeout=timeout)
+
+    with contextlib.suppress(Exception):
+        asyncio.run_coroutine_threadsafe(drain(), loop).result(timeout + 5)
+
+
+def _main(a) -> int:
     # readers report problems themselves, as one line; keep libraries' log chatter off stderr
     import logging
 

@@ -412,8 +412,25 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         except Exception as exc:
             checks["scheduler"] = f"error: {exc}"
             n = 0
-        ok = checks.get("store") == "ok" and n > 0
+        checks["disk"] = disk_check(settings)
+        ok = checks.get("store") == "ok" and n > 0 and checks["disk"] == "ok"
         return JSONResponse({"status": "ok" if ok else "not ready", "checks": checks}, status_code=200 if ok else 503)
+
+    def disk_check(settings: Settings) -> str:
+        """"ok", or why the data folder cannot take more work: less free space than
+        ``min_free_mb`` (a full disk fails every ingest and job output)."""
+        import shutil
+
+        if not settings.min_free_mb:
+            return "ok"
+        try:
+            free = shutil.disk_usage(settings.data).free
+        except OSError as exc:
+            return f"error: data folder {settings.data}: {exc.strerror or exc}"
+        if free < settings.min_free_mb * 2**20:
+            return (f"data folder {settings.data} has {free / 2**20:.0f} MiB free, less than min_free_mb "
+                    f"({settings.min_free_mb:g} MiB)")
+        return "ok"
 
     @app.get("/dashboard", responses={307: {"description": "redirect to the Dask dashboard"}, **problems(404)})
     def dashboard(request: Request):

@@ -8,7 +8,9 @@ leader scans at once (catching up on what arrived while no one led), then on the
 asks. Every tick (at most a second apart) the leader also:
 
 1. re-checks the ``waiting`` files: a file is taken once its size and mtime have been the
-   same for ``SARSHIP_INBOX_SETTLE_S`` seconds, or at once when ``FILE.done`` exists;
+   same for ``SARSHIP_INBOX_SETTLE_S`` seconds, or at once when ``FILE.done`` exists and is not
+   older than the file (:func:`~sarship.service.inbox_files.marked_done`; a marker is
+   consumed, removed, when its file is taken, so it never marks the next file of that name);
 2. takes a complete file: streams it through SHA-256 (in this thread, never the event loop's;
    the lease is renewed between chunks), and records it as a pass whose scene key is the
    first 16 hex digits, the scheme of ``POST /scenes``: an ``ingest`` job is created in the
@@ -16,7 +18,10 @@ asks. Every tick (at most a second apart) the leader also:
 3. follows the ingest jobs (the runners of any API process run them): a success submits the
    configured detector jobs, created in the transaction that marks the pass ``submitted``; a
    failure caused by the file moves it to the quarantine folder with ``NAME.reason.txt``
-   beside it, and the loop goes on.
+   beside it, and the loop goes on. A fault of ours (the data folder full) is no failure: the
+   runner tries the ingest job again after a back-off, and the pass stays ``ingesting``.
+   ``POST /ingest/scan`` retries such jobs at once, and takes again the passes that ``failed``
+   for a reason not the file's (not those whose ingest job was dismissed).
 
 Ingested files are left where they are: the scene store holds the data from then on, the
 pass record (path, size, mtime, content hash) keeps the loop from taking them again, an inbox
@@ -34,11 +39,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from sarship.service.inbox_files import (Signature, list_passes, marker, move_into, quarantine_target, scene_key,
-                                 settled, sha256_of, signature, write_reason)
+from sarship.service.inbox_files import (Signature, list_passes, marked_done, marker, move_into, quarantine_target,
+                                         scene_key, settled, sha256_of, signature, write_reason)
 from sarship.service.inbox_store import InboxStore
 from sarship.service.settings import DEFAULT_INBOX_INTERVAL_S, Settings
-from sarship.service.store import JobStore, iso
+from sarship.service.store import INGEST, JobStore, iso
 
 log = logging.getLogger("sarship.inbox")
 
@@ -108,8 +113,11 @@ class Inbox:
                 log.exception("inbox: could not release the lease")
 
     def request_scan(self) -> None:
-        """A scan now, by whichever process leads (``POST /ingest/scan``)."""
+        """A scan now, by whichever process leads (``POST /ingest/scan``): ingest jobs waiting to
+        be retried (a full disk) may run at once, and passes that failed for a reason not the
+        file's are taken again."""
         self.db.request_scan()
+        self.store.retry_now(INGEST)
         self._wake.set()
 
     def _loop(self) -> None:
@@ -137,7 +145,7 @@ class Inbox:
         new_leader, self._leading, self._renewed = not self._leading, True, now
         st = self.db.state()
         if new_leader or st["scan_requested"] or st["next_scan"] is None or now >= st["next_scan"]:
-            self.scan(now)
+            self.scan(now, retry_failed=bool(st["scan_requested"]))
         self.follow_waiting()
         self.advance()
 
@@ -154,9 +162,10 @@ class Inbox:
 
     # ------------------------------------------------------------------ scanning
 
-    def scan(self, now: float) -> int:
-        """Record every new file (or new version of a file) in the inboxes as ``waiting``;
-        the number recorded."""
+    def scan(self, now: float, retry_failed: bool = False) -> int:
+        """Record every new file (or new version of a file) in the inboxes as ``waiting``
+        (with ``retry_failed``, a scan asked for: also the files whose pass failed for a
+        reason not the file's, unless its ingest job was dismissed); the number recorded."""
         self.db.scan_started(self.schedule.next_after(now))
         known = self.db.latest_by_path()
         skip = (self.settings.quarantine_dir.resolve(), self.settings.data.resolve())
@@ -176,7 +185,8 @@ class Inbox:
                 sig = signature(p)
                 if sig is None:
                     continue
-                if row is not None and row["status"] != "quarantined" and _sig(row) == sig:
+                if row is not None and row["status"] != "quarantined" and _sig(row) == sig and not (
+                        retry_failed and row["status"] == "failed" and "dismissed" not in row["reason"]):
                     continue  # this version was handled; a quarantined file put back is tried again
                 self.db.add_waiting(str(p), sig, now)
                 added += 1
@@ -194,7 +204,7 @@ class Inbox:
             if sig is None:
                 self.db.forget(row["id"])
                 continue
-            has_marker = marker(p).exists()
+            has_marker = marked_done(p, sig)
             if sig != _sig(row):
                 self.db.changed(row["id"], sig, now)
                 if not has_marker:
@@ -223,6 +233,11 @@ class Inbox:
         status = self.db.take(row["id"], sig, sha, key, ready, self.settings.inbox_detectors, inputs)
         if status is not None:
             log.info("inbox: %s -> %s (scene %s)", p, status, key)
+            if has_marker:  # consumed with its pass: it must not mark the next file of this name
+                try:
+                    marker(p).unlink(missing_ok=True)
+                except OSError as exc:  # (a read-only inbox: the mtime rule still holds)
+                    log.warning("inbox: cannot remove the marker of %s: %s", p, exc)
         if status == "ingesting":
             self.wake_runner()
 

@@ -109,6 +109,19 @@ def marker(p: Path) -> Path:
     return p.with_name(p.name + MARKER)
 
 
+def marked_done(p: Path, sig: Optional[Signature] = None) -> bool:
+    """Whether ``p``'s ``.done`` marker says it is complete: the marker exists and is not older
+    than the file's last modification (``sig.mtime_ns``; for a Zarr folder its newest file). A
+    marker older than its file was left by an earlier file of that name (or the file was
+    written to after it was marked): it says nothing about this one."""
+    try:
+        m = marker(p).stat().st_mtime_ns
+    except OSError:
+        return False
+    sig = sig if sig is not None else signature(p)
+    return sig is not None and m >= sig.mtime_ns
+
+
 def settled(stable_since: float, now: float, settle_s: float, has_marker: bool) -> bool:
     """Whether a file whose signature has been the same since ``stable_since`` may be taken:
     at once when its ``.done`` marker exists, else once it has been unchanged for ``settle_s``."""

@@ -10,6 +10,9 @@ progress and the outcome through a pipe:
 - a refused or unreadable file (the reader's :class:`InputError`, or the child running out of
   its memory cap) is :class:`IngestRefused`: the job fails with the reason and the inbox
   quarantines the file;
+- a fault of ours, not of the file (:func:`transient_fault`: the data folder full, ``ENOSPC``,
+  ``EDQUOT`` or ``EFBIG``, when the scene is written) is :class:`IngestTransient`: the job is
+  tried again later and the file is never quarantined for it;
 - anything else (the child killed by a signal, an unexpected error) is :class:`IngestCrashed`.
 
 Cancelling (the job dismissed) sends SIGTERM: the child's handler unwinds, so the scene
@@ -19,16 +22,42 @@ that does not end within 10 s is killed.
 
 from __future__ import annotations
 
+import errno
 import multiprocessing as mp
 import signal
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-__all__ = ["IngestCrashed", "IngestRefused", "ingest_in_child"]
+__all__ = ["IngestCrashed", "IngestRefused", "IngestTransient", "NO_SPACE", "ingest_in_child", "transient_fault"]
+
+#: errno values of a write that failed for want of space (EFBIG: a file-size limit, RLIMIT_FSIZE).
+NO_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+
+
+def transient_fault(exc: BaseException) -> Optional[OSError]:
+    """The ``OSError`` for want of space (:data:`NO_SPACE`) behind ``exc``, if any: ``exc``
+    itself or an exception it was raised from or while handling (the readers turn every
+    failure into :class:`InputError` but keep the original in ``__cause__``/``__context__``)."""
+    seen: set[int] = set()
+    todo: list[Optional[BaseException]] = [exc]
+    while todo:
+        e = todo.pop()
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in NO_SPACE:
+            return e
+        todo += [e.__cause__, e.__context__]
+    return None
 
 
 class IngestRefused(Exception):
     """The file was refused (bad input, limits, out of the memory cap)."""
+
+
+class IngestTransient(Exception):
+    """The ingest failed for a fault of ours (the data folder is full), not the file's: try
+    again later."""
 
 
 class IngestCrashed(Exception):
@@ -47,7 +76,6 @@ def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb:
 
     signal.signal(signal.SIGTERM, stop)
     try:
-        from sarship.pipeline.errors import InputError
         from sarship.pipeline.readers import InputLimits, ingest
 
         def progress(done: int, total: int) -> None:
@@ -56,20 +84,34 @@ def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb:
         ingest([Path(src)], Path(out), progress=progress, sidecar_root=sidecar_root,
                limits=InputLimits(**limits, option="service"))
         conn.send(("ok",))
-    except InputError as exc:
-        msg = str(exc)
-        if memory_mb and "ran out of memory" in msg:
-            msg += f" [the ingest memory cap is {memory_mb:g} MiB: SARSHIP_INGEST_MEMORY_MB]"
-        conn.send(("refused", msg))
-    except MemoryError:
-        conn.send(("refused", f"'{src}': ingest needs more memory than its cap of {memory_mb:g} MiB "
-                              "(SARSHIP_INGEST_MEMORY_MB)"))
     except SystemExit:
         raise
+    except Exception as exc:
+        fault = transient_fault(exc)
+        if fault is not None:  # (checked first: the readers report a failed write as an InputError)
+            why = str(fault.strerror or fault)
+            conn.send(("transient", f"[Errno {fault.errno}] " +
+                       (why if why.startswith("cannot write") else f"cannot write the scene: {why}")))
+        elif isinstance(exc, MemoryError):
+            conn.send(("refused", f"'{src}': ingest needs more memory than its cap of {memory_mb:g} MiB "
+                                  "(SARSHIP_INGEST_MEMORY_MB)"))
+        elif isinstance(exc, _input_error()):
+            msg = str(exc)
+            if memory_mb and "ran out of memory" in msg:
+                msg += f" [the ingest memory cap is {memory_mb:g} MiB: SARSHIP_INGEST_MEMORY_MB]"
+            conn.send(("refused", msg))
+        else:  # reported to the parent, which logs it
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
     except BaseException as exc:  # reported to the parent, which logs it
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
     finally:
         conn.close()
+
+
+def _input_error() -> type:
+    from sarship.pipeline.errors import InputError
+
+    return InputError
 
 
 def ingest_in_child(src: Path, out: Path, *, sidecar_root: Any, limits: dict, memory_mb: Optional[float],
@@ -111,6 +153,8 @@ def ingest_in_child(src: Path, out: Path, *, sidecar_root: Any, limits: dict, me
         raise IngestCrashed(f"the ingest process ended without an answer ({how})")
     if answer[0] == "refused":
         raise IngestRefused(answer[1])
+    if answer[0] == "transient":
+        raise IngestTransient(answer[1])
     if answer[0] == "error":
         raise IngestCrashed(answer[1])
 

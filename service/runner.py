@@ -1,22 +1,42 @@
 """Job runner: threads of one API process that claim jobs from the store and run them on the
 Dask cluster with :func:`sarship.workers.jobs.run_request` (outputs in ``DATA/jobs/ID``).
 
-Each running job holds a lease in the store, renewed by a heartbeat and at every finished
-tile (which also records ``progress``); if the job is dismissed meanwhile, the next tile
-callback raises :class:`Dismissed` and ``run_request`` cancels the job's Dask futures and
-removes its partial outputs.
+Each running job holds a lease in the store, renewed by a heartbeat thread and at every
+finished tile (which also records ``progress``); if the job is dismissed meanwhile, or its
+lease lapsed and another runner took it, the next tile callback raises :class:`Dismissed` and
+``run_request`` cancels the job's Dask futures and removes its partial outputs.
+
+Publication is fenced. A runner stopped longer than its lease (``SIGSTOP``, a VM paused:
+every thread of the process stops, the heartbeat too) loses the job to another runner, which
+runs it again (``attempts`` 2): a job runs *at least* once. Its results are published once:
+an attempt writes its outputs aside (``DATA/jobs/ID/.attempt-N-*``; an ingest
+``DATA/scenes/.ID.zarr.attempt-N-*``) and moves them into place inside the store transaction
+that finishes the job, which checks that the job is still running under this owner *and this
+attempt*; a stale attempt's outputs are discarded.
+
+A failure that is a fault of the service, not of the job's input (:func:`transient_reason`:
+the data folder full, the job store busy, the Dask scheduler unreachable), puts the job back
+to ``accepted`` to be tried again after a back-off (``SARSHIP_RETRY_S``, doubled per attempt
+up to ``SARSHIP_RETRY_MAX_S``): such a job is never failed for it, and an inbox pass never
+quarantined.
+
+Temporary scene stores of ingests that no live runner writes (a runner killed mid-ingest, an
+ingest dismissed while its runner was down) are removed before a scene is ingested again, at
+start-up, and then every lease period (:meth:`Runner.sweep_partials`).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import socket
 import threading
 import time
 import traceback
 import uuid
+from asyncio import CancelledError
 from pathlib import Path
 from typing import Any, Optional
 
@@ -26,7 +46,7 @@ from sarship.service.store import INGEST, JobStore
 
 log = logging.getLogger("sarship.service")
 
-__all__ = ["INGEST", "Dismissed", "Runner", "scene_path", "wait_final"]
+__all__ = ["INGEST", "Dismissed", "Runner", "scene_path", "transient_reason", "wait_final"]
 
 
 class Dismissed(Exception):
@@ -54,6 +74,40 @@ def scene_path(settings: Settings, scene: str) -> Path:
     return real
 
 
+def transient_reason(exc: BaseException, client=None) -> Optional[str]:
+    """Why ``exc`` is a fault of the service rather than of the job's input, or None: a write
+    that failed for want of space (``ENOSPC``, ``EDQUOT``, ``EFBIG``, also behind an
+    :class:`InputError`), a busy, locked or full job store, or a Dask scheduler that cannot
+    be reached (a closed comm, a refused connection, the client not connected)."""
+    import sqlite3
+
+    from sarship.service.ingest_proc import transient_fault
+
+    fault = transient_fault(exc)
+    if fault is not None:
+        return f"the data folder is full: [Errno {fault.errno}] {fault.strerror or fault}"
+    if isinstance(exc, sqlite3.OperationalError):
+        text = str(exc)
+        if any(w in text for w in ("locked", "busy", "disk is full", "disk I/O")):
+            return f"the job store is unavailable: {text}"
+    try:
+        from distributed.comm.core import CommClosedError
+    except ImportError:  # pragma: no cover
+        CommClosedError = ConnectionError  # noqa: N806
+    from concurrent.futures import CancelledError as FuturesCancelled  # (distributed's FutureCancelledError)
+
+    if isinstance(exc, (CommClosedError, ConnectionError, FuturesCancelled, CancelledError)) or \
+            (client is not None and getattr(client, "status", "running") not in ("running", None)):
+        return f"the Dask scheduler is unreachable: {type(exc).__name__}: {exc}"
+    return None
+
+
+#: Temporary stores of a scene ID in ``DATA/scenes``: ``.ID.zarr.partial-*`` (an ingest's atomic
+#: store), ``.ID.zarr.attempt-*`` (an attempt's output, published when it finishes the job) and
+#: ``..ID.zarr.attempt-*.partial-*`` (the atomic store of that output).
+_SCENE_TEMP = re.compile(r"^\.{1,2}(?P<id>[^./]+)\.zarr\.(partial|attempt)-")
+
+
 class Runner:
     """``settings.concurrency`` worker threads plus a lease heartbeat."""
 
@@ -65,7 +119,7 @@ class Runner:
         self.owner = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._running: dict[str, float] = {}
+        self._running: dict[str, int] = {}  # job ID -> the attempt this runner runs
         self._lock = threading.Lock()
         self.wake = threading.Event()
 
@@ -73,6 +127,10 @@ class Runner:
         # outputs of dismissed jobs renamed aside (DELETE /jobs/ID) but not removed: the process stopped
         for stale in self.settings.jobs_dir.glob(".dismissed-*") if self.settings.jobs_dir.is_dir() else ():
             shutil.rmtree(stale, ignore_errors=True)
+        try:
+            self.sweep_partials()
+        except Exception:  # a busy store at start-up: swept again at the next heartbeat
+            log.exception("sweeping temporary scene stores failed")
         for k in range(self.settings.concurrency):
             t = threading.Thread(target=self._loop, name=f"sarship-runner-{k}", daemon=True)
             t.start()
@@ -89,11 +147,51 @@ class Runner:
 
     def _heartbeat(self) -> None:
         period = max(self.settings.lease_s / 3.0, 0.5)
+        last_sweep = time.time()
         while not self._stop.wait(period):
             with self._lock:
-                ids = list(self._running)
-            for job_id in ids:
-                self.store.renew(job_id, self.owner, self.settings.lease_s)
+                ids = dict(self._running)
+            for job_id, attempt in ids.items():
+                try:
+                    if not self.store.renew(job_id, self.owner, self.settings.lease_s, attempt=attempt):
+                        log.info("job %s (attempt %d): no longer held by this runner (finished, dismissed, or "
+                                 "taken over after its lease lapsed: then it publishes nothing)", job_id, attempt)
+                except Exception:  # a busy store: the next beat tries again
+                    log.exception("renewing the lease of job %s failed", job_id)
+            if time.time() - last_sweep >= self.settings.lease_s:
+                last_sweep = time.time()
+                try:
+                    self.sweep_partials()
+                except Exception:
+                    log.exception("sweeping temporary scene stores failed")
+
+    def sweep_partials(self, scene_id: Optional[str] = None) -> list[str]:
+        """Remove the temporary stores in ``DATA/scenes`` (of ``scene_id``, or of every scene)
+        of scenes the service ingests (an ingest job names them) that no runner writes now: no
+        ingest job of the scene is running under a live lease. Listed before the store is
+        asked, so a store that a runner starts writing meanwhile is not seen. The names
+        removed."""
+        d = self.settings.scenes_dir
+        if not d.is_dir():
+            return []
+        found: dict[str, list[Path]] = {}
+        for p in d.iterdir():
+            m = _SCENE_TEMP.match(p.name)
+            if m and (scene_id is None or m["id"] == scene_id):
+                found.setdefault(m["id"], []).append(p)
+        if not found:
+            return []
+        live = self.store.live_ingest_scenes()
+        gone = []
+        for sid, paths in found.items():
+            if sid in live or (scene_id is None and self.store.ingest_job_for_scene(sid) is None):
+                continue  # being written; or not the service's (e.g. a `sarship ingest` into DATA/scenes)
+            for p in paths:
+                _remove(p)
+                gone.append(p.name)
+        if gone:
+            log.info("removed temporary scene stores no runner writes: %s", ", ".join(sorted(gone)))
+        return gone
 
     def _loop(self) -> None:
         while not self._stop.is_set():
@@ -106,66 +204,100 @@ class Runner:
                 self.wake.wait(0.5)
                 self.wake.clear()
                 continue
-            self._run(job)
+            with self._lock:
+                self._running[job["id"]] = int(job["attempts"])
+            try:
+                self._run(job)
+            except (Exception, CancelledError):  # e.g. the store locked as the job finished: re-run after the lease
+                log.exception("job %s: the runner failed; it runs again when its lease expires", job["id"])
+            finally:
+                with self._lock:
+                    self._running.pop(job["id"], None)
+
+    def _retry(self, job: dict, why: str) -> None:
+        """Put a job that failed for a fault of ours back, to be tried again after a back-off."""
+        n = max(int(job["attempts"]), 1)
+        delay = min(self.settings.retry_s * 2 ** min(n - 1, 30), self.settings.retry_max_s)
+        log.warning("job %s (attempt %d): %s; retrying in %g s", job["id"], n, why, delay)
+        try:
+            self.store.retry_later(job["id"], self.owner, n, delay, f"{why}; retrying in {delay:g} s (attempt {n})")
+        except Exception:  # the store itself is unavailable: the lease lapses and the job runs again
+            log.exception("job %s: could not record the retry", job["id"])
 
     def _run(self, job: dict) -> None:
-        from sarship.workers.jobs import run_request
+        from sarship.workers.jobs import OUTPUTS, _commit, run_request
         from sarship.workers.request import JobRequest
 
-        job_id = job["id"]
-        with self._lock:
-            self._running[job_id] = time.time()
+        job_id, attempt = job["id"], int(job["attempts"])
         out_dir = self.settings.jobs_dir / job_id
         inputs = dict(job["inputs"])
-        # a previous attempt killed mid-run left its temporary folder: the job is ours now
-        for stale in out_dir.glob(".sarship-partial-*") if out_dir.is_dir() else ():
-            shutil.rmtree(stale, ignore_errors=True)
 
         def on_tile(done: int, total: int) -> None:
             pct = int(100 * done / max(total, 1))
             if self.metrics is not None:
                 self.metrics.tiles.inc()
-            if not self.store.renew(job_id, self.owner, self.settings.lease_s, min(pct, 99)):
+            if not self.store.renew(job_id, self.owner, self.settings.lease_s, min(pct, 99), attempt=attempt):
                 raise Dismissed(job_id)
 
         if job["process"] == INGEST:
             self._ingest(job)
-            with self._lock:
-                self._running.pop(job_id, None)
             return
         if job.get("waits_for") and not self._ingest_done(job):
-            with self._lock:
-                self._running.pop(job_id, None)
             return
+        # the job is ours now: what earlier attempts left (killed, or stale and still running
+        # elsewhere: they cannot publish) goes; this attempt writes aside and publishes when it finishes
+        for stale in [*out_dir.glob(".sarship-partial-*"), *out_dir.glob(".attempt-*")] if out_dir.is_dir() else ():
+            _remove(stale)
+        stage = out_dir / f".attempt-{attempt}-{uuid.uuid4().hex[:6]}"
         try:
             request = JobRequest.from_inputs(job["process"], inputs)
             scene = scene_path(self.settings, request.scene)
-            run = run_request(request.model_copy(update={"scene": str(scene)}), out_dir=out_dir,
+            run = run_request(request.model_copy(update={"scene": str(scene)}), out_dir=stage,
                               client=self.client, progress=False, on_tile=on_tile, overwrite=True)
+            final = {name: str((out_dir / name).resolve()) for name in OUTPUTS}
+            if run.get("outputs") != final:  # run.json names where the outputs will be
+                from sarship.pipeline.ship_features import write_json
+
+                run["outputs"] = final
+                write_json(stage / "run.json", run)
             summary: dict[str, Any] = {"detections": run["detections"], "detected_px": run["detected_px"],
                                        "outputs": run["outputs"], "timings": run["timings"]}
             if not self.store.finish(job_id, self.owner, "successful",
                                      f"{run['detections']} detections in {run['timings']['total_s']:.1f} s",
-                                     summary):
-                after = self.store.get(job_id)
-                if after is not None and after["status"] == "dismissed":  # dismissed as it finished
-                    shutil.rmtree(out_dir, ignore_errors=True)
+                                     summary, attempt=attempt, publish=lambda: _commit(stage, out_dir)):
+                log.warning("job %s (attempt %d) finished, but the job is no longer ours (dismissed, or re-run "
+                            "after its lease lapsed): its results are discarded", job_id, attempt)
+                return
             if self.metrics is not None:
                 H, W = run["scene"]["shape"]
                 self.metrics.pixels.inc(H * W)
                 self.metrics.duration.labels(job["process"], "successful").observe(run["timings"]["total_s"])
         except Dismissed:
-            log.info("job %s dismissed while running", job_id)
-        except InputError as exc:
-            self.store.finish(job_id, self.owner, "failed", str(exc))
-            self._observe_failure(job)
-        except Exception as exc:  # never lose the job: record why it failed
-            log.error("job %s failed: %s", job_id, traceback.format_exc())
-            self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}")
-            self._observe_failure(job)
+            log.info("job %s (attempt %d) dismissed or taken over while running", job_id, attempt)
+        except (Exception, CancelledError) as exc:  # (Dask's futures cancelled: the scheduler went away)
+            why = transient_reason(exc, self.client)
+            if not self._holds(job_id, attempt):  # (e.g. its outputs removed by the attempt that took over)
+                log.info("job %s (attempt %d) ended (%s: %s) after it was dismissed or taken over: discarded",
+                         job_id, attempt, type(exc).__name__, exc)
+            elif why is not None:
+                self._retry(job, why)
+            elif isinstance(exc, InputError):
+                if self.store.finish(job_id, self.owner, "failed", str(exc), attempt=attempt):
+                    self._observe_failure(job)
+            else:  # never lose the job: record why it failed
+                log.error("job %s failed: %s", job_id, traceback.format_exc())
+                if self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}",
+                                     attempt=attempt):
+                    self._observe_failure(job)
         finally:
-            with self._lock:
-                self._running.pop(job_id, None)
+            _remove(stage)
+
+    def _holds(self, job_id: str, attempt: int) -> bool:
+        """Whether this runner still holds the job as ``attempt`` (renews its lease)."""
+        try:
+            return self.store.renew(job_id, self.owner, self.settings.lease_s, attempt=attempt)
+        except Exception:  # the store unavailable: assume so (its finish is fenced anyway)
+            return True
 
     def _ingest_done(self, job: dict) -> bool:
         """A job that waited for its scene's ingest job (``waits_for``, see
@@ -188,27 +320,44 @@ class Runner:
             why = f"scene {scene}: its ingest job {dep['id']} was dismissed"
         else:  # (claim never hands out a job whose ingest is still accepted or running)
             why = f"scene {scene}: its ingest job {dep['id']} is {dep['status']}"
-        self.store.finish(job["id"], self.owner, "failed", why)
-        self._observe_failure(job)
+        if self.store.finish(job["id"], self.owner, "failed", why, attempt=int(job["attempts"])):
+            self._observe_failure(job)
         return False
 
     def _ingest(self, job: dict) -> None:
         """A scene file (an upload, input ``upload``, or an inbox pass, input ``path``) to the
-        scene store ``DATA/scenes/ID.zarr`` (written aside and renamed into place by
-        :func:`sarship.pipeline.readers.ingest`'s atomic store), in a child process with a memory
-        cap and the service's input limits (:mod:`sarship.service.ingest_proc`): never in this
-        API process. A failure caused by the file itself (refused by the limits, unreadable,
-        beyond the memory cap) records ``{"bad_input": true}`` as the job's result, so that the
-        inbox quarantines the file; other failures do not."""
-        from sarship.service.ingest_proc import IngestCrashed, IngestRefused, ingest_in_child
+        scene store ``DATA/scenes/ID.zarr``, in a child process with a memory cap and the
+        service's input limits (:mod:`sarship.service.ingest_proc`): never in this API
+        process. The child writes ``DATA/scenes/.ID.zarr.attempt-N-*`` (through
+        :func:`sarship.pipeline.readers.ingest`'s atomic store), renamed to ``ID.zarr`` in the
+        transaction that finishes the job (a stale attempt publishes nothing). A failure caused
+        by the file itself (refused by the limits, unreadable, beyond the memory cap) records
+        ``{"bad_input": true}`` as the job's result, so that the inbox quarantines the file; a
+        fault of ours (the data folder full) is retried after a back-off; other failures fail
+        the job."""
+        from sarship.service.ingest_proc import IngestCrashed, IngestRefused, IngestTransient, ingest_in_child
 
-        job_id, inputs = job["id"], job["inputs"]
+        job_id, inputs, attempt = job["id"], job["inputs"], int(job["attempts"])
 
         def progress(done: int, total: int) -> None:
-            if not self.store.renew(job_id, self.owner, self.settings.lease_s, int(99 * done / max(total, 1))):
+            if not self.store.renew(job_id, self.owner, self.settings.lease_s, int(99 * done / max(total, 1)),
+                                    attempt=attempt):
                 raise Dismissed(job_id)
 
-        out = self.settings.scenes_dir / f"{inputs['scene_id']}.zarr"
+        sid = inputs["scene_id"]
+        out = self.settings.scenes_dir / f"{sid}.zarr"
+        stage = self.settings.scenes_dir / f".{sid}.zarr.attempt-{attempt}-{uuid.uuid4().hex[:6]}"
+        # the ingest job of a scene is the only writer of its temporary stores (one active ingest
+        # job per scene, and it is ours now): what a killed or stale attempt left goes
+        for p in self.settings.scenes_dir.iterdir() if self.settings.scenes_dir.is_dir() else ():
+            m = _SCENE_TEMP.match(p.name)
+            if m and m["id"] == sid:
+                _remove(p)
+
+        def publish() -> None:
+            if stage.is_dir() and not out.exists():
+                os.rename(stage, out)
+
         try:
             if not out.exists():
                 if inputs.get("path"):  # an inbox pass: its product sidecar lies within the inbox
@@ -218,21 +367,33 @@ class Runner:
                 else:  # an upload is one file: nothing beside it in the uploads folder is its
                     src, root = Path(inputs["upload"]), False
                 st = self.settings
-                ingest_in_child(src, out, sidecar_root=root, progress=progress, memory_mb=st.ingest_memory_mb or None,
+                ingest_in_child(src, stage, sidecar_root=root, progress=progress,
+                                memory_mb=st.ingest_memory_mb or None,
                                 limits={"max_pixels": st.max_pixels, "max_chunk_mb": st.max_chunk_mb,
                                         "max_ratio": st.max_ratio})
-            self.store.finish(job_id, self.owner, "successful", f"scene {inputs['scene_id']} ready",
-                              {"scene": inputs["scene_id"]})
+            if not self.store.finish(job_id, self.owner, "successful", f"scene {sid} ready", {"scene": sid},
+                                     attempt=attempt, publish=publish):
+                log.warning("ingest %s (attempt %d) finished, but the job is no longer ours: discarded",
+                            job_id, attempt)
         except Dismissed:
             pass
         except IngestRefused as exc:
-            self.store.finish(job_id, self.owner, "failed", str(exc), {"bad_input": True})
+            self.store.finish(job_id, self.owner, "failed", str(exc), {"bad_input": True}, attempt=attempt)
+        except IngestTransient as exc:
+            self._retry(job, f"the data folder is full: {exc}")
         except IngestCrashed as exc:
             log.error("ingest %s failed: %s", job_id, exc)
-            self.store.finish(job_id, self.owner, "failed", f"ingest failed: {exc}")
+            self.store.finish(job_id, self.owner, "failed", f"ingest failed: {exc}", attempt=attempt)
         except Exception as exc:
+            why = transient_reason(exc)
+            if why is not None:
+                self._retry(job, why)
+                return
             log.error("ingest %s failed: %s", job_id, traceback.format_exc())
-            self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}")
+            self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}",
+                              attempt=attempt)
+        finally:
+            _remove(stage)
 
     def _observe_failure(self, job: dict) -> None:
         if self.metrics is not None:
@@ -242,6 +403,16 @@ class Runner:
     def running(self) -> list[str]:
         with self._lock:
             return list(self._running)
+
+
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    elif p.exists() or p.is_symlink():
+        try:
+            p.unlink()
+        except OSError:
+            pass
 
 
 def wait_final(store: JobStore, job_id: str, timeout: float) -> Optional[dict]:

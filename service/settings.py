@@ -103,7 +103,8 @@ class Settings(BaseSettings):
                                          "comma list of GPU IDs; tiles go to GPU workers unless a job asks "
                                          "device=cpu")
     concurrency: int = Field(2, ge=1, le=64, description="jobs this API process runs at once")
-    lease_s: float = Field(30.0, gt=1.0, description="job lease: a job whose runner stops renewing it is re-run")
+    lease_s: float = Field(30.0, gt=1.0, description="job lease: a job whose runner stops renewing it is re-run "
+                                                   "(the stale run cannot publish)")
     allowed_roots: list[Path] = Field(default_factory=list,
                                       description="folders a job may name scenes in (besides DATA/scenes)")
     sync_timeout_s: float = Field(600.0, gt=0.0, description="longest wait of a 'Prefer: respond-sync' execution")
@@ -123,6 +124,15 @@ class Settings(BaseSettings):
     ingest_memory_mb: float = Field(4096.0, ge=0.0,
                                     description="address-space cap of the child process each ingest runs in, MiB "
                                                 "(0: no cap); an ingest beyond it fails its job, the file is refused")
+    min_free_mb: float = Field(100.0, ge=0.0,
+                               description="free space the data folder needs, MiB: below it /readyz answers 503 "
+                                           "(not ready) with the reason (0: not checked)")
+    retry_s: float = Field(5.0, gt=0.0,
+                           description="first wait before a job that failed for a fault of the service (data folder "
+                                       "full, job store busy, scheduler unreachable) is tried again, seconds; "
+                                       "doubled at each attempt up to retry_max_s; such a job is never failed for it "
+                                       "(an inbox pass is never quarantined for it)")
+    retry_max_s: float = Field(300.0, gt=0.0, description="longest wait between two tries of such a job, seconds")
     preview_cache_mb: float = Field(256.0, ge=0.0,
                                     description="disk space of the cached preview PNGs of all jobs together, MiB; "
                                                 "beyond it the oldest are removed (0: none kept)")
@@ -145,7 +155,8 @@ class Settings(BaseSettings):
                                           "empty: ingest only")
     inbox_settle_s: float = Field(
         5.0, ge=0.0, description="a file is taken when its size and mtime have not changed for this long "
-                                 "(at once when FILE.done exists)")
+                                 "(at once when FILE.done exists and is not older than the file; the marker "
+                                 "is removed when the file is taken)")
     inbox_quarantine: Optional[Path] = Field(
         None, description="where files that fail to ingest are moved (default DATA/quarantine)")
 

@@ -4,10 +4,18 @@ A job accepted is a row committed before the API answers ``201``, so it survives
 Runners *claim* jobs with a lease (``lease_owner``, ``lease_until``) in one ``BEGIN
 IMMEDIATE`` transaction, so two processes never run the same job at once; a runner renews
 its lease while the job runs. A job whose lease has expired (its runner died, even by
-``kill -9``) is claimable again and re-run from scratch in the same row (``attempts`` counts
-the runs): it stays exactly once in the job list. Outputs are written by
-:func:`sarship.workers.jobs.run_detection` to a temporary folder and renamed into place when
-complete, so a re-run never sees half-written outputs.
+``kill -9``, or was stopped longer than the lease) is claimable again and re-run from scratch
+in the same row (``attempts`` counts the runs): it stays exactly once in the job list.
+
+A job therefore *runs* at least once, and more than once when a runner stalls past its lease;
+its results are *published* once. Every claim is an attempt (``attempts``); renewing and
+finishing are fenced by owner and attempt, and the outputs an attempt wrote aside are moved
+into place inside the transaction that finishes the job (:meth:`JobStore.finish` with
+``publish``): a stale attempt can neither finish the job nor publish or overwrite outputs.
+
+A job that failed for a fault of the service (a full disk, a busy job store, an unreachable
+scheduler) is put back to ``accepted`` with a time before which it is not claimed
+(``not_before``, :meth:`JobStore.retry_later`).
 
 A job submitted for a scene whose upload is still being ingested records that ingest job in
 ``waits_for``: it is not claimed while the ingest job is accepted or running (so this holds
@@ -28,7 +36,7 @@ import uuid
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterator, Optional
+from typing import Any, Callable, Iterator, Optional
 
 STATUSES = ("accepted", "running", "successful", "failed", "dismissed")
 FINAL = ("successful", "failed", "dismissed")
@@ -49,7 +57,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     lease_until REAL,
     attempts INTEGER NOT NULL DEFAULT 0,
     result TEXT,
-    waits_for TEXT
+    waits_for TEXT,
+    not_before REAL
 );
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs (status, created);
 -- ingest jobs by scene id and by status: GET /scenes and GET /scenes/{id} without a scan of
@@ -84,9 +93,11 @@ class JobStore:
         """Columns added since the first schema (a store written by an older version)."""
         c = self._conn()
         cols = {r["name"] for r in c.execute("PRAGMA table_info(jobs)").fetchall()}
-        if "waits_for" not in cols:
+        for col, typ in (("waits_for", "TEXT"), ("not_before", "REAL")):
+            if col in cols:
+                continue
             try:
-                c.execute("ALTER TABLE jobs ADD COLUMN waits_for TEXT")
+                c.execute(f"ALTER TABLE jobs ADD COLUMN {col} {typ}")
             except sqlite3.OperationalError as exc:  # another process added it meanwhile
                 if "duplicate column" not in str(exc):
                     raise
@@ -172,47 +183,88 @@ class JobStore:
         return out
 
     def claim(self, owner: str, lease_s: float) -> Optional[dict]:
-        """Take the oldest job that is accepted (and waits for no ingest job still accepted or
-        running), or running with an expired lease (its runner died): mark it running under
-        ``owner`` until ``now + lease_s``."""
+        """Take the oldest job that is accepted (waiting for no ingest job still accepted or
+        running, and not waiting to be retried: ``not_before``), or running with an expired
+        lease (its runner died or stalled): mark it running under ``owner`` until
+        ``now + lease_s``, as a new attempt (``attempts`` + 1, the attempt's fencing token)."""
         now = time.time()
         with self._tx() as c:
             row = c.execute(
-                "SELECT id FROM jobs j WHERE (status = 'accepted' AND (waits_for IS NULL OR NOT EXISTS ("
-                "SELECT 1 FROM jobs d WHERE d.id = j.waits_for AND d.status IN ('accepted', 'running')))) "
-                "OR (status = 'running' AND lease_until < ?) ORDER BY created LIMIT 1", (now,)).fetchone()
+                "SELECT id FROM jobs j WHERE (status = 'accepted' AND (not_before IS NULL OR not_before <= ?) AND "
+                "(waits_for IS NULL OR NOT EXISTS (SELECT 1 FROM jobs d WHERE d.id = j.waits_for AND "
+                "d.status IN ('accepted', 'running')))) "
+                "OR (status = 'running' AND lease_until < ?) ORDER BY created LIMIT 1", (now, now)).fetchone()
             if row is None:
                 return None
             c.execute("UPDATE jobs SET status = 'running', lease_owner = ?, lease_until = ?, started = ?, "
-                      "updated = ?, attempts = attempts + 1, progress = 0, message = ? WHERE id = ?",
-                      (owner, now + lease_s, now, now, "running", row["id"]))
+                      "updated = ?, attempts = attempts + 1, progress = 0, message = ?, not_before = NULL "
+                      "WHERE id = ?", (owner, now + lease_s, now, now, "running", row["id"]))
         return self.get(row["id"])
 
-    def renew(self, job_id: str, owner: str, lease_s: float, progress: Optional[int] = None) -> bool:
+    def renew(self, job_id: str, owner: str, lease_s: float, progress: Optional[int] = None,
+              attempt: Optional[int] = None) -> bool:
         """Extend the lease (and record progress); False if the job is no longer ours to run
-        (dismissed, or re-claimed after our lease lapsed)."""
+        (dismissed, or re-claimed after our lease lapsed: by another runner, or by this one as
+        a newer ``attempt``)."""
         now = time.time()
+        fence, args = _fence(job_id, owner, attempt)
         with self._tx() as c:
             if progress is None:
-                cur = c.execute("UPDATE jobs SET lease_until = ?, updated = ? WHERE id = ? AND lease_owner = ? "
-                                "AND status = 'running'", (now + lease_s, now, job_id, owner))
+                cur = c.execute(f"UPDATE jobs SET lease_until = ?, updated = ? WHERE {fence}",
+                                (now + lease_s, now, *args))
             else:
-                cur = c.execute("UPDATE jobs SET lease_until = ?, updated = ?, progress = ? WHERE id = ? AND "
-                                "lease_owner = ? AND status = 'running'",
-                                (now + lease_s, now, int(progress), job_id, owner))
+                cur = c.execute(f"UPDATE jobs SET lease_until = ?, updated = ?, progress = ? WHERE {fence}",
+                                (now + lease_s, now, int(progress), *args))
             return cur.rowcount == 1
 
-    def finish(self, job_id: str, owner: str, status: str, message: str, result: Optional[dict] = None) -> bool:
-        """Final state of a job this runner holds; False if it is not ours any more."""
+    def finish(self, job_id: str, owner: str, status: str, message: str, result: Optional[dict] = None,
+               attempt: Optional[int] = None, publish: Optional[Callable[[], None]] = None) -> bool:
+        """Final state of a job this runner holds (as ``attempt``); False if it is not ours any
+        more. ``publish()`` (moving the attempt's outputs into place) runs inside the same
+        transaction, only when the job is still ours: no other attempt can finish or publish
+        meanwhile; if it raises, the job is left as it was and the error is raised."""
         assert status in ("successful", "failed")
         now = time.time()
+        fence, args = _fence(job_id, owner, attempt)
         with self._tx() as c:
             cur = c.execute("UPDATE jobs SET status = ?, message = ?, result = ?, finished = ?, updated = ?, "
                             "progress = CASE WHEN ? = 'successful' THEN 100 ELSE progress END, lease_owner = NULL, "
-                            "lease_until = NULL WHERE id = ? AND lease_owner = ? AND status = 'running'",
+                            f"lease_until = NULL WHERE {fence}",
                             (status, message, json.dumps(result) if result is not None else None, now, now, status,
-                             job_id, owner))
+                             *args))
+            if cur.rowcount != 1:
+                return False
+            if publish is not None:
+                publish()
+            return True
+
+    def retry_later(self, job_id: str, owner: str, attempt: Optional[int], delay_s: float, message: str) -> bool:
+        """A job this runner holds failed for a fault of the service, not of its input: back to
+        ``accepted``, claimable again ``delay_s`` from now (``not_before``), with ``message``
+        saying why. False if the job is not ours any more."""
+        now = time.time()
+        fence, args = _fence(job_id, owner, attempt)
+        with self._tx() as c:
+            cur = c.execute("UPDATE jobs SET status = 'accepted', message = ?, progress = 0, updated = ?, "
+                            f"lease_owner = NULL, lease_until = NULL, not_before = ? WHERE {fence}",
+                            (message, now, now + delay_s, *args))
             return cur.rowcount == 1
+
+    def retry_now(self, process: Optional[str] = None) -> int:
+        """Jobs waiting to be retried (``not_before``) may be claimed at once (of ``process``,
+        or all); how many."""
+        with self._tx() as c:
+            cur = c.execute("UPDATE jobs SET not_before = NULL WHERE status = 'accepted' AND not_before IS NOT NULL "
+                            "AND (? IS NULL OR process = ?)", (process, process))
+            return cur.rowcount
+
+    def live_ingest_scenes(self) -> set[str]:
+        """Scene ids whose ingest job is running under a lease that has not expired (its
+        runner, in this or another process, may be writing the scene's temporary store)."""
+        rows = self._conn().execute("SELECT json_extract(inputs, '$.scene_id') AS s FROM jobs WHERE "
+                                    "process = 'ingest' AND status = 'running' AND lease_until >= ?",
+                                    (time.time(),)).fetchall()
+        return {r["s"] for r in rows}
 
     def dismiss(self, job_id: str) -> tuple[Optional[dict], Optional[str]]:
         """Dismiss (OGC API - Processes): accepted or running -> dismissed (a running job's
@@ -236,6 +288,14 @@ class JobStore:
         if c is not None:
             c.close()
             self._local.conn = None
+
+
+def _fence(job_id: str, owner: str, attempt: Optional[int]) -> tuple[str, tuple]:
+    """The WHERE clause of an update by the runner holding a job: the job is running, under
+    ``owner`` and (when given) as ``attempt``."""
+    if attempt is None:
+        return "id = ? AND lease_owner = ? AND status = 'running'", (job_id, owner)
+    return "id = ? AND lease_owner = ? AND attempts = ? AND status = 'running'", (job_id, owner, int(attempt))
 
 
 def insert_job(c: sqlite3.Connection, process: str, inputs: dict[str, Any], waits_for: Optional[str] = None,

@@ -46,7 +46,10 @@ def _write_tiles(g, shape, tile, variables, read_tile, progress):
             try:
                 arr[r0:r1, c0:c1] = data[name]
             except OSError as exc:
-                raise InputError(f"cannot write the scene: {_one_line(exc)}") from None
+                # a fault of the output (a full disk, a quota, a file-size limit), not of the input:
+                # an OSError with its errno, never an InputError (the service retries it)
+                raise OSError(exc.errno, f"cannot write the scene: {exc.strerror or _one_line(exc)}",
+                              exc.filename) from exc
         if progress is not None:
             progress(done, total)
 
