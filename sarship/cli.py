@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import json
 import os
 import shutil
@@ -506,13 +507,27 @@ def _main(a) -> int:
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            return _internal(a, exc)
+        print(f"sarship {a.command}: error: no space to write ({_storage_text(exc)}); nothing was left "
+              "behind: free space and run it again", file=sys.stderr)
+        return 3
     except Exception as exc:  # unexpected: one line unless debugging
-        if os.environ.get("SARSHIP_DEBUG"):
-            raise
-        msg = str(exc).splitlines()[0] if str(exc) else ""
-        print(f"sarship {a.command}: internal error: {type(exc).__name__}: {msg} "
-              f"(set SARSHIP_DEBUG=1 for the traceback)", file=sys.stderr)
-        return 1
+        return _internal(a, exc)
+
+
+def _internal(a, exc: BaseException) -> int:
+    if os.environ.get("SARSHIP_DEBUG"):
+        raise exc
+    msg = str(exc).splitlines()[0] if str(exc) else ""
+    print(f"sarship {a.command}: internal error: {type(exc).__name__}: {msg} "
+          f"(set SARSHIP_DEBUG=1 for the traceback)", file=sys.stderr)
+    return 1
+
+
+def _storage_text(exc: OSError) -> str:
+    return " ".join(str(exc).split()) or os.strerror(exc.errno)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ spacing) with ``pixel_spacing_source``, ``crs`` ("EPSG:n") + ``transform`` (GDAL
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import re
@@ -56,6 +57,10 @@ from sarship.pipeline.scene import (
     finalize_scene,
     open_scene,
 )
+
+#: errno of a full disk, a quota or a file-size limit: an ingest that meets one fails with the
+#: OSError itself (a fault of the machine, not of the input: the service retries it).
+_STORAGE_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 #: ``kind`` values accepted by :func:`ingest`.
 INGEST_KINDS = ("auto", "amplitude", "intensity", "slc", "quadpol", "covariance")
@@ -268,6 +273,10 @@ def ingest(
     except MemoryError:
         raise InputError(f"ingest of {', '.join(str(p) for p in paths)} ran out of memory (a PNG/JPEG, or one "
                          "compressed TIFF strip/tile, is decoded whole: convert it to a tiled GeoTIFF)") from None
+    except OSError as exc:
+        if exc.errno in _STORAGE_FULL:  # not the input's fault: the caller retries or says so
+            raise
+        raise InputError(f"ingest of {', '.join(str(p) for p in paths)} failed: {_one_line(exc)}") from None
     except Exception as exc:  # never let a raw traceback escape
         raise InputError(f"ingest of {', '.join(str(p) for p in paths)} failed: {_one_line(exc)}") from None
 
