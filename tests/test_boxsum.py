@@ -102,7 +102,10 @@ def _cfar_cases(seed, n):
 
 def _check(block, halo, origin, p):
     prep = ca_cfar.prepare(p)
-    mask, stat = ca_cfar.detect(block, halo, origin, p, prep)
+    if np.isfinite(block).all():
+        mask, stat = ca_cfar.detect(block, halo, origin, p, prep)
+    else:  # the fused kernel's bits; NaN / inf are absent pixels in detect(): tests/test_nodata_cfar.py
+        mask, stat = ca_cfar._detect_complete(block, halo, origin, p.target, p.guard, p.background, prep)
     ref_mask, ref_stat = ca_cfar_ref(block, halo, origin, p, prep)
     assert_bits(mask, ref_mask)
     assert_bits(stat, ref_stat)

@@ -84,7 +84,10 @@ def _cases(seed, n):
 
 def _check(block, halo, origin, p, box=box_sum_ref):
     prep = tp.prepare(p)
-    mask, stat = tp.detect(block, halo, origin, p, prep)
+    # the fused kernel's bits on every input; with NaN / inf (absent pixels since the no-data
+    # rule) detect() recomputes the pixels next to them: tests/test_nodata_cfar.py
+    run = tp.detect if np.isfinite(block).all() else tp._detect_complete
+    mask, stat = run(block, halo, origin, p, prep)
     ref_mask, ref_stat = two_parameter_ref(block, halo, origin, p, prep, box)
     assert_bits(mask, ref_mask)
     assert_bits(stat, ref_stat)

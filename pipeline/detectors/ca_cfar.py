@@ -24,12 +24,14 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 from numba import njit
+from pydantic import Field
 from scipy import stats
 
-from sarship.pipeline import boxsum
+from sarship.pipeline import boxsum, intensity_absent
 from sarship.pipeline.boxsum import box_stream, box_stream_row
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 from sarship.pipeline.gpu import is_device_array
@@ -45,6 +47,10 @@ class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-6, guard=41, b
     ships of at least 25 m and 200 m^2 when the scene's pixel spacing is known, of at least
     10 px otherwise.
     """
+
+    nodata: Optional[float] = Field(
+        None, description="value marking absent pixels besides NaN (e.g. 0 for a zero-filled border); "
+                          "None: NaN only (exact zeros are data: 8-bit chips have them in dark sea)")
 
 
 def threshold(pfa: float, looks: float, n_ring: int, n_target: int = 1) -> float:
@@ -149,7 +155,21 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: CAParams, p
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.cfar), same sums and rule
         from sarship.pipeline.gpu.cfar import ca_cfar
 
-        return ca_cfar(block, halo, origin, b, g, t, int(prep["n_ring"]), float(prep["threshold"]))
+        return ca_cfar(block, halo, origin, b, g, t, int(prep["n_ring"]), float(prep["threshold"]),
+                       pfa=float(p.pfa), looks=float(prep["looks"]), nodata=p.nodata)
+    ok = intensity_absent.present(block, p.nodata)
+    if not ok.all():  # absent pixels (module docstring of pipeline.intensity_absent)
+        xz = intensity_absent.fill(block if block.dtype in (np.float32, np.float64) else block.astype(np.float64),
+                                   ok, 0.0)
+        mask, stat = _detect_complete(xz, halo, origin, t, g, b, prep)
+        intensity_absent.ca_redo(xz, ok, halo, origin, b, g, t, int(prep["n_ring"]), float(p.pfa),
+                                 float(prep["looks"]), float(prep["threshold"]), mask, stat,
+                                 boxsum.centered_box_sum)
+        return mask, stat
+    return _detect_complete(block, halo, origin, t, g, b, prep)
+
+
+def _detect_complete(block, halo, origin, t, g, b, prep):
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     xs = block if block.dtype in (np.float32, np.float64) else block.astype(np.float64)

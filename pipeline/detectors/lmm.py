@@ -100,6 +100,15 @@ class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-5, guard=21,
                                 description="with censor > 0, pass 2 censors only the ring samples above the "
                                             "pass-1 clutter fit's exceedance level censor_level (0: 1/n, n "
                                             "the ring's usable samples)")
+    nodata: Optional[float] = Field(
+        None, description="value marking absent pixels besides NaN (e.g. a positive fill value); "
+                          "non-positive values are never usable samples (ln x)")
+
+
+def min_usable(n_ring: int, K: int) -> int:
+    """The fewest usable (positive, finite, present) ring samples for a pixel to be tested:
+    half the ring (rounded up), and at least max(8, 3K) for the fit."""
+    return max(8, 3 * int(K), (int(n_ring) + 1) // 2)
 
 
 def grid_step(p: LMMParams) -> int:
@@ -428,6 +437,10 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
 
         mask, stat = detect(cp.asnumpy(block), halo, origin, params, prep)
         return cp.asarray(mask), cp.asarray(stat)
+    if gpu and params.nodata is not None:  # a declared no-data value: absent, as NaN (as on the CPU)
+        from sarship.pipeline.intensity_absent import fill, present
+
+        block = fill(block, present(block, params.nodata), np.nan)
     if gpu:  # CuPy block: the GPU twin (pipeline.gpu.lmm), one thread per ring fit
         from sarship.pipeline.gpu.lmm import detect as detect_gpu
 
@@ -441,7 +454,13 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
                prep.get("select", params.select) == "bic", prep.get("tail", params.tail) == "predictive",
                float(prep["z"]), float(prep["log_pfa"]), float(prep.get("censor", params.censor)),
                float(prep.get("censor_level", params.censor_level)))
-        args = (block, halo, h, w, rb, rg, rt, fit, max(8, 3 * K))
+        if params.nodata is not None:  # a declared no-data value: absent, as NaN
+            from sarship.pipeline.intensity_absent import fill, present
+
+            ok = present(block, params.nodata)
+            if not ok.all():
+                block = np.ascontiguousarray(fill(block, ok, np.nan))
+        args = (block, halo, h, w, rb, rg, rt, fit, min_usable(n_ring, K))
         if prep["method"] == "exact":
             _exact_kernel(*args, mask, stat, iters)
         elif grid:

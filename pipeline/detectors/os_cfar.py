@@ -130,6 +130,7 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy import optimize, special
 
+from sarship.pipeline import boxsum, intensity_absent
 from sarship.pipeline.gpu import is_device_array
 
 from .base import DetectorParams, DetectorSpec, float_block, with_defaults
@@ -176,6 +177,10 @@ class OSParams(with_defaults(DetectorParams, "OSDefaults", pfa=1e-7, guard=21, b
             "interferers in the ring). The j-th largest is k = N - j + 1."
         ),
     )
+
+    nodata: Optional[float] = Field(
+        None, description="value marking absent pixels besides NaN (e.g. 0 for a zero-filled border); "
+                          "None: NaN only (exact zeros are data: 8-bit chips have them in dark sea)")
 
     @model_validator(mode="after")
     def _rank(self):
@@ -638,6 +643,98 @@ def _os_kernel(block, bins, edges, halo, h, w, rb, rg, rt, k, alpha, stat_floor,
             stat[i, j] = r
 
 
+def rank_for(k: int, n_ring: int, n_valid: int) -> int:
+    """The rank used with ``n_valid`` present ring cells: ``round(n_valid * k / N)`` in 1..n_valid
+    (the same quantile of the ring; ``k`` itself when the ring is complete)."""
+    return min(max(1, (2 * int(n_valid) * int(k) + int(n_ring)) // (2 * int(n_ring))), int(n_valid))
+
+
+@njit(nogil=True, cache=True)
+def _os_partial(xn, halo, ii, jj, kv, rb, rg, rt, ktab, atab, alpha_n, floor_n, mask, stat):
+    """OS-CFAR on the listed core pixels (ii, jj) with kv present ring cells: the rank and
+    multiplier of their count (``ktab[kv]``, ``atab[kv]``); absent cells are NaN in ``xn``.
+    The statistic is ``(x_t / X_(k)) * alpha_N / alpha_K`` (so ``stat > alpha_N`` exactly where
+    detected, as for complete rings; ``floor_n``: the smallest float32 above alpha_N)."""
+    n_ring = (2 * rb + 1) ** 2 - (2 * rg + 1) ** 2
+    buf = np.empty(n_ring, np.float64)
+    n_cells = float((2 * rt + 1) ** 2)
+    for q in range(ii.shape[0]):
+        i = ii[q]
+        j = jj[q]
+        ci = i + halo
+        cj = j + halo
+        kk = kv[q]
+        if rt == 0:
+            xt = np.float64(xn[ci, cj])
+        else:
+            sacc = 0.0
+            for a in range(ci - rt, ci + rt + 1):
+                for b in range(cj - rt, cj + rt + 1):
+                    sacc += np.float64(xn[a, b])
+            xt = sacc / n_cells
+        m = 0
+        for a in range(-rb, rb + 1):
+            for b in range(-rb, rb + 1):
+                if -rg <= a <= rg and -rg <= b <= rg:
+                    continue
+                v = np.float64(xn[ci + a, cj + b])
+                if v == v:
+                    buf[m] = v
+                    m += 1
+        k = ktab[m]
+        alpha = atab[m]
+        if not (xt == xt) or m != kk:
+            continue
+        xk = _select(buf, m, k - 1)
+        if not (alpha * xk < xt):
+            continue
+        mask[i, j] = True
+        if xk > 0.0:
+            r = np.float32((xt / xk) * (alpha_n / alpha))
+        elif xk == 0.0:
+            r = np.float32(np.inf)
+        else:
+            r = np.float32(floor_n)
+        if not (np.float64(r) > alpha_n):
+            r = np.float32(floor_n)
+        stat[i, j] = r
+
+
+def _stat_floor(alpha: float) -> float:
+    a32 = np.float32(alpha)
+    if not float(a32) > alpha:
+        a32 = np.nextafter(a32, np.float32(np.inf))
+    return float(a32)
+
+
+def absent_redo(block, ok, halo, origin, params: OSParams, prep: dict, mask, stat, box=None):
+    """OS-CFAR on the pixels whose background window meets an absent cell: K present ring
+    cells, rank ``rank_for(k, N, K)``, its exact multiplier; fewer than ``ceil(N/2)`` present
+    cells or an absent cell in the target window: not tested. NumPy arrays, in place."""
+    rb, rg, rt = int(params.background) // 2, int(params.guard) // 2, int(params.target) // 2
+    b, g, t = 2 * rb + 1, 2 * rg + 1, 2 * rt + 1
+    n_ring = int(prep["n_ring"])
+    K, nb, nt = intensity_absent.counts(ok, halo, origin, b, g, t, box or boxsum.centered_box_sum)
+    redo = nb < float(b * b)
+    mask[redo] = False
+    stat[redo] = 0
+    tested = redo & (nt == float(t * t)) & (K >= float(intensity_absent.min_valid(n_ring)))
+    ii, jj = np.nonzero(tested)
+    if not ii.size:
+        return
+    kv = K[ii, jj].astype(np.int64)
+    k0, looks, pfa = int(prep["k"]), float(prep["looks"]), float(prep["pfa"])
+    ktab = np.zeros(n_ring + 1, np.int64)
+    atab = np.full(n_ring + 1, np.nan)
+    for kk in np.unique(kv):
+        kr = rank_for(k0, n_ring, int(kk))
+        ktab[kk] = kr
+        atab[kk] = os_threshold_multiplier(int(kk), kr, pfa, looks, t * t)
+    xn = intensity_absent.fill(block, ok, np.nan)
+    _os_partial(xn, halo, ii.astype(np.int64), jj.astype(np.int64), kv, rb, rg, rt, ktab, atab,
+                float(prep["alpha"]), _stat_floor(float(prep["alpha"])), mask, stat)
+
+
 def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: bool = True):
     """OS-CFAR on one padded tile: ``(mask, stat)`` of the ``(h, w)`` core.
 
@@ -671,13 +768,18 @@ def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: b
     if gpu:
         from sarship.pipeline.gpu.cfar import os_cfar
 
-        return os_cfar(block, halo, rb, rg, rt, k, alpha, float(a32))
+        return os_cfar(block, halo, rb, rg, rt, k, alpha, float(a32), origin=origin, params=params, prep=prep)
     mask = np.zeros((h, w), dtype=np.bool_)
     stat = np.zeros((h, w), dtype=np.float32)
+    ok = intensity_absent.present(block, params.nodata)
+    complete = bool(ok.all())
+    xb = block if complete else intensity_absent.fill(block, ok, np.nan)
     if h and w:
-        bins = _screen_bins(block)
-        _os_kernel(block, bins, _EDGES, halo, h, w, rb, rg, rt, k, alpha, float(a32),
+        bins = _screen_bins(xb)
+        _os_kernel(xb, bins, _EDGES, halo, h, w, rb, rg, rt, k, alpha, float(a32),
                    bool(_screen), mask, stat)
+        if not complete:  # absent pixels (module docstring of pipeline.intensity_absent)
+            absent_redo(xb, ok, halo, origin, params, prep, mask, stat)
     return mask, stat
 
 

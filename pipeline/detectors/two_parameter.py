@@ -26,14 +26,14 @@ outliers into the ring statistics: use ``intensity`` or ``amplitude`` for such d
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, Optional
 
 import numpy as np
 from numba import njit, objmode, uint64
 from pydantic import Field
 from scipy import stats
 
-from sarship.pipeline import boxsum, simd
+from sarship.pipeline import boxsum, intensity_absent, simd
 from sarship.pipeline.boxsum import hsum_row, ring_slot, stream_state, vertical_row, vertical_steady
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 from sarship.pipeline.gpu import is_device_array
@@ -58,6 +58,9 @@ class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", p
     domain: Literal["intensity", "amplitude", "db"] = Field(
         "intensity", description="quantity modelled as Gaussian"
     )
+    nodata: Optional[float] = Field(
+        None, description="value marking absent pixels besides NaN (e.g. 0 for a zero-filled border); "
+                          "None: NaN only (exact zeros are data: 8-bit chips have them in dark sea)")
 
 
 def threshold(pfa: float, n_ring: int, n_target: int, kind: str = "student") -> float:
@@ -519,7 +522,21 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: TwoParamete
         from sarship.pipeline.gpu.cfar import two_parameter
 
         return two_parameter(block, halo, origin, b, g, t, float(prep["n_ring"]), float(prep["threshold"]),
-                             p.domain)
+                             p.domain, pfa=float(p.pfa), kind=p.threshold, nodata=p.nodata)
+    ok = intensity_absent.present(block, p.nodata)
+    if not ok.all():  # absent pixels (module docstring of pipeline.intensity_absent)
+        src = block if block.dtype in (np.float32, np.float64) else block.astype(np.float64)
+        xz = intensity_absent.fill(src, ok, 0.0)
+        mask, stat = _detect_complete(xz, halo, origin, p, prep)
+        yz = intensity_absent.fill(_transform_reference(xz, p.domain), ok, 0.0)
+        intensity_absent.tp_redo(yz, ok, halo, origin, b, g, t, int(prep["n_ring"]), float(p.pfa), p.threshold,
+                                 float(prep["threshold"]), mask, stat, boxsum.centered_box_sum)
+        return mask, stat
+    return _detect_complete(block, halo, origin, p, prep)
+
+
+def _detect_complete(block, halo, origin, p, prep):
+    b, g, t = int(p.background), int(p.guard), int(p.target)
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     mode = _MODE[p.domain]

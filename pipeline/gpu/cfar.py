@@ -1,4 +1,11 @@
-"""GPU twins of the single-channel CFAR detectors (``ca_cfar``, ``two_parameter``).
+"""GPU twins of the single-channel CFAR detectors (``ca_cfar``, ``two_parameter``, ``os_cfar``).
+
+Absent pixels (NaN, or the ``nodata`` value): as on the CPU (:mod:`sarship.pipeline.intensity_absent`):
+the complete-data kernel runs on the block with absent cells zeroed (NaN for ``os_cfar``), then
+the pixels whose background window meets an absent cell are recomputed with K present ring
+cells by the same CuPy/NumPy code as the CPU (``ca_redo``, ``tp_redo``); for ``os_cfar`` those
+pixels (a band along the absent region) are decided by the CPU kernel (``os_cfar.absent_redo``)
+and copied back.
 
 Each takes the same arguments as the CPU ``detect`` with a CuPy ``block`` and returns CuPy
 ``(mask, stat)``; the window sums are those of :mod:`sarship.pipeline.gpu.box` (bit-identical to
@@ -10,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sarship.pipeline import intensity_absent
 from sarship.pipeline.gpu import kernels
 from sarship.pipeline.gpu.box import centered_box_sum
 
@@ -22,11 +30,20 @@ def _float_block(cp, block):
     return cp.ascontiguousarray(block)
 
 
-def ca_cfar(block, halo: int, origin, b: int, g: int, t: int, n_ring: int, thr: float):
+def ca_cfar(block, halo: int, origin, b: int, g: int, t: int, n_ring: int, thr: float, *, pfa=None, looks=None,
+            nodata=None):
     """CA-CFAR (see :mod:`sarship.pipeline.detectors.ca_cfar`): x_t / ring mean > T."""
     import cupy as cp
 
     x = _float_block(cp, block)
+    if pfa is not None:
+        ok = intensity_absent.present(x, nodata)
+        if not bool(ok.all()):
+            xz = cp.ascontiguousarray(intensity_absent.fill(x, ok, 0.0))
+            mask, stat = ca_cfar(xz, halo, origin, b, g, t, n_ring, thr)
+            intensity_absent.ca_redo(xz, ok, halo, origin, b, g, t, int(n_ring), float(pfa), float(looks), thr,
+                                     mask, stat, centered_box_sum)
+            return mask, stat
     h = x.shape[0] - 2 * halo
     w = x.shape[1] - 2 * halo
     bg = centered_box_sum(x, b, halo, origin)
@@ -46,11 +63,25 @@ def ca_cfar(block, halo: int, origin, b: int, g: int, t: int, n_ring: int, thr: 
 _MODES = {"intensity": 0, "amplitude": 1, "db": 2}
 
 
-def two_parameter(block, halo: int, origin, b: int, g: int, t: int, n_ring: float, thr: float, domain: str):
+def two_parameter(block, halo: int, origin, b: int, g: int, t: int, n_ring: float, thr: float, domain: str, *,
+                  pfa=None, kind="student", nodata=None):
     """Two-parameter CFAR (see :mod:`sarship.pipeline.detectors.two_parameter`)."""
     import cupy as cp
 
     x = _float_block(cp, block)
+    if pfa is not None:
+        ok = intensity_absent.present(x, nodata)
+        if not bool(ok.all()):
+            xz = cp.ascontiguousarray(intensity_absent.fill(x, ok, 0.0))
+            mask, stat = two_parameter(xz, halo, origin, b, g, t, n_ring, thr, domain)
+            y = cp.empty(xz.shape, cp.float64)
+            y2 = cp.empty(xz.shape, cp.float64)
+            name = "tp_transform_f32" if xz.dtype == cp.float32 else "tp_transform_f64"
+            kernels.launch(name, xz.size, (xz, np.int64(xz.size), np.int32(_MODES[domain]), y, y2))
+            yz = cp.ascontiguousarray(intensity_absent.fill(y, ok, 0.0))
+            intensity_absent.tp_redo(yz, ok, halo, origin, b, g, t, int(n_ring), float(pfa), kind, thr, mask,
+                                     stat, centered_box_sum)
+            return mask, stat
     h = x.shape[0] - 2 * halo
     w = x.shape[1] - 2 * halo
     y = cp.empty(x.shape, cp.float64)
@@ -73,7 +104,8 @@ def two_parameter(block, halo: int, origin, b: int, g: int, t: int, n_ring: floa
     return mask, stat
 
 
-def os_cfar(block, halo: int, rb: int, rg: int, rt: int, k: int, alpha: float, stat_floor: float):
+def os_cfar(block, halo: int, rb: int, rg: int, rt: int, k: int, alpha: float, stat_floor: float, *,
+            origin=None, params=None, prep=None):
     """OS-CFAR (see :mod:`sarship.pipeline.detectors.os_cfar`): x_t > alpha X_(k).
 
     The decision counts, per pixel, the ring samples below the smallest value ``c`` of the
@@ -84,6 +116,16 @@ def os_cfar(block, halo: int, rb: int, rg: int, rt: int, k: int, alpha: float, s
     import cupy as cp
 
     x = _float_block(cp, block)
+    if params is not None:
+        ok = intensity_absent.present(x, params.nodata)
+        if not bool(ok.all()):
+            xn = cp.ascontiguousarray(intensity_absent.fill(x, ok, np.nan))
+            mask, stat = os_cfar(xn, halo, rb, rg, rt, k, alpha, stat_floor)
+            from sarship.pipeline.detectors.os_cfar import absent_redo
+
+            m_h, s_h = mask.get(), stat.get()
+            absent_redo(xn.get(), ok.get(), halo, origin, params, prep, m_h, s_h)
+            return cp.asarray(m_h), cp.asarray(s_h)
     h = x.shape[0] - 2 * halo
     w = x.shape[1] - 2 * halo
     f32 = x.dtype == cp.float32

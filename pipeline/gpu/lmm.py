@@ -599,7 +599,8 @@ def detect(block, halo: int, origin, rb: int, rg: int, rt: int, K: int, prep: di
     init_zs = cp.asarray(_init_zs(K))
     common = (np.int32(K), init_zs, np.int32(int(prep["max_iter"])), np.float64(float(prep["tol"])),
               np.int32(prep.get("select", "bic") == "bic"), np.int32(prep.get("tail", "predictive") == "predictive"),
-              np.float64(float(prep["z"])), np.float64(float(prep["log_pfa"])), np.int32(max(8, 3 * K)))
+              np.float64(float(prep["z"])), np.float64(float(prep["log_pfa"])),
+              np.int32(max(8, 3 * K, ((2 * rb + 1) ** 2 - (2 * rg + 1) ** 2 + 1) // 2)))  # lmm.min_usable
     if method == "exact":
         ok = (X64 > 0.0) & (X64 < np.inf)
         Y = cp.where(ok, cp.log(cp.where(ok, X64, 1.0)), cp.nan)
