@@ -143,7 +143,7 @@ def test_nan_and_nodata_are_not_errors(tmp_path):
     for kind in ("auto", "intensity", "amplitude"):
         sc = ingest([tmp_path / "nd.tif"], tmp_path / f"{kind}.zarr", kind=kind, tile=32)
         out = read(sc, "intensity")
-        assert (out[4:, :6] == 0).all() and np.isnan(out[:4, 6:]).all()
+        assert np.isnan(out[4:, :6]).all() and np.isnan(out[:4, 6:]).all()  # declared no-data: NaN
     b = a.copy()
     b[:, :6] = 1.0
     np.save(tmp_path / "nan.npy", b)
@@ -346,3 +346,16 @@ def test_infinite_intensity_is_refused_nan_is_no_data(tmp_path):
     np.save(tmp_path / "nan.npy", z)
     sc = ingest([tmp_path / "nan.npy"], tmp_path / "n.zarr")
     assert np.isnan(read(sc, "intensity")[:40]).all() and np.isfinite(read(sc, "intensity")[40:]).all()
+
+
+def test_declared_zero_nodata_is_absent_and_undeclared_zeros_are_data(tmp_path):
+    """GDAL_NODATA 0 (a Sentinel-1-style zero border) is stored as NaN, which every detector
+    leaves out (issue 12); zeros without a declaration stay data (8-bit chips have real zeros)."""
+    a = np.random.default_rng(4).gamma(2.0, 0.5, (64, 64)).astype(np.float32)
+    a[:, :8] = 0.0
+    write_tif(tmp_path / "z.tif", a, extratags=[(42113, "s", 0, "0", False)])
+    out = read(ingest([tmp_path / "z.tif"], tmp_path / "z.zarr", tile=32), "intensity")
+    assert np.isnan(out[:, :8]).all() and np.isfinite(out[:, 8:]).all()
+    write_tif(tmp_path / "u.tif", a)
+    out = read(ingest([tmp_path / "u.tif"], tmp_path / "u.zarr", tile=32), "intensity")
+    assert (out[:, :8] == 0).all()

@@ -261,8 +261,8 @@ def _to_f32_intensity(a: np.ndarray, amplitude: bool, nodata: float | None = Non
     x = a.astype(np.float32, copy=False)
     if amplitude:
         x = np.square(x, dtype=np.float32)
-    if nodata is not None:
-        x = np.where(a == nodata, np.float32(0), x).astype(np.float32, copy=False)
+    if nodata is not None:  # declared no-data: absent (NaN), which every detector leaves out
+        x = np.where(a == nodata, np.float32(np.nan), x).astype(np.float32, copy=False)
     return x
 
 

@@ -7,8 +7,8 @@ not. Uncompressed contiguous data are memory-mapped; anything else is read throu
 tifffile's ``aszarr()`` chunk by chunk. A stripped file whose tile row is small enough
 (<= ``ROW_BAND_BYTES``) is read one tile row at a time so strips are decoded once.
 
-A ``GDAL_NODATA`` value other than 0 is left out of the ``auto`` sample and stored as 0
-(no data) in intensity.
+A ``GDAL_NODATA`` value (0 included) is left out of the ``auto`` sample and stored as NaN
+(absent: every detector leaves it out of its statistics and never reports it) in intensity.
 
 GeoTIFF: ``ModelPixelScale`` + one ``ModelTiepoint``, or ``ModelTransformation``; EPSG from
 ``ProjectedCSTypeGeoKey`` or ``GeographicTypeGeoKey``. ``pixel_spacing_m`` comes from the
@@ -228,7 +228,7 @@ def _tiff_metadata(p: Path, tif, page, nbands: int, shape: tuple[int, int],
     if nd is not None:
         try:
             v = float(str(nd.value).strip().strip("\x00"))
-            if math.isfinite(v) and v != 0:
+            if math.isfinite(v):
                 meta["nodata"] = v
         except ValueError:
             pass
