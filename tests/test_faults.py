@@ -161,7 +161,8 @@ def inbox_server(tmp_path_factory):
     data.mkdir()
     inbox.mkdir()
     srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.3",
-                 SARSHIP_INBOX_SETTLE_S="1").start()
+                 SARSHIP_INBOX_SETTLE_S="4").start()  # 4 s: appends 0.25 s apart (plus a status request each,
+    # which a loaded 2-core CI machine can take a second to answer) never look settled
     srv.inbox = inbox
     yield srv
     srv.stop()
@@ -183,7 +184,7 @@ def test_a_done_marker_is_consumed_with_its_pass(inbox_server):
     half = len(raw) // 2
     f.write_bytes(raw[:half])
     pieces = np.linspace(half, len(raw), 9).astype(int)
-    for a, b in zip(pieces[:-2], pieces[1:-1]):  # appends 0.25 s apart, within the 1 s settle time
+    for a, b in zip(pieces[:-2], pieces[1:-1]):  # appends 0.25 s apart, within the 4 s settle time
         time.sleep(0.25)
         assert passes(u)["same.tif"]["status"] in ("waiting", "ingested"), passes(u)["same.tif"]
         with open(f, "ab") as fh:

@@ -281,7 +281,7 @@ def server(tmp_path_factory):
     data.mkdir()
     inbox.mkdir()
     srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.5",
-                 SARSHIP_INBOX_SETTLE_S="1", SARSHIP_INBOX_DETECTORS=json.dumps(DETECTOR)).start()
+                 SARSHIP_INBOX_SETTLE_S="2", SARSHIP_INBOX_DETECTORS=json.dumps(DETECTOR)).start()
     srv.inbox = inbox
     yield srv
     srv.stop()
@@ -345,8 +345,9 @@ def test_a_file_still_being_written_is_not_taken(server):
     f = server.inbox / "growing.tif"
     half = len(raw) // 2
     f.write_bytes(raw[:half])
-    pieces = np.linspace(half, len(raw), 13).astype(int)
-    for a, b in zip(pieces[:-2], pieces[1:-1]):  # 11 appends, 0.25 s apart: longer than the 1 s settle time
+    pieces = np.linspace(half, len(raw), 19).astype(int)
+    for a, b in zip(pieces[:-2], pieces[1:-1]):  # 17 appends, 0.25 s apart: 4.25 s in all, longer than the
+        # 2 s settle time; each gap (0.25 s and a status request) well under it, also on a loaded CI machine
         time.sleep(0.25)
         assert passes(u).get("growing.tif", {"status": "waiting"})["status"] == "waiting"
         with open(f, "ab") as fh:
