@@ -306,3 +306,20 @@ def test_present_rule():
     ok = present(x)
     assert not ok[:5].any() and not ok[6, 3] and not ok[7, 4] and ok[8, 5] and ok[10:].all()
     assert not present(C)[9, 6]
+
+
+def test_apwf_covariance_input_with_an_absent_border_runs_on_cpu():
+    """Covariance (C3) input with a NaN border: pixels with too few valid ring cells have a
+    singular (all-zero) ring covariance; the whole batch used to fail with LinAlgError
+    ('Singular matrix', found on the GPU machine's CPU reference). Absent pixels are never
+    detected, and the valid part is tested."""
+    from test_nodata_gpu import _absent, _quadpol
+
+    halo = 15
+    X, a = _absent(_quadpol((2 * halo + 220, 2 * halo + 210), 3, seed=5), "nan_border", halo)
+    C = (X[..., :, None] * X[..., None, :].conj()).astype(np.complex64)
+    spec = detectors.get("apwf")
+    p = spec.params(pfa=1e-3, guard=9, background=31)
+    m, s = spec.detect(C, halo, (-halo, -halo), p, spec.prepare(p))
+    assert not m[a[halo:-halo, halo:-halo]].any()
+    assert np.isfinite(s).all() and (s[~a[halo:-halo, halo:-halo]] > 0).any()

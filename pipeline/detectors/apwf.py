@@ -294,9 +294,12 @@ def _products_cov(C, out):
                     q += 2
 
 
-def _cov_to_x_free_stat(C, S, n):
+def _cov_to_x_free_stat(C, S, n, tested=None):
     """y = N tr(S^-1 C) per pixel (numpy; C (h, w, p, p), S in the products layout; N a
-    number or the per-pixel counts)."""
+    number or the per-pixel counts). ``tested``: pixels whose statistic is used; the others
+    (too few valid ring cells: their S may be singular, even all zero) get y = 0. A singular S
+    of a tested pixel (degenerate data, e.g. a channel that is zero throughout the ring) gets
+    the pseudo-inverse: ``np.linalg.solve`` refuses a batch holding one singular matrix."""
     h, w, p, _ = C.shape
     M = np.empty((h, w, p, p), np.complex128)
     for d in range(p):
@@ -307,9 +310,16 @@ def _cov_to_x_free_stat(C, S, n):
             M[..., a, b] = S[q] + 1j * S[q + 1]
             M[..., b, a] = S[q] - 1j * S[q + 1]
             q += 2
+    if tested is not None:
+        M[~tested] = np.eye(p)
     with np.errstate(all="ignore"):
-        sol = np.linalg.solve(M, C.astype(np.complex128))
+        try:
+            sol = np.linalg.solve(M, C.astype(np.complex128))
+        except np.linalg.LinAlgError:
+            sol = np.linalg.pinv(M, hermitian=True) @ C.astype(np.complex128)
         y = n * np.real(np.trace(sol, axis1=2, axis2=3))
+    if tested is not None:
+        y = np.where(tested, y, 0.0)
     bad = ~np.isfinite(y)
     if bad.any():
         nz = np.abs(C).sum(axis=(2, 3)) > 0
@@ -458,7 +468,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
             core = zero_absent(sub[halo: halo + r1 - r0, halo: halo + c1 - c0], ok)
             if cov:
                 tested = T < np.inf
-                y = _cov_to_x_free_stat(core, S, K)
+                y = _cov_to_x_free_stat(core, S, K, tested)
                 m = tested & (y > T)
                 with np.errstate(invalid="ignore"):
                     y = np.where(T != thr, y * (thr / T), y)
