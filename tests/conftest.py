@@ -16,6 +16,34 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
+
+
+def _generous_http_timeouts() -> None:
+    """httpx's module functions (``httpx.get``/``post``/...) time out after 5 s; on the 2-core CI
+    machine running two test processes, each with its servers and Dask workers, a server's
+    first request (it imports a detector, opens the store) can take longer. The tests wait
+    for real servers: give those calls 60 s unless a test sets its own timeout."""
+    import functools
+
+    try:
+        import httpx
+    except ImportError:
+        return
+    for name in ("request", "get", "post", "put", "patch", "delete", "head", "options", "stream"):
+        f = getattr(httpx, name, None)
+        if f is None or getattr(f, "_sarship_tests", False):
+            continue
+
+        @functools.wraps(f)
+        def call(*args, _f=f, **kw):
+            kw.setdefault("timeout", 60.0)
+            return _f(*args, **kw)
+
+        call._sarship_tests = True
+        setattr(httpx, name, call)
+
+
+_generous_http_timeouts()
 REAL = SHARED / "data" / "real"
 
 
