@@ -13,6 +13,8 @@ folder, a local Dask cluster of ``--workers`` processes) so that its memory can 
 - the same two bombs dropped in the inbox, with a good pass after them: quarantined, and the
   good pass is ingested (no runner held);
 - data that is no measurement: all +inf, constant -1: the ingest fails naming it;
+- sea with a ship next to a 150-px NaN border, and a zero border declared as no-data: each
+  intensity detector finds the ship and reports no border band (SNAP's known bug);
 - 40 preview sizes of one job: at most six cached files;
 - a 400 MB JSON body (with Content-Length, and chunked): 413; JSON nested 100000 deep: 400;
 - 45 concurrent ``Prefer: respond-sync`` executions: capped (503 + Retry-After), and
@@ -210,6 +212,46 @@ class Bench:
                         st.get("status") == "failed" and expect in st.get("message", ""))
             self.case(f"upload {name}", run)
 
+    def nodata_borders(self):
+        """Sea (L = 4 gamma) with one bright ship 10 px inside a 150-px NaN border, and the same
+        with a zero border declared as no-data (GDAL_NODATA 0): every detector of intensity
+        finds the ship and reports nothing along the border (SNAP's known bug: a NaN background
+        becomes a target)."""
+        import io
+
+        import tifffile
+
+        rng = np.random.default_rng(9)
+        x = rng.gamma(4.0, 0.25, (700, 700)).astype(np.float32)
+        x[160:165, 300:312] += 60.0  # the ship, 10 px inside the border
+        for label, fill, tags in (("NaN border", np.nan, []), ("zero border, GDAL_NODATA 0", 0.0,
+                                                               [(42113, "s", 0, "0", False)])):
+            y = x.copy()
+            y[:150], y[-150:], y[:, :150], y[:, -150:] = fill, fill, fill, fill
+            buf = io.BytesIO()
+            tifffile.imwrite(buf, y, extratags=tags)
+            code, st = self.upload(label.split(",")[0].replace(" ", "_") + ".tif", buf.getvalue())
+            scene = (st.get("results") or {}).get("scene") or st.get("message", "").split()[1]
+
+            def run(scene=scene):
+                out, ok = [], True
+                for det in ("ca_cfar", "os_cfar", "two_parameter", "lmm"):
+                    r = self.req("POST", f"/processes/{det}/execution", json={"inputs": {"scene": scene}},
+                                 headers={"Prefer": "respond-sync"})
+                    job = r.json().get("jobID") or r.headers.get("Location", "").rstrip("/").split("/")[-1]
+                    st2 = self.wait_job(job)
+                    feats = self.req("GET", f"/jobs/{job}/results/detections").json().get("features", []) \
+                        if st2["status"] == "successful" else []
+                    boxes = [f["properties"].get("bbox_px") or f["properties"].get("bbox") for f in feats]
+                    areas = [f["properties"].get("area_px", 0) for f in feats]
+                    ship = any(b and b[0] <= 165 and b[2] >= 160 and b[1] <= 312 and b[3] >= 300
+                               for b in boxes if b and len(b) == 4)
+                    big = max(areas, default=0)
+                    out.append(f"{det} {len(feats)} det, ship {'found' if ship else 'MISSED'}, largest {big} px")
+                    ok &= st2["status"] == "successful" and ship and big < 500
+                return "; ".join(out), ok
+            self.case(f"sea with a 150-px {label}", run)
+
     def previews(self):
         r = self.req("POST", "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1", "guard": 11,
                                                                            "background": 31}},
@@ -357,6 +399,7 @@ def main() -> int:
         try:
             b.bombs()
             b.not_measurements()
+            b.nodata_borders()
             b.previews()
             b.bodies()
             b.names()
