@@ -60,6 +60,19 @@ def client():
     cluster.close()
 
 
+def fsize_limit(limit: int):
+    """A ``preexec_fn`` for a subprocess that may write no file past ``limit`` bytes: such
+    writes fail with EFBIG, which a process meets as it would a full disk's ENOSPC (a real
+    kernel limit, inherited by its children; SIGXFSZ ignored, as CPython does itself)."""
+    import resource
+    import signal
+
+    def preexec():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return preexec
+
+
 def write_scene(path, arrays: dict, tile: int = 256, **attrs):
     """Write arrays into a scene store with the project's own store code."""
     from sarship.pipeline.scene import create_scene, finalize_scene

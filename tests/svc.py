@@ -84,3 +84,36 @@ def check_problem(r, status: int, *words: str) -> None:
     assert {"type", "title", "detail"} <= set(body), body
     for w in words:
         assert w in body["detail"], (w, body)
+
+
+# ----------------------------------------------------------------------------- inbox passes
+
+
+def tif_bytes(seed: int, shape=(300, 260)) -> bytes:
+    """A TIFF of a small gamma scene with bright blobs (``conftest.blobs_scene``), as bytes."""
+    import io
+
+    import tifffile
+    from conftest import blobs_scene
+
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, blobs_scene(shape, looks=2.0, seed=seed))
+    return buf.getvalue()
+
+
+def passes(url: str) -> dict[str, dict]:
+    """The newest pass record of each inbox file, by file name."""
+    out: dict[str, dict] = {}
+    for p in httpx.get(url + "/ingest?limit=1000").json()["passes"]:  # newest first
+        out.setdefault(Path(p["file"]).name, p)
+    return out
+
+
+def wait_pass(url: str, name: str, statuses: tuple[str, ...], timeout: float = 60.0) -> dict:
+    t_end = time.time() + timeout
+    while time.time() < t_end:
+        p = passes(url).get(name)
+        if p is not None and p["status"] in statuses:
+            return p
+        time.sleep(0.1)
+    raise AssertionError(f"pass {name} did not reach {statuses}: {passes(url).get(name)}")

@@ -22,7 +22,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import resource
 import signal
 import sqlite3
 import subprocess
@@ -34,8 +33,8 @@ import numpy as np
 import pytest
 
 httpx = pytest.importorskip("httpx")
-from conftest import blobs_scene, write_scene  # noqa: E402
-from svc import Server, free_port, wait_job  # noqa: E402
+from conftest import blobs_scene, fsize_limit, write_scene  # noqa: E402
+from svc import Server, free_port, passes, tif_bytes, wait_job, wait_pass  # noqa: E402
 
 from sarship.service.inbox_files import marker  # noqa: E402
 
@@ -44,31 +43,6 @@ def npy_bytes(a: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, a)
     return buf.getvalue()
-
-
-def tif_bytes(seed: int, shape=(300, 260)) -> bytes:
-    import tifffile
-
-    buf = io.BytesIO()
-    tifffile.imwrite(buf, blobs_scene(shape, looks=2.0, seed=seed))
-    return buf.getvalue()
-
-
-def passes(url: str) -> dict[str, dict]:
-    out: dict[str, dict] = {}
-    for p in httpx.get(url + "/ingest?limit=1000").json()["passes"]:  # newest first
-        out.setdefault(Path(p["file"]).name, p)
-    return out
-
-
-def wait_pass(url: str, name: str, statuses: tuple[str, ...], timeout: float = 60.0) -> dict:
-    t_end = time.time() + timeout
-    while time.time() < t_end:
-        p = passes(url).get(name)
-        if p is not None and p["status"] in statuses:
-            return p
-        time.sleep(0.1)
-    raise AssertionError(f"pass {name} did not reach {statuses}: {passes(url).get(name)}")
 
 
 def partials(scenes: Path) -> list[str]:
@@ -96,17 +70,6 @@ def start_live(srv: Server, preexec=None, timeout: float = 120.0) -> Server:
     raise RuntimeError("server did not come up")
 
 
-def _fsize_limit(limit: int):
-    def preexec():
-        # writes past `limit` bytes of any file fail with EFBIG (to the process, a full disk);
-        # SIGXFSZ ignored, as CPython does itself
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-    return preexec
-
-
-# ----------------------------------------------------------------------------- 1. full disk
-
 
 def test_a_full_disk_is_retried_not_quarantined_and_readyz_says_so(tmp_path):
     data, inbox = tmp_path / "data", tmp_path / "inbox"
@@ -120,7 +83,7 @@ def test_a_full_disk_is_retried_not_quarantined_and_readyz_says_so(tmp_path):
                SARSHIP_INBOX_SETTLE_S="1", SARSHIP_RETRY_S="0.5", SARSHIP_RETRY_MAX_S="1")
     full = Server(data, free_port(), SARSHIP_MIN_FREE_MB=str(2**40), **env)  # "less free than 1 EiB"
     try:
-        start_live(full, preexec=_fsize_limit(8 << 20))
+        start_live(full, preexec=fsize_limit(8 << 20))
         r = httpx.get(full.url + "/readyz")
         assert r.status_code == 503 and r.json()["status"] == "not ready", r.text
         assert "min_free_mb" in r.json()["checks"]["disk"], r.json()

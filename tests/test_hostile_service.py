@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import io
 import os
-import resource
 import signal
 import subprocess
 import sys
@@ -19,7 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 httpx = pytest.importorskip("httpx")
-from conftest import blobs_scene, write_scene  # noqa: E402
+from conftest import blobs_scene, fsize_limit, write_scene  # noqa: E402
 from svc import Server, check_problem, data_with_scene, free_port, wait_job  # noqa: E402
 
 PREVIEW_CACHE_MB = 0.25
@@ -241,14 +240,6 @@ def test_nul_and_lone_surrogates_are_400(server, done_job):
 # ----------------------------------------------------------------------------- 5. disk full
 
 
-def _fsize_limit(limit: int):
-    def preexec():
-        # writes past `limit` bytes of any file fail with EFBIG (what a full disk is to the
-        # process: ENOSPC, mapped the same); SIGXFSZ ignored, as CPython does itself
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-    return preexec
-
 
 def test_full_disk_is_507(tmp_path):
     """The server process may write no file past 2 MiB (RLIMIT_FSIZE, a real limit of the
@@ -261,7 +252,7 @@ def test_full_disk_is_507(tmp_path):
     srv.log = log
     srv.proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(data), "--port",
                                  str(srv.port)], stdout=log, stderr=subprocess.STDOUT, env=srv.env,
-                                start_new_session=True, preexec_fn=_fsize_limit(limit))
+                                start_new_session=True, preexec_fn=fsize_limit(limit))
     try:
         t_end = time.time() + 120
         while True:

@@ -14,46 +14,19 @@ import os
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 httpx = pytest.importorskip("httpx")
 from conftest import blobs_scene  # noqa: E402
-from svc import Server, check_problem, free_port, wait_job  # noqa: E402
+from svc import Server, check_problem, free_port, passes, tif_bytes, wait_job, wait_pass  # noqa: E402
 
 from sarship.service.inbox import Schedule  # noqa: E402
 from sarship.service.inbox_files import (Signature, list_passes, marker, move_into, quarantine_target,  # noqa: E402
                                  scene_key, settled, sha256_of, signature, write_reason)
 
 DETECTOR = [{"detector": "os_cfar", "guard": 11, "background": 31}]
-
-
-def tif_bytes(seed: int, shape=(300, 260)) -> bytes:
-    import tifffile
-
-    buf = io.BytesIO()
-    tifffile.imwrite(buf, blobs_scene(shape, looks=2.0, seed=seed))
-    return buf.getvalue()
-
-
-def passes(url: str) -> dict[str, dict]:
-    """The newest pass record of each inbox file, by file name."""
-    out: dict[str, dict] = {}
-    for p in httpx.get(url + "/ingest?limit=1000").json()["passes"]:  # newest first
-        out.setdefault(Path(p["file"]).name, p)
-    return out
-
-
-def wait_pass(url: str, name: str, statuses: tuple[str, ...], timeout: float = 60.0) -> dict:
-    t_end = time.time() + timeout
-    while time.time() < t_end:
-        p = passes(url).get(name)
-        if p is not None and p["status"] in statuses:
-            return p
-        time.sleep(0.2)
-    raise AssertionError(f"pass {name} did not reach {statuses}: {passes(url).get(name)}")
 
 
 def jobs_by_process(url: str) -> dict[str, list[str]]:

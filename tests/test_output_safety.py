@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import dask_processes, write_scene
+from tests.conftest import dask_processes, fsize_limit, write_scene
 from tests.test_cli import assert_clean_error, listing, sarship
 
 
@@ -231,21 +231,14 @@ def test_no_space_to_write_is_exit_3_in_one_line_and_leaves_nothing(tmp_path):
     """A full disk is not bad input: `sarship ingest` meeting a real write limit (RLIMIT_FSIZE,
     the kernel's EFBIG, as a full disk's ENOSPC) says so in one line, exit 3, and removes its
     temporary store (issue 12)."""
-    import resource
-    import signal
-
     x = np.random.default_rng(0).gamma(2.0, 0.5, (1024, 1024)).astype(np.float32)
     np.save(tmp_path / "x.npy", x)
     out = tmp_path / "out"
     out.mkdir()
 
-    def limit():  # writes beyond 1 MiB fail with EFBIG instead of killing the process
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (2**20, 2**20))
-
     res = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out",
                           str(out / "x.zarr"), "--tile", "1024"], capture_output=True, text=True,
-                         timeout=120, preexec_fn=limit)
+                         timeout=120, preexec_fn=fsize_limit(2**20))  # writes past 1 MiB fail
     assert res.returncode == 3, (res.returncode, res.stderr)
     assert len(res.stderr.strip().splitlines()) == 1 and "no space to write" in res.stderr, res.stderr
     assert "Traceback" not in res.stderr and os.listdir(out) == [], os.listdir(out)

@@ -224,79 +224,6 @@ __device__ __forceinline__ cplx cj(cplx a) { cplx o; o.r = a.r; o.i = -a.i; retu
 __device__ __forceinline__ cplx cs(cplx a, cplx b) { cplx o; o.r = a.r - b.r; o.i = a.i - b.i; return o; }
 __device__ __forceinline__ cplx cre(double a) { cplx o; o.r = a; o.i = 0.0; return o; }
 
-/* apwf: y = N q / det with q = X^H adj(S) X (apwf._pwf / _adj3, same operation order).
- * S: p^2 planes of the window sums (n pixels); X: the core's complex channels, or for
- * covariance input (is_cov) the core's covariance planes, y = N tr(adj(S) C) / det. */
-__global__ void apwf_decide(const double* __restrict__ S, long long n, const float* __restrict__ x,
-                            long long ldx, long long cols, int p, int is_cov,
-                            const double* __restrict__ Cp, double N, double thr, float thr32_above,
-                            unsigned char* __restrict__ mask, float* __restrict__ stat) {
-    long long t = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    if (t >= n) return;
-    long long i = t / cols, jj = t % cols;
-    double q, det;
-    bool nz;
-    if (p == 3) {
-        double a = S[t], d = S[n + t], f = S[2 * n + t];
-        cplx b = {S[3 * n + t], S[4 * n + t]}, c = {S[5 * n + t], S[6 * n + t]}, e = {S[7 * n + t], S[8 * n + t]};
-        double A11 = d * f - (e.r * e.r + e.i * e.i);
-        double A22 = a * f - (c.r * c.r + c.i * c.i);
-        double A33 = a * d - (b.r * b.r + b.i * b.i);
-        cplx A12 = cs(cm(c, cj(e)), cm(b, cre(f)));
-        cplx A13 = cs(cm(b, e), cm(c, cre(d)));
-        cplx A23 = cs(cm(cj(b), c), cm(cre(a), e));
-        det = a * A11 + cm(b, cj(A12)).r + cm(c, cj(A13)).r;
-        if (!is_cov) {
-            const float* px = x + 6 * (i * ldx + jj);
-            cplx x0 = {(double)px[0], (double)px[1]}, x1 = {(double)px[2], (double)px[3]},
-                 x2 = {(double)px[4], (double)px[5]};
-            q = (A11 * (x0.r * x0.r + x0.i * x0.i)
-                 + A22 * (x1.r * x1.r + x1.i * x1.i)
-                 + A33 * (x2.r * x2.r + x2.i * x2.i)
-                 + 2.0 * (cm(cm(cj(x0), A12), x1).r
-                          + cm(cm(cj(x0), A13), x2).r
-                          + cm(cm(cj(x1), A23), x2).r));
-            nz = (x0.r != 0.0 || x0.i != 0.0 || x1.r != 0.0 || x1.i != 0.0 || x2.r != 0.0 || x2.i != 0.0);
-        } else {
-            /* tr(adj(S) C) = sum A_aa C_aa + 2 Re sum_{a<b} A_ab conj(C_ab) */
-            double c11 = Cp[t], c22 = Cp[n + t], c33 = Cp[2 * n + t];
-            cplx c12 = {Cp[3 * n + t], Cp[4 * n + t]}, c13 = {Cp[5 * n + t], Cp[6 * n + t]},
-                 c23 = {Cp[7 * n + t], Cp[8 * n + t]};
-            q = (A11 * c11 + A22 * c22 + A33 * c33
-                 + 2.0 * (cm(A12, cj(c12)).r + cm(A13, cj(c13)).r + cm(A23, cj(c23)).r));
-            nz = (c11 != 0.0 || c22 != 0.0 || c33 != 0.0);
-        }
-    } else {
-        double a = S[t], d = S[n + t];
-        cplx b = {S[2 * n + t], S[3 * n + t]};
-        det = a * d - (b.r * b.r + b.i * b.i);
-        if (!is_cov) {
-            const float* px = x + 4 * (i * ldx + jj);
-            cplx x0 = {(double)px[0], (double)px[1]}, x1 = {(double)px[2], (double)px[3]};
-            q = (d * (x0.r * x0.r + x0.i * x0.i)
-                 + a * (x1.r * x1.r + x1.i * x1.i)
-                 - 2.0 * cm(cm(cj(x0), b), x1).r);
-            nz = (x0.r != 0.0 || x0.i != 0.0 || x1.r != 0.0 || x1.i != 0.0);
-        } else {
-            double c11 = Cp[t], c22 = Cp[n + t];
-            cplx c12 = {Cp[2 * n + t], Cp[3 * n + t]};
-            /* adj = [[d, -b], [-b*, a]] */
-            q = d * c11 + a * c22 - 2.0 * cm(b, cj(c12)).r;
-            nz = (c11 != 0.0 || c22 != 0.0);
-        }
-    }
-    double y;
-    if (det > 0.0) y = N * q / det;
-    else if (nz) y = __longlong_as_double(0x7ff0000000000000LL);
-    else y = 0.0;
-    bool m = y > thr;
-    float s = (float)y;
-    /* thr32_above = nextafter(float(thr), +inf): keep stat > threshold where masked */
-    if (m && s < thr32_above) s = thr32_above;
-    mask[t] = m;
-    stat[t] = s;
-}
-
 /* PCDM: P over the 8 neighbours (eq 4-7), SPAN_P and PSH (pcdm._pcdm_kernel). C: np planes
  * over (h + 2) x (w + 2) (row stride ldc), outputs h x w. */
 __device__ void eig_sym3(double a11, double a22, double a33, double a12, double a13, double a23,
@@ -558,9 +485,11 @@ __global__ void vb_pixels(const float* __restrict__ X, long long n, int p, int K
     stat[t] = (float)lam;
 }
 
-/* apwf with absent cells (pipeline/detectors/apwf.py, _pwf): the window sums S over K[t]
- * valid cells, y = K q / det against the per-pixel threshold T[t] (+inf: not tested, mask 0,
- * stat 0); where T != thr (K < N) stat = y (thr / T). Same operation order as apwf_decide. */
+/* apwf: y = K q / det with q = X^H adj(S) X (apwf._pwf / _adj3, same operation order).
+ * S: p^2 planes of the window sums over K[t] valid cells (n pixels); X: the core's complex
+ * channels, or for covariance input (is_cov) the core's covariance planes, y = K tr(adj(S) C) / det.
+ * Against the per-pixel threshold T[t] (+inf: not tested, mask 0, stat 0); where T != thr
+ * (K < N) stat = y (thr / T). With no absent cells K = N and T = thr everywhere. */
 __global__ void apwf_decide_valid(const double* __restrict__ S, long long n, const float* __restrict__ x,
                                   long long ldx, long long cols, int p, int is_cov,
                                   const double* __restrict__ Cp, const double* __restrict__ K,
