@@ -134,6 +134,21 @@ def cmd_detect(a) -> int:
     return 0
 
 
+def cmd_enhance(a) -> int:
+    from sarship.pipeline.destripe import DestripeParams
+    from sarship.workers.enhance import run_enhance
+
+    if not a.destripe:
+        raise InputError("nothing to do: pass --destripe (the only enhancement of this version)")
+    params = DestripeParams(stripes_along=a.stripes_along, segment=a.segment, z_min=a.z_min)
+    rec = run_enhance(a.scene, a.out, params, scheduler=a.scheduler, progress=True, overwrite=a.overwrite)
+    d = rec["destripe"]
+    print(f"scene: {a.out}")
+    print(f"destripe: {len(d['stop_bins'])} stopped bins, {len(d['lines'])} Hough lines, "
+          f"stripe rms {d['stripe_rms_db']:.3f} dB")
+    return 0
+
+
 def cmd_worker(a) -> int:
     from sarship.workers.worker import serve
 
@@ -327,6 +342,19 @@ def build_parser() -> argparse.ArgumentParser:
                         "mask.zarr and run.json")
     s.set_defaults(func=cmd_detect)
 
+    s = sub.add_parser("enhance", help="image-quality enhancement into a new scene store (--destripe)")
+    s.add_argument("scene")
+    s.add_argument("--out", required=True, help="output scene store (OUT.zarr); never the input")
+    s.add_argument("--destripe", action="store_true", help="remove stripe noise (docs/algorithms/destripe.md)")
+    s.add_argument("--stripes-along", dest="stripes_along", choices=["azimuth", "range"], default="azimuth",
+                   help="the axis along which the stripe gain is constant (default azimuth)")
+    s.add_argument("--segment", type=_positive_int, default=32, help="lines per segment of the stripe spectrum")
+    s.add_argument("--z-min", dest="z_min", type=float, default=4.0,
+                   help="noise floor of the stripe coherence ratio (default 4)")
+    s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: start a local cluster)")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
+    s.set_defaults(func=cmd_enhance)
+
     s = sub.add_parser("worker", help="start this machine's Dask workers for a scheduler: one per GPU, "
                                       "plus CPU workers")
     s.add_argument("--scheduler", required=True, help="scheduler address, e.g. tcp://10.0.0.1:8786")
@@ -401,7 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Commands whose outputs are written aside and renamed into place: SIGTERM unwinds them.
-WRITERS = ("simulate", "ingest", "detect", "demo")
+WRITERS = ("simulate", "ingest", "detect", "demo", "enhance")
 
 
 def _exit_on_sigterm(command: str) -> None:
@@ -452,7 +480,7 @@ def _temporaries(a) -> list[tuple[Path, str]]:
     out = Path(a.out) if getattr(a, "out", None) else None
     if out is None:
         return []
-    if a.command in ("simulate", "ingest"):
+    if a.command in ("simulate", "ingest", "enhance"):
         return [(out.parent, f".{out.name}.partial-*")]
     if a.command == "detect":
         return [(out, ".sarship-partial-*")]
