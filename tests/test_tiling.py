@@ -24,6 +24,9 @@ SETTINGS = {
     "two_parameter": {"pfa": "1e-3", "guard": "11", "background": "31", "domain": "db"},
     "ca_cfar": {"pfa": "1e-3", "guard": "11", "background": "31"},
     "os_cfar": {"pfa": "1e-3", "guard": "11", "background": "31"},
+    "g0_cfar": {"pfa": "1e-3", "guard": "11", "background": "31"},
+    "k_cfar": {"pfa": "1e-3", "guard": "11", "background": "31", "censor": "6"},
+    "ggd_cfar": {"pfa": "1e-3", "guard": "11", "background": "31"},
 }
 
 

@@ -16,6 +16,9 @@ _MODULES = {
     "lmm": "sarship.pipeline.detectors.lmm",
     "pcdm": "sarship.pipeline.detectors.pcdm",
     "vb_polsar": "sarship.pipeline.detectors.vb_polsar",
+    "g0_cfar": "sarship.pipeline.detectors.g0_cfar",
+    "k_cfar": "sarship.pipeline.detectors.k_cfar",
+    "ggd_cfar": "sarship.pipeline.detectors.ggd_cfar",
 }
 
 

@@ -17,6 +17,18 @@ Clutter (sea)
       B7(lag/s)/B7(0) (B7: the degree-7 B-spline, the autocorrelation of the cubic) is 1/e at
       lag ``texture_corr_px``. Intensity moments: E[I] = clutter_mean,
       Var[I]/E[I]^2 = (1 + 1/nu)(1 + 1/L) - 1.
+    * ``g0``: compound model I = clutter_mean * T * S with an inverse-gamma texture,
+      T = (a - 1) / G, G ~ Gamma(a, 1), a = ``texture_shape`` > 1 (E[T] = 1), and L-look gamma
+      speckle S: the G0 intensity distribution of Frery et al. 1997 with alpha = -a and
+      gamma = (a - 1) clutter_mean (docs/references.md#frery1997). T is the same Gaussian copula
+      as for ``k`` (:func:`sea_texture`: T = (a - 1) / (a T_a), T_a the copula's
+      Gamma(a, 1/a) texture), so its marginal is exactly inverse gamma and the texture is
+      correlated over ``texture_corr_px``; the speckle is i.i.d.
+    * ``ggd``: generalized gamma intensity (Stacy 1962; Li et al. 2011,
+      docs/references.md#li2011), i.i.d. between pixels: I = sigma (G / kappa)^(1 / v),
+      G ~ Gamma(kappa, 1), v = ``ggd_power``, kappa = ``ggd_shape``, sigma such that
+      E[I] = clutter_mean (:func:`ggd_speckle`). Intensity scenes only; the scene's ``looks``
+      is the GGD's equivalent number of looks mean^2 / variance (:func:`ggd_enl`).
     * ``slc``: circular complex Gaussian hh with E|hh|^2 = clutter_mean (times T for ``k``):
       the single-look complex form of the same models; ``looks`` is 1.
     * ``quadpol``: X = [HH, HV, VV] zero-mean circular complex Gaussian (thesis
@@ -37,6 +49,7 @@ import math
 from typing import Any, Optional
 
 import numpy as np
+from scipy import special
 
 from sarship.pipeline.simulate.config import SimConfig
 
@@ -104,3 +117,36 @@ def _polmix(lc: np.ndarray, z: np.ndarray, amp: Any) -> list[np.ndarray]:
             acc = t if acc is None else acc + t
         out.append(acc * amp)
     return out
+
+
+def sea_texture(cfg: SimConfig, g: np.ndarray) -> np.ndarray:
+    """The unit-mean sea texture T of ``k`` (Gamma(nu, 1/nu)) or ``g0`` (inverse gamma,
+    (a - 1) / Gamma(a, 1)) from a unit Gaussian field ``g`` (float32)."""
+    from sarship.pipeline.simulate.fields import _gamma_texture
+
+    a = float(cfg.texture_shape)
+    t = _gamma_texture(g, a)
+    if cfg.clutter == "k":
+        return t
+    # a T_a ~ Gamma(a, 1)  =>  (a - 1) / (a T_a) is inverse gamma with mean 1
+    return (np.float32((a - 1.0) / a) / t).astype(np.float32)
+
+
+def _ggd_moment(v: float, kappa: float, k: float) -> float:
+    """E[(G / kappa)^(k / v)], G ~ Gamma(kappa, 1)."""
+    return math.exp(special.gammaln(kappa + k / v) - special.gammaln(kappa) - (k / v) * math.log(kappa))
+
+
+def ggd_enl(v: float, kappa: float) -> float:
+    """Equivalent number of looks mean^2 / variance of the GGD (power v, shape kappa)."""
+    m1 = _ggd_moment(v, kappa, 1.0)
+    m2 = _ggd_moment(v, kappa, 2.0)
+    return float(m1 * m1 / (m2 - m1 * m1))
+
+
+def ggd_speckle(rng: np.random.Generator, cfg: SimConfig, shape: tuple[int, ...]) -> np.ndarray:
+    """Unit-mean GGD intensity (float32): (G / kappa)^(1 / v) / E[(G / kappa)^(1 / v)]."""
+    v, kappa = float(cfg.ggd_power), float(cfg.ggd_shape)
+    g = rng.standard_gamma(kappa, shape, dtype=np.float32).astype(np.float64)
+    x = np.power(g * (1.0 / kappa), 1.0 / v) * (1.0 / _ggd_moment(v, kappa, 1.0))
+    return x.astype(np.float32)

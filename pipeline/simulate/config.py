@@ -19,7 +19,7 @@ from sarship.pipeline.errors import InputError
 #: Scene kinds the simulator writes.
 KINDS = ("intensity", "slc", "quadpol")
 #: Clutter models.
-CLUTTERS = ("rayleigh", "gamma", "k")
+CLUTTERS = ("rayleigh", "gamma", "k", "g0", "ggd")
 
 # Ship placement constraints, checked by validate() (see the ships module docstring).
 BORDER_PX = 5          # ships stay this far from the scene border
@@ -35,7 +35,7 @@ class SimConfig:
     ships: int = 10
     seed: int = 0
     looks: float = 1.0               # intensity scenes: L-look gamma speckle; slc/quadpol are single-look
-    clutter: str = "gamma"           # "rayleigh" | "gamma" | "k"
+    clutter: str = "gamma"           # "rayleigh" | "gamma" | "k" | "g0" | "ggd"
     land: bool = False
     sidelobes: bool = False
     ambiguities: bool = False
@@ -44,9 +44,11 @@ class SimConfig:
     pixel_spacing_m: tuple[float, float] = (10.0, 10.0)   # [azimuth(row), range(col)]
     scr_db: float = 15.0             # mean ship power / mean sea power
     length_m: tuple[float, float] = (20.0, 400.0)
-    texture_shape: float = 4.0       # K clutter: gamma texture shape nu (smaller = spikier)
+    texture_shape: float = 4.0       # K: gamma texture shape nu; G0: inverse-gamma shape a = -alpha > 1 (smaller = spikier)
     texture_corr_px: float = 16.0    # 1/e correlation length of the texture's Gaussian field
     clutter_mean: float = 1.0        # mean sea intensity (HH for quadpol)
+    ggd_power: float = 0.7           # GGD clutter (intensity only): power v of (x / sigma)^v kappa ~ Gamma(kappa)
+    ggd_shape: float = 3.0           # GGD clutter: shape kappa
 
     def as_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -89,9 +91,14 @@ def _pair(v: Any, field: str, rng: str) -> tuple[Any, Any]:
 
 
 def effective_looks(cfg: SimConfig) -> float:
-    """The scene's number of looks: cfg.looks for gamma/K intensity, else 1."""
+    """The scene's number of looks: cfg.looks for gamma/K/G0 intensity (the speckle's L), the
+    equivalent number of looks mean^2 / variance of the GGD for ``ggd``, else 1."""
     if cfg.kind != "intensity" or cfg.clutter == "rayleigh":
         return 1.0
+    if cfg.clutter == "ggd":
+        from sarship.pipeline.simulate.clutter import ggd_enl
+
+        return ggd_enl(cfg.ggd_power, cfg.ggd_shape)
     return float(cfg.looks)
 
 
@@ -156,6 +163,17 @@ def validate(cfg: SimConfig) -> SimConfig:
     corr = _num(cfg.texture_corr_px, "texture_corr_px", "a number in [1, 4096] px")
     if not 1 <= corr <= 4096:
         raise _bad("texture_corr_px", "a number in [1, 4096] px", cfg.texture_corr_px)
+    if clutter == "g0" and not nu > 1.0:
+        raise _bad("texture_shape", "a number in (1, 100] for g0 clutter (a = -alpha; the mean is finite for a > 1)",
+                   cfg.texture_shape)
+    gv = _num(cfg.ggd_power, "ggd_power", "a number in [0.1, 10]")
+    if not 0.1 <= gv <= 10:
+        raise _bad("ggd_power", "a number in [0.1, 10]", cfg.ggd_power)
+    gk = _num(cfg.ggd_shape, "ggd_shape", "a number in [0.1, 100]")
+    if not 0.1 <= gk <= 100:
+        raise _bad("ggd_shape", "a number in [0.1, 100]", cfg.ggd_shape)
+    if clutter == "ggd" and kind != "intensity":
+        raise _bad("clutter", "rayleigh, gamma, k or g0 for slc/quadpol scenes (ggd is an intensity model)", clutter)
     cm = _num(cfg.clutter_mean, "clutter_mean", "a number in [1e-12, 1e12]")
     if not 1e-12 <= cm <= 1e12:
         raise _bad("clutter_mean", "a number in [1e-12, 1e12]", cfg.clutter_mean)
@@ -163,7 +181,7 @@ def validate(cfg: SimConfig) -> SimConfig:
                     land=bool(cfg.land), sidelobes=bool(cfg.sidelobes),
                     ambiguities=bool(cfg.ambiguities), stripes=bool(cfg.stripes),
                     rfi=bool(cfg.rfi), pixel_spacing_m=spacing, scr_db=scr, length_m=length,
-                    texture_shape=nu, texture_corr_px=corr, clutter_mean=cm)
+                    texture_shape=nu, texture_corr_px=corr, clutter_mean=cm, ggd_power=gv, ggd_shape=gk)
     ships = _int(cfg.ships, "ships", "an integer >= 0")
     if ships < 0:
         raise _bad("ships", "an integer >= 0", cfg.ships)

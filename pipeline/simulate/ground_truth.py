@@ -141,9 +141,11 @@ def _truth(m: _Model, bufs: dict[int, np.ndarray]) -> dict[str, Any]:
             "mean_power": p_sea,
         },
     }
-    if cfg.clutter == "k":
+    if cfg.clutter in ("k", "g0"):
         coll["clutter"].update({"texture_shape": cfg.texture_shape,
                                 "texture_corr_px": cfg.texture_corr_px})
+    if cfg.clutter == "ggd":
+        coll["clutter"].update({"ggd_power": cfg.ggd_power, "ggd_shape": cfg.ggd_shape})
     if cfg.kind == "quadpol":
         coll["clutter"]["sea_covariance"] = {"eps": SEA_EPS, "gamma": SEA_GAMMA,
                                              "rho": [SEA_RHO.real, SEA_RHO.imag]}

@@ -25,7 +25,7 @@ import numpy as np
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.simulate.artefacts import AMBIG_LEVEL_DB, AMBIG_SMEAR, _sidelobe_ratio
 from sarship.pipeline.simulate.clutter import (SEA_EPS, SEA_GAMMA, SEA_RHO, _chol, _cn, _polmix,
-                                               _span_factor, _speckle)
+                                               _span_factor, _speckle, ggd_speckle, sea_texture)
 from sarship.pipeline.simulate.config import SimConfig, validate, variables
 from sarship.pipeline.simulate.fields import (_S_LAND_GAIN, _S_LAND_TEX, _S_RFI_NOISE,
                                               _S_SHIPSPK, _S_SPECKLE, _S_TEXTURE, _S_URBAN, BLOCK,
@@ -105,9 +105,8 @@ def _render_block(m: _Model, bi: int, bj: int) -> dict[str, np.ndarray]:
 
     # mean sea power field (texture) and land
     mu: Any = cm
-    if cfg.clutter == "k":
-        t = _gamma_texture(_gauss_field(seed, _S_TEXTURE, cfg.texture_corr_px, r0, r1, c0, c1),
-                           cfg.texture_shape)
+    if cfg.clutter in ("k", "g0"):
+        t = sea_texture(cfg, _gauss_field(seed, _S_TEXTURE, cfg.texture_corr_px, r0, r1, c0, c1))
         t *= cm
         mu = t
     land = None
@@ -127,7 +126,7 @@ def _render_block(m: _Model, bi: int, bj: int) -> dict[str, np.ndarray]:
     rng = _rng(seed, _S_SPECKLE, bi, bj)
     out: dict[str, np.ndarray] = {}
     if cfg.kind == "intensity":
-        sp = _speckle(rng, m.looks, shape)
+        sp = ggd_speckle(rng, cfg, shape) if cfg.clutter == "ggd" else _speckle(rng, m.looks, shape)
         if land is not None:
             mu = np.where(land, mu_land, mu)
         sp *= mu
