@@ -26,9 +26,11 @@ import numpy as np
 from sarship.pipeline import molc
 from sarship.pipeline.intensity_absent import min_valid
 
-#: Rows of the core processed at once (bounds the float64 intermediates; results do not
-#: depend on it: the strips are tiles, and the window sums are tiling-invariant).
+#: Rows of the core processed at once on the CPU (bounds the float64 intermediates; results
+#: do not depend on it: the strips are tiles, and the window sums are tiling-invariant).
 STRIP_ROWS = 256
+#: The same on the GPU (fewer, larger launches).
+GPU_STRIP_ROWS = 2048
 
 
 def min_ring(n_ring: int) -> int:
@@ -110,9 +112,10 @@ def log_excess(xp, kind: str, tab, looks: float, k1, k2, k3, y_t):
     return (y_t - k1) - sk * dv, dom
 
 
-def decide(xp, box, block, halo: int, origin, b: int, g: int, censor, kind: str, tab, looks: float):
+def decide(xp, box, block, halo: int, origin, b: int, g: int, censor, kind: str, tab, looks: float,
+           strip_rows: int = STRIP_ROWS):
     """``(mask, stat)`` of the core: mask = tested and ln x_t > ln t; stat = x_t / t (float32,
-    > 1 exactly where mask; 0 where not tested). Processes :data:`STRIP_ROWS` rows at a time."""
+    > 1 exactly where mask; 0 where not tested). Processes ``strip_rows`` rows at a time."""
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     mask = xp.zeros((h, w), dtype=bool)
@@ -120,8 +123,8 @@ def decide(xp, box, block, halo: int, origin, b: int, g: int, censor, kind: str,
     need = min_ring(b * b - g * g)
     one = np.float32(1.0)
     above = np.nextafter(one, np.float32(2.0))
-    for r0 in range(0, h, STRIP_ROWS):
-        r1 = min(r0 + STRIP_ROWS, h)
+    for r0 in range(0, h, strip_rows):
+        r1 = min(r0 + strip_rows, h)
         sub = block[r0: r1 + 2 * halo]
         n, k1, k2, k3, y_t, ok_t = ring_cumulants(xp, box, sub, halo, (origin[0] + r0, origin[1]), b, g, censor)
         d, dom = log_excess(xp, kind, tab, looks, k1, k2, k3, y_t)

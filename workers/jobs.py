@@ -24,6 +24,7 @@ from sarship.pipeline import __version__
 from sarship.pipeline.components import merge_radius, merge_tiles
 from sarship.pipeline.detectors.base import resolve_size
 from sarship.pipeline.ship_features import collection, features, keep_mask, write_json
+from sarship.pipeline.sidelobes import mask_reader, refine_features
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.inputs import intensity_source, make_reader, polarimetric_source
 from sarship.pipeline.scene import Scene, create_mask_store, finalize_scene, open_scene, tile_slices
@@ -251,6 +252,9 @@ def run_request(
         records = merge_tiles(comps)
         records = records[keep_mask(records, params, spacing)]
         feats = features(records, spacing, geo)
+        if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
+            feats = refine_features(feats, records, make_reader(str(scene.path), var, transform),
+                                    mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mr, spacing, geo)
         t_merge = time.perf_counter()
         dashboard = None
         with contextlib.suppress(Exception):

@@ -75,6 +75,8 @@ class DetectorParams(BaseModel):
     min_length_m: Optional[float] = Field(None, ge=0.0, description=LENGTH_HELP)
     max_length_m: Optional[float] = Field(None, gt=0.0, description="longest ship kept (needs pixel spacing)")
     merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
+    sidelobes: bool = Field(True, description="cross-sidelobe suppression: length, width and heading measured on the "
+                                              "ship core where a sidelobe cross is found (docs/algorithms/sidelobes.md)")
 
     @model_validator(mode="after")
     def _windows(self):
