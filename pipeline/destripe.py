@@ -126,6 +126,31 @@ def log_power(block) -> Any:
     return xp.where(ok, xp.clip(y, -Y_CLIP, Y_CLIP), xp.nan)
 
 
+def _quantised_log(block):
+    """``(q, ok)``: ``ln P`` of every present pixel in units of 2**-24 (int64, 0 where absent)
+    and the present pixels. Single-precision data stay in float32 (``ln`` of a float32 is at
+    most 88.8, so no clipping is needed and ``y * 2**24`` is exact); each pixel's value is
+    the same whatever tile it is read in, so the sums are exact for every tiling."""
+    xp = _xp(block)
+    a = block
+    if a.ndim == 3:
+        p = (a.real ** 2 + a.imag ** 2).sum(axis=2) if xp.iscomplexobj(a) else (a ** 2).sum(axis=2)
+    elif xp.iscomplexobj(a):
+        p = a.real ** 2 + a.imag ** 2
+    else:
+        p = a
+    if p.dtype != xp.float32:
+        y = log_power(p)
+        ok = xp.isfinite(y)
+        return xp.where(ok, xp.rint(xp.where(ok, y, 0.0) * FIXED_SCALE), 0.0).astype(xp.int64), ok
+    ok = (p > 0) & (p < xp.inf)
+    y = xp.log(xp.where(ok, p, xp.float32(1.0)))
+    y *= xp.float32(FIXED_SCALE)
+    q = xp.rint(y).astype(xp.int64)
+    q[~ok] = 0
+    return q, ok
+
+
 def segment_sums(block, r0: int, c0: int, params: DestripeParams) -> dict[str, Any]:
     """One tile's contribution to the scene pass: exact segment sums of ``ln P``.
 
@@ -137,19 +162,16 @@ def segment_sums(block, r0: int, c0: int, params: DestripeParams) -> dict[str, A
     Integer sums make the scene total the same for every tiling (:func:`assemble`).
     """
     xp = _xp(block)
-    y = log_power(block)
+    q, ok = _quantised_log(block)
     if params.stripes_along == "range":
-        y = y.T
+        q, ok = q.T, ok.T
         a0, b0 = c0, r0
     else:
         a0, b0 = r0, c0
     L = params.segment
-    n_along, n_across = y.shape
+    n_along, n_across = q.shape
     j0 = a0 // L
     j1 = (a0 + n_along - 1) // L + 1
-    ok = xp.isfinite(y)
-    q = xp.where(ok, xp.rint(xp.where(ok, y, 0.0) * FIXED_SCALE), 0.0).astype(xp.int64)
-    seg = (xp.arange(n_along) + a0) // L - j0
     sums = xp.zeros((j1 - j0, n_across), xp.int64)
     counts = xp.zeros((j1 - j0, n_across), xp.int64)
     # segment boundaries inside the block: reduce each run of lines at once
@@ -158,7 +180,6 @@ def segment_sums(block, r0: int, c0: int, params: DestripeParams) -> dict[str, A
         a, b = edges[i], edges[i + 1]
         sums[i] = q[a:b].sum(axis=0)
         counts[i] = ok[a:b].sum(axis=0)
-    del seg
     if xp is not np:
         sums, counts = sums.get(), counts.get()
     return {"j0": int(j0), "b0": int(b0), "sums": sums, "counts": counts}
