@@ -53,7 +53,7 @@ def test_false_alarms_on_own_clutter_within_binomial_bound(det, wrong):
     L = 2; GGD v = 0.7, kappa = 3), default windows (41 / 81, 5880 ring samples), pfa 1e-3:
     the count K must satisfy |K - M pfa| <= 5 sqrt(v M pfa) with the variance inflation v = 1.5
     (neighbouring decisions share ring samples; measured over 9 seeds: variance / mean of the
-    counts 1.35 (G0), 0.5 (K), 0.9 (GGD); means 4307 (+2.7 %, the threshold's estimation noise,
+    counts 1.44 (G0), 0.29 (K), 0.38 (GGD); means 4307 (+2.7 %, the threshold's estimation noise,
     Jensen), 4205 (+0.3 %), 4283 (+2.1 %) against 4194). The bound can fail: the same detector
     at 1.25 x pfa, and another model's CFAR on this clutter, land outside it."""
     rng = np.random.default_rng(11)
