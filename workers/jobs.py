@@ -237,20 +237,30 @@ def run_request(
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
             if spec.scene_pass is not None:
                 t_pass = time.perf_counter()
-                stats = _execute(client, jobs, detector, progress, None, run_tile_stats, "scene statistics",
-                                 placement.submit)
-                scene_values = spec.reduce([s["stats"] for s in sorted(stats, key=lambda s: s["index"])],
-                                           params, prep)
-                prep = {**prep, **scene_values}
-                jobs = [dataclasses.replace(j, prep=prep) for j in jobs]
+                scene_values: dict = {}
+                for n_pass in range(1, spec.scene_passes_max + 1):  # reduce may ask for another pass
+                    stats = _execute(client, jobs, detector, progress, None, run_tile_stats, "scene statistics",
+                                     placement.submit)
+                    values = spec.reduce([s["stats"] for s in sorted(stats, key=lambda s: s["index"])],
+                                         params, prep)
+                    again = bool(values.pop("another_pass", False))
+                    scene_values.update(values)
+                    prep = {**prep, **values}
+                    jobs = [dataclasses.replace(j, prep=prep) for j in jobs]
+                    if not again:
+                        break
+                else:
+                    raise RuntimeError(f"{detector}: more than {spec.scene_passes_max} scene passes asked for")
                 scene_pass = {"tiles": len(stats), "seconds": round(time.perf_counter() - t_pass, 4),
-                              "values": scene_values}
+                              "passes": n_pass, "values": scene_values}
             t_prep = time.perf_counter()
             results = _execute(client, jobs, detector, progress, on_tile, submit=placement.submit)
         t_tiles = time.perf_counter()
         comps = {r["index"]: r["components"] for r in results}
         records = merge_tiles(comps)
         records = records[keep_mask(records, params, spacing)]
+        if spec.discriminate is not None:  # the detector's own rules on whole components (e.g. peak)
+            records = records[spec.discriminate(records, params, prep)]
         feats = features(records, spacing, geo)
         if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
             feats = refine_features(feats, records, make_reader(str(scene.path), var, transform),

@@ -16,6 +16,7 @@ _MODULES = {
     "lmm": "sarship.pipeline.detectors.lmm",
     "pcdm": "sarship.pipeline.detectors.pcdm",
     "vb_polsar": "sarship.pipeline.detectors.vb_polsar",
+    "gamma_mrf": "sarship.pipeline.detectors.gamma_mrf",
     "g0_cfar": "sarship.pipeline.detectors.g0_cfar",
     "k_cfar": "sarship.pipeline.detectors.k_cfar",
     "ggd_cfar": "sarship.pipeline.detectors.ggd_cfar",

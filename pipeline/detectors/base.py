@@ -256,6 +256,14 @@ class DetectorSpec:
     #: into ``prep`` before ``detect`` runs, so every tile sees the same scene-wide values.
     scene_pass: Optional[Callable[..., dict]] = None
     reduce: Optional[Callable[..., dict]] = None
+    #: More than one scene pass: ``reduce`` may return ``"another_pass": True`` (the key is
+    #: dropped) to have every tile run ``scene_pass`` again with the merged ``prep`` (e.g.
+    #: ``gamma_mrf``: one pass a re-estimation of its class means); at most this many passes.
+    scene_passes_max: int = 1
+    #: ``discriminate(records, params, prep) -> bool array``: the detector's own rules on whole
+    #: components (after the tiles are merged and the size rule applied; the records of
+    #: :mod:`sarship.pipeline.components`: ``n``, ``peak``, ``sumv``, ...), e.g. a peak rule.
+    discriminate: Optional[Callable[..., np.ndarray]] = None
     #: ``halo_fn(params) -> int`` for detectors whose context is not ``background // 2``.
     halo_fn: Optional[Callable[[Any], int]] = None
     halo_rule: str = "background // 2"
