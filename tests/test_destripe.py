@@ -228,10 +228,13 @@ def _cli(*args, timeout=180):
                           timeout=timeout)
 
 
-def test_enhance_cli_end_to_end(tmp_path, client):
+def test_enhance_cli_end_to_end(tmp_path, client, capsys):
+    from sarship.cli import main
+
     sched = client.scheduler.address
     cfg = SimConfig(kind="slc", shape=(256, 256), ships=2, seed=3, stripes=True)
     scene = simulate(tmp_path / "s.zarr", cfg, tile=128)
+    # as a subprocess: the real program, its exit codes and stderr
     r = _cli("enhance", scene, "--out", tmp_path / "o.zarr", "--destripe", "--scheduler", sched)
     assert r.returncode == 0, r.stderr
     assert "enhance: destripe" in r.stderr and "scene:" in r.stdout
@@ -245,13 +248,18 @@ def test_enhance_cli_end_to_end(tmp_path, client):
     r = _cli("enhance", scene, "--out", tmp_path / "o.zarr", "--destripe", "--scheduler", sched)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--overwrite" in r.stderr
     assert (tmp_path / "o.zarr" / "zarr.json").read_bytes() == before
-    r = _cli("enhance", scene, "--out", tmp_path / "o.zarr", "--destripe", "--overwrite", "--scheduler", sched)
-    assert r.returncode == 0, r.stderr
-    # never inside the input, never without --destripe; nothing left behind
-    r = _cli("enhance", scene, "--out", scene / "x.zarr", "--destripe", "--overwrite", "--scheduler", sched)
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "input" in r.stderr
-    r = _cli("enhance", scene, "--out", tmp_path / "p.zarr", "--scheduler", sched)
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--destripe" in r.stderr
-    r = _cli("enhance", tmp_path / "missing.zarr", "--out", tmp_path / "q.zarr", "--destripe")
-    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    # the same program in this process (faster): --overwrite replaces it
+    capsys.readouterr()
+    assert main(["enhance", str(scene), "--out", str(tmp_path / "o.zarr"), "--destripe", "--overwrite",
+                 "--scheduler", sched]) == 0
+    assert np.array_equal(np.asarray(zarr.open_array(str(tmp_path / "o.zarr" / "hh"), mode="r")[:]), b)
+    # never inside the input, never without --destripe, a missing scene: exit 2, one line each
+    for args, word in (([str(scene), "--out", str(scene / "x.zarr"), "--destripe", "--overwrite"], "input"),
+                       ([str(scene), "--out", str(tmp_path / "p.zarr")], "--destripe"),
+                       ([str(tmp_path / "missing.zarr"), "--out", str(tmp_path / "q.zarr"), "--destripe"], "missing")):
+        capsys.readouterr()
+        assert main(["enhance", *args, "--scheduler", sched]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and word in err and err.startswith("sarship enhance: error:")
+    # nothing left behind: no partial store, no stray output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o.zarr", "s.zarr", "s.zarr.truth.geojson"]
