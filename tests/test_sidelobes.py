@@ -184,9 +184,18 @@ def test_parameters_validated(field, value):
 def test_detector_parameter_validated():
     from pydantic import ValidationError
 
+    from sarship.workers.request import JobRequest
+
     with pytest.raises(ValidationError, match="sidelobes"):
         detectors.get("ca_cfar").params(sidelobes="maybe")
     assert detectors.get("os_cfar").params().sidelobes is True
+    # a request takes the command line's strings and the REST schema's JSON booleans
+    for v, want in (("false", False), ("true", True), (False, False), (True, True)):
+        assert JobRequest.from_inputs("os_cfar", {"scene": "s", "sidelobes": v}).detector_params().sidelobes is want
+    with pytest.raises(InputError, match="sidelobes"):
+        JobRequest.from_inputs("os_cfar", {"scene": "s", "sidelobes": "maybe"})
+    with pytest.raises(InputError, match="pfa"):                  # other parameters: still no booleans
+        JobRequest.from_inputs("os_cfar", {"scene": "s", "pfa": True})
 
 
 def test_run_detection_carries_core_properties(tmp_path, client):

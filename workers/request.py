@@ -105,7 +105,10 @@ class JobRequest(BaseModel):
         if channel is not None and (not isinstance(channel, str) or not channel):
             raise InputError(f"input 'channel' must be a scene variable name, got {channel!r}")
         params = {k: v for k, v in inputs.items() if k not in RESERVED}
+        fields = detectors.get(detector).params.model_fields
         for k, v in params.items():
+            if isinstance(v, bool) and k in fields and fields[k].annotation is bool:
+                continue  # a true/false parameter (e.g. sidelobes): JSON booleans as its schema says
             if isinstance(v, (bool, dict, list)) or not isinstance(v, (int, float, str, type(None))):
                 raise InputError(f"parameter '{k}' must be a number or a string, got {v!r}")
         req = cls(scene=scene, detector=detector, device=device, channel=channel, params=params)
