@@ -91,14 +91,15 @@ def log_excess(xp, kind: str, tab, looks: float, k1, k2, k3, y_t):
     ring's log-cumulants lie in the model's domain.
 
     * ``g0`` / ``k``: u = k2 - psi_1(L); u <= 0 (ring lighter-tailed than L-look gamma) is
-      the gamma limit; w = ln(1 + u) beyond the table (shape < SHAPE_MIN) is out of domain;
+      the gamma limit; w = ln(1 + u / psi_1(L)) beyond the table (shape < SHAPE_MIN) is out of
+      domain;
       ln t = k1 + H(w).
     * ``ggd``: k2 must be > 0 and |g1| = |k3| / k2^{3/2} <= G1_MAX; ln t = k1 + sqrt(k2) D(g1).
     """
     f = tab.f if xp is np else xp.asarray(tab.f)
     if kind in ("g0", "k"):
         u = k2 - float(molc.trigamma(looks))
-        wv = molc.w_of_u(xp, u)
+        wv = molc.w_of_u(xp, u, molc.u_scale(looks))
         dom = wv <= tab.x1
         wv = xp.where(dom, wv, 0.0)
         hv = molc.interp(xp, f, tab.x0, tab.inv_h, tab.n, wv)

@@ -110,7 +110,7 @@ def _brute(det, x, pfa, b, g, censor=None):
         u = k2 - molc.trigamma(looks)
         gam_lim = t & (u <= 0)
         lt[gam_lim] = k1[gam_lim] + molc.gamma_H(looks, pfa)
-        fit = t & (u > 0) & (np.log1p(np.maximum(u, 0)) <= molc.W_MAX)
+        fit = t & (u > 0) & (u <= molc.trigamma(molc.SHAPE_MIN))
         if det == "g0_cfar":
             a, gm = molc.g0_fit(k1[fit], k2[fit], looks)
             lt[fit] = np.log(molc.g0_threshold(a, gm, looks, pfa))
