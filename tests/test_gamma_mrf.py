@@ -340,3 +340,14 @@ def test_parameters_are_validated():
         SPEC.detect(P[1:-1, 1:-1], h - 1, (-h + 1, -h + 1), p, prep)
     with pytest.raises(ValueError, match="looks"):
         SPEC.prepare(SPEC.params())
+
+
+def test_ship_classes():
+    """The brightest class is the ship class, with classes identical to it; clutter = the classes
+    up to the brightest one holding clutter_weight of the scene."""
+    assert gm.ship_from([0.7, 0.22, 0.07, 0.01], [1.0, 3.0, 3.2, 3.20001], 0.05) == 3
+    assert gm.ship_from([0.41, 0.57, 0.007, 0.013], [1.0, 1.01, 44.0, 45.0], 0.05) == 2
+    assert gm.ship_from([0.5, 0.42, 0.07, 0.01], [150.0, 770.0, 27808.0, 27808.0], 0.05) == 2  # saturated chip
+    assert gm.ship_from([0.5, 0.2, 0.2, 0.1], [1.0, 2.0, 3.0, 9.0], 0.05) == 3
+    assert gm.ship_from([0.25] * 4, [2.0] * 4, 0.05) == 4  # a constant scene: no ship class
+    assert gm.ship_from([0.9, 0.1], [1.0, 5.0], 0.5) == 1

@@ -11,19 +11,22 @@ the page docs/algorithms/gamma_mrf.md states every choice. Equation numbers are 
 2. **MAP with an MRF prior** (eq (3)-(7)): the label x_s of pixel s maximises
    ``p(y_s | x_s) P(x_s | x_eta_s)`` (eq (5)) with a Gibbs prior (eq (6)) of Potts pair cliques
    over the 4- or 8-neighbourhood eta; the local energy to minimise (eq (7)) is
-   ``E_s(k) = L ln mu_k + L y_s / mu_k - ln pi_k + beta * #{t in eta_s present: x_t != k}``
-   (the class-independent part of -ln f dropped; ``-ln pi_k``, the mixture weight as the
-   single-site term of the Gibbs prior, only with ``use_weights``, the default).
+   ``E_s(k) = L ln mu_k + L y_s / mu_k + beta * #{t in eta_s present: x_t != k}``
+   (the class-independent part of -ln f dropped; eq (5) puts the MRF conditional in place of
+   the label prior, so ``-ln pi_k``, the mixture weight as a single-site term, only with
+   ``use_weights``, default off).
 3. **ICM** (the paper's solver, its ref. [24]): labels start at the mixture's MAP labels (the
    paper: "the mixture estimate is the initial labelling"); each sweep first re-estimates the
    class means mu_k from the current labels (the paper: "the K gamma pdfs are re-estimated,
    updating mu_i") and then moves every pixel to its lowest-energy class given its
    neighbours. The paper stops when fewer than a given fraction of labels change between
    sweeps or after a fixed number of sweeps: here ``change_tol`` and ``sweeps``.
-4. **Ships** = pixels of the brightest class inside the sea ROI (absent pixels: the land mask
-   sets land to NaN before the detector runs), then discrimination: the paper's scattering
-   rule (amplitude / intensity; no values given) as ``scatter``: a ship pixel's intensity
-   must exceed the (1 - ``pfa``) quantile of the fitted clutter mixture (classes 0..K-2);
+4. **Ships** = pixels of the brightest class (with the classes EM left identical to it or too
+   light to be clutter: :func:`ship_from`) inside the sea ROI (absent pixels: the land mask
+   sets land to NaN before the detector runs), then discrimination (section 3.3: geometry and
+   scattering, no values given): a ship pixel's intensity must exceed the (1 - ``pfa``)
+   quantile of the fitted clutter mixture (``scatter``), a candidate's peak the (1 -
+   ``peak_pfa``) quantile (:func:`discriminate`, on whole components after the merge), and
    the geometry rule (length, width) is the shared size rule (``min_area_px``,
    ``min_length_m``, ``max_length_m``; base.resolve_size).
 
@@ -353,12 +356,21 @@ def exact_means(parts: list[dict], previous, floor: float) -> list[float]:
     return out
 
 
-def ship_from(weights, clutter_weight: float) -> int:
-    """First ship class: the classes up to the brightest one holding at least ``clutter_weight``
-    of the sample are clutter (class 0 always), the rest ship classes (at least the brightest,
-    the paper's man-made class; a near-copy EM made of it, with a small weight, joins it)."""
-    heavy = [k for k in range(len(weights) - 1) if weights[k] >= clutter_weight]
-    return (max(heavy) if heavy else 0) + 1
+def ship_from(weights, means, clutter_weight: float) -> int:
+    """First ship class. The brightest class is the ship class (the paper's man-made class),
+    together with any class EM left identical to it (relative difference of the means < 1e-9:
+    saturated 8-bit chips start two classes on the same values and EM never parts them). Below
+    it, the classes up to the brightest one holding at least ``clutter_weight`` of the sample are
+    clutter (class 0 always), those above it ship classes too. ``K`` (no ship class) when every
+    class is the same."""
+    K = len(means)
+    top = K - 1
+    while top > 0 and means[top - 1] >= means[K - 1] * (1.0 - 1e-9):
+        top -= 1
+    if top == 0:
+        return K
+    heavy = [k for k in range(top) if weights[k] >= clutter_weight]
+    return min(top, (max(heavy) if heavy else 0) + 1)
 
 
 def reduce(parts: list[dict], p: GammaMRFParams, prep: dict) -> dict:
@@ -375,7 +387,7 @@ def reduce(parts: list[dict], p: GammaMRFParams, prep: dict) -> dict:
                              "classes; lower sample_stride")
         mix = fit_gamma_mixture(y, prep["looks"], p.classes, max_iter=p.em_max_iter)
         floor = MEAN_FLOOR * max(float(y.mean()), 1e-300)
-        ks = ship_from(mix.weights, p.clutter_weight)
+        ks = ship_from(mix.weights, mix.means, p.clutter_weight)
         wc, mc = mix.weights[:ks], mix.means[:ks]
         q = mixture_isf(p.pfa, wc, mc, prep["looks"]) if p.scatter == "quantile" else 0.0
         qp = mixture_isf(p.peak_pfa, wc, mc, prep["looks"]) if p.peak_pfa is not None else None

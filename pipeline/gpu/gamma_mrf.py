@@ -16,20 +16,21 @@ import numpy as np
 from sarship.pipeline.gpu import kernels
 
 SOURCE = r"""
+#define GM_INF __longlong_as_double(0x7ff0000000000000LL)
 #define INIT_BODY(T)                                                                       \
     long long t = (long long)blockIdx.x * blockDim.x + threadIdx.x;                        \
     if (t >= n) return;                                                                    \
     gap[t] = 0.0;                                                                          \
     if (!ok[t]) { lab[t] = -1; return; }                                                   \
     double v = (double)y[t];                                                               \
-    int best = 0; double ebest = 1.0 / 0.0;                                                \
+    int best = 0; double ebest = GM_INF;                                                \
     for (int k = 0; k < K; ++k) {                                                          \
         double e = a0[k] + b0[k] * v;                                                      \
         if (e < ebest) { ebest = e; best = k; }                                            \
     }                                                                                      \
     lab[t] = (signed char)best;                                                            \
     if (best >= ks) {                                                                      \
-        double eo = 1.0 / 0.0;                                                             \
+        double eo = GM_INF;                                                             \
         for (int k = 0; k < ks; ++k) {                                                  \
             double e = a0[k] + b0[k] * v;                                                  \
             if (e < eo) eo = e;                                                            \
@@ -61,7 +62,7 @@ SOURCE = r"""
         }                                                                                  \
     }                                                                                      \
     double v = (double)y[t];                                                               \
-    int best = 0; double ebest = 1.0 / 0.0, eother = 1.0 / 0.0;                            \
+    int best = 0; double ebest = GM_INF, eother = GM_INF;                                  \
     for (int k = 0; k < K; ++k) {                                                          \
         double e = a[k] + b[k] * v + beta * (double)(npres - cnt[k]);                      \
         if (e < ebest) { ebest = e; best = k; }                                            \
