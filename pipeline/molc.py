@@ -24,7 +24,8 @@ Models (x intensity, L looks known; polygamma psi_m, psi = psi_0):
   k1 = ln mu + psi(nu) - ln nu + psi(L) - ln L,  k2 = psi_1(nu) + psi_1(L)               (4)
   P(x > mu tau) = E_G[Q(L, L nu tau / G)] (Q: regularised upper incomplete gamma),       (5)
   integrated by the trapezoidal rule in s = ln(G / nu) (spectrally accurate for a smooth,
-  rapidly decaying integrand on the line), inverted by bisection on the proven bracket (6).
+  rapidly decaying integrand on the line), inverted by regula falsi (Illinois) inside the
+  proven bracket (6).
 * Generalized gamma GGD (Stacy 1962; Li et al. 2011): (x / sigma)^v kappa ~ Gamma(kappa, 1):
   k1 = ln sigma + (psi(kappa) - ln kappa) / v,  k2 = psi_1(kappa) / v^2,
   k3 = psi_2(kappa) / v^3                                                               (7)
@@ -37,8 +38,8 @@ Models (x intensity, L looks known; polygamma psi_m, psi = psi_0):
 
 With L known, G0 and K both depend on the ring through u = k2 - psi_1(L) = psi_1(shape) and
 ln t = k1 + H(u) (eqs 2-5), so each detector reads one function H of one variable, tabulated
-here per (pfa, L) on a uniform grid of w = ln(1 + u / psi_1(L)) and interpolated linearly (:func:`interp`:
-the same few IEEE operations on CPU and GPU). u <= 0 (a ring lighter-tailed than L-look gamma)
+here per (pfa, L) on a uniform grid of w = ln(1 + u max(1, 1 / psi_1(L))) and interpolated
+linearly (:func:`interp`: the same few IEEE operations on CPU and GPU). u <= 0 (a ring lighter-tailed than L-look gamma)
 is the gamma limit H(0) (shape -> infinity). The tables are *computed* (never copied), cached
 per process; their interpolation error is bounded by tests (tests/test_molc.py).
 """
