@@ -209,7 +209,7 @@ def refine(power: np.ndarray, comp: np.ndarray, params: SidelobeParams = Sidelob
         if sum(1 for a in half if a) >= params.min_half_arms \
                 and max(len(a) for a in half) >= params.min_arm_px:
             centres.append((r, c))
-            for k, a in enumerate(half):
+            for a in half:
                 for rr, cc in a:
                     arms[rr, cc] = True
     if not centres:
