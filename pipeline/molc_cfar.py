@@ -43,7 +43,8 @@ def censor_halo(background: int) -> int:
 
 
 def ring_cumulants(xp, box, block, halo: int, origin, b: int, g: int, censor):
-    """``(n, k1, k2, k3, y_t, usable_t)`` over the core: the ring's usable-sample count, its
+    """``(n, k1, k2, k3, y_t, usable_t)`` over the core: the ring's usable-sample count (a scalar
+    when every ring is complete), its
     k-statistics of ln x (eq (1) of :mod:`sarship.pipeline.molc`), and ln x / usability of the
     pixel under test. ``censor``: None, or the factor c of the module docstring."""
     h = block.shape[0] - 2 * halo
@@ -68,16 +69,15 @@ def ring_cumulants(xp, box, block, halo: int, origin, b: int, g: int, censor):
     y = xp.where(ok, xp.log(xp.where(ok, x, 1.0)), 0.0)
     y2 = y * y
     y3 = y2 * y
-    n_ring_full = float(b * b - g * g)
-    if bool(ok.all()):
-        n = xp.full((h, w), n_ring_full)
+    if bool(ok.all()):  # complete ring everywhere: n is the scalar N (the same IEEE operations)
+        n = nn = float(b * b - g * g)
     else:
         okf = ok.astype(xp.float64)
         n = box(okf, b, halo, origin) - box(okf, g, halo, origin)
+        nn = xp.where(n >= 3.0, n, 3.0)  # k3 needs n >= 3; fewer samples: not tested anyway
     s1 = box(y, b, halo, origin) - box(y, g, halo, origin)
     s2 = box(y2, b, halo, origin) - box(y2, g, halo, origin)
     s3 = box(y3, b, halo, origin) - box(y3, g, halo, origin)
-    nn = xp.where(n >= 3.0, n, 3.0)  # k3 needs n >= 3; fewer samples: not tested anyway
     k1, k2, k3 = molc.k_statistics(nn, s1, s2, s3)
     y_t = y[halo: halo + h, halo: halo + w]
     if censor is not None:  # the pixel under test is tested whatever its own flag
