@@ -247,7 +247,7 @@ def test_false_alarms_on_pure_two_class_sea():
     (classes 0..K-2), so alarms <= #(y > q) ~ Binomial(M, P(y > q)), independent pixels (v = 1);
     the EM fit puts P(y > q) within the binomial noise of pfa: |#(y > q) - M pfa| <= 5 sqrt(M pfa).
     The bound can fail: the 1.25 pfa quantile lands outside it. Here EM makes the brightest class
-    a near-copy of the rough sea, so nearly every pixel above q is labelled ship (seed 0: 4007
+    a near-copy of the rough sea, so nearly every pixel above q is labelled ship (seed 0: 4026
     alarm pixels of 4033 above q, M pfa = 4194). The candidates' scattering rule (peak above the
     clutter mixture's 1 - peak_pfa quantile, peak_pfa = 1e-9) leaves a candidate only where a
     pixel exceeds that quantile: M peak_pfa = 0.004 expected, so at most 1 is allowed (P(>= 2)
