@@ -62,6 +62,15 @@ Usage::
     python bench/realdata_eval.py --quick         # a few settings (a few minutes)
     python bench/realdata_eval.py --json out.json --md table.md
     python bench/realdata_eval.py --from-json out.json      # re-report saved rows
+    python bench/realdata_eval.py --land none,texture,texture:open=31 --pfas 1e-4,1e-5,1e-6,1e-7 \
+        --windows 21/41,41/81 --json land.json --md land.md    # sea-land segmentation vs none
+
+Land masks (``--land``): each option is a ``land_mask`` setting swept like the other mask
+settings (``none``; ``texture`` with optional ``:window=W``, ``:open=O``, ``:close=C`` for
+``land_window``, ``land_open_px``, ``land_close_px``). With more than one kind the report has one
+cross-validated choice per kind (``land_mask=none`` and ``land_mask=texture``, the texture
+variants being candidates of the latter) side by side, plus every candidate's scores on all the
+chips (pooled, as the issue's goal is stated: the best detector's HRSID FoM).
 """
 
 from __future__ import annotations
@@ -394,16 +403,38 @@ def summarise(dataset: str, per_chip: list[dict], names: list[str] | None = None
 # sweep
 
 
-def mask_settings(detector: str, pfas, windows, looks, extra=EXTRA) -> list[dict]:
+def land_option(text: str) -> dict:
+    """``none`` -> {}; ``texture[:window=W][:open=O][:close=C]`` -> the land_* parameters."""
+    parts = text.strip().split(":")
+    if parts[0] == "none" and len(parts) == 1:
+        return {}
+    if parts[0] != "texture":
+        raise SystemExit(f"--land: expected none or texture[:window=W][:open=O][:close=C], got {text!r}")
+    out = {"land_mask": "texture"}
+    names = {"window": "land_window", "open": "land_open_px", "close": "land_close_px"}
+    for kv in parts[1:]:
+        k, _, v = kv.partition("=")
+        if k not in names:
+            raise SystemExit(f"--land: unknown texture option {k!r} (window, open, close)")
+        out[names[k]] = int(v)
+    return out
+
+
+def land_kind(row: dict) -> str:
+    return "texture" if row.get("extra", {}).get("land_mask") == "texture" else "none"
+
+
+def mask_settings(detector: str, pfas, windows, looks, extra=EXTRA, lands=({},)) -> list[dict]:
     out = []
     from sarship.pipeline import detectors
 
     needs_looks = detectors.get(detector).needs_looks
-    for pfa, (g, b), L, ex in itertools.product(pfas, windows, looks if needs_looks else ("scene",),
-                                                extra.get(detector, ({},))):
+    for pfa, (g, b), L, ex, land in itertools.product(pfas, windows, looks if needs_looks else ("scene",),
+                                                      extra.get(detector, ({},)), lands):
         # min_area_px huge: run_detection writes no features (the mask is all we use; it
         # does not depend on the size rule / merge_px), which keeps the client side cheap
-        s = {"pfa": pfa, "guard": g, "background": b, "min_area_px": MASK_ONLY_MIN_AREA, "merge_px": 0, **ex}
+        s = {"pfa": pfa, "guard": g, "background": b, "min_area_px": MASK_ONLY_MIN_AREA, "merge_px": 0, **ex,
+             **land}
         if L != "scene":
             s["looks"] = float(L)
         out.append(s)
@@ -446,7 +477,8 @@ def sweep(client, chips: list[Chip], detectors_: list[str], grid: dict, work: Pa
 
     with cf.ThreadPoolExecutor(threads) as pool:
         for det in detectors_:
-            settings = mask_settings(det, grid["pfas"], grid["windows"], grid["looks"])
+            settings = mask_settings(det, grid["pfas"], grid["windows"], grid["looks"],
+                                     lands=grid.get("lands", ({},)))
             for i, s in enumerate(settings):
                 t0 = time.perf_counter()
                 futs = [pool.submit(one, det, s, c, b) for c, b in jobs]
@@ -469,7 +501,8 @@ def sweep(client, chips: list[Chip], detectors_: list[str], grid: dict, work: Pa
                                                         grid["areas_m2"])}
                     rows.append(row)
                 log(f"  {det} {i + 1}/{len(settings)} pfa={s['pfa']:g} g/b={s['guard']}/{s['background']} "
-                    f"looks={s.get('looks', 'scene')}{''.join(f' {k}={v}' for k, v in s.items() if k == 'domain')}: "
+                    f"looks={s.get('looks', 'scene')}"
+                    f"{''.join(f' {k}={v}' for k, v in s.items() if k == 'domain' or k.startswith('land'))}: "
                     f"{time.perf_counter() - t0:.1f} s")
     return rows
 
@@ -539,16 +572,16 @@ def _length(key: str) -> tuple[float, float]:
     return float(L), float(A)
 
 
-def candidates(rows: list[dict], detector: str, band: str = "vh") -> list[Candidate]:
+def candidates(rows: list[dict], detector: str, band: str = "vh", land: str | None = None) -> list[Candidate]:
     """The defaults the choice may pick: ``looks`` = the scene's (``looks=None``: a fixed number
     is no default for every product, e.g. 5-look GRD), the pixel rule <= MAX_PX_DEFAULT on the
     JPEG sets, the metre rule with MIN_LENGTH_DEFAULT <= min_length_m <= MAX_LENGTH_DEFAULT on GRD."""
     out = []
     for i, r in enumerate(rows):
-        if r["detector"] != detector or r["looks"] != "scene":
+        if r["detector"] != detector or r["looks"] != "scene" or (land is not None and land_kind(r) != land):
             continue
         pxs = [k for k in (r.get("ssdd") or r.get("hrsid") or {"px1": None}) if int(k[2:]) <= MAX_PX_DEFAULT]
-        grds = [k for k in r.get(f"grd_{band}", {"m0f1": None})
+        grds = [k for k in r.get(f"grd_{band}", {"m0a1": None})
                 if k.startswith("m") and MIN_LENGTH_DEFAULT <= _length(k)[0] <= MAX_LENGTH_DEFAULT
                 and _length(k)[1] <= MAX_AREA_M2_DEFAULT]
         out += [Candidate(i, p, g) for p in pxs for g in grds]
@@ -702,17 +735,19 @@ def fmt_scores(sc: dict) -> str:
     return " | ".join(cells)
 
 
-def report(rows: list[dict], detectors_: list[str], band: str = "vh", log=print, demo: DemoCheck | None = None) -> dict:
-    """Both folds per detector; returns {detector: {fold: {...}}} and the markdown tables."""
+def report(rows: list[dict], detectors_: list[str], band: str = "vh", log=print, demo: DemoCheck | None = None,
+           land: str | None = None) -> dict:
+    """Both folds per detector; returns {detector: {fold: {...}}} and the markdown tables.
+    ``land``: only the candidates of that land-mask kind (``none`` or ``texture``)."""
     out = {}
     log("\nColumns: SSDD / HRSID = FoM / pd / precision (object level, aggregated over the half's chips); "
         "HRSID px = pixel TPR / FPR; GRD = centre ships found / chips with a centre ship, other "
         "detections per chip, FoM proxy; mean = mean(SSDD FoM, HRSID FoM, GRD FoM proxy).")
     for det in detectors_:
-        cands = candidates(rows, det, band)
+        cands = candidates(rows, det, band, land)
         if not cands:
             continue
-        res = {"folds": {}}
+        res = {"folds": {}, "land": land}
         for tune in HALVES:
             held = "B" if tune == "A" else "A"
             c, elig, skipped = choose(rows, cands, tune, band, demo)
@@ -720,12 +755,12 @@ def report(rows: list[dict], detectors_: list[str], band: str = "vh", log=print,
                                   "demo_skipped": [(fmt_setting(rows, k), f) for k, f in skipped],
                                   "tuned": scores(rows, c, tune, band), "held_out": scores(rows, c, held, band),
                                   "all": scores(rows, c, "all", band)}
-        pc = previous(rows, det)
+        pc = previous(rows, det) if land in (None, "none") else None
         if pc is not None:
             res["previous"] = {"candidate": pc, "setting": describe(rows, pc),
                                **{h: scores(rows, pc, h, band) for h in ("A", "B", "all")}}
         out[det] = res
-        log(f"\n=== {det} ===")
+        log(f"\n=== {det}{'' if land is None else f' (land_mask={land})'} ===")
         for tune in HALVES:
             f = res["folds"][tune]
             held = "B" if tune == "A" else "A"
@@ -733,6 +768,7 @@ def report(rows: list[dict], detectors_: list[str], band: str = "vh", log=print,
                 f"{fmt_setting(rows, f['candidate'])}")
             log(f"  on {tune} (tuned):    {fmt_scores(f['tuned'])}")
             log(f"  on {held} (held out): {fmt_scores(f['held_out'])}")
+            log(f"  on all chips:        {fmt_scores(f['all'])}")
             log(f"  missed GRD centre ships (all chips): {f['all'].get('grd', {}).get('missed')}")
             for k, fom in f["demo_skipped"]:
                 log(f"  passed over (README demo FoM {fom:.3f} < {DEMO['min_fom']}): {k}")
@@ -747,18 +783,37 @@ def markdown(rows: list[dict], rep: dict) -> str:
     lines = [("| detector | defaults | scored on | SSDD FoM / pd / prec | HRSID FoM / pd / prec | HRSID px TPR / FPR "
               "| GRD-VH centre / extra / FoM proxy | mean |"), "|---|---|---|---|---|---|---|---|"]
     for det, res in rep.items():
+        name = det if res.get("land") is None else f"{det} land_mask={res['land']}"
         for tune in HALVES:
             f = res["folds"][tune]
             held = "B" if tune == "A" else "A"
             tag = f"tuned on {tune}" + (" **(shipped)**" if tune == SHIP_FOLD else "")
             set_ = fmt_setting(rows, f["candidate"])
-            lines.append(f"| {det} | {tag}: {set_} | {tune} (tuned on) | {fmt_scores(f['tuned'])} |")
-            lines.append(f"| {det} | {tag} | **{held} (held out)** | {fmt_scores(f['held_out'])} |")
+            lines.append(f"| {name} | {tag}: {set_} | {tune} (tuned on) | {fmt_scores(f['tuned'])} |")
+            lines.append(f"| {name} | {tag} | **{held} (held out)** | {fmt_scores(f['held_out'])} |")
+            if res.get("land") is not None:
+                lines.append(f"| {name} | {tag} | all chips | {fmt_scores(f['all'])} |")
         if "previous" in res:
             set_ = fmt_setting(rows, res["previous"]["candidate"])
             for h in HALVES:
                 lines.append(f"| {det} | previous defaults: {set_} | {h} | {fmt_scores(res['previous'][h])} |")
     return "\n".join(lines) + "\n"
+
+
+def land_reports(rows: list[dict], dets: list[str], demo: DemoCheck | None) -> tuple[dict, str]:
+    """One cross-validated choice per land-mask kind present in ``rows``, side by side."""
+    kinds = [k for k in ("none", "texture") if any(land_kind(r) == k for r in rows)]
+    if len(kinds) < 2:
+        rep = report(rows, dets, demo=demo)
+        return rep, markdown(rows, rep)
+    reps, md = {}, []
+    for det in dets:
+        for k in kinds:
+            r = report(rows, [det], demo=demo, land=k)
+            if det in r:
+                reps[f"{det}/{k}"] = r[det]
+    md.append(markdown(rows, reps))
+    return reps, "\n".join(md)
 
 
 def _jsonable(rep: dict) -> dict:
@@ -789,6 +844,12 @@ def main(argv=None) -> int:
     ap.add_argument("--md", type=Path, help="write the summary table (markdown) here")
     ap.add_argument("--from-json", type=Path, help="only re-report the rows saved by an earlier --json")
     ap.add_argument("--no-check", action="store_true", help="skip the post-processing self-check")
+    ap.add_argument("--land", default="none",
+                    help="comma list of land_mask settings swept: none, texture[:window=W][:open=O][:close=C]")
+    ap.add_argument("--pfas", help="comma list of pfa values (default: the full grid)")
+    ap.add_argument("--windows", help="comma list of guard/background pairs, e.g. 21/41,41/81")
+    ap.add_argument("--datasets", default=",".join(DATASETS), help="comma list of ssdd, hrsid, grd")
+    ap.add_argument("--looks", help="comma list of looks settings: scene and/or numbers (default: scene,1)")
     a = ap.parse_args(argv)
 
     if a.from_json:  # re-report saved rows (e.g. after changing the choice rule)
@@ -797,11 +858,10 @@ def main(argv=None) -> int:
         dets = [d for d in a.detectors.split(",") if d and any(r["detector"] == d for r in rows)]
         demo = DemoCheck(Path(tempfile.mkdtemp(prefix="sarship-demo-")))
         try:
-            rep = report(rows, dets, demo=demo)
+            rep, md = land_reports(rows, dets, demo)
         finally:
             demo.close()
             shutil.rmtree(demo.work, ignore_errors=True)
-        md = markdown(rows, rep)
         print("\n" + md)
         if a.md:
             a.md.write_text(md)
@@ -816,6 +876,13 @@ def main(argv=None) -> int:
             "areas_m2": AREAS_M2, "merges": MERGES, "bands": BANDS}
     if a.quick:
         grid.update(pfas=(1e-4, 1e-6), windows=((21, 41), (41, 81)), looks=("scene",))
+    grid["lands"] = tuple(land_option(t) for t in a.land.split(",") if t.strip())
+    if a.looks:
+        grid["looks"] = tuple(v if v == "scene" else float(v) for v in a.looks.split(","))
+    if a.pfas:
+        grid["pfas"] = tuple(float(v) for v in a.pfas.split(","))
+    if a.windows:
+        grid["windows"] = tuple(tuple(int(x) for x in w.split("/")) for w in a.windows.split(","))
     t_all = time.perf_counter()
     tmp = None
     work = a.work
@@ -825,6 +892,7 @@ def main(argv=None) -> int:
     try:
         t0 = time.perf_counter()
         chips = ingest_all(a.data, work / "scenes", a.limit)
+        chips = [c for c in chips if c.dataset in a.datasets.split(",")]
         split_halves(chips)
         n = {ds: sum(c.dataset == ds for c in chips) for ds in DATASETS}
         print(f"ingested {n} chips in {time.perf_counter() - t0:.1f} s", flush=True)
@@ -861,12 +929,11 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             rows = sweep(client, chips, dets, grid, work, a.threads, log=lambda m: print(m, flush=True))
             print(f"sweep: {len(rows)} rows in {time.perf_counter() - t0:.1f} s", flush=True)
-            rep = report(rows, dets, demo=DemoCheck(work, client))
+            rep, md = land_reports(rows, dets, DemoCheck(work, client))
         finally:
             client.close()
             if cluster is not None:
                 cluster.close()
-        md = markdown(rows, rep)
         print("\n" + md)
         if a.json:
             halves = {c.name: c.half for c in chips}

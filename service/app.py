@@ -33,7 +33,7 @@ from sarship.service.openapi import (EXECUTE_BODY, JOB_STATUSES, PREFER_DOC, Con
                              ProcessDescription, ProcessList, Results, StatusInfo, problems)
 from sarship.service.openapi import install as install_openapi
 from sarship.service.openapi import media
-from sarship.service.runner import Runner, scene_path
+from sarship.service.runner import Runner, land_file_path, scene_path
 from sarship.service.settings import Settings
 from sarship.service.store import FINAL, JobStore
 from sarship.workers.request import DEVICES, JobRequest
@@ -100,6 +100,7 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
         check_text(scene, "input 'scene'")
     try:
         request = JobRequest.from_inputs(name, body["inputs"])
+        land_file_path(settings, request)
         try:
             scene_path(settings, request.scene)
         except InputError:

@@ -177,11 +177,34 @@ def _save_npy(path: Path, a: np.ndarray) -> None:
         np.save(fh, a)
 
 
+#: The land tint of the quicklooks: land pixels are (1 - LAND_ALPHA) grey + LAND_ALPHA LAND_RGB.
+LAND_RGB = (40, 110, 255)
+LAND_ALPHA = 0.45
+
+
+def land_array(job_dir: Path):
+    """The job's land mask array (``land.zarr``, written when the job ran with ``land_mask``), or None."""
+    import zarr
+
+    if not (job_dir / "land.zarr").is_dir():
+        return None
+    return zarr.open_group(str(job_dir / "land.zarr"), mode="r")["land"]
+
+
+def tint_land(rgb: np.ndarray, land: np.ndarray) -> np.ndarray:
+    """``rgb`` (uint8, (..., 3)) with the ``land`` pixels tinted blue (LAND_RGB at LAND_ALPHA)."""
+    out = rgb.copy()
+    tint = (1.0 - LAND_ALPHA) * rgb[land].astype(np.float32) + LAND_ALPHA * np.asarray(LAND_RGB, np.float32)
+    out[land] = np.clip(np.rint(tint), 0, 255).astype(np.uint8)
+    return out
+
+
 def preview_png(job_dir: Path, size: int) -> Path:
     """Quicklook of a finished job (made once per size, atomically): the scene's intensity in dB
-    (the job's 2-98 % stretch) decimated to at most ``size`` pixels a side, detected pixels in red
-    (max-pooled, so that small ships stay visible), detection boxes in yellow. Read in strips:
-    memory is the output plus a strip of mask rows."""
+    (the job's 2-98 % stretch) decimated to at most ``size`` pixels a side, the land mask of a
+    job run with ``land_mask`` (``land.zarr``) as a blue tint (:func:`tint_land`), detected pixels
+    in red (max-pooled, so that small ships stay visible), detection boxes in yellow. Read in
+    strips: memory is the output plus a strip of mask rows."""
     import zarr
     from PIL import Image, ImageDraw
 
@@ -194,14 +217,19 @@ def preview_png(job_dir: Path, size: int) -> Path:
         step = max(1, -(-max(H, W) // size))
         read = strided_reader(src)
         m = zarr.open_group(str(job_dir / "mask.zarr"), mode="r")["mask"]
+        land = land_array(job_dir)
         rows = step * max(1, 512 // step)
-        greys, marks = [], []
+        greys, marks, lands = [], [], []
         for r0 in range(0, H, rows):
             r1 = min(r0 + rows, H)
             greys.append(stretch(to_db(read(r0, r1, 0, W, step)), meta["lo"], meta["hi"]))
             marks.append(maxpool(np.asarray(m[r0:r1, :], np.uint8), step) > 0)
+            if land is not None:
+                lands.append(np.asarray(land[r0:r1:step, 0:W:step]) > 0)
         g = np.concatenate(greys)
         rgb = np.stack([g, g, g], -1)
+        if lands:
+            rgb = tint_land(rgb, np.concatenate(lands))
         rgb[np.concatenate(marks)] = (255, 40, 40)
         img = Image.fromarray(rgb)
         draw = ImageDraw.Draw(img)

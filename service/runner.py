@@ -74,6 +74,29 @@ def scene_path(settings: Settings, scene: str) -> Path:
     return real
 
 
+def land_file_path(settings: Settings, request) -> Optional[Path]:
+    """The ``land_mask`` FILE a job names, resolved and required to lie inside an allowed scene
+    folder (the service reads no other file of its host); None for none/texture. InputError
+    (a 4xx for the API) otherwise."""
+    lm = request.detector_params().land_mask
+    if lm is None or lm == "texture":
+        return None
+    s = lm.strip()
+    if "://" in s:
+        raise InputError(f"parameter 'land_mask': only local files are accepted, got '{s}'")
+    cand = Path(s)
+    if not cand.is_absolute():
+        cand = settings.scenes_dir / cand
+    try:
+        real = cand.resolve(strict=True)
+    except (OSError, RuntimeError):
+        raise InputError(f"parameter 'land_mask': no file '{s}' (a path inside the allowed scene folders, "
+                         "or relative to the scene folder)") from None
+    if not any(real == r or r in real.parents for r in settings.roots()):
+        raise InputError(f"parameter 'land_mask': '{s}' is outside the allowed scene folders")
+    return real
+
+
 def transient_reason(exc: BaseException, client=None) -> Optional[str]:
     """Why ``exc`` is a fault of the service rather than of the job's input, or None: a write
     that failed for want of space (``ENOSPC``, ``EDQUOT``, ``EFBIG``, also behind an
@@ -252,9 +275,12 @@ class Runner:
         try:
             request = JobRequest.from_inputs(job["process"], inputs)
             scene = scene_path(self.settings, request.scene)
+            land = land_file_path(self.settings, request)
+            if land is not None:
+                request = request.model_copy(update={"params": {**request.params, "land_mask": str(land)}})
             run = run_request(request.model_copy(update={"scene": str(scene)}), out_dir=stage,
                               client=self.client, progress=False, on_tile=on_tile, overwrite=True)
-            final = {name: str((out_dir / name).resolve()) for name in OUTPUTS}
+            final = {name: str((out_dir / name).resolve()) for name in OUTPUTS if name in run.get("outputs", {})}
             if run.get("outputs") != final:  # run.json names where the outputs will be
                 from sarship.pipeline.ship_features import write_json
 

@@ -39,9 +39,12 @@ from typing import Optional
 import numpy as np
 
 from sarship.service.cog import TILE, cog_tile, mask_cog
-from sarship.service.render import grey_base, job_stretch, source_of, strided_reader, stretch, to_db
+from sarship.service.render import (grey_base, job_stretch, land_array, source_of, strided_reader, stretch,
+                                    tint_land, to_db)
 
-LAYERS = ("scene", "mask")
+#: ``land``: the job's land mask (``land.zarr``, jobs run with ``land_mask``), tinted blue over the
+#: scene as in the preview; asked for explicitly (``?layers=scene,mask,land``).
+LAYERS = ("scene", "mask", "land")
 MASK_RGBA = (255, 40, 40, 255)
 CACHE_TILES = 1024
 
@@ -140,6 +143,13 @@ def render_tile(job_dir: Path, shape: tuple[int, int], z: int, x: int, y: int, l
         rgba[:w.rows, :w.cols, 1] = g
         rgba[:w.rows, :w.cols, 2] = g
         rgba[:w.rows, :w.cols, 3] = 255
+    if "land" in layers:
+        land = land_array(job_dir)
+        if land is not None:
+            lm = np.asarray(land[w.r0:w.r1:w.f, w.c0:w.c1:w.f]) > 0
+            view = rgba[:w.rows, :w.cols]
+            view[..., :3] = tint_land(view[..., :3], lm)
+            view[..., 3][lm] = 255
     if "mask" in layers:
         m = mask_tile(job_dir, w, x, y)
         rgba[:w.rows, :w.cols][m] = MASK_RGBA

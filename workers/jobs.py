@@ -28,11 +28,15 @@ from sarship.pipeline.sidelobes import mask_reader, refine_features
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.inputs import intensity_source, make_reader, polarimetric_source
 from sarship.pipeline.scene import Scene, create_mask_store, finalize_scene, open_scene, tile_slices
+from sarship.workers.land import check_land_file, finish_land, prepare_land
 from sarship.workers.request import JobRequest
 from sarship.workers.routing import plan
 from sarship.workers.tasks import TileJob, run_tile, run_tile_stats
 
-OUTPUTS = ("mask.zarr", "detections.geojson", "run.json")
+OUTPUTS = ("mask.zarr", "detections.geojson", "run.json", "land.zarr")
+#: Outputs a run writes only with some parameters (``land.zarr``: with ``land_mask``); an older
+#: one in the folder is removed when the new run has none.
+OPTIONAL_OUTPUTS = ("land.zarr",)
 
 
 def resolve_looks(spec, params, scene: Scene, var: str, transform: str) -> tuple[Any, str]:
@@ -136,6 +140,12 @@ def _prepare_out(out_dir: Path) -> Path:
 def _commit(tmp: Path, out_dir: Path) -> None:
     for name in OUTPUTS:
         src, dst = tmp / name, out_dir / name
+        if name in OPTIONAL_OUTPUTS and not src.exists():
+            if dst.exists():  # a stale land mask of an earlier run must not sit beside this run's mask
+                old = out_dir / f".{name}.old-{uuid.uuid4().hex[:8]}"
+                os.replace(dst, old)
+                shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+            continue
         if dst.exists():
             old = out_dir / f".{name}.old-{uuid.uuid4().hex[:8]}"
             os.replace(dst, old)
@@ -211,6 +221,7 @@ def run_request(
     if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
         warnings.append("min_length_m/max_length_m ignored: the scene's pixel spacing is unknown")
     halo = spec.halo(params)
+    land_file = check_land_file(params, scene)  # a bad land_mask FILE fails here, before any output
     mr = merge_radius(params.merge_px)
     H, W = scene.shape
     created = not out_dir.exists()
@@ -228,6 +239,7 @@ def run_request(
             for i, j, r0, r1, c0, c1 in tile_slices((H, W), tile)
         ]
         scene_pass = None
+        land_record = None
         with contextlib.ExitStack() as stack:
             if client is None:
                 from sarship.workers.cluster import connect
@@ -235,6 +247,9 @@ def run_request(
                 client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and spec.gpu))
             placement = plan(device, detector, spec.gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
+            jobs, land_record = prepare_land(
+                params, scene, land_file, jobs, tmp, tile,
+                lambda fn, js, stage: _execute(client, js, detector, progress, None, fn, stage, placement.submit))
             if spec.scene_pass is not None:
                 t_pass = time.perf_counter()
                 scene_values: dict = {}
@@ -256,6 +271,7 @@ def run_request(
             t_prep = time.perf_counter()
             results = _execute(client, jobs, detector, progress, on_tile, submit=placement.submit)
         t_tiles = time.perf_counter()
+        finish_land(tmp, land_record, results, (H, W))
         comps = {r["index"]: r["components"] for r in results}
         records = merge_tiles(comps)
         records = records[keep_mask(records, params, spacing)]
@@ -279,6 +295,7 @@ def run_request(
             "size_rule": size_rule,
             "prepared": prep,
             "scene_pass": scene_pass,
+            "land": land_record,
             "scene": {
                 "path": str(Path(scene.path).resolve()),
                 "shape": [H, W],
@@ -318,7 +335,8 @@ def run_request(
             "cluster": {"dashboard": dashboard, "workers": sorted({r["worker"] for r in results})},
             "versions": _versions(),
             "warnings": warnings,
-            "outputs": {name: str((out_dir / name).resolve()) for name in OUTPUTS},
+            "outputs": {name: str((out_dir / name).resolve()) for name in OUTPUTS
+                        if name not in OPTIONAL_OUTPUTS or (tmp / name).exists()},
         }
         finalize_scene(tmp / "mask.zarr")  # consolidated metadata: xarray.open_zarr reads it
         fc = collection(feats, detector=detector, scene=str(scene.path), parameters=params.model_dump())

@@ -37,6 +37,11 @@ class TileJob:
     mask_path: str | None
     spacing: tuple[float, float] | None
     device: str = "cpu"  # "gpu": move the block to this worker's GPU once, detect there
+    #: sea-land segmentation (workers/land.py): None, {"mode": "texture", "config", "decision"}
+    #: or {"mode": "file", "store"}; land pixels become NaN (absent) before the detector sees them
+    land: dict | None = None
+    land_halo: int = 0  # extra context the texture land mask needs beyond ``halo``
+    land_path: str | None = None  # land.zarr array this tile writes its core into (texture mode)
 
 
 def _worker_name() -> str:
@@ -50,11 +55,36 @@ def _worker_name() -> str:
 
 
 def _read(job: TileJob, r0: int, r1: int, c0: int, c1: int):
-    """The job's detector, its parameters, and the block ``[r0:r1, c0:c1]`` with its halo."""
+    """The job's detector, its parameters, the block ``[r0:r1, c0:c1]`` with its halo (land
+    pixels set to NaN when the job has a land mask) and the block's land mask (None without one)."""
     spec = detectors.get(job.detector)
     params = spec.params(**job.params)
     read = make_reader(job.scene_path, job.var, job.transform)
-    return spec, params, padded_block(read, job.scene_shape, r0, r1, c0, c1, job.halo)
+    block = padded_block(read, job.scene_shape, r0, r1, c0, c1, job.halo + job.land_halo)
+    land = None
+    if job.land is not None:
+        block, land = _land_block(job, block, r0, r1, c0, c1)
+    return spec, params, block, land
+
+
+def _land_block(job: TileJob, block, r0: int, r1: int, c0: int, c1: int):
+    """The land mask of the padded block (halo ``job.halo``) and the block with land set to NaN:
+    computed from the texture (the block was read with ``land_halo`` more context, trimmed
+    here) or read from the job's land store (mirror-extended like the scene)."""
+    from sarship.pipeline import landmask
+
+    h, lh = job.halo, job.land_halo
+    if job.land["mode"] == "texture":
+        cfg = landmask.TextureConfig(**job.land["config"])
+        land = landmask.classify(block, lh, (r0 - h - lh, c0 - h - lh), cfg, job.land["decision"])
+        if lh:
+            block = block[lh: block.shape[0] - lh, lh: block.shape[1] - lh]
+    else:
+        import zarr
+
+        arr = zarr.open_array(job.land["store"], mode="r")
+        land = padded_block(lambda a, b, c, d: np.asarray(arr[a:b, c:d]), job.scene_shape, r0, r1, c0, c1, h) > 0
+    return landmask.apply_absent(block, land), land
 
 
 def _on_device(job: TileJob, spec) -> bool:
@@ -85,13 +115,29 @@ def run_tile_stats(job: TileJob) -> dict[str, Any]:
     """First pass of a two-pass detector: the tile's contribution to scene-wide statistics."""
     t0 = time.perf_counter()
     r0, r1, c0, c1 = job.bounds
-    spec, params, block = _read(job, r0, r1, c0, c1)
+    spec, params, block, _ = _read(job, r0, r1, c0, c1)
     gpu = _on_device(job, spec) and spec.scene_pass_gpu
     if gpu:
         block = _to_device(block)
     stats = spec.scene_pass(block, job.halo, (r0 - job.halo, c0 - job.halo), params, job.prep)
     return {"index": job.index, "stats": stats, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
             "device": "gpu" if gpu else "cpu", "seconds": time.perf_counter() - t0}
+
+
+def run_tile_land_stats(job: TileJob) -> dict[str, Any]:
+    """The land pass (``land_mask=texture``): the tile's texture sample on the scene-wide grid
+    (``job.land["stride"]``), for the mixture fitted on the client (workers/land.py)."""
+    from sarship.pipeline import landmask
+
+    t0 = time.perf_counter()
+    r0, r1, c0, c1 = job.bounds
+    cfg = landmask.TextureConfig(**job.land["config"])
+    r = cfg.window // 2
+    read = make_reader(job.scene_path, job.var, job.transform)
+    block = padded_block(read, job.scene_shape, r0, r1, c0, c1, r)
+    sample = landmask.texture_sample(block, r, (r0 - r, c0 - r), cfg, int(job.land["stride"]))
+    return {"index": job.index, "stats": sample, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
+            "device": "cpu", "seconds": time.perf_counter() - t0}
 
 
 def run_tile(job: TileJob) -> dict[str, Any]:
@@ -102,7 +148,7 @@ def run_tile(job: TileJob) -> dict[str, Any]:
     m = job.merge_r
     er0, er1 = max(r0 - m, 0), min(r1 + m, H)
     ec0, ec1 = max(c0 - m, 0), min(c1 + m, W)
-    spec, params, block = _read(job, er0, er1, ec0, ec1)
+    spec, params, block, land = _read(job, er0, er1, ec0, ec1)
     t1 = time.perf_counter()
     gpu = _on_device(job, spec)
     origin = (er0 - job.halo, ec0 - job.halo)
@@ -130,6 +176,12 @@ def run_tile(job: TileJob) -> dict[str, Any]:
 
         out = zarr.open_array(job.mask_path, mode="r+")
         out[r0:r1, c0:c1] = core_mask.astype(np.uint8)
+    if job.land_path is not None:
+        import zarr
+
+        hb = job.halo
+        lout = zarr.open_array(job.land_path, mode="r+")
+        lout[r0:r1, c0:c1] = land[hb + a: hb + a + h, hb + b: hb + b + w].astype(np.uint8)
     t3 = time.perf_counter()
     mext = np.zeros((h + 2 * m, w + 2 * m), bool)
     mext[m - a: m - a + mask_e.shape[0], m - b: m - b + mask_e.shape[1]] = mask_e
@@ -144,6 +196,7 @@ def run_tile(job: TileJob) -> dict[str, Any]:
         "worker": _worker_name(),
         "device": "gpu" if gpu else "cpu",
         "detected_px": int(core_mask.sum()),
+        "land_px": 0 if land is None else int(land[job.halo + a: job.halo + a + h, job.halo + b: job.halo + b + w].sum()),
         "pixels": h * w,
         "read_s": t1 - t0,
         "detect_s": t2 - t1,

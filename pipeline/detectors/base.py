@@ -77,6 +77,22 @@ class DetectorParams(BaseModel):
     merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
     sidelobes: bool = Field(True, description="cross-sidelobe suppression: length, width and heading measured on the "
                                               "ship core where a sidelobe cross is found (docs/algorithms/sidelobes.md)")
+    # sea-land segmentation (pipeline/landmask.py, docs/algorithms/landmask.md): land pixels are
+    # absent (NaN) for the detector: never tested, in no clutter ring, in no scene-wide statistic
+    land_mask: Optional[str] = Field(
+        None, min_length=1, max_length=4096,
+        description="land mask: none (default), texture (local amplitude variance + Gaussian mixture, "
+                    "sea = the low-texture class), or a FILE: a raster of the scene's shape (GeoTIFF, PNG, "
+                    ".npy, Zarr; non-zero = land) or GeoJSON polygons (lon/lat, or scene pixels with "
+                    "\"pixel_coordinates\": true)")
+    land_window: int = Field(15, ge=3, le=101, description="land_mask=texture: texture window side (odd, pixels)")
+    land_classes: int = Field(2, ge=2, le=6, description="land_mask=texture: Gaussian mixture classes (sea = lowest texture)")
+    land_open_px: int = Field(51, ge=1, le=255,
+                              description="land_mask=texture: opening square side (odd, pixels): land narrower "
+                                          "than this (e.g. a ship's texture) is sea")
+    land_close_px: int = Field(5, ge=1, le=255,
+                               description="land_mask=texture: closing square side (odd, pixels): sea gaps "
+                                           "narrower than this inside land are land")
 
     @model_validator(mode="after")
     def _windows(self):
@@ -88,6 +104,14 @@ class DetectorParams(BaseModel):
             raise ValueError(f"target ({self.target}) must not exceed guard ({self.guard})")
         if self.guard >= self.background:
             raise ValueError(f"background ({self.background}) must be larger than guard ({self.guard})")
+        for name in ("land_window", "land_open_px", "land_close_px"):
+            v = getattr(self, name)
+            if v % 2 == 0:
+                raise ValueError(f"{name} must be odd, got {v}")
+        if self.land_mask is not None and self.land_mask.strip().lower() in ("none", "null", ""):
+            self.__dict__["land_mask"] = None
+        elif self.land_mask is not None and self.land_mask.strip().lower() == "texture":
+            self.__dict__["land_mask"] = "texture"
         if self.max_area_px is not None and self.min_area_px is not None and self.max_area_px < self.min_area_px:
             raise ValueError(f"max_area_px ({self.max_area_px}) must be >= min_area_px ({self.min_area_px})")
         if (self.min_length_m is not None and self.max_length_m is not None

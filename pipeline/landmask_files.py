@@ -1,0 +1,288 @@
+"""Land masks a user supplies (``land_mask=FILE``): a raster or a vector file, checked and
+rasterised onto the scene's pixel grid (docs/algorithms/landmask.md, "FILE").
+
+Raster: a GeoTIFF/TIFF, PNG/JPEG, ``.npy`` (any bands) or a Zarr array (or a Zarr group with
+one 2-D array, e.g. an earlier run's ``land.zarr``) of exactly the scene's shape; a pixel is
+land where any band is finite and non-zero.
+
+Vector: GeoJSON (a FeatureCollection, Feature or geometry) of Polygon / MultiPolygon
+geometries. Coordinates are WGS84 lon/lat (RFC 7946), converted to scene pixels with the
+scene's georeference (the inverse of :class:`sarship.pipeline.ship_features.Georeference`:
+the affine ``transform`` in the scene ``crs``, or a least-squares polynomial fitted from lon/lat
+to pixels on the ``gcps``, affine under 6 points and quadratic from 6, as GDAL's GCP
+transformer does); or scene pixel coordinates ``[x = column, y = row]`` (pixel ``(r, c)``
+covers ``[c, c+1) x [r, r+1)``) when the top-level member ``"pixel_coordinates": true`` is
+set. A pixel is land where its centre ``(c + 1/2, r + 1/2)`` is inside a polygon (even-odd
+rule over the polygon's rings, so holes are sea); polygons are united.
+
+Every problem is one :class:`~sarship.pipeline.errors.InputError` line naming the file,
+raised by :func:`open_land_file` before any tile runs.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from sarship.pipeline.errors import InputError
+
+#: Largest GeoJSON land-mask file read (bytes).
+MAX_GEOJSON_BYTES = 256 * 2**20
+
+
+@dataclass
+class LandFile:
+    """A checked land-mask file: ``read(r0, r1, c0, c1) -> bool`` on the scene grid."""
+
+    path: str
+    kind: str  # "raster" | "vector"
+    format: str
+    read: Callable[[int, int, int, int], np.ndarray]
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def _bad(path: Any, what: str) -> InputError:
+    return InputError(f"parameter 'land_mask': '{path}' {what}")
+
+
+def open_land_file(path: str, shape: tuple[int, int], attrs: dict) -> LandFile:
+    """Check the land-mask file ``path`` against a scene of ``shape`` with georeference
+    ``attrs`` (``crs``, ``transform``, ``gcps``) and return its reader."""
+    p = Path(path)
+    if not p.exists():
+        raise _bad(path, "does not exist (land_mask is none, texture or a raster/GeoJSON file)")
+    if p.is_dir():
+        return _zarr_mask(p, shape)
+    head = b""
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(64)
+    except OSError as exc:
+        raise _bad(path, f"cannot be read ({exc.strerror})") from None
+    if not head:
+        raise _bad(path, "is empty")
+    if head.lstrip()[:1] in (b"{",) or p.suffix.lower() in (".geojson", ".json"):
+        return _vector_mask(p, shape, attrs)
+    return _raster_mask(p, shape)
+
+
+def _zarr_mask(p: Path, shape: tuple[int, int]) -> LandFile:
+    import zarr
+
+    try:
+        node = zarr.open(str(p), mode="r")
+    except Exception as exc:
+        raise _bad(p, f"is a folder but not a Zarr array or group ({type(exc).__name__})") from None
+    if isinstance(node, zarr.Group):
+        arrays = [a for _, a in node.arrays() if a.ndim == 2]
+        named = [a for a in arrays if a.name.rsplit("/", 1)[-1] in ("land", "mask")]
+        if len(named) == 1:
+            arr = named[0]
+        elif len(arrays) == 1:
+            arr = arrays[0]
+        else:
+            raise _bad(p, f"is a Zarr group with {len(arrays)} 2-D arrays: give one (or an array named 'land')")
+    else:
+        arr = node
+    if tuple(arr.shape[:2]) != tuple(shape) or arr.ndim not in (2, 3):
+        raise _bad(p, f"has shape {tuple(arr.shape)}, the scene is {shape[0]}x{shape[1]}")
+
+    def read(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        return _nonzero(np.asarray(arr[r0:r1, c0:c1]))
+
+    return LandFile(str(p), "raster", "zarr", read)
+
+
+def _nonzero(a: np.ndarray) -> np.ndarray:
+    a = np.asarray(a)
+    if np.iscomplexobj(a):
+        a = np.abs(a)
+    m = (a != 0) & np.isfinite(a) if a.dtype.kind == "f" else a != 0
+    return m.any(axis=tuple(range(2, m.ndim))) if m.ndim > 2 else m
+
+
+def _raster_mask(p: Path, shape: tuple[int, int]) -> LandFile:
+    from sarship.pipeline.readers.entry import _open_source
+
+    try:
+        src = _open_source(p)
+    except InputError as exc:
+        raise _bad(p, f"is not a raster or GeoJSON land mask ({exc})") from None
+    if tuple(src.shape) != tuple(shape):
+        H, W = src.shape
+        src.close()
+        raise _bad(p, f"is {H}x{W} pixels, the scene is {shape[0]}x{shape[1]} (a raster land mask must "
+                      "have the scene's shape)")
+
+    def read(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        return _nonzero(src.read(r0, r1, c0, c1))
+
+    return LandFile(str(p), "raster", src.fmt, read)
+
+
+# --------------------------------------------------------------------------------------
+# vector
+# --------------------------------------------------------------------------------------
+
+
+def _polygons(obj: Any, p: Path) -> list[list[np.ndarray]]:
+    """Every polygon of a GeoJSON object as a list of rings ((n, 2) float arrays of x, y)."""
+    out: list[list[np.ndarray]] = []
+
+    def rings(coords) -> list[np.ndarray]:
+        rs = []
+        for ring in coords:
+            a = np.asarray(ring, dtype=np.float64)
+            if a.ndim != 2 or a.shape[0] < 3 or a.shape[1] < 2 or not np.isfinite(a[:, :2]).all():
+                raise _bad(p, "has a polygon ring that is not a list of at least 3 finite [x, y] positions")
+            rs.append(a[:, :2])
+        return rs
+
+    def geom(g):
+        if g is None:
+            return
+        if not isinstance(g, dict) or "type" not in g:
+            raise _bad(p, "is not GeoJSON (a geometry without a 'type')")
+        t = g["type"]
+        try:
+            if t == "Polygon":
+                out.append(rings(g["coordinates"]))
+            elif t == "MultiPolygon":
+                for poly in g["coordinates"]:
+                    out.append(rings(poly))
+            elif t == "GeometryCollection":
+                for sub in g["geometries"]:
+                    geom(sub)
+            else:
+                raise _bad(p, f"holds a {t} geometry: a land mask needs Polygon or MultiPolygon geometries")
+        except (KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise _bad(p, f"has a malformed {t} geometry ({type(exc).__name__})") from None
+
+    if not isinstance(obj, dict):
+        raise _bad(p, "is not a GeoJSON object")
+    t = obj.get("type")
+    if t == "FeatureCollection":
+        feats = obj.get("features")
+        if not isinstance(feats, list):
+            raise _bad(p, "is a FeatureCollection without a 'features' list")
+        for f in feats:
+            if not isinstance(f, dict):
+                raise _bad(p, "has a feature that is not an object")
+            geom(f.get("geometry"))
+    elif t == "Feature":
+        geom(obj.get("geometry"))
+    else:
+        geom(obj)
+    if not out:
+        raise _bad(p, "holds no polygons")
+    return out
+
+
+def lonlat_to_pixel(lon: np.ndarray, lat: np.ndarray, attrs: dict) -> tuple[np.ndarray, np.ndarray]:
+    """WGS84 lon/lat -> continuous scene (row, col), the inverse of the scene's georeference
+    (module doc). Raises ValueError when the scene has none usable."""
+    transform, gcps = attrs.get("transform"), attrs.get("gcps")
+    crs = attrs.get("crs") or ("EPSG:4326" if gcps else None)
+    if crs is None or (transform is None and not gcps):
+        raise ValueError("the scene is not georeferenced (no crs + transform or gcps)")
+    x, y = np.asarray(lon, float), np.asarray(lat, float)
+    if str(crs).upper() not in ("EPSG:4326", "OGC:CRS84", "WGS84", "CRS84"):
+        from pyproj import Transformer
+
+        x, y = Transformer.from_crs("EPSG:4326", str(crs), always_xy=True).transform(x, y)
+        x, y = np.asarray(x, float), np.asarray(y, float)
+    if transform is not None:
+        c, a, b, f, d, e = (float(v) for v in transform)
+        det = a * e - b * d
+        if det == 0:
+            raise ValueError("the scene's transform is singular")
+        u, v = x - c, y - f
+        return (a * v - d * u) / det, (e * u - b * v) / det
+    gx = np.array([g["x"] for g in gcps], float)
+    gy = np.array([g["y"] for g in gcps], float)
+    rc = np.array([[g["row"], g["col"]] for g in gcps], float)
+    quad = len(gcps) >= 6
+
+    def design(xx, yy):
+        cols = [np.ones_like(xx), xx, yy]
+        if quad:
+            cols += [xx * xx, xx * yy, yy * yy]
+        return np.stack(cols, axis=-1)
+
+    coef, *_ = np.linalg.lstsq(design(gx, gy), rc, rcond=None)
+    out = design(x, y) @ coef
+    return out[..., 0], out[..., 1]
+
+
+def _vector_mask(p: Path, shape: tuple[int, int], attrs: dict) -> LandFile:
+    if p.stat().st_size > MAX_GEOJSON_BYTES:
+        raise _bad(p, f"is larger than {MAX_GEOJSON_BYTES // 2**20} MiB")
+    try:
+        obj = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise _bad(p, f"is not valid JSON ({type(exc).__name__}: {str(exc).splitlines()[0]})") from None
+    polys = _polygons(obj, p)
+    pixel = obj.get("pixel_coordinates") is True if isinstance(obj, dict) else False
+    if not pixel:
+        try:
+            conv = []
+            for poly in polys:
+                rs = []
+                for ring in poly:
+                    r, c = lonlat_to_pixel(ring[:, 0], ring[:, 1], attrs)
+                    if not (np.isfinite(r).all() and np.isfinite(c).all()):
+                        raise ValueError("a position falls outside the scene's projection")
+                    rs.append(np.stack([c, r], -1))
+                conv.append(rs)
+        except ValueError as exc:
+            raise _bad(p, f"has lon/lat coordinates but {exc}; for scene pixel coordinates set the "
+                          "top-level member \"pixel_coordinates\": true") from None
+        polys = conv
+    edges = _edges(polys)
+
+    def read(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        return rasterize(edges, r0, r1, c0, c1)
+
+    H, W = shape
+    xs = np.concatenate([ring[:, 0] for poly in polys for ring in poly])
+    ys = np.concatenate([ring[:, 1] for poly in polys for ring in poly])
+    inside = bool(((xs >= 0) & (xs <= W) & (ys >= 0) & (ys <= H)).any()) or bool(
+        xs.min() < W and xs.max() > 0 and ys.min() < H and ys.max() > 0)
+    info = {"polygons": len(polys), "coordinates": "pixel" if pixel else "lonlat", "overlaps_scene": inside}
+    return LandFile(str(p), "vector", "geojson", read, info)
+
+
+def _edges(polys: list[list[np.ndarray]]) -> np.ndarray:
+    """All ring edges as rows ``(x1, y1, x2, y2)`` (rings closed), horizontal edges dropped."""
+    parts = []
+    for poly in polys:
+        for ring in poly:
+            a = ring if np.array_equal(ring[0], ring[-1]) else np.vstack([ring, ring[:1]])
+            e = np.concatenate([a[:-1], a[1:]], axis=1)
+            parts.append(e[e[:, 1] != e[:, 3]])
+    return np.concatenate(parts) if parts else np.zeros((0, 4))
+
+
+def rasterize(edges: np.ndarray, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """Boolean ``(r1 - r0, c1 - c0)``: pixels whose centre is inside the polygons (even-odd
+    rule; an edge counts for a scanline ``y`` when ``min(y1, y2) <= y < max(y1, y2)``)."""
+    out = np.zeros((r1 - r0, c1 - c0), bool)
+    if edges.size == 0:
+        return out
+    x1, y1, x2, y2 = edges.T
+    lo, hi = np.minimum(y1, y2), np.maximum(y1, y2)
+    xc = np.arange(c0, c1) + 0.5
+    for i, r in enumerate(range(r0, r1)):
+        y = r + 0.5
+        sel = (lo <= y) & (y < hi)
+        if not sel.any():
+            continue
+        xs = np.sort(x1[sel] + (y - y1[sel]) * (x2[sel] - x1[sel]) / (y2[sel] - y1[sel]))
+        out[i] = (np.searchsorted(xs, xc, side="right") % 2) == 1
+    return out

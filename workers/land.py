@@ -1,0 +1,116 @@
+"""The land mask of a detection job (``land_mask`` = none | texture | FILE), client side.
+
+``texture``: a land pass over the tiles (:func:`sarship.workers.tasks.run_tile_land_stats`: the
+texture on a scene-wide grid, pooled in (row, col) order), the Gaussian mixture fitted and the
+sea/land decision made here (:func:`sarship.pipeline.landmask.decide`); each detection tile
+then computes its land mask from its own block read with ``land_halo`` more context, writes
+its core into ``DIR/land.zarr`` and sets land to NaN before the detector runs.
+
+``FILE``: the file is checked (:func:`sarship.pipeline.landmask_files.open_land_file`) and
+rasterised into ``DIR/land.zarr`` here, strip by strip, before any tile runs; each tile reads
+its block of it (mirror-extended like the scene) and sets land to NaN.
+
+Maths in :mod:`sarship.pipeline.landmask`; docs/algorithms/landmask.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.scene import Scene, finalize_scene
+
+LAND_STORE = "land.zarr"
+
+
+def texture_config(params) -> "Any":
+    from sarship.pipeline.landmask import TextureConfig
+
+    return TextureConfig(window=int(params.land_window), classes=int(params.land_classes),
+                         open_px=int(params.land_open_px), close_px=int(params.land_close_px))
+
+
+def create_land_store(path: Path, shape: tuple[int, int], tile: int, attrs: dict):
+    """``DIR/land.zarr``: a group with the uint8 array ``land`` (1 = land), chunked like the mask."""
+    import zarr
+
+    from sarship.pipeline.scene import _jsonable, _zstd, chunking
+
+    g = zarr.open_group(str(path), mode="w", zarr_format=3)
+    arr = g.create_array("land", shape=tuple(int(s) for s in shape), dtype="uint8", **chunking(tile),
+                         compressors=_zstd(), dimension_names=("y", "x"), fill_value=0)
+    g.attrs.update(_jsonable(attrs))
+    return arr
+
+
+def check_land_file(params, scene: Scene):
+    """The checked FILE of ``land_mask`` (None for none/texture); one-line InputError otherwise."""
+    lm = params.land_mask
+    if lm is None or lm == "texture":
+        return None
+    from sarship.pipeline.landmask_files import open_land_file
+
+    return open_land_file(lm, scene.shape, scene.attrs)
+
+
+def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: int, execute) -> tuple[list, dict | None]:
+    """Set up the job's land mask: returns the tile jobs with their land fields and the record
+    for ``run.json`` (``land``), or ``(jobs, None)`` without a land mask. ``execute(fn, jobs,
+    stage)`` runs a per-tile function on the cluster and returns its results."""
+    from sarship.workers.tasks import run_tile_land_stats
+
+    lm = params.land_mask
+    if lm is None:
+        return jobs, None
+    t0 = time.perf_counter()
+    H, W = scene.shape
+    store = tmp / LAND_STORE
+    attrs = {k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs}
+    if lm == "texture":
+        from sarship.pipeline import landmask
+
+        cfg = texture_config(params)
+        stride = landmask.sample_stride((H, W))
+        base = {"mode": "texture", "config": dataclasses.asdict(cfg), "stride": stride}
+        stats = execute(run_tile_land_stats, [dataclasses.replace(j, land=base) for j in jobs], "land texture")
+        t = landmask.pool_samples([s["stats"] for s in sorted(stats, key=lambda s: s["index"])])
+        decision = landmask.decide(t, cfg)
+        decision["stride"] = stride
+        create_land_store(store, (H, W), tile, {"source": "texture", **attrs})
+        land = {"mode": "texture", "config": dataclasses.asdict(cfg), "decision": decision}
+        halo = cfg.halo if decision["land"] else 0
+        jobs = [dataclasses.replace(j, land=land, land_halo=halo, land_path=str(store / "land")) for j in jobs]
+        record = {"source": "texture", **decision, "seconds": round(time.perf_counter() - t0, 4)}
+    else:
+        arr = create_land_store(store, (H, W), tile, {"source": str(Path(land_file.path).resolve()), **attrs})
+        rows = max(tile, 1)
+        count = 0
+        for r0 in range(0, H, rows):
+            r1 = min(r0 + rows, H)
+            try:
+                block = np.asarray(land_file.read(r0, r1, 0, W), bool)
+            except InputError as exc:
+                raise InputError(f"parameter 'land_mask': {exc}") from None
+            arr[r0:r1, :] = block.astype(np.uint8)
+            count += int(block.sum())
+        land = {"mode": "file", "store": str(store / "land")}
+        jobs = [dataclasses.replace(j, land=land, land_halo=0, land_path=None) for j in jobs]
+        record = {"source": "file", "path": str(Path(land_file.path).resolve()), "kind": land_file.kind,
+                  "format": land_file.format, **land_file.info, "land": count > 0,
+                  "seconds": round(time.perf_counter() - t0, 4)}
+    return jobs, record
+
+
+def finish_land(tmp: Path, record: dict | None, results: list[dict], shape: tuple[int, int]) -> None:
+    """Consolidate ``land.zarr`` and add the land pixel count (the tiles' ``land_px``) to the record."""
+    if record is None:
+        return
+    finalize_scene(tmp / LAND_STORE)
+    n = int(sum(r.get("land_px", 0) for r in results))
+    record["land_px"] = n
+    record["land_fraction"] = round(n / max(shape[0] * shape[1], 1), 6)
