@@ -81,7 +81,8 @@ class GammaMRFParams(with_defaults(DetectorParams, "GammaMRFDefaults", pfa=1e-3,
     classes: int = Field(4, ge=2, le=8, description="K, classes of the gamma mixture (the paper: 4, calm sea, "
                                                     "rough sea, flat land, man-made); the brightest is the ship class")
     beta: float = Field(0.5, ge=0.0, le=20.0, description="Potts interaction (nats per disagreeing neighbour, eq (6))")
-    neighbourhood: int = Field(8, ge=4, le=8, description="MRF neighbourhood eta: 4 or 8 neighbours")
+    neighbourhood: int = Field(8, ge=4, le=8, json_schema_extra={"enum": [4, 8]},
+                               description="MRF neighbourhood eta: 4 or 8 neighbours")
     sweeps: int = Field(5, ge=1, le=20, description="ICM sweeps at most (the halo is sweeps x colours: 2 for the "
                                                     "4-neighbourhood, 4 for the 8-neighbourhood)")
     change_tol: float = Field(0.0, ge=0.0, lt=1.0,
