@@ -64,7 +64,7 @@ from sarship.pipeline.gpu import is_device_array
 #: Bins of the exact class sums: float32 binary exponents, offset so that every finite value fits.
 EXP_BINS = 300
 EXP_OFFSET = 180
-#: Passes at most: the EM pass and one a sweep (``sweeps`` <= 20).
+#: Scene passes at most: the EM pass and one a sweep (``sweeps`` <= 20: 21), with a margin.
 MAX_PASSES = 22
 ANOTHER_PASS = "another_pass"
 
@@ -94,11 +94,12 @@ class GammaMRFParams(with_defaults(DetectorParams, "GammaMRFDefaults", pfa=1e-3,
                                                 "prior only")
     scatter: Literal["quantile", "none"] = Field(
         "quantile", description="scattering rule: 'quantile': ship pixels exceed the (1 - pfa) quantile of the "
-                                "clutter mixture (classes 0..K-2); 'none': the brightest class alone")
+                                "fitted clutter mixture (the clutter classes, see clutter_weight); 'none': the ship "
+                                "class(es) alone")
     peak_pfa: Optional[float] = Field(
         1e-9, ge=1e-15, lt=0.5,
         description="scattering rule on whole candidates: a ship's peak intensity exceeds the (1 - peak_pfa) "
-                    "quantile of the clutter mixture (classes 0..K-2); none: off")
+                    "quantile of the fitted clutter mixture; none: off")
     clutter_weight: float = Field(
         0.05, gt=0.0, lt=1.0,
         description="classes up to the brightest holding at least this fraction of the scene are clutter; the "
