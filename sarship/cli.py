@@ -163,7 +163,8 @@ def cmd_serve(a) -> int:
     from sarship.service.settings import Settings
 
     over = {k: v for k, v in {"host": a.host, "port": a.port, "scheduler": a.scheduler, "data": a.data,
-                               "workers": a.workers, "gpus": a.gpus, "concurrency": a.concurrency, "inbox": a.inbox,
+                               "workers": a.workers, "worker_threads": a.worker_threads or None, "gpus": a.gpus,
+                               "concurrency": a.concurrency, "inbox": a.inbox,
                                "inbox_interval_s": a.inbox_interval, "inbox_cron": a.inbox_cron,
                                "inbox_detectors": a.inbox_detectors, "inbox_settle_s": a.inbox_settle,
                                "inbox_quarantine": a.inbox_quarantine}.items() if v is not None}
@@ -386,6 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data", help="data folder (default ./sarship-data)")
     s.add_argument("--workers", type=_positive_int, help="local cluster CPU worker processes (default: all cores; "
                                                          "with GPU workers, all cores less two per GPU)")
+    s.add_argument("--worker-threads", action="store_true",
+                   help="local cluster CPU workers as threads of this process instead of worker processes "
+                        "(starts in about a second; for small deployments and tests)")
     s.add_argument("--gpus", help="local cluster GPUs: all (default: one pinned worker per visible GPU), none, "
                                   "or a comma list of GPU IDs (0,1)")
     s.add_argument("--concurrency", type=_positive_int, help="jobs run at once by this API process (default 2)")

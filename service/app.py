@@ -192,7 +192,8 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
                 else:  # one pinned worker per GPU (SARSHIP_GPUS) besides the CPU workers
                     gpu_ids, n_cpu = settings.local_workers()
                     c = stack.enter_context(connect(None, n_workers=n_cpu, dashboard_address=dash, echo=True,
-                                                    gpus=gpu_ids, cpu_workers=n_cpu))
+                                                    gpus=gpu_ids, cpu_workers=n_cpu,
+                                                    threads=settings.worker_threads))
             runner = Runner(settings, store, c, metrics)
             runner.start()
             from sarship.service.inbox import start_inbox  # scheduled ingest (idle without SARSHIP_INBOX)
@@ -408,8 +409,10 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         except Exception as exc:
             checks["store"] = f"error: {exc}"
         try:
-            n = len(request.app.state.client.scheduler_info(n_workers=-1).get("workers", {}))
+            workers = request.app.state.client.scheduler_info(n_workers=-1).get("workers", {})
+            n = len(workers)
             checks["workers"] = n
+            checks["threads"] = sum(int(w.get("nthreads", 0)) for w in workers.values())
         except Exception as exc:
             checks["scheduler"] = f"error: {exc}"
             n = 0

@@ -99,6 +99,11 @@ class Settings(BaseSettings):
     scheduler: Optional[str] = Field(None, description="Dask scheduler address (default: a local cluster)")
     workers: Optional[int] = Field(None, ge=1, description="local cluster CPU worker processes (default: all cores; "
                                                            "with GPU workers, all cores less two per GPU, at least 1)")
+    worker_threads: bool = Field(False, description="local cluster CPU workers as threads of the API process "
+                                                     "(one worker, --workers threads) instead of worker processes: "
+                                                     "starts in about a second, for small deployments and tests; "
+                                                     "a crash of a detector takes the API process with it, and "
+                                                     "a stop waits for the tiles in flight")
     gpus: str = Field("all", description="local cluster GPUs: all (one pinned worker per visible GPU), none, or a "
                                          "comma list of GPU IDs; tiles go to GPU workers unless a job asks "
                                          "device=cpu")

@@ -38,8 +38,10 @@ class Server:
     def __init__(self, data: Path, port: int, **env):
         self.data, self.port = data, port
         self.url = f"http://127.0.0.1:{port}"
-        self.env = {**os.environ, "SARSHIP_WORKERS": "2", "SARSHIP_LEASE_S": "4", "CUDA_VISIBLE_DEVICES": "",
-                    **env}
+        # worker threads: two worker processes per server cost seconds of start-up on the 2-core test
+        # machine; the README walk-through test runs the default worker processes
+        self.env = {**os.environ, "SARSHIP_WORKERS": "2", "SARSHIP_WORKER_THREADS": "1", "SARSHIP_LEASE_S": "4",
+                    "CUDA_VISIBLE_DEVICES": "", **env}
         self.proc = None
 
     def start(self, timeout: float = 120.0) -> "Server":

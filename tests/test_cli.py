@@ -17,9 +17,9 @@ ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
 ENV.pop("SARSHIP_DEBUG", None)
 
 
-def sarship(*args, cwd=None, timeout=240):
+def sarship(*args, cwd=None, timeout=240, env=None):
     return subprocess.run([sys.executable, "-m", "sarship", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, env=ENV, timeout=timeout)
+                          text=True, cwd=cwd, env={**ENV, **(env or {})}, timeout=timeout)
 
 
 def assert_clean_error(res, *words):

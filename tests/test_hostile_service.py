@@ -178,7 +178,8 @@ def test_sigterm_is_prompt_with_sync_waiters(tmp_path):
     data = data_with_scene(tmp_path)
     write_scene(data / "scenes" / "s1_tiles32.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
                 tile=32, looks=2.0)
-    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_CONCURRENCY="1").start()
+    # worker processes (the default deployment): threads of the API process cannot be cut short
+    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_CONCURRENCY="1", SARSHIP_WORKER_THREADS="0").start()
     try:
         ex = srv.url + "/processes/lmm/execution"
         answers: list = []

@@ -173,7 +173,8 @@ def test_metrics_and_readiness(server):
     u = server.url
     assert httpx.get(u + "/livez").json() == {"status": "ok"}
     ready = httpx.get(u + "/readyz").json()
-    assert ready["status"] == "ok" and ready["checks"]["workers"] == 2
+    # svc.py's servers: SARSHIP_WORKERS=2 as threads of one in-process worker
+    assert ready["status"] == "ok" and ready["checks"]["workers"] == 1 and ready["checks"]["threads"] == 2, ready
     dash = httpx.get(u + "/dashboard", follow_redirects=False)
     assert dash.status_code == 307 and dash.headers["location"].startswith("http")
     r = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1", "guard": 11, "background": 31}})

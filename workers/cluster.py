@@ -3,7 +3,10 @@
 The local default is one single-threaded worker *process* per core (the detectors are
 Numba/NumPy code that holds the GIL for parts of its work; processes scale, threads
 would not), so a run uses every core of the machine; each advertises the resource
-``CPU=1``. With ``gpus=True`` on a machine with GPUs, the local cluster is instead one
+``CPU=1``. A small run (``threads=True``: ``sarship detect`` on a scene of at most
+:data:`THREADS_MAX_PX` pixels) gets one in-process worker with a thread per core instead
+(resource ``CPU`` = cores): starting worker processes (each imports Dask, NumPy, Numba and
+the detectors) costs seconds, more than such a scene's whole detection. With ``gpus=True`` on a machine with GPUs, the local cluster is instead one
 process per GPU, pinned by ``CUDA_VISIBLE_DEVICES`` before it starts and advertising
 ``GPU`` (see :mod:`sarship.workers.gpus`), plus ``cpu_workers`` CPU processes if asked.
 """
@@ -19,6 +22,27 @@ import warnings
 from typing import Iterator
 
 from sarship.pipeline.errors import InputError
+
+#: ``sarship detect`` without ``--scheduler`` runs scenes of at most this many pixels on an
+#: in-process threaded worker (see the module doc); ``SARSHIP_THREADS_MAX_PX`` overrides it
+#: (0: always worker processes). 4 Mpx: a 2048 x 2048 scene, about a second of any CPU
+#: detector's work on one core of the 2-core test machine, where two worker processes take
+#: ~3-5 s to start.
+THREADS_MAX_PX = 4 * 1024 * 1024
+
+
+def threads_max_px() -> int:
+    """:data:`THREADS_MAX_PX`, or the ``SARSHIP_THREADS_MAX_PX`` setting (an integer >= 0)."""
+    raw = os.environ.get("SARSHIP_THREADS_MAX_PX", "").strip()
+    if not raw:
+        return THREADS_MAX_PX
+    try:
+        value = int(float(raw))
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise InputError(f"SARSHIP_THREADS_MAX_PX must be a whole number of pixels >= 0, got '{raw}'")
+    return value
 
 
 def _quiet() -> None:
@@ -118,6 +142,7 @@ def connect(
     gpus: bool | list[str] = False,
     cpu_workers: int = 0,
     gpu_threads: int | None = None,
+    threads: bool = False,
 ) -> Iterator["distributed.Client"]:  # noqa: F821
     """Yield a connected :class:`distributed.Client`.
 
@@ -125,7 +150,8 @@ def connect(
     :class:`distributed.LocalCluster` with ``n_workers`` processes (default: all cores)
     is started for the duration of the block, and its dashboard address is printed.
     ``gpus``: start one pinned worker per visible GPU instead (when there are any), or per
-    GPU of a list of IDs, plus ``cpu_workers`` CPU workers.
+    GPU of a list of IDs, plus ``cpu_workers`` CPU workers. ``threads``: without GPU workers,
+    one in-process worker with ``n_workers`` threads (default: all cores) instead of processes.
     """
     from distributed import Client
 
@@ -155,7 +181,8 @@ def connect(
     dashboard_address, note = _free_dashboard(dashboard_address)
     with warnings.catch_warnings():  # Dask's raw "Port 8787 is already in use" and the like
         warnings.simplefilter("ignore")
-        client, cluster, what = _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads)
+        client, cluster, what = _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads,
+                                             threads)
     if echo:
         print(f"sarship: local Dask cluster, {what}, dashboard {dashboard_url(client)}{note}", file=sys.stderr)
     try:
@@ -165,7 +192,7 @@ def connect(
         cluster.close()
 
 
-def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads):
+def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads, threads=False):
     """Start the local cluster and its client; returns (client, cluster, description)."""
     from distributed import Client, LocalCluster
 
@@ -181,6 +208,23 @@ def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads
             silence_logs=logging.ERROR,
         )
         what = f"{len(gpu_ids)} GPU worker processes" + (f" and {cpu_workers} CPU" if cpu_workers else "")
+    elif threads:
+        n = n_workers or os.cpu_count() or 1
+        cluster = LocalCluster(
+            n_workers=1,
+            threads_per_worker=n,
+            processes=False,
+            # loopback TCP as the process cluster (inproc:// would name the machine's address in
+            # the dashboard link), and the worker's own HTTP server where the dashboard listens
+            # (Dask's default for it is every interface)
+            protocol="tcp://",
+            host="127.0.0.1",
+            dashboard_address=dashboard_address,
+            worker_dashboard_address=f"{(dashboard_address or '').rpartition(':')[0]}:0",
+            silence_logs=logging.ERROR,
+            resources={"CPU": n},
+        )
+        what = f"{n} threads in this process"
     else:
         n = n_workers or os.cpu_count() or 1
         cluster = LocalCluster(

@@ -242,9 +242,10 @@ def run_request(
         land_record = None
         with contextlib.ExitStack() as stack:
             if client is None:
-                from sarship.workers.cluster import connect
+                from sarship.workers.cluster import connect, threads_max_px
 
-                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and spec.gpu))
+                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and spec.gpu,
+                                                     threads=H * W <= threads_max_px()))
             placement = plan(device, detector, spec.gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
             jobs, land_record = prepare_land(

@@ -1,0 +1,70 @@
+"""``sarship detect``'s local cluster: a small scene runs on an in-process threaded worker (no
+worker processes to start), a large one on one worker process per core; the size is a setting
+(``SARSHIP_THREADS_MAX_PX``), checked before any work."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from tests.conftest import write_scene
+from tests.test_cli import assert_clean_error, sarship
+
+
+@pytest.fixture()
+def scene(tmp_path):
+    rng = np.random.default_rng(3)
+    x = rng.gamma(2.0, 0.5, (96, 80)).astype(np.float32)
+    x[40:44, 30:36] += 60.0
+    return write_scene(tmp_path / "small.zarr", {"intensity": x}, tile=64, looks=2.0)
+
+
+def _cluster_line(stderr: str) -> str:
+    lines = [ln for ln in stderr.splitlines() if ln.startswith("sarship: local Dask cluster")]
+    assert len(lines) == 1, stderr
+    return lines[0]
+
+
+def _detect(scene, out, **env):
+    return sarship("detect", scene, "--detector", "ca_cfar", "--out", out, env=env)
+
+
+def test_small_scene_runs_on_threads_and_the_setting_switches_to_processes(scene, tmp_path):
+    threaded = _detect(scene, tmp_path / "a", SARSHIP_THREADS_MAX_PX="")
+    assert threaded.returncode == 0, threaded.stderr
+    assert "threads in this process" in _cluster_line(threaded.stderr)
+    procs = _detect(scene, tmp_path / "b", SARSHIP_THREADS_MAX_PX="0")
+    assert procs.returncode == 0, procs.stderr
+    assert "worker processes" in _cluster_line(procs.stderr)
+    # the same detections and mask either way
+    a = json.loads((tmp_path / "a" / "detections.geojson").read_text())
+    b = json.loads((tmp_path / "b" / "detections.geojson").read_text())
+    assert [f["properties"] for f in a["features"]] == [f["properties"] for f in b["features"]]
+    assert len(a["features"]) >= 1
+
+
+def test_a_bad_setting_is_one_line_and_leaves_nothing(scene, tmp_path):
+    res = _detect(scene, tmp_path / "c", SARSHIP_THREADS_MAX_PX="many")
+    assert_clean_error(res, "SARSHIP_THREADS_MAX_PX", "many")
+    assert not (tmp_path / "c").exists()
+
+
+def test_threads_max_px_setting():
+    from sarship.pipeline.errors import InputError
+    from sarship.workers.cluster import THREADS_MAX_PX, threads_max_px
+
+    old = os.environ.pop("SARSHIP_THREADS_MAX_PX", None)
+    try:
+        assert threads_max_px() == THREADS_MAX_PX
+        os.environ["SARSHIP_THREADS_MAX_PX"] = "1e6"
+        assert threads_max_px() == 1_000_000
+        os.environ["SARSHIP_THREADS_MAX_PX"] = "-1"
+        with pytest.raises(InputError, match="SARSHIP_THREADS_MAX_PX"):
+            threads_max_px()
+    finally:
+        os.environ.pop("SARSHIP_THREADS_MAX_PX", None)
+        if old is not None:
+            os.environ["SARSHIP_THREADS_MAX_PX"] = old
