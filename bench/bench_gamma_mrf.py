@@ -27,7 +27,7 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from bench.common import machine  # noqa: E402
+from common import machine  # noqa: E402
 from sarship.pipeline import detectors  # noqa: E402
 from sarship.pipeline.detectors import gamma_mrf as gm  # noqa: E402
 from sarship.pipeline.windows import mirror_pad  # noqa: E402

@@ -9,7 +9,7 @@ logs="${1:-gpu-logs}"
 mkdir -p "$logs"
 export PYTHONUNBUFFERED=1  # sarship must be installed (pip install -e .[gpu])
 nvidia-smi -L | tee "$logs/gpus.txt"
-python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_gpu.py 2>&1 | tee "$logs/gpu_tests.log"
+python3 -m pytest -q -m gpu -p no:cacheprovider tests/ 2>&1 | tee "$logs/gpu_tests.log"  # every gpu-marked test
 tests_rc=${PIPESTATUS[0]}
 # shellcheck disable=SC2086
 python3 bench/bench_gpu.py ${BENCH_ARGS:-} 2>&1 | tee "$logs/bench_gpu.log"

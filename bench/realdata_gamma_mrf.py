@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench import realdata_eval as rd
+import realdata_eval as rd
 from sarship.pipeline.gamma_mixture import mixture_isf
 
 MASKS = [{"pfa": pfa, "beta": beta} for pfa in (1e-3, 1e-5) for beta in (0.5, 1.0)]
