@@ -23,8 +23,10 @@ CENSOR_HELP = ("bright-pixel censoring of the ring: a ring sample brighter than 
                "unset: off (the calibrated default; docs/algorithms/g0_k_ggd.md)")
 
 
-class G0Params(with_defaults(DetectorParams, "G0Defaults", pfa=1e-3, guard=41, background=81)):
-    """Parameters of ``g0_cfar`` (shared ones: docs/algorithms/README.md), PFA 1e-3 as in the seed."""
+class MolcParams(with_defaults(DetectorParams, "MolcDefaults", pfa=1e-3, guard=41, background=81)):
+    """The parameters of the three MoLC CFARs (``g0_cfar``, ``k_cfar``, ``ggd_cfar``; shared ones:
+    docs/algorithms/README.md): PFA 1e-3 as in the seed, the optional censoring, single-pixel
+    targets."""
 
     censor: Optional[float] = Field(None, gt=1.0, le=1e6, description=CENSOR_HELP)
 
@@ -33,6 +35,10 @@ class G0Params(with_defaults(DetectorParams, "G0Defaults", pfa=1e-3, guard=41, b
         if self.target != 1:
             raise ValueError(f"target must be 1 for this detector (it tests single pixels), got {self.target}")
         return self
+
+
+class G0Params(MolcParams):
+    """Parameters of ``g0_cfar``."""
 
 
 def halo_of(p) -> int:

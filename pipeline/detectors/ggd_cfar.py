@@ -11,25 +11,13 @@ The number of looks is not used (the GGD's own shape absorbs it). Statistic: x /
 
 from __future__ import annotations
 
-from typing import Optional
-
-from pydantic import Field, model_validator
-
 from sarship.pipeline import molc, molc_cfar
-from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
-from sarship.pipeline.detectors.g0_cfar import CENSOR_HELP, halo_of
+from sarship.pipeline.detectors.base import DetectorSpec, check_windows
+from sarship.pipeline.detectors.g0_cfar import MolcParams, halo_of
 
 
-class GGDParams(with_defaults(DetectorParams, "GGDDefaults", pfa=1e-3, guard=41, background=81)):
+class GGDParams(MolcParams):
     """Parameters of ``ggd_cfar`` (shared ones: docs/algorithms/README.md; ``looks`` unused)."""
-
-    censor: Optional[float] = Field(None, gt=1.0, le=1e6, description=CENSOR_HELP)
-
-    @model_validator(mode="after")
-    def _single_pixel_target(self):
-        if self.target != 1:
-            raise ValueError(f"target must be 1 for this detector (it tests single pixels), got {self.target}")
-        return self
 
 
 def prepare(p: GGDParams) -> dict:

@@ -12,25 +12,13 @@ Statistic: x / t.
 
 from __future__ import annotations
 
-from typing import Optional
-
-from pydantic import Field, model_validator
-
 from sarship.pipeline import molc, molc_cfar
-from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
-from sarship.pipeline.detectors.g0_cfar import CENSOR_HELP, halo_of
+from sarship.pipeline.detectors.base import DetectorSpec, check_windows
+from sarship.pipeline.detectors.g0_cfar import MolcParams, halo_of
 
 
-class KParams(with_defaults(DetectorParams, "KDefaults", pfa=1e-3, guard=41, background=81)):
+class KParams(MolcParams):
     """Parameters of ``k_cfar`` (shared ones: docs/algorithms/README.md), PFA 1e-3 as in the seed."""
-
-    censor: Optional[float] = Field(None, gt=1.0, le=1e6, description=CENSOR_HELP)
-
-    @model_validator(mode="after")
-    def _single_pixel_target(self):
-        if self.target != 1:
-            raise ValueError(f"target must be 1 for this detector (it tests single pixels), got {self.target}")
-        return self
 
 
 def prepare(p: KParams) -> dict:
