@@ -43,11 +43,10 @@ No land (open sea)
 Clean-up (bounded morphology)
     On the candidate mask ``C``: a binary opening with an ``o x o`` square (``land_open_px``:
     removes every candidate region narrower than ``o``, e.g. the texture blob of a ship at
-    sea, the ship's width plus the window), then a bounded geodesic reconstruction: ``o - 1``
-    conditional dilations of ``open(C)`` by the 3 x 3 square within ``C`` (candidates connected
-    to the opened land through candidates, at most ``o - 1`` steps away, are land again, so the
-    coast keeps its narrow capes and piers, while blobs the opening removed whole, e.g. ships
-    near the coast but apart from it, stay removed), then a binary closing with a ``c x c`` square
+    sea, the ship's width plus the window), then a bounded reconstruction ``C AND dilate(open(C),
+    (2o - 1) x (2o - 1))`` (candidates within ``o - 1`` pixels of the opened land are land again,
+    so the coast keeps its narrow capes and piers, while blobs the opening removed whole stay
+    removed unless they touch land), then a binary closing with a ``c x c`` square
     (``land_close_px``: fills sea gaps narrower than ``c`` inside land). All are min/max
     filters over bounded squares (scipy.ndimage), so the mask at a pixel depends only on the
     pixels within ``land_halo = m // 2 + 2 (o // 2) + (o - 1) + 2 (c // 2)`` of it: a tile read
@@ -310,11 +309,10 @@ def _square_open_close(m: np.ndarray, open_px: int, close_px: int) -> np.ndarray
     if open_px > 1:
         opened = ndimage.maximum_filter(ndimage.minimum_filter(u, size=open_px, mode="nearest"), size=open_px,
                                         mode="nearest")
-        # bounded geodesic reconstruction: candidates connected to the opened land through
-        # candidates, within open_px - 1 steps (8-neighbour), are land again: the coast keeps its
-        # detail; blobs the opening removed whole (ships) stay removed unless they touch land
-        u = ndimage.binary_dilation(opened.astype(bool), structure=np.ones((3, 3), bool),
-                                    iterations=open_px - 1, mask=u.astype(bool)).astype(np.uint8)
+        # bounded reconstruction: candidates within open_px - 1 of the opened land are land again
+        # (the coast keeps its detail; isolated blobs, removed whole by the opening, stay removed)
+        near = ndimage.maximum_filter(opened, size=2 * open_px - 1, mode="nearest")
+        u = u & near
     if close_px > 1:
         u = ndimage.minimum_filter(ndimage.maximum_filter(u, size=close_px, mode="nearest"), size=close_px,
                                    mode="nearest")
