@@ -115,12 +115,15 @@ def _log_q(u):
 
 
 @njit(nogil=True, cache=True)
-def _censored_estep(c, nc, K, a, mu, s, live, lt, sg, sgd, sgdd):
-    """E-step of the censored weight nc (y > c) into the shifted sums; returns nc ln S(c)."""
+def _censored_estep(c, nc, K, a, mu, s, live, lt, sg, sgd, sgdd, sgn=1.0):
+    """E-step of the censored weight nc into the shifted sums; returns nc ln P(censored).
+    ``sgn = 1``: right-censored (y > c), P = S(c); ``sgn = -1``: left-censored (y < c),
+    P = F(c), the mirror image (y -> -y: ``al_k = sgn (c - mu_k)/s_k``, the mean moment
+    changes sign)."""
     mx = -np.inf
     for k in range(K):
         if live[k]:
-            lt[k] = math.log(a[k]) + _log_q((c - mu[k]) / s[k])
+            lt[k] = math.log(a[k]) + _log_q(sgn * (c - mu[k]) / s[k])
             mx = max(mx, lt[k])
     tot = 0.0
     for k in range(K):
@@ -129,17 +132,17 @@ def _censored_estep(c, nc, K, a, mu, s, live, lt, sg, sgd, sgdd):
             tot += lt[k]
     for k in range(K):
         if live[k]:
-            al = (c - mu[k]) / s[k]
+            al = sgn * (c - mu[k]) / s[k]
             lam = math.exp(-0.5 * al * al - _LOG_SQRT_2PI - _log_q(al))  # phi / Q
             g = nc * lt[k] / tot
             sg[k] += g
-            sgd[k] += g * s[k] * lam
+            sgd[k] += g * sgn * s[k] * lam
             sgdd[k] += g * s[k] * s[k] * (1.0 + al * lam)
     return nc * (mx + math.log(tot))
 
 
 @njit(nogil=True, cache=True)
-def em_fit_points(y, wt, n_pts, K, init_z, max_iter, tol, a, mu, s, c=np.inf, nc=0.0):
+def em_fit_points(y, wt, n_pts, K, init_z, max_iter, tol, a, mu, s, c=np.inf, nc=0.0, cl=-np.inf, nl=0.0):
     """EM (eq 3-4) on weighted points; returns the iteration count (docs/algorithms/lmm.md, "EM").
 
     Each iteration: E-step with the current parameters (responsibilities g_jk, log-sum-exp
@@ -154,11 +157,13 @@ def em_fit_points(y, wt, n_pts, K, init_z, max_iter, tol, a, mu, s, c=np.inf, nc
     ``al_k = (c - mu_k)/s_k``, and the truncated-normal moments
     ``E[y - mu_k | y > c] = s_k lam_k``, ``E[(y - mu_k)^2 | y > c] = s_k^2 (1 + al_k lam_k)``
     (``lam = phi/Q``, the inverse Mills ratio); W includes nc and the log-likelihood gains
-    ``nc ln S(c)``. ``nc = 0``: the uncensored EM, bit for bit.
+    ``nc ln S(c)``. Left-censored weight ``nl > 0`` (samples known only to lie below ``cl``):
+    the mirror image, ``a_k F_k(cl) / F(cl)``, ``E[y - mu_k | y < cl] = -s_k lam_k`` with
+    ``al_k = (mu_k - cl)/s_k``. ``nc = nl = 0``: the uncensored EM, bit for bit.
     """
     W, m, v = _moments(y, wt, n_pts)
     Wp = W
-    W = Wp + nc
+    W = Wp + nc + nl
     floor = 1e-4 * v + 1e-12
     sd = math.sqrt(v)
     mz2 = 0.0
@@ -205,8 +210,13 @@ def em_fit_points(y, wt, n_pts, K, init_z, max_iter, tol, a, mu, s, c=np.inf, nc
                     sgd[k] += g * d
                     sgdd[k] += g * d * d
         ll = ll / Wp - _LOG_SQRT_2PI
-        if nc > 0.0:
-            ll = (ll * Wp + _censored_estep(c, nc, K, a, mu, s, live, lt, sg, sgd, sgdd)) / W
+        if nc > 0.0 or nl > 0.0:
+            ll = ll * Wp
+            if nc > 0.0:
+                ll += _censored_estep(c, nc, K, a, mu, s, live, lt, sg, sgd, sgdd)
+            if nl > 0.0:
+                ll += _censored_estep(cl, nl, K, a, mu, s, live, lt, sg, sgd, sgdd, -1.0)
+            ll = ll / W
         for k in range(K):
             if live[k]:
                 if sg[k] < 1e-9 * W:
@@ -387,14 +397,15 @@ def mixture_grad_hess(y, wt, n_pts, K, a, mu, s, G, H):
 
 
 @njit(nogil=True, cache=True)
-def censored_loglik(K, a, mu, s, c, nc):
-    """The censored samples' term ``nc ln S(c)`` of the log-likelihood (0 if nc = 0)."""
+def censored_loglik(K, a, mu, s, c, nc, sgn=1.0):
+    """The censored samples' term ``nc ln S(c)`` of the log-likelihood (0 if nc = 0);
+    ``sgn = -1``: left-censored, ``nc ln F(c)``."""
     if not (nc > 0.0):
         return 0.0
     mx = -np.inf
     lq = np.empty(K)
     for k in range(K):
-        lq[k] = math.log(a[k]) + _log_q((c - mu[k]) / s[k])
+        lq[k] = math.log(a[k]) + _log_q(sgn * (c - mu[k]) / s[k])
         mx = max(mx, lq[k])
     tot = 0.0
     for k in range(K):
@@ -403,7 +414,7 @@ def censored_loglik(K, a, mu, s, c, nc):
 
 
 @njit(nogil=True, cache=True)
-def censored_grad_hess(K, a, mu, s, c, nc, G, H):
+def censored_grad_hess(K, a, mu, s, c, nc, G, H, sgn=1.0):
     """Adds the gradient and Hessian (in theta, as :func:`mixture_grad_hess`) of the censored
     term ``nc ln S(c)``, ``S = sum_k a_k Q(u_k)``, ``u_k = (c - mu_k)/s_k``, to ``G`` and ``H``
     (all of H, both triangles); returns the term. With ``phi_k = phi(u_k)``:
@@ -413,21 +424,23 @@ def censored_grad_hess(K, a, mu, s, c, nc, G, H):
     ``d2S/d mu_k^2 = a_k u_k phi_k / s_k^2``, ``d2S/d mu_k d lambda_k = a_k phi_k (u_k^2 - 1) / s_k``,
     ``d2S/d lambda_k^2 = a_k phi_k u_k (u_k^2 - 1)``; then
     ``Hess ln S = Hess S / S - grad S grad S^T / S^2``. S, Q and phi are scaled by exp(-max_k
-    ln(a_k Q_k)) (ratios only), so the far tail does not underflow."""
+    ln(a_k Q_k)) (ratios only), so the far tail does not underflow.
+    ``sgn = -1``: the left-censored term ``nc ln F(c)``, the mirror image y -> -y
+    (``u_k = (mu_k - c)/s_k``; the derivatives in mu_k change sign, ``d/d mu_k = -d/d mu'_k``)."""
     if not (nc > 0.0):
         return 0.0
     p = 3 * K - 1
     lq = np.empty(K)
     mx = -np.inf
     for k in range(K):
-        lq[k] = math.log(a[k]) + _log_q((c - mu[k]) / s[k])
+        lq[k] = math.log(a[k]) + _log_q(sgn * (c - mu[k]) / s[k])
         mx = max(mx, lq[k])
     Q = np.empty(K)   # Q_k / scale
     ph = np.empty(K)  # phi_k / scale
     u = np.empty(K)
     S = 0.0
     for k in range(K):
-        u[k] = (c - mu[k]) / s[k]
+        u[k] = sgn * (c - mu[k]) / s[k]
         Q[k] = math.exp(lq[k] - mx) / a[k]
         ph[k] = math.exp(-0.5 * u[k] * u[k] - _LOG_SQRT_2PI - mx)
         S += a[k] * Q[k]
@@ -453,6 +466,14 @@ def censored_grad_hess(K, a, mu, s, c, nc, G, H):
     for m in range(K - 1):
         for n in range(K - 1):
             HS[m, n] = a[m] * ((1.0 if m == n else 0.0) - a[n]) * (Q[m] - S) - a[m] * a[n] * (Q[n] - S)
+    if sgn < 0.0:  # mirror: the mu coordinates change sign
+        for k in range(K):
+            im = K - 1 + k
+            dS[im] = -dS[im]
+            for q in range(p):
+                if not (K - 1 <= q < 2 * K - 1):
+                    HS[q, im] = -HS[q, im]
+                    HS[im, q] = -HS[im, q]
     for q in range(p):
         G[q] += nc * dS[q] / S
         for r in range(p):
@@ -513,7 +534,7 @@ def _from_theta(K, th, a, mu, s):
 
 
 @njit(nogil=True, cache=True)
-def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps, c=np.inf, nc=0.0):
+def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps, c=np.inf, nc=0.0, cl=-np.inf, nl=0.0):
     """Maximum likelihood from the start (a, mu, s) (all a_k > 0): damped Newton
     (Levenberg-Marquardt) on theta (see :func:`mixture_grad_hess`). A step is the Newton
     step when the observed information ``A = -Hess`` is positive definite, else (or if it
@@ -522,7 +543,7 @@ def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps, c=np.inf, nc=0.0):
     the log-likelihood still to gain) is below 1e-12. (a, mu, s) are updated in place and
     ``A`` (p x p) holds the observed information at them. Returns (steps, converged,
     log-likelihood). ``nc > 0``: the censored likelihood, plus ``nc ln S(c)``
-    (:func:`censored_grad_hess`)."""
+    (:func:`censored_grad_hess`); ``nl > 0``: plus the left-censored ``nl ln F(cl)``."""
     p = 3 * K - 1
     th = np.empty(p)
     for k in range(K - 1):
@@ -545,6 +566,8 @@ def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps, c=np.inf, nc=0.0):
     ll = mixture_grad_hess(y, wt, n_pts, K, a, mu, s, G, H)
     if nc > 0.0:
         ll += censored_grad_hess(K, a, mu, s, c, nc, G, H)
+    if nl > 0.0:
+        ll += censored_grad_hess(K, a, mu, s, cl, nl, G, H, -1.0)
     while True:
         for q in range(p):
             for r in range(p):
@@ -579,6 +602,8 @@ def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps, c=np.inf, nc=0.0):
                 lln = mixture_loglik(y, wt, n_pts, K, at, mt, st)
                 if nc > 0.0:
                     lln += censored_loglik(K, at, mt, st, c, nc)
+                if nl > 0.0:
+                    lln += censored_loglik(K, at, mt, st, cl, nl, -1.0)
             if lln >= ll - 1e-13 * abs(ll):
                 accepted = True
                 break
@@ -592,6 +617,8 @@ def ml_newton(y, wt, n_pts, K, a, mu, s, A, max_steps, c=np.inf, nc=0.0):
         ll = mixture_grad_hess(y, wt, n_pts, K, a, mu, s, G, H)
         if nc > 0.0:
             ll += censored_grad_hess(K, a, mu, s, c, nc, G, H)
+        if nl > 0.0:
+            ll += censored_grad_hess(K, a, mu, s, cl, nl, G, H, -1.0)
     return steps, ok, ll
 
 
@@ -630,6 +657,17 @@ def predictive_shift(t, K, a, mu, s, jac, A):
 
 
 @njit(nogil=True, cache=True)
+def _observed(K, mu, cl, cy):
+    """Every component's mean lies below the right-censoring point, ``mu_k < cy`` (a
+    component centred among the censored points is known only by its mass there: not
+    identified). Always true without right-censoring."""
+    for k in range(K):
+        if not (mu[k] < cy):
+            return False
+    return True
+
+
+@njit(nogil=True, cache=True)
 def _resolved(K, s, res):
     for k in range(K):
         if not (s[k] * s[k] > res):
@@ -639,7 +677,7 @@ def _resolved(K, s, res):
 
 @njit(nogil=True, cache=True)
 def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                  a, mu, s, cens=0.0, cens_q=0.0):
+                  a, mu, s, cens=0.0, cens_q=0.0, lcens=0.0, refuse=0.0):
     """The threshold t = ln T for one ring (weighted points y, wt); returns (t, work, K').
 
     1. EM (:func:`em_fit_points`) for K' = 1..K (``select``), or K' = K only; components
@@ -658,57 +696,149 @@ def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predict
     ``init_zs[K' - 1, :K']``: the initial normal quantiles per K'. (a, mu, s) receive the
     chosen fit (first K' entries). ``work``: EM iterations (all K') + Newton steps.
 
-    ``cens > 0`` (``y`` must then be in ascending order): contamination-robust fit by
-    right-censoring in two passes (docs/algorithms/lmm.md, "Censored ring fit"). Pass 1: the
-    brightest points, at most ``floor(cens * n)`` of the weight and never part of a run of
-    equal values, are censored at ``c1`` = the largest kept point (+ half a bin,
-    ``sqrt(3 shep)``, for a histogram) and the censored fit gives the clutter level ``c2``
-    with ``S(c2) = q`` (``q = cens_q``, or 1/n if 0; predictive, like the threshold).
-    Pass 2: only the points above ``max(c2, c1)`` are censored and the threshold is the
-    fitted clutter mixture's own tail, ``S(t) = PFA``. Every fit uses the censored likelihood
-    ``sum_kept wt ln f(y) + n_c ln S(c)`` (EM, BIC, ML, information, predictive shift; type-I
-    censoring, Cohen 1959; EM: Dempster, Laird & Rubin 1977 sec 4.2). ``cens = 0``: bit for
-    bit the uncensored fit.
+    Censoring (``y`` must then be in ascending order; docs/algorithms/lmm.md, "Censored ring
+    fit"): every fit uses the censored likelihood
+    ``sum_kept wt ln f(y) + n_c ln S(c) + n_l ln F(c_l)`` (EM, BIC, ML, information,
+    predictive shift; type-I censoring, Cohen 1959; EM: Dempster, Laird & Rubin 1977 sec 4.2).
+
+    - ``lcens > 0``: the darkest points, at most ``floor(lcens * n)`` of the weight and never
+      part of a run of equal values, are left-censored at ``c_l`` = the lowest kept point
+      (- half a bin, ``sqrt(3 shep)``, for a histogram).
+    - ``cens > 0``: right-censoring in two passes. Pass 1: the brightest points, at most
+      ``floor(cens * n)`` of the weight, censored at ``c1`` = the largest kept point (+ half
+      a bin); the censored fit gives the clutter level ``c2`` with ``S(c2) = q``
+      (``q = cens_q``, or 1/n if 0; predictive, like the threshold). Pass 2: only the points
+      above ``max(c2, c1)`` are censored; threshold ``S(t) = PFA``.
+    - ``refuse > 0``: a fit whose brightest component (largest mu) has weight <= ``refuse``
+      and lies beyond the other components' own tail (their mixture's exceedance at its mean
+      below 1/n) is refused as contamination: the points above ``c2``, the other
+      components' 1 - 1/n level, are right-censored and the ring fitted again.
+
+    ``cens = lcens = refuse = 0``: bit for bit the uncensored fit.
     """
-    if not (cens > 0.0):
+    if not (cens > 0.0 or lcens > 0.0 or refuse > 0.0):
         return _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s,
                          np.inf, 0.0)
     hb = math.sqrt(3.0 * shep)  # half a bin (0 for raw samples)
     Wall = 0.0
     for j in range(n_pts):
         Wall += wt[j]
-    # pass 1: the brightest points, at most floor(cens W) of the weight, censored
-    nc = 0.0
-    lim = math.floor(cens * Wall)
-    j = n_pts - 1
-    while j > 0 and nc + wt[j] <= lim:
-        nc += wt[j]
-        j -= 1
-    n1 = j + 1
-    while n1 < n_pts and not (y[n1] > y[n1 - 1]):  # keep runs of ties whole
-        nc -= wt[n1]
-        n1 += 1
-    if not (nc > 0.0):
-        return _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s,
-                         np.inf, 0.0)
-    q = cens_q if cens_q > 0.0 else 1.0 / Wall
-    c2, work, _ = _fit_core(y, wt, n1, K, init_zs, max_iter, tol, shep, select, predictive,
-                            _z_of(q), math.log(q), a, mu, s,
-                            y[n1 - 1] + hb, nc)
-    # pass 2: only the points above c2 (the pass-1 clutter fit's 1/W exceedance level) censored
-    n2 = n_pts
-    while n2 > n1 and y[n2 - 1] > c2:
+    # left censoring: the darkest points, at most floor(lcens W) of the weight
+    nl = 0.0
+    j0 = 0
+    cl = -np.inf
+    if lcens > 0.0:
+        lim = math.floor(lcens * Wall)
+        while j0 < n_pts - 1 and nl + wt[j0] <= lim:
+            nl += wt[j0]
+            j0 += 1
+        while j0 > 0 and not (y[j0] > y[j0 - 1]):  # keep runs of ties whole
+            j0 -= 1
+            nl -= wt[j0]
+        if nl > 0.0:
+            cl = y[j0] - hb
+    ys = y[j0:]
+    ws = wt[j0:]
+    npk = n_pts - j0
+    work = 0
+    if cens > 0.0:
+        # pass 1: the brightest points, at most floor(cens W) of the weight, censored
+        nc = 0.0
+        lim = math.floor(cens * Wall)
+        j = npk - 1
+        while j > 0 and nc + ws[j] <= lim:
+            nc += ws[j]
+            j -= 1
+        n1 = j + 1
+        while n1 < npk and not (ys[n1] > ys[n1 - 1]):  # keep runs of ties whole
+            nc -= ws[n1]
+            n1 += 1
+        if nc > 0.0:
+            q = cens_q if cens_q > 0.0 else 1.0 / Wall
+            c2, work, _ = _fit_core(ys, ws, n1, K, init_zs, max_iter, tol, shep, select, predictive,
+                                    _z_of(q), math.log(q), a, mu, s, ys[n1 - 1] + hb, nc, cl, nl)
+            t, w2, m = _fit_right(ys, ws, npk, n1, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive,
+                                  z, log_pfa, a, mu, s, cl, nl)
+        else:
+            t, w2, m = _fit_core(ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+                                 a, mu, s, np.inf, 0.0, cl, nl)
+        work += w2
+    else:
+        t, work, m = _fit_core(ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+                               a, mu, s, np.inf, 0.0, cl, nl)
+    cprev = np.inf
+    for _ in range(3 if refuse > 0.0 else 0):
+        if m < 2:
+            break
+        c2 = _refused_level(m, a, mu, s, t, refuse, 1.0 / Wall, z)
+        if not (c2 < cprev):
+            break
+        cprev = c2
+        t2, w2, m2 = _fit_right(ys, ws, npk, 0, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive,
+                                z, log_pfa, a, mu, s, cl, nl)
+        work += w2
+        if not (t2 == t2):
+            break
+        t = t2
+        m = m2
+    return t, work, m
+
+
+@njit(nogil=True, cache=True)
+def _fit_right(ys, ws, npk, n1, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+               a, mu, s, cl, nl):
+    """The fit with the points above ``c2`` (but none of the first ``n1``) right-censored."""
+    n2 = npk
+    while n2 > n1 and ys[n2 - 1] > c2:
         n2 -= 1
     nc = 0.0
-    for j in range(n2, n_pts):
-        nc += wt[j]
-    if not (nc > 0.0):
-        t, w2, m = _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                             a, mu, s, np.inf, 0.0)
-    else:
-        t, w2, m = _fit_core(y, wt, n2, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                             a, mu, s, y[n2 - 1] + hb, nc)
-    return t, work + w2, m
+    for j in range(n2, npk):
+        nc += ws[j]
+    if not (nc > 0.0) or n2 < 1:
+        return _fit_core(ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+                         a, mu, s, np.inf, 0.0, cl, nl)
+    return _fit_core(ys, ws, n2, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+                     a, mu, s, ys[n2 - 1] + hb, nc, cl, nl)
+
+
+#: Phi^-1(1 - 1e-5): a refused component's mean lies beyond the others' threshold at PFA 1e-5 at least.
+_Z_FAR = 4.264890793922825
+
+
+@njit(nogil=True, cache=True)
+def _refused_level(m, a, mu, s, t, wmax, q, z):
+    """If the component that dominates the tail at t (largest a_k Q((t - mu_k)/s_k)) weighs
+    <= wmax and is foreign to the others, i.e. its mean lies beyond their own threshold
+    (their renormalised mixture's S = Q(max(z, Z_FAR))) or its spread is at least twice
+    the largest of theirs, the others' level c with S_rest(c) = q; else NaN."""
+    kt = 0
+    best = -np.inf
+    for k in range(m):
+        v = math.log(a[k]) + _log_q((t - mu[k]) / s[k])
+        if v > best:
+            best = v
+            kt = k
+    if not (a[kt] <= wmax):
+        return np.nan
+    ra = np.empty(m - 1)
+    rm = np.empty(m - 1)
+    rs = np.empty(m - 1)
+    r = 0
+    for k in range(m):
+        if k != kt:
+            ra[r] = a[k] / (1.0 - a[kt])
+            rm[r] = mu[k]
+            rs[r] = s[k]
+            r += 1
+    zf = z if z > _Z_FAR else _Z_FAR
+    far = mu[kt] > mixture_threshold_log(ra, rm, rs, m - 1, zf, _log_q(zf))
+    wide = True
+    for r in range(m - 1):
+        if not (s[kt] >= 2.0 * rs[r]):
+            wide = False
+    if not (far or wide):
+        return np.nan
+    return mixture_threshold_log(ra, rm, rs, m - 1, _z_of(q), math.log(q))
 
 
 @njit(nogil=True, cache=True)
@@ -728,7 +858,8 @@ def _z_of(q):
 
 
 @njit(nogil=True, cache=True)
-def _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, cy, nc):
+def _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, cy, nc,
+              cl=-np.inf, nl=0.0):
     """:func:`fit_threshold` on the first ``n_pts`` points, weight ``nc`` right-censored at ``cy``."""
     Ka = np.zeros(K, np.int64)
     ca = np.zeros((K, K))
@@ -745,11 +876,11 @@ def _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive,
     res = 1.0001e-4 * vy + 1e-12
     if 4.0 / 3.0 * shep > res:
         res = 4.0 / 3.0 * shep
-    lnW = math.log(W + nc)
+    lnW = math.log(W + nc + nl)
     work = 0
     k0 = 1 if select else K
     for Kc in range(k0, K + 1):
-        work += em_fit_points(y, wt, n_pts, Kc, init_zs[Kc - 1, :Kc], max_iter, tol, ta, tm, ts, cy, nc)
+        work += em_fit_points(y, wt, n_pts, Kc, init_zs[Kc - 1, :Kc], max_iter, tol, ta, tm, ts, cy, nc, cl, nl)
         m = 0
         for k in range(Kc):
             if ta[k] > 0.0:
@@ -761,6 +892,8 @@ def _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive,
         ll = mixture_loglik(y, wt, n_pts, m, ca[Kc - 1], cm[Kc - 1], cs[Kc - 1])
         if nc > 0.0:
             ll += censored_loglik(m, ca[Kc - 1], cm[Kc - 1], cs[Kc - 1], cy, nc)
+        if nl > 0.0:
+            ll += censored_loglik(m, ca[Kc - 1], cm[Kc - 1], cs[Kc - 1], cl, nl, -1.0)
         bic[Kc - 1] = -2.0 * ll + (3 * m - 1) * lnW
     order = np.argsort(bic, kind="mergesort")  # stable: on a tie the smaller K' first
     jac = np.empty(K)
@@ -772,12 +905,12 @@ def _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive,
                 a[k] = ca[c, k]
                 mu[k] = cm[c, k]
                 s[k] = cs[c, k]
-            if not _resolved(m, s, res):
+            if not (_resolved(m, s, res) and _observed(m, mu, cl, cy)):
                 continue
             A = np.empty((3 * m - 1, 3 * m - 1))
-            st, ok, _ = ml_newton(y, wt, n_pts, m, a, mu, s, A, 30, cy, nc)
+            st, ok, _ = ml_newton(y, wt, n_pts, m, a, mu, s, A, 30, cy, nc, cl, nl)
             work += st
-            if not (ok and _resolved(m, s, res)):
+            if not (ok and _resolved(m, s, res) and _observed(m, mu, cl, cy)):
                 continue
             for k in range(m):
                 v = s[k] * s[k]

@@ -17,11 +17,15 @@ and background squares (thesis fig 3.1):
   log domain, raised by the first-order predictive correction for the fit's finite-sample
   error (``tail="predictive"``); ``select="fixed", tail="plugin"`` is the thesis' plug-in
   EM threshold (eq 3-4..3-7 as written);
-- contamination (``censor > 0``, opt-in): the ring's brightest samples are right-censored
-  in two passes and every fit uses the censored likelihood ``sum ln f(y_kept) + n_c ln S(c)``
-  (censored CFAR, Rickard & Dillard 1977; censored EM, Dempster, Laird & Rubin 1977 sec 4.2),
-  so a ship's own pixels in the ring do not shape the clutter tail (docs/algorithms/lmm.md,
-  "Censored ring fit"; a CuPy block is then decided by the CPU kernels);
+- contamination (``refuse_weight``, default 0.15): a fit whose tail at the threshold is
+  carried by a light component (weight <= refuse_weight) foreign to the others (its mean
+  beyond their own 1e-5 threshold, or twice their spread) is refused as a ship's own pixels
+  in the ring, and the ring is refitted with the samples above the others' 1 - 1/n level
+  right-censored: the censored likelihood ``sum ln f(y_kept) + n_c ln S(c)`` in every step
+  (censored CFAR, [rickard1977]; censored EM, [dempster1977] sec 4.2, [lee2012]; [cohen1959]);
+  opt-in: two-pass censoring of every ring (``censor``) and left-censoring of the darkest
+  samples (``censor_low``) (docs/algorithms/lmm.md, "Contamination and quantisation"; a
+  CuPy block with any of these is decided by the CPU kernels, :func:`cpu_only_fit`);
 - decision: ``ln x_t > t`` with x_t the mean of the target window; ``stat = x_t / T``
   (float32, > 1 where detected, 0 elsewhere).
 
@@ -63,6 +67,9 @@ LMM_NOTES = "see docs/algorithms/lmm.md (agreement, calibration) and bench/RESUL
 DEFAULT_METHOD = "grid"
 #: Default censored fraction of the ring (docs/algorithms/lmm.md, "Censored ring fit").
 DEFAULT_CENSOR = 0.0
+#: Default left-censored fraction and refusal weight (docs/algorithms/lmm.md, "Contamination and quantisation").
+DEFAULT_CENSOR_LOW = 0.0
+DEFAULT_REFUSE_WEIGHT = 0.15
 
 
 class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-5, guard=21, background=41,
@@ -100,9 +107,27 @@ class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-5, guard=21,
                                 description="with censor > 0, pass 2 censors only the ring samples above the "
                                             "pass-1 clutter fit's exceedance level censor_level (0: 1/n, n "
                                             "the ring's usable samples)")
+    censor_low: float = Field(DEFAULT_CENSOR_LOW, ge=0.0, le=0.5,
+                              description="fraction of each ring's darkest usable samples left-censored in the fit "
+                                          "(known only to lie below the lowest kept value): the coarse quantised "
+                                          "low values of 8-bit products and the lower tail no longer shape the "
+                                          "clutter's upper tail; 0: none")
+    refuse_weight: float = Field(DEFAULT_REFUSE_WEIGHT, ge=0.0, le=0.5,
+                                 description="a ring fit whose tail at the threshold is carried by a component "
+                                             "of weight <= refuse_weight is refused as contamination (a ship's "
+                                             "own pixels in the ring): the ring samples above the other "
+                                             "components' 1 - 1/n level are right-censored and the ring fitted "
+                                             "again (at most 3 times); 0: off")
     nodata: Optional[float] = Field(
         None, description="value marking absent pixels besides NaN (e.g. a positive fill value); "
                           "non-positive values are never usable samples (ln x)")
+
+
+def cpu_only_fit(prep: dict, params: LMMParams) -> bool:
+    """True when the fit uses censoring or the refusal rule (``censor``, ``censor_low`` or
+    ``refuse_weight`` > 0, the default included), which the GPU twin does not transcribe:
+    a CuPy block is then decided by the CPU kernels (docs/algorithms/lmm.md, "GPU")."""
+    return any(float(prep.get(k, getattr(params, k))) > 0.0 for k in ("censor", "censor_low", "refuse_weight"))
 
 
 def min_usable(n_ring: int, K: int) -> int:
@@ -129,6 +154,8 @@ def prepare(p: LMMParams) -> dict:
         "tail": p.tail,
         "censor": float(p.censor),
         "censor_level": float(p.censor_level),
+        "censor_low": float(p.censor_low),
+        "refuse_weight": float(p.refuse_weight),
         "max_iter": int(p.max_iter),
         "tol": float(p.tol),
         "bin_width": float(p.bin_width),
@@ -141,16 +168,17 @@ def prepare(p: LMMParams) -> dict:
 
 # ---------------------------------------------------------------------------------------
 # kernels: per tile, one fit per pixel (exact, fast) or per global node and candidate (grid).
-# ``fit`` = (K, init_zs, max_iter, tol, select, predictive, z, log_pfa, censor, censor_level): the settings of
+# ``fit`` = (K, init_zs, max_iter, tol, select, predictive, z, log_pfa, censor, censor_level, censor_low,
+# refuse_weight): the settings of
 # :func:`sarship.pipeline.lmm_fit.fit_threshold`, the same for every ring of a tile.
 
 
 @njit(nogil=True, cache=True)
 def _fit(y, wt, n_pts, shep, fit, a, mu, s):
     """``fit_threshold`` of the weighted points with the tile's settings: (t, work)."""
-    K, init_zs, max_iter, tol, select, predictive, z, log_pfa, cens, cens_q = fit
+    K, init_zs, max_iter, tol, select, predictive, z, log_pfa, cens, cens_q, lcens, refuse = fit
     t, work, _ = fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                               a, mu, s, cens, cens_q)
+                               a, mu, s, cens, cens_q, lcens, refuse)
     return t, work
 
 
@@ -214,7 +242,7 @@ def _exact_kernel(block, halo, h, w, rb, rg, rt, fit, nmin, mask, stat, iters):
                         n += 1
             if n < nmin:
                 continue
-            if fit[8] > 0.0:  # censoring takes the points in ascending order
+            if fit[8] > 0.0 or fit[10] > 0.0 or fit[11] > 0.0:  # censoring takes the points in ascending order
                 buf[:n].sort()
             t, iters[i, j] = _fit(buf, ones, n, 0.0, fit, a, mu, s)
             _decide(lx, t, i, j, mask, stat)
@@ -431,8 +459,9 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
         block = block[d: block.shape[0] - d, d: block.shape[1] - d]
         origin = (int(origin[0]) + d, int(origin[1]) + d)
         halo = need
-    if gpu and float(prep.get("censor", params.censor)) > 0.0:
-        # the GPU twin has no censored fit yet: the CPU kernels decide, CuPy arrays returned
+    if gpu and cpu_only_fit(prep, params):
+        # the GPU twin has no censored fit and no refusal rule yet (pipeline/gpu/lmm.py
+        # transcribes the plain fit only): the CPU kernels decide, CuPy arrays returned
         import cupy as cp
 
         mask, stat = detect(cp.asnumpy(block), halo, origin, params, prep)
@@ -453,7 +482,9 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
         fit = (K, init_z_table(K), int(prep["max_iter"]), float(prep["tol"]),
                prep.get("select", params.select) == "bic", prep.get("tail", params.tail) == "predictive",
                float(prep["z"]), float(prep["log_pfa"]), float(prep.get("censor", params.censor)),
-               float(prep.get("censor_level", params.censor_level)))
+               float(prep.get("censor_level", params.censor_level)),
+               float(prep.get("censor_low", params.censor_low)),
+               float(prep.get("refuse_weight", params.refuse_weight)))
         if params.nodata is not None:  # a declared no-data value: absent, as NaN
             from sarship.pipeline.intensity_absent import fill, present
 
