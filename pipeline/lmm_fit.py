@@ -15,7 +15,11 @@ Electronic Engineering, Tsinghua University, 2020 ([sun2020] in ``docs/reference
   analytic gradient and Hessian, and the damped-Newton polish of an EM fit to the ML;
 - :func:`predictive_shift`: the delta-method predictive correction of the threshold;
 - :func:`fit_threshold`: the whole per-ring fit (K' <= K by BIC, ML polish, predictive tail,
-  Sheppard correction for binned points).
+  Sheppard correction for binned points), with the refusal of a light tail component foreign
+  to the others (a ship's own pixels in the ring: refit with those samples right-censored)
+  and the opt-in censored fits (right, two passes; left);
+- :func:`censored_loglik`, :func:`censored_grad_hess`: the censored samples' term
+  ``n_c ln S(c)`` (or ``n_l ln F(c_l)``) of the likelihood, its gradient and Hessian.
 
 Derivations, the bracket proof, the calibration measurements and the defaults:
 ``docs/algorithms/lmm.md``. The GPU twin (:mod:`sarship.pipeline.gpu.lmm`) is a line-by-line
