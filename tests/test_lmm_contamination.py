@@ -165,3 +165,13 @@ def test_ships_k_sea_end_to_end_at_defaults():
     refuse_weight 0: 8, whose per-ring failure is test_ships_in_their_own_ring_k_sea's)."""
     lx, ships = _ksea()
     assert _ships_found_end_to_end(np.exp(lx), ships) >= 14
+
+
+@pytest.mark.parametrize("name,bad", [("refuse_weight", 0.7), ("refuse_weight", -0.1), ("censor_low", 0.6),
+                                      ("censor_low", -1.0)])
+def test_robust_fit_parameters_validated(name, bad):
+    from sarship.pipeline.detectors.lmm import LMMParams
+
+    with pytest.raises(ValueError, match=name):
+        LMMParams(**{name: bad})
+    assert LMMParams().refuse_weight == 0.15 and LMMParams().censor_low == 0.0
