@@ -156,7 +156,7 @@ def em_fit_points(y, wt, n_pts, K, init_z, max_iter, tol, a, mu, s, c=np.inf, nc
     log-likelihood (of the parameters entering the iteration) changes by < tol.
 
     Right-censored weight ``nc > 0`` (samples known only to exceed ``c``; docs/algorithms/lmm.md,
-    "Censored ring fit"): the E-step of a censored sample (Dempster, Laird & Rubin 1977, sec
+    "Contamination and quantisation"): the E-step of a censored sample (Dempster, Laird & Rubin 1977, sec
     4.2; Lee & Scott 2012) gives component k the responsibility ``a_k Q(al_k) / S(c)``,
     ``al_k = (c - mu_k)/s_k``, and the truncated-normal moments
     ``E[y - mu_k | y > c] = s_k lam_k``, ``E[(y - mu_k)^2 | y > c] = s_k^2 (1 + al_k lam_k)``

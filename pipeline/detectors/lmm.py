@@ -65,7 +65,7 @@ __all__ = ["LMMParams", "SPEC", "prepare", "detect", "em_fit_points", "mixture_t
 LMM_NOTES = "see docs/algorithms/lmm.md (agreement, calibration) and bench/RESULTS.md (timings)"
 
 DEFAULT_METHOD = "grid"
-#: Default censored fraction of the ring (docs/algorithms/lmm.md, "Censored ring fit").
+#: Default censored fraction of the ring (docs/algorithms/lmm.md, "Contamination and quantisation").
 DEFAULT_CENSOR = 0.0
 #: Default left-censored fraction and refusal weight (docs/algorithms/lmm.md, "Contamination and quantisation").
 DEFAULT_CENSOR_LOW = 0.0
