@@ -408,6 +408,7 @@ def _pid(owner: str) -> int:
     return int(owner.split("-")[-2])  # host-PID-random (service.runner.Runner.owner)
 
 
+@pytest.mark.slow  # kill -9 and restart of two servers; test_service.py::test_jobs_survive_kill_9 keeps one in the default run
 def test_two_processes_one_store_kill_9_and_restart(tmp_path):
     """Two API processes on one store with the same inbox: one loop leads; passes marked done
     are taken at once (the settle time is 60 s here), each ingested and submitted once; the

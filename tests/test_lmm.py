@@ -341,6 +341,7 @@ def test_exact_matches_bruteforce_pixel():
             assert stat[i, j] == 0.0
 
 
+@pytest.mark.slow  # ~15-40 s; the grid form, the default, is held to the fast form at defaults below
 def test_fast_agrees_with_exact():
     """Stated tolerance: <= 0.1 % of pixels differ and detections (components) match to 1 each,
     for the fit the two forms approximate (refuse_weight=0: the default but the refusal rule;
@@ -582,6 +583,7 @@ def test_default_false_alarm_count(name):
 # Dask path
 
 
+@pytest.mark.slow  # ~15 s on a cluster; tiling invariance of every form is tested directly above
 def test_tiled_equals_untiled_dask(tmp_path, client):
     from sarship.workers.jobs import run_detection
 
@@ -614,6 +616,7 @@ def test_tiled_equals_untiled_dask(tmp_path, client):
     assert feats == feats64  # ships across tile borders joined the same way for both tilings
 
 
+@pytest.mark.slow  # ~20 s; ships at defaults: tests/test_lmm_contamination.py (K sea, end to end)
 def test_ships_on_simulated_scene(tmp_path, client):
     from sarship.pipeline.scoring import evaluate
     from sarship.pipeline.simulate import SimConfig, simulate

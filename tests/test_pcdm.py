@@ -101,7 +101,7 @@ def test_scene_wide_threshold_and_tiling(tmp_path, client, rule):
         assert a == b
 
 
-@pytest.mark.parametrize("pfa", [1e-3, 1e-4])
+@pytest.mark.parametrize("pfa", [1e-3, pytest.param(1e-4, marks=pytest.mark.slow)])  # 1e-4: the deeper tail, slow
 def test_lognormal_span_rule_false_alarm_rate(pfa):
     """Approximate model (lognormal SPAN_P): measured rate within a factor 2 of the PFA on
     Gaussian quad-pol clutter with the default 3x3 boxcar (measured: 1.19x and 1.40x)."""

@@ -86,6 +86,7 @@ def _cli(*args, timeout=300):
                           timeout=timeout, env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})
 
 
+@pytest.mark.slow  # ~30 s of worker processes; the placement rules are tested without them above
 def test_mixed_cluster_cpu_tiles_avoid_gpu_worker(tmp_path, blobs_scene):
     """Real processes: ``dask scheduler``, ``sarship worker --gpus none --cpus 2`` and a
     ``dask worker`` advertising GPU=1. CPU tiles must all run on the two CPU workers (a
