@@ -160,7 +160,10 @@ def test_texture_config_validation():
 # end to end
 
 
-@pytest.mark.parametrize("detector", INTENSITY_DETECTORS)
+# lmm's fit is the slowest of the four (~13 s here): slow; its absent-pixel handling is also
+# tested by tests/test_nodata_cfar.py
+@pytest.mark.parametrize("detector", [pytest.param(d, marks=pytest.mark.slow) if d == "lmm" else d
+                                      for d in INTENSITY_DETECTORS])
 def test_no_detections_on_land(coast, client, tmp_path, detector):
     """Every intensity detector, land_mask=texture: no detected pixel on the simulated land, no
     ship under the land mask, at least the ships found without it; with land_mask=none the same

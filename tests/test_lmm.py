@@ -404,6 +404,7 @@ def test_grid_agrees_with_fast():
     assert np.mean(m0 != mf) <= 0.01 and m0.sum() >= 0.5 * mf.sum()
 
 
+@pytest.mark.slow  # ~20 s; ships at the default windows: tests/test_lmm_contamination.py end to end
 def test_grid_default_windows_ships():
     """Default windows (guard 21 / background 41, grid_step 8, grid_refine 1): no pixel
     differs from the fast form on a 120 x 120 mixture scene with ships."""

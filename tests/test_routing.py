@@ -139,6 +139,27 @@ def test_gpu_device_without_gpu_workers_is_refused(tmp_path, blobs_scene, client
     assert not (tmp_path / "o" / "run.json").exists()
 
 
+def test_parameters_without_gpu_code_go_to_cpu_workers(tmp_path, blobs_scene, client):
+    """lmm's default fit (the contamination refusal) and its censored fits have no CUDA code:
+    such a job is placed like a detector without GPU code (CPU workers under --device auto,
+    one line under --device gpu), not run by the CPU code inside GPU workers' processes."""
+    from sarship.pipeline import detectors
+    from sarship.workers.jobs import run_detection
+
+    spec = detectors.get("lmm")
+    assert spec.gpu and not spec.gpu_for(spec.params())
+    assert spec.gpu_for(spec.params(refuse_weight=0))
+    assert not spec.gpu_for(spec.params(refuse_weight=0, censor=0.1))
+    assert detectors.get("ca_cfar").gpu_for(detectors.get("ca_cfar").params())
+    with pytest.raises(InputError, match="no GPU implementation for these parameters"):
+        run_detection(blobs_scene, "lmm", out_dir=tmp_path / "o", client=client, device="gpu", progress=False)
+    assert not (tmp_path / "o").exists()
+    # a cluster with a GPU worker: auto places lmm's default on the CPU workers, refuse_weight=0 on the GPU
+    workers = {"tcp://a:1": {"resources": {"GPU": 1}}, "tcp://b:1": {"resources": {"CPU": 1}}}
+    assert plan("auto", "lmm", spec.gpu_for(spec.params()), workers).device == "cpu"
+    assert plan("auto", "lmm", spec.gpu_for(spec.params(refuse_weight=0)), workers).device == "gpu"
+
+
 def test_worker_cli_errors():
     out = _cli("worker", "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--gpus", "none", "--cpus", "1",
                timeout=60)

@@ -200,6 +200,10 @@ def run_request(
     params = request.detector_params()
     if device == "gpu" and not spec.gpu:
         raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation in this version")
+    has_gpu = spec.gpu_for(params)
+    if device == "gpu" and not has_gpu:
+        raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation for these parameters "
+                         f"(docs/algorithms/{detector}.md, 'GPU'); use --device auto or cpu")
     # absolute paths: the tile tasks run on workers whose working folder may be another one
     scene = open_scene(request.scene)  # messages name the paths as given
     check_out(Path(out_dir), Path(request.scene), overwrite)
@@ -244,9 +248,9 @@ def run_request(
             if client is None:
                 from sarship.workers.cluster import connect, threads_max_px
 
-                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and spec.gpu,
+                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu,
                                                      threads=H * W <= threads_max_px()))
-            placement = plan(device, detector, spec.gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
+            placement = plan(device, detector, has_gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
             jobs, land_record = prepare_land(
                 params, scene, land_file, jobs, tmp, tile,

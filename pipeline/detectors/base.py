@@ -296,6 +296,15 @@ class DetectorSpec:
     gpu: bool = False
     #: with ``gpu``: the scene pass runs on the device too (else on the host block)
     scene_pass_gpu: bool = True
+    #: with ``gpu``: ``gpu_params(params) -> bool``, whether these parameters have GPU code
+    #: (e.g. ``lmm``'s censored and refused fits have none); False sends the tiles to CPU
+    #: workers as for a detector without GPU code (:meth:`gpu_for`).
+    gpu_params: Optional[Callable[[Any], bool]] = None
+
+    def gpu_for(self, params: DetectorParams) -> bool:
+        """Whether a job with ``params`` runs on GPU workers' devices (``gpu`` and, where the
+        detector says which, GPU code for these parameters)."""
+        return bool(self.gpu and (self.gpu_params is None or self.gpu_params(params)))
 
     def halo(self, params: DetectorParams) -> int:
         """Pixels of context each side of a tile: half the largest window by default."""

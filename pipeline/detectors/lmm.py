@@ -529,4 +529,5 @@ SPEC = DetectorSpec(
     halo_fn=_halo,
     halo_rule="background // 2 (+ grid_step for method='grid')",
     gpu=True,
+    gpu_params=lambda p: not cpu_only_fit({}, p),  # censored/refused fits: CPU workers
 )
