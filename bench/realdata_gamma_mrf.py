@@ -58,7 +58,11 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--land", default="none", help="land_mask of every run: none or texture")
+    ap.add_argument("--defaults-only", action="store_true",
+                    help="only the shipped mask setting (pfa 1e-3, beta 0.5): score the defaults, no sweep")
     a = ap.parse_args()
+    masks = [m for m in MASKS if not a.defaults_only or m == {"pfa": 1e-3, "beta": 0.5}]
     import xarray as xr
     from distributed import Client, LocalCluster
 
@@ -72,9 +76,9 @@ def main() -> None:
     with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as lc, Client(lc) as client:
         for c in chips:
             x = xr.open_zarr(c.scene)["intensity"].values
-            for ms in MASKS:
-                mask, info = rd.run_mask(client, c, "gamma_mrf", {**ms, "peak_pfa": "none", "min_area_px": 1},
-                                         work)
+            for ms in masks:
+                mask, info = rd.run_mask(client, c, "gamma_mrf", {**ms, "peak_pfa": "none", "min_area_px": 1,
+                                                                  "land_mask": a.land}, work)
                 run = info["run"]
                 for pk, mg in itertools.product(PEAKS, MERGES):
                     rec = records_with_values(mask, x, mg)
