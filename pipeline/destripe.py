@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from sarship.pipeline.errors import InputError
+from sarship.pipeline.intensity_absent import xp_of as _xp  # NumPy or CuPy, by the array
 
 #: Fixed-point scale of the exact scene-pass sums (``y`` in units of 2**-24).
 FIXED_SCALE = float(2 ** 24)
@@ -94,16 +95,6 @@ class DestripeParams:
 
 
 # --------------------------------------------------------------------------- scene pass
-
-
-def _xp(a):
-    from sarship.pipeline.gpu import is_device_array
-
-    if is_device_array(a):
-        import cupy
-
-        return cupy
-    return np
 
 
 def log_power(block) -> Any:

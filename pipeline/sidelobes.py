@@ -49,6 +49,7 @@ from typing import Any, Callable
 import numpy as np
 
 from sarship.pipeline.errors import InputError
+from sarship.pipeline.intensity_absent import xp_of as _xp  # NumPy or CuPy, by the array
 
 #: The geometry a core replaces (the component's values are kept as ``<name>_raw``).
 GEOMETRY_KEYS = ("centroid_px", "length_px", "width_px", "heading_deg", "length_m", "width_m")
@@ -84,16 +85,6 @@ class SidelobeParams:
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def _xp(a):
-    from sarship.pipeline.gpu import is_device_array
-
-    if is_device_array(a):
-        import cupy
-
-        return cupy
-    return np
 
 
 def line_response(power, along: str, gap: int = 0):

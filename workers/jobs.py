@@ -140,19 +140,16 @@ def _prepare_out(out_dir: Path) -> Path:
 def _commit(tmp: Path, out_dir: Path) -> None:
     for name in OUTPUTS:
         src, dst = tmp / name, out_dir / name
-        if name in OPTIONAL_OUTPUTS and not src.exists():
-            if dst.exists():  # a stale land mask of an earlier run must not sit beside this run's mask
-                old = out_dir / f".{name}.old-{uuid.uuid4().hex[:8]}"
-                os.replace(dst, old)
-                shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
-            continue
-        if dst.exists():
+        if not src.exists() and name not in OPTIONAL_OUTPUTS:
+            raise FileNotFoundError(src)
+        old = None
+        if dst.exists():  # moved aside first; an optional output this run lacks is stale: removed
             old = out_dir / f".{name}.old-{uuid.uuid4().hex[:8]}"
             os.replace(dst, old)
+        if src.exists():
             os.replace(src, dst)
+        if old is not None:
             shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
-        else:
-            os.replace(src, dst)
     shutil.rmtree(tmp, ignore_errors=True)
 
 
