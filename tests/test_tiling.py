@@ -27,6 +27,7 @@ SETTINGS = {
     "g0_cfar": {"pfa": "1e-3", "guard": "11", "background": "31"},
     "k_cfar": {"pfa": "1e-3", "guard": "11", "background": "31", "censor": "6"},
     "ggd_cfar": {"pfa": "1e-3", "guard": "11", "background": "31"},
+    "superpixel_cfar": {"spacing": "6", "reach": "6", "clutter_radius": "18", "min_size": "8"},
 }
 
 

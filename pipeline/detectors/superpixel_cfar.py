@@ -1,0 +1,379 @@
+"""``superpixel_cfar``: superpixel CFAR for high-resolution SAR (seed 002).
+
+Zhang, Lu, Xiang, Yuan 2023, "An improved superpixel-based CFAR method for high-resolution SAR
+image ship target detection", Journal of Radars 12(1) (docs/references.md, ``zhang2023``).
+Equation numbers are the paper's; docs/algorithms/superpixel_cfar.md states every choice.
+
+1. Superpixels (section 3.1, eq 7-10): bounded DBSCAN-style growth from a global seed grid and
+   the merge of small superpixels (:mod:`sarship.pipeline.superpixels`).
+2. Shadow removal (section 3.2): superpixels whose mean intensity is below ``shadow_ratio``
+   times the scene's median superpixel mean are shadow: neither tested nor clutter.
+3. K-means (k = 2) on the superpixel means in dB (section 3.3, Table 1 step 1), scene-wide:
+   the brighter class is the potential-target set, the other the background. A scene pass
+   histograms the means of the superpixels anchored in each tile's core (fixed log bins:
+   integer counts, tiling-invariant); ``reduce`` takes the exact optimal 2-means split of the
+   binned means (no initialisation to depend on). The split must separate the class
+   centroids by ``min_separation_db`` (an addition: K-means always splits, and on a scene of
+   sea alone it would put half the sea in the target class).
+4. Clutter superpixels per target superpixel (Table 1): :func:`superpixels.select_clutter`.
+5. Rayleigh mixture (M_a = ``components``, eq 3-6) fitted by EM on the clutter pixels' amplitudes
+   and ``T_cfar`` from ``1 - F(T_cfar) = pfa`` (eq 14) on a proven bracket
+   (:mod:`sarship.pipeline.rayleigh_mixture`): one threshold per target superpixel.
+6. Local contrast (eq 11-13): ``C_local(x) = exp(-CoV(x) / kappa) * sum_{SP_n in S_clutter}
+   Omega(SP_m, SP_n)``, CoV of the amplitudes over ``cov_window`` x ``cov_window``; decision
+   (eq 16) ``A(x) C_local(x) > T_cfar`` with ``A = sqrt(I)`` the amplitude, the variable the
+   Rayleigh mixture models. ``contrast="none"`` is eq 15 (``A(x) > T_cfar``).
+7. Superpixel decision (section 3.4): a target superpixel whose fraction of detected present
+   pixels exceeds ``fraction`` is target whole (``decision="pixel"``: eq 16's pixels).
+
+Tiling. Every superpixel is a function of the pixels within a bounded distance of its anchor
+(``superpixels.context_px``) and extends at most ``superpixels.extent_px`` from it; clutter
+superpixels are taken only with anchors within ``clutter_radius`` of the target's anchor. So
+``halo = extent + clutter_radius + context = 10 reach + 5 + clutter_radius`` pixels make every
+tile see, bit for bit, each superpixel that touches its core, its clutter set and their
+pixels; each tile decides those superpixels and writes its core (a superpixel across tiles is
+decided identically in each, in the same order of the same float operations), and the scene
+pass counts a superpixel in the one tile whose core holds its anchor.
+
+Absent pixels (NaN, inf, negative) belong to no superpixel, enter no statistic and are never
+detected. The superpixel label image (global ids) of a block's core: :func:`superpixel_labels`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+from numba import njit
+from pydantic import Field, model_validator
+
+from sarship.pipeline import superpixels as spx
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, float_block, with_defaults
+from sarship.pipeline.rayleigh_mixture import BIN_WIDTH, fit_binned, threshold_intensity
+
+#: Fixed histogram of log10(superpixel mean) for the scene-wide K-means and shadow rule.
+HIST_LO = -40.0
+HIST_PER_DECADE = 128
+HIST_BINS = 80 * HIST_PER_DECADE
+
+
+class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults", pfa=1e-3, merge_px=4)):
+    """Parameters of ``superpixel_cfar`` (module docstring; docs/algorithms/superpixel_cfar.md).
+
+    The paper's defaults: M_a = 3, CoV over 7x7, kappa 0.4, at most 10 clutter superpixels,
+    detected fraction 0.7. ``target``/``guard``/``background`` are unused (no windows).
+    """
+
+    spacing: int = Field(12, ge=4, le=64, description="seed grid spacing in pixels (superpixels of about "
+                                                       "spacing^2 pixels)")
+    reach: int = Field(12, ge=2, le=128, description="a superpixel grows at most this many pixels from its seed "
+                                                     "(Chebyshev); at least spacing / 2")
+    eps: float = Field(4.0, gt=0.0, le=1e6, description="growth threshold on the pixel dissimilarity (eq 7-8)")
+    min_size: int = Field(32, ge=1, le=10000, description="superpixels smaller than this merge into their least "
+                                                          "dissimilar neighbour (eq 9-10)")
+    shadow_ratio: float = Field(0.05, ge=0.0, lt=1.0, description="shadow superpixels: mean below this times the "
+                                                                  "scene's median superpixel mean (0: off)")
+    kmeans: bool = Field(True, description="K-means (k = 2) on superpixel means: test only the brighter class; "
+                                           "false: test every superpixel (diagnostics, calibration)")
+    min_separation_db: float = Field(
+        6.0, ge=0.0, le=100.0, description="the K-means target class exists only when its centroid is this many "
+                                           "dB above the background's (0: always, as the paper)")
+    th_clu: float = Field(4.0, ge=0.0, le=1e9, description="Table 1: adjacent background superpixels with "
+                                                           "dissimilarity (eq 9) above this are clutter")
+    tl_clu: float = Field(2.0, ge=0.0, le=1e9, description="Table 1: clutter grows through neighbours with "
+                                                           "dissimilarity below this")
+    max_clutter: int = Field(10, ge=1, le=100, description="Table 1: most clutter superpixels per target")
+    clutter_radius: int = Field(36, ge=1, le=512, description="clutter superpixels' anchors lie within this "
+                                                              "many pixels (Chebyshev) of the target's")
+    components: int = Field(3, ge=1, le=8, description="Rayleigh components M_a of the clutter mixture (eq 3)")
+    em_iter: int = Field(100, ge=1, le=10000, description="EM iterations at most (eq 5-6 as M-step)")
+    contrast: Literal["paper", "none"] = Field(
+        "paper", description="local contrast of eq 11-13 in the decision (eq 16), or none (eq 15)")
+    kappa: float = Field(0.4, gt=0.0, le=100.0, description="spatial factor kappa of eq 12")
+    cov_window: int = Field(7, ge=3, le=31, description="CoV window side of eq 13 (odd, pixels)")
+    fraction: float = Field(0.7, ge=0.0, lt=1.0, description="a target superpixel whose detected fraction "
+                                                             "exceeds this is target whole (section 3.4)")
+    decision: Literal["superpixel", "pixel"] = Field(
+        "superpixel", description="superpixel: step 7's decision; pixel: eq 16's pixel mask")
+
+    @model_validator(mode="after")
+    def _own(self):
+        if self.cov_window % 2 == 0:
+            raise ValueError(f"cov_window must be odd, got {self.cov_window}")
+        if 2 * self.reach < self.spacing:
+            raise ValueError(f"reach ({self.reach}) must be at least spacing / 2 ({self.spacing / 2:g})")
+        if self.reach > 2 * self.spacing:
+            raise ValueError(f"reach ({self.reach}) must be at most 2 * spacing ({2 * self.spacing})")
+        if self.tl_clu > self.th_clu:
+            raise ValueError(f"tl_clu ({self.tl_clu}) must not exceed th_clu ({self.th_clu})")
+        return self
+
+
+def halo(p: SuperpixelCFARParams) -> int:
+    """extent + clutter_radius + context (module docstring) = 10 reach + 5 + clutter_radius."""
+    return spx.extent_px(p.reach) + int(p.clutter_radius) + spx.context_px(p.reach)
+
+
+def prepare(p: SuperpixelCFARParams) -> dict:
+    return {"looks": float(p.looks if p.looks is not None else 1.0), "halo": halo(p)}
+
+
+def hist_bin(mean: np.ndarray) -> np.ndarray:
+    """Bin of log10(mean) in the fixed scene histogram (0 for a zero mean)."""
+    with np.errstate(divide="ignore"):
+        b = np.floor((np.log10(np.asarray(mean, np.float64)) - HIST_LO) * HIST_PER_DECADE)
+    b = np.where(np.isfinite(b), b, 0)
+    return np.clip(b, 0, HIST_BINS - 1).astype(np.int64)
+
+
+def _present(x: np.ndarray) -> np.ndarray:
+    return np.isfinite(x) & (x >= 0)
+
+
+def _segment(x, ok, origin, p: SuperpixelCFARParams, looks: float) -> spx.Superpixels:
+    return spx.segment(x, ok, origin, p.spacing, p.reach, p.eps, looks, p.min_size)
+
+
+def _looks(p, prep) -> float:
+    return float(prep.get("looks", p.looks if p.looks is not None else 1.0))
+
+
+def _check(block, halo_px, p):
+    x = float_block(block)
+    if int(halo_px) < halo(p):
+        raise ValueError(f"superpixel_cfar needs a halo of {halo(p)} (10 reach + 5 + clutter_radius), "
+                         f"block has {halo_px}")
+    return x
+
+
+def scene_pass(block, halo_px, origin, p: SuperpixelCFARParams, prep: dict) -> dict:
+    """Histogram (fixed log10 bins, integer counts) of the means of the superpixels anchored in the core."""
+    x = _check(block, halo_px, p)
+    sp = _segment(x, _present(x), origin, p, _looks(p, prep))
+    return _histogram(sp, x.shape, int(halo_px), origin)
+
+
+def _histogram(sp: spx.Superpixels, shape, hp: int, origin) -> dict:
+    r0, c0 = origin[0] + hp, origin[1] + hp
+    h, w = shape[0] - 2 * hp, shape[1] - 2 * hp
+    a = sp.anchor
+    own = (sp.size > 0) & (a[:, 0] >= r0) & (a[:, 0] < r0 + h) & (a[:, 1] >= c0) & (a[:, 1] < c0 + w)
+    counts = np.bincount(hist_bin(sp.mean[own]), minlength=HIST_BINS).astype(np.int64)
+    return {"counts": counts}
+
+
+def split_bins(counts: np.ndarray, shadow_ratio: float) -> tuple[int, int, float]:
+    """``(shadow_bin, target_bin, separation_db)``: superpixels in bins below ``shadow_bin`` are
+    shadow; the exact optimal 2-means split (least within-class sum of squares of the bin
+    centres in dB) of the others puts bins from ``target_bin`` on in the target class
+    (``HIST_BINS``: none); ``separation_db`` is the distance of the two class centroids."""
+    c = np.asarray(counts, np.float64)
+    tot = c.sum()
+    if tot == 0:
+        return 0, HIST_BINS, 0.0
+    centre = 10.0 ** (HIST_LO + (np.arange(HIST_BINS) + 0.5) / HIST_PER_DECADE)
+    cum = np.cumsum(c)
+    med = centre[int(np.searchsorted(cum, 0.5 * tot))]
+    sh = int(hist_bin(np.array([shadow_ratio * med]))[0]) if shadow_ratio > 0 else 0
+    c = c.copy()
+    c[:sh] = 0
+    nz = np.flatnonzero(c)
+    if nz.size < 2:
+        return sh, HIST_BINS, 0.0
+    v = (HIST_LO + (nz + 0.5) / HIST_PER_DECADE) * 10.0  # bin centres in dB
+    n = c[nz]
+    cn = np.cumsum(n)
+    cs = np.cumsum(n * v)
+    nl, sl = cn[:-1], cs[:-1]
+    nr, sr = cn[-1] - nl, cs[-1] - sl
+    gain = sl * sl / nl + sr * sr / nr  # total SS - within SS; maximised by the best split
+    k = int(np.argmax(gain))
+    return sh, int(nz[k + 1]), float(sr[k] / nr[k] - sl[k] / nl[k])
+
+
+def reduce(parts: list[dict], p: SuperpixelCFARParams, prep: dict) -> dict:
+    counts = np.sum([q["counts"] for q in parts], axis=0).astype(np.int64)
+    sh, tb, sep = split_bins(counts, p.shadow_ratio)
+    if p.kmeans and sep < p.min_separation_db:
+        tb = HIST_BINS  # the two classes are one population: no potential targets
+    edge = lambda b: float(10.0 ** (HIST_LO + b / HIST_PER_DECADE)) if b < HIST_BINS else None  # noqa: E731
+    return {"superpixels": int(counts.sum()), "shadow_bin": sh, "target_bin": tb,
+            "shadow_below": edge(sh) if sh > 0 else 0.0, "target_from": edge(tb),
+            "shadow_count": int(counts[:sh].sum()), "target_count": int(counts[tb:].sum()),
+            "separation_db": sep}
+
+
+def scene_prep(x: np.ndarray, p: SuperpixelCFARParams, prep: dict | None = None, tile: int | None = None) -> dict:
+    """``prep`` with the scene pass run on a whole scene ``x`` (tiles of ``tile`` px, default one):
+    the tests' and benches' stand-in for the job's scene pass."""
+    from sarship.pipeline.windows import mirror_pad
+
+    prep = dict(prepare(p) if prep is None else prep)
+    h = halo(p)
+    P = mirror_pad(x, h)
+    H, W = x.shape
+    t = tile or max(H, W)
+    parts = []
+    for r in range(0, H, t):
+        for c in range(0, W, t):
+            r1, c1 = min(r + t, H), min(c + t, W)
+            parts.append(scene_pass(P[r:r1 + 2 * h, c:c1 + 2 * h], h, (r - h, c - h), p, prep))
+    prep.update(reduce(parts, p, prep))
+    return prep
+
+
+@njit(cache=True, nogil=True)
+def _decide(cands, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, pix_ptr, pix, xf, amp, zeta,
+            radius, th_clu, tl_clu, max_clutter, looks, K, em_iter, bin_width, pfa, use_contrast,
+            frac, thr, det, ratio, n_clutter):
+    nl = n.size
+    mark = np.full(nl, -1, np.int64)
+    queue = np.empty(nl + 1, np.int64)
+    out = np.empty(max_clutter, np.int64)
+    w = np.zeros(K)
+    s = np.zeros(K)
+    for ci in range(cands.size):
+        t = cands[ci]
+        m = spx.select_clutter(t, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, radius, th_clu, tl_clu,
+                               max_clutter, looks, out, mark, queue)
+        n_clutter[t] = m
+        if m == 0:
+            continue
+        tot = 0
+        for q in range(m):
+            c = out[q]
+            tot += pix_ptr[c + 1] - pix_ptr[c]
+        vals = np.empty(tot)
+        k = 0
+        somega = 0.0
+        for q in range(m):
+            c = out[q]
+            for e in range(pix_ptr[c], pix_ptr[c + 1]):
+                vals[k] = xf[pix[e]]
+                k += 1
+            somega += spx.sp_dissimilarity(n[t], mean[t], cov[t], n[c], mean[c], cov[c], looks)
+        if tot < K:
+            continue
+        fit_binned(vals, K, em_iter, bin_width, w, s)
+        T = math.sqrt(threshold_intensity(w, s, pfa))
+        thr[t] = T
+        cnt = 0
+        for e in range(pix_ptr[t], pix_ptr[t + 1]):
+            i = pix[e]
+            v = amp[i] * zeta[i] * somega if use_contrast else amp[i]
+            d = v > T
+            det[i] = d
+            ratio[i] = v / T if T > 0 else (np.inf if v > 0 else 0.0)
+            if d:
+                cnt += 1
+        frac[t] = cnt / (pix_ptr[t + 1] - pix_ptr[t])
+
+
+def analyse(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) -> dict:
+    """Every step on a block: superpixels, classes, per target superpixel the clutter count,
+    (``prep`` without the scene pass' values: the block's core is taken for the whole scene)
+    ``T_cfar`` and detected fraction, per pixel eq 16's decision and ``A C_local / T_cfar``
+    (block arrays; the core is ``[halo:-halo, halo:-halo]``)."""
+    x = _check(block, halo_px, p)
+    ok = _present(x)
+    looks = _looks(p, prep)
+    sp = _segment(x, ok, origin, p, looks)
+    hp = int(halo_px)
+    if "target_bin" not in prep:  # no scene pass ran: the block is the whole scene
+        prep = {**prep, **reduce([_histogram(sp, x.shape, hp, origin)], p, prep)}
+    b = hist_bin(sp.mean)
+    shadow = b < int(prep["shadow_bin"])
+    if p.kmeans:
+        target = (~shadow) & (b >= int(prep["target_bin"])) & (sp.size > 0)
+        bg = (~shadow) & (~target) & (sp.size > 0)
+    else:
+        target = (~shadow) & (sp.size > 0)
+        bg = target.copy()
+    lab = sp.labels
+    core = lab[hp:lab.shape[0] - hp, hp:lab.shape[1] - hp]
+    in_core = np.zeros(sp.size.size, bool)
+    in_core[core[core >= 0]] = True
+    cands = np.flatnonzero(in_core & target).astype(np.int64)
+    pix_ptr, order = spx.pixel_lists(lab, sp.size.size)
+    amp = np.sqrt(np.where(ok, x, 0.0)).ravel()
+    if p.contrast == "paper":
+        _, cv = spx.local_stats(amp.reshape(x.shape), ok, origin, p.cov_window)
+        zeta = np.exp(-cv / p.kappa).ravel()
+    else:
+        zeta = np.ones(x.size)
+    nl = sp.size.size
+    frac = np.zeros(nl)
+    thr = np.full(nl, np.nan)
+    n_clutter = np.zeros(nl, np.int64)
+    det = np.zeros(x.size, np.bool_)
+    ratio = np.zeros(x.size)
+    _decide(cands, bg, target, sp.size, sp.mean, sp.cov, sp.ptr, sp.idx, sp.anchor[:, 0].copy(),
+            sp.anchor[:, 1].copy(), pix_ptr, order.astype(np.int64), np.where(ok, x, 0.0).ravel(), amp, zeta,
+            int(p.clutter_radius), float(p.th_clu), float(p.tl_clu), int(p.max_clutter), looks, int(p.components),
+            int(p.em_iter), float(BIN_WIDTH), float(p.pfa), p.contrast == "paper", frac, thr, det, ratio, n_clutter)
+    return {"sp": sp, "shadow": shadow, "target": target, "background": bg, "candidates": cands, "frac": frac,
+            "threshold": thr, "n_clutter": n_clutter, "pixel_det": det.reshape(x.shape),
+            "ratio": ratio.reshape(x.shape), "ok": ok}
+
+
+def _core(a, h):
+    return a[h:a.shape[0] - h, h:a.shape[1] - h]
+
+
+def _above(stat: np.ndarray, mask: np.ndarray, level: float) -> np.ndarray:
+    """float32 ``stat`` with ``stat > level`` wherever ``mask`` (rounding fixed up)."""
+    s = stat.astype(np.float32)
+    lo = np.float32(level)
+    if not float(lo) > level:
+        lo = np.nextafter(lo, np.float32(np.inf))
+    s[mask & ~(s > lo)] = lo
+    s[~mask] = 0
+    return s
+
+
+def detect(block, halo_px, origin, p: SuperpixelCFARParams, prep: dict):
+    """(mask, stat) of the core. ``decision="superpixel"``: stat = the superpixel's detected
+    fraction (> ``fraction`` where the mask is set); ``"pixel"``: stat = A C_local / T_cfar (> 1)."""
+    res = analyse(block, halo_px, origin, p, prep)
+    hp = int(halo_px)
+    if p.decision == "pixel":
+        mask = _core(res["pixel_det"], hp).copy()
+        return mask, _above(_core(res["ratio"], hp), mask, 1.0)
+    lab = _core(res["sp"].labels, hp)
+    if res["frac"].size == 0:  # nothing present
+        return np.zeros(lab.shape, bool), np.zeros(lab.shape, np.float32)
+    hit = res["frac"] > p.fraction
+    hit &= res["target"]
+    safe = np.where(lab >= 0, lab, 0)
+    mask = (lab >= 0) & hit[safe]
+    return mask, _above(res["frac"][safe], mask, float(p.fraction))
+
+
+def superpixel_labels(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict | None = None) -> np.ndarray:
+    """The superpixel label image of the core: global ids (int64, -1 for absent pixels), the same
+    for any tiling. A debugging aid: ``scene_prep`` is not needed (labels precede the classes)."""
+    x = _check(block, halo_px, p)
+    sp = _segment(x, _present(x), origin, p, _looks(p, prep or prepare(p)))
+    lab = _core(sp.labels, int(halo_px))
+    if sp.gid.size == 0:
+        return np.full(lab.shape, -1, np.int64)
+    return np.where(lab >= 0, sp.gid[np.where(lab >= 0, lab, 0)], -1)
+
+
+SPEC = DetectorSpec(
+    name="superpixel_cfar",
+    summary="Superpixel CFAR: bounded DBSCAN superpixels, scene K-means, Table 1 clutter superpixels, "
+            "Rayleigh-mixture (EM) threshold per superpixel, CoV local contrast, superpixel decision",
+    reference="Zhang et al. 2023, Journal of Radars 12(1) (seed 002); docs/algorithms/superpixel_cfar.md",
+    params=SuperpixelCFARParams,
+    prepare=prepare,
+    detect=detect,
+    input="intensity",
+    needs_looks=True,
+    scene_pass=scene_pass,
+    reduce=reduce,
+    halo_fn=halo,
+    halo_rule="10 reach + 5 + clutter_radius",
+    gpu=False,
+)

@@ -1,0 +1,417 @@
+"""``superpixel_cfar`` (seed 002): Rayleigh-mixture EM and threshold, pixel false alarms on pure
+clutter, extended ships found whole, tiled == whole scene, a brute-force check of steps 4-7,
+parameters and absent pixels. docs/algorithms/superpixel_cfar.md gives the measured numbers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage, stats
+
+from sarship.pipeline import detectors
+from sarship.pipeline import superpixels as spx
+from sarship.pipeline.components import merge_radius
+from sarship.pipeline.detectors import superpixel_cfar as D
+from sarship.pipeline.rayleigh_mixture import (fit_rayleigh_mixture, mixture_threshold, mixture_threshold_brentq)
+from sarship.pipeline.windows import mirror_pad
+
+
+# --------------------------------------------------------------------------- simulated scenes
+
+
+def k_sea(rng: np.random.Generator, shape, nu: float = 4.0, corr: float = 8.0) -> np.ndarray:
+    """Single-look K-distributed sea intensity: gamma texture (shape ``nu``, mean 1, spatially
+    correlated over ``corr`` px by a Gaussian copula) times exponential speckle."""
+    g = ndimage.gaussian_filter(rng.standard_normal(shape), corr)
+    g /= g.std()
+    tex = stats.gamma.ppf(stats.norm.cdf(g), nu, scale=1.0 / nu)
+    return tex * rng.exponential(1.0, shape)
+
+
+def hires_scene(seed: int, shape=(600, 600), n_ships: int = 5, scr: float = 20.0, lengths=(60.0, 400.0)):
+    """K sea with extended ships: hulls ``lengths`` px long (width 12-18 % of the length, tapered
+    bow), mean intensity ``scr`` x the sea's, 3-7 bright scatterers (x 5-20) and 1-2 dark gaps
+    (2-4 px bands at sea level) across the hull. Returns (intensity, truth labels 1..n)."""
+    rng = np.random.default_rng(seed)
+    x = k_sea(rng, shape)
+    H, W = shape
+    truth = np.zeros(shape, np.int32)
+    rr, cc = np.mgrid[0:H, 0:W]
+    k = 0
+    for _ in range(1000):
+        if k == n_ships:
+            break
+        L = rng.uniform(*lengths)
+        wd = max(5.0, L * rng.uniform(0.12, 0.18))
+        th = rng.uniform(0, np.pi)
+        if H <= L + 20 or W <= L + 20:
+            continue
+        r0, c0 = rng.uniform(L / 2 + 10, H - L / 2 - 10), rng.uniform(L / 2 + 10, W - L / 2 - 10)
+        u = (rr - r0) * np.cos(th) + (cc - c0) * np.sin(th)
+        v = -(rr - r0) * np.sin(th) + (cc - c0) * np.cos(th)
+        if (truth[(np.abs(u) <= L / 2 + 10) & (np.abs(v) <= wd / 2 + 10)] > 0).any():
+            continue
+        inside = (np.abs(u) <= L / 2) & (np.abs(v) <= wd / 2 * np.clip(1.0 - np.maximum(u - 0.3 * L, 0) / (0.2 * L), 0.3, 1))
+        k += 1
+        truth[inside] = k
+        gain = np.full(int(inside.sum()), scr)
+        uu = u[inside]
+        for _ in range(int(rng.integers(1, 3))):
+            g0, gw = rng.uniform(-0.35 * L, 0.35 * L), rng.uniform(2, 4)
+            gain[np.abs(uu - g0) < gw / 2] = 1.0
+        for _ in range(int(rng.integers(3, 8))):
+            gain[np.abs(uu - rng.uniform(-0.45 * L, 0.45 * L)) < 1.5] *= rng.uniform(5, 20)
+        x[inside] = gain * rng.exponential(1.0, int(inside.sum()))
+    return x, truth
+
+
+def whole(x, p, prep=None):
+    """Scene pass and detect of the whole scene as one block."""
+    prep = D.scene_prep(x, p) if prep is None else prep
+    h = D.halo(p)
+    return D.detect(mirror_pad(x, h), h, (-h, -h), p, prep), prep
+
+
+def objects(mask, truth, merge_px: int, min_area: int):
+    """Components as the job forms them (fragments within ``merge_px`` joined, smaller than
+    ``min_area`` dropped): per ship the number of components on it, and the false components."""
+    r = merge_radius(merge_px)
+    grown = ndimage.maximum_filter(mask.astype(np.uint8), size=2 * r + 1) > 0 if r else mask
+    lab, _ = ndimage.label(grown, structure=np.ones((3, 3)))
+    lab = np.where(mask, lab, 0)
+    sizes = np.bincount(lab.ravel())
+    keep = sizes >= min_area
+    keep[0] = False
+    lab = np.where(keep[lab], lab, 0)
+    per_ship, hit = [], set()
+    for k in range(1, int(truth.max()) + 1):
+        ids = np.unique(lab[truth == k])
+        ids = ids[ids > 0]
+        per_ship.append(int(ids.size))
+        hit |= set(ids.tolist())
+    false = len(set(np.unique(lab[lab > 0]).tolist()) - hit)
+    return per_ship, false
+
+
+# --------------------------------------------------------------------------- Rayleigh mixture (eq 3-6, 14)
+
+
+def test_em_recovers_a_known_rayleigh_mixture():
+    rng = np.random.default_rng(0)
+    w, s = np.array([0.6, 0.3, 0.1]), np.array([1.0, 8.0, 60.0])  # s = 2 lambda^2
+    k = rng.choice(3, 200_000, p=w)
+    a = np.sqrt(rng.exponential(s[k]))
+    for bw in (0.05, 0.0):  # histogram EM (default) and per-sample EM
+        m = fit_rayleigh_mixture(a, 3, max_iter=2000, bin_width=bw)
+        np.testing.assert_allclose(m.weights, w, atol=0.01)
+        np.testing.assert_allclose(m.scales, s, rtol=0.03)
+        np.testing.assert_allclose(m.lambdas, np.sqrt(s / 2), rtol=0.02)
+    # the EM fixed point keeps the sample's mean intensity (sum w_k s_k = mean A^2)
+    assert abs(np.sum(m.weights * m.scales) / np.mean(a * a) - 1) < 1e-6
+    # and a wrong model is visibly wrong: one component cannot fit it
+    m1 = fit_rayleigh_mixture(a, 1)
+    assert abs(m1.sf(mixture_threshold(w, s, 1e-3)) / 1e-3 - 1) > 0.5
+
+
+def test_threshold_is_the_exact_mixture_tail():
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        K = int(rng.integers(1, 5))
+        w = rng.dirichlet(np.ones(K))
+        s = 10.0 ** rng.uniform(-3, 3, K)
+        pfa = 10.0 ** rng.uniform(-15, -0.5)
+        T = mixture_threshold(w, s, pfa)
+        tail = float(np.sum(w * np.exp(-T * T / s)))
+        assert abs(tail / pfa - 1) < 1e-9, (w, s, pfa, tail)
+        assert abs(T / mixture_threshold_brentq(w, s, pfa) - 1) < 1e-12
+    # a component of weight below the pfa and a huge scale: the root is set by the others
+    w, s = np.array([1e-13, 0.5, 0.5]), np.array([1e6, 1.0, 1.0])
+    T = mixture_threshold(w, s, 1e-3)
+    assert abs(np.sum(w * np.exp(-T * T / s)) / 1e-3 - 1) < 1e-9
+    # 1 - F of eq 4 evaluated by the mixture object agrees
+    from sarship.pipeline.rayleigh_mixture import RayleighMixture
+
+    m = RayleighMixture(np.array([0.7, 0.3]), np.array([1.0, 5.0]), 0)
+    assert abs(m.sf(mixture_threshold(m.weights, m.scales, 1e-6)) / 1e-6 - 1) < 1e-9
+
+
+# --------------------------------------------------------------------------- pure clutter
+
+
+CAL = dict(kmeans=False, th_clu=0.0, tl_clu=0.0, contrast="none", decision="pixel", components=1, looks=1.0)
+
+
+def test_pure_rayleigh_pixel_false_alarms_within_binomial_bound():
+    """Calibration mode (every superpixel tested against its adjacent superpixels, eq 15, the
+    pixel decision): on 4.2 Mpx of Rayleigh clutter the count K of pixels above T_cfar must lie
+    within |K - M pfa| <= 5 sqrt(v M pfa), v = 1.5 (the pixels of a superpixel share one fitted
+    threshold: the fit's error adds about 1 % to the binomial variance, measured over seeds;
+    1.5 is a margin). With M_a = 1 the mixture is the true model. A threshold for 1.25 x the
+    PFA (exact for one component: T^2 scales with ln(1 / pfa)) must fall outside the bound."""
+    rng = np.random.default_rng(11)
+    x = rng.exponential(1.0, (2048, 2048))
+    p = D.SuperpixelCFARParams(pfa=1e-3, **CAL)
+    prep = D.scene_prep(x, p)
+    h = D.halo(p)
+    res = D.analyse(mirror_pad(x, h), h, (-h, -h), p, prep)
+    ratio = res["ratio"][h:-h, h:-h]
+    M = x.size
+    assert int(np.count_nonzero(res["n_clutter"][res["candidates"]] == 0)) == 0
+    bound = 5 * math.sqrt(1.5 * M * p.pfa)
+    K = int(np.count_nonzero(ratio > 1.0))
+    assert abs(K - M * p.pfa) <= bound, (K, M * p.pfa, bound)
+    f = math.sqrt(math.log(1 / p.pfa) / math.log(1 / (1.25 * p.pfa)))
+    K125 = int(np.count_nonzero(ratio * f > 1.0))
+    assert abs(K125 - M * p.pfa) > bound, (K125, bound)
+
+
+def test_pure_clutter_at_defaults_raises_no_target_class():
+    """Sea alone: the K-means classes are one population (centroids closer than
+    min_separation_db), so nothing is tested and nothing detected; the paper's plain K-means
+    (min_separation_db=0) splits the sea and tests half of it."""
+    rng = np.random.default_rng(2)
+    x = k_sea(rng, (400, 400))
+    p = D.SuperpixelCFARParams(looks=1.0)
+    (mask, _), prep = whole(x, p)
+    assert prep["target_count"] == 0 and prep["separation_db"] < p.min_separation_db
+    assert not mask.any()
+    q = D.SuperpixelCFARParams(looks=1.0, min_separation_db=0.0)
+    prep0 = D.scene_prep(x, q)
+    assert prep0["target_count"] > 0.2 * prep0["superpixels"]
+
+
+# --------------------------------------------------------------------------- ships
+
+
+def test_extended_ships_come_out_whole():
+    """K sea, ships 60-400 px with scatterers and dark gaps: one detection per ship (fragments
+    joined by the default merge_px, as a job does) in >= 95 % of ships, FoM >= 0.9."""
+    p = D.SuperpixelCFARParams(looks=1.0)
+    n_ships = one = hits = false = 0
+    for seed in range(4):
+        x, truth = hires_scene(100 + seed)
+        (mask, _), _ = whole(x, p)
+        per_ship, f = objects(mask, truth, p.merge_px, 10)
+        n_ships += len(per_ship)
+        one += sum(c == 1 for c in per_ship)
+        hits += sum(c >= 1 for c in per_ship)
+        false += f
+        assert not mask[np.isnan(x)].any()
+    assert n_ships == 20
+    assert one / n_ships >= 0.95, (one, n_ships)
+    assert hits / (false + n_ships) >= 0.9, (hits, false)
+
+
+# --------------------------------------------------------------------------- tiling
+
+
+SMALL = dict(spacing=6, reach=6, clutter_radius=18, min_size=8, looks=1.0)
+
+
+def _tiled(x, p, prep, tile, halo=None):
+    h = D.halo(p) if halo is None else halo
+    P = mirror_pad(x, h)
+    H, W = x.shape
+    mask = np.zeros(x.shape, bool)
+    stat = np.zeros(x.shape, np.float32)
+    lab = np.zeros(x.shape, np.int64)
+    for r in range(0, H, tile):
+        for c in range(0, W, tile):
+            r1, c1 = min(r + tile, H), min(c + tile, W)
+            blk = P[r:r1 + 2 * h, c:c1 + 2 * h]
+            m, s = D.detect(blk, h, (r - h, c - h), p, prep)
+            mask[r:r1, c:c1], stat[r:r1, c:c1] = m, s
+            lab[r:r1, c:c1] = D.superpixel_labels(blk, h, (r - h, c - h), p, prep)
+    return mask, stat, lab
+
+
+def test_tiled_equals_whole_scene_bit_for_bit(monkeypatch):
+    x, _ = hires_scene(7, shape=(301, 257), n_ships=3, lengths=(40.0, 120.0))
+    x[50:60, 30:45] = np.nan
+    p = D.SuperpixelCFARParams(**SMALL)
+    prep = D.scene_prep(x, p)
+    assert prep["target_count"] > 0
+    for tile in (29, 64):
+        assert D.scene_prep(x, p, tile=tile) == prep
+    h = D.halo(p)
+    P = mirror_pad(x, h)
+    m0, s0 = D.detect(P, h, (-h, -h), p, prep)
+    l0 = D.superpixel_labels(P, h, (-h, -h), p, prep)
+    assert m0.sum() > 500
+    for tile in (29, 64):
+        m, s, lab = _tiled(x, p, prep, tile)
+        np.testing.assert_array_equal(m, m0)
+        np.testing.assert_array_equal(s, s0)
+        np.testing.assert_array_equal(lab, l0)
+    # the halo matters: one smaller than a superpixel's reach changes superpixels and decisions
+    # (the halo is a proven bound: here 14 px of the 83 already gave the same masks)
+    monkeypatch.setattr(D, "halo", lambda q: 6)
+    m, _, lab = _tiled(x, p, prep, 29, halo=6)
+    assert not np.array_equal(lab, l0) and not np.array_equal(m, m0)
+
+
+def test_small_tiles_on_a_small_scene():
+    x, _ = hires_scene(3, shape=(97, 83), n_ships=1, lengths=(40.0, 60.0))
+    p = D.SuperpixelCFARParams(**SMALL, min_separation_db=0.0)
+    prep = D.scene_prep(x, p)
+    assert D.scene_prep(x, p, tile=13) == prep
+    h = D.halo(p)
+    m0, s0 = D.detect(mirror_pad(x, h), h, (-h, -h), p, prep)
+    assert m0.any()
+    m, s, _ = _tiled(x, p, prep, 13)
+    np.testing.assert_array_equal(m, m0)
+    np.testing.assert_array_equal(s, s0)
+
+
+# --------------------------------------------------------------------------- brute force
+
+
+def _growth_reference(m5, h5, ok, seeds_rc, reach, eps, ml):
+    """Clustering stage written plainly: per seed a set-based flood, then nearest seed wins."""
+    H, W = m5.shape
+    best = {}
+
+    def dl(a, b):
+        if a == b:
+            return 0.0
+        if a <= 0 or b <= 0:
+            return math.inf
+        return 2 * ml * math.log((a + b) / (2 * math.sqrt(a * b)))
+
+    for k, (r0, c0) in enumerate(seeds_rc):
+        if not ok[r0, c0] or not np.isfinite(m5[r0, c0]):
+            continue
+        region, front = {(r0, c0)}, [(r0, c0)]
+        while front:
+            nxt = []
+            for (i, j) in front:
+                for (a, b) in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
+                    if not (0 <= a < H and 0 <= b < W) or (a, b) in region:
+                        continue
+                    if abs(a - r0) > reach or abs(b - c0) > reach or not ok[a, b] or not np.isfinite(m5[a, b]):
+                        continue
+                    om = dl(m5[i, j], m5[a, b]) + abs(h5[i, j] - h5[a, b]) * dl(m5[r0, c0], m5[a, b])
+                    if om < eps:
+                        region.add((a, b))
+                        nxt.append((a, b))
+            front = nxt
+        for (i, j) in region:
+            d = (i - r0) ** 2 + (j - c0) ** 2
+            if (i, j) not in best or d < best[(i, j)][0]:
+                best[(i, j)] = (d, k)
+    out = np.full((H, W), -1)
+    for (i, j), (_, k) in best.items():
+        out[i, j] = k
+    return out
+
+
+def test_growth_matches_a_plain_reference():
+    rng = np.random.default_rng(4)
+    x = rng.exponential(1.0, (48, 52))
+    x[10:30, 20:26] *= 25.0
+    x[5, 5] = np.nan
+    ok = np.isfinite(x)
+    m5, h5 = spx.local_stats(x, ok, (3, -2), spx.PATCH)
+    sr, sc, _ = spx.seeds(x.shape, (3, -2), 6)
+    best_d = np.full(x.shape, np.iinfo(np.int64).max, np.int64)
+    best_s = np.full(x.shape, -1, np.int64)
+    spx._grow(m5, h5, ok, sr, sc, 5, 4.0, 25.0, best_d, best_s)
+    ref = _growth_reference(m5, h5, ok, list(zip(sr.tolist(), sc.tolist())), 5, 4.0, 25.0)
+    np.testing.assert_array_equal(best_s, ref)
+    # the hull stops the sea's growth: no seed outside the hull claims a hull pixel
+    hull_seeds = {k for k, (r, c) in enumerate(zip(sr, sc)) if 10 <= r < 30 and 20 <= c < 26}
+    claimed = best_s[12:28, 21:25]
+    assert set(np.unique(claimed[claimed >= 0]).tolist()) <= hull_seeds
+
+
+def test_decisions_match_a_plain_reference():
+    """Steps 5-7 recomputed with NumPy/SciPy from the analysis' superpixels and clutter sets:
+    EM fit, T_cfar by brentq, the contrast of eq 11-13 by direct 7x7 windows, eq 16, the fraction."""
+    x, _ = hires_scene(5, shape=(160, 150), n_ships=1, lengths=(50.0, 80.0))
+    p = D.SuperpixelCFARParams(**SMALL, min_separation_db=0.0)
+    prep = D.scene_prep(x, p)
+    h = D.halo(p)
+    P = mirror_pad(x, h)
+    res = D.analyse(P, h, (-h, -h), p, prep)
+    sp = res["sp"]
+    lab = sp.labels
+    amp = np.sqrt(P)
+    checked = 0
+    for t in res["candidates"][:40]:
+        nc = int(res["n_clutter"][t])
+        if nc == 0:
+            continue
+        # the clutter set again, through the public Table 1 function
+        out = np.empty(p.max_clutter, np.int64)
+        mark = np.full(sp.size.size, -1, np.int64)
+        queue = np.empty(sp.size.size + 1, np.int64)
+        m = spx.select_clutter(int(t), res["background"], res["target"], sp.size, sp.mean, sp.cov, sp.ptr, sp.idx,
+                               sp.anchor[:, 0].copy(), sp.anchor[:, 1].copy(), p.clutter_radius, p.th_clu,
+                               p.tl_clu, p.max_clutter, 1.0, out, mark, queue)
+        assert m == nc and (mark == -1).all()
+        cl = out[:m]
+        assert res["background"][cl].all() and t not in cl
+        fit = fit_rayleigh_mixture(amp[np.isin(lab, cl)], p.components, p.em_iter)
+        T = mixture_threshold_brentq(fit.weights, fit.scales, p.pfa)
+        assert abs(T / res["threshold"][t] - 1) < 1e-6
+        somega = sum(spx.sp_dissimilarity(sp.size[t], sp.mean[t], sp.cov[t], sp.size[c], sp.mean[c], sp.cov[c], 1.0)
+                     for c in cl)
+        rr, cc = np.nonzero(lab == t)
+        det = 0
+        for i, j in zip(rr, cc):
+            win = amp[i - 3:i + 4, j - 3:j + 4]
+            cov = win.std() / win.mean()
+            det += amp[i, j] * math.exp(-cov / p.kappa) * somega > T
+        assert abs(det / rr.size - res["frac"][t]) <= 2.0 / rr.size
+        checked += 1
+    assert checked >= 5
+
+
+# --------------------------------------------------------------------------- parameters, absent pixels
+
+
+@pytest.mark.parametrize("bad,name", [
+    ({"reach": 2, "spacing": 12}, "reach"),
+    ({"reach": 30, "spacing": 12}, "reach"),
+    ({"tl_clu": 5.0, "th_clu": 4.0}, "tl_clu"),
+    ({"cov_window": 6}, "cov_window"),
+    ({"fraction": 1.0}, "fraction"),
+    ({"kappa": 0.0}, "kappa"),
+    ({"components": 0}, "components"),
+    ({"spacing": 2}, "spacing"),
+    ({"contrast": "lots"}, "contrast"),
+    ({"shadow_ratio": -1}, "shadow_ratio"),
+    ({"bogus": 1}, "bogus"),
+])
+def test_bad_parameters_raise_naming_them(bad, name):
+    with pytest.raises(ValueError, match=name):
+        D.SuperpixelCFARParams(**bad)
+
+
+def test_registered_with_its_halo_and_a_too_small_halo_refused():
+    spec = detectors.get("superpixel_cfar")
+    p = spec.params()
+    assert spec.halo(p) == 10 * p.reach + 5 + p.clutter_radius
+    assert spec.describe()["defaults"]["fraction"] == 0.7 and p.kappa == 0.4 and p.cov_window == 7
+    x = np.ones((50, 50))
+    with pytest.raises(ValueError, match="halo"):
+        D.detect(x, 5, (0, 0), p, {"shadow_bin": 0, "target_bin": 0})
+
+
+def test_absent_pixels_never_detected_nor_labelled():
+    x, truth = hires_scene(9, shape=(300, 300), n_ships=2, lengths=(60.0, 120.0))
+    x[:, :40] = np.nan                      # a no-data border
+    x[truth == 1] = np.where(np.arange((truth == 1).sum()) % 3 == 0, np.nan, x[truth == 1])  # holes in a ship
+    p = D.SuperpixelCFARParams(looks=1.0)
+    (mask, stat), prep = whole(x, p)
+    assert not mask[np.isnan(x)].any() and np.isfinite(stat).all()
+    h = D.halo(p)
+    lab = D.superpixel_labels(mirror_pad(x, h), h, (-h, -h), p, prep)
+    assert (lab[np.isnan(x)] == -1).all() and (lab[~np.isnan(x)] >= 0).all()
+    assert mask[truth == 2].mean() > 0.5
+    # all absent: nothing, no error
+    y = np.full((120, 120), np.nan)
+    (m2, _), prep2 = whole(y, p)
+    assert prep2["superpixels"] == 0 and not m2.any()
