@@ -46,6 +46,27 @@ def intensity_source(scene: Scene, channel: str | None = None) -> tuple[str, str
 _POL_ORDER = ("hh", "hv", "vh", "vv")
 
 
+def complex_source(scene: Scene, channel: str | None = None) -> tuple[str, str]:
+    """``(variable, "complex")``: the complex single-look channel a complex-valued detector
+    (``DetectorSpec.input == "slc"``, e.g. ``csk``) reads: ``channel`` when given (it must be
+    complex), else the first complex one of hh, vv, vh, hv. Amplitude or intensity data carry
+    no phase: :class:`InputError` saying so, naming what the scene has."""
+    has = ", ".join(f"{k} ({v})" for k, v in scene.variables.items()) or "nothing"
+    if channel is not None:
+        if channel not in scene.variables:
+            raise InputError(f"parameter 'channel': scene has no variable '{channel}' (has: {has})")
+        if "complex" not in scene.variables[channel]:
+            raise InputError(f"parameter 'channel': variable '{channel}' is not complex; this detector reads a "
+                             f"complex single-look (SLC) channel, amplitude or intensity has no phase (scene has: {has})")
+        return channel, "complex"
+    var = next((v for v in ("hh", "vv", "vh", "hv") if "complex" in scene.variables.get(v, "")), None)
+    if var is None:
+        raise InputError(f"scene '{scene.path}' has no complex SLC channel (hh, vv, vh or hv complex64): this detector "
+                         f"needs the phase of single-look complex data, amplitude or intensity is refused "
+                         f"(scene has: {has}; ingest the SLC product, e.g. sarship ingest --kind slc)")
+    return var, "complex"
+
+
 def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tuple[str, ...], str]:
     """``(variables, "stack")``: the scene's complex channels a polarimetric detector reads.
 
@@ -90,7 +111,8 @@ def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tupl
 
 def make_reader(path: str, var: str | tuple[str, ...], transform: str
                 ) -> Callable[[int, int, int, int], np.ndarray]:
-    """``read(ra, rb, ca, cb)`` -> float32 intensity of the scene rectangle.
+    """``read(ra, rb, ca, cb)`` -> float32 intensity of the scene rectangle (transform
+    ``"complex"``: the complex64 channel itself).
 
     With a tuple of variables and transform ``"stack"``: the complex64 channels of the
     rectangle stacked on a trailing axis, shape ``(rb - ra, cb - ca, p)``. With transform
@@ -131,6 +153,8 @@ def make_reader(path: str, var: str | tuple[str, ...], transform: str
 
     def read(ra: int, rb: int, ca: int, cb: int) -> np.ndarray:
         a = arr[ra:rb, ca:cb]
+        if transform == "complex":  # a complex channel as it is (complex-valued detectors: input "slc")
+            return np.asarray(a, dtype=np.complex64)
         if transform == "abs2":
             return (a.real.astype(np.float32) ** 2 + a.imag.astype(np.float32) ** 2).astype(np.float32)
         return np.asarray(a, dtype=np.float32)
@@ -157,4 +181,6 @@ def pixel_power(values: np.ndarray) -> np.ndarray:
         return span(values)
     if values.ndim == 4:
         return np.trace(values, axis1=2, axis2=3).real.astype(np.float32)
+    if np.iscomplexobj(values):  # one complex channel (input "slc"): |z|^2
+        return (values.real.astype(np.float32) ** 2 + values.imag.astype(np.float32) ** 2).astype(np.float32)
     return values

@@ -26,7 +26,7 @@ from sarship.pipeline.detectors.base import resolve_size
 from sarship.pipeline.ship_features import collection, features, keep_mask, write_json
 from sarship.pipeline.sidelobes import mask_reader, refine_features
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.inputs import intensity_source, make_reader, polarimetric_source
+from sarship.pipeline.inputs import complex_source, intensity_source, make_reader, polarimetric_source
 from sarship.pipeline.scene import Scene, create_mask_store, finalize_scene, open_scene, tile_slices
 from sarship.workers.land import check_land_file, finish_land, prepare_land
 from sarship.workers.request import JobRequest
@@ -208,6 +208,8 @@ def run_request(
     out_dir = Path(out_dir).absolute()
     if spec.input == "polarimetric":
         var, transform = polarimetric_source(scene, channel)
+    elif spec.input == "slc":
+        var, transform = complex_source(scene, channel)
     else:
         var, transform = intensity_source(scene, channel)
     tile = int(tile or scene.tile)

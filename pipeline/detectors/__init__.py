@@ -20,6 +20,7 @@ _MODULES = {
     "g0_cfar": "sarship.pipeline.detectors.g0_cfar",
     "k_cfar": "sarship.pipeline.detectors.k_cfar",
     "ggd_cfar": "sarship.pipeline.detectors.ggd_cfar",
+    "csk": "sarship.pipeline.detectors.csk",
     "superpixel_cfar": "sarship.pipeline.detectors.superpixel_cfar",
 }
 
