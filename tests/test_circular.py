@@ -121,3 +121,41 @@ def test_bad_input_raises():
         circular.summary([0.1, np.nan])
     with pytest.raises(ValueError, match="at least 2"):
         circular.fit_von_mises([0.3])
+
+
+def test_npdd_eq19_21():
+    # a smooth phase ramp (a homogeneous surface): the 3x3 ring's mean direction is the centre's,
+    # NPDD_31 = 0 inside (the paper's "theoretically 0" for smooth surfaces)
+    yy, xx = np.mgrid[0:40, 0:50]
+    z = np.exp(1j * (0.2 * xx + 0.1 * yy)).astype(np.complex64) * 3.0
+    d = circular.npdd(z)
+    np.testing.assert_allclose(d[1:-1, 1:-1], 0.0, atol=1e-6)
+    # a phase jump (a dihedral's edge): non-zero along it
+    z2 = z.copy()
+    z2[:, 25:] *= np.exp(1j * 2.0)
+    d2 = circular.npdd(z2)
+    assert np.abs(d2[5:-5, 24:26]).min() > 0.3 and np.abs(d2[5:-5, 5:20]).max() < 1e-5
+    # i.i.d. uniform phases: NPDD uniform, circular variance near 1
+    rng = np.random.default_rng(0)
+    u = np.exp(1j * rng.uniform(0, 2 * np.pi, (200, 200)))
+    v, r = circular.npdd_spread(circular.npdd(u))
+    assert v > 0.97 and r < 0.03
+    # against a direct evaluation of eq 20-21 at one pixel, s = 5, t = 3
+    i, j = 17, 23
+    th = np.angle(u)
+    ring5 = [(a, b) for a in range(i - 2, i + 3) for b in range(j - 2, j + 3) if (a, b) != (i, j)]
+    ring3 = [(a, b) for a in range(i - 1, i + 2) for b in range(j - 1, j + 2) if (a, b) != (i, j)]
+    m5 = np.angle(np.mean([np.exp(1j * th[p]) for p in ring5]))
+    m3 = np.angle(np.mean([np.exp(1j * th[p]) for p in ring3]))
+    ref = np.angle(np.exp(1j * m5) / np.exp(1j * m3))
+    assert circular.npdd(u, s=5, t=3)[i, j] == pytest.approx(ref, abs=1e-9)
+    # absent pixels
+    un = u.copy()
+    un[50, 50] = np.nan
+    assert np.isnan(circular.npdd(un)[50, 50]) and np.isfinite(circular.npdd(un)[50, 51])
+    for bad in ({"s": 2}, {"s": 3, "t": 3}, {"t": 0}):
+        with pytest.raises(ValueError):
+            circular.npdd(u, **bad)
+    with pytest.raises(ValueError, match="complex"):
+        circular.npdd(np.abs(u))
+    assert all(np.isnan(circular.npdd_spread([np.nan])))

@@ -285,6 +285,9 @@ def run_request(
         if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
             feats = refine_features(feats, records, make_reader(str(scene.path), var, transform),
                                     mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mr, spacing, geo)
+        if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
+            feats = spec.detection_properties(feats, records, make_reader(str(scene.path), var, transform),
+                                              mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mr, params, prep)
         t_merge = time.perf_counter()
         dashboard = None
         with contextlib.suppress(Exception):

@@ -288,6 +288,12 @@ class DetectorSpec:
     #: components (after the tiles are merged and the size rule applied; the records of
     #: :mod:`sarship.pipeline.components`: ``n``, ``peak``, ``sumv``, ...), e.g. a peak rule.
     discriminate: Optional[Callable[..., np.ndarray]] = None
+    #: ``detection_properties(feats, records, read, read_mask, shape, merge_r, params, prep) ->
+    #: feats``: properties computed from the scene's pixels under each whole detection, added
+    #: to its ``properties`` after the merge, the size rule and the sidelobe step (``read``: the
+    #: detector's input reader, ``read_mask``: the detection mask), e.g. ``csk``'s complex
+    #: statistics and RFI flag.
+    detection_properties: Optional[Callable[..., list]] = None
     #: ``halo_fn(params) -> int`` for detectors whose context is not ``background // 2``.
     halo_fn: Optional[Callable[[Any], int]] = None
     halo_rule: str = "background // 2"

@@ -52,6 +52,9 @@ class CSKParams(with_defaults(DetectorParams, "CSKDefaults", pfa=1e-6, merge_px=
         "bright", description="bright: a pixel is detected when its window's CSK exceeds the threshold and its "
                               "power exceeds the window's mean power (the ship's bright cells); window: every "
                               "pixel whose window's CSK exceeds it; pfa is calibrated for the rule chosen")
+    npdd_s: int = Field(3, ge=1, le=31, description="NPDD (eq 19-21) of each detection's pixels: outer neighbourhood s "
+                                                     "(window side, centre excluded)")
+    npdd_t: int = Field(1, ge=1, le=31, description="NPDD inner neighbourhood t (1: the pixel itself)")
     nodata: Optional[float] = Field(
         None, description="value of the complex data (real part, imaginary part 0) marking absent pixels besides "
                           "NaN, e.g. 0 for a zero-filled border; None: NaN only")
@@ -60,6 +63,12 @@ class CSKParams(with_defaults(DetectorParams, "CSKDefaults", pfa=1e-6, merge_px=
     def _csk_checks(self):
         if self.window % 2 == 0:
             raise ValueError(f"window must be odd, got {self.window}")
+        for name in ("npdd_s", "npdd_t"):
+            v = getattr(self, name)
+            if v > 1 and v % 2 == 0:
+                raise ValueError(f"{name} must be 1 or odd, got {v}")
+        if self.npdd_s == self.npdd_t:
+            raise ValueError(f"npdd_s and npdd_t must differ, got {self.npdd_s}")
         if self.land_mask == "texture":
             raise ValueError("land_mask: texture is not available for csk (its texture model reads intensity); "
                              "give a land mask FILE")
@@ -142,6 +151,67 @@ def detect(block, halo: int, origin: tuple[int, int], p: CSKParams, prep: dict):
     return decide(k, tested, pw, s11, int(prep["n_window"]), float(prep["threshold"]), p.cells, np)
 
 
+#: Level of the two tests of the RFI flag (:func:`rfi_flag`).
+RFI_ALPHA = 1e-3
+
+
+def complex_stats(v) -> tuple[float, float]:
+    """``(CSK, non-circularity)`` of a detection's complex pixel values: the zero-mean CSK of
+    eq 37 and |sum z^2| / sum |z|^2 (0: circular, 1: one phase direction)."""
+    v = np.asarray(v, dtype=np.complex128).ravel()
+    pw = v.real**2 + v.imag**2
+    s11 = float(pw.sum())
+    if v.size == 0 or not s11 > 0:
+        return float("nan"), float("nan")
+    s20 = complex(np.sum(v * v))
+    nc = abs(s20) / s11
+    return float(v.size * float(np.sum(pw * pw)) / s11**2 - 2.0 - nc * nc), float(nc)
+
+
+def rfi_flag(n: int, k: float, nc: float, alpha: float = RFI_ALPHA) -> bool:
+    """Radio interference rather than a ship (Leng et al. 2019b, docs/references.md#leng2019rfi;
+    seed 004 section 5.1): RFI is weakly non-circular and sub-Gaussian, ships strongly
+    non-circular and super-Gaussian. A candidate of n >= 8 pixels is RFI when its CSK (eq 37) is
+    at most 0 (not super-Gaussian: narrow-band interference has a near-constant envelope, CSK
+    -1 for one tone) and its non-circularity |sum z^2| / sum |z|^2 is consistent with circular
+    data at level ``alpha``: n nc^2 / 2 <= ln(1/alpha) (under circularity m20 is asymptotically
+    CN(0, 2 s2^2 / n), so n |m20|^2 / m11^2 / 2 is Exp(1))."""
+    if n < 8 or not (np.isfinite(k) and np.isfinite(nc)):
+        return False
+    return bool(k <= 0.0 and n * nc * nc / 2.0 <= np.log(1.0 / alpha))
+
+
+def detection_properties(feats: list, records, read, read_mask, shape, merge_r: int, p: CSKParams, prep: dict) -> list:
+    """Each detection's complex statistics from its own pixels (the component of the mask):
+    ``csk`` (eq 37), ``noncircularity``, ``npdd_variance`` and ``npdd_rbar`` (circular variance
+    and mean resultant length of NPDD_st, eq 19-21 and 5, 8) and ``rfi`` (:func:`rfi_flag`)."""
+    from sarship.pipeline import circular
+    from sarship.pipeline.sidelobes import component_in_window
+
+    H, W = shape
+    m = max(int(p.npdd_s), int(p.npdd_t)) // 2 + 1
+    for f, rec in zip(feats, records):
+        ra, rb = max(int(rec["r0"]) - m, 0), min(int(rec["r1"]) + m, H)
+        ca, cb = max(int(rec["c0"]) - m, 0), min(int(rec["c1"]) + m, W)
+        z = np.asarray(read(ra, rb, ca, cb))
+        mask = np.asarray(read_mask(ra, rb, ca, cb)) > 0
+        comp = component_in_window(mask, (int(rec["peak_r"]) - ra, int(rec["peak_c"]) - ca), merge_r)
+        bb = np.zeros_like(comp)
+        bb[int(rec["r0"]) - ra:int(rec["r1"]) - ra, int(rec["c0"]) - ca:int(rec["c1"]) - ca] = True
+        comp &= bb & np.isfinite(z.real) & np.isfinite(z.imag)
+        k, nc = complex_stats(z[comp])
+        var, rbar = circular.npdd_spread(circular.npdd(z, int(p.npdd_s), int(p.npdd_t))[comp])
+        n = int(comp.sum())
+        f["properties"].update({
+            "csk": None if not np.isfinite(k) else round(k, 6),
+            "noncircularity": None if not np.isfinite(nc) else round(nc, 6),
+            "npdd_variance": None if not np.isfinite(var) else round(var, 6),
+            "npdd_rbar": None if not np.isfinite(rbar) else round(rbar, 6),
+            "rfi": rfi_flag(n, k, nc),
+        })
+    return feats
+
+
 SPEC = DetectorSpec(
     name="csk",
     summary="complex signal kurtosis of local SLC windows (eq 37), one global threshold calibrated on "
@@ -155,4 +225,5 @@ SPEC = DetectorSpec(
     halo_fn=lambda p: int(p.window) // 2,
     halo_rule="window // 2",
     gpu=True,
+    detection_properties=detection_properties,
 )

@@ -17,7 +17,11 @@ Artefacts (none is in the truth features)
       clipped to +-2.5 dB; multiplies everything (sqrt of it for complex data).
     * ``rfi``: radio interference: 1 + rows // 1024 bands of 1-4 range lines (rows), over
       30-100 % of the columns, +3..12 dB over the sea, sinusoidally modulated (60 %) along
-      range, noise-like (exponential intensity / complex Gaussian), added before the stripes.
+      range, added before the stripes. Intensity scenes: noise-like (exponential intensity).
+      Complex scenes: narrow-band, 1-2 tones along range (frequencies U(0.02, 0.48) cycles/px,
+      a random phase per range line), so RFI has the complex character of Leng et al. 2019
+      (docs/references.md#leng2019rfi): constant envelope up to the modulation and the tones'
+      beating (sub-Gaussian, CSK -1 to -0.5) and circular over a line.
       Listed under the truth member ``rfi``.
 """
 

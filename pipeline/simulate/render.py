@@ -222,11 +222,19 @@ def _render_block(m: _Model, bi: int, bj: int) -> dict[str, np.ndarray]:
             if cfg.kind == "intensity":
                 out["intensity"][dst] += rn.standard_exponential(sh, dtype=np.float32) * \
                     p.astype(np.float32)[None, :]
-            else:
-                a = np.sqrt(0.5 * p).astype(np.float32)[None, :]
+            else:  # narrow-band interference: 1-2 tones along range, drawn once per event (any tiling)
+                re = _rng(seed, _S_RFI_NOISE, idx, 1 << 20, 0)
+                nt = 1 + int(re.integers(0, 2))
+                freq = re.uniform(0.02, 0.48, nt)                            # cycles per pixel along range
+                psi = re.uniform(0.0, 2 * math.pi, (nt, ev["rows"][1] - ev["rows"][0]))  # per row
+                rows = np.arange(a0, a1) - ev["rows"][0]
+                tone = np.zeros(sh, np.complex128)
+                for k in range(nt):
+                    tone += np.exp(1j * (2 * math.pi * freq[k] * cols[None, :] + psi[k][rows][:, None]))
+                z = (tone * np.sqrt(p / nt)[None, :]).astype(np.complex64)
                 names = ("hh",) if cfg.kind == "slc" else ("hh", "hv", "vv")
                 for name in names:
-                    out[name][dst] += _cn(rn, sh) * a
+                    out[name][dst] += z
 
     if m.stripes is not None:
         g = m.stripes[c0:c1][None, :]
