@@ -37,7 +37,7 @@ from numba import njit
 from scipy import optimize
 
 #: Width of the ln-intensity bins of the histogram EM (eq 5's histogram).
-BIN_WIDTH = 0.05
+BIN_WIDTH = 0.1
 #: Bins span ln(I / mean) in [BIN_LO, BIN_LO + N_BINS * BIN_WIDTH); values outside go to the end bins.
 BIN_LO = -16.0
 N_BINS = 400

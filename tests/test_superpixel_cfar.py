@@ -140,7 +140,7 @@ def test_threshold_is_the_exact_mixture_tail():
 # --------------------------------------------------------------------------- pure clutter
 
 
-CAL = dict(kmeans=False, th_clu=0.0, tl_clu=0.0, contrast="none", decision="pixel", components=1, looks=1.0)
+CAL = dict(kmeans=False, th_clu=0.0, tl_clu=0.0, contrast="off", decision="pixel", components=1, looks=1.0)
 
 
 def test_pure_rayleigh_pixel_false_alarms_within_binomial_bound():

@@ -22,7 +22,7 @@ Equation numbers are the paper's; docs/algorithms/superpixel_cfar.md states ever
 6. Local contrast (eq 11-13): ``C_local(x) = exp(-CoV(x) / kappa) * sum_{SP_n in S_clutter}
    Omega(SP_m, SP_n)``, CoV of the amplitudes over ``cov_window`` x ``cov_window``; decision
    (eq 16) ``A(x) C_local(x) > T_cfar`` with ``A = sqrt(I)`` the amplitude, the variable the
-   Rayleigh mixture models. ``contrast="none"`` is eq 15 (``A(x) > T_cfar``).
+   Rayleigh mixture models. ``contrast="off"`` is eq 15 (``A(x) > T_cfar``).
 7. Superpixel decision (section 3.4): a target superpixel whose fraction of detected present
    pixels exceeds ``fraction`` is target whole (``decision="pixel"``: eq 16's pixels).
 
@@ -67,7 +67,7 @@ class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults
 
     spacing: int = Field(12, ge=4, le=64, description="seed grid spacing in pixels (superpixels of about "
                                                        "spacing^2 pixels)")
-    reach: int = Field(12, ge=2, le=128, description="a superpixel grows at most this many pixels from its seed "
+    reach: int = Field(8, ge=2, le=128, description="a superpixel grows at most this many pixels from its seed "
                                                      "(Chebyshev); at least spacing / 2")
     eps: float = Field(4.0, gt=0.0, le=1e6, description="growth threshold on the pixel dissimilarity (eq 7-8)")
     min_size: int = Field(32, ge=1, le=10000, description="superpixels smaller than this merge into their least "
@@ -87,9 +87,9 @@ class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults
     clutter_radius: int = Field(36, ge=1, le=512, description="clutter superpixels' anchors lie within this "
                                                               "many pixels (Chebyshev) of the target's")
     components: int = Field(3, ge=1, le=8, description="Rayleigh components M_a of the clutter mixture (eq 3)")
-    em_iter: int = Field(100, ge=1, le=10000, description="EM iterations at most (eq 5-6 as M-step)")
-    contrast: Literal["paper", "none"] = Field(
-        "paper", description="local contrast of eq 11-13 in the decision (eq 16), or none (eq 15)")
+    em_iter: int = Field(50, ge=1, le=10000, description="EM iterations at most (eq 5-6 as M-step)")
+    contrast: Literal["paper", "off"] = Field(
+        "paper", description="local contrast of eq 11-13 in the decision (eq 16), or off (eq 15)")
     kappa: float = Field(0.4, gt=0.0, le=100.0, description="spatial factor kappa of eq 12")
     cov_window: int = Field(7, ge=3, le=31, description="CoV window side of eq 13 (odd, pixels)")
     fraction: float = Field(0.7, ge=0.0, lt=1.0, description="a target superpixel whose detected fraction "
