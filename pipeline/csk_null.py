@@ -20,8 +20,9 @@ uniform, E|sum D_k exp(2j phi_k)|^2 = E[sum D_k^2]; hence
 The delta method gives Var[CSK_n] = 4/n + O(n^-2) (Var I = s2^2, Var I^2 = 20 s2^4,
 Cov(I, I^2) = 4 s2^3; the |m20|^2 term is O_p(1/n)), i.e. CSK_n ~ N(-4/(n+1), 4/n)
 asymptotically. That normal law is far too light in the upper tail for small n (n = 49:
-P(CSK > 1.922) = 1e-4 by simulation, 1.3e-3 under the normal; at 1e-6 the normal threshold
-is exceeded ~100 times too often): one bright speckle sample dominates the tail. So the
+P(CSK > 1.922) is 1e-4 by simulation and 1e-12 under the normal law; the normal 1e-6
+threshold, 1.28, is the exact law's 1e-3 point, ~1000 false alarms for one): one bright speckle
+sample dominates the tail. So the
 thresholds come from the exact law, tabulated by simulation.
 
 Simulation (importance sampling, reproducible). ``samples`` windows of n i.i.d. CN(0, 1)
@@ -49,8 +50,8 @@ The threshold for ``pfa`` is the smallest simulated CSK value T whose estimated 
 probability is at most ``pfa``; its relative standard error (of the IS estimate at T) is
 returned with it. With the default 2^20 windows the error is ~2 % at 1e-4, ~5 % at 1e-6 and
 grows in the deep tail (~20-50 % near 1e-12 for n = 49-81): reported in ``run.json``.
-Deeper than the simulated CSK values reach (never at the PFA floor 1e-15 for n <= 400 with the
-default samples; the test checks it) the threshold is the largest possible value n - 2 (one
+Deeper than the simulated CSK values reach (not even at the PFA floor 1e-15 for n = 49 with
+the default samples: tests/test_csk.py) the threshold is the largest possible value n - 2 (one
 cell carrying all the power), which no window exceeds.
 """
 
