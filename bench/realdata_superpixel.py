@@ -25,7 +25,7 @@ import realdata_eval as rd
 SETTINGS = [
     ("superpixel_cfar", "defaults", {}),
     ("superpixel_cfar", "contrast=off pfa=0.1", {"contrast": "off", "pfa": 0.1}),
-    ("superpixel_cfar", "min_separation_db=0 (paper K-means)", {"min_separation_db": 0.0}),
+    ("superpixel_cfar", "land_mask=texture", {"land_mask": "texture"}),
     ("two_parameter", "defaults (pfa 1e-6, 41/81)", {}),
     ("two_parameter", "pfa 1e-3 (superpixel_cfar's)", {"pfa": 1e-3}),
 ]

@@ -408,14 +408,15 @@ def segment(x: np.ndarray, ok: np.ndarray, origin, spacing: int, reach: int, eps
 
 @njit(cache=True, nogil=True)
 def select_clutter(t, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, radius, th_clu, tl_clu,
-                   max_clutter, looks, out, mark, queue):
+                   max_clutter, looks, out, mark, queue, rings):
     """Table 1 for target superpixel ``t``: the background neighbours with ``Omega > th_clu``,
     then, grown breadth-first from them, background neighbours of clutter superpixels with
     ``Omega < tl_clu``, until ``max_clutter``; only superpixels whose anchor lies within
     ``radius`` (Chebyshev) of ``t``'s. When ``t`` has no qualifying background neighbour (a
     superpixel inside a large target), the first step looks at the background neighbours of the
-    target superpixels reached from ``t`` through target superpixels, ring by ring, and takes the
-    first ring that has any. Writes the clutter labels to ``out`` (sorted) and returns their
+    target superpixels reached from ``t`` through target superpixels, ring by ring (at most
+    ``rings`` rings; 0: the paper's adjacent superpixels only), and takes the first ring that
+    has any. Writes the clutter labels to ``out`` (sorted) and returns their
     count. ``mark`` (int64, one per label, all -1) is scratch, restored on return."""
     ar = anc_r[t]
     ac = anc_c[t]
@@ -427,7 +428,9 @@ def select_clutter(t, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, ra
     mark[t] = t
     tail = 1
     touched = 1
-    while m == 0 and ring_start < ring_end:
+    depth = 0
+    while m == 0 and ring_start < ring_end and depth <= rings:
+        depth += 1
         for qi in range(ring_start, ring_end):
             u = queue[qi]
             for q in range(ptr[u], ptr[u + 1]):

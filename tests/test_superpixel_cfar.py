@@ -167,19 +167,21 @@ def test_pure_rayleigh_pixel_false_alarms_within_binomial_bound():
     assert abs(K125 - M * p.pfa) > bound, (K125, bound)
 
 
-def test_pure_clutter_at_defaults_raises_no_target_class():
+def test_pure_clutter_at_defaults_tests_almost_nothing():
     """Sea alone: the K-means classes are one population (centroids closer than
-    min_separation_db), so nothing is tested and nothing detected; the paper's plain K-means
-    (min_separation_db=0) splits the sea and tests half of it."""
+    min_separation_db), so only superpixels min_separation_db above the centroid are tested:
+    none on Rayleigh sea, a handful on K sea; the paper's plain K-means (min_separation_db=0)
+    splits the sea and tests a large part of it."""
     rng = np.random.default_rng(2)
-    x = k_sea(rng, (400, 400))
     p = D.SuperpixelCFARParams(looks=1.0)
+    (mask, _), prep = whole(rng.exponential(1.0, (300, 300)), p)
+    assert prep["target_count"] == 0 and prep["target_rule"] != "kmeans" and not mask.any()
+    x = k_sea(rng, (400, 400))
     (mask, _), prep = whole(x, p)
-    assert prep["target_count"] == 0 and prep["separation_db"] < p.min_separation_db
-    assert not mask.any()
-    q = D.SuperpixelCFARParams(looks=1.0, min_separation_db=0.0)
-    prep0 = D.scene_prep(x, q)
-    assert prep0["target_count"] > 0.2 * prep0["superpixels"]
+    assert prep["separation_db"] < p.min_separation_db
+    assert prep["target_count"] <= 0.005 * prep["superpixels"] and mask.mean() < 1e-3
+    prep0 = D.scene_prep(x, D.SuperpixelCFARParams(looks=1.0, min_separation_db=0.0))
+    assert prep0["target_rule"] == "kmeans" and prep0["target_count"] > 0.2 * prep0["superpixels"]
 
 
 # --------------------------------------------------------------------------- ships
@@ -349,7 +351,7 @@ def test_decisions_match_a_plain_reference():
         queue = np.empty(sp.size.size + 1, np.int64)
         m = spx.select_clutter(int(t), res["background"], res["target"], sp.size, sp.mean, sp.cov, sp.ptr, sp.idx,
                                sp.anchor[:, 0].copy(), sp.anchor[:, 1].copy(), p.clutter_radius, p.th_clu,
-                               p.tl_clu, p.max_clutter, 1.0, out, mark, queue)
+                               p.tl_clu, p.max_clutter, 1.0, out, mark, queue, p.rings)
         assert m == nc and (mark == -1).all()
         cl = out[:m]
         assert res["background"][cl].all() and t not in cl
@@ -383,6 +385,8 @@ def test_decisions_match_a_plain_reference():
     ({"spacing": 2}, "spacing"),
     ({"contrast": "lots"}, "contrast"),
     ({"shadow_ratio": -1}, "shadow_ratio"),
+    ({"rings": -1}, "rings"),
+    ({"contrast": "none"}, "contrast"),
     ({"bogus": 1}, "bogus"),
 ])
 def test_bad_parameters_raise_naming_them(bad, name):

@@ -14,7 +14,9 @@ Equation numbers are the paper's; docs/algorithms/superpixel_cfar.md states ever
    integer counts, tiling-invariant); ``reduce`` takes the exact optimal 2-means split of the
    binned means (no initialisation to depend on). The split must separate the class
    centroids by ``min_separation_db`` (an addition: K-means always splits, and on a scene of
-   sea alone it would put half the sea in the target class).
+   sea alone, or of sea with a few small ships, it puts half the sea in the target class);
+   otherwise the potential targets are the superpixels ``min_separation_db`` above the
+   centroid of all superpixels (in dB).
 4. Clutter superpixels per target superpixel (Table 1): :func:`superpixels.select_clutter`.
 5. Rayleigh mixture (M_a = ``components``, eq 3-6) fitted by EM on the clutter pixels' amplitudes
    and ``T_cfar`` from ``1 - F(T_cfar) = pfa`` (eq 14) on a proven bracket
@@ -86,6 +88,9 @@ class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults
     max_clutter: int = Field(10, ge=1, le=100, description="Table 1: most clutter superpixels per target")
     clutter_radius: int = Field(36, ge=1, le=512, description="clutter superpixels' anchors lie within this "
                                                               "many pixels (Chebyshev) of the target's")
+    rings: int = Field(1, ge=0, le=32, description="Table 1 for a target superpixel without background "
+                                                   "neighbours: look for them through at most this many rings "
+                                                   "of target superpixels (0: adjacent only, as the paper)")
     components: int = Field(3, ge=1, le=8, description="Rayleigh components M_a of the clutter mixture (eq 3)")
     em_iter: int = Field(50, ge=1, le=10000, description="EM iterations at most (eq 5-6 as M-step)")
     contrast: Literal["paper", "off"] = Field(
@@ -192,16 +197,32 @@ def split_bins(counts: np.ndarray, shadow_ratio: float) -> tuple[int, int, float
     return sh, int(nz[k + 1]), float(sr[k] / nr[k] - sl[k] / nl[k])
 
 
+def above_centroid(counts: np.ndarray, shadow_bin: int, db: float) -> int:
+    """First bin whose centre is ``db`` dB above the count-weighted centroid (dB) of the bins from
+    ``shadow_bin`` on (``HIST_BINS`` when none is)."""
+    c = np.asarray(counts, np.float64).copy()
+    c[:shadow_bin] = 0
+    if c.sum() == 0:
+        return HIST_BINS
+    centre_db = (HIST_LO + (np.arange(HIST_BINS) + 0.5) / HIST_PER_DECADE) * 10.0
+    mu = float(np.sum(c * centre_db) / c.sum())
+    above = np.flatnonzero(centre_db >= mu + db)
+    return int(above[0]) if above.size else HIST_BINS
+
+
 def reduce(parts: list[dict], p: SuperpixelCFARParams, prep: dict) -> dict:
     counts = np.sum([q["counts"] for q in parts], axis=0).astype(np.int64)
     sh, tb, sep = split_bins(counts, p.shadow_ratio)
+    rule = "kmeans"
     if p.kmeans and sep < p.min_separation_db:
-        tb = HIST_BINS  # the two classes are one population: no potential targets
+        # the two classes are one population (a scene of sea, a few small ships): potential targets
+        # are the superpixels min_separation_db above the centroid of all (non-shadow) superpixels
+        tb, rule = above_centroid(counts, sh, p.min_separation_db), "centroid + min_separation_db"
     edge = lambda b: float(10.0 ** (HIST_LO + b / HIST_PER_DECADE)) if b < HIST_BINS else None  # noqa: E731
     return {"superpixels": int(counts.sum()), "shadow_bin": sh, "target_bin": tb,
             "shadow_below": edge(sh) if sh > 0 else 0.0, "target_from": edge(tb),
             "shadow_count": int(counts[:sh].sum()), "target_count": int(counts[tb:].sum()),
-            "separation_db": sep}
+            "separation_db": sep, "target_rule": rule}
 
 
 def scene_prep(x: np.ndarray, p: SuperpixelCFARParams, prep: dict | None = None, tile: int | None = None) -> dict:
@@ -225,7 +246,7 @@ def scene_prep(x: np.ndarray, p: SuperpixelCFARParams, prep: dict | None = None,
 
 @njit(cache=True, nogil=True)
 def _decide(cands, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, pix_ptr, pix, xf, amp, zeta,
-            radius, th_clu, tl_clu, max_clutter, looks, K, em_iter, bin_width, pfa, use_contrast,
+            radius, th_clu, tl_clu, max_clutter, rings, looks, K, em_iter, bin_width, pfa, use_contrast,
             frac, thr, det, ratio, n_clutter):
     nl = n.size
     mark = np.full(nl, -1, np.int64)
@@ -236,7 +257,7 @@ def _decide(cands, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, pix_p
     for ci in range(cands.size):
         t = cands[ci]
         m = spx.select_clutter(t, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, radius, th_clu, tl_clu,
-                               max_clutter, looks, out, mark, queue)
+                               max_clutter, looks, out, mark, queue, rings)
         n_clutter[t] = m
         if m == 0:
             continue
@@ -310,7 +331,8 @@ def analyse(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) ->
     ratio = np.zeros(x.size)
     _decide(cands, bg, target, sp.size, sp.mean, sp.cov, sp.ptr, sp.idx, sp.anchor[:, 0].copy(),
             sp.anchor[:, 1].copy(), pix_ptr, order.astype(np.int64), np.where(ok, x, 0.0).ravel(), amp, zeta,
-            int(p.clutter_radius), float(p.th_clu), float(p.tl_clu), int(p.max_clutter), looks, int(p.components),
+            int(p.clutter_radius), float(p.th_clu), float(p.tl_clu), int(p.max_clutter), int(p.rings), looks,
+            int(p.components),
             int(p.em_iter), float(BIN_WIDTH), float(p.pfa), p.contrast == "paper", frac, thr, det, ratio, n_clutter)
     return {"sp": sp, "shadow": shadow, "target": target, "background": bg, "candidates": cands, "frac": frac,
             "threshold": thr, "n_clutter": n_clutter, "pixel_det": det.reshape(x.shape),
