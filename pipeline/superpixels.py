@@ -84,13 +84,20 @@ def local_stats(x: np.ndarray, ok: np.ndarray, origin, side: int) -> tuple[np.nd
     s1 = centered_box_sum(xf, side, r, org)
     s2 = centered_box_sum(xf * xf, side, r, org)
     n = centered_box_sum(ok.astype(np.float64), side, r, org)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        m = np.where(n > 0, s1 / n, np.nan)
-        v = np.maximum(s2 / n - m * m, 0.0)
-        c = np.where(m > 0, np.sqrt(v) / m, 0.0)
-    mean[r:H - r, r:W - r] = m
-    cov[r:H - r, r:W - r] = np.where(n > 0, c, np.nan)
+    _mean_cov(s1, s2, n, mean[r:H - r, r:W - r], cov[r:H - r, r:W - r])
     return mean, cov
+
+
+@njit(cache=True, nogil=True)
+def _mean_cov(s1, s2, n, mean, cov):
+    for i in range(s1.shape[0]):
+        for j in range(s1.shape[1]):
+            k = n[i, j]
+            if k > 0:
+                m = s1[i, j] / k
+                v = s2[i, j] / k - m * m
+                mean[i, j] = m
+                cov[i, j] = math.sqrt(v) / m if (m > 0.0 and v > 0.0) else 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -264,6 +271,7 @@ def _pairs(lab):
     H, W = lab.shape
     out = np.empty(4 * H * W, np.int64)
     m = 0
+    last = np.full(4, -1, np.int64)  # the previous key per direction: runs along a boundary repeat it
     for i in range(H):
         for j in range(W):
             a = lab[i, j]
@@ -285,14 +293,29 @@ def _pairs(lab):
                     continue
                 lo = a if a < b else b
                 hi = b if a < b else a
-                out[m] = lo * 2147483648 + hi
-                m += 1
+                key = lo * 2147483648 + hi
+                if key != last[q]:
+                    out[m] = key
+                    m += 1
+                    last[q] = key
     return out[:m]
 
 
 def adjacency(lab: np.ndarray, n_lab: int) -> tuple[np.ndarray, np.ndarray]:
     """8-adjacency of labels as CSR ``(ptr, idx)``, neighbours of each label sorted."""
-    keys = np.unique(_pairs(lab))
+    return _csr(np.unique(_pairs(lab)), n_lab)
+
+
+def merged_adjacency(ptr: np.ndarray, idx: np.ndarray, fmap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The adjacency after relabelling by ``fmap``: labels ``a != b`` are adjacent when some of
+    their members were (the same as :func:`adjacency` of the relabelled image)."""
+    src = np.repeat(np.arange(ptr.size - 1), np.diff(ptr))
+    a, b = fmap[src], fmap[idx]
+    keep = a < b
+    return _csr(np.unique(a[keep] * 2147483648 + b[keep]), ptr.size - 1)
+
+
+def _csr(keys: np.ndarray, n_lab: int) -> tuple[np.ndarray, np.ndarray]:
     a = keys // 2147483648
     b = keys % 2147483648
     src = np.concatenate([a, b])
@@ -401,7 +424,7 @@ def segment(x: np.ndarray, ok: np.ndarray, origin, spacing: int, reach: int, eps
     fmap = _merge_map(n, mean, cov, ptr, idx, int(min_size), float(looks))
     lab[present] = fmap[lab[present]]
     n, mean, cov = region_stats(lab, x, nl)
-    ptr, idx = adjacency(lab, nl)
+    ptr, idx = merged_adjacency(ptr, idx, fmap)
     return Superpixels(labels=lab, gid=uniq, anchor=anchors_of(uniq, spacing), size=n, mean=mean, cov=cov,
                        ptr=ptr, idx=idx)
 

@@ -79,8 +79,9 @@ class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults
     kmeans: bool = Field(True, description="K-means (k = 2) on superpixel means: test only the brighter class; "
                                            "false: test every superpixel (diagnostics, calibration)")
     min_separation_db: float = Field(
-        6.0, ge=0.0, le=100.0, description="the K-means target class exists only when its centroid is this many "
-                                           "dB above the background's (0: always, as the paper)")
+        6.0, ge=0.0, le=100.0, description="the K-means split is kept when its class centroids are this many dB "
+                                           "apart (0: always, as the paper); otherwise the potential targets are "
+                                           "the superpixels this many dB above the centroid of all")
     th_clu: float = Field(4.0, ge=0.0, le=1e9, description="Table 1: adjacent background superpixels with "
                                                            "dissimilarity (eq 9) above this are clutter")
     tl_clu: float = Field(2.0, ge=0.0, le=1e9, description="Table 1: clutter grows through neighbours with "
