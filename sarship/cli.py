@@ -96,7 +96,7 @@ def cmd_simulate(a) -> int:
         kind=a.kind, shape=a.shape, ships=a.ships, seed=a.seed, looks=a.looks, clutter=a.clutter,
         land=a.land, sidelobes=a.sidelobes, ambiguities=a.ambiguities, stripes=a.stripes, rfi=a.rfi,
         scr_db=a.scr_db, pixel_spacing_m=(a.spacing, a.spacing),
-        texture_shape=a.texture_shape, ggd_power=a.ggd_power, ggd_shape=a.ggd_shape,
+        texture_shape=a.texture_shape, ggd_power=a.ggd_power, ggd_shape=a.ggd_shape, shape_beta=a.shape_beta,
     ))
     out = Path(a.out)
     truth = a.truth or f"{out}.truth.geojson"
@@ -301,13 +301,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--ships", type=int, default=10)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--looks", type=float, default=1.0)
-    s.add_argument("--clutter", choices=["rayleigh", "gamma", "k", "g0", "ggd"], default="gamma")
+    s.add_argument("--clutter", choices=["rayleigh", "gamma", "k", "g0", "ggd", "cggd"], default="gamma")
     s.add_argument("--texture-shape", dest="texture_shape", type=float, default=4.0,
                    help="k: gamma texture shape nu; g0: inverse-gamma texture shape a = -alpha > 1 (default 4)")
     s.add_argument("--ggd-power", dest="ggd_power", type=float, default=0.7,
                    help="ggd: power v of the generalized gamma (default 0.7)")
     s.add_argument("--ggd-shape", dest="ggd_shape", type=float, default=3.0,
                    help="ggd: shape kappa of the generalized gamma (default 3)")
+    s.add_argument("--shape-beta", dest="shape_beta", type=float, default=1.0,
+                   help="cggd (--kind slc): complex generalized Gaussian shape beta, 1 = complex Gaussian, "
+                        "< 1 super-Gaussian, > 1 sub-Gaussian (default 1)")
     s.add_argument("--scr-db", dest="scr_db", type=float, default=15.0, help="ship-to-clutter ratio (dB)")
     s.add_argument("--spacing", type=float, default=10.0, help="pixel spacing in metres (default 10)")
     for flag in ("land", "sidelobes", "ambiguities", "stripes", "rfi"):

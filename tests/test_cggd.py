@@ -121,3 +121,31 @@ def test_bad_parameters_raise():
         cggd.csk([1.0 + 0j])
     with pytest.raises(ValueError, match="NaN"):
         cggd.beta_from_csk(float("nan"))
+
+
+def test_simulate_slc_cggd_clutter(tmp_path):
+    """``sarship simulate --kind slc --clutter cggd --shape-beta B``: the sea is circular CGGD of
+    shape B and mean power clutter_mean (its CSK is eq 39's, the CSK route recovers B)."""
+    from sarship.pipeline.errors import InputError
+    from sarship.pipeline.simulate import SimConfig, simulate_array, validate
+
+    for beta in (0.5, 2.0):
+        arr, _ = simulate_array(SimConfig(kind="slc", shape=(512, 512), ships=0, seed=4, clutter="cggd",
+                                          shape_beta=beta, clutter_mean=3.0))
+        z = arr["hh"]
+        assert z.dtype == np.complex64 and np.mean(np.abs(z) ** 2) == pytest.approx(3.0, rel=0.03)
+        assert cggd.csk(z) == pytest.approx(float(cggd.csk_of_beta(beta)), abs=0.08)
+        assert cggd.beta_csk(z) == pytest.approx(beta, rel=0.08)
+    for bad in (dict(kind="intensity", clutter="cggd"), dict(kind="slc", clutter="cggd", shape_beta=0.0)):
+        with pytest.raises(InputError, match="clutter|shape_beta"):
+            validate(SimConfig(ships=0, **bad))
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-m", "sarship", "simulate", str(tmp_path / "s.zarr"), "--kind", "slc",
+                          "--shape", "64x64", "--ships", "0", "--clutter", "cggd", "--shape-beta", "0.7"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    res = subprocess.run([sys.executable, "-m", "sarship", "simulate", str(tmp_path / "t.zarr"), "--shape", "64x64",
+                          "--clutter", "cggd"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "cggd" in res.stderr and len(res.stderr.strip().splitlines()) == 1

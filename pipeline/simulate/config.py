@@ -19,7 +19,7 @@ from sarship.pipeline.errors import InputError
 #: Scene kinds the simulator writes.
 KINDS = ("intensity", "slc", "quadpol")
 #: Clutter models.
-CLUTTERS = ("rayleigh", "gamma", "k", "g0", "ggd")
+CLUTTERS = ("rayleigh", "gamma", "k", "g0", "ggd", "cggd")
 
 # Ship placement constraints, checked by validate() (see the ships module docstring).
 BORDER_PX = 5          # ships stay this far from the scene border
@@ -49,6 +49,7 @@ class SimConfig:
     clutter_mean: float = 1.0        # mean sea intensity (HH for quadpol)
     ggd_power: float = 0.7           # GGD clutter (intensity only): power v of (x / sigma)^v kappa ~ Gamma(kappa)
     ggd_shape: float = 3.0           # GGD clutter: shape kappa
+    shape_beta: float = 1.0          # CGGD clutter (slc only): shape beta (1: complex Gaussian; < 1 super-Gaussian)
 
     def as_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -172,6 +173,11 @@ def validate(cfg: SimConfig) -> SimConfig:
     gk = _num(cfg.ggd_shape, "ggd_shape", "a number in [0.1, 100]")
     if not 0.1 <= gk <= 100:
         raise _bad("ggd_shape", "a number in [0.1, 100]", cfg.ggd_shape)
+    sb = _num(cfg.shape_beta, "shape_beta", "a number in [0.05, 10]")
+    if not 0.05 <= sb <= 10:
+        raise _bad("shape_beta", "a number in [0.05, 10]", cfg.shape_beta)
+    if clutter == "cggd" and kind != "slc":
+        raise _bad("clutter", "cggd (a complex single-channel model) with kind slc only", clutter)
     if clutter == "ggd" and kind != "intensity":
         raise _bad("clutter", "rayleigh, gamma, k or g0 for slc/quadpol scenes (ggd is an intensity model)", clutter)
     cm = _num(cfg.clutter_mean, "clutter_mean", "a number in [1e-12, 1e12]")
@@ -181,7 +187,8 @@ def validate(cfg: SimConfig) -> SimConfig:
                     land=bool(cfg.land), sidelobes=bool(cfg.sidelobes),
                     ambiguities=bool(cfg.ambiguities), stripes=bool(cfg.stripes),
                     rfi=bool(cfg.rfi), pixel_spacing_m=spacing, scr_db=scr, length_m=length,
-                    texture_shape=nu, texture_corr_px=corr, clutter_mean=cm, ggd_power=gv, ggd_shape=gk)
+                    texture_shape=nu, texture_corr_px=corr, clutter_mean=cm, ggd_power=gv, ggd_shape=gk,
+                    shape_beta=sb)
     ships = _int(cfg.ships, "ships", "an integer >= 0")
     if ships < 0:
         raise _bad("ships", "an integer >= 0", cfg.ships)

@@ -132,7 +132,12 @@ def _render_block(m: _Model, bi: int, bj: int) -> dict[str, np.ndarray]:
         sp *= mu
         out["intensity"] = sp
     elif cfg.kind == "slc":
-        z = _cn(rng, shape)
+        if cfg.clutter == "cggd":  # circular CGGD of unit variance (pipeline/cggd.py, seed 004 eq 27-31), as _cn's E|z|^2 = 2
+            from sarship.pipeline.cggd import sample as cggd_sample
+
+            z = cggd_sample(cfg.shape_beta, None, shape, rng, np.complex64) * np.float32(math.sqrt(2.0))
+        else:
+            z = _cn(rng, shape)
         if land is not None:
             mu = np.where(land, mu_land, mu)
         z *= np.sqrt(np.float32(0.5) * np.asarray(mu, dtype=np.float32))
