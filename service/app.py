@@ -102,10 +102,13 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
         request = JobRequest.from_inputs(name, body["inputs"])
         land_file_path(settings, request)
         try:
-            scene_path(settings, request.scene)
+            path = scene_path(settings, request.scene)
         except InputError:
+            path = None
             if store is None or pending_ingest(settings, store, request.scene) is None:
                 scene_path(settings, request.scene)  # raises again, unless an ingest finished meanwhile
+        if path is not None and request.spec.input == "slc":
+            check_complex_scene(path, request.channel)  # csk: an amplitude-only scene is a 400, not a failed job
     except InputError as exc:
         title = "missing input" if "is required" in str(exc) else "invalid input"
         detail = str(exc)
@@ -115,6 +118,20 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
                 detail += f" (its ingest job {last['id']} {last['status']}: {last['message']})"
         raise Problem(400, title, detail) from None
     return dict(body["inputs"])
+
+
+def check_complex_scene(path, channel) -> None:
+    """:class:`InputError` when a detector that reads one complex SLC channel (``input == "slc"``,
+    e.g. ``csk``) gets a scene without one (or a real ``channel``); a store that cannot be
+    opened is left to the job, as for every detector."""
+    from sarship.pipeline.inputs import complex_source
+    from sarship.pipeline.scene import open_scene
+
+    try:
+        scene = open_scene(path)
+    except Exception:
+        return
+    complex_source(scene, channel)
 
 
 def request_scene(body: dict) -> str:

@@ -325,3 +325,26 @@ def test_detections_carry_complex_properties(tmp_path, client):
         n = int(mask[r0:r1, c0:c1].sum())
         assert p["rfi"] == csk.rfi_flag(n, p["csk"], p["noncircularity"]) or n != p["area_px"]
     assert same >= 0.8 * len(feats)     # (a box may also hold another detection's pixels)
+
+
+def test_service_refuses_amplitude_scene_with_400(tmp_path):
+    """The job API validates a csk job's scene at submission: an amplitude-only scene or a real
+    ``channel`` is a 400 problem naming the missing phase, an SLC scene passes."""
+    from sarship.service.app import validate_inputs
+    from sarship.service.common import Problem
+    from sarship.service.settings import Settings
+
+    scenes = tmp_path / "data" / "scenes"
+    scenes.mkdir(parents=True)
+    x = np.ones((32, 32), np.float32)
+    write_scene(scenes / "amp.zarr", {"intensity": x}, tile=32, looks=1.0)
+    write_scene(scenes / "slc.zarr", {"intensity": x, "hh": x.astype(np.complex64)}, tile=32, kind="slc")
+    settings = Settings(data=tmp_path / "data")
+    with pytest.raises(Problem) as e:
+        validate_inputs(settings, "csk", {"inputs": {"scene": "amp"}})
+    assert e.value.status == 400 and "complex" in e.value.detail
+    with pytest.raises(Problem) as e:
+        validate_inputs(settings, "csk", {"inputs": {"scene": "slc", "channel": "intensity"}})
+    assert e.value.status == 400 and "not complex" in e.value.detail
+    assert validate_inputs(settings, "csk", {"inputs": {"scene": "slc"}})["scene"] == "slc"
+    assert validate_inputs(settings, "ca_cfar", {"inputs": {"scene": "amp"}})["scene"] == "amp"
