@@ -47,7 +47,7 @@ class CSKParams(with_defaults(DetectorParams, "CSKDefaults", pfa=1e-6, merge_px=
     """Parameters of ``csk``. ``target``, ``guard``, ``background`` and ``looks`` are not used
     (one window, single-look complex data)."""
 
-    window: int = Field(7, ge=3, le=63, description="CSK window side (odd, pixels): n = window^2 cells")
+    window: int = Field(7, ge=3, le=15, description="CSK window side (odd, 3..15 pixels): n = window^2 cells")
     cells: Literal["bright", "window"] = Field(
         "bright", description="bright: a pixel is detected when its window's CSK exceeds the threshold and its "
                               "power exceeds the window's mean power (the ship's bright cells); window: every "
@@ -77,7 +77,8 @@ class CSKParams(with_defaults(DetectorParams, "CSKDefaults", pfa=1e-6, merge_px=
 
 def prepare(p: CSKParams) -> dict:
     n = int(p.window) ** 2
-    thr, rse = csk_null.threshold(n, float(p.pfa), p.cells)
+    samples = csk_null.samples_for(n)
+    thr, rse = csk_null.threshold(n, float(p.pfa), p.cells, samples=samples)
     return {
         "n_window": n,
         "threshold": thr,
@@ -86,7 +87,7 @@ def prepare(p: CSKParams) -> dict:
         "null_mean": -4.0 / (n + 1),
         "statistic": "zero-mean sample CSK of the window, eq 37: n S22/S11^2 - 2 - |S20|^2/S11^2",
         "distribution": (f"circular complex Gaussian sea, n = {n}: importance-sampled "
-                         f"({csk_null.SAMPLES} windows, seed {csk_null.SEED}; pipeline/csk_null.py)"),
+                         f"({samples} windows, seed {csk_null.SEED}; pipeline/csk_null.py)"),
     }
 
 
