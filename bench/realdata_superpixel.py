@@ -9,7 +9,7 @@ and the pixel size rule (the chips have no pixel spacing: ``min_area_px`` 10, th
 default), pixel TPR/FPR on HRSID (the only set with masks). No tuning: the settings below are
 fixed before the run; both halves are reported.
 
-``nice -n 10 python bench/realdata_superpixel.py [--limit N] [--json out.json]``
+``nice -n 10 python bench/realdata_superpixel.py [--limit N] [--only 0,2] [--json out.json]``
 """
 
 from __future__ import annotations
@@ -28,6 +28,8 @@ SETTINGS = [
     ("superpixel_cfar", "land_mask=texture", {"land_mask": "texture"}),
     ("two_parameter", "defaults (pfa 1e-6, 41/81)", {}),
     ("two_parameter", "pfa 1e-3 (superpixel_cfar's)", {"pfa": 1e-3}),
+    ("two_parameter", "defaults, land_mask=texture", {"land_mask": "texture"}),
+    ("two_parameter", "pfa 1e-3, land_mask=texture", {"pfa": 1e-3, "land_mask": "texture"}),
 ]
 SETS = ("ssdd", "hrsid")
 
@@ -36,7 +38,9 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--only", default=None, help="comma list of SETTINGS indices to run (default: all)")
     a = ap.parse_args()
+    todo = [SETTINGS[int(i)] for i in a.only.split(",")] if a.only else SETTINGS
     from distributed import Client, LocalCluster
 
     from sarship.pipeline import detectors
@@ -47,7 +51,7 @@ def main() -> None:
     rd.split_halves(chips)
     out = {}
     with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as lc, Client(lc) as client:
-        for det, label, kw in SETTINGS:
+        for det, label, kw in todo:
             p = detectors.get(det).params(**{k: v for k, v in kw.items()})
             grid = {"merges": [p.merge_px], "min_areas": [10], "min_lengths": [], "areas_m2": []}
             per = {}

@@ -60,11 +60,15 @@ HIST_PER_DECADE = 128
 HIST_BINS = 80 * HIST_PER_DECADE
 
 
-class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults", pfa=1e-3, merge_px=4)):
+class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults", pfa=1e-3, merge_px=4,
+                                         land_mask="texture")):
     """Parameters of ``superpixel_cfar`` (module docstring; docs/algorithms/superpixel_cfar.md).
 
     The paper's defaults: M_a = 3, CoV over 7x7, kappa 0.4, at most 10 clutter superpixels,
     detected fraction 0.7. ``target``/``guard``/``background`` are unused (no windows).
+    ``land_mask`` texture: the contrast of eq 11 does not keep coastal land out (its sum of
+    dissimilarities is large for land too); on the HRSID chips the land mask took the pixel FPR
+    from 1.63 % to 0.15 % (bench/REALDATA.md).
     """
 
     spacing: int = Field(12, ge=4, le=64, description="seed grid spacing in pixels (superpixels of about "
