@@ -350,6 +350,58 @@ def test_growth_matches_a_plain_reference():
     assert set(np.unique(claimed[claimed >= 0]).tolist()) <= hull_seeds
 
 
+def test_merge_matches_eq_9_10_written_plainly():
+    """The merging stage against a plain loop: every raw superpixel smaller than min_size joins
+    the adjacent raw superpixel of at least min_size pixels with the least eq 9-10 dissimilarity
+    (computed here from the pixels with NumPy), ties to the smaller id."""
+    x, _ = hires_scene(6, shape=(120, 130), n_ships=1, lengths=(50.0, 70.0))
+    ok = np.isfinite(x)
+    origin, S, R, eps, L, min_size = (-7, 5), 8, 6, 4.0, 1.0, 30
+    final = spx.segment(x, ok, origin, S, R, eps, L, min_size)
+    # raw labels, as segment builds them before merging
+    m5, h5 = spx.local_stats(x, ok, origin, spx.PATCH)
+    sr, sc, _ = spx.seeds(x.shape, origin, S)
+    bd = np.full(x.shape, np.iinfo(np.int64).max, np.int64)
+    bs = np.full(x.shape, -1, np.int64)
+    spx._grow(m5, h5, ok, sr, sc, R, eps, 25.0 * L, bd, bs)
+    gi0, gj0 = origin[0] // S, origin[1] // S
+    nci = (origin[0] + x.shape[0] - 1) // S - gi0 + 1
+    ncj = (origin[1] + x.shape[1] - 1) // S - gj0 + 1
+    codes = spx._codes(bs, ok, np.isfinite(m5), sr, sc, origin[0], origin[1], S, gi0, gj0, ncj)
+    raw, _ = spx._compact(codes, 2 * nci * ncj)
+    n_raw = int(raw.max()) + 1
+    size = np.bincount(raw[raw >= 0], minlength=n_raw)
+    mean = np.array([x[raw == l].mean() for l in range(n_raw)])
+    cov = np.array([x[raw == l].std() / x[raw == l].mean() for l in range(n_raw)])
+    pairs = set()
+    H, W = raw.shape
+    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = raw[max(0, -di):H - max(0, di), max(0, -dj):W - max(0, dj)]
+        b = raw[max(0, di):, max(0, dj):][:a.shape[0], :a.shape[1]]
+        keep = (a >= 0) & (b >= 0) & (a != b)
+        pairs |= {(int(min(u, v)), int(max(u, v))) for u, v in zip(a[keep], b[keep])}
+    target = np.arange(n_raw)
+    for l in range(n_raw):
+        if size[l] >= min_size:
+            continue
+        best, bo = -1, math.inf
+        for u, v in sorted(pairs):
+            if l not in (u, v):
+                continue
+            o = v if u == l else u
+            if size[o] < min_size:
+                continue
+            om = (2 * min(size[l], size[o]) * L * math.log((mean[l] + mean[o]) / (2 * math.sqrt(mean[l] * mean[o])))
+                  + abs(cov[l] - cov[o]))
+            if best < 0 or om < bo - 1e-9 * bo or (abs(om - bo) <= 1e-9 * bo and o < best):
+                best, bo = o, om
+        if best >= 0:
+            target[l] = best
+    expect = np.where(raw >= 0, target[np.where(raw >= 0, raw, 0)], -1)
+    np.testing.assert_array_equal(final.labels, expect)
+    assert (size < min_size).sum() > 0 and (target != np.arange(n_raw)).sum() > 0
+
+
 def test_decisions_match_a_plain_reference():
     """Steps 5-7 recomputed with NumPy/SciPy from the analysis' superpixels and clutter sets:
     EM fit, T_cfar by brentq, the contrast of eq 11-13 by direct 7x7 windows, eq 16, the fraction."""
