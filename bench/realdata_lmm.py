@@ -45,6 +45,7 @@ SETTINGS = [
     (1e-3, 41, 81, 0.0),
     (1e-3, 41, 81, 0.1),
     (1e-4, 41, 81, 0.1),
+    (1e-4, 41, 81, 0.0),
 ]
 GRID = {"merges": [2], "min_areas": [3], "min_lengths": [], "areas_m2": [], "bands": ["vh"]}
 KEY = ("px3", 2)

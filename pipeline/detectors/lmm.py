@@ -72,7 +72,7 @@ DEFAULT_CENSOR_LOW = 0.0
 DEFAULT_REFUSE_WEIGHT = 0.15
 
 
-class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-5, guard=21, background=41,
+class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-3, guard=41, background=81,
                               min_area_px=3, merge_px=2)):
     """LMM-CFAR parameters: the common ones plus the mixture / EM settings."""
 
@@ -88,7 +88,7 @@ class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-5, guard=21,
     grid_step: Optional[int] = Field(None, ge=1, le=256,
                                      description="grid form: node spacing in pixels (nodes at global multiples); "
                                                  "default max(1, guard // 4), so nodes stay inside a ship's guard")
-    grid_refine: float = Field(2.0, ge=0.0, le=100.0,
+    grid_refine: float = Field(1.0, ge=0.0, le=100.0,
                                description="grid form: pixels with ln x_t > interpolated ln T - grid_refine "
                                            "(nepers) get their own fast fit, which decides")
     select: str = Field("bic", pattern="^(bic|fixed)$",
