@@ -34,7 +34,7 @@ def env(tmp_path_factory):
     try:
         u = srv.url + "/processes/ca_cfar/execution"
         jobs = {}
-        for name, extra in (("texture", {"land_mask": "texture"}), ("none", {}), ("file", {"land_mask": "land.npy"})):
+        for name, extra in (("texture", {"land_mask": "texture"}), ("none", {"land_mask": "none"}), ("file", {"land_mask": "land.npy"})):
             r = httpx.post(u, json={"inputs": {"scene": "coast", "guard": 21, "background": 41, **extra}})
             assert r.status_code == 201, r.text
             jobs[name] = r.json()["jobID"]

@@ -118,7 +118,8 @@ def test_detect_refuses_nonempty_out_and_inside_scene(scene, tmp_path):
     res = sarship("detect", scene, "--detector", "ca_cfar", "--out", out, "--overwrite")
     assert res.returncode == 0, res.stderr
     assert listing(out)[:1] == ["detections.geojson"] and (out / "notes.txt").read_text() == "mine"
-    assert {"detections.geojson", "mask.zarr", "run.json", "notes.txt"} == set(os.listdir(out))
+    # land.zarr: ca_cfar's default land_mask=texture writes its (here empty) mask beside the detection mask
+    assert {"detections.geojson", "mask.zarr", "land.zarr", "run.json", "notes.txt"} == set(os.listdir(out))
 
 
 def test_run_detection_api_overwrite(scene, tmp_path):

@@ -37,7 +37,8 @@ from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_
 from sarship.pipeline.gpu import is_device_array
 
 
-class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-6, guard=41, background=81, merge_px=4,
+class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-5, guard=41, background=81, merge_px=4,
+                             land_mask="texture",
                              auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
     """Parameters of ``ca_cfar`` (the shared parameters of docs/algorithms/README.md).
 

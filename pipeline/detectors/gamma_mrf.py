@@ -69,7 +69,8 @@ MAX_PASSES = 22
 ANOTHER_PASS = "another_pass"
 
 
-class GammaMRFParams(with_defaults(DetectorParams, "GammaMRFDefaults", pfa=1e-3, merge_px=4)):
+class GammaMRFParams(with_defaults(DetectorParams, "GammaMRFDefaults", pfa=1e-3, merge_px=4,
+                                   land_mask="texture")):
     """Parameters of ``gamma_mrf`` (module docstring; docs/algorithms/gamma_mrf.md).
 
     ``pfa`` is the scattering rule's false-alarm probability under the fitted clutter mixture

@@ -156,7 +156,8 @@ def default_k(n_ring: int) -> int:
     return max(1, (3 * int(n_ring) + 2) // 4)
 
 
-class OSParams(with_defaults(DetectorParams, "OSDefaults", pfa=1e-7, guard=21, background=41, merge_px=4,
+class OSParams(with_defaults(DetectorParams, "OSDefaults", pfa=1e-6, guard=21, background=41, merge_px=4,
+                             land_mask="texture",
                              auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
     """OS-CFAR parameters: the common ones plus the rank ``k``.
 

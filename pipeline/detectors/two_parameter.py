@@ -42,7 +42,7 @@ from sarship.pipeline.simd import (prefetch, vadd, vcol, vcols, vdiv, vdivn, vlo
 
 
 class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", pfa=1e-6, guard=41,
-                                       background=81, merge_px=2,
+                                       background=81, merge_px=2, land_mask="texture",
                                        auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
     """Parameters of ``two_parameter``.
 
