@@ -269,6 +269,12 @@ def test_tiled_equals_whole_scene_bit_for_bit(monkeypatch):
         np.testing.assert_array_equal(m, m0)
         np.testing.assert_array_equal(s, s0)
         np.testing.assert_array_equal(lab, l0)
+    # the boundary view of the segmentation (decision=boundaries) tiles too
+    pb = D.SuperpixelCFARParams(**SMALL, decision="boundaries")
+    mb0, _ = D.detect(P, h, (-h, -h), pb, prep)
+    mb, _, _ = _tiled(x, pb, prep, 29)
+    np.testing.assert_array_equal(mb, mb0)
+    assert 0.1 < mb0.mean() < 0.6
     # the halo matters: one smaller than a superpixel's reach changes superpixels and decisions
     # (the halo is a proven bound: here 14 px of the 83 already gave the same masks)
     monkeypatch.setattr(D, "halo", lambda q: 6)

@@ -26,7 +26,8 @@ Equation numbers are the paper's; docs/algorithms/superpixel_cfar.md states ever
    (eq 16) ``A(x) C_local(x) > T_cfar`` with ``A = sqrt(I)`` the amplitude, the variable the
    Rayleigh mixture models. ``contrast="off"`` is eq 15 (``A(x) > T_cfar``).
 7. Superpixel decision (section 3.4): a target superpixel whose fraction of detected present
-   pixels exceeds ``fraction`` is target whole (``decision="pixel"``: eq 16's pixels).
+   pixels exceeds ``fraction`` is target whole (``decision="pixel"``: eq 16's pixels; ``decision="boundaries"``: the superpixel boundaries
+   as the mask, a debugging view for the mask quicklook).
 
 Tiling. Every superpixel is a function of the pixels within a bounded distance of its anchor
 (``superpixels.context_px``) and extends at most ``superpixels.extent_px`` from it; clutter
@@ -104,8 +105,10 @@ class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults
     cov_window: int = Field(7, ge=3, le=31, description="CoV window side of eq 13 (odd, pixels)")
     fraction: float = Field(0.7, ge=0.0, lt=1.0, description="a target superpixel whose detected fraction "
                                                              "exceeds this is target whole (section 3.4)")
-    decision: Literal["superpixel", "pixel"] = Field(
-        "superpixel", description="superpixel: step 7's decision; pixel: eq 16's pixel mask")
+    decision: Literal["superpixel", "pixel", "boundaries"] = Field(
+        "superpixel", description="superpixel: step 7's decision; pixel: eq 16's pixel mask; boundaries: the "
+                                  "mask is the superpixel boundaries (to view the segmentation in the mask "
+                                  "quicklook; its detections mean nothing)")
 
     @model_validator(mode="after")
     def _own(self):
@@ -362,8 +365,13 @@ def _above(stat: np.ndarray, mask: np.ndarray, level: float) -> np.ndarray:
 def detect(block, halo_px, origin, p: SuperpixelCFARParams, prep: dict):
     """(mask, stat) of the core. ``decision="superpixel"``: stat = the superpixel's detected
     fraction (> ``fraction`` where the mask is set); ``"pixel"``: stat = A C_local / T_cfar (> 1)."""
-    res = analyse(block, halo_px, origin, p, prep)
     hp = int(halo_px)
+    if p.decision == "boundaries":
+        x = _check(block, halo_px, p)
+        lab = _segment(x, _present(x), origin, p, _looks(p, prep)).labels
+        mask = _core(boundaries(lab), hp)
+        return mask, mask.astype(np.float32)
+    res = analyse(block, halo_px, origin, p, prep)
     if p.decision == "pixel":
         mask = _core(res["pixel_det"], hp).copy()
         return mask, _above(_core(res["ratio"], hp), mask, 1.0)
@@ -375,6 +383,16 @@ def detect(block, halo_px, origin, p: SuperpixelCFARParams, prep: dict):
     safe = np.where(lab >= 0, lab, 0)
     mask = (lab >= 0) & hit[safe]
     return mask, _above(res["frac"][safe], mask, float(p.fraction))
+
+
+def boundaries(lab: np.ndarray) -> np.ndarray:
+    """Labelled pixels whose right or lower neighbour has another label (a debugging view)."""
+    out = np.zeros(lab.shape, bool)
+    d = lab[:, :-1] != lab[:, 1:]
+    out[:, :-1] |= d & (lab[:, :-1] >= 0)
+    d = lab[:-1, :] != lab[1:, :]
+    out[:-1, :] |= d & (lab[:-1, :] >= 0)
+    return out
 
 
 def superpixel_labels(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict | None = None) -> np.ndarray:
