@@ -59,7 +59,7 @@ def main() -> None:
             for c in chips:
                 mask, _ = rd.run_mask(client, c, det, {**{k: str(v) for k, v in kw.items()}, "min_area_px": 1},
                                       work)
-                s = rd.chip_scores(c, mask, grid)[(f"px10", p.merge_px)]
+                s = rd.chip_scores(c, mask, grid)[("px10", p.merge_px)]
                 per.setdefault((c.dataset, c.half), []).append(s)
                 per.setdefault((c.dataset, "all"), []).append(s)
             secs = time.perf_counter() - t
