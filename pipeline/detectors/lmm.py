@@ -72,8 +72,8 @@ DEFAULT_CENSOR_LOW = 0.0
 DEFAULT_REFUSE_WEIGHT = 0.15
 
 
-class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-3, guard=41, background=81,
-                              min_area_px=3, merge_px=2)):
+class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-3, guard=41, background=81, merge_px=4,
+                              auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
     """LMM-CFAR parameters: the common ones plus the mixture / EM settings."""
 
     components: int = Field(3, ge=1, le=6, description="K, number of lognormal components (eq 3-1); with "
