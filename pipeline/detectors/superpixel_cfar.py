@@ -40,6 +40,9 @@ pass counts a superpixel in the one tile whose core holds its anchor.
 
 Absent pixels (NaN, inf, negative) belong to no superpixel, enter no statistic and are never
 detected. The superpixel label image (global ids) of a block's core: :func:`superpixel_labels`.
+
+GPU: a CuPy block runs steps 1-5 (:func:`host_steps`) on a host copy and steps 6-7 on the
+device (:mod:`sarship.pipeline.gpu.superpixel_cfar`); masks equal the CPU's bit for bit.
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ from pydantic import Field, model_validator
 
 from sarship.pipeline import superpixels as spx
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, float_block, with_defaults
+from sarship.pipeline.gpu import is_device_array, to_host
 from sarship.pipeline.rayleigh_mixture import BIN_WIDTH, fit_binned, threshold_intensity
 
 #: Fixed histogram of log10(superpixel mean) for the scene-wide K-means and shadow rule.
@@ -153,7 +157,7 @@ def _looks(p, prep) -> float:
 
 
 def _check(block, halo_px, p):
-    x = float_block(block)
+    x = float_block(to_host(block))  # a CuPy block: the host steps run on a host copy
     if int(halo_px) < halo(p):
         raise ValueError(f"superpixel_cfar needs a halo of {halo(p)} (10 reach + 5 + clutter_radius), "
                          f"block has {halo_px}")
@@ -253,9 +257,11 @@ def scene_prep(x: np.ndarray, p: SuperpixelCFARParams, prep: dict | None = None,
 
 
 @njit(cache=True, nogil=True)
-def _decide(cands, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, pix_ptr, pix, xf, amp, zeta,
-            radius, th_clu, tl_clu, max_clutter, rings, looks, K, em_iter, bin_width, pfa, use_contrast,
-            frac, thr, det, ratio, n_clutter):
+def _thresholds(cands, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, pix_ptr, pix, xf, radius, th_clu,
+                tl_clu, max_clutter, rings, looks, K, em_iter, bin_width, pfa, thr, somega_out, decided, n_clutter):
+    """Steps 4-5 per candidate: Table 1's clutter set, the Rayleigh-mixture EM on its pixels'
+    values ``xf`` and ``T_cfar`` (eq 14), and eq 11's ``sum Omega(SP_m, SP_n)`` over the set;
+    ``decided[t]``: ``t`` has a threshold (clutter found, at least ``K`` clutter pixels)."""
     nl = n.size
     mark = np.full(nl, -1, np.int64)
     queue = np.empty(nl + 1, np.int64)
@@ -285,12 +291,25 @@ def _decide(cands, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, pix_p
         if tot < K:
             continue
         fit_binned(vals, K, em_iter, bin_width, w, s)
-        T = math.sqrt(threshold_intensity(w, s, pfa))
-        thr[t] = T
+        thr[t] = math.sqrt(threshold_intensity(w, s, pfa))
+        somega_out[t] = somega
+        decided[t] = True
+
+
+@njit(cache=True, nogil=True)
+def _pixels(cands, decided, thr, somega, pix_ptr, pix, amp, zeta, use_contrast, frac, det, ratio):
+    """Steps 6-7 per decided candidate: eq 16 per pixel (``A C_local / T_cfar``) and the
+    detected fraction (:mod:`sarship.pipeline.gpu.superpixel_cfar` is the device twin)."""
+    for ci in range(cands.size):
+        t = cands[ci]
+        if not decided[t]:
+            continue
+        T = thr[t]
+        so = somega[t]
         cnt = 0
         for e in range(pix_ptr[t], pix_ptr[t + 1]):
             i = pix[e]
-            v = amp[i] * zeta[i] * somega if use_contrast else amp[i]
+            v = amp[i] * zeta[i] * so if use_contrast else amp[i]
             d = v > T
             det[i] = d
             ratio[i] = v / T if T > 0 else (np.inf if v > 0 else 0.0)
@@ -299,12 +318,11 @@ def _decide(cands, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, pix_p
         frac[t] = cnt / (pix_ptr[t + 1] - pix_ptr[t])
 
 
-def analyse(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) -> dict:
-    """Every step on a block: superpixels, classes, per target superpixel the clutter count,
-    (``prep`` without the scene pass' values: the block's core is taken for the whole scene)
-    ``T_cfar`` and detected fraction, per pixel eq 16's decision and ``A C_local / T_cfar``
-    (block arrays; the core is ``[halo:-halo, halo:-halo]``)."""
-    x = _check(block, halo_px, p)
+def host_steps(x: np.ndarray, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) -> dict:
+    """Steps 1-5 on a host block ``x`` (float_block'ed, halo checked): superpixels, classes,
+    candidates (target superpixels touching the core), their pixel lists and, per candidate,
+    the clutter count, ``T_cfar``, eq 11's sum of dissimilarities and whether it is decided.
+    Shared by the CPU path and the GPU twin (which runs steps 6-7 on the device)."""
     ok = _present(x)
     looks = _looks(p, prep)
     sp = _segment(x, ok, origin, p, looks)
@@ -325,26 +343,42 @@ def analyse(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) ->
     in_core[core[core >= 0]] = True
     cands = np.flatnonzero(in_core & target).astype(np.int64)
     pix_ptr, order = spx.pixel_lists(lab, sp.size.size)
+    order = order.astype(np.int64)
+    nl = sp.size.size
+    thr = np.full(nl, np.nan)
+    somega = np.zeros(nl)
+    decided = np.zeros(nl, np.bool_)
+    n_clutter = np.zeros(nl, np.int64)
+    _thresholds(cands, bg, target, sp.size, sp.mean, sp.cov, sp.ptr, sp.idx, sp.anchor[:, 0].copy(),
+                sp.anchor[:, 1].copy(), pix_ptr, order, np.where(ok, x, 0.0).ravel(), int(p.clutter_radius),
+                float(p.th_clu), float(p.tl_clu), int(p.max_clutter), int(p.rings), looks, int(p.components),
+                int(p.em_iter), float(BIN_WIDTH), float(p.pfa), thr, somega, decided, n_clutter)
+    return {"sp": sp, "ok": ok, "shadow": shadow, "target": target, "background": bg, "candidates": cands,
+            "pix_ptr": pix_ptr, "pix": order, "threshold": thr, "somega": somega, "decided": decided,
+            "n_clutter": n_clutter}
+
+
+def analyse(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) -> dict:
+    """Every step on a block: superpixels, classes, per target superpixel the clutter count,
+    (``prep`` without the scene pass' values: the block's core is taken for the whole scene)
+    ``T_cfar`` and detected fraction, per pixel eq 16's decision and ``A C_local / T_cfar``
+    (block arrays; the core is ``[halo:-halo, halo:-halo]``)."""
+    x = _check(block, halo_px, p)
+    res = host_steps(x, halo_px, origin, p, prep)
+    ok = res["ok"]
     amp = np.sqrt(np.where(ok, x, 0.0)).ravel()
     if p.contrast == "paper":
         _, cv = spx.local_stats(amp.reshape(x.shape), ok, origin, p.cov_window)
         zeta = np.exp(-cv / p.kappa).ravel()
     else:
         zeta = np.ones(x.size)
-    nl = sp.size.size
+    nl = res["sp"].size.size
     frac = np.zeros(nl)
-    thr = np.full(nl, np.nan)
-    n_clutter = np.zeros(nl, np.int64)
     det = np.zeros(x.size, np.bool_)
     ratio = np.zeros(x.size)
-    _decide(cands, bg, target, sp.size, sp.mean, sp.cov, sp.ptr, sp.idx, sp.anchor[:, 0].copy(),
-            sp.anchor[:, 1].copy(), pix_ptr, order.astype(np.int64), np.where(ok, x, 0.0).ravel(), amp, zeta,
-            int(p.clutter_radius), float(p.th_clu), float(p.tl_clu), int(p.max_clutter), int(p.rings), looks,
-            int(p.components),
-            int(p.em_iter), float(BIN_WIDTH), float(p.pfa), p.contrast == "paper", frac, thr, det, ratio, n_clutter)
-    return {"sp": sp, "shadow": shadow, "target": target, "background": bg, "candidates": cands, "frac": frac,
-            "threshold": thr, "n_clutter": n_clutter, "pixel_det": det.reshape(x.shape),
-            "ratio": ratio.reshape(x.shape), "ok": ok}
+    _pixels(res["candidates"], res["decided"], res["threshold"], res["somega"], res["pix_ptr"], res["pix"], amp,
+            zeta, p.contrast == "paper", frac, det, ratio)
+    return {**res, "frac": frac, "pixel_det": det.reshape(x.shape), "ratio": ratio.reshape(x.shape)}
 
 
 def _core(a, h):
@@ -364,7 +398,13 @@ def _above(stat: np.ndarray, mask: np.ndarray, level: float) -> np.ndarray:
 
 def detect(block, halo_px, origin, p: SuperpixelCFARParams, prep: dict):
     """(mask, stat) of the core. ``decision="superpixel"``: stat = the superpixel's detected
-    fraction (> ``fraction`` where the mask is set); ``"pixel"``: stat = A C_local / T_cfar (> 1)."""
+    fraction (> ``fraction`` where the mask is set); ``"pixel"``: stat = A C_local / T_cfar (> 1).
+    A CuPy ``block`` runs steps 6-7 on its device (:mod:`sarship.pipeline.gpu.superpixel_cfar`)
+    and returns CuPy arrays equal to these."""
+    if is_device_array(block):
+        from sarship.pipeline.gpu.superpixel_cfar import detect as gpu_detect
+
+        return gpu_detect(block, halo_px, origin, p, prep)
     hp = int(halo_px)
     if p.decision == "boundaries":
         x = _check(block, halo_px, p)
@@ -420,5 +460,6 @@ SPEC = DetectorSpec(
     reduce=reduce,
     halo_fn=halo,
     halo_rule="10 reach + 5 + clutter_radius",
-    gpu=False,
+    gpu=True,  # steps 6-7 on the device, 1-5 on a host copy of the block (pipeline/gpu/superpixel_cfar.py)
+    scene_pass_gpu=False,  # the scene pass is the segmentation: host work, so GPU workers pass it the host block
 )
