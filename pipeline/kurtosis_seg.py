@@ -21,8 +21,25 @@ Otsu (the paper's comparison, fig 17): on the 8-bit image mapped linearly from t
 the 256-bin histogram (Otsu 1979, docs/references.md#otsu1979).
 
 :func:`ship_geometry` keeps the 8-connected component of the ship pixels nearest the chip centre
-and measures it in metres (pixel spacing per axis): length and width are the extents along the
-principal axes of the pixel coordinates plus one pixel's footprint along each axis.
+and measures it with the product's moment geometry
+(:func:`sarship.pipeline.components.shape_from_moments`: length and width sqrt(12 lambda) of the
+principal second moments of the pixel footprints in metres, heading of the main axis), the
+geometry every detection carries. (Until issue 15's part 6 it measured the extent along the
+principal axes: one sidelobe streak joined to the hull then counts whole; the moment length
+weighs it by its pixels, as the product does.)
+
+Product use (:func:`segment` and :func:`component_of`, run by the ``csk`` detector's
+``ship_segmentation``, :func:`sarship.pipeline.detectors.csk.segment_geometry`): the
+detection's chip (bounding box plus a margin) of the complex SLC is segmented and the ship is
+the segmented component holding the detection's brightest segmented pixel.
+
+What it does not do on Sentinel-1 IW SLC (bench/REALDATA.md, docs/algorithms/complex_stats.md):
+t* sits at the upper edge of the sea, so a bright ship's SLC impulse response (the mainlobe's
+skirt and the azimuth and range sidelobe cross, non-Gaussian outliers to the sea) is counted
+as ship; on the OpenSARShip IW chips the length is over-estimated by about 5 azimuth pixels
+(+72 to +80 m), where a simulated ship of independent pixels is segmented exactly. Textured
+sea (K-compound with shape nu: excess kurtosis 3 / nu of the real parts) moves t* into the
+sea's upper tail a little more.
 """
 
 from __future__ import annotations
@@ -32,6 +49,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+
+from sarship.pipeline.components import MOMENT_DTYPE, shape_from_moments
+
+#: The segmentations :func:`segment` knows.
+METHODS = ("kurtosis", "otsu")
 
 
 def _values(z: np.ndarray, part: str) -> tuple[np.ndarray, np.ndarray]:
@@ -98,37 +120,74 @@ def otsu_threshold(z, clip_percentile: float = 99.5) -> float:
     return (level + 1) / 255.0 * hi
 
 
+def segment(z, method: str = "kurtosis", part: str = "real", start: float = 0.5) -> tuple[np.ndarray, float]:
+    """``(mask, t)``: the pixels of the complex chip ``z`` whose amplitude exceeds the threshold
+    ``t`` of ``method`` (``"kurtosis"``: :func:`kurtosis_threshold`, ``"otsu"``:
+    :func:`otsu_threshold`); absent (non-finite) pixels are never in the mask. A chip with fewer
+    than 2 present pixels, or whose kurtosis never reaches 0, has an empty mask (t = inf)."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    z = np.asarray(z)
+    if not np.iscomplexobj(z):
+        raise ValueError("segmentation needs complex (SLC) data")
+    ok = np.isfinite(z.real) & np.isfinite(z.imag)
+    if int(ok.sum()) < 2:
+        return np.zeros(z.shape, bool), math.inf
+    t = kurtosis_threshold(z, part, start) if method == "kurtosis" else otsu_threshold(z)
+    with np.errstate(invalid="ignore"):
+        mask = ok & (np.abs(np.where(ok, z, 0)) > t)
+    return mask, float(t)
+
+
+def component_of(mask: np.ndarray, amplitude: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """The 8-connected component of ``mask`` holding the brightest (``amplitude``) pixel of
+    ``mask & seed`` (the detection's pixels); empty when they do not meet."""
+    m = np.asarray(mask, bool)
+    cand = m & np.asarray(seed, bool)
+    if not cand.any():
+        return np.zeros_like(m)
+    a = np.where(cand, np.asarray(amplitude, np.float64), -np.inf)
+    r, c = np.unravel_index(int(np.argmax(a)), a.shape)
+    lab, _ = ndimage.label(m, structure=np.ones((3, 3)))
+    return lab == lab[r, c]
+
+
+def moment_record(mask: np.ndarray, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """The moment record (:data:`sarship.pipeline.components.MOMENT_DTYPE`, length 1) of the
+    pixels of ``mask`` placed at ``origin``; only the moments and bounding box are filled."""
+    rr, cc = np.nonzero(np.asarray(mask, bool))
+    gr = (rr + origin[0]).astype(np.float64)
+    gc = (cc + origin[1]).astype(np.float64)
+    out = np.zeros(1, MOMENT_DTYPE)
+    out["n"] = rr.size
+    out["sr"], out["sc"] = gr.sum(), gc.sum()
+    out["srr"], out["scc"], out["src"] = (gr * gr).sum(), (gc * gc).sum(), (gr * gc).sum()
+    if rr.size:
+        out["r0"], out["c0"] = int(gr.min()), int(gc.min())
+        out["r1"], out["c1"] = int(gr.max()) + 1, int(gc.max()) + 1
+    return out
+
+
 @dataclass(frozen=True)
 class ShipGeometry:
     pixels: int
     length_m: float
     width_m: float
-    heading_deg: float  # principal axis, degrees from the row (azimuth) axis, in [0, 180)
+    heading_deg: float  # main axis as the product's heading_deg (shape_from_moments), in [0, 180)
 
 
 def ship_geometry(mask: np.ndarray, spacing: tuple[float, float], centre: tuple[float, float] | None = None
                   ) -> ShipGeometry | None:
     """The 8-connected component of ``mask`` nearest ``centre`` (default: the chip centre),
-    measured in metres with ``spacing`` = (row, column) pixel sizes; None without pixels."""
+    measured in metres with ``spacing`` = (row, column) pixel sizes by the product's moment
+    geometry (:func:`sarship.pipeline.components.shape_from_moments`); None without pixels."""
     m = np.asarray(mask, bool)
     lab, n = ndimage.label(m, structure=np.ones((3, 3)))
     if n == 0:
         return None
     cy, cx = ((m.shape[0] - 1) / 2, (m.shape[1] - 1) / 2) if centre is None else centre
     yy, xx = np.nonzero(lab)
-    d = np.hypot(yy - cy, xx - cx)
-    comp = lab == lab[yy[np.argmin(d)], xx[np.argmin(d)]]
-    yy, xx = np.nonzero(comp)
-    sy, sx = float(spacing[0]), float(spacing[1])
-    P = np.stack([yy * sy, xx * sx], axis=1)
-    if len(P) == 1:
-        return ShipGeometry(1, max(sy, sx), min(sy, sx), 0.0)
-    w, V = np.linalg.eigh(np.cov(P.T))
-    u = V[:, 1]                      # main axis
-    v = V[:, 0]
-    pu, pv = P @ u, P @ v
-    foot_u = abs(u[0]) * sy + abs(u[1]) * sx
-    foot_v = abs(v[0]) * sy + abs(v[1]) * sx
-    heading = math.degrees(math.atan2(u[1], u[0])) % 180.0
-    return ShipGeometry(int(comp.sum()), float(pu.max() - pu.min() + foot_u), float(pv.max() - pv.min() + foot_v),
-                        heading)
+    k = int(np.argmin(np.hypot(yy - cy, xx - cx)))
+    comp = lab == lab[yy[k], xx[k]]
+    g = shape_from_moments(moment_record(comp)[0], (float(spacing[0]), float(spacing[1])))
+    return ShipGeometry(int(comp.sum()), float(g["length_m"]), float(g["width_m"]), float(g["heading_deg"]))

@@ -287,7 +287,8 @@ def run_request(
                                     mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mr, spacing, geo)
         if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
             feats = spec.detection_properties(feats, records, make_reader(str(scene.path), var, transform),
-                                              mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mr, params, prep)
+                                              mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mr, params, prep,
+                                              spacing=spacing, geo=geo)
         t_merge = time.perf_counter()
         dashboard = None
         with contextlib.suppress(Exception):

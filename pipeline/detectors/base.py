@@ -292,8 +292,9 @@ class DetectorSpec:
     #: ``detection_properties(feats, records, read, read_mask, shape, merge_r, params, prep) ->
     #: feats``: properties computed from the scene's pixels under each whole detection, added
     #: to its ``properties`` after the merge, the size rule and the sidelobe step (``read``: the
-    #: detector's input reader, ``read_mask``: the detection mask), e.g. ``csk``'s complex
-    #: statistics and RFI flag.
+    #: detector's input reader, ``read_mask``: the detection mask; keyword arguments ``spacing``
+    #: and ``geo``: the scene's pixel spacing in metres or None, its georeference attributes, to
+    #: re-measure geometry), e.g. ``csk``'s complex statistics, RFI flag and ship segmentation.
     detection_properties: Optional[Callable[..., list]] = None
     #: ``halo_fn(params) -> int`` for detectors whose context is not ``background // 2``.
     halo_fn: Optional[Callable[[Any], int]] = None

@@ -35,7 +35,7 @@ from __future__ import annotations
 from typing import Literal, Optional
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from sarship.pipeline import boxsum, csk_null
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
@@ -55,9 +55,22 @@ class CSKParams(with_defaults(DetectorParams, "CSKDefaults", pfa=1e-6, merge_px=
     npdd_s: int = Field(3, ge=1, le=31, description="NPDD (eq 19-21) of each detection's pixels: outer neighbourhood s "
                                                      "(window side, centre excluded)")
     npdd_t: int = Field(1, ge=1, le=31, description="NPDD inner neighbourhood t (1: the pixel itself)")
+    ship_segmentation: Literal["kurtosis", "otsu", "none"] = Field(
+        "kurtosis", description="each detection's geometry (length, width, heading, centroid, outline) from a "
+                                "segmentation of its chip of the SLC (bounding box + segmentation_margin_px): "
+                                "kurtosis: the iterative kurtosis segmentation (seed 004 section 5.2), otsu: Otsu "
+                                "on the 8-bit amplitude stretch, none: the detection mask's own geometry")
+    segmentation_margin_px: int = Field(3, ge=1, le=64, description="margin (pixels) around a detection's bounding "
+                                                                     "box of the chip ship_segmentation reads")
     nodata: Optional[float] = Field(
         None, description="value of the complex data (real part, imaginary part 0) marking absent pixels besides "
                           "NaN, e.g. 0 for a zero-filled border; None: NaN only")
+
+    @field_validator("ship_segmentation", mode="before")
+    @classmethod
+    def _none_is_none(cls, v):
+        # the command line's --set ship_segmentation=none arrives as None (parse_params): no segmentation
+        return "none" if v is None else v
 
     @model_validator(mode="after")
     def _csk_checks(self):
@@ -182,10 +195,13 @@ def rfi_flag(n: int, k: float, nc: float, alpha: float = RFI_ALPHA) -> bool:
     return bool(k <= 0.0 and n * nc * nc / 2.0 <= np.log(1.0 / alpha))
 
 
-def detection_properties(feats: list, records, read, read_mask, shape, merge_r: int, p: CSKParams, prep: dict) -> list:
+def detection_properties(feats: list, records, read, read_mask, shape, merge_r: int, p: CSKParams, prep: dict,
+                         spacing: tuple[float, float] | None = None, geo: dict | None = None) -> list:
     """Each detection's complex statistics from its own pixels (the component of the mask):
     ``csk`` (eq 37), ``noncircularity``, ``npdd_variance`` and ``npdd_rbar`` (circular variance
-    and mean resultant length of NPDD_st, eq 19-21 and 5, 8) and ``rfi`` (:func:`rfi_flag`)."""
+    and mean resultant length of NPDD_st, eq 19-21 and 5, 8) and ``rfi`` (:func:`rfi_flag`); then,
+    unless ``ship_segmentation`` is ``none``, the segmented geometry (:func:`segment_geometry`).
+    ``spacing`` and ``geo`` (the scene's pixel spacing and georeference attributes) measure it."""
     from sarship.pipeline import circular
     from sarship.pipeline.sidelobes import component_in_window
 
@@ -210,7 +226,88 @@ def detection_properties(feats: list, records, read, read_mask, shape, merge_r: 
             "npdd_rbar": None if not np.isfinite(rbar) else round(rbar, 6),
             "rfi": rfi_flag(n, k, nc),
         })
+    if p.ship_segmentation != "none":
+        feats = segment_geometry(feats, records, read, read_mask, shape, merge_r, p, spacing, geo)
     return feats
+
+
+#: Times :func:`segment_geometry` may widen a detection's chip to the segmented ship, and the
+#: largest chip side (pixels) it widens to.
+SEGMENTATION_GROW_MAX = 4
+SEGMENTATION_MAX_SIDE = 256
+
+
+def segment_geometry(feats: list, records, read, read_mask, shape, merge_r: int, p: CSKParams,
+                     spacing: tuple[float, float] | None, geo: dict | None) -> list:
+    """Each detection's ship geometry from a segmentation of its chip (seed 004 section 5.2,
+    fig 17; :mod:`sarship.pipeline.kurtosis_seg`).
+
+    The chip is the detection's bounding box plus ``segmentation_margin_px``, read from the
+    scene (never the tile: the result does not depend on tiling), absent pixels (NaN, or
+    ``nodata``) left out. It is segmented by ``ship_segmentation`` (the amplitude threshold of
+    the iterative kurtosis segmentation, or Otsu's); the ship is the 8-connected segmented
+    component holding the brightest segmented pixel of the detection (its mask component,
+    :func:`sarship.pipeline.sidelobes.component_in_window`, inside its bounding box). Where the
+    ship reaches a side of the chip (inside the scene), the detection covered only part of it
+    (``csk`` finds the ends of a ship whose middle is homogeneous speckle, whose windows are
+    Gaussian): the chip is widened to the ship's box plus the margin and segmented again, at
+    most ``SEGMENTATION_GROW_MAX`` times and up to ``SEGMENTATION_MAX_SIDE`` pixels a side
+    (``segmentation_window_px``: the last chip, [r0, c0, r1, c1]). Fragments of one ship then
+    carry the same ship's geometry (the detections are not merged). Its moment
+    geometry (``centroid_px``, ``length_px``, ``width_px``, ``heading_deg``, ``length_m``,
+    ``width_m`` and the outline) replaces the detection's, whose values are kept as
+    ``<name>_raw`` (unless the sidelobe step already kept them). Properties added:
+    ``segmentation`` (the method), ``segmentation_threshold`` (the amplitude threshold, null
+    when none was found), ``segmented_area_px`` (0: nothing segmented at the detection, the
+    geometry left as it was)."""
+    from sarship.pipeline import kurtosis_seg
+    from sarship.pipeline.ship_features import features
+    from sarship.pipeline.sidelobes import GEOMETRY_KEYS, component_in_window
+
+    H, W = shape
+    m = int(p.segmentation_margin_px)
+    out = []
+    for f, rec in zip(feats, records):
+        props = f["properties"]
+        ra, rb = max(int(rec["r0"]) - m, 0), min(int(rec["r1"]) + m, H)
+        ca, cb = max(int(rec["c0"]) - m, 0), min(int(rec["c1"]) + m, W)
+        for grow in range(SEGMENTATION_GROW_MAX + 1):
+            z = np.asarray(read(ra, rb, ca, cb)).astype(np.complex128)
+            if p.nodata is not None:
+                z = np.where((z.real == float(p.nodata)) & (z.imag == 0.0), np.nan + 0j, z)
+            det = component_in_window(np.asarray(read_mask(ra, rb, ca, cb)) > 0,
+                                      (int(rec["peak_r"]) - ra, int(rec["peak_c"]) - ca), merge_r)
+            bb = np.zeros_like(det)
+            bb[int(rec["r0"]) - ra:int(rec["r1"]) - ra, int(rec["c0"]) - ca:int(rec["c1"]) - ca] = True
+            seg, t = kurtosis_seg.segment(z, p.ship_segmentation)
+            amp = np.abs(np.where(np.isfinite(z), z, 0))
+            ship = kurtosis_seg.component_of(seg, amp, det & bb)
+            if not ship.any():
+                break
+            # the ship reaches a side of the chip inside the scene: widen the chip to its box + margin
+            rr, cc = np.nonzero(ship)
+            na, nb = min(ra, max(ra + int(rr.min()) - m, 0)), max(rb, min(ra + int(rr.max()) + 1 + m, H))
+            nc, nd = min(ca, max(ca + int(cc.min()) - m, 0)), max(cb, min(ca + int(cc.max()) + 1 + m, W))
+            if (na, nb, nc, nd) == (ra, rb, ca, cb) or grow == SEGMENTATION_GROW_MAX \
+                    or max(nb - na, nd - nc) > SEGMENTATION_MAX_SIDE:
+                break
+            ra, rb, ca, cb = na, nb, nc, nd
+        props["segmentation_window_px"] = [ra, ca, rb, cb]
+        props["segmentation"] = p.ship_segmentation
+        props["segmentation_threshold"] = round(t, 6) if np.isfinite(t) else None
+        props["segmented_area_px"] = int(ship.sum())
+        if not ship.any():
+            out.append(f)
+            continue
+        rec1 = kurtosis_seg.moment_record(ship, (ra, ca))
+        for k in ("peak", "sumv", "score", "peak_r", "peak_c"):
+            rec1[k] = rec[k]
+        nf = features(rec1, spacing, geo)[0]
+        for k in GEOMETRY_KEYS:
+            props.setdefault(f"{k}_raw", props[k])
+            props[k] = nf["properties"][k]
+        out.append({**f, "geometry": nf["geometry"], "properties": props})
+    return out
 
 
 SPEC = DetectorSpec(
