@@ -28,6 +28,10 @@ Absent pixels (NaN, or ``nodata``) are never tested and a pixel is tested only w
 window is present (the null law is that of n cells; no per-count tables). Texture: on
 K-compound sea the texture is nearly constant within a small window, so CSK stays near its
 Gaussian law there; tests/test_csk.py measures how far the false-alarm rate moves.
+
+Ship geometry (``ship_segmentation``, default ``kurtosis``): each detection's chip of the SLC is
+segmented by the iterative kurtosis segmentation of section 5.2 (or Otsu) and the segmented
+ship's geometry replaces the mask's (:func:`segment_geometry`, pipeline/kurtosis_seg.py).
 """
 
 from __future__ import annotations
