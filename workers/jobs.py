@@ -243,12 +243,15 @@ def run_request(
         ]
         scene_pass = None
         land_record = None
+        t_cluster = time.perf_counter()
+        cluster_start = None  # seconds to start (or reach) the cluster; None: a client was given
         with contextlib.ExitStack() as stack:
             if client is None:
                 from sarship.workers.cluster import connect, threads_max_px
 
                 client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu,
                                                      threads=H * W <= threads_max_px()))
+                cluster_start = time.perf_counter() - t_cluster
             placement = plan(device, detector, has_gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
             jobs, land_record = prepare_land(
@@ -274,8 +277,10 @@ def run_request(
                               "passes": n_pass, "values": scene_values}
             t_prep = time.perf_counter()
             results = _execute(client, jobs, detector, progress, on_tile, submit=placement.submit)
-        t_tiles = time.perf_counter()
+            t_tiles = time.perf_counter()
+        t_closed = time.perf_counter()  # a local cluster started here is closed on leaving the block
         finish_land(tmp, land_record, results, (H, W))
+        t_land_done = time.perf_counter()
         comps = {r["index"]: r["components"] for r in results}
         records = merge_tiles(comps)
         records = records[keep_mask(records, params, spacing)]
@@ -322,7 +327,8 @@ def run_request(
                 "per_tile": [
                     {"index": list(r["index"]), "worker": r["worker"], "device": r["device"],
                      "detected_px": r["detected_px"],
-                     **{k: round(r[k], 6) for k in ("read_s", "detect_s", "write_s", "label_s", "h2d_s", "d2h_s")}}
+                     **{k: round(r[k], 6) for k in ("read_s", "land_s", "detect_s", "write_s", "label_s", "h2d_s",
+                                                    "d2h_s")}}
                     for r in sorted(results, key=lambda r: r["index"])
                 ],
             },
@@ -331,7 +337,9 @@ def run_request(
             "timings": {
                 "prepare_s": round(t_prep - t_start, 4),
                 "tiles_s": round(t_tiles - t_prep, 4),
-                "merge_s": round(t_merge - t_tiles, 4),
+                "cluster_start_s": None if cluster_start is None else round(cluster_start, 4),
+                "cluster_close_s": round(t_closed - t_tiles, 4),
+                "merge_s": round(t_merge - t_land_done, 4),
                 "detect_cpu_s": round(sum(r["detect_s"] for r in results), 4),
                 "read_cpu_s": round(sum(r["read_s"] for r in results), 4),
                 "mpx_per_s": round(H * W / max(t_tiles - t_prep, 1e-9) / 1e6, 3),
@@ -346,10 +354,15 @@ def run_request(
             "outputs": {name: str((out_dir / name).resolve()) for name in OUTPUTS
                         if name not in OPTIONAL_OUTPUTS or (tmp / name).exists()},
         }
+        t_fin = time.perf_counter()
         finalize_scene(tmp / "mask.zarr")  # consolidated metadata: xarray.open_zarr reads it
+        t_cons = time.perf_counter()
         fc = collection(feats, detector=detector, scene=str(scene.path), parameters=params.model_dump())
         write_json(tmp / "detections.geojson", fc)
-        run["timings"]["total_s"] = round(time.perf_counter() - t_start, 4)
+        t_end = time.perf_counter()
+        run["timings"]["consolidate_s"] = round(t_cons - t_fin + t_land_done - t_closed, 4)
+        run["timings"]["geojson_s"] = round(t_end - t_cons, 4)
+        run["timings"]["total_s"] = round(t_end - t_start, 4)
         write_json(tmp / "run.json", run)
         _commit(tmp, out_dir)
         return run
