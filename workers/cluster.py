@@ -192,6 +192,14 @@ def connect(
         cluster.close()
 
 
+def gpu_procs() -> int:
+    """Worker processes per GPU of a local cluster: ``SARSHIP_GPU_PROCS`` (default 1)."""
+    try:
+        return max(1, int(os.environ.get("SARSHIP_GPU_PROCS", "1")))
+    except ValueError:
+        raise InputError(f"SARSHIP_GPU_PROCS must be a whole number, got {os.environ['SARSHIP_GPU_PROCS']!r}") from None
+
+
 def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads, threads=False):
     """Start the local cluster and its client; returns (client, cluster, description)."""
     from distributed import Client, LocalCluster
@@ -203,11 +211,12 @@ def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads
 
         cluster = SpecCluster(
             workers=worker_specs(gpu_ids, cpu_workers, prefix="local-", silence_logs=logging.ERROR,
-                                 gpu_threads=gpu_threads or int(os.environ.get("SARSHIP_GPU_THREADS", "2"))),
+                                 gpu_threads=gpu_threads or int(os.environ.get("SARSHIP_GPU_THREADS", "2")),
+                                 gpu_procs=gpu_procs()),
             scheduler={"cls": Scheduler, "options": {"dashboard_address": dashboard_address}},
             silence_logs=logging.ERROR,
         )
-        what = f"{len(gpu_ids)} GPU worker processes" + (f" and {cpu_workers} CPU" if cpu_workers else "")
+        what = f"{len(gpu_ids) * gpu_procs()} GPU worker processes" + (f" and {cpu_workers} CPU" if cpu_workers else "")
     elif threads:
         n = n_workers or os.cpu_count() or 1
         cluster = LocalCluster(
@@ -238,5 +247,5 @@ def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads
         what = f"{n} worker processes"
     client = Client(cluster)
     if gpu_ids:
-        client.wait_for_workers(len(gpu_ids) + cpu_workers, timeout=120)
+        client.wait_for_workers(len(gpu_ids) * gpu_procs() + cpu_workers, timeout=120)
     return client, cluster, what

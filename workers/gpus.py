@@ -65,7 +65,7 @@ def parse_gpus(text: str) -> list[str]:
 
 
 def worker_specs(gpu_ids: list[str], cpus: int, prefix: str, memory_limit: str | None = None,
-                 gpu_threads: int = 2, **options) -> dict[str, dict]:
+                 gpu_threads: int = 2, gpu_procs: int = 1, **options) -> dict[str, dict]:
     """``distributed.SpecCluster``-style worker specs: one pinned process per GPU, ``cpus``
     single-threaded CPU processes (``options``: more ``Nanny`` keyword arguments).
 
@@ -74,16 +74,20 @@ def worker_specs(gpu_ids: list[str], cpus: int, prefix: str, memory_limit: str |
     the 25000 x 16700 band with ``ca_cfar``, H200: 7.58 s with 1, 6.28 s with 2 (one GPU),
     4.39 / 3.00 s on two GPUs (bench/RESULTS.md). The worker advertises ``GPU=gpu_threads``
     and each tile asks for ``GPU=1``, so the scheduler fills both slots of one device.
+    ``gpu_procs``: worker processes per GPU (each with ``gpu_threads`` threads), so that the
+    Python parts of a tile (Zarr read and write, labelling) run on as many cores, each process
+    with its own interpreter lock, while the kernels share the device.
     """
     from distributed import Nanny
 
     specs: dict[str, dict] = {}
     for gid in gpu_ids:
-        name = f"{prefix}gpu{gid}"
-        env = {"CUDA_VISIBLE_DEVICES": str(gid), "SARSHIP_DEVICE": "gpu"}
-        specs[name] = {"cls": Nanny, "options": {"name": name, "nthreads": gpu_threads,
-                                                  "resources": {"GPU": gpu_threads},
-                                                  "env": env, **_mem(memory_limit), **options}}
+        for k in range(max(1, int(gpu_procs))):
+            name = f"{prefix}gpu{gid}" + (f"-{k}" if gpu_procs > 1 else "")
+            env = {"CUDA_VISIBLE_DEVICES": str(gid), "SARSHIP_DEVICE": "gpu"}
+            specs[name] = {"cls": Nanny, "options": {"name": name, "nthreads": gpu_threads,
+                                                      "resources": {"GPU": gpu_threads},
+                                                      "env": env, **_mem(memory_limit), **options}}
     for k in range(cpus):
         name = f"{prefix}cpu{k}"
         # a CPU worker must not grab a GPU by accident: hide them. An empty value, not "-1":
