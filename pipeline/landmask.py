@@ -122,13 +122,28 @@ def texture(block: np.ndarray, halo: int, origin: tuple[int, int], window: int) 
     """log10 of the local amplitude variance over ``window x window`` (module doc) for the
     core of a padded block (``window // 2 <= halo``); float64 ``(h, w)``, -inf where the
     variance is 0, NaN where under half the window is present."""
+    return _texture_of_sums(*_window_sums(block, halo, origin, window), window)
+
+
+def _window_sums(block: np.ndarray, halo: int, origin: tuple[int, int], window: int):
+    """The window sums of :func:`texture`: present count, amplitude, intensity (core-sized)."""
     I = power(block)
     ok = np.isfinite(I) & (I >= 0)
-    Iz = np.where(ok, I, 0.0)
+    if ok.all():  # every window full (the sums of ones are exact): skip the count's box sum
+        Iz = I
+        n = np.full((block.shape[0] - 2 * halo, block.shape[1] - 2 * halo), float(window * window))
+    else:
+        Iz = np.where(ok, I, 0.0)
+        n = centered_box_sum(ok.astype(np.float64), window, halo, origin)
     a = np.sqrt(Iz)
-    n = centered_box_sum(ok.astype(np.float64), window, halo, origin)
     s1 = centered_box_sum(a, window, halo, origin)
     s2 = centered_box_sum(Iz, window, halo, origin)
+    return n, s1, s2
+
+
+def _texture_of_sums(n: np.ndarray, s1: np.ndarray, s2: np.ndarray, window: int) -> np.ndarray:
+    """:func:`texture` from its window sums, element by element (so any subset of pixels gets
+    the values the whole array would)."""
     enough = n >= (window * window + 1) // 2
     with np.errstate(divide="ignore", invalid="ignore"):
         m1 = s1 / n
@@ -151,13 +166,14 @@ def texture_sample(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: T
     window // 2``; ``origin`` is its ``[0, 0]``."""
     r = cfg.window // 2
     sub = block[halo - r: block.shape[0] - (halo - r), halo - r: block.shape[1] - (halo - r)]
-    t = texture(sub, r, (origin[0] + halo - r, origin[1] + halo - r), cfg.window)
+    n, s1, s2 = _window_sums(sub, r, (origin[0] + halo - r, origin[1] + halo - r), cfg.window)
     r0, c0 = origin[0] + halo, origin[1] + halo
-    rows = np.arange(r0, r0 + t.shape[0])
-    cols = np.arange(c0, c0 + t.shape[1])
+    rows = np.arange(r0, r0 + n.shape[0])
+    cols = np.arange(c0, c0 + n.shape[1])
     ri = np.flatnonzero(rows % stride == 0)
     ci = np.flatnonzero(cols % stride == 0)
-    g = t[np.ix_(ri, ci)]
+    grid = np.ix_(ri, ci)  # the texture of the grid pixels only (the same values as the whole tile's)
+    g = _texture_of_sums(n[grid], s1[grid], s2[grid], cfg.window)
     rr, cc = np.meshgrid(rows[ri], cols[ci], indexing="ij")
     keep = np.isfinite(g)
     return {"t": g[keep].astype(np.float64), "rc": np.stack([rr[keep], cc[keep]], -1).astype(np.int64)}

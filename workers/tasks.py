@@ -21,6 +21,12 @@ from sarship.pipeline.inputs import make_reader, pixel_power
 from sarship.pipeline.windows import padded_block
 
 
+#: Zarr array config of the mask and land writes: a chunk (or a shard's inner chunk) that is all
+#: fill value (0) is not stored, so the sparse masks cost what they hold and readers see 0 there
+#: (zarr 3's default, stated so that a global ``write_empty_chunks`` setting cannot change it).
+SPARSE_WRITE = {"write_empty_chunks": False}
+
+
 @dataclass(frozen=True)
 class TileJob:
     scene_path: str
@@ -179,13 +185,13 @@ def run_tile(job: TileJob) -> dict[str, Any]:
     if job.mask_path is not None:
         import zarr
 
-        out = zarr.open_array(job.mask_path, mode="r+")
+        out = zarr.open_array(job.mask_path, mode="r+", config=SPARSE_WRITE)
         out[r0:r1, c0:c1] = core_mask.astype(np.uint8)
     if job.land_path is not None:
         import zarr
 
         hb = job.halo
-        lout = zarr.open_array(job.land_path, mode="r+")
+        lout = zarr.open_array(job.land_path, mode="r+", config=SPARSE_WRITE)
         lout[r0:r1, c0:c1] = land[hb + a: hb + a + h, hb + b: hb + b + w].astype(np.uint8)
     t3 = time.perf_counter()
     mext = np.zeros((h + 2 * m, w + 2 * m), bool)

@@ -1,0 +1,63 @@
+"""Issue 17's CPU data path: the land pass's sample is the texture of the grid pixels exactly,
+and ``run.json`` records every stage of the run (docs/interfaces/files.md, ``timings``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sarship.pipeline import landmask as lm
+from sarship.pipeline.windows import mirror_pad, padded_block
+
+
+def test_texture_sample_is_the_texture_of_the_grid_pixels_bit_for_bit():
+    rng = np.random.default_rng(7)
+    H, W, stride = 150, 170, 7
+    I = rng.gamma(1.0, 1.0, (H, W)).astype(np.float32)
+    I[40:90, 60:120] *= rng.gamma(0.5, 8.0, (50, 60)).astype(np.float32)  # a textured patch
+    I[10:25, 5:30] = np.nan  # absent pixels: some windows under half present -> NaN, not sampled
+    I[100, 100] = -1.0  # invalid power: absent
+    cfg = lm.TextureConfig()
+    r = cfg.window // 2
+    whole = lm.texture(mirror_pad(I, r), r, (-r, -r), cfg.window)
+    rows, cols = np.arange(H), np.arange(W)
+    ri, ci = rows[rows % stride == 0], cols[cols % stride == 0]
+    expect = whole[np.ix_(ri, ci)]
+    rr, cc = np.meshgrid(ri, ci, indexing="ij")
+    keep = np.isfinite(expect)
+    assert 0 < keep.sum() < keep.size  # the NaN rule is exercised
+    parts = []
+    for r0, r1, c0, c1 in ((0, 64, 0, 90), (0, 64, 90, W), (64, H, 0, 90), (64, H, 90, W)):
+        block = padded_block(lambda a, b, c, d: I[a:b, c:d], (H, W), r0, r1, c0, c1, r)
+        parts.append(lm.texture_sample(block, r, (r0 - r, c0 - r), cfg, stride))
+    got = lm.pool_samples(parts)
+    np.testing.assert_array_equal(got, expect[keep])  # bit for bit, in (row, col) order
+    rc = np.concatenate([p["rc"] for p in parts])
+    assert sorted(map(tuple, rc)) == sorted(zip(rr[keep].tolist(), cc[keep].tolist()))
+
+
+def test_mask_stores_only_chunks_with_detections(tmp_path):
+    """The mask costs what it holds: a tile without a detection stores no chunk (zarr's
+    write_empty_chunks off), and the store still reads back 0 there."""
+    import zarr
+
+    from conftest import write_scene
+    from sarship.workers.jobs import run_detection
+
+    rng = np.random.default_rng(5)
+    x = rng.gamma(4.0, 0.25, (128, 128)).astype(np.float32)
+    x[20:24, 20:30] += 80.0  # one ship, in tile (0, 0)
+    scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=4.0)
+    run = run_detection(scene, "ca_cfar", {"pfa": 1e-9, "guard": 9, "background": 17, "land_mask": None},
+                        out_dir=tmp_path / "out", progress=False)
+    assert run["detections"] == 1
+    chunks = sorted(p.relative_to(tmp_path / "out" / "mask.zarr" / "mask").as_posix()
+                    for p in (tmp_path / "out" / "mask.zarr" / "mask" / "c").rglob("*") if p.is_file())
+    assert chunks == ["c/0/0"]
+    m = zarr.open_array(str(tmp_path / "out" / "mask.zarr" / "mask"), mode="r")[:]
+    assert m.shape == (128, 128) and m[20:24, 20:30].all() and m.sum() == m[:64, :64].sum()
+    t = run["timings"]
+    for key in ("prepare_s", "cluster_start_s", "tiles_s", "cluster_close_s", "consolidate_s", "merge_s",
+                "geojson_s", "total_s"):
+        assert t[key] is not None and t[key] >= 0, key
+    assert t["cluster_start_s"] <= t["prepare_s"] <= t["total_s"]
+    assert all("land_s" in p for p in run["tiles"]["per_tile"])
