@@ -57,6 +57,27 @@ def test_worker_specs_pin_and_advertise():
     assert c["resources"] == {"CPU": 1} and c["env"]["CUDA_VISIBLE_DEVICES"] == ""  # hidden, NVML-safe
 
 
+def test_worker_specs_processes_per_gpu(monkeypatch):
+    """gpu_procs > 1: that many pinned worker processes per GPU, each advertising its threads;
+    the local cluster's count: SARSHIP_GPU_PROCS, else a quarter of the cores per GPU, at most 4."""
+    from sarship.workers import cluster
+
+    specs = worker_specs(["0", "1"], 1, prefix="h-", gpu_procs=3)
+    assert list(specs) == ["h-gpu0-0", "h-gpu0-1", "h-gpu0-2", "h-gpu1-0", "h-gpu1-1", "h-gpu1-2", "h-cpu0"]
+    assert {specs[n]["options"]["env"]["CUDA_VISIBLE_DEVICES"] for n in ("h-gpu1-0", "h-gpu1-2")} == {"1"}
+    assert all(specs[n]["options"]["resources"] == {"GPU": 2} for n in specs if "gpu" in n)
+    monkeypatch.setenv("SARSHIP_GPU_PROCS", "6")
+    assert cluster.gpu_procs(2) == 6
+    monkeypatch.setenv("SARSHIP_GPU_PROCS", "many")
+    with pytest.raises(InputError, match="SARSHIP_GPU_PROCS"):
+        cluster.gpu_procs(1)
+    monkeypatch.delenv("SARSHIP_GPU_PROCS")
+    monkeypatch.setattr(cluster.os, "cpu_count", lambda: 16)
+    assert (cluster.gpu_procs(1), cluster.gpu_procs(2), cluster.gpu_procs(8)) == (4, 2, 1)
+    monkeypatch.setattr(cluster.os, "cpu_count", lambda: 64)
+    assert cluster.gpu_procs(1) == 4
+
+
 def test_parse_gpus(monkeypatch):
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,5")
     assert parse_gpus("all") == ["2", "5"] and parse_gpus("5") == ["5"] and parse_gpus("none") == []
