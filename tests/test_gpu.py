@@ -358,8 +358,8 @@ def test_lmm_matches_cpu(cp, method, n, kw):
 
 
 def test_service_local_cluster_has_gpu_workers(tmp_path):
-    """``sarship serve`` alone on a GPU machine: its local cluster has one pinned worker per
-    GPU besides the CPU workers; a job's tiles run on the GPU (device auto) or on the CPU
+    """``sarship serve`` alone on a GPU machine: its local cluster has pinned workers on every
+    GPU (``gpu_procs`` per GPU) besides the CPU workers; a job's tiles run on the GPU (device auto) or on the CPU
     workers (device cpu), with identical masks."""
     import httpx
     import zarr
@@ -371,7 +371,9 @@ def test_service_local_cluster_has_gpu_workers(tmp_path):
     gpus = visible_gpus()  # NVML: no CUDA context in this process
     srv = Server(data, free_port(), SARSHIP_WORKERS="2", CUDA_VISIBLE_DEVICES=",".join(gpus)).start()
     try:
-        n_gpu = len(gpus)
+        from sarship.workers.cluster import gpu_procs
+
+        n_gpu = len(gpus) * gpu_procs(len(gpus))  # worker processes per GPU (same machine, same rule)
         assert httpx.get(srv.url + "/readyz").json()["checks"]["workers"] == n_gpu + 2
         runs = {}
         for device in ("auto", "cpu"):
