@@ -85,7 +85,8 @@ class DetectorParams(BaseModel):
                     "sea = the low-texture class), or a FILE: a raster of the scene's shape (GeoTIFF, PNG, "
                     ".npy, Zarr; non-zero = land) or GeoJSON polygons (lon/lat, or scene pixels with "
                     "\"pixel_coordinates\": true); default: the detector's (texture for ca_cfar, os_cfar, "
-                    "two_parameter, g0_cfar, k_cfar, ggd_cfar and gamma_mrf; none for the others)")
+                    "two_parameter, g0_cfar, k_cfar, ggd_cfar, gamma_mrf and superpixel_cfar; none for the "
+                    "others)")
     land_window: int = Field(15, ge=3, le=101, description="land_mask=texture: texture window side (odd, pixels)")
     land_classes: int = Field(2, ge=2, le=6, description="land_mask=texture: Gaussian mixture classes (sea = lowest texture)")
     land_open_px: int = Field(51, ge=1, le=255,
