@@ -25,10 +25,13 @@ from sarship.pipeline.errors import InputError
 
 #: ``sarship detect`` without ``--scheduler`` runs scenes of at most this many pixels on an
 #: in-process threaded worker (see the module doc); ``SARSHIP_THREADS_MAX_PX`` overrides it
-#: (0: always worker processes). 4 Mpx: a 2048 x 2048 scene, about a second of any CPU
-#: detector's work on one core of the 2-core test machine, where two worker processes take
-#: ~3-5 s to start.
-THREADS_MAX_PX = 4 * 1024 * 1024
+#: (0: always worker processes). 64 Mi px: an 8192 x 8192 scene. Measured on the 2-core test
+#: machine (issue 17, bench/bench_profile.py, bench/RESULTS.md): worker processes cost ~0.85 s
+#: to start, ~0.5 s to close, a second import of the detectors, Numba's cache and zarr in each
+#: worker, and results pickled back; the kernels release the GIL, so threads lose nothing:
+#: ``ca_cfar`` on 8192 x 8192 takes 4.4 s on threads against 7.7 s on processes, and on 4096 x
+#: 4096 ``os_cfar`` 3.2 against 5.7 s, ``two_parameter`` 3.0 against 5.3 s.
+THREADS_MAX_PX = 8192 * 8192
 
 
 def threads_max_px() -> int:

@@ -182,15 +182,16 @@ def run_tile(job: TileJob) -> dict[str, Any]:
     a, b = r0 - er0, c0 - ec0
     h, w = r1 - r0, c1 - c0
     core_mask = mask_e[a:a + h, b:b + w]
-    if job.mask_path is not None:
+    # the stores are new and all fill value (0): a tile with nothing to mark writes nothing
+    if job.mask_path is not None and core_mask.any():
         import zarr
 
         out = zarr.open_array(job.mask_path, mode="r+", config=SPARSE_WRITE)
         out[r0:r1, c0:c1] = core_mask.astype(np.uint8)
-    if job.land_path is not None:
+    hb = job.halo
+    if job.land_path is not None and land[hb + a: hb + a + h, hb + b: hb + b + w].any():
         import zarr
 
-        hb = job.halo
         lout = zarr.open_array(job.land_path, mode="r+", config=SPARSE_WRITE)
         lout[r0:r1, c0:c1] = land[hb + a: hb + a + h, hb + b: hb + b + w].astype(np.uint8)
     t3 = time.perf_counter()
