@@ -16,7 +16,8 @@ each stage's seconds and share of the wall:
 
 and, within the tiles, the per-tile stages summed over tiles (``read_s``, ``land_s``,
 ``detect_s``, ``write_s``, ``label_s``, ``h2d_s``, ``d2h_s``: worker-seconds, shown with their
-share of tiles_s x workers). Rates are scene Mpx / wall. The reference, measured in the same
+share of tiles_s x workers; an in-process threaded worker runs a tile per core at once, so
+there the share can pass 100 %). Rates are scene Mpx / wall. The reference, measured in the same
 run after the commands: the detector's kernel alone (``spec.detect``) on the whole scene array
 in this process, without a land mask (``--set`` values passed on otherwise); the ratio is
 wall / kernel.
