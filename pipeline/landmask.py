@@ -127,15 +127,25 @@ def texture(block: np.ndarray, halo: int, origin: tuple[int, int], window: int) 
 
 def _window_sums(block: np.ndarray, halo: int, origin: tuple[int, int], window: int):
     """The window sums of :func:`texture`: present count, amplitude, intensity (core-sized)."""
+    return _sums_of_inputs(*_window_inputs(block), halo, origin, window)
+
+
+def _window_inputs(block: np.ndarray):
+    """What the window sums add up: the present pixels (float64; None when every pixel is
+    present), the amplitude and the intensity (absent pixels 0)."""
     I = power(block)
     ok = np.isfinite(I) & (I >= 0)
-    if ok.all():  # every window full (the sums of ones are exact): skip the count's box sum
-        Iz = I
-        n = np.full((block.shape[0] - 2 * halo, block.shape[1] - 2 * halo), float(window * window))
+    if ok.all():
+        return None, np.sqrt(I), I
+    Iz = np.where(ok, I, 0.0)
+    return ok.astype(np.float64), np.sqrt(Iz), Iz
+
+
+def _sums_of_inputs(okf, a: np.ndarray, Iz: np.ndarray, halo: int, origin: tuple[int, int], window: int):
+    if okf is None:  # every window full (the sums of ones are exact): no box sum for the count
+        n = np.full((a.shape[0] - 2 * halo, a.shape[1] - 2 * halo), float(window * window))
     else:
-        Iz = np.where(ok, I, 0.0)
-        n = centered_box_sum(ok.astype(np.float64), window, halo, origin)
-    a = np.sqrt(Iz)
+        n = centered_box_sum(okf, window, halo, origin)
     s1 = centered_box_sum(a, window, halo, origin)
     s2 = centered_box_sum(Iz, window, halo, origin)
     return n, s1, s2
@@ -166,14 +176,21 @@ def texture_sample(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: T
     window // 2``; ``origin`` is its ``[0, 0]``."""
     r = cfg.window // 2
     sub = block[halo - r: block.shape[0] - (halo - r), halo - r: block.shape[1] - (halo - r)]
-    n, s1, s2 = _window_sums(sub, r, (origin[0] + halo - r, origin[1] + halo - r), cfg.window)
+    okf, a, Iz = _window_inputs(sub)
     r0, c0 = origin[0] + halo, origin[1] + halo
-    rows = np.arange(r0, r0 + n.shape[0])
-    cols = np.arange(c0, c0 + n.shape[1])
+    rows = np.arange(r0, r0 + sub.shape[0] - 2 * r)
+    cols = np.arange(c0, c0 + sub.shape[1] - 2 * r)
     ri = np.flatnonzero(rows % stride == 0)
     ci = np.flatnonzero(cols % stride == 0)
-    grid = np.ix_(ri, ci)  # the texture of the grid pixels only (the same values as the whole tile's)
-    g = _texture_of_sums(n[grid], s1[grid], s2[grid], cfg.window)
+    # the window sums of the grid rows only, each from its own window-high strip: the sums do not
+    # depend on the block they are computed in (pipeline/boxsum.py), so these are the whole
+    # tile's values, at 1/stride of the vertical pass
+    g = np.empty((ri.size, ci.size))
+    for k, i in enumerate(ri):
+        band = slice(i, i + 2 * r + 1)
+        n, s1, s2 = _sums_of_inputs(None if okf is None else okf[band], a[band], Iz[band], r,
+                                    (r0 - r + i, c0 - r), cfg.window)
+        g[k] = _texture_of_sums(n[0, ci], s1[0, ci], s2[0, ci], cfg.window)
     rr, cc = np.meshgrid(rows[ri], cols[ci], indexing="ij")
     keep = np.isfinite(g)
     return {"t": g[keep].astype(np.float64), "rc": np.stack([rr[keep], cc[keep]], -1).astype(np.int64)}
