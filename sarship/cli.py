@@ -117,6 +117,9 @@ def cmd_ingest(a) -> int:
     scene = ingest(a.inputs, a.out, kind=a.kind, tile=a.tile, progress=_progress("ingest"),
                    band=band, channels=channels, looks=a.looks, overwrite=a.overwrite, spacing=a.spacing,
                    limits=limits)
+    cal = str(scene.attrs.get("calibration", ""))
+    if cal.startswith("none"):  # a SAFE product without calibration annotation: DN^2, not sigma0
+        print(f"warning: calibration {cal}: samples are DN^2", file=sys.stderr)
     print(f"scene: {scene.path} {scene.shape[0]}x{scene.shape[1]} kind={scene.kind} "
           f"looks={scene.looks} variables={','.join(scene.variables)}")
     return 0
@@ -320,7 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store and truth file")
     s.set_defaults(func=cmd_simulate)
 
-    s = sub.add_parser("ingest", help="convert GeoTIFF/TIFF, PNG/JPEG, .npy or Zarr into a scene store")
+    s = sub.add_parser("ingest", help="convert GeoTIFF/TIFF, PNG/JPEG, .npy, a Sentinel-1 GRD SAFE "
+                                       "(folder or .zip) or Zarr into a scene store")
     s.add_argument("inputs", nargs="+")
     s.add_argument("--out", required=True, help="output scene store (SCENE.zarr)")
     s.add_argument("--kind", choices=["auto", "amplitude", "intensity", "slc", "quadpol", "covariance"], default="auto")

@@ -10,7 +10,8 @@ names; what each format accepts is in the docstring of its module:
 :mod:`sarship.pipeline.readers.tiff` (TIFF / GeoTIFF / BigTIFF, GeoTIFF georeference, SNAP
 sidecar), :mod:`sarship.pipeline.readers.image` (PNG / JPEG), :mod:`sarship.pipeline.readers.npy`,
 :mod:`sarship.pipeline.readers.polsarpro` (C3 / T3 / C2 folders; the covariance convention)
-and :mod:`sarship.pipeline.readers.zarr_input` (a Zarr scene). How real samples are taken
+:mod:`sarship.pipeline.readers.safe` (Sentinel-1 GRD SAFE folder or zip: calibration,
+thermal noise, geolocation grid) and :mod:`sarship.pipeline.readers.zarr_input` (a Zarr scene). How real samples are taken
 (the ``auto`` rule), band and channel names and stacking: :mod:`sarship.pipeline.readers.plan`.
 Looks: :mod:`sarship.pipeline.readers.writing`.
 
@@ -46,6 +47,7 @@ from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.readers.npy import _open_npy
 from sarship.pipeline.readers.plan import _plan
 from sarship.pipeline.readers.polsarpro import _open_polsarpro, _polsarpro_folder
+from sarship.pipeline.readers.safe import _open_safe, safe_layout
 from sarship.pipeline.readers.tiff import _open_tiff
 from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles
 from sarship.pipeline.readers.zarr_input import _ingest_zarr
@@ -71,13 +73,15 @@ ROW_BAND_BYTES = 256 * 2**20
 
 
 def _sniff(p: Path) -> str:
+    if safe_layout(p) is not None:
+        return "safe"
     if p.is_dir():
         if (p / "zarr.json").exists() or (p / ".zgroup").exists():
             return "zarr"
         if _polsarpro_folder(p) is not None:
             return "polsarpro"
-        raise InputError(f"'{p}' is a folder but not a Zarr scene (no zarr.json) nor a PolSARpro "
-                         "C3/T3/C2 folder (no C11.bin or T11.bin)")
+        raise InputError(f"'{p}' is a folder but not a Zarr scene (no zarr.json), a PolSARpro "
+                         "C3/T3/C2 folder (no C11.bin or T11.bin) nor a Sentinel-1 SAFE product (no manifest.safe)")
     if _polsarpro_folder(p) is not None:
         return "polsarpro"
     if p.name.lower() == "config.txt":
@@ -103,7 +107,8 @@ def _sniff(p: Path) -> str:
     if head[:4] == b"PK\x03\x04" and p.suffix.lower() == ".npz":
         raise InputError(f"'{p}': .npz archives are not supported; save one array with np.save")
     raise InputError(
-        f"'{p}': unrecognised format (expected TIFF/GeoTIFF, PNG, JPEG, .npy or a Zarr scene)"
+        f"'{p}': unrecognised format (expected TIFF/GeoTIFF, PNG, JPEG, .npy, a Sentinel-1 SAFE folder/zip "
+        "or a Zarr scene)"
     )
 
 
@@ -115,6 +120,8 @@ def _open_source(p: Path, sidecar_root: Path | bool | None = None, limits: Input
             return _open_tiff(p, sidecar_root, limits)
         if fmt == "image":
             return _open_image(p, limits)
+        if fmt == "safe":
+            return _open_safe(p, limits, safe_layout(p))
         if fmt in ("npy", "polsarpro"):  # headers only: the pixels are memory-mapped
             src = _open_npy(p) if fmt == "npy" else _open_polsarpro(_polsarpro_folder(p))
             try:
@@ -242,6 +249,9 @@ def ingest(
 
     try:
         fmts = [_sniff(p) for p in paths]
+        if "safe" in fmts and len(paths) > 1:
+            raise InputError(f"'{paths[fmts.index('safe')]}': a Sentinel-1 SAFE product cannot be combined "
+                             "with other inputs (its polarisations are its channels)")
         if "polsarpro" in fmts and len(paths) > 1:
             raise InputError(f"'{paths[fmts.index('polsarpro')]}': a PolSARpro folder cannot be combined "
                              "with other inputs")
@@ -306,6 +316,7 @@ def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spa
         attrs["polarisations"] = meta["pols"]
     if meta.get("sidecar"):
         attrs["metadata_sidecar"] = meta["sidecar"]
+    attrs.update(meta.get("extra_attrs", {}))  # e.g. a SAFE product's mode, times, calibration
     # looks that need no pixels
     if looks is not None:
         attrs["looks"], attrs["looks_source"] = float(looks), "argument"
