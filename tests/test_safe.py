@@ -293,3 +293,34 @@ def test_calibration_and_noise_wired_from_the_annotation(tmp_path, with_noise):
         assert np.all(a == 0.0)
     else:
         assert np.all(a > 0)
+
+
+@pytest.mark.skipif(GRD is None, reason=f"Sentinel-1 SAFE samples not found at {SAFE_DIR}")
+def test_dual_pol_channels_and_band(tmp_path):
+    """The sample's VV measurement also given as VH (its annotation is there): two channels
+    in the product's order, ``--band`` picks the one stored as ``intensity``."""
+    pytest.importorskip("xarray_sentinel")
+    import shutil
+
+    from sarship.pipeline.readers import ingest
+    from sarship.pipeline.readers.entry import _open_source
+    from sarship.pipeline.readers.plan import _plan
+
+    prod = tmp_path / GRD.name
+    shutil.copytree(GRD, prod)
+    vv = next((prod / "measurement").glob("*-vv-*.tiff"))
+    vh_ann = next((prod / "annotation").glob("*-vh-*.xml"))
+    shutil.copy(vv, prod / "measurement" / (vh_ann.stem + ".tiff"))
+    src = _open_source(prod)
+    try:
+        assert src.nbands == 2 and src.meta["pols"] == ["vv", "vh"]
+        plan = _plan([src], "auto", "vh", None)
+        assert plan.attrs["channels"] == ["vv", "vh"] and plan.attrs["intensity_band"] == "vh"
+        assert set(plan.variables) == {"intensity_vv", "intensity_vh", "intensity"}
+        with pytest.raises(InputError, match="--band hh: no such band"):
+            _plan([src], "auto", "hh", None)
+    finally:
+        src.close()
+    with pytest.raises(InputError, match="--kind amplitude does not apply"):
+        ingest([prod], tmp_path / "o.zarr", kind="amplitude")
+    assert not (tmp_path / "o.zarr").exists()

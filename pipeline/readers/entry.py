@@ -249,6 +249,9 @@ def ingest(
 
     try:
         fmts = [_sniff(p) for p in paths]
+        if "safe" in fmts and kind not in ("auto", "intensity"):
+            raise InputError(f"'{paths[fmts.index('safe')]}': a Sentinel-1 GRD product is ingested as intensity "
+                             f"(DN^2 or sigma0); --kind {kind} does not apply")
         if "safe" in fmts and len(paths) > 1:
             raise InputError(f"'{paths[fmts.index('safe')]}': a Sentinel-1 SAFE product cannot be combined "
                              "with other inputs (its polarisations are its channels)")

@@ -295,7 +295,8 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None]) -> 
                 lut["noise_azimuth"] = [
                     (int(v.get("firstAzimuthLine", 0)), int(v.get("lastAzimuthLine", shape[0] - 1)),
                      int(v.get("firstRangeSample", 0)), int(v.get("lastRangeSample", shape[1] - 1)),
-                     np.array(str(v["line"]["$"]).split(), float), np.array(str(v["noiseAzimuthLut"]["$"]).split(), float))
+                     np.array(str(v["line"]["$"]).split(), float),
+                     np.array(str(v["noiseAzimuthLut"]["$"]).split(), float))
                     for v in vecs]
                 denoised.append(pol)
             luts[pol] = lut
