@@ -31,8 +31,8 @@ def make_npy(path: str, side: int, looks: float = 4.0, seed: int = 0) -> None:
     for r in range(0, side, strip):
         blk = rng.gamma(looks, 1.0 / looks, (min(strip, side - r), side)).astype(np.float32)
         for _ in range(4):  # a few bright extended targets per strip
-            rr = int(rng.integers(0, blk.shape[0] - 8))
-            cc = int(rng.integers(0, side - 40))
+            rr = int(rng.integers(0, max(blk.shape[0] - 8, 1)))
+            cc = int(rng.integers(0, max(side - 40, 1)))
             blk[rr:rr + 6, cc:cc + 30] += 50.0
         arr[r:r + blk.shape[0]] = blk
     arr.flush()

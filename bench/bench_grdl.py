@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_profile import make_npy, reference_kernel, sarship_exe, stages  # noqa: E402
+from bench_profile import key_values, make_npy, reference_kernel, sarship_exe, stages  # noqa: E402
 from common import machine  # noqa: E402
 
 GRDL_CHILD = r"""
@@ -75,10 +75,7 @@ def main() -> None:
         raise SystemExit(f"no Python at {a.grdl_python}: python3 -m venv /tmp/grdl-venv && "
                          "/tmp/grdl-venv/bin/pip install grdl")
     exe = sarship_exe()
-    env = {**os.environ}
-    for kv in a.env:
-        k, _, v = kv.partition("=")
-        env[k] = v
+    env = {**os.environ, **key_values(a.env)}
     work = Path(tempfile.mkdtemp(prefix="sarship-grdl-", dir=a.workdir))
     mpx = a.side * a.side / 1e6
     rec: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),

@@ -43,26 +43,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_end_to_end import make_npy  # noqa: E402  (the scene maker of the end-to-end bench)
 from common import machine  # noqa: E402
 
 TILE_KEYS = ("read_s", "land_s", "detect_s", "write_s", "label_s", "h2d_s", "d2h_s")
-
-
-def make_npy(path: str, side: int, looks: float, seed: int = 0) -> None:
-    """A ``side`` x ``side`` float32 L-look gamma sea (mean 1) with bright extended ships (6 x 30
-    px, +50), written strip by strip (never whole in memory)."""
-    arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(side, side))
-    rng = np.random.default_rng(seed)
-    strip = 512
-    for r in range(0, side, strip):
-        blk = rng.gamma(looks, 1.0 / looks, (min(strip, side - r), side)).astype(np.float32)
-        for _ in range(4):
-            rr = int(rng.integers(0, max(blk.shape[0] - 8, 1)))
-            cc = int(rng.integers(0, max(side - 40, 1)))
-            blk[rr:rr + 6, cc:cc + 30] += 50.0
-        arr[r:r + blk.shape[0]] = blk
-    arr.flush()
-    del arr
 
 
 def sarship_exe() -> str:
@@ -165,10 +149,7 @@ def main() -> None:
     a = ap.parse_args()
 
     exe = sarship_exe()
-    env = {**os.environ}
-    for kv in a.env:
-        k, _, v = kv.partition("=")
-        env[k] = v
+    env = {**os.environ, **key_values(a.env)}
     work = Path(tempfile.mkdtemp(prefix="sarship-profile-", dir=a.workdir))
     record: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                     "machine": machine(), "label": a.label, "detector": a.detector, "device": a.device,
@@ -240,7 +221,7 @@ def main() -> None:
                 "mask_bytes": sum(f.stat().st_size for f in (out / "mask.zarr").rglob("*") if f.is_file()),
             })
         if not a.no_reference:
-            ref = reference_kernel(scene, a.detector, _settings(a.set))
+            ref = reference_kernel(scene, a.detector, key_values(a.set))
             record["reference"] = ref
             if ref["seconds"]:
                 print(f"\n# reference: {ref['what']}: {ref['seconds']:.2f} s ({mpx / ref['seconds']:.1f} Mpx/s); "
@@ -257,7 +238,8 @@ def main() -> None:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def _settings(pairs: list[str]) -> dict:
+def key_values(pairs: list[str]) -> dict:
+    """``K=V`` strings as a dict (``--set`` and ``--env`` values)."""
     out = {}
     for kv in pairs:
         k, _, v = kv.partition("=")

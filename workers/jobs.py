@@ -287,12 +287,13 @@ def run_request(
         if spec.discriminate is not None:  # the detector's own rules on whole components (e.g. peak)
             records = records[spec.discriminate(records, params, prep)]
         feats = features(records, spacing, geo)
+        if params.sidelobes or spec.detection_properties is not None:
+            scene_read = make_reader(str(scene.path), var, transform)
+            mask_read = mask_reader(tmp / "mask.zarr" / "mask")
         if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
-            feats = refine_features(feats, records, make_reader(str(scene.path), var, transform),
-                                    mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mr, spacing, geo)
+            feats = refine_features(feats, records, scene_read, mask_read, (H, W), mr, spacing, geo)
         if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
-            feats = spec.detection_properties(feats, records, make_reader(str(scene.path), var, transform),
-                                              mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mr, params, prep,
+            feats = spec.detection_properties(feats, records, scene_read, mask_read, (H, W), mr, params, prep,
                                               spacing=spacing, geo=geo)
         t_merge = time.perf_counter()
         dashboard = None

@@ -385,8 +385,9 @@ def _core(a, h):
     return a[h:a.shape[0] - h, h:a.shape[1] - h]
 
 
-def _above(stat: np.ndarray, mask: np.ndarray, level: float) -> np.ndarray:
-    """float32 ``stat`` with ``stat > level`` wherever ``mask`` (rounding fixed up)."""
+def _above(stat, mask, level: float):
+    """float32 ``stat`` with ``stat > level`` wherever ``mask`` (rounding fixed up), 0 elsewhere;
+    NumPy or CuPy arrays alike (the GPU path calls it on its device arrays)."""
     s = stat.astype(np.float32)
     lo = np.float32(level)
     if not float(lo) > level:

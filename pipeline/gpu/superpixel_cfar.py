@@ -187,20 +187,6 @@ def pixel_steps(xd, res: dict, origin, p) -> dict:
     return {"pixel_det": det, "ratio": ratio, "frac": frac, "labels": lab, "near_ties": int(idx.size)}
 
 
-def above(stat, mask, level: float):
-    """Device twin of ``superpixel_cfar._above``: float32 ``stat`` with ``stat > level`` wherever
-    ``mask`` (rounding fixed up), 0 elsewhere."""
-    import cupy as cp
-
-    s = stat.astype(cp.float32)
-    lo = np.float32(level)
-    if not float(lo) > level:
-        lo = np.nextafter(lo, np.float32(np.inf))
-    s[mask & ~(s > lo)] = lo
-    s[~mask] = 0
-    return s
-
-
 def detect(block, halo_px: int, origin, p, prep: dict):
     """CuPy ``(mask, stat)`` of the core of a CuPy ``block``, equal to the CPU ``detect``
     (module docstring): steps 1-5 on a host copy of the block, 6-7 on the device."""
@@ -219,11 +205,11 @@ def detect(block, halo_px: int, origin, p, prep: dict):
     core = (slice(hp, xd.shape[0] - hp), slice(hp, xd.shape[1] - hp))
     if p.decision == "pixel":
         mask = dev["pixel_det"][core].copy()
-        return mask, above(dev["ratio"][core], mask, 1.0)
+        return mask, D._above(dev["ratio"][core], mask, 1.0)
     lab = dev["labels"][core]
     if res["sp"].size.size == 0:  # nothing present
         return cp.zeros(lab.shape, cp.bool_), cp.zeros(lab.shape, cp.float32)
     hit = (dev["frac"] > float(p.fraction)) & cp.asarray(res["target"])
     safe = cp.where(lab >= 0, lab, 0)
     mask = (lab >= 0) & hit[safe]
-    return mask, above(dev["frac"][safe], mask, float(p.fraction))
+    return mask, D._above(dev["frac"][safe], mask, float(p.fraction))
