@@ -82,11 +82,15 @@ def grd_store(tmp_path_factory):
     """The full-size GRD ingested from the folder in a fresh process: (store path, peak RSS bytes)."""
     if GRD is None:
         pytest.skip(f"Sentinel-1 SAFE samples not found at {SAFE_DIR}")
+    if not Path("/proc/self/status").is_file():
+        pytest.skip("peak RSS is read from /proc/self/status (Linux)")
     pytest.importorskip("xarray_sentinel", reason="xarray-sentinel not installed (pip install 'sarship[safe]')")
     out = tmp_path_factory.mktemp("safe") / "grd.zarr"
-    code = ("import resource, sys; from sarship.pipeline.readers import ingest; "
+    # VmHWM is this process's own high-water mark: ru_maxrss would carry over the peak of the
+    # pytest worker that spawned it (Linux keeps the parent's high-water mark across vfork+exec)
+    code = ("import sys; from sarship.pipeline.readers import ingest; "
             "ingest([sys.argv[1]], sys.argv[2]); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)")
+            "print(next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith('VmHWM')))")
     r = subprocess.run([sys.executable, "-c", code, str(GRD), str(out)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     return out, int(r.stdout.split()[-1])
