@@ -338,4 +338,6 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None]) -> 
         "thermal_noise_removal": (f"max(DN^2 - N, 0) for {', '.join(denoised)} (noise range x azimuth LUTs)"
                                   if denoised else "none (no noise annotation in the product)"),
     }
+    from sarship.pipeline.readers.safe_geometry import sar_geometry  # issue 16: azimuth-ambiguity geometry
+    meta["extra_attrs"]["sar_geometry"] = sar_geometry(prod, swath, pols[0])
     return _SafeSource(p, prod, pols, meas, meta, luts, shape)
