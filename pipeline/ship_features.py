@@ -63,27 +63,30 @@ class Georeference:
 
     Pixel coordinates are continuous with pixel (r, c) covering [r, r+1) x [c, c+1), the
     GDAL/GeoTIFF PixelIsArea convention. Sources, in order: ``transform`` (GDAL affine), or
-    ``gcps`` (ground control points ``{row, col, x, y}``: least-squares polynomial, affine
-    for < 6 points, quadratic from 6, as GDAL's GCP transformer does), in the scene ``crs``
-    (default EPSG:4326 for GCPs); any CRS other than WGS84 is converted with pyproj.
+    ``gcps`` (ground control points ``{row, col, x, y}``, :func:`sarship.pipeline.georef.from_gcps`:
+    bilinear interpolation on the geolocation grid when the GCPs form one, as a Sentinel-1
+    annotation's do; else a least-squares polynomial, affine for < 6 points, quadratic from 6,
+    as GDAL's GCP transformer does), in the scene ``crs`` (default EPSG:4326 for GCPs); any CRS
+    other than WGS84 is converted with pyproj. ``method`` names the mapping used.
     """
 
     def __init__(self, attrs: dict):
+        from sarship.pipeline.georef import from_gcps
+
         self.transform = attrs.get("transform")
         self.gcps = attrs.get("gcps")
         crs = attrs.get("crs") or ("EPSG:4326" if self.gcps else None)
         self.crs = str(crs) if crs else None
         self._proj = None
-        self._coef = None
+        self._gcp_map = None
+        self.method = "affine transform" if self.transform is not None else None
         if self.transform is None and self.gcps:
-            g = self.gcps
-            rows = np.array([p["row"] for p in g], float)
-            cols = np.array([p["col"] for p in g], float)
-            A = self._design(rows, cols, quadratic=len(g) >= 6)
-            xy = np.array([[p["x"], p["y"]] for p in g], float)
-            self._coef, *_ = np.linalg.lstsq(A, xy, rcond=None)
-            self._quad = len(g) >= 6
-        if self.crs and self.crs.upper() not in _WGS84 and (self.transform is not None or self._coef is not None):
+            try:
+                self._gcp_map = from_gcps(self.gcps, geographic=self.crs is not None and self.crs.upper() in _WGS84)
+                self.method = self._gcp_map.method
+            except (ValueError, KeyError, TypeError, np.linalg.LinAlgError):
+                self._gcp_map = None  # unusable GCPs: no geometry rather than a wrong one
+        if self.crs and self.crs.upper() not in _WGS84 and (self.transform is not None or self._gcp_map is not None):
             try:
                 from pyproj import Transformer
 
@@ -91,18 +94,11 @@ class Georeference:
             except Exception:
                 self.crs = None  # unknown CRS: no geometry rather than a wrong one
 
-    @staticmethod
-    def _design(rows, cols, quadratic):
-        cols_ = [np.ones_like(rows), cols, rows]
-        if quadratic:
-            cols_ += [cols * cols, cols * rows, rows * rows]
-        return np.stack(cols_, axis=-1)
-
     @property
     def usable(self) -> bool:
         if self.crs is None:
             return False
-        return self.transform is not None or self._coef is not None
+        return self.transform is not None or self._gcp_map is not None
 
     def lonlat(self, rows, cols) -> tuple[np.ndarray, np.ndarray]:
         rows = np.asarray(rows, float)
@@ -111,8 +107,7 @@ class Georeference:
             c, a, b, f, d, e = (float(v) for v in self.transform)
             x, y = c + a * cols + b * rows, f + d * cols + e * rows
         else:
-            xy = self._design(rows, cols, self._quad) @ self._coef
-            x, y = xy[..., 0], xy[..., 1]
+            x, y = self._gcp_map.lonlat(rows, cols)
         if self._proj is not None:
             x, y = self._proj.transform(x, y)
         return np.asarray(x), np.asarray(y)
@@ -140,8 +135,8 @@ def features(records: np.ndarray, spacing: tuple[float, float] | None, geo: dict
     """One GeoJSON Feature per component record (the properties of docs/interfaces/files.md).
 
     ``geo``: the scene's georeference attributes (``crs`` + ``transform``, or ``gcps``);
-    geometry is the oriented ship rectangle in WGS84 lon/lat (:class:`Georeference`), or
-    null when the scene is not georeferenced.
+    geometry is the oriented ship rectangle in WGS84 lon/lat (:class:`Georeference`), and
+    ``centroid_lonlat`` its centre [lon, lat]; both null when the scene is not georeferenced.
     """
     georef = Georeference(geo) if geo else None
     out = []
@@ -151,8 +146,28 @@ def features(records: np.ndarray, spacing: tuple[float, float] | None, geo: dict
         props["mean"] = float(rec["sumv"]) / float(rec["n"])
         props["score"] = float(rec["score"]) if math.isfinite(float(rec["score"])) else None
         props["peak_px"] = [int(rec["peak_r"]), int(rec["peak_c"])]
+        props["centroid_lonlat"] = _centre(props, georef)
         out.append({"type": "Feature", "geometry": _outline(props, spacing, georef), "properties": props})
     return out
+
+
+def _centre(props: dict, geo: "Georeference | None") -> list[float] | None:
+    if geo is None or not geo.usable:
+        return None
+    lon, lat = geo.lonlat([props["centroid_px"][0]], [props["centroid_px"][1]])
+    return [float(lon[0]), float(lat[0])]
+
+
+def geolocate(feats: list[dict], geo: dict | None) -> list[dict]:
+    """Every feature's ``geometry`` (WGS84 outline) and ``centroid_lonlat`` [lon, lat] from its
+    final pixel geometry (``centroid_px``, ``length_px``, ``width_px``, ``heading_deg``), after
+    any step that replaced that geometry (sidelobe cores, segmented ships); ``null`` both when
+    the scene is not georeferenced. In place; returns ``feats``."""
+    georef = Georeference(geo) if geo else None
+    for f in feats:
+        f["geometry"] = _outline(f["properties"], None, georef)
+        f["properties"]["centroid_lonlat"] = _centre(f["properties"], georef)
+    return feats
 
 
 def collection(feats: list[dict], **members: Any) -> dict:
@@ -181,4 +196,4 @@ def _default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-__all__ = ["MOMENT_DTYPE", "keep_mask", "lengths_m", "features", "collection", "write_json"]
+__all__ = ["MOMENT_DTYPE", "keep_mask", "lengths_m", "features", "geolocate", "collection", "write_json"]

@@ -295,6 +295,9 @@ def run_request(
         if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
             feats = spec.detection_properties(feats, records, scene_read, mask_read, (H, W), mr, params, prep,
                                               spacing=spacing, geo=geo)
+        from sarship.pipeline.ship_features import geolocate  # WGS84 outline + centre of the final geometry
+
+        feats = geolocate(feats, geo)
         t_merge = time.perf_counter()
         dashboard = None
         with contextlib.suppress(Exception):
