@@ -103,7 +103,7 @@ def test_tiles_are_bit_identical_to_whole_scene(kind, clutter):
 
 def test_components_have_own_streams():
     """Switching an artefact on changes only its own pixels; the sea speckle is unchanged."""
-    base = SimConfig(shape=(320, 300), ships=6, seed=5, scr_db=25.0, pixel_spacing_m=(15.0, 15.0))
+    base = SimConfig(shape=(720, 300), ships=6, seed=5, scr_db=25.0, pixel_spacing_m=(15.0, 15.0))  # ghosts ~335 rows off
     off, t_off = simulate_array(base)
     I0 = off["intensity"]
 
@@ -131,12 +131,14 @@ def test_components_have_own_streams():
     on, t = simulate_array(SimConfig(**{**base.as_dict(), "ambiguities": True}))
     d = on["intensity"] - I0
     inside = np.zeros(I0.shape, dtype=bool)
-    off_rows = round(sim.AMBIG_OFFSET_M / 15.0)
     assert t["ambiguities"]
     for a in t["ambiguities"]:
         r0, c0, r1, c1 = a["bbox_px"]
         inside[r0:r1, c0:c1] = True
-        assert abs(a["offset_rows"]) == off_rows
+        # where pipeline/ambiguity.py puts the ghost of the ship's centroid (eqs. 1 and 3), to the pixel
+        src = t_off["features"][a["source_id"]]["properties"]["centroid_px"]
+        want = dict((k, (dr, dc)) for k, dr, dc in sim.ghost_offsets(base.shape, base.pixel_spacing_m, *src))
+        assert (a["offset_rows"], a["offset_cols"]) == want[a["order"]] and a["ambiguity_of"] == a["source_id"]
     assert np.all(d[~inside] == 0) and np.all(d[inside] >= 0) and d.max() > 0
     assert t["features"] == t_off["features"]  # ghosts are not ships
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from sarship.pipeline import __version__
+from sarship.pipeline.ambiguity import flag_features
 from sarship.pipeline.components import merge_radius, merge_tiles
 from sarship.pipeline.detectors.base import resolve_size
 from sarship.pipeline.ship_features import collection, features, keep_mask, write_json
@@ -298,6 +299,9 @@ def run_request(
         from sarship.pipeline.ship_features import geolocate  # WGS84 outline + centre of the final geometry
 
         feats = geolocate(feats, geo)
+        # azimuth-ambiguity flags: ambiguity_of on every detection (pipeline/ambiguity.py)
+        feats, ambiguity_record = flag_features(feats, scene.attrs, params.ambiguities, params.ambiguity_tol_px,
+                                                params.ambiguity_min_db)
         t_merge = time.perf_counter()
         dashboard = None
         with contextlib.suppress(Exception):
@@ -313,6 +317,7 @@ def run_request(
             "prepared": prep,
             "scene_pass": scene_pass,
             "land": land_record,
+            "ambiguities": ambiguity_record,
             "scene": {
                 "path": str(Path(scene.path).resolve()),
                 "shape": [H, W],

@@ -77,6 +77,15 @@ class DetectorParams(BaseModel):
     merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
     sidelobes: bool = Field(True, description="cross-sidelobe suppression: length, width and heading measured on the "
                                               "ship core where a sidelobe cross is found (docs/algorithms/sidelobes.md)")
+    # azimuth-ambiguity flags (pipeline/ambiguity.py, docs/algorithms/ambiguity.md; defaults = its DEFAULT_*)
+    ambiguities: bool = Field(True, description="flag detections that are azimuth ambiguities (ghosts) of a brighter "
+                                                "detection: property ambiguity_of (docs/algorithms/ambiguity.md)")
+    ambiguity_tol_px: float = Field(8.0, ge=0.0, le=1000.0,
+                                    description="ambiguities: tolerance in pixels between a detection and a brighter "
+                                                "one's expected ghost position (range: plus the TOPS spread)")
+    ambiguity_min_db: float = Field(10.0, ge=0.0, le=60.0,
+                                    description="ambiguities: a ghost's peak is at least this many dB below its "
+                                                "parent's")
     # sea-land segmentation (pipeline/landmask.py, docs/algorithms/landmask.md): land pixels are
     # absent (NaN) for the detector: never tested, in no clutter ring, in no scene-wide statistic
     land_mask: Optional[str] = Field(

@@ -14,6 +14,8 @@ The package (formerly the single module ``simulate.py``) is split by component:
 * :mod:`~sarship.pipeline.simulate.land`: coast and land model;
 * :mod:`~sarship.pipeline.simulate.ships`: ship placement and signatures;
 * :mod:`~sarship.pipeline.simulate.artefacts`: sidelobes, azimuth ambiguities, stripes, RFI;
+* :mod:`~sarship.pipeline.simulate.geometry`: the simulated sensor's geometry (``sar_geometry``:
+  where the azimuth ambiguities fall);
 * :mod:`~sarship.pipeline.simulate.model`: the per-configuration scene model;
 * :mod:`~sarship.pipeline.simulate.render`: pixel rendering, :func:`simulate_tile`;
 * :mod:`~sarship.pipeline.simulate.ground_truth`: :func:`ship_catalogue`, the truth GeoJSON;
@@ -26,7 +28,7 @@ Every name of the former module that other code uses is re-exported here.
 # Re-exports: the public API (``__all__``) and every other name that other code or the tests
 # use (``from sarship.pipeline import simulate as sim; sim.SEA_RHO, sim._model, ...``).
 from sarship.pipeline.simulate.artefacts import (  # noqa: F401
-    AMBIG_LEVEL_DB, AMBIG_OFFSET_M, AMBIG_SMEAR, SIDELOBE_FLOOR, SIDELOBE_MAX_PX, SIDELOBE_MIN,
+    AMBIG_LEVEL_DB, AMBIG_SMEAR, SIDELOBE_FLOOR, SIDELOBE_MAX_PX, SIDELOBE_MIN,
     SIDELOBE_OS)
 from sarship.pipeline.simulate.clutter import (  # noqa: F401
     SEA_EPS, SEA_GAMMA, SEA_RHO, sea_covariance)
@@ -34,6 +36,7 @@ from sarship.pipeline.simulate.config import (  # noqa: F401
     BORDER_PX, CLUTTERS, GAP_PX, KINDS, SimConfig, effective_looks, max_ships, validate, variables)
 from sarship.pipeline.simulate.fields import (  # noqa: F401
     BLOCK, NODE_BLOCK, _S_TEXTURE, _gamma_texture, _gauss_field)
+from sarship.pipeline.simulate.geometry import ghost_offsets, sar_geometry  # noqa: F401
 from sarship.pipeline.simulate.ground_truth import ship_catalogue, truth_collection  # noqa: F401
 from sarship.pipeline.simulate.land import (  # noqa: F401
     LAND_EPS, LAND_GAIN_CORR_PX, LAND_GAMMA, LAND_RHO, LAND_TEXTURE_CORR_PX, LAND_TEXTURE_NU,

@@ -8,10 +8,16 @@ Artefacts (none is in the truth features)
       d the sub-pixel position, os = 1.2 (pixel spacing = resolution / 1.2), out to where the
       envelope is 5 % of the sea power; coherent (sinc amplitude with the scatterer's phase) for
       complex data.
-    * ``ambiguities``: azimuth ambiguities (ghosts) of every ship at +- 3000 m in azimuth
-      (rows; Delta x = lambda R PRF / (2 V), Curlander & McDonough 1991) at -20 dB, smeared
-      over 7 rows (defocus: a quadratic-phase kernel for complex data). Listed under the truth
-      member ``ambiguities``.
+    * ``ambiguities``: azimuth ambiguities (ghosts, orders k = -1 and +1) of every ship, where
+      :mod:`sarship.pipeline.ambiguity` expects them (eq. 1: ``dt_k = -k lambda R PRF / (2
+      Vr^2)`` along azimuth, ~5 km; eq. 3: the range shift ``lambda^2 R ((f_dc + k PRF)^2 -
+      f_dc^2) / (8 Vr^2)``, 3-4 columns at 10 m) for the simulated sensor of
+      :mod:`~sarship.pipeline.simulate.geometry` (written to the scene as ``sar_geometry``),
+      rounded to whole pixels; at -20 dB (the azimuth ambiguity-to-signal ratio of C-band
+      sensors, -20 to -25 dB: Sentinel-1 requires <= -22 dB, docs/references.md#torres2012),
+      smeared over 7 rows (defocus: a quadratic-phase kernel for complex data). A ghost of a
+      faint ship lies below the sea and is not seen. Listed under the truth member
+      ``ambiguities`` (``ambiguity_of``: the ship's id; ``order``: k).
     * ``stripes``: azimuth stripes (antenna-pattern / beam-seam gain errors): a gain constant
       along azimuth, piecewise constant across range in bands 24-384 px wide, N(0, 0.8) dB
       clipped to +-2.5 dB; multiplies everything (sqrt of it for complex data).
@@ -39,7 +45,6 @@ SIDELOBE_OS = 1.2      # resolution / pixel spacing
 SIDELOBE_MIN = 10.0    # scatterer power / sea power for drawing sidelobes
 SIDELOBE_FLOOR = 0.05  # sidelobes drawn out to this fraction of the sea power
 SIDELOBE_MAX_PX = 1024
-AMBIG_OFFSET_M = 3000.0
 AMBIG_LEVEL_DB = -20.0
 AMBIG_SMEAR = 3        # ghost smear half-length (rows)
 

@@ -121,12 +121,14 @@ def _truth(m: _Model, bufs: dict[int, np.ndarray]) -> dict[str, Any]:
         pw = _power(arr, cfg.kind)
         r0, r1 = g["r0"], g["r0"] + pw.shape[0]
         a0, a1 = max(r0, 0), min(r1, H)
-        peak = float(pw[a0 - r0:a1 - r0].max())
+        b0, b1 = max(g["c0"], 0), min(g["c0"] + pw.shape[1], W)
+        peak = float(pw[a0 - r0:a1 - r0, b0 - g["c0"]:b1 - g["c0"]].max())
         rr, cc = np.nonzero(s.mask)
-        amb.append({"source_id": s.idx, "offset_rows": g["offset"],
-                    "bbox_px": [a0, s.c0, a1, s.c1],
+        amb.append({"source_id": s.idx, "ambiguity_of": s.idx, "order": g["order"], "offset_rows": g["offset"],
+                    "offset_cols": g["offset_cols"],
+                    "bbox_px": [a0, b0, a1, b1],
                     "centroid_px": [float(s.r0 + rr.mean() + 0.5 + g["offset"]),
-                                    float(s.c0 + cc.mean() + 0.5)],
+                                    float(s.c0 + cc.mean() + 0.5 + g["offset_cols"])],
                     "level_db": AMBIG_LEVEL_DB,
                     "peak_db_over_clutter": float(10 * math.log10(max(peak, 1e-30) / p_sea))})
     coll: dict[str, Any] = {

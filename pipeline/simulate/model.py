@@ -14,12 +14,12 @@ from typing import Any, Optional
 
 import numpy as np
 
-from sarship.pipeline.simulate.artefacts import (AMBIG_OFFSET_M, AMBIG_SMEAR, SIDELOBE_FLOOR,
-                                                 SIDELOBE_MAX_PX, SIDELOBE_MIN, SIDELOBE_OS,
-                                                 _rfi_events, _stripes_gain)
+from sarship.pipeline.simulate.artefacts import (AMBIG_SMEAR, SIDELOBE_FLOOR, SIDELOBE_MAX_PX, SIDELOBE_MIN,
+                                                 SIDELOBE_OS, _rfi_events, _stripes_gain)
 from sarship.pipeline.simulate.clutter import SEA_EPS, SEA_GAMMA, _sea_power, _span_factor
 from sarship.pipeline.simulate.config import SimConfig, effective_looks
 from sarship.pipeline.simulate.fields import BLOCK
+from sarship.pipeline.simulate.geometry import ghost_offsets
 from sarship.pipeline.simulate.land import _Land, _land_model
 from sarship.pipeline.simulate.ships import _dominants, _hull_pattern, _place_ships, _Ship
 
@@ -64,14 +64,16 @@ def _build_model(cfg: SimConfig) -> _Model:
                                 "col": int(d["col"][j]), "dr": float(d["dr"][j]),
                                 "dc": float(d["dc"][j]), "power": p, "n": n})
     ghosts: list[dict[str, Any]] = []
-    if cfg.ambiguities:
-        off = int(round(AMBIG_OFFSET_M / cfg.pixel_spacing_m[0]))
+    if cfg.ambiguities:  # eqs. 1-3 of pipeline/ambiguity.py with the simulated sensor (simulate/geometry.py)
         for s in ships:
-            for sign in (-1, 1):
-                g0, g1 = s.r0 + sign * off - AMBIG_SMEAR, s.r1 + sign * off + AMBIG_SMEAR
-                if g1 <= 0 or g0 >= H:
+            rr, cc = np.nonzero(s.mask)
+            cr, ccol = s.r0 + rr.mean() + 0.5, s.c0 + cc.mean() + 0.5
+            for k, drow, dcol in ghost_offsets(cfg.shape, cfg.pixel_spacing_m, cr, ccol):
+                g0, g1 = s.r0 + drow - AMBIG_SMEAR, s.r1 + drow + AMBIG_SMEAR
+                c0, c1 = s.c0 + dcol, s.c1 + dcol
+                if g1 <= 0 or g0 >= H or c1 <= 0 or c0 >= W:
                     continue
-                ghosts.append({"ship": s.idx, "offset": sign * off, "r0": g0, "c0": s.c0})
+                ghosts.append({"ship": s.idx, "order": k, "offset": drow, "offset_cols": dcol, "r0": g0, "c0": c0})
     rfi = _rfi_events(cfg) if cfg.rfi else []
     stripes = _stripes_gain(cfg) if cfg.stripes else None
 
@@ -93,7 +95,7 @@ def _build_model(cfg: SimConfig) -> _Model:
         add("slc", k, r - n, r + n + 1, c, c + 1)   # along the column (azimuth sidelobes)
     for k, g in enumerate(ghosts):
         s = ships[g["ship"]]
-        add("ghost", k, g["r0"], g["r0"] + s.mask.shape[0] + 2 * AMBIG_SMEAR, s.c0, s.c1)
+        add("ghost", k, g["r0"], g["r0"] + s.mask.shape[0] + 2 * AMBIG_SMEAR, g["c0"], g["c0"] + s.mask.shape[1])
     for k, ev in enumerate(rfi):
         add("rfi", k, ev["rows"][0], ev["rows"][1], ev["cols"][0], ev["cols"][1])
     return _Model(cfg=cfg, looks=effective_looks(cfg), ships=ships, land=land, stripes=stripes,

@@ -14,6 +14,7 @@ import numpy as np
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.simulate.config import SimConfig, validate, variables
+from sarship.pipeline.simulate.geometry import sar_geometry
 from sarship.pipeline.simulate.ground_truth import _collect_tile, _new_ship_buffers, _truth
 from sarship.pipeline.simulate.model import _model
 from sarship.pipeline.simulate.render import simulate_tile
@@ -85,6 +86,7 @@ def simulate(out: str | os.PathLike, cfg: SimConfig, tile: int = 2048,
         "sarship_version": __version__,
         "simulation": cfg.as_dict(),
         "truth": truth.name,
+        "sar_geometry": sar_geometry(cfg.shape, cfg.pixel_spacing_m),  # where azimuth ghosts fall (issue 16)
     }
     if cfg.kind == "quadpol":
         attrs["polarizations"] = ["hh", "hv", "vv"]
