@@ -128,13 +128,48 @@ def cmd_ingest(a) -> int:
 def cmd_detect(a) -> int:
     from sarship.workers.jobs import run_detection
 
+    extra = _formats(a.formats, a.scene)  # checked before the run: a missing extra fails at once
     run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile,
                         scheduler=a.scheduler, device=a.device, progress=True, overwrite=a.overwrite)
     _print_warnings("detect", run)
     o = run["outputs"]
     print(f"detections: {o['detections.geojson']} ({run['detections']} ships)")
+    for fmt in extra:  # converted from detections.geojson (pipeline/export.py)
+        from sarship.pipeline.export import export
+
+        dst = Path(o["detections.geojson"]).with_suffix(f".{fmt}")
+        export(o["detections.geojson"], dst, overwrite=True)  # the run's own folder, just written
+        print(f"{fmt}: {dst}")
     print(f"mask: {o['mask.zarr']}")
     print(f"run: {o['run.json']}")
+    return 0
+
+
+def _formats(text: str | None, scene: str) -> list[str]:
+    """``--formats geojson,gpkg,kml``: the extra formats (GeoJSON is always written), checked
+    before any work: known names, the ``gis`` extra installed, the scene georeferenced."""
+    names = [t.strip().lower() for t in (text or "geojson").split(",") if t.strip()]
+    bad = [n for n in names if n not in ("geojson", "gpkg", "kml")]
+    if bad:
+        raise InputError(f"--formats: unknown format {bad[0]!r} (geojson, gpkg, kml)")
+    extra = list(dict.fromkeys(n for n in names if n != "geojson"))
+    if extra:
+        from sarship.pipeline.export import require_pyogrio
+        from sarship.pipeline.scene import open_scene
+
+        require_pyogrio()
+        attrs = open_scene(scene).attrs
+        if not (attrs.get("gcps") or (attrs.get("crs") and attrs.get("transform") is not None)):
+            raise InputError(f"--formats {','.join(extra)}: '{scene}' is not georeferenced (no crs + transform "
+                             "or GCPs): its detections have no WGS84 outlines to map")
+    return extra
+
+
+def cmd_export(a) -> int:
+    from sarship.pipeline.export import export
+
+    n = export(a.detections, a.to, overwrite=a.overwrite)
+    print(f"{a.to}: {n} ships")
     return 0
 
 
@@ -355,7 +390,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true",
                    help="write into an existing non-empty --out folder, replacing its detections.geojson, "
                         "mask.zarr and run.json")
+    s.add_argument("--formats", metavar="LIST", default="geojson",
+                   help="detection files to write, comma-separated: geojson (always), gpkg (GeoPackage), kml; "
+                        "gpkg/kml need a georeferenced scene and the extra: pip install 'sarship[gis]'")
     s.set_defaults(func=cmd_detect)
+
+    s = sub.add_parser("export", help="detections.geojson as a GeoPackage (.gpkg) or KML (.kml) file for a GIS")
+    s.add_argument("detections", help="a detections.geojson written by sarship detect or the service")
+    s.add_argument("--to", required=True, metavar="FILE", help="FILE.gpkg or FILE.kml (the suffix picks the format)")
+    s.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
+    s.set_defaults(func=cmd_export)
 
     s = sub.add_parser("enhance", help="image-quality enhancement into a new scene store (--destripe)")
     s.add_argument("scene")
@@ -447,7 +491,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Commands whose outputs are written aside and renamed into place: SIGTERM unwinds them.
-WRITERS = ("simulate", "ingest", "detect", "demo", "enhance")
+WRITERS = ("simulate", "ingest", "detect", "demo", "enhance", "export")
 
 
 def _exit_on_sigterm(command: str) -> None:

@@ -1,0 +1,194 @@
+"""Detections as GeoPackage / KML (pipeline/export.py; ``sarship export``, ``sarship detect --formats``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sarship.pipeline import export as E
+from sarship.pipeline.components import MOMENT_DTYPE
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.ship_features import collection, features
+from tests.conftest import write_scene
+from tests.test_cli import assert_clean_error, sarship
+
+pyogrio = pytest.importorskip("pyogrio", reason="pyogrio not installed (pip install 'sarship[gis]')")
+
+UTM = {"crs": "EPSG:32633", "transform": [500000.0, 10.0, 0.0, 6000000.0, 0.0, -10.0]}
+KML = "{http://www.opengis.net/kml/2.2}"
+
+
+def _record(r0, c0, r1, c1, score=3.0):
+    rr, cc = np.mgrid[r0:r1, c0:c1]
+    rec = np.zeros(1, MOMENT_DTYPE)
+    rec["n"] = rr.size
+    rec["sr"], rec["sc"] = rr.sum(), cc.sum()
+    rec["srr"], rec["scc"], rec["src"] = (rr * rr).sum(), (cc * cc).sum(), (rr * cc).sum()
+    rec["r0"], rec["c0"], rec["r1"], rec["c1"] = r0, c0, r1, c1
+    rec["peak"], rec["sumv"], rec["score"] = 9.0, 5.0 * rr.size, score
+    rec["peak_r"], rec["peak_c"] = r0, c0
+    return rec
+
+
+def _collection(geo=UTM) -> dict:
+    recs = np.concatenate([_record(100, 200, 104, 230), _record(300, 300, 320, 306, score=np.nan),
+                           _record(50, 60, 57, 63)])
+    f = features(recs, (10.0, 10.0), geo)
+    f[1]["properties"]["sidelobes"] = True
+    f[0]["properties"]["sidelobes"] = False  # the third has none: a null in the column
+    f[2]["properties"]["note"] = {"a": [1, 2]}
+    return json.loads(json.dumps(collection(f, detector="ca_cfar", scene="/data/s.zarr")))
+
+
+def _geojson(tmp_path: Path, geo=UTM) -> Path:
+    p = tmp_path / "detections.geojson"
+    p.write_text(json.dumps(_collection(geo)))
+    return p
+
+
+def test_wkb_of_a_polygon_is_iso():
+    b = E.polygon_wkb([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 0.0]])
+    assert b[:1] == b"\x01" and int.from_bytes(b[1:5], "little") == 3 and int.from_bytes(b[5:9], "little") == 1
+    assert int.from_bytes(b[9:13], "little") == 4 and len(b) == 13 + 4 * 16
+
+
+def test_gpkg_round_trip(tmp_path):
+    src = _geojson(tmp_path)
+    fc = json.loads(src.read_text())
+    dst = tmp_path / "ships.gpkg"
+    assert E.export(src, dst) == 3
+    assert sorted(os.listdir(tmp_path)) == ["detections.geojson", "ships.gpkg"]  # nothing else left
+    info = pyogrio.read_info(dst)
+    assert info["driver"] == "GPKG" and info["crs"] == "EPSG:4326" and info["features"] == 3
+    assert info["geometry_type"] == "Polygon" and info["layer_name"] == "detections"
+    assert info["dataset_metadata"] == {"detector": "ca_cfar", "scene": "/data/s.zarr"}
+    meta, _, geoms, fields = pyogrio.raw.read(dst)
+    cols = dict(zip(meta["fields"], fields))
+    types = dict(zip(meta["fields"], info["ogr_types"]))
+    assert list(cols["name"]) == ["ship 1", "ship 2", "ship 3"]
+    for i, f in enumerate(fc["features"]):
+        p = f["properties"]
+        assert [cols["centroid_lon"][i], cols["centroid_lat"][i]] == pytest.approx(p["centroid_lonlat"], abs=1e-12)
+        assert [cols[k][i] for k in ("bbox_row0", "bbox_col0", "bbox_row1", "bbox_col1")] == p["bbox_px"]
+        assert cols["length_m"][i] == pytest.approx(p["length_m"])
+        # the outline: the GeoJSON ring, lon/lat order, from the WKB GDAL stored
+        ring = np.frombuffer(geoms[i][13:], "<f8").reshape(-1, 2)
+        np.testing.assert_allclose(ring, f["geometry"]["coordinates"][0], rtol=0, atol=1e-12)
+    assert types["bbox_row0"] == "OFTInteger" and types["length_m"] == "OFTReal" and types["name"] == "OFTString"
+    # score null where the detector had none; sidelobes boolean with a null; nested values as JSON text
+    assert np.isnan(cols["score"][1]) and cols["score"][0] == 3.0
+    assert cols["sidelobes"][1] and not cols["sidelobes"][0]
+    assert json.loads(cols["note"][2]) == {"a": [1, 2]}
+
+
+def test_kml_placemarks(tmp_path):
+    src = _geojson(tmp_path)
+    fc = json.loads(src.read_text())
+    dst = tmp_path / "ships.kml"
+    assert E.export(src, dst) == 3
+    root = ET.parse(dst).getroot()
+    marks = root.findall(f".//{KML}Placemark")
+    assert [m.find(f"{KML}name").text for m in marks] == ["ship 1", "ship 2", "ship 3"]
+    for m, f in zip(marks, fc["features"]):
+        text = m.find(f".//{KML}Polygon//{KML}coordinates").text.split()
+        pts = np.array([[float(v) for v in t.split(",")[:2]] for t in text])
+        np.testing.assert_allclose(pts, f["geometry"]["coordinates"][0], rtol=0, atol=1e-9)
+        data = {d.get("name"): d.text for d in m.iter(f"{KML}SimpleData")}
+        assert float(data["centroid_lat"]) == pytest.approx(f["properties"]["centroid_lonlat"][1], abs=1e-9)
+        assert int(data["area_px"]) == f["properties"]["area_px"]
+    assert "ca_cfar" in (root.find(f".//{KML}description").text or "")
+    assert sorted(os.listdir(tmp_path)) == ["detections.geojson", "ships.kml"]
+
+
+def test_refusals(tmp_path):
+    plain = tmp_path / "plain.geojson"
+    plain.write_text(json.dumps(_collection(None)))
+    with pytest.raises(InputError, match="not georeferenced"):
+        E.export(plain, tmp_path / "x.gpkg")
+    with pytest.raises(InputError, match=r"\.gpkg.*\.kml"):
+        E.export(_geojson(tmp_path), tmp_path / "x.shp")
+    (tmp_path / "bad.geojson").write_text("{nope")
+    with pytest.raises(InputError, match="not readable JSON"):
+        E.export(tmp_path / "bad.geojson", tmp_path / "x.kml")
+    (tmp_path / "list.geojson").write_text("[]")
+    with pytest.raises(InputError, match="FeatureCollection"):
+        E.export(tmp_path / "list.geojson", tmp_path / "x.kml")
+    with pytest.raises(InputError, match="no such folder"):
+        E.export(_geojson(tmp_path), tmp_path / "missing" / "x.kml")
+    assert not list(tmp_path.glob("x.*")) and not list(tmp_path.glob(".x*"))
+
+
+def test_missing_extra_is_one_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyogrio", None)  # import pyogrio -> ImportError
+    with pytest.raises(InputError, match=r"sarship\[gis\]"):
+        E.export(_geojson(tmp_path), tmp_path / "x.gpkg")
+    assert not (tmp_path / "x.gpkg").exists()
+
+
+def test_gdal_failure_leaves_nothing(tmp_path, monkeypatch):
+    def fail(path, *a, **k):
+        Path(path).write_bytes(b"half")  # a partial file, as an interrupted write leaves
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(pyogrio.raw, "write", fail)
+    with pytest.raises(InputError, match="cannot write GPKG.*disk full"):
+        E.export(_geojson(tmp_path), tmp_path / "x.gpkg")
+    assert sorted(os.listdir(tmp_path)) == ["detections.geojson"]
+
+
+def test_cli_export_overwrite_rules(tmp_path):
+    src = _geojson(tmp_path)
+    dst = tmp_path / "ships.gpkg"
+    res = sarship("export", src, "--to", dst)
+    assert res.returncode == 0, res.stderr
+    assert "3 ships" in res.stdout
+    before = dst.read_bytes()
+    res = sarship("export", src, "--to", dst)
+    assert_clean_error(res, "exists", "--overwrite")
+    assert dst.read_bytes() == before
+    res = sarship("export", src, "--to", dst, "--overwrite")
+    assert res.returncode == 0, res.stderr
+    assert pyogrio.read_info(dst)["features"] == 3
+    plain = tmp_path / "plain.geojson"
+    plain.write_text(json.dumps(_collection(None)))
+    assert_clean_error(sarship("export", plain, "--to", tmp_path / "p.kml"), "not georeferenced")
+    assert_clean_error(sarship("export", src, "--to", tmp_path / "p.csv"), ".gpkg")
+    res = sarship("export", src, "--to", tmp_path / "p.kml", env={"PYTHONPATH": str(_no_pyogrio(tmp_path))})
+    assert_clean_error(res, "sarship[gis]")
+    assert not (tmp_path / "p.kml").exists()
+
+
+def _no_pyogrio(tmp_path: Path) -> Path:
+    """A folder whose ``pyogrio`` package fails to import, first on the path: the extra absent."""
+    d = tmp_path / "nogis" / "pyogrio"
+    d.mkdir(parents=True)
+    (d / "__init__.py").write_text("raise ImportError('pyogrio hidden by the test')\n")
+    return d.parent
+
+
+def test_cli_detect_formats(tmp_path):
+    rng = np.random.default_rng(0)
+    x = rng.gamma(2.0, 0.5, (96, 80)).astype(np.float32)
+    x[40:44, 30:36] += 60.0
+    geo = write_scene(tmp_path / "geo.zarr", {"intensity": x}, tile=64, looks=2.0, pixel_spacing_m=[10.0, 10.0], **UTM)
+    plain = write_scene(tmp_path / "plain.zarr", {"intensity": x}, tile=64, looks=2.0)
+    out = tmp_path / "run"
+    res = sarship("detect", geo, "--detector", "ca_cfar", "--out", out, "--formats", "geojson,gpkg,kml",
+                  "--set", "min_area_px=2", "--set", "guard=9", "--set", "background=21")
+    assert res.returncode == 0, res.stderr
+    assert {"detections.geojson", "detections.gpkg", "detections.kml"} <= set(os.listdir(out))
+    assert not [p for p in os.listdir(out) if p.startswith(".")]
+    fc = json.loads((out / "detections.geojson").read_text())
+    assert fc["features"] and pyogrio.read_info(out / "detections.gpkg")["features"] == len(fc["features"])
+    # refused before any work: unknown format, a scene without georeference
+    assert_clean_error(sarship("detect", geo, "--detector", "ca_cfar", "--out", tmp_path / "r2", "--formats", "shp"),
+                       "--formats", "shp")
+    res = sarship("detect", plain, "--detector", "ca_cfar", "--out", tmp_path / "r3", "--formats", "kml")
+    assert_clean_error(res, "not georeferenced")
+    assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
