@@ -59,7 +59,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, special
+from scipy import special
 
 BETA_MIN = 1e-3
 BETA_MAX = 10.0
@@ -202,6 +202,7 @@ def _beta_table(k: np.ndarray) -> np.ndarray:
 
 
 def _beta_exact(k: float) -> float:
+    from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
     hi_c = float(csk_of_beta(BETA_MIN))
     lo_c = float(csk_of_beta(BETA_MAX))
     if not k > lo_c:
@@ -254,6 +255,7 @@ class NoveyFit:
 
 def _moment_start(z: np.ndarray) -> float:
     """beta minimising |f(beta)| of eq 32 (real and imaginary kurtoses summed)."""
+    from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
     x, y = z.real, z.imag
     kx = np.mean(x**4) / np.mean(x**2) ** 2
     ky = np.mean(y**4) / np.mean(y**2) ** 2

@@ -44,7 +44,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, special
+from scipy import special
 
 
 def _phases(x) -> np.ndarray:
@@ -129,6 +129,7 @@ def kappa_from_rbar(r: float) -> float:
     [0, hi], hi doubled from 1 until A(hi) > r (A(kappa) ~ 1 - 1/(2 kappa), so hi stays
     below ~2/(1 - r)), then found by Brent's method to full double precision.
     """
+    from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
     r = float(r)
     if not math.isfinite(r):
         raise ValueError(f"mean resultant length must be finite, got {r}")

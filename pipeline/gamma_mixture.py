@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy import optimize, special, stats
+from scipy import special
 
 #: Smallest class mean, relative to the sample mean: a class of exact zeros (8-bit chips) would
 #: otherwise collapse on mu = 0, where ln mu is -inf.
@@ -172,6 +172,7 @@ def mixture_sf(q: float, weights, means, looks: float) -> float:
 def mixture_isf(p: float, weights, means, looks: float) -> float:
     """The intensity ``q`` with ``P(y > q) = p`` under the mixture (weights renormalised to 1):
     root of the monotone tail between the classes' own quantiles (scipy brentq)."""
+    from scipy import optimize, stats  # lazy: importing scipy.optimize/stats costs every command start-up time
     w = np.asarray(weights, np.float64)
     w = w / w.sum()
     mu = np.asarray(means, np.float64)

@@ -25,9 +25,9 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from scipy import stats
 
 from sarship.pipeline.gpu import is_device_array
+from sarship.pipeline.tails import f_isf, norm_isf, t_isf
 
 
 def xp_of(a):
@@ -85,14 +85,14 @@ def per_k_table(K, fn):
 
 @functools.lru_cache(maxsize=8192)
 def ca_threshold(pfa: float, looks: float, k: int, n_target: int) -> float:
-    return float(stats.f.isf(pfa, 2.0 * n_target * looks, 2.0 * k * looks))
+    return f_isf(pfa, 2.0 * n_target * looks, 2.0 * k * looks)
 
 
 @functools.lru_cache(maxsize=8192)
 def tp_threshold(pfa: float, k: int, n_target: int, kind: str) -> float:
     if kind == "student":
-        return float(np.sqrt(1.0 / n_target + 1.0 / k) * stats.t.isf(pfa, k - 1))
-    return float(stats.norm.isf(pfa) / np.sqrt(n_target))
+        return float(np.sqrt(1.0 / n_target + 1.0 / k) * t_isf(pfa, k - 1))
+    return float(norm_isf(pfa) / np.sqrt(n_target))
 
 
 def scaled_stat(xp, s, thr_k, thr_n, det):

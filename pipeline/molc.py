@@ -50,7 +50,7 @@ import functools
 import math
 
 import numpy as np
-from scipy import interpolate, special, stats
+from scipy import special
 
 #: Smallest shape (a = -alpha for G0, nu for K) in the tables: u = psi_1(0.05) = 401.5. A ring
 #: with a larger u (log-variance) is outside the model: the pixel is not tested.
@@ -180,6 +180,7 @@ def g0_log_odds(a, looks: float, pfa: float):
     and r = 1 - c the upper-pfa quantile of Beta(L, a); both are computed as quantiles
     (``betaincinv``, ``beta.isf``), so the smaller of c and r keeps its relative precision
     (r is small when a is large, c when a is small)."""
+    from scipy import stats  # lazy: importing scipy.stats costs every command start-up time
     a = np.asarray(a, np.float64)
     c = special.betaincinv(a, looks, pfa)
     r = stats.beta.isf(pfa, looks, a)
@@ -305,6 +306,7 @@ def k_H(u, looks: float, pfa: float):
 def ggd_D(g1, pfa: float):
     """D(g1) of eq (8): the upper-pfa quantile of the standardised ln x of a GGD whose ln x has
     skewness g1 (|g1| < 2); D(0) = z_pfa (lognormal limit)."""
+    from scipy import stats  # lazy: importing scipy.stats costs every command start-up time
     g1 = np.atleast_1d(np.asarray(g1, np.float64))
     out = np.full(g1.shape, float(stats.norm.isf(pfa)))
     nz = np.abs(g1) > 1e-7
@@ -404,6 +406,7 @@ def g0_table(pfa: float, looks: float) -> Table:
 def k_table(pfa: float, looks: float) -> Table:
     """H of K on N_TABLE + 1 nodes of w in [0, w_max(L)]: exact (eqs 5, 6) on N_K_EXACT nodes
     (Chebyshev-Lobatto points, denser at both ends), cubic spline in between."""
+    from scipy import interpolate  # lazy: importing scipy.interpolate costs every command start-up time
     wm = w_max(looks)
     j = np.arange(N_K_EXACT)
     we = 0.5 * wm * (1.0 - np.cos(np.pi * j / (N_K_EXACT - 1)))

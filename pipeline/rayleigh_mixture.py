@@ -34,7 +34,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy import optimize
 
 #: Width of the ln-intensity bins of the histogram EM (eq 5's histogram).
 BIN_WIDTH = 0.1
@@ -131,6 +130,7 @@ def mixture_threshold(weights, scales, pfa: float) -> float:
 
 def mixture_threshold_brentq(weights, scales, pfa: float) -> float:
     """Reference for :func:`mixture_threshold`: the same root by ``scipy.optimize.brentq``."""
+    from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
     w = np.asarray(weights, np.float64)
     s = np.asarray(scales, np.float64)
     keep = w > 0

@@ -11,7 +11,7 @@ Threshold. The ratio of two independent scaled chi-square means is Fisher-Snedec
     x_t / m  ~  F(2 n L, 2 N L)                                    (exact, any N)
 
 so the detection rule x_t > T * m has PFA = P(F > T), and T = F.isf(PFA; 2nL, 2NL)
-(``scipy.stats.f.isf``), exact for every N and every L, and independent of mu (CFAR).
+(:func:`sarship.pipeline.tails.f_isf`), exact for every N and every L, and independent of mu (CFAR).
 For n = 1 this is the classical result that the CUT over the ring mean is F(2L, 2LN).
 Its large-N limit is the gamma quantile T -> Q^{-1}(L, PFA)/L used by tools that ignore
 the estimation noise of m (they overshoot the PFA by a factor of 2-10 for N ~ 100-500).
@@ -29,12 +29,11 @@ from typing import Optional
 import numpy as np
 from numba import njit
 from pydantic import Field
-from scipy import stats
-
 from sarship.pipeline import boxsum, intensity_absent
 from sarship.pipeline.boxsum import box_stream, box_stream_row
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 from sarship.pipeline.gpu import is_device_array
+from sarship.pipeline.tails import f_isf
 
 
 class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-5, guard=41, background=81, merge_px=4,
@@ -56,7 +55,7 @@ class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-5, guard=41, b
 
 def threshold(pfa: float, looks: float, n_ring: int, n_target: int = 1) -> float:
     """Exact CA-CFAR multiplier T with P(x_t / m > T) = pfa, x_t/m ~ F(2nL, 2NL)."""
-    return float(stats.f.isf(pfa, 2.0 * n_target * looks, 2.0 * n_ring * looks))
+    return f_isf(pfa, 2.0 * n_target * looks, 2.0 * n_ring * looks)
 
 
 def prepare(p: CAParams) -> dict:

@@ -128,7 +128,7 @@ from typing import Optional
 import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
-from scipy import optimize, special
+from scipy import special
 
 from sarship.pipeline import boxsum, intensity_absent
 from sarship.pipeline.gpu import is_device_array
@@ -294,6 +294,7 @@ def os_pfa_quadrature(alpha, n_ring: int, k: int, looks: float = 1.0, n_target: 
 @functools.lru_cache(maxsize=1024)
 def _alpha_cached(n_ring: int, k: int, looks: float, n_target: int, pfa: float,
                   quadrature: bool) -> float:
+    from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
     if not quadrature:
         def log_pfa(u):
             p = float(os_pfa_exponential(math.exp(u), n_ring, k))

@@ -62,7 +62,6 @@ from typing import Literal
 import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
-from scipy import stats
 
 from sarship.pipeline.boxsum import centered_box_sum
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
@@ -330,6 +329,7 @@ def _hist_quantile(hist: np.ndarray, q: float) -> float:
 
 def reduce(parts: list[dict], p: PCDMParams, prep: dict) -> dict:
     """Scene-wide T_SPAN from the tiles' statistics."""
+    from scipy import stats  # lazy: importing scipy.stats costs every command start-up time
     los = [d["min"] for d in parts if d["min"] is not None]
     his = [d["max"] for d in parts if d["max"] is not None]
     lo = min(los) if los else None  # None: no tested pixel in the scene

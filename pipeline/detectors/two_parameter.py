@@ -31,12 +31,12 @@ from typing import Literal, Optional
 import numpy as np
 from numba import njit, objmode, uint64
 from pydantic import Field
-from scipy import stats
 
 from sarship.pipeline import boxsum, intensity_absent, simd
 from sarship.pipeline.boxsum import hsum_row, ring_slot, stream_state, vertical_row, vertical_steady
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 from sarship.pipeline.gpu import is_device_array
+from sarship.pipeline.tails import norm_isf, t_isf
 from sarship.pipeline.simd import (prefetch, vadd, vcol, vcols, vdiv, vdivn, vload, vmul, vscatter,
                                    vscatter4, vsel_gt, vsplat, vsqrt, vstep, vstore, vstore_stat, vsub)
 
@@ -66,8 +66,8 @@ class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", p
 def threshold(pfa: float, n_ring: int, n_target: int, kind: str = "student") -> float:
     """Threshold on (x_t - mu_hat) / sigma_hat for the given PFA."""
     if kind == "student":
-        return float(np.sqrt(1.0 / n_target + 1.0 / n_ring) * stats.t.isf(pfa, n_ring - 1))
-    return float(stats.norm.isf(pfa) / np.sqrt(n_target))
+        return float(np.sqrt(1.0 / n_target + 1.0 / n_ring) * t_isf(pfa, n_ring - 1))
+    return float(norm_isf(pfa) / np.sqrt(n_target))
 
 
 def prepare(p: TwoParameterParams) -> dict:

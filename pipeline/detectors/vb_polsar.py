@@ -236,7 +236,7 @@ from typing import Literal, Optional
 import numpy as np
 from numba import njit
 from pydantic import Field
-from scipy import optimize, special, stats
+from scipy import special
 
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
 from sarship.pipeline.gpu import is_device_array
@@ -292,6 +292,7 @@ def alpha0_of(p: VBPolSARParams, D: int) -> float:
     With ``calibration="tail"`` this is the alpha0 of the VB on the sample only; the decision
     threshold is then set by :func:`tail_threshold` in ``reduce``.
     """
+    from scipy import stats  # lazy: importing scipy.stats costs every command start-up time
     if p.alpha0 is not None:
         return float(p.alpha0)
     return alpha0_of_threshold(0.5 * float(stats.chi2.isf(p.pfa, D)))
@@ -388,6 +389,7 @@ OUTLIER_PASSES = 2
 
 def _tail_fit(ss: np.ndarray, n: int, lo: int, hi: int, m: int, z0: float) -> Optional[np.ndarray]:
     """Weighted least squares of s_(k) on z = ln(n / (k - m - 1/2)), lo < k <= hi."""
+    from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
     k = np.arange(lo + 1, hi + 1)
     t = ss[k - 1]
     kc = (k - m).astype(float)
