@@ -19,6 +19,19 @@
   variables, here ship detections, derived at the input's resolution, from a Level-1 SAR
   product), ``processing:lineage`` naming the detector, its reference and resolved parameters,
   ``processing:expression`` the same as data.
+- The source product's identifiers, when the scene comes from a Sentinel-1 product (the SAFE
+  reader's ``product``, ``sensor``, ``mode``, ``product_type``, ``acquisition_start`` /
+  ``acquisition_stop``, ``orbit_pass``, ``swath`` attributes, and the product name's fields,
+  ESA's naming convention ``MMM_BB_TTTR_LFPP_<start>_<stop>_OOOOOO_DDDDDD_CCCC``): common
+  metadata ``platform`` (``sentinel-1a``...), ``constellation`` (``sentinel-1``), ``instruments``
+  (``["c-sar"]``), ``start_datetime`` / ``end_datetime``; Satellite extension v1.0.0
+  (https://github.com/stac-extensions/sat) ``sat:orbit_state``, ``sat:absolute_orbit`` (the
+  name's orbit field or an ``absolute_orbit`` / ``orbit_number`` attribute) and
+  ``sat:relative_orbit`` (a ``relative_orbit`` attribute, else from the absolute orbit:
+  ``(abs - 73) mod 175 + 1`` for S1A, ``(abs - 27) mod 175 + 1`` for S1B, the 175-orbit repeat
+  cycle; both agree with the annotation of the repository's samples); and, outside any
+  extension, ``sarship:source_product`` (the product name), ``sarship:datatake_id`` (the name's
+  hexadecimal datatake field as an integer), ``sarship:swath`` (a SLC scene's sub-swath).
 - Projection extension v2.0.0 (https://github.com/stac-extensions/projection), when the scene
   has a CRS and transform: ``proj:code``, ``proj:shape``, ``proj:transform`` (in the
   extension's ``[a, b, c, d, e, f]`` order).
@@ -41,6 +54,7 @@ STAC_VERSION = "1.0.0"
 SAR_EXT = "https://stac-extensions.github.io/sar/v1.1.0/schema.json"
 PROCESSING_EXT = "https://stac-extensions.github.io/processing/v1.1.0/schema.json"
 PROJECTION_EXT = "https://stac-extensions.github.io/projection/v2.0.0/schema.json"
+SAT_EXT = "https://stac-extensions.github.io/sat/v1.0.0/schema.json"
 
 #: Frequency bands of SAR missions (STAC sar extension, "Common Frequency Band Names").
 MISSION_BANDS = (
@@ -143,6 +157,58 @@ def sar_fields(attrs: dict, variables: dict) -> dict:
     return out
 
 
+#: ESA Sentinel-1 product name: mission, mode, type + resolution, level/class/polarisation, start,
+#: stop, absolute orbit, datatake ID (hex), product unique ID
+_S1_FULL = re.compile(r"^(S1[A-D])_([A-Z0-9]{2})_([A-Z]{3})([FHM_])_(\d)([SA])(SH|SV|DH|DV|HH|HV|VV|VH)_"
+                      r"(\d{8}T\d{6})_(\d{8}T\d{6})_(\d{6})_([0-9A-F]{6})_([0-9A-F]{4})", re.I)
+#: relative orbit = (absolute - offset) mod 175 + 1 (175 orbits per 12-day repeat cycle)
+_S1_RELATIVE_OFFSET = {"S1A": 73, "S1B": 27}
+
+
+def _int(v: Any) -> Optional[int]:
+    try:
+        i = int(v)
+    except (TypeError, ValueError):
+        return None
+    return i if i > 0 else None
+
+
+def product_fields(attrs: dict) -> tuple[dict, list[str]]:
+    """``(properties, extensions)`` naming the source Sentinel-1 product (see the module doc);
+    empty when the scene does not come from one."""
+    product = str(attrs.get("product") or "")
+    m = _S1_FULL.match(product)
+    sensor = str(attrs.get("sensor") or "").upper()
+    sm = re.match(r"SENTINEL-?1([A-D])\b", sensor)
+    unit = m.group(1).upper()[2] if m else (sm.group(1) if sm else None)
+    if unit is None:
+        return {}, []
+    out: dict[str, Any] = {"platform": f"sentinel-1{unit.lower()}", "constellation": "sentinel-1",
+                           "instruments": ["c-sar"]}
+    start, end = rfc3339(attrs.get("acquisition_start")), rfc3339(attrs.get("acquisition_stop"))
+    if start and end:
+        out["start_datetime"], out["end_datetime"] = start, end
+    if m:
+        out["sarship:source_product"] = product
+        out["sarship:datatake_id"] = int(m.group(11), 16)
+    if attrs.get("swath"):
+        out["sarship:swath"] = str(attrs["swath"])
+    sat: dict[str, Any] = {}
+    state = str(attrs.get("orbit_pass") or "").strip().lower()
+    if state in ("ascending", "descending"):
+        sat["sat:orbit_state"] = state
+    absolute = _int(attrs.get("absolute_orbit") or attrs.get("orbit_number")) or (_int(m.group(10)) if m else None)
+    if absolute:
+        sat["sat:absolute_orbit"] = absolute
+    relative = _int(attrs.get("relative_orbit") or attrs.get("relative_orbit_number"))
+    if relative is None and absolute and f"S1{unit}" in _S1_RELATIVE_OFFSET:
+        relative = (absolute - _S1_RELATIVE_OFFSET[f"S1{unit}"]) % 175 + 1
+    if relative:
+        sat["sat:relative_orbit"] = relative
+    out.update(sat)
+    return out, ([SAT_EXT] if sat else [])
+
+
 def _epsg_code(crs: Any) -> Optional[str]:
     m = re.fullmatch(r"\s*EPSG:(\d+)\s*", str(crs or ""), re.I)
     return f"EPSG:{m.group(1)}" if m else None
@@ -170,6 +236,9 @@ def stac_item(job: dict, run: dict, base: str, scenes_dir: Path, finished: Optio
     if sar:
         exts.append(SAR_EXT)
         props.update(sar)
+    ident, ident_exts = product_fields(attrs)
+    props.update(ident)
+    exts += ident_exts
     params = run.get("parameters") or {}
     pstr = ", ".join(f"{k}={v}" for k, v in params.items())
     props.update({

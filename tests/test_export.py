@@ -192,3 +192,70 @@ def test_cli_detect_formats(tmp_path):
     res = sarship("detect", plain, "--detector", "ca_cfar", "--out", tmp_path / "r3", "--formats", "kml")
     assert_clean_error(res, "not georeferenced")
     assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
+
+
+# ------------------------------------------------------------------ the STAC item names the source product
+
+
+SAFE_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "sentinel1-safe"
+GRD_NAME = "S1B_IW_GRDH_1SDV_20210401T052623_20210401T052648_026269_032297_ECC8"
+
+
+def _safe_attrs(product=GRD_NAME, **extra) -> dict:
+    """A SAFE scene's attributes as pipeline/readers/safe.py writes them."""
+    return {"product": product, "sensor": "SENTINEL-1B", "mode": "IW", "product_type": "GRD (GRDH)",
+            "acquired": "2021-04-01T05:26:23.794457", "acquisition_start": "2021-04-01T05:26:23.794457",
+            "acquisition_stop": "2021-04-01T05:26:48.793373", "orbit_pass": "DESCENDING",
+            "polarisations": ["vv"], "looks": 4.4, "pixel_spacing_m": [10.0, 10.0],
+            "pixel_spacing_source": "SAFE annotation imageInformation azimuthPixelSpacing, rangePixelSpacing",
+            "gcps": [{"row": r, "col": c, "x": 10.0 + c * 1e-4, "y": 46.0 - r * 1e-4, "z": 0.0}
+                     for r in (0.0, 500.0) for c in (0.0, 800.0)], **extra}
+
+
+def test_stac_item_carries_the_product_identifiers(tmp_path):
+    from sarship.service import stac
+
+    run = {"scene": {"path": str(tmp_path / "s1.zarr"), "shape": [500, 800], "attrs": _safe_attrs()},
+           "detector": "ca_cfar", "parameters": {"pfa": 1e-5}, "channel": "intensity"}
+    item = stac.stac_item({"id": "j1"}, run, "http://h", tmp_path, "2026-11-26T12:00:00Z")
+    p = item["properties"]
+    assert stac.SAT_EXT in item["stac_extensions"] and stac.SAR_EXT in item["stac_extensions"]
+    assert (p["platform"], p["constellation"], p["instruments"]) == ("sentinel-1b", "sentinel-1", ["c-sar"])
+    assert p["sarship:source_product"] == GRD_NAME and p["sarship:datatake_id"] == 0x032297
+    assert (p["sat:orbit_state"], p["sat:absolute_orbit"], p["sat:relative_orbit"]) == ("descending", 26269, 168)
+    assert p["start_datetime"] == "2021-04-01T05:26:23.794457Z" and p["end_datetime"] == "2021-04-01T05:26:48.793373Z"
+    assert p["datetime"] == p["start_datetime"]
+    assert (p["sar:instrument_mode"], p["sar:polarizations"], p["sar:frequency_band"]) == ("IW", ["VV"], "C")
+    assert item["geometry"]["type"] == "Polygon"
+    json.dumps(item, allow_nan=False)
+    # attributes win over the name; S1A's relative orbit; an SLC sub-swath
+    f, _ = stac.product_fields(_safe_attrs("S1A_IW_SLC__1SDV_20160606T221231_20160606T221258_011596_011B8A_3FF3",
+                                           sensor="SENTINEL-1A", swath="IW2", relative_orbit=5))
+    assert f["sat:absolute_orbit"] == 11596 and f["sat:relative_orbit"] == 5 and f["sarship:swath"] == "IW2"
+    f, _ = stac.product_fields(_safe_attrs("S1A_IW_SLC__1SDV_20160606T221231_20160606T221258_011596_011B8A_3FF3",
+                                           sensor="SENTINEL-1A"))
+    assert f["sat:relative_orbit"] == 149  # the product's REL_ORBIT (OpenSARShip's SNAP metadata of this product)
+    assert f["sarship:datatake_id"] == 72586
+    # not a Sentinel-1 product: nothing claimed
+    assert stac.product_fields({"sensor": "sarship-simulator", "product": "x"}) == ({}, [])
+    f, ext = stac.product_fields({"sensor": "SENTINEL-1A IW"})  # a SNAP GeoTIFF: the unit, no orbit
+    assert f["platform"] == "sentinel-1a" and "sat:absolute_orbit" not in f and ext == []
+
+
+@pytest.mark.skipif(not SAFE_DIR.is_dir(), reason=f"Sentinel-1 SAFE samples not found at {SAFE_DIR}")
+@pytest.mark.parametrize("pattern", ["S1B_IW_GRDH_*.SAFE", "S1B_IW_SLC_*.SAFE"])
+def test_product_fields_agree_with_the_manifest(pattern):
+    """Orbit numbers, datatake and pass derived from the name agree with the real manifest."""
+    pytest.importorskip("xarray_sentinel", reason="xarray-sentinel not installed (pip install 'sarship[safe]')")
+    import xarray as xr
+
+    from sarship.service import stac
+
+    product = next(iter(sorted(SAFE_DIR.glob(pattern))))
+    root = xr.open_dataset(product, engine="sentinel-1").attrs
+    f, _ = stac.product_fields({"product": product.name.removesuffix(".SAFE"), "orbit_pass": root["pass"],
+                                "sensor": f"{root['family_name']}{root['number']}"})
+    assert f["sat:absolute_orbit"] == root["orbit_number"]
+    assert f["sat:relative_orbit"] == root["relative_orbit_number"]
+    assert f["sarship:datatake_id"] == root["mission_data_take_id"]
+    assert f["sat:orbit_state"] == root["pass"].lower() and f["platform"] == f"sentinel-1{root['number'].lower()}"
