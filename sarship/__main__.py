@@ -1,6 +1,6 @@
 """``python -m sarship``: the command line (same as the ``sarship`` console script)."""
 
-from sarship.cli import main
+from sarship.cli import console
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    console()
