@@ -4,9 +4,10 @@ A SAR samples the azimuth (Doppler) spectrum at the pulse repetition frequency P
 energy a bright target returns through the antenna's azimuth sidelobes at Doppler
 ``f_dc + k PRF`` (k = +-1, +-2, ...) is aliased into the processed band and focused as a
 fainter copy of the target: the k-th azimuth ambiguity. Its place follows from the linear
-time-frequency relation of the azimuth chirp (Curlander & McDonough 1991, sec. 6.5.1, and
-Cumming & Wong 2005, ch. 4: azimuth FM rate ``Ka = -2 Vr^2 / (lambda R)``, ``Vr`` the
-effective velocity; see docs/references.md#curlander1991, #cumming2005):
+time-frequency relation of the azimuth chirp (Curlander & McDonough 1991, azimuth ambiguity
+analysis, and Cumming & Wong 2005: azimuth FM rate ``Ka = -2 Vr^2 / (lambda R)``, ``Vr`` the
+effective velocity; docs/references.md#curlander1991, #cumming2005; the section numbers were
+not checked against the books, so none are given):
 
 (1) ``dt_k = k PRF / Ka = -k lambda R PRF / (2 Vr^2)``     (zero-Doppler azimuth time shift, s)
 
@@ -21,11 +22,11 @@ effective velocity; see docs/references.md#curlander1991, #cumming2005):
     the range migration of the ambiguous energy (true Doppler ``f_dc + k PRF``) that the
     processor's migration correction (for Doppler ``f_dc``) leaves uncorrected: from the
     hyperbolic range history ``R(t) = sqrt(R^2 + Vr^2 t^2)`` and ``f = -2 R'(t) / lambda``,
-    the energy at Doppler ``f`` lies ``lambda^2 R f^2 / (8 Vr^2)`` beyond ``R`` (Cumming &
-    Wong 2005, eq. 6.11 with the range-Doppler migration; Curlander & McDonough 1991 sec.
-    6.5.1). For Sentinel-1 IW (lambda = 5.55 cm, R ~ 850 km, PRF ~ 1700 Hz, Vr ~ 7180 m/s,
-    ``f_dc ~ 0``) dR_1 ~ 18 m slant, 2-4 ground-range pixels of 10 m: not negligible, so it
-    is applied, not bounded.
+    the energy at Doppler ``f`` lies ``lambda^2 R f^2 / (8 Vr^2)`` beyond ``R`` (the
+    range-Doppler form of the range migration, Cumming & Wong 2005; checked against the
+    exact hyperbola in tests/test_ambiguity.py). For Sentinel-1 IW (lambda = 5.55 cm,
+    R ~ 850 km, PRF ~ 1700 Hz, Vr ~ 7180 m/s, ``f_dc ~ 0``) dR_1 ~ 18 m slant, 2-4
+    ground-range pixels of 10 m: not negligible, so it is applied, not bounded.
 
 Pixels: rows are azimuth lines in increasing zero-Doppler time (as Sentinel-1 products and
 the simulator write them), ``d_row = dt_k / dt_line`` with ``dt_line`` the annotation's
@@ -37,13 +38,14 @@ incidence angle.
 TOPS (Sentinel-1 IW/EW): the Doppler centroid of a target changes with its position in the
 burst by ``kt = Ka ks / (Ka - ks)`` per second of zero-Doppler time, ``ks = 2 Vs k_psi /
 lambda`` the steering's Doppler rate (De Zan & Monti Guarnieri 2006,
-docs/references.md#dezan2006), over +-2.7 kHz for IW. Equation (1) does not depend on
-``f_dc``; (3) does, and a GRD product does not say where in its burst a pixel was, so (3) is
-taken at the annotation's Doppler centroid and the range tolerance widened by the spread
+docs/references.md#dezan2006; ESA's TOPS deramping note, #s1-deramping), over +-2.5 kHz for
+IW. Equation (1) does not depend on ``f_dc``; (3) does, and a GRD product does not say
+where in its burst a pixel was, so (3) is taken at the annotation's Doppler centroid and the
+range tolerance widened by the spread
 ``|d col / d R| lambda^2 R |k| PRF 2 df / (8 Vr^2)`` (``df``: half the centroid's span in a
 burst, geometry key ``doppler_centroid_spread_hz``).
 
-Matching (as JRC SUMO flags azimuth ambiguities, Greidanus et al. 2017 sec. 2.3): a detection
+Matching (as JRC SUMO flags azimuth ambiguities, Greidanus et al. 2017): a detection
 is the ghost of order k of a brighter detection when its centroid lies within ``tol_px``
 rows and ``tol_px`` (+ the TOPS spread) columns of that detection's predicted k-th ghost
 and its peak is at least ``min_db`` dB below the parent's. The azimuth ambiguity-to-signal
@@ -80,7 +82,7 @@ DEFAULT_MIN_DB = 10.0
 
 def azimuth_shift_s(k: Any, wavelength_m: Any, slant_range_m: Any, prf_hz: Any, v_eff_m_s: Any) -> Any:
     """Eq. (1): zero-Doppler time shift of the k-th ambiguity, ``-k lambda R PRF / (2 Vr^2)``
-    (= ``k PRF / Ka``, ``Ka = -2 Vr^2 / (lambda R)``; Curlander & McDonough 1991 sec. 6.5.1)."""
+    (= ``k PRF / Ka``, ``Ka = -2 Vr^2 / (lambda R)``; Curlander & McDonough 1991)."""
     return -np.asarray(k) * wavelength_m * slant_range_m * prf_hz / (2.0 * np.square(v_eff_m_s))
 
 
@@ -117,7 +119,7 @@ def tops_doppler_spread_hz(fm_rate_hz_s: float, steering_rate_rad_s: float, v_pl
                            wavelength_m: float, burst_s: float) -> float:
     """Half the span of a TOPS target's Doppler centroid over a burst of ``burst_s`` seconds of
     zero-Doppler time: ``|kt| burst / 2``, ``kt = Ka ks / (Ka - ks)``, ``ks = 2 Vs k_psi /
-    lambda`` (De Zan & Monti Guarnieri 2006, eqs. for the TOPS Doppler centroid rate)."""
+    lambda`` (De Zan & Monti Guarnieri 2006; ESA's TOPS deramping note)."""
     ks = 2.0 * v_platform_m_s * steering_rate_rad_s / wavelength_m
     ka = -abs(fm_rate_hz_s)
     kt = ka * ks / (ka - ks)

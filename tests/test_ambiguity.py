@@ -35,8 +35,9 @@ try:
     HAVE_XS = True
 except ImportError:
     HAVE_XS = False
-needs_grd = pytest.mark.skipif(GRD is None or not HAVE_XS, reason="the shared SAFE sample or xarray-sentinel is missing")
-needs_slc = pytest.mark.skipif(SLC is None or not HAVE_XS, reason="the shared SAFE sample or xarray-sentinel is missing")
+WHY = "the shared SAFE sample or xarray-sentinel is missing"
+needs_grd = pytest.mark.skipif(GRD is None or not HAVE_XS, reason=WHY)
+needs_slc = pytest.mark.skipif(SLC is None or not HAVE_XS, reason=WHY)
 
 
 def _seconds(t: str) -> float:
@@ -137,8 +138,8 @@ def test_grd_displacement_matches_a_hand_computation_from_the_annotation():
     # the metre and the time routes meet: Vg dt_line is the line spacing on the ground (10.17 m; the
     # annotation's nominal azimuthPixelSpacing says 10 m)
     vr = geom.at(np.array([0.0]), geom.v_eff_m_s)[0]
-    assert vr**2 / vs * ati == pytest.approx(float(root.findtext("imageAnnotation/imageInformation/azimuthPixelSpacing")),
-                                              rel=0.025)
+    nominal = float(root.findtext("imageAnnotation/imageInformation/azimuthPixelSpacing"))
+    assert vr**2 / vs * ati == pytest.approx(nominal, rel=0.025)
     # eq (3) by hand, in columns through the grid's slant range (ground range: ~5.3 m slant per column at near range)
     fdc = geom.at(np.array([0.0]), geom.doppler_centroid_hz)[0]
     assert abs(fdc) < prf["IW1"] / 2

@@ -1,10 +1,14 @@
 """The acquisition geometry of a Sentinel-1 SAFE product, as the scene attribute ``sar_geometry``.
 
 What :mod:`sarship.pipeline.ambiguity` needs to place azimuth ambiguities (its eqs. 1-3), read
-from the product annotation of one swath/polarisation:
+from the product annotation of one swath/polarisation. The orbit, azimuth FM rate, Doppler
+centroid and geolocation grid come from xarray-sentinel's groups (typed, schema-checked); the
+plain values it does not expose (the PRF of ``downlinkInformation``, the swath bounds of
+``swathMerging``, the TOPS steering rate and burst timing) from one ElementTree parse of the
+annotation XML.
 
 =============================== =====================================================================
-key                             from the annotation (xarray-sentinel group or ``esa_safe`` tag)
+key                             from the annotation (xarray-sentinel group, else ElementTree)
 =============================== =====================================================================
 ``radar_frequency_hz``          ``generalAnnotation/productInformation/radarFrequency``
 ``prf_hz`` / ``swaths``         ``downlinkInformation/prf`` per swath; GRD: column/line bounds of
