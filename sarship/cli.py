@@ -83,6 +83,20 @@ def _spacing(text: str) -> tuple[float, float]:
     return az, rg
 
 
+def _lonlat(text: str) -> tuple[float, float]:
+    """``LON,LAT`` degrees (WGS84)."""
+    import math
+
+    try:
+        lon, lat = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LON,LAT (two numbers of degrees, e.g. 10.6,59.8), "
+                                         f"got '{text}'") from None
+    if not (math.isfinite(lon) and math.isfinite(lat) and -180 <= lon <= 180 and -80 <= lat <= 80):
+        raise argparse.ArgumentTypeError(f"expected lon in [-180, 180] and lat in [-80, 80], got '{text}'")
+    return lon, lat
+
+
 def _print_warnings(command: str, run: dict) -> None:
     """Every entry of run.json's "warnings", one line each on stderr."""
     for w in run.get("warnings") or []:
@@ -106,6 +120,7 @@ def cmd_simulate(a) -> int:
         land=a.land, sidelobes=a.sidelobes, ambiguities=a.ambiguities, stripes=a.stripes, rfi=a.rfi,
         scr_db=a.scr_db, pixel_spacing_m=(a.spacing, a.spacing),
         texture_shape=a.texture_shape, ggd_power=a.ggd_power, ggd_shape=a.ggd_shape, shape_beta=a.shape_beta,
+        geo=a.geo, geo_gcps=a.geo_gcps,
     ))
     out = Path(a.out)
     truth = a.truth or f"{out}.truth.geojson"
@@ -362,12 +377,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spacing", type=float, default=10.0, help="pixel spacing in metres (default 10)")
     for flag in ("land", "sidelobes", "ambiguities", "stripes", "rfi"):
         s.add_argument(f"--{flag}", action="store_true")
+    s.add_argument("--geo", type=_lonlat, metavar="LON,LAT",
+                   help="georeference the scene (WGS84, north-up, centred on LON,LAT, --spacing metres a pixel); "
+                        "with --land the land is the GSHHG shoreline's (needs pip install 'sarship[coastline]')")
+    s.add_argument("--geo-gcps", dest="geo_gcps", action="store_true",
+                   help="with --geo: store the georeference as a 6 x 6 grid of GCPs instead of an affine transform")
     s.add_argument("--truth", help="truth GeoJSON path (default OUT.zarr.truth.geojson)")
     s.add_argument("--tile", type=_positive_int, default=2048)
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store and truth file")
     s.set_defaults(func=cmd_simulate)
 
-    s = sub.add_parser("ingest", help="convert GeoTIFF/TIFF, PNG/JPEG, .npy, a Sentinel-1 GRD SAFE "
+    s = sub.add_parser("ingest", help="convert GeoTIFF/TIFF, PNG/JPEG, .npy, a Sentinel-1 GRD or IW SLC SAFE "
                                        "(folder or .zip) or Zarr into a scene store")
     s.add_argument("inputs", nargs="+")
     s.add_argument("--out", required=True, help="output scene store (SCENE.zarr)")

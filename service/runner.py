@@ -78,8 +78,10 @@ def land_file_path(settings: Settings, request) -> Optional[Path]:
     """The ``land_mask`` FILE a job names, resolved and required to lie inside an allowed scene
     folder (the service reads no other file of its host); None for none/texture. InputError
     (a 4xx for the API) otherwise."""
-    lm = request.detector_params().land_mask
-    if lm is None or lm == "texture":
+    from sarship.pipeline.detectors.base import land_mask_parts
+
+    lm = land_mask_parts(request.detector_params().land_mask)[1]
+    if lm is None:  # none, texture, coastline, coastline+texture
         return None
     s = lm.strip()
     if "://" in s:

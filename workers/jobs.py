@@ -216,6 +216,9 @@ def run_request(
     tile = int(tile or scene.tile)
     if tile < 8:
         raise InputError(f"--tile must be at least 8 pixels, got {tile}")
+    # a bad land_mask FILE, or coastline without its package or on a scene without georeference,
+    # fails here, before any data is read or output written
+    land_file = check_land_file(params, scene)
     params, looks_source = resolve_looks(spec, params, scene, var, transform)
     prep = spec.prepare(params)
     warnings: list[str] = []
@@ -225,7 +228,6 @@ def run_request(
     if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
         warnings.append("min_length_m/max_length_m ignored: the scene's pixel spacing is unknown")
     halo = spec.halo(params)
-    land_file = check_land_file(params, scene)  # a bad land_mask FILE fails here, before any output
     mr = merge_radius(params.merge_px)
     H, W = scene.shape
     created = not out_dir.exists()

@@ -1,4 +1,5 @@
-"""The land mask of a detection job (``land_mask`` = none | texture | FILE), client side.
+"""The land mask of a detection job (``land_mask`` = none | texture | coastline |
+coastline+texture | FILE), client side.
 
 ``texture``: a land pass over the tiles (:func:`sarship.workers.tasks.run_tile_land_stats`: the
 texture on a scene-wide grid, pooled in (row, col) order), the Gaussian mixture fitted and the
@@ -9,6 +10,12 @@ its core into ``DIR/land.zarr`` and sets land to NaN before the detector runs.
 ``FILE``: the file is checked (:func:`sarship.pipeline.landmask_files.open_land_file`) and
 rasterised into ``DIR/land.zarr`` here, strip by strip, before any tile runs; each tile reads
 its block of it (mirror-extended like the scene) and sets land to NaN.
+
+``coastline``: the GSHHG shoreline (:mod:`sarship.pipeline.coastline`) widened by
+``land_buffer_m`` is rasterised into ``DIR/land.zarr`` here, strip by strip, as a FILE is, and
+the tiles read it the same way. ``coastline+texture``: the coastline goes to the array
+``coastline`` of ``DIR/land.zarr``; each texture tile reads its block of it and writes the union
+into ``land``.
 
 Maths in :mod:`sarship.pipeline.landmask`; docs/algorithms/landmask.md.
 """
@@ -49,13 +56,47 @@ def create_land_store(path: Path, shape: tuple[int, int], tile: int, attrs: dict
 
 
 def check_land_file(params, scene: Scene):
-    """The checked FILE of ``land_mask`` (None for none/texture); one-line InputError otherwise."""
-    lm = params.land_mask
-    if lm is None or lm == "texture":
+    """The checked source of ``land_mask`` before any work: the FILE
+    (:class:`~sarship.pipeline.landmask_files.LandFile`), the coastline
+    (:class:`~sarship.pipeline.coastline.Coastline`: package installed, scene georeferenced),
+    or None for none/texture; one-line InputError otherwise."""
+    from sarship.pipeline.detectors.base import land_mask_parts
+
+    keys, path = land_mask_parts(params.land_mask)
+    if "coastline" in keys:
+        from sarship.pipeline.coastline import open_coastline
+
+        return open_coastline(scene.attrs, scene.shape, float(params.land_buffer_m))
+    if path is None:
         return None
     from sarship.pipeline.landmask_files import open_land_file
 
-    return open_land_file(lm, scene.shape, scene.attrs)
+    return open_land_file(path, scene.shape, scene.attrs)
+
+
+def rasterize_coastline(coast, arr, shape: tuple[int, int], rows: int) -> int:
+    """Write the buffered coastline mask into ``arr`` strip by strip (``rows`` rows a strip);
+    returns the land pixel count."""
+    H, W = shape
+    count = 0
+    for r0 in range(0, H, max(rows, 1)):
+        r1 = min(r0 + max(rows, 1), H)
+        block = coast.read(r0, r1, 0, W)
+        arr[r0:r1, :] = block.astype(np.uint8)
+        count += int(block.sum())
+    return count
+
+
+def coastline_record(coast, count: int, seconds: float) -> dict:
+    """``run.json``'s description of the coastline mask."""
+    from sarship.pipeline.coastline import shoreline_version
+
+    st = coast.stats
+    return {"source": "coastline", "shoreline": f"GSHHG full resolution, level 1 ({shoreline_version()})",
+            "buffer_m": coast.buffer_m, "spacing_m": list(coast.spacing), "spacing_source": coast.spacing_source,
+            "halo_px": list(coast.halo), "lattice_step_px": coast.step, "lattice_points": st["lattice_points"],
+            "refined_px": st["refined_px"], "evaluated_px": st["pixels"], "land_px": count,
+            "land": count > 0, "seconds": round(seconds, 4)}
 
 
 def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: int, execute) -> tuple[list, dict | None]:
@@ -71,7 +112,21 @@ def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: i
     H, W = scene.shape
     store = tmp / LAND_STORE
     attrs = {k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs}
-    if lm == "texture":
+    from sarship.pipeline.detectors.base import land_mask_parts
+
+    keys, _path = land_mask_parts(lm)
+    if "coastline" in keys:
+        from sarship.pipeline.coastline import Coastline
+
+        if not isinstance(land_file, Coastline):
+            raise TypeError("prepare_land: land_mask=coastline needs the Coastline of check_land_file")
+    if keys == {"coastline"}:
+        arr = create_land_store(store, (H, W), tile, {"source": "coastline", **attrs})
+        count = rasterize_coastline(land_file, arr, (H, W), tile)
+        land = {"mode": "file", "store": str(store / "land")}
+        jobs = [dataclasses.replace(j, land=land, land_halo=0, land_path=None) for j in jobs]
+        record = coastline_record(land_file, count, time.perf_counter() - t0)
+    elif "texture" in keys:
         from sarship.pipeline import landmask
 
         cfg = texture_config(params)
@@ -81,11 +136,27 @@ def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: i
         t = landmask.pool_samples([s["stats"] for s in sorted(stats, key=lambda s: s["index"])])
         decision = landmask.decide(t, cfg)
         decision["stride"] = stride
-        create_land_store(store, (H, W), tile, {"source": "texture", **attrs})
+        create_land_store(store, (H, W), tile, {"source": "+".join(sorted(keys)), **attrs})
         land = {"mode": "texture", "config": dataclasses.asdict(cfg), "decision": decision}
         halo = cfg.halo if decision["land"] else 0
+        coast_record = None
+        if "coastline" in keys:  # the union: the tiles add their block of the coastline array
+            import zarr
+
+            t1 = time.perf_counter()
+            g = zarr.open_group(str(store), mode="r+")
+            from sarship.pipeline.scene import _zstd, chunking
+
+            carr = g.create_array("coastline", shape=(H, W), dtype="uint8", **chunking(tile), compressors=_zstd(),
+                                  dimension_names=("y", "x"), fill_value=0)
+            count = rasterize_coastline(land_file, carr, (H, W), tile)
+            coast_record = coastline_record(land_file, count, time.perf_counter() - t1)
+            land = {**land, "coastline": str(store / "coastline")}
         jobs = [dataclasses.replace(j, land=land, land_halo=halo, land_path=str(store / "land")) for j in jobs]
         record = {"source": "texture", **decision, "seconds": round(time.perf_counter() - t0, 4)}
+        if coast_record is not None:
+            record = {**record, "source": "coastline+texture", "texture_land": decision["land"],
+                      "land": bool(decision["land"] or coast_record["land"]), "coastline": coast_record}
     else:
         arr = create_land_store(store, (H, W), tile, {"source": str(Path(land_file.path).resolve()), **attrs})
         rows = max(tile, 1)

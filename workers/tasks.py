@@ -89,6 +89,12 @@ def _land_block(job: TileJob, block, r0: int, r1: int, c0: int, c1: int):
         land = landmask.classify(block, lh, (r0 - h - lh, c0 - h - lh), cfg, job.land["decision"])
         if lh:
             block = block[lh: block.shape[0] - lh, lh: block.shape[1] - lh]
+        if job.land.get("coastline"):  # land_mask=coastline+texture: the union (workers/land.py)
+            import zarr
+
+            carr = zarr.open_array(job.land["coastline"], mode="r")
+            land = land | (padded_block(lambda a, b, c, d: np.asarray(carr[a:b, c:d]), job.scene_shape,
+                                        r0, r1, c0, c1, h) > 0)
     else:
         import zarr
 

@@ -91,11 +91,16 @@ class DetectorParams(BaseModel):
     land_mask: Optional[str] = Field(
         None, min_length=1, max_length=4096,
         description="land mask: none, texture (local amplitude variance + Gaussian mixture, "
-                    "sea = the low-texture class), or a FILE: a raster of the scene's shape (GeoTIFF, PNG, "
+                    "sea = the low-texture class), coastline (the GSHHG shoreline on a georeferenced scene, "
+                    "widened by land_buffer_m; extra 'coastline'), coastline+texture (their union), or a FILE: a raster of the scene's shape (GeoTIFF, PNG, "
                     ".npy, Zarr; non-zero = land) or GeoJSON polygons (lon/lat, or scene pixels with "
                     "\"pixel_coordinates\": true); default: the detector's (texture for ca_cfar, os_cfar, "
                     "two_parameter, g0_cfar, k_cfar, ggd_cfar, gamma_mrf and superpixel_cfar; none for the "
                     "others)")
+    land_buffer_m: float = Field(
+        250.0, ge=0.0, le=5000.0,
+        description="land_mask=coastline: the GSHHG land is widened by this many metres (pixels within it of land "
+                    "are land too; about one standard deviation of the shoreline's position)")
     land_window: int = Field(15, ge=3, le=101, description="land_mask=texture: texture window side (odd, pixels)")
     land_classes: int = Field(2, ge=2, le=6, description="land_mask=texture: Gaussian mixture classes (sea = lowest texture)")
     land_open_px: int = Field(51, ge=1, le=255,
@@ -119,10 +124,8 @@ class DetectorParams(BaseModel):
             v = getattr(self, name)
             if v % 2 == 0:
                 raise ValueError(f"{name} must be odd, got {v}")
-        if self.land_mask is not None and self.land_mask.strip().lower() in ("none", "null", ""):
-            self.__dict__["land_mask"] = None
-        elif self.land_mask is not None and self.land_mask.strip().lower() == "texture":
-            self.__dict__["land_mask"] = "texture"
+        if self.land_mask is not None:
+            self.__dict__["land_mask"] = normalize_land_mask(self.land_mask)
         if self.max_area_px is not None and self.min_area_px is not None and self.max_area_px < self.min_area_px:
             raise ValueError(f"max_area_px ({self.max_area_px}) must be >= min_area_px ({self.min_area_px})")
         if (self.min_length_m is not None and self.max_length_m is not None
@@ -134,6 +137,38 @@ class DetectorParams(BaseModel):
     def n_ring(self) -> int:
         """Number of clutter cells in the ring between guard and background windows."""
         return self.background**2 - self.guard**2
+
+
+#: The keyword land masks (``land_mask``); several joined by ``+`` are their union
+#: (docs/algorithms/landmask.md). Any other value is a FILE.
+LAND_KEYWORDS = ("coastline", "texture")
+
+
+def land_mask_parts(value: str | None) -> tuple[frozenset[str], str | None]:
+    """The keyword masks and the FILE of a ``land_mask`` value: ``(frozenset(), None)`` for none;
+    ``({"coastline", "texture"}, None)`` for ``coastline+texture`` (any order and case, spaces
+    around ``+`` allowed); ``(frozenset(), value)`` for anything else (a FILE path, which may
+    itself contain ``+``)."""
+    if value is None:
+        return frozenset(), None
+    s = value.strip().lower()
+    if s in ("none", "null", ""):
+        return frozenset(), None
+    parts = [p.strip() for p in s.split("+")]
+    if all(p in LAND_KEYWORDS for p in parts):
+        if len(set(parts)) != len(parts):
+            raise ValueError(f"land_mask: '{value}' names a mask twice")
+        return frozenset(parts), None
+    return frozenset(), value
+
+
+def normalize_land_mask(value: str | None) -> str | None:
+    """``land_mask`` in canonical form: None, the keywords sorted and joined by ``+``
+    (``coastline``, ``texture``, ``coastline+texture``), or the FILE as given."""
+    keys, path = land_mask_parts(value)
+    if path is not None:
+        return path
+    return "+".join(sorted(keys)) if keys else None
 
 
 def check_windows(halo: int, *sides: int) -> None:

@@ -42,7 +42,8 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from sarship.pipeline import boxsum, csk_null
-from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
+from sarship.pipeline.detectors.base import (DetectorParams, DetectorSpec, check_windows, land_mask_parts,
+                                             with_defaults)
 from sarship.pipeline.gpu import is_device_array
 
 
@@ -86,7 +87,7 @@ class CSKParams(with_defaults(DetectorParams, "CSKDefaults", pfa=1e-6, merge_px=
                 raise ValueError(f"{name} must be 1 or odd, got {v}")
         if self.npdd_s == self.npdd_t:
             raise ValueError(f"npdd_s and npdd_t must differ, got {self.npdd_s}")
-        if self.land_mask == "texture":
+        if "texture" in land_mask_parts(self.land_mask)[0]:
             raise ValueError("land_mask: texture is not available for csk (its texture model reads intensity); "
                              "give a land mask FILE")
         return self

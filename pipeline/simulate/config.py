@@ -50,6 +50,8 @@ class SimConfig:
     ggd_power: float = 0.7           # GGD clutter (intensity only): power v of (x / sigma)^v kappa ~ Gamma(kappa)
     ggd_shape: float = 3.0           # GGD clutter: shape kappa
     shape_beta: float = 1.0          # CGGD clutter (slc only): shape beta (1: complex Gaussian; < 1 super-Gaussian)
+    geo: tuple[float, float] | None = None  # (lon, lat) of the scene centre: georeferenced (WGS84), land from GSHHG
+    geo_gcps: bool = False           # with geo: the georeference as a grid of GCPs instead of an affine transform
 
     def as_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -176,6 +178,17 @@ def validate(cfg: SimConfig) -> SimConfig:
     sb = _num(cfg.shape_beta, "shape_beta", "a number in [0.05, 10]")
     if not 0.05 <= sb <= 10:
         raise _bad("shape_beta", "a number in [0.05, 10]", cfg.shape_beta)
+    geo = None
+    if cfg.geo is not None:
+        grng = "two numbers (lon, lat) with lon in [-180, 180] and lat in [-80, 80] degrees"
+        a, b = _pair(cfg.geo, "geo", grng)
+        geo = (_num(a, "geo", grng), _num(b, "geo", grng))
+        if not (-180 <= geo[0] <= 180 and -80 <= geo[1] <= 80):
+            raise _bad("geo", grng, cfg.geo)
+    if not isinstance(cfg.geo_gcps, (bool, np.bool_)):
+        raise _bad("geo_gcps", "true or false", cfg.geo_gcps)
+    if cfg.geo_gcps and geo is None:
+        raise _bad("geo_gcps", "false without geo (GCPs need the scene's position)", cfg.geo_gcps)
     if clutter == "cggd" and kind != "slc":
         raise _bad("clutter", "cggd (a complex single-channel model) with kind slc only", clutter)
     if clutter == "ggd" and kind != "intensity":
@@ -188,7 +201,7 @@ def validate(cfg: SimConfig) -> SimConfig:
                     ambiguities=bool(cfg.ambiguities), stripes=bool(cfg.stripes),
                     rfi=bool(cfg.rfi), pixel_spacing_m=spacing, scr_db=scr, length_m=length,
                     texture_shape=nu, texture_corr_px=corr, clutter_mean=cm, ggd_power=gv, ggd_shape=gk,
-                    shape_beta=sb)
+                    shape_beta=sb, geo=geo, geo_gcps=bool(cfg.geo_gcps))
     ships = _int(cfg.ships, "ships", "an integer >= 0")
     if ships < 0:
         raise _bad("ships", "an integer >= 0", cfg.ships)

@@ -153,7 +153,9 @@ def _truth(m: _Model, bufs: dict[int, np.ndarray]) -> dict[str, Any]:
                                              "rho": [SEA_RHO.real, SEA_RHO.imag]}
     if m.rfi:
         coll["rfi"] = [{k: ev[k] for k in ("id", "rows", "cols", "level_db")} for ev in m.rfi]
-    if m.land is not None:
+    if m.land is not None and m.land.side == "gshhg":
+        coll["land"] = {"side": "gshhg", "source": "GSHHG shoreline (land_mask=coastline, no buffer)"}
+    elif m.land is not None:
         coll["land"] = {"side": m.land.side, "mean_depth_px": m.land.depth}
     if m.sources:
         coll["sidelobes"] = [{"source_id": sl["ship"], "row": sl["row"], "col": sl["col"],

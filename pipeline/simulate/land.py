@@ -8,12 +8,22 @@ Land (``land``)
     [8, 12]), times a strong texture (Gamma(nu = 1), correlation 6 px), with bright urban
     point scatterers (density 1 / 1500 px, +20..35 dB, dihedral/trihedral in quad-pol).
     Quad-pol land covariance: eps = 0.15, gamma = 0.8, rho = 0.35 (vegetation/urban mix).
+
+Georeferenced scenes (``geo``: the scene centre's lon/lat)
+    The scene is placed on the Earth north-up (:func:`geo_attrs`: ``crs`` EPSG:4326 and an
+    affine ``transform``, or the same mapping as a 6 x 6 grid of ``gcps`` with ``geo_gcps``),
+    ``pixel_spacing_m`` metres a pixel (111 320 m a degree of latitude, times cos(lat) of
+    longitude). With ``land`` the coast is not drawn from the seed: a pixel is land when its
+    centre is inside the GSHHG shoreline (:meth:`sarship.pipeline.coastline.Coastline.land`,
+    no buffer; extra ``coastline``), so the simulated land is the land ``land_mask=coastline``
+    knows. The land's backscatter is the same as above.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +36,9 @@ URBAN_PX_PER_POINT = 1500.0
 LAND_TEXTURE_NU = 1.0
 LAND_TEXTURE_CORR_PX = 6.0
 LAND_GAIN_CORR_PX = 64.0
+#: Georeferenced scenes: ships keep this many pixels of sea around their box (>= the ships
+#: module's LAND_MARGIN_PX).
+LAND_CLEARANCE_PX = 8
 
 
 @dataclass
@@ -35,7 +48,9 @@ class _Land:
     octaves: list[tuple[float, float, np.ndarray]]
 
 
-def _land_model(cfg: SimConfig) -> _Land:
+def _land_model(cfg: SimConfig) -> "_Land | _GeoLand":
+    if cfg.geo is not None:
+        return _geo_land_model(cfg)
     H, W = cfg.shape
     rng = _rng(cfg.seed, _S_LAND)
     side = ("top", "bottom", "left", "right")[int(rng.integers(0, 4))]
@@ -65,7 +80,44 @@ def _coast(land: _Land, along: np.ndarray) -> np.ndarray:
     return d
 
 
-def _land_mask(cfg: SimConfig, land: _Land, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+#: Metres per degree of latitude of the simulator's georeference (the mean).
+M_PER_DEG = 111_320.0
+
+
+def geo_attrs(cfg: SimConfig) -> dict:
+    """The georeference attributes of a ``geo`` scene: north-up, centred on ``cfg.geo``, one
+    pixel ``pixel_spacing_m`` metres (azimuth = rows southward, range = columns eastward)."""
+    lon, lat = cfg.geo
+    H, W = cfg.shape
+    dlat = cfg.pixel_spacing_m[0] / M_PER_DEG
+    dlon = cfg.pixel_spacing_m[1] / (M_PER_DEG * math.cos(math.radians(lat)))
+    transform = [lon - W / 2.0 * dlon, dlon, 0.0, lat + H / 2.0 * dlat, 0.0, -dlat]
+    if not cfg.geo_gcps:
+        return {"crs": "EPSG:4326", "transform": transform}
+    c, a, b, f, d, e = transform
+    gcps = [{"row": float(r), "col": float(q), "x": c + a * q + b * r, "y": f + d * q + e * r}
+            for r in np.linspace(0.0, H, 6) for q in np.linspace(0.0, W, 6)]
+    return {"crs": "EPSG:4326", "gcps": gcps}
+
+
+@dataclass
+class _GeoLand:
+    """Land of a georeferenced scene: the GSHHG shoreline through the scene's georeference."""
+
+    coast: Any  # sarship.pipeline.coastline.Coastline (buffer 0)
+    side: str = "gshhg"
+
+
+def _geo_land_model(cfg: SimConfig) -> _GeoLand:
+    from sarship.pipeline.coastline import open_coastline
+
+    return _GeoLand(coast=open_coastline({**geo_attrs(cfg), "pixel_spacing_m": list(cfg.pixel_spacing_m)},
+                                         cfg.shape, buffer_m=0.0))
+
+
+def _land_mask(cfg: SimConfig, land: "_Land | _GeoLand", r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    if isinstance(land, _GeoLand):
+        return land.coast.land(r0, r1, c0, c1)
     H, W = cfg.shape
     rows = np.arange(r0, r1) + 0.5
     cols = np.arange(c0, c1) + 0.5
@@ -79,7 +131,12 @@ def _land_mask(cfg: SimConfig, land: _Land, r0: int, r1: int, c0: int, c1: int) 
 
 
 def _land_clearance(cfg: SimConfig, land: _Land, r0: int, r1: int, c0: int, c1: int) -> float:
-    """Smallest distance (px, perpendicular to the coast) of box pixels from the land."""
+    """Smallest distance (px, perpendicular to the coast) of box pixels from the land (for a
+    georeferenced scene: 0 when land lies within ``LAND_CLEARANCE_PX`` pixels of the box, else
+    that margin)."""
+    if isinstance(land, _GeoLand):
+        m = LAND_CLEARANCE_PX
+        return 0.0 if land.coast.land(r0 - m, r1 + m, c0 - m, c1 + m).any() else float(m)
     H, W = cfg.shape
     if land.side in ("top", "bottom"):
         d = _coast(land, np.arange(c0, c1) + 0.5).max()

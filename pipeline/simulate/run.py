@@ -90,6 +90,10 @@ def simulate(out: str | os.PathLike, cfg: SimConfig, tile: int = 2048,
     }
     if cfg.kind == "quadpol":
         attrs["polarizations"] = ["hh", "hv", "vv"]
+    if cfg.geo is not None:  # georeferenced scene (pipeline/simulate/land.py: geo_attrs)
+        from sarship.pipeline.simulate.land import geo_attrs
+
+        attrs.update(geo_attrs(cfg))
     tmp_truth = truth.parent / f".{truth.name}.partial-{uuid.uuid4().hex[:8]}"
     slices = list(tile_slices((H, W), tile))
     moved = False
