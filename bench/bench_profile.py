@@ -146,6 +146,8 @@ def main() -> None:
     ap.add_argument("--json", help="write the record here")
     ap.add_argument("--label", default="", help="a label for this configuration in the record")
     ap.add_argument("--workdir", help="folder for the temporary scene and outputs")
+    ap.add_argument("--scheduler", help="run the commands on this Dask scheduler (`sarship detect --scheduler`) "
+                                        "instead of the local cluster each command starts")
     a = ap.parse_args()
 
     exe = sarship_exe()
@@ -153,7 +155,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="sarship-profile-", dir=a.workdir))
     record: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                     "machine": machine(), "label": a.label, "detector": a.detector, "device": a.device,
-                    "set": a.set, "env": a.env, "tile": a.tile, "runs": []}
+                    "set": a.set, "env": a.env, "tile": a.tile, "scheduler": a.scheduler, "runs": []}
     try:
         if a.scene:
             scene = a.scene
@@ -194,6 +196,8 @@ def main() -> None:
             cmd += ["--set", s]
         if a.tile:
             cmd += ["--tile", str(a.tile)]
+        if a.scheduler:
+            cmd += ["--scheduler", a.scheduler]
         for i in range(a.runs):
             wall, run, _ = run_once(cmd, env, out)
             label = "cold" if i == 0 else "warm"

@@ -1,0 +1,187 @@
+"""Multi-GPU scaling of ``sarship detect`` as a user runs it (issue 18): one, two and four GPUs of
+one host, and two GPU workers on one host driven through an external ``dask scheduler``.
+
+Each configuration is :mod:`bench_profile` (the benchmark of record of issue 17) run as a
+subprocess on the same scene store: ``--runs`` commands in a row, run 1 cold, the others warm,
+with every stage's share of the wall time from ``run.json``. The configurations:
+
+- ``local-N``: ``sarship detect --device gpu`` with its own local cluster and
+  ``CUDA_VISIBLE_DEVICES`` = the first N GPUs (the local cluster puts its GPU worker processes on
+  every visible GPU: ``SARSHIP_GPU_PROCS`` per GPU, workers/cluster.py);
+- ``external-2``: ``dask scheduler`` + two ``sarship worker --gpus K`` processes (GPU 0 and GPU 1;
+  on a one-GPU host both on GPU 0, the dry run of the path) + ``sarship detect --scheduler``: the
+  deployment of docs/deploy. The workers are started once and stay warm across the runs.
+
+The reference measured in the same run is ``local-1`` (the same host, the same scene): every
+configuration's speed-up is its best warm wall against local-1's best warm wall. Targets
+(issue 18): two GPUs >= 1.8x one GPU, four >= 3.4x.
+
+Usage (on the GPU host, the scene made once by ``sarship ingest``)::
+
+    python bench/bench_scaling.py --scene /tmp/band.zarr --gpus 1,2,4 --external --runs 3 \\
+        --json scaling.json [--set land_mask=none]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shutil
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from common import machine  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+STAGES = ("outside run_detection", "cluster start", "land pass", "prepare, rest", "tiles", "cluster close",
+          "merge", "geojson")
+
+
+def visible_gpus() -> int:
+    try:
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return 0
+    return sum(1 for line in out.splitlines() if line.startswith("GPU "))
+
+
+def profile(scene: str, runs: int, sets: list[str], env: dict, json_out: Path, scheduler: str | None = None,
+            detector: str = "ca_cfar") -> dict:
+    cmd = [sys.executable, str(HERE / "bench_profile.py"), "--scene", scene, "--detector", detector,
+           "--device", "gpu", "--runs", str(runs), "--no-reference", "--json", str(json_out)]
+    for s in sets:
+        cmd += ["--set", s]
+    if scheduler:
+        cmd += ["--scheduler", scheduler]
+    p = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if p.returncode != 0:
+        raise RuntimeError(f"bench_profile failed ({p.returncode}):\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}")
+    print(p.stdout, flush=True)
+    return json.loads(json_out.read_text())
+
+
+def summary(rec: dict) -> dict:
+    warm = [r for r in rec["runs"] if r["label"] == "warm"] or rec["runs"]
+    best = min(warm, key=lambda r: r["wall_s"])
+    return {"warm_best_s": best["wall_s"], "warm_median_s": statistics.median(r["wall_s"] for r in warm),
+            "cold_s": rec["runs"][0]["wall_s"], "workers": best["workers"], "tiles": best["tiles"],
+            "detections": best["detections"],
+            "shares": {k: best["stages"][k]["share"] for k in STAGES if k in best["stages"]},
+            "seconds": {k: best["stages"][k]["s"] for k in STAGES if k in best["stages"]}}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_workers(address: str, want: int, timeout: float = 180.0) -> int:
+    """Wait until at least ``want`` workers are registered and their count has been stable for 5 s."""
+    from distributed import Client
+
+    with Client(address, timeout=60) as c:
+        t0 = time.time()
+        last, since = -1, time.time()
+        while time.time() - t0 < timeout:
+            n = len(c.scheduler_info(n_workers=-1)["workers"])
+            if n != last:
+                last, since = n, time.time()
+            if n >= want and time.time() - since > 5:
+                return n
+            time.sleep(0.5)
+    raise RuntimeError(f"only {last} workers registered at {address} after {timeout:.0f} s (wanted {want})")
+
+
+def external(scene: str, runs: int, sets: list[str], gpus: int, work: Path, detector: str) -> dict:
+    """Two ``sarship worker`` processes (GPU 0 and 1, or both on 0) on an external scheduler."""
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {k: v for k, v in os.environ.items() if k != "CUDA_VISIBLE_DEVICES"}
+    dask_exe = shutil.which("dask") or str(Path(sys.executable).with_name("dask"))
+    sarship_exe = shutil.which("sarship") or str(Path(sys.executable).with_name("sarship"))
+    logs = [open(work / f"{n}.log", "w") for n in ("scheduler", "worker0", "worker1")]
+    procs = [subprocess.Popen([dask_exe, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--dashboard-address", ":0"], env=env, stdout=logs[0], stderr=subprocess.STDOUT)]
+    try:
+        time.sleep(2.0)
+        ids = ["0", "1"] if gpus >= 2 else ["0", "0"]
+        for k, gid in enumerate(ids):
+            procs.append(subprocess.Popen([sarship_exe, "worker", "--scheduler", address, "--gpus", gid, "--cpus", "0",
+                                           "--name", f"gw{k}"], env=env, stdout=logs[k + 1],
+                                          stderr=subprocess.STDOUT))
+        n = wait_workers(address, 2)
+        rec = profile(scene, runs, sets, env, work / "external.json", scheduler=address, detector=detector)
+        rec["external"] = {"gpu_ids": ids, "registered_workers": n,
+                           "what": "dask scheduler + 2 x sarship worker --gpus K --cpus 0 (warm across runs)"}
+        return rec
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in reversed(procs):
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for f in logs:
+            f.close()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", required=True, help="the scene store (e.g. the band ingested by sarship ingest)")
+    ap.add_argument("--gpus", default="1,2,4", help="GPU counts of the local-cluster runs (those above the "
+                                                     "host's are skipped)")
+    ap.add_argument("--external", action="store_true", help="also the external-scheduler run (two GPU workers)")
+    ap.add_argument("--runs", type=int, default=3, help="commands per configuration (1 cold, then warm)")
+    ap.add_argument("--detector", default="ca_cfar")
+    ap.add_argument("--set", action="append", default=["looks=1"], metavar="K=V")
+    ap.add_argument("--json", help="write the record here")
+    a = ap.parse_args()
+    have = visible_gpus()
+    if have == 0:
+        raise SystemExit("no GPU visible (nvidia-smi -L lists none): this benchmark needs a GPU host")
+    counts = [n for n in (int(x) for x in a.gpus.split(",")) if 1 <= n <= have]
+    if 1 not in counts:
+        counts = [1] + counts  # the reference
+    record = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+              "machine": machine(), "gpus_visible": have, "cores": os.cpu_count(), "scene": a.scene,
+              "detector": a.detector, "set": a.set, "configs": {}}
+    work = Path(tempfile.mkdtemp(prefix="sarship-scaling-"))
+    try:
+        for n in counts:
+            env = {**os.environ, "CUDA_VISIBLE_DEVICES": ",".join(str(i) for i in range(n))}
+            print(f"\n# local-{n}: CUDA_VISIBLE_DEVICES={env['CUDA_VISIBLE_DEVICES']}", flush=True)
+            rec = profile(a.scene, a.runs, a.set, env, work / f"local{n}.json", detector=a.detector)
+            record["configs"][f"local-{n}"] = {"gpus": n, **summary(rec), "record": rec}
+        if a.external:
+            print("\n# external-2: dask scheduler + two sarship worker processes", flush=True)
+            rec = external(a.scene, a.runs, a.set, have, work, a.detector)
+            record["configs"]["external-2"] = {"gpus": min(have, 2), **summary(rec), "record": rec}
+        base = record["configs"]["local-1"]["warm_best_s"]
+        print(f"\n# {record['date']}  {record['machine']}  {have} GPU(s), {record['cores']} cores")
+        print("| config | GPUs | workers | warm best s | warm median s | cold s | speed-up vs local-1 | "
+              + " | ".join(STAGES) + " |")
+        print("|---" * (7 + len(STAGES)) + "|")
+        for name, c in record["configs"].items():
+            c["speedup"] = round(base / c["warm_best_s"], 3)
+            shares = " | ".join(f"{100 * c['shares'].get(k, 0):.0f}%" for k in STAGES)
+            print(f"| {name} | {c['gpus']} | {c['workers']} | {c['warm_best_s']:.2f} | {c['warm_median_s']:.2f} | "
+                  f"{c['cold_s']:.2f} | {c['speedup']:.2f}x | {shares} |")
+        if a.json:
+            Path(a.json).write_text(json.dumps(record, indent=1))
+            print(f"# record: {a.json}")
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
