@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import struct
 from pathlib import Path
 from typing import Any
@@ -120,11 +121,16 @@ def table(collection: dict, source: str = "detections") -> tuple[list[bytes], li
     return wkb, names, arrays, masks
 
 
-def write(collection: dict, dst: str | os.PathLike, overwrite: bool = False, source: str = "detections") -> int:
-    """Write ``collection`` (detections.geojson's content) to ``dst`` (.gpkg / .kml); returns the
-    number of features. Temporary file beside ``dst``, renamed into place."""
+def write(collection: dict, dst: str | os.PathLike, overwrite: bool = False, source: str = "detections",
+          fmt: str | None = None) -> int:
+    """Write ``collection`` (detections.geojson's content) to ``dst``; returns the number of
+    features. ``fmt``: ``"gpkg"`` or ``"kml"`` (default: from the suffix of ``dst``). Temporary
+    file beside ``dst`` (with the format's suffix, a name of its own per call), renamed into place."""
     dst = Path(dst)
-    fmt = format_of(dst)
+    if fmt is None:
+        fmt = format_of(dst)
+    elif fmt not in FORMATS.values():
+        raise InputError(f"format must be one of {', '.join(FORMATS.values())}, got {fmt!r}")
     if dst.exists() and not overwrite:
         raise InputError(f"'{dst}' exists; use --overwrite to replace it")
     if dst.is_dir():
@@ -138,7 +144,7 @@ def write(collection: dict, dst: str | os.PathLike, overwrite: bool = False, sou
     else:
         driver = "GPKG"
     meta = {k: str(collection[k]) for k in ("detector", "scene") if isinstance(collection.get(k), (str, int, float))}
-    tmp = dst.with_name(f".{dst.name}.partial-{os.getpid()}{dst.suffix}")
+    tmp = dst.with_name(f".{dst.name}.partial-{os.getpid()}-{secrets.token_hex(4)}.{fmt}")
     try:
         kwargs: dict[str, Any] = {}
         if driver == "GPKG":

@@ -69,16 +69,72 @@ def results(request: Request, job_id: str):
     b = base_url(request)
     if job["process"] == "ingest":  # an ingest job's result is its scene
         return {"scene": {"href": f"{b}/scenes/{job['inputs'].get('scene_id', '')}", "type": "application/json"}}
-    return results_doc(job, b)
+    doc = results_doc(job, b)
+    if _map_formats(request, job_id):  # GeoPackage / KML of the detections (georeferenced scene, gis extra)
+        u = f"{b}/jobs/{job_id}/results/detections"
+        doc.update({f"detections-{f}": {"href": f"{u}?f={f}", "type": t} for f, t in DETECTION_MEDIA.items()
+                    if f != "geojson"})
+    return doc
 
 
-@router.get("/jobs/{job_id}/results/detections",
-            responses=media("application/geo+json", "detected ships: a GeoJSON FeatureCollection",
-                            schema={"type": "object"}))
-def detections_out(request: Request, job_id: str):
-    finished(request, job_id)
-    return FileResponse(_job_dir(request, job_id) / "detections.geojson", media_type="application/geo+json",
-                        filename=f"{job_id}-detections.geojson")
+#: ``f`` values of GET /jobs/{id}/results/detections and their media types
+DETECTION_MEDIA = {"geojson": "application/geo+json", "gpkg": "application/geopackage+sqlite3",
+                   "kml": "application/vnd.google-earth.kml+xml"}
+
+
+def _map_formats(request: Request, job_id: str) -> bool:
+    """Whether the job's detections can be offered as GeoPackage / KML: the scene was
+    georeferenced (run.json's scene attributes) and pyogrio (extra ``gis``) is installed."""
+    import importlib.util
+
+    if importlib.util.find_spec("pyogrio") is None:
+        return False
+    try:
+        attrs = json.loads((_job_dir(request, job_id) / "run.json").read_text())["scene"].get("attrs") or {}
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return bool(attrs.get("gcps") or (attrs.get("crs") and attrs.get("transform") is not None))
+
+
+_DETECTIONS_DOC = {200: {"description": "detected ships: a GeoJSON FeatureCollection (f=geojson, default), a "
+                                        "GeoPackage (f=gpkg) or KML (f=kml) of their WGS84 outlines",
+                         "content": {"application/geo+json": {"schema": {"type": "object"}},
+                                     "application/geopackage+sqlite3": {"schema": {"type": "string", "format": "binary"}},
+                                     "application/vnd.google-earth.kml+xml": {"schema": {"type": "string"}}}}}
+
+
+@router.get("/jobs/{job_id}/results/detections", responses=_DETECTIONS_DOC)
+def detections_out(request: Request, job_id: str, f: str = "geojson"):
+    """The detections as GeoJSON (default), or with ``f=gpkg`` / ``f=kml`` as a GeoPackage / KML
+    (:mod:`sarship.pipeline.export`, built once and cached in the job folder) when the scene was
+    georeferenced and the ``gis`` extra is installed."""
+    from sarship.pipeline.errors import InputError
+    from sarship.service.cache import build_once
+
+    fmt = f.lower()
+    if fmt not in DETECTION_MEDIA:
+        raise Problem(400, "invalid request", f"'f' must be one of {', '.join(DETECTION_MEDIA)} (got {f!r})")
+    job = finished(request, job_id)
+    d = _job_dir(request, job_id)
+    if fmt == "geojson":
+        return FileResponse(d / "detections.geojson", media_type="application/geo+json",
+                            filename=f"{job_id}-detections.geojson")
+    from sarship.pipeline import export
+
+    try:
+        export.require_pyogrio()
+    except InputError as exc:
+        raise Problem(501, "format not available", str(exc)) from None
+    headers = _cache_headers(request, job, f"detections-{fmt}")
+    nm = _not_modified(request, headers)
+    if nm is not None:
+        return nm
+    try:
+        out = build_once(d / f"detections.{fmt}", lambda tmp: export.write(
+            export.read_detections(d / "detections.geojson"), tmp, source=f"job {job_id}", fmt=fmt))
+    except InputError as exc:  # the scene had no georeference: no outlines to map
+        raise Problem(404, "no such result", str(exc)) from None
+    return FileResponse(out, media_type=DETECTION_MEDIA[fmt], filename=f"{job_id}-detections.{fmt}", headers=headers)
 
 
 @router.get("/jobs/{job_id}/results/metrics")
