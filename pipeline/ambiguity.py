@@ -369,7 +369,9 @@ def flag_features(feats: list[dict], attrs: Mapping[str, Any], enabled: bool = T
                   tol_px: float = DEFAULT_TOL_PX, min_db: float = DEFAULT_MIN_DB,
                   orders: Sequence[int] = ORDERS) -> tuple[list[dict], dict[str, Any]]:
     """Give every detection Feature ``properties.ambiguity_of`` (the ``id`` of its parent, or
-    None) and ``ambiguity_order`` (k, or None); Features without an ``id`` get their index in
+    None), ``ambiguity_order`` (k, or None) and ``ambiguity_positions_px`` (where its own
+    ghosts of ``orders`` are expected: ``[{"order": k, "centroid_px": [row, col]}, ...]``, eqs.
+    1 and 3; None without geometry); Features without an ``id`` get their index in
     ``feats`` as ``id`` (Feature member and property). Returns the features and a record for
     ``run.json``: whether flags were computed, and if not why (switched off, no or bad
     geometry), the parameters and the number flagged. Never raises for a bad geometry."""
@@ -378,6 +380,7 @@ def flag_features(feats: list[dict], attrs: Mapping[str, Any], enabled: bool = T
         f["properties"].setdefault("id", f["id"])
         f["properties"]["ambiguity_of"] = None
         f["properties"]["ambiguity_order"] = None
+        f["properties"]["ambiguity_positions_px"] = None
     rec: dict[str, Any] = {"applied": False, "reason": None, "tol_px": tol_px, "min_db": min_db,
                            "orders": list(orders), "flagged": 0}
     if not enabled:
@@ -402,6 +405,11 @@ def flag_features(feats: list[dict], attrs: Mapping[str, Any], enabled: bool = T
     rec["flagged"] = sum(par is not None for par in parent)
     ok = np.all(np.isfinite(cent), axis=1)
     if ok.any():
+        exp = geom.ghosts(cent[ok, 0], cent[ok, 1], orders)
+        for q, f in enumerate(f for f, good in zip(feats, ok) if good):
+            f["properties"]["ambiguity_positions_px"] = [
+                {"order": int(k), "centroid_px": [round(float(exp["row"][q, i]), 3), round(float(exp["col"][q, i]), 3)]}
+                for i, k in enumerate(orders)]
         g = geom.ghosts(cent[ok, 0], cent[ok, 1], (1,))
         rec["first_ambiguity_shift"] = {
             "rows": [round(float(np.abs(g["row"][:, 0] - cent[ok, 0]).min()), 3),

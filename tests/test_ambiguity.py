@@ -383,6 +383,7 @@ def test_bad_geometry_gives_no_flags_and_a_reason(change, needle):
     feats, rec = flag_features(_feats([[100.0, 100.0], [600.0, 103.0]], [1e5, 1.0]), attrs)
     assert rec["applied"] is False and needle in rec["reason"]
     assert [f["properties"]["ambiguity_of"] for f in feats] == [None, None]
+    assert [f["properties"]["ambiguity_positions_px"] for f in feats] == [None, None]
     assert [f["id"] for f in feats] == [0, 1] and [f["properties"]["id"] for f in feats] == [0, 1]
 
 
@@ -404,6 +405,10 @@ def test_flag_features_switch_and_ids():
     assert rec["applied"] and rec["flagged"] == 1 and rec["reason"] is None
     assert out[1]["properties"]["ambiguity_of"] == "a" and out[1]["properties"]["ambiguity_order"] == -1
     assert out[0]["properties"]["ambiguity_of"] is None and out[1]["id"] == 1
+    # each detection's own expected ghosts, in pixels: the ghost sits on its parent's k = -1 place
+    pos = {e["order"]: e["centroid_px"] for e in out[0]["properties"]["ambiguity_positions_px"]}
+    assert sorted(pos) == sorted(amb.ORDERS)
+    np.testing.assert_allclose(pos[-1], out[1]["properties"]["centroid_px"], atol=1e-3)
     out, rec = flag_features(feats, attrs, enabled=False)
     assert not rec["applied"] and "switched off" in rec["reason"]
     assert all(f["properties"]["ambiguity_of"] is None for f in out)
@@ -468,6 +473,10 @@ def test_simulated_ghosts_flagged_end_to_end(ghost_scene):
         for f in hits:
             assert f["properties"]["ambiguity_of"] == ship_det[a["ambiguity_of"]]["id"], (a, f["properties"])
             assert f["properties"]["ambiguity_order"] == a["order"]
+            # the parent's expected ghost of that order lies within the default tolerance
+            par = dets[f["properties"]["ambiguity_of"]]["properties"]
+            want = {e["order"]: e["centroid_px"] for e in par["ambiguity_positions_px"]}[a["order"]]
+            assert np.all(np.abs(np.subtract(f["properties"]["centroid_px"], want)) <= amb.DEFAULT_TOL_PX)
             checked += 1
     assert checked >= 4, "the scene should show several detected ghosts of detected ships"
     assert ship_det and all(f["properties"]["ambiguity_of"] is None for f in ship_det.values())
