@@ -375,8 +375,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "< 1 super-Gaussian, > 1 sub-Gaussian (default 1)")
     s.add_argument("--scr-db", dest="scr_db", type=float, default=15.0, help="ship-to-clutter ratio (dB)")
     s.add_argument("--spacing", type=float, default=10.0, help="pixel spacing in metres (default 10)")
+    flag_help = {"ambiguities": "azimuth ghosts (k = +-1, -20 dB) of every ship where the scene's sar_geometry puts "
+                                "them (docs/algorithms/ambiguity.md)"}
     for flag in ("land", "sidelobes", "ambiguities", "stripes", "rfi"):
-        s.add_argument(f"--{flag}", action="store_true")
+        s.add_argument(f"--{flag}", action="store_true", help=flag_help.get(flag))
     s.add_argument("--geo", type=_lonlat, metavar="LON,LAT",
                    help="georeference the scene (WGS84, north-up, centred on LON,LAT, --spacing metres a pixel); "
                         "with --land the land is the GSHHG shoreline's (needs pip install 'sarship[coastline]')")
