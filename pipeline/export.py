@@ -10,6 +10,7 @@ kept as JSON text. Each feature gets ``name`` = ``ship <n>`` (n from 1, the GeoJ
 label a KML viewer shows. The collection's ``detector`` and ``scene`` members go into the
 file's metadata (GeoPackage ``gpkg_metadata``; KML document description).
 
+Formats: OGC GeoPackage 1.3 and OGC KML 2.2 (docs/references.md [geopackage], [kml]).
 Writing is GDAL's, through ``pyogrio`` (optional extra ``gis``: its wheels bundle GDAL with the
 GPKG, KML and LIBKML drivers): a GeoPackage is a SQLite database with an R-tree index and
 spatial reference tables, and its validity is better left to GDAL than to a hand-written

@@ -27,7 +27,8 @@ as GDAL does). Two mappings:
   scene.
 - **Polynomial** (:class:`PolynomialGeoreference`), for scattered GCPs: least-squares
   polynomial in (row, col), affine for < 6 points, quadratic from 6, as GDAL's GCP transformer
-  does (GDAL ``GDALCreateGCPTransformer``, order chosen from the point count).
+  does (GDAL ``GDALCreateGCPTransformer``, order chosen from the point count;
+  docs/references.md [gdal-gcp]).
 
 :func:`held_out_errors` measures both against the grid's own points (hold out whole grid rows
 or columns, or alternate ones, interpolate from the rest): the figures of docs/sentinel1.md.
