@@ -47,7 +47,7 @@ from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.readers.npy import _open_npy
 from sarship.pipeline.readers.plan import _plan
 from sarship.pipeline.readers.polsarpro import _open_polsarpro, _polsarpro_folder
-from sarship.pipeline.readers.safe import _open_safe, safe_layout
+from sarship.pipeline.readers.safe import _open_safe, check_safe_kind, safe_layout
 from sarship.pipeline.readers.tiff import _open_tiff
 from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles
 from sarship.pipeline.readers.zarr_input import _ingest_zarr
@@ -112,8 +112,11 @@ def _sniff(p: Path) -> str:
     )
 
 
-def _open_source(p: Path, sidecar_root: Path | bool | None = None, limits: InputLimits | None = None) -> _Source:
+def _open_source(p: Path, sidecar_root: Path | bool | None = None, limits: InputLimits | None = None,
+                 swath: str | None = None) -> _Source:
     fmt = _sniff(p)
+    if swath is not None and fmt != "safe":
+        raise InputError(f"'{p}': --swath applies to Sentinel-1 SLC products only")
     limits = limits or InputLimits()
     try:
         if fmt == "tiff":
@@ -121,7 +124,7 @@ def _open_source(p: Path, sidecar_root: Path | bool | None = None, limits: Input
         if fmt == "image":
             return _open_image(p, limits)
         if fmt == "safe":
-            return _open_safe(p, limits, safe_layout(p))
+            return _open_safe(p, limits, safe_layout(p), swath)
         if fmt in ("npy", "polsarpro"):  # headers only: the pixels are memory-mapped
             src = _open_npy(p) if fmt == "npy" else _open_polsarpro(_polsarpro_folder(p))
             try:
@@ -221,6 +224,7 @@ def ingest(
     spacing: tuple[float, float] | str | None = None,
     sidecar_root: str | Path | bool | None = None,
     limits: InputLimits | None = None,
+    swath: str | None = None,
 ) -> Scene:
     """Write the scene store ``out`` from ``inputs`` (see the module docstring); return it opened.
 
@@ -235,6 +239,8 @@ def ingest(
     ``limits``: what an input may declare (pixels, decoded chunk size, compression ratio),
     checked from its headers before any pixel is decoded (:class:`.limits.InputLimits`;
     default: its defaults).
+    ``swath``: the sub-swath (``IW1``, ``IW2``, ``IW3``) of a Sentinel-1 SLC product, one scene
+    per sub-swath (required when the product holds several; see :mod:`.safe_slc`).
     """
     paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
     spacing = _check_spacing(spacing)
@@ -249,9 +255,10 @@ def ingest(
 
     try:
         fmts = [_sniff(p) for p in paths]
-        if "safe" in fmts and kind not in ("auto", "intensity"):
-            raise InputError(f"'{paths[fmts.index('safe')]}': a Sentinel-1 GRD product is ingested as intensity "
-                             f"(DN^2 or sigma0); --kind {kind} does not apply")
+        if "safe" in fmts:
+            check_safe_kind(paths[fmts.index("safe")], kind)
+        elif swath is not None:
+            raise InputError(f"'{paths[0]}': --swath applies to Sentinel-1 SLC products only")
         if "safe" in fmts and len(paths) > 1:
             raise InputError(f"'{paths[fmts.index('safe')]}': a Sentinel-1 SAFE product cannot be combined "
                              "with other inputs (its polarisations are its channels)")
@@ -273,7 +280,7 @@ def ingest(
         try:
             for p in paths:
                 srcs.append(_open_source(p, sidecar_root if isinstance(sidecar_root, bool) or sidecar_root is None
-                                         else Path(sidecar_root), limits))
+                                         else Path(sidecar_root), limits, swath))
             _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing)
         finally:
             for s in srcs:

@@ -1,4 +1,4 @@
-"""Sentinel-1 SAFE products (GRD, folder or ``.zip``) as an ingest source.
+"""Sentinel-1 SAFE products (GRD, folder or ``.zip``; IW SLC in :mod:`.safe_slc`) as an ingest source.
 
 What is read (see ``docs/sentinel1.md``): the polarisations that have a measurement GeoTIFF
 become channels (``vv``, ``vh``, ...); the annotation gives the acquisition mode, product
@@ -21,7 +21,8 @@ Samples written: intensity ``DN^2``, with, when the product carries them,
 
 Without ``annotation/calibration/`` the samples stay ``DN^2`` and the attribute
 ``calibration`` says so. Pixels with ``DN = 0`` are the zero fill outside the swath: absent
-(NaN). SLC products are refused (not read yet).
+(NaN). IW SLC products are read one sub-swath at a time by
+:mod:`sarship.pipeline.readers.safe_slc` (debursted, calibrated ``DN / A``, deramped).
 """
 
 from __future__ import annotations
@@ -119,6 +120,23 @@ def safe_layout(p: Path) -> tuple[str, str | None] | None:
     if len(roots) > 1:
         raise InputError(f"'{p}': the zip holds {len(roots)} SAFE products; pass one")
     return ("zip", roots.pop()) if roots else None
+
+
+def check_safe_kind(p: Path, kind: str) -> None:
+    """Refuse a ``--kind`` that does not fit the product: a GRD is intensity (DN^2 or sigma0),
+    an SLC complex (``slc``); ``auto`` fits both."""
+    layout = safe_layout(p)
+    if kind == "auto" or layout is None:
+        return
+    from sarship.pipeline.readers.safe_slc import product_is_slc
+
+    if product_is_slc(_Product(p, layout).members):
+        if kind != "slc":
+            raise InputError(f"'{p}': a Sentinel-1 SLC product is ingested as complex channels (kind slc); "
+                             f"--kind {kind} does not apply")
+    elif kind != "intensity":
+        raise InputError(f"'{p}': a Sentinel-1 GRD product is ingested as intensity (DN^2 or sigma0); "
+                         f"--kind {kind} does not apply")
 
 
 class _Product:
@@ -222,7 +240,7 @@ def _check_chunks(p: Path, prod: _Product, member: str, limits: InputLimits) -> 
                          f"the limit of {limits.max_chunk_mb:g} MiB ({limits._knob('max_chunk_mb')})")
 
 
-def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None]) -> _SafeSource:
+def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swath: str | None = None) -> _Source:
     _require()
     import xarray as xr
     from xarray_sentinel import esa_safe
@@ -230,16 +248,23 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None]) -> 
     prod = _Product(p, layout)
     meas: dict[str, str] = {}
     swaths = set()
+    slc: dict[str, dict[str, str]] = {}
     for m in prod.members:
         if m.startswith("measurement/"):
             mm = _MEAS_RE.match(m.split("/")[-1])
             if mm:
                 swaths.add(mm.group(1).upper())
                 if mm.group(2).lower() == "slc":
-                    raise InputError(f"'{p}': a Sentinel-1 SLC product; only GRD is read so far")
+                    slc.setdefault(mm.group(1).upper(), {})[mm.group(3).lower()] = m
                 meas[mm.group(3).lower()] = m
     if not meas:
         raise InputError(f"'{p}': a SAFE product without measurement GeoTIFFs (measurement/*.tiff): nothing to read")
+    if slc:
+        from sarship.pipeline.readers.safe_slc import open_slc
+
+        return open_slc(p, prod, slc, limits, swath)
+    if swath is not None:
+        raise InputError(f"'{p}': --swath applies to Sentinel-1 SLC products; this is a GRD product")
     if len(swaths) != 1:
         raise InputError(f"'{p}': measurements of several swaths ({', '.join(sorted(swaths))}) in one GRD product")
     swath = swaths.pop()
