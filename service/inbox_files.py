@@ -3,7 +3,9 @@
 testable on its own.
 
 Supported passes are what ``sarship ingest`` reads from one path: TIFF/GeoTIFF (``.tif``,
-``.tiff``), PNG/JPEG (``.png``, ``.jpg``, ``.jpeg``), ``.npy`` and Zarr scene folders
+``.tiff``), PNG/JPEG (``.png``, ``.jpg``, ``.jpeg``), ``.npy``, Sentinel-1 SAFE products zipped
+(``.zip``: a GRD, or an SLC with one sub-swath; an SLC zip with several sub-swaths is refused
+with the reason, as ``sarship ingest`` without ``--swath`` is) and Zarr scene folders
 (``NAME.zarr``, taken as one unit: its key hashes every file of the tree, and it is complete
 when its file count, total size and newest mtime are stable, or ``NAME.zarr.done`` exists).
 PolSARpro folders are not taken from an inbox (no suffix marks them; ingest them with
@@ -22,7 +24,7 @@ from pathlib import Path
 from typing import Callable, Iterator, NamedTuple, Optional
 
 #: File suffixes of passes (lower case); ``.zarr`` folders besides.
-FILE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg", ".npy")
+FILE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg", ".npy", ".zip")
 #: Suffixes of files that are being written by some tool, never passes.
 TEMP_SUFFIXES = (".tmp", ".part", ".partial", ".crdownload", ".swp", ".lock", ".filepart")
 #: The marker that says "this file is complete": ``<file>.done``.

@@ -458,3 +458,53 @@ def test_missing_annotation_and_truncated_zip_fail_one_line(tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "zip" in r.stderr, r.stderr
     assert not (tmp_path / "o.zarr").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".o.zarr")]  # no temporary sibling either
+
+
+# --------------------------------------------------------------------------------------
+# the service inbox takes a SAFE .zip as sarship ingest does
+# --------------------------------------------------------------------------------------
+
+
+def test_a_safe_zip_is_an_inbox_pass(tmp_path):
+    from sarship.service.inbox_files import list_passes
+
+    for name in ("S1B_IW_GRDH_X.zip", "S1B.ZIP", "half.zip.part", ".hidden.zip"):
+        (tmp_path / name).write_bytes(b"x")
+    assert {p.name for p in list_passes(tmp_path)} == {"S1B_IW_GRDH_X.zip", "S1B.ZIP"}
+
+
+@pytest.mark.skipif(SLC is None or GRD is None, reason=f"Sentinel-1 SAFE samples not found at {SAFE_DIR}")
+def test_inbox_ingests_a_grd_zip_and_quarantines_a_multi_swath_slc_zip(tmp_path):
+    """A real ``sarship serve`` with an inbox (no detectors): the GRD zip becomes the scene
+    ``sarship ingest`` makes of it (full size, in the service's capped child process); the SLC
+    zip, whose sub-swath the inbox cannot choose, is quarantined with the one-line reason."""
+    pytest.importorskip("xarray_sentinel")
+    httpx = pytest.importorskip("httpx")
+    import json
+
+    from svc import Server, free_port, wait_job, wait_pass
+
+    from sarship.pipeline.scene import open_scene
+
+    data, inbox = tmp_path / "data", tmp_path / "inbox"
+    data.mkdir()
+    inbox.mkdir()
+    grd = _zip(GRD, tmp_path / (GRD.stem + ".zip"))
+    slc = _zip(SLC, tmp_path / (SLC.stem + ".zip"))
+    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.5",
+                 SARSHIP_INBOX_SETTLE_S="1").start()
+    try:
+        grd.rename(inbox / grd.name)
+        slc.rename(inbox / slc.name)
+        p = wait_pass(srv.url, grd.name, ("ingested", "submitted", "quarantined", "failed"), timeout=240)
+        assert p["status"] in ("ingested", "submitted"), p
+        assert wait_job(srv.url, p["ingestJob"])["status"] == "successful"
+        sc = open_scene(data / "scenes" / f"{p['sceneID']}.zarr")
+        assert sc.shape == (16685, 25788) and sc.kind == "intensity" and sc.attrs["product"] == GRD.name
+        assert sc.attrs["mode"] == "IW" and len(sc.attrs["gcps"]) == 210
+        assert httpx.get(f"{srv.url}/scenes/{p['sceneID']}").json()["status"] == "ready"
+        q = wait_pass(srv.url, slc.name, ("quarantined", "failed", "ingested", "submitted"), timeout=120)
+        assert q["status"] == "quarantined" and "IW1, IW2" in q["reason"] and "--swath" in q["reason"], q
+        assert (data / "quarantine" / slc.name).is_file() and not (inbox / slc.name).exists()
+    finally:
+        srv.stop()
