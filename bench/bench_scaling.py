@@ -8,17 +8,20 @@ with every stage's share of the wall time from ``run.json``. The configurations:
 - ``local-N``: ``sarship detect --device gpu`` with its own local cluster and
   ``CUDA_VISIBLE_DEVICES`` = the first N GPUs (the local cluster puts its GPU worker processes on
   every visible GPU: ``SARSHIP_GPU_PROCS`` per GPU, workers/cluster.py);
-- ``external-2``: ``dask scheduler`` + two ``sarship worker --gpus K`` processes (GPU 0 and GPU 1;
-  on a one-GPU host both on GPU 0, the dry run of the path) + ``sarship detect --scheduler``: the
-  deployment of docs/deploy. The workers are started once and stay warm across the runs.
+- ``external-N``: ``dask scheduler`` + one ``sarship worker --gpus 0,..,N-1 --cpus 0`` command
+  (its default ``--gpu-procs`` worker processes per GPU, as the local cluster) + ``sarship detect
+  --scheduler``: the deployment of docs/deploy, warm (the workers are started once, before the
+  runs). On a one-GPU host ``--external 2`` is the dry run of the path: two ``sarship worker
+  --gpus 0`` commands sharing GPU 0.
 
-The reference measured in the same run is ``local-1`` (the same host, the same scene): every
-configuration's speed-up is its best warm wall against local-1's best warm wall. Targets
+The reference measured in the same run is the one-GPU run of the same kind (``local-1``,
+``external-1``; the same host, the same scene): each configuration's speed-up is that run's best
+warm wall over its own (also recorded against ``local-1``). Targets
 (issue 18): two GPUs >= 1.8x one GPU, four >= 3.4x.
 
 Usage (on the GPU host, the scene made once by ``sarship ingest``)::
 
-    python bench/bench_scaling.py --scene /tmp/band.zarr --gpus 1,2,4 --external --runs 3 \\
+    python bench/bench_scaling.py --scene /tmp/band.zarr --local 1,2,4 --external 1,2,4 --runs 3 \\
         --json scaling.json [--set land_mask=none]
 """
 
@@ -101,27 +104,32 @@ def wait_workers(address: str, want: int, timeout: float = 180.0) -> int:
     raise RuntimeError(f"only {last} workers registered at {address} after {timeout:.0f} s (wanted {want})")
 
 
-def external(scene: str, runs: int, sets: list[str], gpus: int, work: Path, detector: str) -> dict:
-    """Two ``sarship worker`` processes (GPU 0 and 1, or both on 0) on an external scheduler."""
+def external(scene: str, runs: int, sets: list[str], n: int, have: int, work: Path, detector: str) -> dict:
+    """``sarship worker --gpus 0,..,n-1`` on an external scheduler (``n`` > ``have``: ``n``
+    commands on GPU 0, the dry run of the path on a smaller host)."""
+    from sarship.workers.cluster import gpu_procs
+
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     env = {k: v for k, v in os.environ.items() if k != "CUDA_VISIBLE_DEVICES"}
     dask_exe = shutil.which("dask") or str(Path(sys.executable).with_name("dask"))
     sarship_exe = shutil.which("sarship") or str(Path(sys.executable).with_name("sarship"))
-    logs = [open(work / f"{n}.log", "w") for n in ("scheduler", "worker0", "worker1")]
+    commands = [",".join(str(i) for i in range(n))] if n <= have else ["0"] * n
+    logs = [open(work / f"{name}.log", "w") for name in ["scheduler"] + [f"worker{k}" for k in range(len(commands))]]
     procs = [subprocess.Popen([dask_exe, "scheduler", "--host", "127.0.0.1", "--port", str(port),
                                "--dashboard-address", ":0"], env=env, stdout=logs[0], stderr=subprocess.STDOUT)]
     try:
         time.sleep(2.0)
-        ids = ["0", "1"] if gpus >= 2 else ["0", "0"]
-        for k, gid in enumerate(ids):
-            procs.append(subprocess.Popen([sarship_exe, "worker", "--scheduler", address, "--gpus", gid, "--cpus", "0",
+        for k, gids in enumerate(commands):
+            procs.append(subprocess.Popen([sarship_exe, "worker", "--scheduler", address, "--gpus", gids, "--cpus", "0",
                                            "--name", f"gw{k}"], env=env, stdout=logs[k + 1],
                                           stderr=subprocess.STDOUT))
-        n = wait_workers(address, 2)
-        rec = profile(scene, runs, sets, env, work / "external.json", scheduler=address, detector=detector)
-        rec["external"] = {"gpu_ids": ids, "registered_workers": n,
-                           "what": "dask scheduler + 2 x sarship worker --gpus K --cpus 0 (warm across runs)"}
+        per = gpu_procs(n) if n <= have else gpu_procs(1)  # each command's --gpu-procs default
+        registered = wait_workers(address, n * per)
+        rec = profile(scene, runs, sets, env, work / f"external{n}.json", scheduler=address, detector=detector)
+        rec["external"] = {"commands": [f"sarship worker --gpus {g} --cpus 0" for g in commands],
+                           "registered_workers": registered,
+                           "what": "dask scheduler + sarship worker command(s), warm across runs"}
         return rec
     finally:
         for p in reversed(procs):
@@ -138,9 +146,9 @@ def external(scene: str, runs: int, sets: list[str], gpus: int, work: Path, dete
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", required=True, help="the scene store (e.g. the band ingested by sarship ingest)")
-    ap.add_argument("--gpus", default="1,2,4", help="GPU counts of the local-cluster runs (those above the "
-                                                     "host's are skipped)")
-    ap.add_argument("--external", action="store_true", help="also the external-scheduler run (two GPU workers)")
+    ap.add_argument("--local", default="1,2,4", help="GPU counts of the local-cluster runs (those above the "
+                                                      "host's are skipped; 1 always runs: the reference)")
+    ap.add_argument("--external", default="", help="GPU counts of the external-scheduler runs, e.g. 1,2,4")
     ap.add_argument("--runs", type=int, default=3, help="commands per configuration (1 cold, then warm)")
     ap.add_argument("--detector", default="ca_cfar")
     ap.add_argument("--set", action="append", default=["looks=1"], metavar="K=V")
@@ -149,7 +157,7 @@ def main() -> None:
     have = visible_gpus()
     if have == 0:
         raise SystemExit("no GPU visible (nvidia-smi -L lists none): this benchmark needs a GPU host")
-    counts = [n for n in (int(x) for x in a.gpus.split(",")) if 1 <= n <= have]
+    counts = [n for n in (int(x) for x in a.local.split(",") if x) if 1 <= n <= have]
     if 1 not in counts:
         counts = [1] + counts  # the reference
     record = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
@@ -162,17 +170,21 @@ def main() -> None:
             print(f"\n# local-{n}: CUDA_VISIBLE_DEVICES={env['CUDA_VISIBLE_DEVICES']}", flush=True)
             rec = profile(a.scene, a.runs, a.set, env, work / f"local{n}.json", detector=a.detector)
             record["configs"][f"local-{n}"] = {"gpus": n, **summary(rec), "record": rec}
-        if a.external:
-            print("\n# external-2: dask scheduler + two sarship worker processes", flush=True)
-            rec = external(a.scene, a.runs, a.set, have, work, a.detector)
-            record["configs"]["external-2"] = {"gpus": min(have, 2), **summary(rec), "record": rec}
-        base = record["configs"]["local-1"]["warm_best_s"]
+        for n in (int(x) for x in a.external.split(",") if x):
+            print(f"\n# external-{n}: dask scheduler + sarship worker", flush=True)
+            rec = external(a.scene, a.runs, a.set, n, have, work, a.detector)
+            record["configs"][f"external-{n}"] = {"gpus": min(have, n), **summary(rec), "record": rec}
+        def base(name: str) -> float:  # the same family's one-GPU run, else local-1
+            fam = name.rsplit("-", 1)[0]
+            return record["configs"].get(f"{fam}-1", record["configs"]["local-1"])["warm_best_s"]
+
         print(f"\n# {record['date']}  {record['machine']}  {have} GPU(s), {record['cores']} cores")
-        print("| config | GPUs | workers | warm best s | warm median s | cold s | speed-up vs local-1 | "
+        print("| config | GPUs | workers | warm best s | warm median s | cold s | speed-up vs its 1-GPU run | "
               + " | ".join(STAGES) + " |")
         print("|---" * (7 + len(STAGES)) + "|")
         for name, c in record["configs"].items():
-            c["speedup"] = round(base / c["warm_best_s"], 3)
+            c["speedup"] = round(base(name) / c["warm_best_s"], 3)
+            c["speedup_vs_local_1"] = round(record["configs"]["local-1"]["warm_best_s"] / c["warm_best_s"], 3)
             shares = " | ".join(f"{100 * c['shares'].get(k, 0):.0f}%" for k in STAGES)
             print(f"| {name} | {c['gpus']} | {c['workers']} | {c['warm_best_s']:.2f} | {c['warm_median_s']:.2f} | "
                   f"{c['cold_s']:.2f} | {c['speedup']:.2f}x | {shares} |")

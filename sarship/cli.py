@@ -216,7 +216,7 @@ def cmd_worker(a) -> int:
     from sarship.workers.worker import serve
 
     return serve(a.scheduler, gpus=a.gpus, cpus=a.cpus, name=a.name, memory_limit=a.memory_limit,
-                 gpu_threads=a.gpu_threads)
+                 gpu_threads=a.gpu_threads, gpu_procs=a.gpu_procs)
 
 
 def cmd_serve(a) -> int:
@@ -456,6 +456,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gpu-threads", type=int, default=2,
                    help="tiles a GPU worker runs at once (default 2: one tile's Zarr I/O overlaps the "
                         "other's GPU work; 1: strictly one)")
+    s.add_argument("--gpu-procs", type=int, default=None,
+                   help="worker processes per GPU (default: SARSHIP_GPU_PROCS, else a quarter of the cores "
+                        "per GPU, at most 4, as sarship detect's local cluster): each runs the Python parts "
+                        "of its tiles (Zarr read/write, labelling) on its own core")
     s.add_argument("--name", help="worker name prefix (default: the host name)")
     s.add_argument("--memory-limit", help="per-worker memory limit, e.g. 8GiB (default: Dask's auto)")
     s.set_defaults(func=cmd_worker)

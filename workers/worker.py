@@ -1,7 +1,9 @@
 """``sarship worker``: this machine's Dask workers for a scheduler, pinned per GPU.
 
-One worker process per GPU (``CUDA_VISIBLE_DEVICES`` set before the process starts,
-``--gpu-threads`` task slots, resource ``GPU`` = one unit per slot) and ``--cpus``
+``--gpu-procs`` worker processes per GPU (``CUDA_VISIBLE_DEVICES`` set before each process
+starts, ``--gpu-threads`` task slots each, resource ``GPU`` = one unit per slot; the default
+number of processes is the local cluster's, so a deployed worker feeds its GPU as
+``sarship detect`` does) and ``--cpus``
 single-threaded CPU worker processes (resource ``CPU=1`` each), all under one command that
 stops them together on SIGINT/SIGTERM.
 """
@@ -51,8 +53,11 @@ async def _main(address: str, specs: dict[str, dict], echo: bool) -> None:
 
 
 def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str | None = None,
-          memory_limit: str | None = None, echo: bool = True, gpu_threads: int = 2) -> int:
-    """Start the workers and block until they stop (or SIGINT/SIGTERM)."""
+          memory_limit: str | None = None, echo: bool = True, gpu_threads: int = 2,
+          gpu_procs: int | None = None) -> int:
+    """Start the workers and block until they stop (or SIGINT/SIGTERM). ``gpu_procs``: worker
+    processes per GPU (default: the local cluster's rule, :func:`sarship.workers.cluster.gpu_procs`:
+    ``SARSHIP_GPU_PROCS``, else a quarter of the cores per GPU, at most 4)."""
     if not scheduler:
         raise InputError("--scheduler ADDRESS is required (e.g. tcp://10.0.0.1:8786)")
     gpu_ids = parse_gpus(gpus)
@@ -64,9 +69,15 @@ def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str 
         raise InputError("nothing to start: no GPU selected (--gpus) and --cpus 0")
     prefix = f"{name or socket.gethostname()}-"
     from sarship.workers.cluster import _quiet
+    from sarship.workers.cluster import gpu_procs as default_gpu_procs
 
     _quiet()
     if gpu_threads < 1:
         raise InputError(f"--gpu-threads must be >= 1, got {gpu_threads}")
-    asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit, gpu_threads=gpu_threads), echo))
+    if gpu_procs is None:
+        gpu_procs = default_gpu_procs(len(gpu_ids)) if gpu_ids else 1
+    if gpu_procs < 1:
+        raise InputError(f"--gpu-procs must be >= 1, got {gpu_procs}")
+    asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit, gpu_threads=gpu_threads,
+                                              gpu_procs=gpu_procs), echo))
     return 0
