@@ -67,9 +67,10 @@ from sarship.pipeline.errors import InputError
 
 #: What to run when the shoreline package is missing.
 INSTALL_HINT = "pip install 'sarship[coastline]'"
-#: Default buffer (metres): about one standard deviation of GSHHG's full-resolution shoreline
-#: (the World Vector Shoreline, 1:250 000, places 90 % of its features within 500 m); a ship
-#: moored at a quay is lost with any buffer, one in a 1-km channel is kept with this one.
+#: Default buffer (metres). GSHHG's full-resolution shoreline is the World Vector Shoreline, nominal
+#: scale 1:250 000, vectorised from a 3-arc-second (about 90 m) land/water grid: the US National Map
+#: Accuracy Standard's 90 % bound at that scale (1/50 inch on the map) is 127 m on the ground, plus
+#: one grid cell, about 220 m; rounded up. A ship in a channel wider than 2 x 250 m keeps sea around it.
 DEFAULT_BUFFER_M = 250.0
 #: Largest buffer accepted (metres).
 MAX_BUFFER_M = 5000.0
@@ -77,6 +78,9 @@ MAX_BUFFER_M = 5000.0
 MAX_STEP_PX = 32
 #: Points per call of the exact test in the refinement (bounds the memory of a strip).
 BATCH = 1 << 20
+#: Widest column chunk of one distance transform (its float64 distances and int32 feature
+#: transform are ~16 bytes a pixel).
+BUFFER_COLS = 4096
 #: Metres per degree of latitude (mean; for the mask cell's size and the spacing estimate).
 M_PER_DEG = 111_320.0
 #: Earth's mean radius (m), for the spacing estimate from the geo model.
@@ -228,16 +232,27 @@ class Coastline:
         return out
 
     def read(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
-        """The buffered land mask of ``[r0, r1) x [c0, c1)`` (bool; the module doc's buffer)."""
+        """The buffered land mask of ``[r0, r1) x [c0, c1)`` (bool; the module doc's buffer). The
+        distance transform runs on column chunks of at most :data:`BUFFER_COLS` (each with its own
+        ``ceil(b / rg)`` columns of context: the same result, bounded memory on wide strips)."""
         hr, hc = self.halo
         land = self.land(r0 - hr, r1 + hr, c0 - hc, c1 + hc)
-        return buffered(land, self.spacing, self.buffer_m, hr, hc)
+        w = c1 - c0
+        if w <= BUFFER_COLS:
+            return buffered(land, self.spacing, self.buffer_m, hr, hc)
+        out = np.empty((r1 - r0, w), bool)
+        for a in range(0, w, BUFFER_COLS):
+            b = min(a + BUFFER_COLS, w)
+            out[:, a:b] = buffered(land[:, a: b + 2 * hc], self.spacing, self.buffer_m, hr, hc)
+        return out
 
 
 def buffered(land: np.ndarray, spacing: tuple[float, float], buffer_m: float, hr: int, hc: int) -> np.ndarray:
     """The core of ``land`` (``hr`` rows and ``hc`` columns of context each side) widened by
     ``buffer_m``: pixels whose centre is within ``buffer_m`` metres of a land pixel centre, the
-    distances on the grid of pixel spacing ``spacing`` (az, rg)."""
+    distances on the grid of pixel spacing ``spacing`` (az, rg): the exact Euclidean distance
+    transform :func:`scipy.ndimage.distance_transform_edt` with ``sampling=spacing``,
+    thresholded at ``buffer_m``."""
     h, w = land.shape[0] - 2 * hr, land.shape[1] - 2 * hc
     core = land[hr: hr + h, hc: hc + w]
     if buffer_m <= 0 or not land.any():

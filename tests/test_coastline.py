@@ -120,13 +120,19 @@ def test_buffer_is_the_distance_to_land_on_the_pixel_grid():
     assert got.sum() > L[hr:hr + shape[0], hc:hc + shape[1]].sum()  # the buffer widened the land
     assert np.array_equal(co.open_coastline(a, shape, 0.0).read(0, shape[0], 0, shape[1]),
                           L[hr:hr + shape[0], hc:hc + shape[1]])
+    edt = ndimage.distance_transform_edt(~L, sampling=sp)[hr:hr + shape[0], hc:hc + shape[1]] <= b
+    assert np.array_equal(got, edt)  # scipy's exact EDT agrees
 
 
-def test_regions_do_not_depend_on_the_cut():
+def test_regions_do_not_depend_on_the_cut(monkeypatch):
     """The buffered mask of tiles of 37 x 53 px (not dividing the scene) pieced together equals the
-    whole scene's bit for bit."""
+    whole scene's bit for bit, and so does the whole scene's with the distance transform cut into
+    column chunks of 50 px."""
     cl = co.open_coastline(north_up(*AT, SHAPE, SP), SHAPE, 250.0)
     whole = cl.read(0, SHAPE[0], 0, SHAPE[1])
+    with monkeypatch.context() as m:
+        m.setattr(co, "BUFFER_COLS", 50)
+        assert np.array_equal(cl.read(0, SHAPE[0], 0, SHAPE[1]), whole)
     pieces = np.zeros(SHAPE, bool)
     for r0 in range(0, SHAPE[0], 37):
         for c0 in range(0, SHAPE[1], 53):

@@ -100,7 +100,7 @@ class DetectorParams(BaseModel):
     land_buffer_m: float = Field(
         250.0, ge=0.0, le=5000.0,
         description="land_mask=coastline: the GSHHG land is widened by this many metres (pixels within it of land "
-                    "are land too; about one standard deviation of the shoreline's position)")
+                    "are land too; the shoreline's position error at its 1:250 000 scale, docs/algorithms/landmask.md)")
     land_window: int = Field(15, ge=3, le=101, description="land_mask=texture: texture window side (odd, pixels)")
     land_classes: int = Field(2, ge=2, le=6, description="land_mask=texture: Gaussian mixture classes (sea = lowest texture)")
     land_open_px: int = Field(51, ge=1, le=255,
