@@ -144,8 +144,8 @@ def sar_fields(attrs: dict, variables: dict) -> dict:
     out: dict[str, Any] = {"sar:instrument_mode": str(mode), "sar:frequency_band": str(band),
                            "sar:polarizations": sorted(set(pols), key=_POLS.index)}
     ptype = attrs.get("product_type") or (s1.group(2).upper() if s1 else None)
-    if ptype:
-        out["sar:product_type"] = str(ptype)
+    if ptype:  # the SAFE reader's "GRD (GRDH)": the type, as the extension's examples ("GRD", "SLC")
+        out["sar:product_type"] = str(ptype).split(" (")[0]
     looks, src = attrs.get("looks"), str(attrs.get("looks_source") or "")
     if src == "single-look complex":
         out["sar:looks_range"] = out["sar:looks_azimuth"] = 1

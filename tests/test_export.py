@@ -226,6 +226,7 @@ def test_stac_item_carries_the_product_identifiers(tmp_path):
     assert p["start_datetime"] == "2021-04-01T05:26:23.794457Z" and p["end_datetime"] == "2021-04-01T05:26:48.793373Z"
     assert p["datetime"] == p["start_datetime"]
     assert (p["sar:instrument_mode"], p["sar:polarizations"], p["sar:frequency_band"]) == ("IW", ["VV"], "C")
+    assert p["sar:product_type"] == "GRD"  # the reader's "GRD (GRDH)"
     assert item["geometry"]["type"] == "Polygon"
     json.dumps(item, allow_nan=False)
     # attributes win over the name; S1A's relative orbit; an SLC sub-swath
