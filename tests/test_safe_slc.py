@@ -91,6 +91,40 @@ def test_burst_ramp_and_deramp_phase():
     np.testing.assert_allclose(rot, np.exp(-1j * ph), atol=2e-6)
 
 
+def test_deramping_is_what_npdd_needs():
+    """Why the SLC ingest deramps. Sea speckle of an IW burst, oversampled as S-1's is (azimuth
+    band 327 of 486 Hz, range 56.5 of 64.3 MHz), at baseband: NPDD's circular variance (the
+    feature of every csk detection, eq 19-21, 5) is ~0.7 wherever the window is. The same
+    speckle as the product delivers it (times exp(j phi), the IW1 burst's ramp) reads ~0.9-1,
+    varying along the burst: the sweep, not the sea. Deramping gives the baseband values back;
+    intensity is unchanged throughout."""
+    from sarship.pipeline import circular
+
+    tau = 5.343e-3 + np.arange(64) / 6.4345e7
+    r = tops.burst_ramp(tau, 7600.0, 5.405e9, 1.590368784, [-2320.27, 4.5014e5, -7.9186e7], 5.343e-3,
+                        [-1.7936, 3565.0, -3.326e6], 5.351e-3, first_valid_col=0, lines_per_burst=1501,
+                        dt=2.0555563e-3)
+    rng = np.random.default_rng(2)
+    w = rng.standard_normal((1501, 64)) + 1j * rng.standard_normal((1501, 64))
+    F = np.fft.fft(w, axis=0)
+    F[np.abs(np.fft.fftfreq(1501)) > 0.5 * 327 / 486] = 0
+    G = np.fft.fft(np.fft.ifft(F, axis=0), axis=1)
+    G[:, np.abs(np.fft.fftfreq(64)) > 0.5 * 56.5 / 64.3] = 0
+    sea = np.fft.ifft(G, axis=1)
+    ph = tops.deramp_phase(r, 0, 1501, 0, 64)
+    delivered = sea * np.exp(1j * ph)
+    deramped = delivered * tops.rotation(ph)
+    np.testing.assert_allclose(np.abs(delivered), np.abs(sea), rtol=1e-12)
+
+    def spread(z, l0):
+        return circular.npdd_spread(circular.npdd(z[l0:l0 + 100], 3, 1)[2:-2, 2:-2])[0]
+
+    for l0 in range(50, 1450, 200):
+        base, ramped, back = spread(sea, l0), spread(delivered, l0), spread(deramped, l0)
+        assert 0.6 < base < 0.8 and ramped > base + 0.12, (l0, base, ramped)
+        assert back == pytest.approx(base, abs=1e-4)
+
+
 # --------------------------------------------------------------------------------------
 # the annotation, read here with ElementTree (independently of the reader)
 # --------------------------------------------------------------------------------------
