@@ -11,7 +11,8 @@ names; what each format accepts is in the docstring of its module:
 sidecar), :mod:`sarship.pipeline.readers.image` (PNG / JPEG), :mod:`sarship.pipeline.readers.npy`,
 :mod:`sarship.pipeline.readers.polsarpro` (C3 / T3 / C2 folders; the covariance convention)
 :mod:`sarship.pipeline.readers.safe` (Sentinel-1 GRD SAFE folder or zip: calibration,
-thermal noise, geolocation grid) and :mod:`sarship.pipeline.readers.zarr_input` (a Zarr scene). How real samples are taken
+thermal noise, geolocation grid), :mod:`sarship.pipeline.readers.safe_slc` (one sub-swath of
+an IW SLC, ``swath``: debursted, calibrated, deramped) and :mod:`sarship.pipeline.readers.zarr_input` (a Zarr scene). How real samples are taken
 (the ``auto`` rule), band and channel names and stacking: :mod:`sarship.pipeline.readers.plan`.
 Looks: :mod:`sarship.pipeline.readers.writing`.
 
