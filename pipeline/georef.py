@@ -17,6 +17,13 @@ as GDAL does). Two mappings:
   and wrapped back to [-180, 180), so a scene across the antimeridian interpolates through it.
   The grid's points are reproduced exactly.
 
+  **Sea level.** When every grid point also carries its height ``z`` and its local ``incidence``
+  angle (degrees; the annotation's ``incidenceAngle``), the grid is first moved to its lowest
+  height (:func:`sea_level`): each point by ``(z - z_min) / tan(incidence)`` towards the sensor,
+  where the same pixel's point at that height lies. Ships are at sea level; over relief the
+  moved grid is smooth and its held-out error drops from hundreds of metres to 5-52 m median
+  on the Alpine samples (docs/sentinel1.md).
+
   Why bilinear rather than a smoother interpolant: the grid points lie on the terrain (their
   ``z`` is the DEM height), so a point at height ``h`` is displaced across track by about
   ``h / tan(incidence)`` from where a smooth sea-level geometry would put it. Over sea the
@@ -135,12 +142,14 @@ def gcp_arrays(gcps: Iterable[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray
             np.array([float(p["x"]) for p in g]), np.array([float(p["y"]) for p in g]))
 
 
-def as_grid(gcps: Iterable[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """``(rows, cols, lon, lat)`` with ``lon``/``lat`` (n, m) when the GCPs are a rectilinear grid
-    (every distinct row with every distinct column, once each; n, m >= 2), else None."""
-    r, c, x, y = gcp_arrays(gcps)
-    if len(r) < 4:
+def _grid_cells(gcps: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(rows, cols, cell)``: the distinct rows and columns and each GCP's flat cell index when
+    the GCPs are a rectilinear grid (every distinct row with every distinct column, once each;
+    n, m >= 2), else None."""
+    if len(gcps) < 4:
         return None
+    r = np.array([float(p["row"]) for p in gcps])
+    c = np.array([float(p["col"]) for p in gcps])
     rows, ri = np.unique(r, return_inverse=True)
     cols, ci = np.unique(c, return_inverse=True)
     n, m = len(rows), len(cols)
@@ -149,22 +158,91 @@ def as_grid(gcps: Iterable[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     cell = ri * m + ci
     if len(np.unique(cell)) != len(cell):
         return None
-    lon, lat = np.empty(n * m), np.empty(n * m)
-    lon[cell], lat[cell] = x, y
-    return rows, cols, lon.reshape(n, m), lat.reshape(n, m)
+    return rows, cols, cell
 
 
-def from_gcps(gcps: Iterable[dict], method: str = "auto", geographic: bool = True) -> PixelToLonLat:
+def grid_field(gcps: Iterable[dict], key: str) -> np.ndarray | None:
+    """The GCPs' ``key`` values as an (n, m) array in :func:`as_grid`'s layout; None when the
+    GCPs are not a grid or a GCP lacks a finite ``key``."""
+    g = list(gcps)
+    cells = _grid_cells(g)
+    if cells is None:
+        return None
+    rows, cols, cell = cells
+    try:
+        v = np.array([float(p[key]) for p in g])
+    except (KeyError, TypeError, ValueError):
+        return None
+    if not np.isfinite(v).all():
+        return None
+    out = np.empty(len(g))
+    out[cell] = v
+    return out.reshape(len(rows), len(cols))
+
+
+def as_grid(gcps: Iterable[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(rows, cols, lon, lat)`` with ``lon``/``lat`` (n, m) when the GCPs are a rectilinear grid
+    (every distinct row with every distinct column, once each; n, m >= 2), else None."""
+    g = list(gcps)
+    cells = _grid_cells(g)
+    if cells is None:
+        return None
+    rows, cols, _ = cells
+    return rows, cols, grid_field(g, "x"), grid_field(g, "y")
+
+
+def sea_level(rows: np.ndarray, cols: np.ndarray, lon: np.ndarray, lat: np.ndarray, height: np.ndarray,
+              incidence_deg: np.ndarray, h_ref: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """Geolocation grid points moved to one height ``h_ref`` (default: the grid's lowest point,
+    the sea surface where the scene has sea): ``(lon, lat, h_ref)``.
+
+    A grid point is where its pixel's range and azimuth time meet the terrain at height ``h``;
+    the point of the same pixel at height ``h_ref`` lies ``(h - h_ref) / tan(incidence)`` nearer
+    the sensor across track (the terrain displacement of a side-looking radar; flat-Earth
+    geometry, local incidence angle of the annotation). Across track is taken as the direction of
+    increasing column of a least-squares quadratic fitted to the grid (columns grow with range
+    in Sentinel-1 products). The moved grid is smooth where the terrain is not: held-out errors
+    in docs/sentinel1.md ("Georeferencing").
+    """
+    height, inc = np.asarray(height, float), np.asarray(incidence_deg, float)
+    if not (np.all(inc > 0) and np.all(inc < 90)):
+        raise ValueError("incidence angles must lie in (0, 90) degrees")
+    h0 = float(height.min()) if h_ref is None else float(h_ref)
+    R, C = np.meshgrid(rows, cols, indexing="ij")
+    lon = _unwrap_about(lon, float(lon[0, 0]))
+    poly = PolynomialGeoreference(R, C, lon, lat)
+    step = max(float(cols[-1] - cols[0]) / 1000.0, 1e-6)
+    x1, y1 = poly.lonlat(R, C + step)
+    x0, y0 = poly.lonlat(R, C)
+    k = EARTH_RADIUS_M * np.pi / 180.0  # metres per degree of latitude
+    coslat = np.cos(np.radians(lat))
+    east, north = _wrap(x1 - x0) * k * coslat, (y1 - y0) * k
+    norm = np.hypot(east, north)
+    d = (height - h0) / np.tan(np.radians(inc))
+    return _wrap(lon - d * east / norm / (k * coslat)), lat - d * north / norm / k, h0
+
+
+def from_gcps(gcps: Iterable[dict], method: str = "auto", geographic: bool = True,
+              to_sea_level: bool = True) -> PixelToLonLat:
     """The pixel -> lon/lat mapping of a ``gcps`` attribute: ``"auto"`` = the grid when the GCPs
     form one (:func:`as_grid`), else the polynomial; ``"grid"`` / ``"polynomial"`` force one.
-    ``geographic``: x is longitude in degrees (False: GCPs in a projected CRS; x, y returned in it)."""
+    ``geographic``: x is longitude in degrees (False: GCPs in a projected CRS; x, y returned in it).
+    ``to_sea_level``: when every grid point carries its height ``z`` and local ``incidence``
+    (degrees), the grid is first moved to its lowest height (:func:`sea_level`), where ships are."""
     g = list(gcps)
     if method not in ("auto", "grid", "polynomial"):
         raise ValueError(f"method must be auto, grid or polynomial, got {method!r}")
     if method != "polynomial":
         grid = as_grid(g)
         if grid is not None:
-            return GridGeoreference(*grid, geographic=geographic)
+            rows, cols, lon, lat = grid
+            h, inc = grid_field(g, "z"), grid_field(g, "incidence")
+            if to_sea_level and geographic and h is not None and inc is not None:
+                lon, lat, h0 = sea_level(rows, cols, lon, lat, h, inc)
+                out = GridGeoreference(rows, cols, lon, lat, geographic=True)
+                out.method = f"geolocation grid moved to {h0:.0f} m height, bilinear"
+                return out
+            return GridGeoreference(rows, cols, lon, lat, geographic=geographic)
         if method == "grid":
             raise ValueError("the GCPs do not form a rectilinear grid")
     return PolynomialGeoreference(*gcp_arrays(g), geographic=geographic)
@@ -183,7 +261,8 @@ def _summary(d: np.ndarray) -> dict[str, float | int]:
             "max_m": float(d.max())}
 
 
-def held_out_errors(gcps: Iterable[dict], scheme: str = "alternate") -> dict[str, dict[str, float | int]]:
+def held_out_errors(gcps: Iterable[dict], scheme: str = "alternate",
+                    to_sea_level: bool = False) -> dict[str, dict[str, float | int]]:
     """Error in metres at grid points left out of the fit, for the bilinear grid and the global
     polynomial fitted to the same remaining points.
 
@@ -192,12 +271,20 @@ def held_out_errors(gcps: Iterable[dict], scheme: str = "alternate") -> dict[str
     out; ``"row"`` / ``"col"``: each interior grid row (column) in turn is left out and its
     points predicted from all the others (leave-one-row-out; leave-one-point-out would break the
     grid). Also ``"polynomial_fit"``: the polynomial fitted to ALL points, at those points (the
-    mapping used before this module, judged on its own data).
+    mapping used before this module, judged on its own data). ``to_sea_level``: every point first
+    moved to the grid's lowest height (:func:`sea_level`; needs ``z`` and ``incidence``), so the
+    errors are those of the sea-level geometry, without the terrain's steps.
     """
+    gcps = list(gcps)
     grid = as_grid(gcps)
     if grid is None:
         raise ValueError("the GCPs do not form a rectilinear grid")
     rows, cols, lon, lat = grid
+    if to_sea_level:
+        h, inc = grid_field(gcps, "z"), grid_field(gcps, "incidence")
+        if h is None or inc is None:
+            raise ValueError("moving the grid to sea level needs every GCP's z and incidence")
+        lon, lat, _ = sea_level(rows, cols, lon, lat, h, inc)
     n, m = lon.shape
     R, C = np.meshgrid(rows, cols, indexing="ij")
     lon = _unwrap_about(lon, float(lon[0, 0]))
@@ -246,5 +333,5 @@ def held_out_errors(gcps: Iterable[dict], scheme: str = "alternate") -> dict[str
     return {"grid": _summary(np.concatenate(gd)), "polynomial": _summary(np.concatenate(pd))}
 
 
-__all__ = ["GridGeoreference", "PolynomialGeoreference", "as_grid", "from_gcps", "gcp_arrays",
-           "held_out_errors", "distance_m"]
+__all__ = ["GridGeoreference", "PolynomialGeoreference", "as_grid", "from_gcps", "gcp_arrays", "grid_field",
+           "held_out_errors", "distance_m", "sea_level"]
