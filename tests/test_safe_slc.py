@@ -317,6 +317,9 @@ class TestIW1:
         assert abs(_sec(np.datetime64(at["swath_last_line_time"], "ns"), last)) < 1e-6
         assert at["calibration"].startswith("sigma0") and "deramped" in at["slc_phase"]
         assert at["product"] == SLC.name and at["sensor"] == "SENTINEL-1B"
+        prf = float(a["root"].findtext(".//downlinkInformation/prf"))
+        g = at["sar_geometry"]  # the azimuth-ambiguity geometry (pipeline/readers/safe_geometry.py)
+        assert g["prf_hz"] == pytest.approx(prf) and g["shape"] == list(sc.shape), g
 
     def test_burst_seams_at_the_overlap_midpoints(self, iw1):
         from sarship.pipeline.scene import open_scene

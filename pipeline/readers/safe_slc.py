@@ -288,6 +288,12 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
         "incidence_angle_mid_swath_deg": inc,
         "ground_range_spacing_m": spacing[1] / float(np.sin(np.radians(inc))) if np.isfinite(inc) and inc > 0 else None,
     }
+    from sarship.pipeline.readers.safe_geometry import sar_geometry  # azimuth-ambiguity geometry, as for GRD
+
+    geom = sar_geometry(prod, sw, pol0)
+    if "shape" in geom:  # the scene's (debursted) rows, not the measurement's stacked lines
+        geom["shape"] = [H, width]
+    meta["extra_attrs"]["sar_geometry"] = geom
     return SlcSource(p, prod, pols, meas, meta, (H, width), segs, lpb, valid_samples, ramps, luts)
 
 
