@@ -478,18 +478,32 @@ def test_swath_missing_or_unknown_fails_one_line(tmp_path):
     assert not (tmp_path / "o.zarr").exists()
 
 
+def _copy(src: Path, dst: Path, ignore=None) -> None:
+    """A writable copy of a (read-only) sample product."""
+    shutil.copytree(src, dst, ignore=ignore, copy_function=shutil.copyfile)
+    for d in [dst, *[q for q in dst.rglob("*") if q.is_dir()]]:
+        d.chmod(0o755)
+
+
 @needs_slc
 def test_missing_annotation_and_truncated_zip_fail_one_line(tmp_path):
     pytest.importorskip("xarray_sentinel")
     from sarship.pipeline.readers import ingest
 
     bad = tmp_path / SLC.name
-    shutil.copytree(SLC, bad)
+    _copy(SLC, bad)
     ann = next((bad / "annotation").glob("s1?-iw1-slc-vh-*.xml"))
     ann.unlink()
     with pytest.raises(InputError, match=f"no annotation annotation/{ann.name} for the IW1 VH measurement") as e:
         ingest([bad], tmp_path / "o.zarr", swath="IW1")
     assert "\n" not in str(e.value)
+    ew = tmp_path / "ew" / SLC.name  # the same layout declared as an EW product: not TOPS IW
+    _copy(SLC, ew, ignore=shutil.ignore_patterns("*.tiff"))
+    (ew / "measurement" / "s1b-iw1-slc-vv-x.tiff").write_bytes(b"II*\x00")
+    man = ew / "manifest.safe"
+    man.write_text(man.read_text().replace("<s1sarl1:mode>IW</s1sarl1:mode>", "<s1sarl1:mode>EW</s1sarl1:mode>"))
+    with pytest.raises(InputError, match="a Sentinel-1 EW SLC product; only IW"):
+        ingest([ew], tmp_path / "o.zarr", swath="IW1")
     z = _zip(SLC, tmp_path / "full.zip")
     cut = tmp_path / (SLC.stem + ".zip")
     cut.write_bytes(z.read_bytes()[: z.stat().st_size // 2])  # a download cut half-way
