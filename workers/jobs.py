@@ -248,15 +248,22 @@ def run_request(
         land_record = None
         t_cluster = time.perf_counter()
         cluster_start = None  # seconds to start (or reach) the cluster; None: a client was given
+        threads = False
         with contextlib.ExitStack() as stack:
             if client is None:
                 from sarship.workers.cluster import connect, threads_max_px
 
-                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu,
-                                                     threads=H * W <= threads_max_px()))
+                threads = scheduler is None and H * W <= threads_max_px()
+                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu, threads=threads))
                 cluster_start = time.perf_counter() - t_cluster
             placement = plan(device, detector, has_gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
+            if threads and placement.device == "cpu":  # the in-process threaded worker started here:
+                from sarship.workers import blockcache  # the land pass's reads serve the detection
+
+                token = uuid.uuid4().hex
+                jobs = [dataclasses.replace(j, cache_token=token) for j in jobs]
+                stack.callback(blockcache.drop, token)
             jobs, land_record = prepare_land(
                 params, scene, land_file, jobs, tmp, tile,
                 lambda fn, js, stage: _execute(client, js, detector, progress, None, fn, stage, placement.submit))
@@ -337,7 +344,7 @@ def run_request(
                 "merge_radius_px": mr,
                 "per_tile": [
                     {"index": list(r["index"]), "worker": r["worker"], "device": r["device"],
-                     "detected_px": r["detected_px"],
+                     "detected_px": r["detected_px"], "block_from": r.get("block_from", "scene"),
                      **{k: round(r[k], 6) for k in ("read_s", "land_s", "detect_s", "write_s", "label_s", "h2d_s",
                                                     "d2h_s")}}
                     for r in sorted(results, key=lambda r: r["index"])

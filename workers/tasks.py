@@ -48,6 +48,10 @@ class TileJob:
     land: dict | None = None
     land_halo: int = 0  # extra context the texture land mask needs beyond ``halo``
     land_path: str | None = None  # land.zarr array this tile writes its core into (texture mode)
+    #: set by the job where both passes run in one process (the in-process threaded worker): the
+    #: land pass keeps each tile's block in :mod:`sarship.workers.blockcache` under this token and
+    #: the detection pass takes it back instead of decoding the scene again
+    cache_token: str | None = None
 
 
 def _worker_name() -> str:
@@ -66,8 +70,12 @@ def _read(job: TileJob, r0: int, r1: int, c0: int, c1: int, timing: dict | None 
     ``timing``: filled with the seconds of the land mask (``land_s``) when given."""
     spec = detectors.get(job.detector)
     params = spec.params(**job.params)
-    read = make_reader(job.scene_path, job.var, job.transform)
-    block = padded_block(read, job.scene_shape, r0, r1, c0, c1, job.halo + job.land_halo)
+    block = _cached_block(job, (r0, r1, c0, c1))
+    if timing is not None:
+        timing["block_from"] = "scene" if block is None else "land pass"
+    if block is None:
+        read = make_reader(job.scene_path, job.var, job.transform)
+        block = padded_block(read, job.scene_shape, r0, r1, c0, c1, job.halo + job.land_halo)
     land = None
     if job.land is not None:
         t = time.perf_counter()
@@ -140,9 +148,41 @@ def run_tile_stats(job: TileJob) -> dict[str, Any]:
             "device": "gpu" if gpu else "cpu", "seconds": time.perf_counter() - t0}
 
 
+def _extended(job: TileJob) -> tuple[int, int, int, int]:
+    """The window :func:`run_tile` reads around its core: the tile plus the merge margin."""
+    H, W = job.scene_shape
+    r0, r1, c0, c1 = job.bounds
+    m = job.merge_r
+    return max(r0 - m, 0), min(r1 + m, H), max(c0 - m, 0), min(c1 + m, W)
+
+
+def _cached_block(job: TileJob, window: tuple[int, int, int, int]):
+    """The detection pass's block from the land pass (:mod:`sarship.workers.blockcache`), with
+    the halo ``job.halo + job.land_halo``; None when there is none for this job and window."""
+    if job.cache_token is None or job.land is None or job.land.get("mode") != "texture":
+        return None
+    if window != _extended(job):
+        return None
+    from sarship.pipeline import landmask
+    from sarship.workers import blockcache
+
+    block = blockcache.take(job.cache_token, job.index)
+    if block is None:
+        return None
+    extra = landmask.TextureConfig(**job.land["config"]).halo - job.land_halo  # kept with the full land halo
+    if extra < 0:
+        return None
+    return block[extra: block.shape[0] - extra, extra: block.shape[1] - extra] if extra else block
+
+
 def run_tile_land_stats(job: TileJob) -> dict[str, Any]:
     """The land pass (``land_mask=texture``): the tile's texture sample on the scene-wide grid
-    (``job.land["stride"]``), for the mixture fitted on the client (workers/land.py)."""
+    (``job.land["stride"]``), for the mixture fitted on the client (workers/land.py).
+
+    With ``job.cache_token`` the tile is read once with all the context its detection will need
+    (merge margin, detector halo and land halo; the mirror extension is defined by position,
+    so any sub-window of the block is what a smaller read would give) and kept for the
+    detection pass (:mod:`sarship.workers.blockcache`); the sample is taken from its middle."""
     from sarship.pipeline import landmask
 
     t0 = time.perf_counter()
@@ -150,7 +190,17 @@ def run_tile_land_stats(job: TileJob) -> dict[str, Any]:
     cfg = landmask.TextureConfig(**job.land["config"])
     r = cfg.window // 2
     read = make_reader(job.scene_path, job.var, job.transform)
-    block = padded_block(read, job.scene_shape, r0, r1, c0, c1, r)
+    if job.cache_token is not None:
+        from sarship.workers import blockcache
+
+        er0, er1, ec0, ec1 = _extended(job)
+        big = job.halo + cfg.halo
+        full = padded_block(read, job.scene_shape, er0, er1, ec0, ec1, big)
+        a, b = (r0 - r) - (er0 - big), (c0 - r) - (ec0 - big)
+        block = full[a: a + (r1 - r0) + 2 * r, b: b + (c1 - c0) + 2 * r]
+        blockcache.put(job.cache_token, job.index, full)
+    else:
+        block = padded_block(read, job.scene_shape, r0, r1, c0, c1, r)
     sample = landmask.texture_sample(block, r, (r0 - r, c0 - r), cfg, int(job.land["stride"]))
     return {"index": job.index, "stats": sample, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
             "device": "cpu", "seconds": time.perf_counter() - t0}
@@ -159,11 +209,9 @@ def run_tile_land_stats(job: TileJob) -> dict[str, Any]:
 def run_tile(job: TileJob) -> dict[str, Any]:
     """Process one tile; returns its components and timings."""
     t0 = time.perf_counter()
-    H, W = job.scene_shape
     r0, r1, c0, c1 = job.bounds
     m = job.merge_r
-    er0, er1 = max(r0 - m, 0), min(r1 + m, H)
-    ec0, ec1 = max(c0 - m, 0), min(c1 + m, W)
+    er0, er1, ec0, ec1 = _extended(job)
     timing = {"land_s": 0.0}
     spec, params, block, land = _read(job, er0, er1, ec0, ec1, timing)
     t1 = time.perf_counter()
@@ -216,6 +264,7 @@ def run_tile(job: TileJob) -> dict[str, Any]:
         "detected_px": int(core_mask.sum()),
         "land_px": 0 if land is None else int(land[job.halo + a: job.halo + a + h, job.halo + b: job.halo + b + w].sum()),
         "pixels": h * w,
+        "block_from": timing["block_from"],  # "land pass": the land pass's read, kept (blockcache)
         "read_s": t1 - t0 - timing["land_s"],
         "land_s": timing["land_s"],
         "detect_s": t2 - t1,
