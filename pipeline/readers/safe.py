@@ -66,13 +66,15 @@ def bilinear_lut(lines: np.ndarray, pixels: np.ndarray, values: np.ndarray,
     v = np.asarray(values, float)
     cols = np.arange(c0, c1, dtype=float)
     rows = np.arange(r0, r1, dtype=float)
-    along = np.stack([np.interp(cols, pixels, v[i]) for i in range(len(lines))])  # (nl, w)
     if len(lines) == 1:
-        return np.broadcast_to(along[0], (len(rows), len(cols))).copy()
+        return np.broadcast_to(np.interp(cols, pixels, v[0]), (len(rows), len(cols))).copy()
     rr = np.clip(rows, lines[0], lines[-1])
     i = np.clip(np.searchsorted(lines, rr, side="right") - 1, 0, len(lines) - 2)
+    lo = int(i.min()) if len(i) else 0
+    hi = int(i.max()) + 2 if len(i) else 2
+    along = np.stack([np.interp(cols, pixels, v[k]) for k in range(lo, hi)])  # only the LUT lines used
     t = ((rr - lines[i]) / (lines[i + 1] - lines[i]))[:, None]
-    return (1.0 - t) * along[i] + t * along[i + 1]
+    return (1.0 - t) * along[i - lo] + t * along[i + 1 - lo]
 
 
 def azimuth_noise(blocks: list[tuple[int, int, int, int, np.ndarray, np.ndarray]],
