@@ -78,9 +78,12 @@ MAX_BUFFER_M = 5000.0
 MAX_STEP_PX = 32
 #: Points per call of the exact test in the refinement (bounds the memory of a strip).
 BATCH = 1 << 20
-#: Widest column chunk of one distance transform (its float64 distances and int32 feature
-#: transform are ~16 bytes a pixel).
-BUFFER_COLS = 4096
+#: Largest side of one distance transform's block (each with its own context): bounded memory
+#: (float64 distances and int32 feature transform, ~16 bytes a pixel) on full-width strips, and
+#: blocks that are all land or all sea, most of a scene, skip the transform.
+EDT_SIDE = 1024
+#: Batches of at least this many points use the multi-threaded exact test.
+PAR_MIN = 1 << 16
 #: Metres per degree of latitude (mean; for the mask cell's size and the spacing estimate).
 M_PER_DEG = 111_320.0
 #: Earth's mean radius (m), for the spacing estimate from the geo model.
@@ -183,7 +186,10 @@ class Coastline:
         out = np.zeros(lon.shape, bool)
         if not ok.any():
             return out
-        fn = lm.mask.contains_many if mask_only else lm.contains_many
+        # the exact test of a large batch on every core (rayon threads in roaring-landmask; a pure
+        # function of the points, so the result is the same)
+        fn = lm.mask.contains_many if mask_only else (lm.contains_many_par if lon.size >= PAR_MIN
+                                                      else lm.contains_many)
         if ok.all():
             return np.asarray(fn(lon.ravel(), lat.ravel()), bool).reshape(lon.shape)
         out[ok] = np.asarray(fn(np.ascontiguousarray(lon[ok]), np.ascontiguousarray(lat[ok])), bool)
@@ -233,17 +239,18 @@ class Coastline:
 
     def read(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """The buffered land mask of ``[r0, r1) x [c0, c1)`` (bool; the module doc's buffer). The
-        distance transform runs on column chunks of at most :data:`BUFFER_COLS` (each with its own
-        ``ceil(b / rg)`` columns of context: the same result, bounded memory on wide strips)."""
+        distance transform runs on blocks of at most :data:`EDT_SIDE` a side, each with its own
+        ``ceil(b / az)`` rows and ``ceil(b / rg)`` columns of context: the same result."""
         hr, hc = self.halo
         land = self.land(r0 - hr, r1 + hr, c0 - hc, c1 + hc)
-        w = c1 - c0
-        if w <= BUFFER_COLS:
+        h, w = r1 - r0, c1 - c0
+        if h <= EDT_SIDE and w <= EDT_SIDE:
             return buffered(land, self.spacing, self.buffer_m, hr, hc)
-        out = np.empty((r1 - r0, w), bool)
-        for a in range(0, w, BUFFER_COLS):
-            b = min(a + BUFFER_COLS, w)
-            out[:, a:b] = buffered(land[:, a: b + 2 * hc], self.spacing, self.buffer_m, hr, hc)
+        out = np.empty((h, w), bool)
+        for i in range(0, h, EDT_SIDE):
+            for j in range(0, w, EDT_SIDE):
+                i1, j1 = min(i + EDT_SIDE, h), min(j + EDT_SIDE, w)
+                out[i:i1, j:j1] = buffered(land[i: i1 + 2 * hr, j: j1 + 2 * hc], self.spacing, self.buffer_m, hr, hc)
         return out
 
 

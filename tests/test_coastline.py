@@ -127,11 +127,11 @@ def test_buffer_is_the_distance_to_land_on_the_pixel_grid():
 def test_regions_do_not_depend_on_the_cut(monkeypatch):
     """The buffered mask of tiles of 37 x 53 px (not dividing the scene) pieced together equals the
     whole scene's bit for bit, and so does the whole scene's with the distance transform cut into
-    column chunks of 50 px."""
+    blocks of 50 px."""
     cl = co.open_coastline(north_up(*AT, SHAPE, SP), SHAPE, 250.0)
     whole = cl.read(0, SHAPE[0], 0, SHAPE[1])
     with monkeypatch.context() as m:
-        m.setattr(co, "BUFFER_COLS", 50)
+        m.setattr(co, "EDT_SIDE", 50)
         assert np.array_equal(cl.read(0, SHAPE[0], 0, SHAPE[1]), whole)
     pieces = np.zeros(SHAPE, bool)
     for r0 in range(0, SHAPE[0], 37):

@@ -266,7 +266,8 @@ def run_request(
                 stack.callback(blockcache.drop, token)
             jobs, land_record = prepare_land(
                 params, scene, land_file, jobs, tmp, tile,
-                lambda fn, js, stage: _execute(client, js, detector, progress, None, fn, stage, placement.submit))
+                lambda fn, js, stage: _execute(client, js, detector, progress, None, fn, stage, placement.submit),
+                progress=progress)
             if spec.scene_pass is not None:
                 t_pass = time.perf_counter()
                 scene_values: dict = {}

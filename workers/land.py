@@ -74,16 +74,21 @@ def check_land_file(params, scene: Scene):
     return open_land_file(path, scene.shape, scene.attrs)
 
 
-def rasterize_coastline(coast, arr, shape: tuple[int, int], rows: int) -> int:
+def rasterize_coastline(coast, arr, shape: tuple[int, int], rows: int, progress: bool = False) -> int:
     """Write the buffered coastline mask into ``arr`` strip by strip (``rows`` rows a strip);
-    returns the land pixel count."""
+    returns the land pixel count. ``progress``: a line per 10 % of the strips on stderr."""
+    from sarship.workers.jobs import Progress
+
     H, W = shape
     count = 0
-    for r0 in range(0, H, max(rows, 1)):
+    starts = range(0, H, max(rows, 1))
+    bar = Progress(len(starts), "land coastline, strips", progress)
+    for r0 in starts:
         r1 = min(r0 + max(rows, 1), H)
         block = coast.read(r0, r1, 0, W)
         arr[r0:r1, :] = block.astype(np.uint8)
         count += int(block.sum())
+        bar.step((r1 - r0) * W)
     return count
 
 
@@ -99,10 +104,12 @@ def coastline_record(coast, count: int, seconds: float) -> dict:
             "land": count > 0, "seconds": round(seconds, 4)}
 
 
-def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: int, execute) -> tuple[list, dict | None]:
+def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: int, execute,
+                 progress: bool = False) -> tuple[list, dict | None]:
     """Set up the job's land mask: returns the tile jobs with their land fields and the record
     for ``run.json`` (``land``), or ``(jobs, None)`` without a land mask. ``execute(fn, jobs,
-    stage)`` runs a per-tile function on the cluster and returns its results."""
+    stage)`` runs a per-tile function on the cluster and returns its results; ``progress``:
+    the coastline's rasterisation reports on stderr."""
     from sarship.workers.tasks import run_tile_land_stats
 
     lm = params.land_mask
@@ -122,7 +129,7 @@ def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: i
             raise TypeError("prepare_land: land_mask=coastline needs the Coastline of check_land_file")
     if keys == {"coastline"}:
         arr = create_land_store(store, (H, W), tile, {"source": "coastline", **attrs})
-        count = rasterize_coastline(land_file, arr, (H, W), tile)
+        count = rasterize_coastline(land_file, arr, (H, W), tile, progress)
         land = {"mode": "file", "store": str(store / "land")}
         jobs = [dataclasses.replace(j, land=land, land_halo=0, land_path=None) for j in jobs]
         record = coastline_record(land_file, count, time.perf_counter() - t0)
@@ -149,7 +156,7 @@ def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: i
 
             carr = g.create_array("coastline", shape=(H, W), dtype="uint8", **chunking(tile), compressors=_zstd(),
                                   dimension_names=("y", "x"), fill_value=0)
-            count = rasterize_coastline(land_file, carr, (H, W), tile)
+            count = rasterize_coastline(land_file, carr, (H, W), tile, progress)
             coast_record = coastline_record(land_file, count, time.perf_counter() - t1)
             land = {**land, "coastline": str(store / "coastline")}
         jobs = [dataclasses.replace(j, land=land, land_halo=halo, land_path=str(store / "land")) for j in jobs]
