@@ -222,6 +222,52 @@ def sea_level(rows: np.ndarray, cols: np.ndarray, lon: np.ndarray, lat: np.ndarr
     return _wrap(lon - d * east / norm / (k * coslat)), lat - d * north / norm / k, h0
 
 
+def pixel_of(geo: PixelToLonLat, x, y, rows0, cols0, tol_px: float = 1e-4, max_iter: int = 30
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of ``geo.lonlat``: continuous (row, col) whose mapping is (``x``, ``y``)
+    (lon/lat, or the projected coordinates of a non-geographic grid), by Newton's method from
+    the start ``rows0``, ``cols0`` (e.g. a polynomial's inverse), with the Jacobian by central
+    differences of half a pixel (exact for the bilinear map within a cell). Longitude
+    differences are wrapped, and scaled by cos(latitude) so both axes are in comparable units.
+    Points where the iteration does not settle within ``tol_px`` are NaN."""
+    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    shape = x.shape
+    x, y = x.ravel(), y.ravel()
+    r = np.array(np.broadcast_to(np.asarray(rows0, float), shape), float).ravel()
+    c = np.array(np.broadcast_to(np.asarray(cols0, float), shape), float).ravel()
+    geographic = getattr(geo, "geographic", True)
+    k = np.cos(np.radians(np.clip(y, -89.0, 89.0))) if geographic else np.ones_like(y)
+
+    def resid(rr, cc):
+        gx, gy = geo.lonlat(rr, cc)
+        dx = _wrap(gx - x) if geographic else gx - x
+        return dx * k, gy - y
+
+    h = 0.5
+    done = np.zeros(r.shape, bool)
+    for _ in range(max_iter):
+        fx, fy = resid(r, c)
+        ax, ay = resid(r + h, c)
+        bx, by = resid(r - h, c)
+        cx, cy = resid(r, c + h)
+        ex, ey = resid(r, c - h)
+        j11, j21 = (ax - bx) / (2 * h), (ay - by) / (2 * h)  # d/drow
+        j12, j22 = (cx - ex) / (2 * h), (cy - ey) / (2 * h)  # d/dcol
+        det = j11 * j22 - j12 * j21
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dr = (j22 * fx - j12 * fy) / det
+            dc = (j11 * fy - j21 * fx) / det
+        dr = np.where(done, 0.0, dr)
+        dc = np.where(done, 0.0, dc)
+        r, c = r - dr, c - dc
+        done |= (np.abs(dr) < tol_px) & (np.abs(dc) < tol_px)
+        if done.all():
+            break
+    r[~done] = np.nan
+    c[~done] = np.nan
+    return r.reshape(shape), c.reshape(shape)
+
+
 def from_gcps(gcps: Iterable[dict], method: str = "auto", geographic: bool = True,
               to_sea_level: bool = True) -> PixelToLonLat:
     """The pixel -> lon/lat mapping of a ``gcps`` attribute: ``"auto"`` = the grid when the GCPs

@@ -8,9 +8,11 @@ land where any band is finite and non-zero.
 Vector: GeoJSON (a FeatureCollection, Feature or geometry) of Polygon / MultiPolygon
 geometries. Coordinates are WGS84 lon/lat (RFC 7946), converted to scene pixels with the
 scene's georeference (the inverse of :class:`sarship.pipeline.ship_features.Georeference`:
-the affine ``transform`` in the scene ``crs``, or a least-squares polynomial fitted from lon/lat
-to pixels on the ``gcps``, affine under 6 points and quadratic from 6, as GDAL's GCP
-transformer does); or scene pixel coordinates ``[x = column, y = row]`` (pixel ``(r, c)``
+the affine ``transform`` in the scene ``crs``; for ``gcps`` that form a geolocation grid the
+inverse of its bilinear interpolation (:func:`sarship.pipeline.georef.pixel_of`, Newton's method),
+so a land polygon lands where the detections are placed; for scattered ``gcps`` a least-squares
+polynomial fitted from lon/lat to pixels, affine under 6 points and quadratic from 6, as GDAL's
+GCP transformer does, which also starts the grid's inversion); or scene pixel coordinates ``[x = column, y = row]`` (pixel ``(r, c)``
 covers ``[c, c+1) x [r, r+1)``) when the top-level member ``"pixel_coordinates": true`` is
 set. A pixel is land where its centre ``(c + 1/2, r + 1/2)`` is inside a polygon (even-odd
 rule over the polygon's rings, so holes are sea); polygons are united.
@@ -217,6 +219,11 @@ def lonlat_to_pixel(lon: np.ndarray, lat: np.ndarray, attrs: dict) -> tuple[np.n
 
     coef, *_ = np.linalg.lstsq(design(gx, gy), rc, rcond=None)
     out = design(x, y) @ coef
+    from sarship.pipeline.georef import GridGeoreference, from_gcps, pixel_of
+
+    geo = from_gcps(gcps, geographic=str(crs).upper() in ("EPSG:4326", "OGC:CRS84", "WGS84", "CRS84"))
+    if isinstance(geo, GridGeoreference):  # the inverse of the grid the detections are placed with
+        return pixel_of(geo, x, y, out[..., 0], out[..., 1])
     return out[..., 0], out[..., 1]
 
 

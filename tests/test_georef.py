@@ -324,3 +324,38 @@ def test_real_annotation_grid_at_sea_level(which, group):
         assert e["grid"]["median_m"] < raw["median_m"] / 5, (scheme, e, raw)
         if scheme != "row":
             assert e["grid"]["median_m"] < e["polynomial"]["median_m"], (scheme, e)
+
+
+def test_pixel_of_inverts_the_grid_and_land_files_use_it():
+    """lon/lat -> pixel by Newton on the bilinear grid: round trip within 1e-3 px on a curved,
+    unevenly spaced grid where the quadratic polynomial's inverse is off by pixels; the vector
+    land-mask files (pipeline/landmask_files.lonlat_to_pixel) place lon/lat with it."""
+    from sarship.pipeline.georef import GridGeoreference, from_gcps, pixel_of
+    from sarship.pipeline.landmask_files import lonlat_to_pixel
+
+    rows = np.array([0.0, 700.0, 1500.0, 2600.0, 3999.0])
+    cols = np.linspace(0.0, 5999.0, 7)
+    R, C = np.meshgrid(rows, cols, indexing="ij")
+    lon = 10.0 + 1e-4 * C + 2e-5 * R + 3e-9 * C**2 + 0.004 * np.sin(R / 900.0)
+    lat = 59.0 - 9e-5 * R + 1e-5 * C + 2e-9 * R * C
+    gcps = [{"row": float(r), "col": float(c), "x": float(x), "y": float(y), "z": 0.0}
+            for r, c, x, y in zip(R.ravel(), C.ravel(), lon.ravel(), lat.ravel())]
+    geo = from_gcps(gcps)
+    assert isinstance(geo, GridGeoreference)
+    rng = np.random.default_rng(5)
+    rr, cc = rng.uniform(0, 3999, 300), rng.uniform(0, 5999, 300)
+    x, y = geo.lonlat(rr, cc)
+    r0 = np.full_like(rr, 2000.0)
+    c0 = np.full_like(cc, 3000.0)
+    r1, c1 = pixel_of(geo, x, y, r0, c0)
+    assert np.max(np.abs(r1 - rr)) < 1e-3 and np.max(np.abs(c1 - cc)) < 1e-3
+    r2, c2 = lonlat_to_pixel(x, y, {"gcps": gcps})
+    assert np.max(np.abs(r2 - rr)) < 1e-3 and np.max(np.abs(c2 - cc)) < 1e-3
+    # what the land files did before: a quadratic fitted from lon/lat to pixels on the grid
+    # points, pixels off by more than a pixel on this grid
+    def design(a, b):
+        return np.stack([np.ones_like(a), a, b, a * a, a * b, b * b], -1)
+
+    coef, *_ = np.linalg.lstsq(design(lon.ravel(), lat.ravel()), np.stack([R.ravel(), C.ravel()], -1), rcond=None)
+    old = design(x, y) @ coef
+    assert np.max(np.hypot(old[:, 0] - rr, old[:, 1] - cc)) > 1.0
