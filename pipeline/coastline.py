@@ -287,6 +287,18 @@ def lattice_step(lonlat, shape: tuple[int, int], spacing: tuple[float, float], c
     return max(1, min(MAX_STEP_PX, s))
 
 
+NOT_GEOREFERENCED = ("parameter 'land_mask': coastline needs a georeferenced scene (crs + transform, or gcps); "
+                     "this scene has no georeference")
+
+
+def check_scene(attrs: dict | None) -> None:
+    """The cheap checks of :func:`open_coastline` (the package is installed; with ``attrs``, the
+    scene is georeferenced), for a service to refuse a job at once."""
+    require()
+    if attrs is not None and geo_model(attrs) is None:
+        raise InputError(NOT_GEOREFERENCED)
+
+
 def open_coastline(attrs: dict, shape: tuple[int, int], buffer_m: float = DEFAULT_BUFFER_M,
                    load: bool = True) -> Coastline:
     """Check that the coastline mask can be made for a scene (the package is installed, the scene
@@ -296,8 +308,7 @@ def open_coastline(attrs: dict, shape: tuple[int, int], buffer_m: float = DEFAUL
     require()
     lonlat = geo_model(attrs)
     if lonlat is None:
-        raise InputError("parameter 'land_mask': coastline needs a georeferenced scene (crs + transform, or gcps); "
-                         "this scene has no georeference")
+        raise InputError(NOT_GEOREFERENCED)
     b = float(buffer_m)
     if not (math.isfinite(b) and 0.0 <= b <= MAX_BUFFER_M):
         raise InputError(f"parameter 'land_buffer_m': must be in [0, {MAX_BUFFER_M:g}] metres, got {buffer_m!r}")

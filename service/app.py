@@ -33,7 +33,7 @@ from sarship.service.openapi import (EXECUTE_BODY, JOB_STATUSES, PREFER_DOC, Con
                              ProcessDescription, ProcessList, Results, StatusInfo, problems)
 from sarship.service.openapi import install as install_openapi
 from sarship.service.openapi import media
-from sarship.service.runner import Runner, land_file_path, scene_path
+from sarship.service.runner import Runner, check_coastline, land_file_path, scene_path
 from sarship.service.settings import Settings
 from sarship.service.store import FINAL, JobStore
 from sarship.workers.request import DEVICES, JobRequest
@@ -109,6 +109,7 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
                 scene_path(settings, request.scene)  # raises again, unless an ingest finished meanwhile
         if path is not None and request.spec.input == "slc":
             check_complex_scene(path, request.channel)  # csk: an amplitude-only scene is a 400, not a failed job
+        check_coastline(request, path)  # land_mask=coastline: its package, a georeferenced scene
     except InputError as exc:
         title = "missing input" if "is required" in str(exc) else "invalid input"
         detail = str(exc)

@@ -99,6 +99,20 @@ def land_file_path(settings: Settings, request) -> Optional[Path]:
     return real
 
 
+def check_coastline(request, path: Optional[Path]) -> None:
+    """``land_mask=coastline`` needs its package and a georeferenced scene: an InputError (a 400)
+    when the job is posted rather than a failed job (``path``: the scene, None while it is still
+    being ingested: then only the package is checked)."""
+    from sarship.pipeline.detectors.base import land_mask_parts
+
+    if "coastline" not in land_mask_parts(request.detector_params().land_mask)[0]:
+        return
+    from sarship.pipeline.coastline import check_scene
+    from sarship.pipeline.scene import open_scene
+
+    check_scene(open_scene(path).attrs if path is not None else None)
+
+
 def transient_reason(exc: BaseException, client=None) -> Optional[str]:
     """Why ``exc`` is a fault of the service rather than of the job's input, or None: a write
     that failed for want of space (``ENOSPC``, ``EDQUOT``, ``EFBIG``, also behind an
