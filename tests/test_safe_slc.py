@@ -216,7 +216,8 @@ def _bil(L, P, V, r, c):
     j = int(np.clip(np.searchsorted(P, c, side="right") - 1, 0, len(P) - 2))
     t = min(max((r - L[i]) / (L[i + 1] - L[i]), 0.0), 1.0)
     u = min(max((c - P[j]) / (P[j + 1] - P[j]), 0.0), 1.0)
-    return ((1 - t) * (1 - u) * V[i, j] + (1 - t) * u * V[i, j + 1] + t * (1 - u) * V[i + 1, j] + t * u * V[i + 1, j + 1])
+    return ((1 - t) * (1 - u) * V[i, j] + (1 - t) * u * V[i, j + 1]
+            + t * (1 - u) * V[i + 1, j] + t * u * V[i + 1, j + 1])
 
 
 def _expected(a: dict, dn: complex, row: int, col: int) -> complex:
@@ -313,7 +314,8 @@ class TestIW1:
         f0, _ = _valid_lines(a["bursts"][0][1])
         first = a["bursts"][0][0] + np.timedelta64(int(round(f0 * a["dt"] * 1e9)), "ns")
         assert abs(_sec(np.datetime64(at["swath_first_line_time"], "ns"), first)) < 1e-6
-        last = np.datetime64(at["swath_first_line_time"], "ns") + np.timedelta64(int(round((sc.shape[0] - 1) * a["dt"] * 1e9)), "ns")
+        span = np.timedelta64(int(round((sc.shape[0] - 1) * a["dt"] * 1e9)), "ns")
+        last = np.datetime64(at["swath_first_line_time"], "ns") + span
         assert abs(_sec(np.datetime64(at["swath_last_line_time"], "ns"), last)) < 1e-6
         assert at["calibration"].startswith("sigma0") and "deramped" in at["slc_phase"]
         assert at["product"] == SLC.name and at["sensor"] == "SENTINEL-1B"
@@ -341,11 +343,12 @@ class TestIW1:
         a = _annotation(SLC, "iw1", "vv")
         t_first = np.datetime64(sc.attrs["swath_first_line_time"], "ns")
         pts = [(_t(p.findtext("azimuthTime")), int(p.findtext("line")), int(p.findtext("pixel")),
-                float(p.findtext("latitude")), float(p.findtext("longitude"))) for p in a["root"].iter("geolocationGridPoint")]
+                float(p.findtext("latitude")), float(p.findtext("longitude")), float(p.findtext("incidenceAngle")))
+               for p in a["root"].iter("geolocationGridPoint")]
         gcps = sc.attrs["gcps"]
         assert len(gcps) == len(pts) == 210
         lpb, bs = a["lpb"], a["bursts"]
-        for g, (t, line, pix, lat, lon) in zip(gcps, pts):
+        for g, (t, line, pix, lat, lon, inc) in zip(gcps, pts):
             # the row at the azimuth time of the point's measurement line (burst start + line
             # interval), so each grid line stays one row; the point's own azimuth time agrees
             # to a fraction of a line (it varies by up to 0.25 ms along range)
@@ -354,6 +357,7 @@ class TestIW1:
             assert g["row"] == pytest.approx(line_time / a["dt"], abs=1e-3)  # (times kept to 1 us)
             assert g["row"] == pytest.approx(_sec(t, t_first) / a["dt"], abs=0.2)
             assert g["col"] == pix and (g["y"], g["x"]) == pytest.approx((lat, lon), abs=1e-9)
+            assert g["incidence"] == pytest.approx(inc, abs=1e-9)
 
     def test_samples_are_dn_over_a_deramped(self, iw1):
         """Each sample = DN / A exp(-j phi): A bilinear from the calibration XML at the

@@ -4,7 +4,8 @@ What is read (see ``docs/sentinel1.md``): the polarisations that have a measurem
 become channels (``vv``, ``vh``, ...); the annotation gives the acquisition mode, product
 type, start/stop times, pixel spacing (``imageInformation/azimuthPixelSpacing`` and
 ``rangePixelSpacing``) and the geolocation grid, kept as the scene's ``gcps`` attribute
-(``{row, col, x: longitude, y: latitude, z: height}``, the form the GeoTIFF reader gives, so
+(``{row, col, x: longitude, y: latitude, z: height, incidence}``, the form the GeoTIFF reader
+gives plus the incidence angle in degrees for :func:`sarship.pipeline.georef.sea_level`, so
 :mod:`sarship.pipeline.ship_features` and :mod:`sarship.pipeline.landmask_files` use it as
 they are). The annotation is parsed by ``xarray-sentinel`` (its XML schemas), never by hand;
 pixels are read with ``rasterio`` windowed reads (``/vsizip/`` inside a zip), one tile at a
@@ -305,9 +306,10 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swa
             if gcps is None:
                 g = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/gcp")
                 gl, gp = g["line"].values, g["pixel"].values
-                lat, lon, h = (g[v].values for v in ("latitude", "longitude", "height"))
+                lat, lon, h, inc = (g[v].values for v in ("latitude", "longitude", "height", "incidenceAngle"))
                 gcps = [{"row": float(gl[i]), "col": float(gp[j]), "x": float(lon[i, j]), "y": float(lat[i, j]),
-                         "z": float(h[i, j])} for i in range(len(gl)) for j in range(len(gp))]
+                         "z": float(h[i, j]), "incidence": float(inc[i, j])}
+                        for i in range(len(gl)) for j in range(len(gp))]
             lut: dict[str, Any] = {}
             if f"annotation/calibration/calibration-{base}.xml" in prod.members:
                 c = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/calibration")

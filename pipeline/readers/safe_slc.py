@@ -232,11 +232,12 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
             if gcps is None:
                 g = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/gcp")
                 gl, gp = g["line"].values, g["pixel"].values
-                lat, lon, h = (g[v].values for v in ("latitude", "longitude", "height"))
+                lat, lon, h, inc = (g[v].values for v in ("latitude", "longitude", "height", "incidenceAngle"))
                 # measurement line -> debursted row, by the line's azimuth time
                 rows = [_row_of_line(int(L), btimes, lpb, dt, t_first) for L in gl]
                 gcps = [{"row": float(rows[i]), "col": float(gp[j]), "x": float(lon[i, j]), "y": float(lat[i, j]),
-                         "z": float(h[i, j])} for i in range(len(gl)) for j in range(len(gp))]
+                         "z": float(h[i, j]), "incidence": float(inc[i, j])}
+                        for i in range(len(gl)) for j in range(len(gp))]
             if f"annotation/calibration/calibration-{base}.xml" in prod.members:
                 c = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/calibration")
                 luts[pol] = (c["line"].values, c["pixel"].values, c["sigmaNought"].values)
