@@ -107,6 +107,18 @@ class Scene:
             return None
         return (float(v[0]), float(v[1]))
 
+    @property
+    def ground_spacing_m(self) -> tuple[float, float] | None:
+        """[azimuth, range] metres a pixel on the ground: ``pixel_spacing_m`` with its range
+        replaced by ``ground_range_spacing_m`` where the scene states one (a slant-range SLC,
+        pipeline/readers/safe_slc.py: slant / sin(incidence) at mid swath), so ship lengths and
+        the metre size rules are ground metres."""
+        sp = self.pixel_spacing_m
+        g = self.attrs.get("ground_range_spacing_m")
+        if sp is None or g is None:
+            return sp
+        return (sp[0], float(g))
+
     def array(self, name: str):
         """The zarr array ``name`` (opened read-only)."""
         import zarr

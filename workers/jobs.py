@@ -222,7 +222,7 @@ def run_request(
     params, looks_source = resolve_looks(spec, params, scene, var, transform)
     prep = spec.prepare(params)
     warnings: list[str] = []
-    spacing = scene.pixel_spacing_m
+    spacing = scene.ground_spacing_m  # ground metres (an SLC's slant range converted: pipeline/scene.py)
     # the size rule: metres when the spacing is known, pixels otherwise; given values win
     params, size_rule = resolve_size(params, spacing)
     if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
@@ -334,7 +334,8 @@ def run_request(
                 "kind": scene.kind,
                 "tile": scene.tile,
                 "looks": scene.looks,
-                "pixel_spacing_m": list(spacing) if spacing else None,
+                "pixel_spacing_m": list(scene.pixel_spacing_m) if scene.pixel_spacing_m else None,
+                "ground_spacing_m": list(spacing) if spacing else None,
                 "attrs": {k: v for k, v in scene.attrs.items() if k not in ("simulation",)},
             },
             "tiles": {
