@@ -262,7 +262,7 @@ def test_calibration_and_noise_wired_from_the_annotation(tmp_path, with_noise):
     from sarship.pipeline.readers.entry import _open_source
 
     prod = tmp_path / GRD.name
-    shutil.copytree(GRD, prod)
+    shutil.copytree(GRD, prod, copy_function=shutil.copyfile)  # writable copies of read-only samples
     base = next((prod / "annotation").glob("s1?-iw-grd-vv-*.xml")).stem
     (prod / "annotation" / "calibration").mkdir()
     cal = next((SLC / "annotation" / "calibration").glob("calibration-s1b-iw1-slc-vv-*.xml"))
@@ -311,7 +311,7 @@ def test_dual_pol_channels_and_band(tmp_path):
     from sarship.pipeline.readers.plan import _plan
 
     prod = tmp_path / GRD.name
-    shutil.copytree(GRD, prod)
+    shutil.copytree(GRD, prod, copy_function=shutil.copyfile)  # writable copies of read-only samples
     vv = next((prod / "measurement").glob("*-vv-*.tiff"))
     vh_ann = next((prod / "annotation").glob("*-vh-*.xml"))
     shutil.copy(vv, prod / "measurement" / (vh_ann.stem + ".tiff"))
