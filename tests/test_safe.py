@@ -126,7 +126,9 @@ class TestGRD:
         for g in gcps:
             lat, lon = want[(int(g["row"]), int(g["col"]))]
             assert (g["y"], g["x"]) == pytest.approx((lat, lon), abs=1e-9)
-        corner = next(g for g in gcps if g["row"] == H - 1 and g["col"] == W - 1)
+        # the annotation indexes pixels; the gcps give their centres (pixel-is-area: + 1/2)
+        assert all(g["row"] % 1 == 0.5 and g["col"] % 1 == 0.5 for g in gcps)
+        corner = next(g for g in gcps if g["row"] == H - 0.5 and g["col"] == W - 0.5)
         assert (corner["y"], corner["x"]) == pytest.approx(want[(H - 1, W - 1)], abs=1e-9)
 
     def test_constant_dn_comes_through_squared(self, grd_store):

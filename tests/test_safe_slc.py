@@ -354,9 +354,10 @@ class TestIW1:
             # to a fraction of a line (it varies by up to 0.25 ms along range)
             b = min(line // lpb, len(bs) - 1)
             line_time = _sec(bs[b][0], t_first) + (line - b * lpb) * a["dt"]
-            assert g["row"] == pytest.approx(line_time / a["dt"], abs=1e-3)  # (times kept to 1 us)
-            assert g["row"] == pytest.approx(_sec(t, t_first) / a["dt"], abs=0.2)
-            assert g["col"] == pix and (g["y"], g["x"]) == pytest.approx((lat, lon), abs=1e-9)
+            # (+ 1/2: the centre of the indexed pixel, pixel-is-area coordinates)
+            assert g["row"] == pytest.approx(line_time / a["dt"] + 0.5, abs=1e-3)  # (times kept to 1 us)
+            assert g["row"] == pytest.approx(_sec(t, t_first) / a["dt"] + 0.5, abs=0.2)
+            assert g["col"] == pix + 0.5 and (g["y"], g["x"]) == pytest.approx((lat, lon), abs=1e-9)
             assert g["incidence"] == pytest.approx(inc, abs=1e-9)
 
     def test_samples_are_dn_over_a_deramped(self, iw1):

@@ -307,7 +307,9 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swa
                 g = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/gcp")
                 gl, gp = g["line"].values, g["pixel"].values
                 lat, lon, h, inc = (g[v].values for v in ("latitude", "longitude", "height", "incidenceAngle"))
-                gcps = [{"row": float(gl[i]), "col": float(gp[j]), "x": float(lon[i, j]), "y": float(lat[i, j]),
+                # annotation line/pixel index a pixel, whose centre is (line + 1/2, pixel + 1/2) in the
+                # scene's pixel-is-area coordinates (as GDAL's SAFE GCPs and SNAP's tie-point grids)
+                gcps = [{"row": float(gl[i]) + 0.5, "col": float(gp[j]) + 0.5, "x": float(lon[i, j]), "y": float(lat[i, j]),
                          "z": float(h[i, j]), "incidence": float(inc[i, j])}
                         for i in range(len(gl)) for j in range(len(gp))]
             lut: dict[str, Any] = {}

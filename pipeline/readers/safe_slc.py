@@ -235,7 +235,9 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
                 lat, lon, h, inc = (g[v].values for v in ("latitude", "longitude", "height", "incidenceAngle"))
                 # measurement line -> debursted row, by the line's azimuth time
                 rows = [_row_of_line(int(L), btimes, lpb, dt, t_first) for L in gl]
-                gcps = [{"row": float(rows[i]), "col": float(gp[j]), "x": float(lon[i, j]), "y": float(lat[i, j]),
+                # + 1/2: the centre of the indexed pixel in pixel-is-area coordinates (safe.py)
+                gcps = [{"row": float(rows[i]) + 0.5, "col": float(gp[j]) + 0.5, "x": float(lon[i, j]),
+                         "y": float(lat[i, j]),
                          "z": float(h[i, j]), "incidence": float(inc[i, j])}
                         for i in range(len(gl)) for j in range(len(gp))]
             if f"annotation/calibration/calibration-{base}.xml" in prod.members:
