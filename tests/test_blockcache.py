@@ -60,3 +60,30 @@ def test_detection_reuses_land_pass_reads(tmp_path, monkeypatch, land):
     np.testing.assert_array_equal(l_on, l_off)
     assert f_on == f_off and len(f_on) >= 3
     assert bool(l_on.any()) is land
+
+
+def test_worker_processes_keep_and_drop_blocks(tmp_path, monkeypatch):
+    """On a cluster of worker processes each tile's detection is sent to the worker that kept its
+    block; the outputs equal the cache-off run's and no worker holds a block after the job."""
+    from distributed import Client, LocalCluster
+
+    cfg = SimConfig(shape=(384, 384), ships=5, seed=12, looks=4.0, clutter="k", land=True, scr_db=20.0)
+    simulate(tmp_path / "s.zarr", cfg, tile=128)
+    settings = {"land_mask": "texture", "pfa": 1e-5, "guard": 15, "background": 31}
+    monkeypatch.delenv("SARSHIP_BLOCK_CACHE_MB", raising=False)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
+            Client(cl) as client:
+        on = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "on", client=client,
+                           progress=False)
+        kept = [t["block_from"] for t in on["tiles"]["per_tile"]]
+        assert kept.count("land pass") >= on["tiles"]["count"] // 2, kept
+        assert set(client.run(blockcache.held_bytes).values()) == {0}
+        client.run(lambda: __import__("os").environ.__setitem__("SARSHIP_BLOCK_CACHE_MB", "0"))
+        off = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "off", client=client,
+                            progress=False)
+        assert {t["block_from"] for t in off["tiles"]["per_tile"]} == {"scene"}
+    m_on, l_on, f_on = _outputs(tmp_path / "on")
+    m_off, l_off, f_off = _outputs(tmp_path / "off")
+    np.testing.assert_array_equal(m_on, m_off)
+    np.testing.assert_array_equal(l_on, l_off)
+    assert f_on == f_off and len(f_on) >= 3

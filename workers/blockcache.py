@@ -2,17 +2,20 @@
 process that read them (issue 17: the texture land pass read every tile, then the detection
 pass decoded the same Zarr chunks again).
 
-Used only where both passes of a tile certainly run in one process: ``sarship detect``'s
-in-process threaded worker (workers/cluster.py, scenes of at most ``SARSHIP_THREADS_MAX_PX``).
 The land pass reads each tile once with the detection's context (tile + merge margin + the
 detector's halo + the land mask's halo), takes its texture sample from that block and leaves
-it here under ``(job token, tile index)``; the detection pass takes it back (and removes it),
-trimming the land halo when the scene has no land. A block that does not fit under the byte
-limit is not kept (the detection pass reads it as before), so memory stays bounded; the job
-drops whatever is left under its token when it ends, failed or not.
+it here, in the worker process that read it, under ``(job token, tile index)``, returning that
+worker's address; the tile's detection is submitted to that worker first (Dask's ``workers=``
+with ``allow_other_workers``: when another worker takes it, that one reads the scene) and takes
+the block back (removing it), trimming the land halo when the scene has no land. On
+``sarship detect``'s in-process threaded worker both passes always meet. A block that does not
+fit under the byte limit is not kept (the detection reads it as before), so memory stays
+bounded; the job drops whatever is left under its token on every worker when it ends, failed
+or not.
 
-Limit: ``SARSHIP_BLOCK_CACHE_MB`` (0 turns the cache off), default an eighth of the machine's
-memory, at most 2048 MiB.
+Limit per process: ``SARSHIP_BLOCK_CACHE_MB`` (0 turns the cache off), default the machine's
+memory / (4 x cores), at most 2048 MiB (so one worker process per core keeps at most a quarter
+of the memory).
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ _bytes = 0
 
 
 def limit_bytes() -> int:
-    """The byte limit: ``SARSHIP_BLOCK_CACHE_MB``, else min(memory / 8, 2 GiB)."""
+    """The byte limit: ``SARSHIP_BLOCK_CACHE_MB``, else min(memory / (4 x cores), 2 GiB)."""
     raw = os.environ.get("SARSHIP_BLOCK_CACHE_MB", "").strip()
     if raw:
         try:
@@ -40,7 +43,7 @@ def limit_bytes() -> int:
         total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         total = 8 * 2**30
-    return int(min(total // 8, 2 * 2**30))
+    return int(min(total // (4 * (os.cpu_count() or 1)), 2 * 2**30))
 
 
 def put(token: str, key: Any, block: np.ndarray) -> bool:

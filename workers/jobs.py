@@ -258,12 +258,18 @@ def run_request(
                 cluster_start = time.perf_counter() - t_cluster
             placement = plan(device, detector, has_gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
-            if threads and placement.device == "cpu":  # the in-process threaded worker started here:
-                from sarship.workers import blockcache  # the land pass's reads serve the detection
+            # the land pass's reads serve the detection (workers/blockcache.py): in this process
+            # (the threaded worker started here), or on each worker that kept a tile's block, which
+            # the tile's detection then asks for (a placement confined to a worker list excepted)
+            if "workers" not in placement.submit:
+                from sarship.workers import blockcache
 
                 token = uuid.uuid4().hex
                 jobs = [dataclasses.replace(j, cache_token=token) for j in jobs]
-                stack.callback(blockcache.drop, token)
+                if threads and placement.device == "cpu":
+                    stack.callback(blockcache.drop, token)
+                else:
+                    stack.callback(_drop_blocks, client, token)
             jobs, land_record = prepare_land(
                 params, scene, land_file, jobs, tmp, tile,
                 lambda fn, js, stage: _execute(client, js, detector, progress, None, fn, stage, placement.submit),
@@ -394,15 +400,29 @@ def run_request(
         raise
 
 
+def _drop_blocks(client, token: str) -> None:
+    """Remove the job's kept blocks from every worker (those no detection took back)."""
+    from sarship.workers import blockcache
+
+    with contextlib.suppress(Exception):
+        client.run(blockcache.drop, token)
+
+
 def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile, fn=run_tile,
              stage: str = "detect", submit: dict | None = None) -> list[dict]:
-    """One future per tile, each carrying the placement's restriction (``submit``)."""
+    """One future per tile, each carrying the placement's restriction (``submit``); a detection
+    whose block a worker kept (``prefer_worker``) asks for that worker first."""
     from distributed import as_completed
 
     tag = "stats" if fn is run_tile_stats else "tile"
-    futures = client.map(fn, jobs, pure=False, key=[
-        f"sarship-{detector}-{tag}-{j.index[0]}-{j.index[1]}-{uuid.uuid4().hex[:6]}" for j in jobs],
-        **(submit or {}))
+    keys = [f"sarship-{detector}-{tag}-{j.index[0]}-{j.index[1]}-{uuid.uuid4().hex[:6]}" for j in jobs]
+    if fn is run_tile and any(j.prefer_worker for j in jobs):
+        futures = [client.submit(fn, j, pure=False, key=k, **(submit or {}),
+                                 **({"workers": [j.prefer_worker], "allow_other_workers": True}
+                                    if j.prefer_worker else {}))
+                   for j, k in zip(jobs, keys)]
+    else:
+        futures = client.map(fn, jobs, pure=False, key=keys, **(submit or {}))
     prog = Progress(len(jobs), f"{stage} {detector}", progress)
     results = []
     try:

@@ -52,6 +52,9 @@ class TileJob:
     #: land pass keeps each tile's block in :mod:`sarship.workers.blockcache` under this token and
     #: the detection pass takes it back instead of decoding the scene again
     cache_token: str | None = None
+    #: the address of the worker whose land pass kept this tile's block: the detection asks for
+    #: it first (``allow_other_workers``: another worker reads the scene instead)
+    prefer_worker: str | None = None
 
 
 def _worker_name() -> str:
@@ -62,6 +65,15 @@ def _worker_name() -> str:
         return str(w.name)
     except Exception:
         return "local"
+
+
+def _worker_address() -> str | None:
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except Exception:
+        return None
 
 
 def _read(job: TileJob, r0: int, r1: int, c0: int, c1: int, timing: dict | None = None):
@@ -190,6 +202,7 @@ def run_tile_land_stats(job: TileJob) -> dict[str, Any]:
     cfg = landmask.TextureConfig(**job.land["config"])
     r = cfg.window // 2
     read = make_reader(job.scene_path, job.var, job.transform)
+    kept_by = None
     if job.cache_token is not None:
         from sarship.workers import blockcache
 
@@ -198,12 +211,13 @@ def run_tile_land_stats(job: TileJob) -> dict[str, Any]:
         full = padded_block(read, job.scene_shape, er0, er1, ec0, ec1, big)
         a, b = (r0 - r) - (er0 - big), (c0 - r) - (ec0 - big)
         block = full[a: a + (r1 - r0) + 2 * r, b: b + (c1 - c0) + 2 * r]
-        blockcache.put(job.cache_token, job.index, full)
+        if blockcache.put(job.cache_token, job.index, full):
+            kept_by = _worker_address()
     else:
         block = padded_block(read, job.scene_shape, r0, r1, c0, c1, r)
     sample = landmask.texture_sample(block, r, (r0 - r, c0 - r), cfg, int(job.land["stride"]))
     return {"index": job.index, "stats": sample, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
-            "device": "cpu", "seconds": time.perf_counter() - t0}
+            "device": "cpu", "seconds": time.perf_counter() - t0, "kept_by": kept_by}
 
 
 def run_tile(job: TileJob) -> dict[str, Any]:
