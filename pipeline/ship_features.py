@@ -37,8 +37,29 @@ def lengths_m(records: np.ndarray, spacing: tuple[float, float]) -> np.ndarray:
     return np.sqrt(12.0 * (tr / 2.0 + disc))
 
 
+def elongations(records: np.ndarray, spacing: tuple[float, float] | None) -> np.ndarray:
+    """Moment length over moment width of every record, ``sqrt(l1 / l2)`` of the (spacing-scaled,
+    when known) position covariance with the pixel's own 1/12 variance added, as
+    :func:`sarship.pipeline.components.shape_from_moments` measures length and width: 1 for a
+    single pixel, n for a 1 x n line."""
+    n = records["n"].astype(np.float64)
+    mr = records["sr"] / n
+    mc = records["sc"] / n
+    vrr = np.maximum(records["srr"] / n - mr * mr, 0.0) + 1.0 / 12.0
+    vcc = np.maximum(records["scc"] / n - mc * mc, 0.0) + 1.0 / 12.0
+    vrc = records["src"] / n - mr * mc
+    az, rg = (float(spacing[0]), float(spacing[1])) if spacing is not None else (1.0, 1.0)
+    a, b, c = vrr * az * az, vrc * az * rg, vcc * rg * rg
+    tr, det = a + c, a * c - b * b
+    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
+    l1, l2 = tr / 2.0 + disc, np.maximum(tr / 2.0 - disc, 1e-300)
+    return np.sqrt(l1 / l2)
+
+
 def keep_mask(records: np.ndarray, params: Any, spacing: tuple[float, float] | None) -> np.ndarray:
-    """Which components pass the size filters of ``params`` (unset sizes: the detector's size rule)."""
+    """Which components pass the size filters of ``params`` (unset sizes: the detector's size
+    rule) and its shape filter ``max_elongation`` (length / width, in metres when the spacing is
+    known)."""
     if getattr(params, "min_area_px", 1) is None:
         from sarship.pipeline.detectors.base import resolve_size
 
@@ -46,6 +67,9 @@ def keep_mask(records: np.ndarray, params: Any, spacing: tuple[float, float] | N
     keep = records["n"] >= params.min_area_px
     if params.max_area_px is not None:
         keep &= records["n"] <= params.max_area_px
+    max_el = getattr(params, "max_elongation", None)
+    if max_el is not None and len(records):
+        keep &= elongations(records, spacing) <= max_el
     if spacing is not None and (params.min_length_m is not None or params.max_length_m is not None):
         lengths = lengths_m(records, spacing) if len(records) else np.zeros(0)
         if params.min_length_m is not None:

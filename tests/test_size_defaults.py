@@ -99,12 +99,26 @@ def test_keep_mask_metres_and_pixels():
     for spacing in ((10.0, 10.0), (2.3, 13.9)):
         ref = np.array([shape_from_moments(r, spacing)["length_m"] for r in recs])
         assert np.array_equal(lengths_m(recs, spacing), ref)
+    from sarship.pipeline.ship_features import elongations
+
+    def el(spacing):  # length / width as shape_from_moments measures them
+        out = []
+        for r in recs:
+            f = shape_from_moments(r, spacing)
+            out.append(f["length_m"] / f["width_m"] if spacing else f["length_px"] / f["width_px"])
+        return np.array(out)
+
+    for spacing in ((10.0, 10.0), (2.3, 13.9), None):
+        np.testing.assert_allclose(elongations(recs, spacing), el(spacing), rtol=1e-9)
+    slim = el((10.0, 10.0)) <= 15.0
+    assert 0 < slim.sum() < len(recs)  # the random sets hold both kinds
     p = CAParams()
     with_spacing = keep_mask(recs, p, (10.0, 10.0))
     ref = np.array([shape_from_moments(r, (10.0, 10.0))["length_m"] for r in recs]) >= CAParams.auto_min_length_m
-    assert np.array_equal(with_spacing, ref & (recs["n"] >= area_px(CAParams.auto_min_area_m2, (10.0, 10.0))))
-    assert np.array_equal(keep_mask(recs, p, None), recs["n"] >= CAParams.auto_min_area_px)
-    assert np.array_equal(keep_mask(recs, CAParams(min_area_px=7), (10.0, 10.0)), recs["n"] >= 7)
+    assert np.array_equal(with_spacing, ref & slim & (recs["n"] >= area_px(CAParams.auto_min_area_m2, (10.0, 10.0))))
+    assert np.array_equal(keep_mask(recs, p, None), (recs["n"] >= CAParams.auto_min_area_px) & (el(None) <= 15.0))
+    assert np.array_equal(keep_mask(recs, CAParams(min_area_px=7), (10.0, 10.0)), (recs["n"] >= 7) & slim)
+    assert np.array_equal(keep_mask(recs, CAParams(min_area_px=7, max_elongation=None), (10.0, 10.0)), recs["n"] >= 7)
 
 
 def test_detectors_json_states_the_rule():

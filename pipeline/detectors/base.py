@@ -74,6 +74,10 @@ class DetectorParams(BaseModel):
     max_area_px: Optional[int] = Field(None, ge=1, description="largest detection kept, in pixels")
     min_length_m: Optional[float] = Field(None, ge=0.0, description=LENGTH_HELP)
     max_length_m: Optional[float] = Field(None, gt=0.0, description="longest ship kept (needs pixel spacing)")
+    max_elongation: Optional[float] = Field(
+        15.0, ge=1.0, description="longest length / width kept (moment length and width, in metres when the pixel "
+                                  "spacing is known): ships are at most ~11 times as long as wide, so a thinner "
+                                  "detection is a wake, a line or a structure; None keeps every shape")
     merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
     sidelobes: bool = Field(True, description="cross-sidelobe suppression: length, width and heading measured on the "
                                               "ship core where a sidelobe cross is found (docs/algorithms/sidelobes.md)")
