@@ -190,3 +190,35 @@ def test_length_without_spacing_warns(client, tmp_path):
     assert _hits_centre(dets)  # the length bound cannot apply; the pixel default keeps 10 px
     assert any("min_length_m" in w for w in run["warnings"])
     assert "ignored" in run["size_rule"]
+
+
+def test_max_elongation_needs_square_pixels_or_spacing(tmp_path):
+    """A ship that is long in pixels only because the pixels are not square (an SLC's azimuth x
+    slant range): the default shape filter is off on a complex scene; asked for, it needs the
+    spacing (else a run.json warning) and measures metres; on an intensity scene it applies."""
+    from sarship.pipeline.readers import ingest
+    from sarship.workers.jobs import run_detection
+
+    rng = np.random.default_rng(2)
+    z = ((rng.standard_normal((160, 160)) + 1j * rng.standard_normal((160, 160))) / np.sqrt(2)).astype(np.complex64)
+    z[80:82, 40:100] = 40.0  # 2 x 60 px: 30 in pixels; 28 m x 138 m at 14 m x 2.3 m
+    np.save(tmp_path / "slc.npy", z)
+    np.save(tmp_path / "int.npy", (np.abs(z) ** 2).astype(np.float32))
+    settings = {"pfa": 1e-6, "land_mask": None, "guard": 9, "background": 21, "min_area_px": 20}
+
+    def run(src, name, **kw):
+        sc = ingest([tmp_path / src], tmp_path / f"{name}.zarr", tile=160, **kw)
+        r = run_detection(sc.path, "ca_cfar", settings, out_dir=tmp_path / name, progress=False)
+        return r, json.loads((tmp_path / name / "detections.geojson").read_text())["features"]
+
+    r, f = run("slc.npy", "slc")  # the default: off on a complex scene
+    assert len(f) == 1 and r["parameters"]["max_elongation"] is None and not r["warnings"]
+    settings["max_elongation"] = 15
+    r, f = run("slc.npy", "slc_set")  # asked for, but no spacing: not applied, said
+    assert len(f) == 1 and any("max_elongation not applied" in w for w in r["warnings"])
+    r, f = run("slc.npy", "slc_sp", spacing=(14.0, 2.3))  # asked for, with spacing: metres
+    assert len(f) == 1 and r["parameters"]["max_elongation"] == 15 and not r["warnings"]
+    assert f[0]["properties"]["length_m"] / f[0]["properties"]["width_m"] < 15
+    del settings["max_elongation"]
+    r, f = run("int.npy", "int")  # detected product, the default: 30 x 2 px is a line, dropped
+    assert f == [] and r["parameters"]["max_elongation"] == 15

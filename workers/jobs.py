@@ -225,6 +225,16 @@ def run_request(
     spacing = scene.ground_spacing_m  # ground metres (an SLC's slant range converted: pipeline/scene.py)
     # the size rule: metres when the spacing is known, pixels otherwise; given values win
     params, size_rule = resolve_size(params, spacing)
+    if params.max_elongation is not None and scene.kind != "intensity":
+        # the default shape filter is for detected (intensity) products, where it was measured; on a
+        # complex scene only when asked for, and then in metres: complex pixels are not square (an
+        # IW SLC's are ~14 m x 2.3 m slant range), so a length / width in pixels is not the ship's
+        if "max_elongation" not in params.model_fields_set:
+            params = params.model_copy(update={"max_elongation": None})
+        elif spacing is None:
+            params = params.model_copy(update={"max_elongation": None})
+            warnings.append(f"max_elongation not applied: the {scene.kind} scene's pixel spacing is unknown (its "
+                            "pixels need not be square; give it with sarship ingest --spacing AZ,RG)")
     if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
         warnings.append("min_length_m/max_length_m ignored: the scene's pixel spacing is unknown")
     halo = spec.halo(params)
