@@ -21,27 +21,11 @@ import numpy as np
 from sarship.pipeline.components import MOMENT_DTYPE, shape_from_moments
 
 
-def lengths_m(records: np.ndarray, spacing: tuple[float, float]) -> np.ndarray:
-    """Moment length in metres of every record: ``shape_from_moments(rec, spacing)["length_m"]``,
-    vectorised with the same operations in the same order (so the same float64 values)."""
-    n = records["n"].astype(np.float64)
-    mr = records["sr"] / n
-    mc = records["sc"] / n
-    vrr = np.maximum(records["srr"] / n - mr * mr, 0.0) + 1.0 / 12.0
-    vcc = np.maximum(records["scc"] / n - mc * mc, 0.0) + 1.0 / 12.0
-    vrc = records["src"] / n - mr * mc
-    az, rg = float(spacing[0]), float(spacing[1])
-    a, b, c = vrr * az * az, vrc * az * rg, vcc * rg * rg
-    tr, det = a + c, a * c - b * b
-    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
-    return np.sqrt(12.0 * (tr / 2.0 + disc))
-
-
-def elongations(records: np.ndarray, spacing: tuple[float, float] | None) -> np.ndarray:
-    """Moment length over moment width of every record, ``sqrt(l1 / l2)`` of the (spacing-scaled,
-    when known) position covariance with the pixel's own 1/12 variance added, as
-    :func:`sarship.pipeline.components.shape_from_moments` measures length and width: 1 for a
-    single pixel, n for a 1 x n line."""
+def _moment_axes(records: np.ndarray, spacing: tuple[float, float] | None) -> tuple[np.ndarray, np.ndarray]:
+    """Half the trace and the discriminant root of every record's position covariance (the
+    pixel's own 1/12 variance added; scaled by ``spacing`` when given): its eigenvalues are
+    ``tr/2 +- disc``. The operations and their order are those of
+    :func:`sarship.pipeline.components.shape_from_moments`, so the same float64 values."""
     n = records["n"].astype(np.float64)
     mr = records["sr"] / n
     mc = records["sc"] / n
@@ -51,9 +35,22 @@ def elongations(records: np.ndarray, spacing: tuple[float, float] | None) -> np.
     az, rg = (float(spacing[0]), float(spacing[1])) if spacing is not None else (1.0, 1.0)
     a, b, c = vrr * az * az, vrc * az * rg, vcc * rg * rg
     tr, det = a + c, a * c - b * b
-    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
-    l1, l2 = tr / 2.0 + disc, np.maximum(tr / 2.0 - disc, 1e-300)
-    return np.sqrt(l1 / l2)
+    return tr / 2.0, np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
+
+
+def lengths_m(records: np.ndarray, spacing: tuple[float, float]) -> np.ndarray:
+    """Moment length in metres of every record: ``shape_from_moments(rec, spacing)["length_m"]``,
+    vectorised (the same float64 values)."""
+    half, disc = _moment_axes(records, spacing)
+    return np.sqrt(12.0 * (half + disc))
+
+
+def elongations(records: np.ndarray, spacing: tuple[float, float] | None) -> np.ndarray:
+    """Moment length over moment width of every record, ``sqrt(l1 / l2)`` of the (spacing-scaled,
+    when known) position covariance, as :func:`sarship.pipeline.components.shape_from_moments`
+    measures length and width: 1 for a single pixel, n for a 1 x n line."""
+    half, disc = _moment_axes(records, spacing)
+    return np.sqrt((half + disc) / np.maximum(half - disc, 1e-300))
 
 
 def keep_mask(records: np.ndarray, params: Any, spacing: tuple[float, float] | None) -> np.ndarray:

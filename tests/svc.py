@@ -119,3 +119,21 @@ def wait_pass(url: str, name: str, statuses: tuple[str, ...], timeout: float = 6
             return p
         time.sleep(0.1)
     raise AssertionError(f"pass {name} did not reach {statuses}: {passes(url).get(name)}")
+
+
+def png(r):
+    """The PNG body of a 200 answer as an array (e.g. a quicklook)."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png", r.text
+    return np.asarray(Image.open(io.BytesIO(r.content)))
+
+
+def blue(rgb):
+    """Pixels of the quicklook's land tint: blue well above red and green (the grey scene has
+    r = g = b)."""
+    rgb = rgb[..., :3].astype(int)
+    return (rgb[..., 2] - rgb[..., 0] >= 40) & (rgb[..., 2] - rgb[..., 1] >= 20)

@@ -5,7 +5,6 @@ and a coastline job on a scene without georeference refused with a 400 when post
 
 from __future__ import annotations
 
-import io
 import json
 
 import numpy as np
@@ -13,7 +12,7 @@ import pytest
 
 httpx = pytest.importorskip("httpx")
 from conftest import write_scene  # noqa: E402
-from svc import Server, check_problem, free_port, wait_job  # noqa: E402
+from svc import Server, blue, check_problem, free_port, png, wait_job  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -45,18 +44,6 @@ def env(tmp_path_factory):
         yield srv, job, truth, stored
     finally:
         srv.stop()
-
-
-def png(r) -> np.ndarray:
-    from PIL import Image
-
-    assert r.status_code == 200 and r.headers["content-type"] == "image/png", r.text
-    return np.asarray(Image.open(io.BytesIO(r.content)))
-
-
-def blue(rgb: np.ndarray) -> np.ndarray:
-    rgb = rgb[..., :3].astype(int)
-    return (rgb[..., 2] - rgb[..., 0] >= 40) & (rgb[..., 2] - rgb[..., 1] >= 20)
 
 
 def test_schema_offers_coastline(env):

@@ -5,13 +5,12 @@ scene folder, and FILE paths outside the allowed folders refused with a 400."""
 
 from __future__ import annotations
 
-import io
 
 import numpy as np
 import pytest
 
 httpx = pytest.importorskip("httpx")
-from svc import Server, check_problem, free_port, wait_job  # noqa: E402
+from svc import Server, blue, check_problem, free_port, png, wait_job  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -45,19 +44,6 @@ def env(tmp_path_factory):
         yield srv, jobs, truth, stored, root
     finally:
         srv.stop()
-
-
-def png(r) -> np.ndarray:
-    from PIL import Image
-
-    assert r.status_code == 200 and r.headers["content-type"] == "image/png", r.text
-    return np.asarray(Image.open(io.BytesIO(r.content)))
-
-
-def blue(rgb: np.ndarray) -> np.ndarray:
-    """Pixels of the land tint: blue well above red and green (the grey scene has r = g = b)."""
-    rgb = rgb[..., :3].astype(int)
-    return (rgb[..., 2] - rgb[..., 0] >= 40) & (rgb[..., 2] - rgb[..., 1] >= 20)
 
 
 def test_schema_offers_land_mask(env):

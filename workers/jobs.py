@@ -23,7 +23,7 @@ from typing import Any, Callable
 from sarship.pipeline import __version__
 from sarship.pipeline.ambiguity import flag_features
 from sarship.pipeline.components import merge_radius, merge_tiles
-from sarship.pipeline.detectors.base import resolve_size
+from sarship.pipeline.detectors.base import land_mask_parts, resolve_size
 from sarship.pipeline.ship_features import collection, features, keep_mask, write_json
 from sarship.pipeline.sidelobes import mask_reader, refine_features
 from sarship.pipeline.errors import InputError
@@ -258,28 +258,22 @@ def run_request(
         land_record = None
         t_cluster = time.perf_counter()
         cluster_start = None  # seconds to start (or reach) the cluster; None: a client was given
-        threads = False
         with contextlib.ExitStack() as stack:
             if client is None:
                 from sarship.workers.cluster import connect, threads_max_px
 
-                threads = scheduler is None and H * W <= threads_max_px()
-                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu, threads=threads))
+                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu,
+                                                     threads=H * W <= threads_max_px()))
                 cluster_start = time.perf_counter() - t_cluster
             placement = plan(device, detector, has_gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
-            # the land pass's reads serve the detection (workers/blockcache.py): in this process
-            # (the threaded worker started here), or on each worker that kept a tile's block, which
-            # the tile's detection then asks for (a placement confined to a worker list excepted)
-            if "workers" not in placement.submit:
-                from sarship.workers import blockcache
-
+            # the texture land pass's reads serve the detection (workers/blockcache.py): in this
+            # process (the threaded worker started here), or on each worker that kept a tile's block,
+            # which the tile's detection then asks for (a placement confined to a worker list excepted)
+            if "texture" in land_mask_parts(params.land_mask)[0] and "workers" not in placement.submit:
                 token = uuid.uuid4().hex
                 jobs = [dataclasses.replace(j, cache_token=token) for j in jobs]
-                if threads and placement.device == "cpu":
-                    stack.callback(blockcache.drop, token)
-                else:
-                    stack.callback(_drop_blocks, client, token)
+                stack.callback(_drop_blocks, client, token)  # on every worker (this process's included)
             jobs, land_record = prepare_land(
                 params, scene, land_file, jobs, tmp, tile,
                 lambda fn, js, stage: _execute(client, js, detector, progress, None, fn, stage, placement.submit),

@@ -49,6 +49,9 @@ GDAL_CACHE_MB = 64
 #: see docs/sentinel1.md): the annotation carries no ENL.
 NOMINAL_ENL = {("IW", "GRDH"): 4.4}
 
+#: Channel order of a SAFE scene (co-pol first), for GRD and SLC alike.
+POL_ORDER = {"hh": 0, "vv": 1, "hv": 2, "vh": 3}
+
 _MEAS_RE = re.compile(r"^s1[abcd]-([a-z0-9]+)-(grd|slc)-(hh|hv|vh|vv)-.*\.tiff?$", re.IGNORECASE)
 
 
@@ -243,6 +246,17 @@ def _check_chunks(p: Path, prod: _Product, member: str, limits: InputLimits) -> 
                          f"the limit of {limits.max_chunk_mb:g} MiB ({limits._knob('max_chunk_mb')})")
 
 
+def manifest_attrs(p: Path, prod) -> dict[str, Any]:
+    """The product-level attributes xarray-sentinel reads from the SAFE manifest (mode, product
+    type, times, orbit...); one-line InputError when the manifest cannot be read."""
+    import xarray as xr
+
+    try:
+        return dict(xr.open_dataset(prod.url, engine="sentinel-1").attrs)
+    except Exception as exc:
+        raise InputError(f"'{p}': cannot read the SAFE manifest ({_one_line(exc)})") from None
+
+
 def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swath: str | None = None) -> _Source:
     _require()
     import xarray as xr
@@ -271,12 +285,8 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swa
     if len(swaths) != 1:
         raise InputError(f"'{p}': measurements of several swaths ({', '.join(sorted(swaths))}) in one GRD product")
     swath = swaths.pop()
-    order = {"hh": 0, "vv": 1, "hv": 2, "vh": 3}
-    pols = sorted(meas, key=lambda q: order[q])
-    try:
-        root = dict(xr.open_dataset(prod.url, engine="sentinel-1").attrs)
-    except Exception as exc:
-        raise InputError(f"'{p}': cannot read the SAFE manifest ({_one_line(exc)})") from None
+    pols = sorted(meas, key=lambda q: POL_ORDER[q])
+    root = manifest_attrs(p, prod)
     if str(root.get("product_type", "")).upper() != "GRD":
         raise InputError(f"'{p}': product type {root.get('product_type')!r}; only GRD is read so far")
     luts: dict[str, dict[str, Any]] = {}

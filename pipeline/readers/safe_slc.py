@@ -39,7 +39,6 @@ from sarship.pipeline.readers import tops
 from sarship.pipeline.readers.common import _one_line, _Source
 from sarship.pipeline.readers.limits import InputLimits
 
-POL_ORDER = {"hh": 0, "vv": 1, "hv": 2, "vh": 3}
 
 #: Rows processed at once within a tile (bounds the float64 temporaries of the LUT and the
 #: deramping phase to a few MiB per column block).
@@ -147,11 +146,10 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
     if sw not in slc:
         raise InputError(f"'{p}': --swath {swath}: the product has no such sub-swath (it has {', '.join(have)})")
     meas = slc[sw]
+    from sarship.pipeline.readers.safe import POL_ORDER, manifest_attrs
+
     pols = sorted(meas, key=lambda q: POL_ORDER[q])
-    try:
-        root = dict(xr.open_dataset(prod.url, engine="sentinel-1").attrs)
-    except Exception as exc:
-        raise InputError(f"'{p}': cannot read the SAFE manifest ({_one_line(exc)})") from None
+    root = manifest_attrs(p, prod)
     if str(root.get("mode", "IW")).upper() != "IW":
         raise InputError(f"'{p}': a Sentinel-1 {root.get('mode')} SLC product; only IW (TOPS) SLC is read")
     anns = {}
