@@ -61,3 +61,34 @@ def test_mask_stores_only_chunks_with_detections(tmp_path):
         assert t[key] is not None and t[key] >= 0, key
     assert t["cluster_start_s"] <= t["prepare_s"] <= t["total_s"]
     assert all("land_s" in p for p in run["tiles"]["per_tile"])
+
+
+def test_write_sparse_writes_only_the_chunks_that_hold_marks(tmp_path):
+    """A tile's mask write encodes only the box of inner chunks its marks fall in (aligned to
+    the store's chunk grid, inside the tile's shard): the store reads back exactly what a whole
+    tile write gives, the other inner chunks are never written, and an empty tile writes
+    nothing."""
+    import zarr
+
+    from sarship.pipeline.scene import create_mask_store
+    from sarship.workers.tasks import write_sparse
+
+    create_mask_store(tmp_path / "m.zarr", (2048, 3072), 1024)  # shards 1024, inner chunks 512
+    path = str(tmp_path / "m.zarr" / "mask")
+    core = np.zeros((1024, 1024), bool)
+    core[600:606, 530:560] = True  # inner chunk (1, 1) of the tile
+    core[1000:1010, 1020:1024] = True  # and (1, 1) too: the box is one chunk
+    assert write_sparse(path, 1024, 2048, core) == (1024 + 512, 2048, 2048 + 512, 3072)
+    assert write_sparse(path, 0, 0, np.zeros((1024, 1024), bool)) is None
+    edge = np.zeros((1024, 1024), bool)
+    edge[10, 10] = edge[700, 900] = True  # box spans chunks (0, 0) .. (1, 1): the whole tile
+    assert write_sparse(path, 0, 1024, edge) == (0, 1024, 1024, 2048)
+    got = zarr.open_array(path, mode="r")[:]
+    want = np.zeros((2048, 3072), np.uint8)
+    want[1024:2048, 2048:3072] = core
+    want[0:1024, 1024:2048] = edge
+    assert np.array_equal(got, want)
+    # only the shards of the two written tiles exist
+    shards = sorted(p.relative_to(tmp_path / "m.zarr" / "mask" / "c").as_posix()
+                    for p in (tmp_path / "m.zarr" / "mask" / "c").rglob("*") if p.is_file())
+    assert shards == ["0/1", "1/2"]

@@ -256,16 +256,19 @@ def test_sarship_worker_processes_with_dask_scheduler(tmp_path):
         from distributed import Client
 
         with Client(f"tcp://127.0.0.1:{port}", timeout="30s") as client:
+            from sarship.workers.cluster import gpu_procs
             from sarship.workers.gpus import visible_gpus
 
-            try:
-                client.wait_for_workers(len(visible_gpus()) + 1, timeout=90)
+            n_gpu = len(visible_gpus())
+            try:  # --gpu-procs defaults to the local cluster's worker processes per GPU
+                client.wait_for_workers(n_gpu * gpu_procs(n_gpu) + 1, timeout=90)
             except Exception:
                 work.terminate()
                 pytest.fail("workers did not arrive; sarship worker said:\n" + work.communicate(timeout=30)[1][-3000:])
             info = client.scheduler_info(n_workers=-1)["workers"]
             res = sorted((w["name"], tuple(sorted(w["resources"].items()))) for w in info.values())
             assert ("w-cpu0", (("CPU", 1.0),)) in res or ("w-cpu0", (("CPU", 1),)) in res
+            assert sum(name.startswith("w-gpu") for name, _ in res) == n_gpu * gpu_procs(n_gpu)
         out = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
                               "--out", str(tmp_path / "o"), "--scheduler", f"tcp://127.0.0.1:{port}",
                               "--device", "gpu"], capture_output=True, text=True, env=env, timeout=300)

@@ -1,8 +1,9 @@
 """The unit of work sent to Dask workers: one output tile, read-detect-write-label.
 
 Each task reads its tile plus halo straight from the scene's Zarr store (so only tile
-metadata travels through the scheduler), runs the detector on it, writes exactly one
-chunk of the output mask (so no two tasks ever write the same chunk), and returns the
+metadata travels through the scheduler), runs the detector on it, writes into its own
+chunk (shard) of the output mask only, and only the inner chunks its detections fall in
+(so no two tasks ever write the same chunk or shard), and returns the
 tile's component moments and edge labels (small) for the cross-tile merge.
 """
 
@@ -25,6 +26,30 @@ from sarship.pipeline.windows import padded_block
 #: fill value (0) is not stored, so the sparse masks cost what they hold and readers see 0 there
 #: (zarr 3's default, stated so that a global ``write_empty_chunks`` setting cannot change it).
 SPARSE_WRITE = {"write_empty_chunks": False}
+
+
+def write_sparse(path: str, r0: int, c0: int, core: np.ndarray) -> tuple[int, int, int, int] | None:
+    """Write a tile's boolean ``core`` (its ``[0, 0]`` at scene ``(r0, c0)``) into the new,
+    all-fill (0) uint8 array at ``path``: only the box of (inner) chunks that holds its set
+    pixels, aligned to the array's chunk grid and clipped to the tile, so a tile with one
+    small ship encodes one 512 x 512 chunk instead of its whole 2048 x 2048 shard (the rest of
+    the tile stays fill value, which is what it holds). Nothing is written when no pixel is
+    set. Returns the written box ``(r0, r1, c0, c1)`` in scene pixels, or None."""
+    rows = np.flatnonzero(core.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(core.any(axis=0))
+    import zarr
+
+    out = zarr.open_array(path, mode="r+", config=SPARSE_WRITE)
+    ch, cw = out.chunks  # the inner chunks of a sharded array
+    h, w = core.shape
+    a = max((r0 + int(rows[0])) // ch * ch - r0, 0)
+    b = min(-(-(r0 + int(rows[-1]) + 1) // ch) * ch - r0, h)
+    c = max((c0 + int(cols[0])) // cw * cw - c0, 0)
+    d = min(-(-(c0 + int(cols[-1]) + 1) // cw) * cw - c0, w)
+    out[r0 + a: r0 + b, c0 + c: c0 + d] = core[a:b, c:d].astype(np.uint8)
+    return r0 + a, r0 + b, c0 + c, c0 + d
 
 
 @dataclass(frozen=True)
@@ -250,18 +275,12 @@ def run_tile(job: TileJob) -> dict[str, Any]:
     a, b = r0 - er0, c0 - ec0
     h, w = r1 - r0, c1 - c0
     core_mask = mask_e[a:a + h, b:b + w]
-    # the stores are new and all fill value (0): a tile with nothing to mark writes nothing
-    if job.mask_path is not None and core_mask.any():
-        import zarr
-
-        out = zarr.open_array(job.mask_path, mode="r+", config=SPARSE_WRITE)
-        out[r0:r1, c0:c1] = core_mask.astype(np.uint8)
+    # the stores are new and all fill value (0): a tile writes only the chunks its marks fall in
+    if job.mask_path is not None:
+        write_sparse(job.mask_path, r0, c0, core_mask)
     hb = job.halo
-    if job.land_path is not None and land[hb + a: hb + a + h, hb + b: hb + b + w].any():
-        import zarr
-
-        lout = zarr.open_array(job.land_path, mode="r+", config=SPARSE_WRITE)
-        lout[r0:r1, c0:c1] = land[hb + a: hb + a + h, hb + b: hb + b + w].astype(np.uint8)
+    if job.land_path is not None and land is not None:
+        write_sparse(job.land_path, r0, c0, land[hb + a: hb + a + h, hb + b: hb + b + w])
     t3 = time.perf_counter()
     mext = np.zeros((h + 2 * m, w + 2 * m), bool)
     mext[m - a: m - a + mask_e.shape[0], m - b: m - b + mask_e.shape[1]] = mask_e
