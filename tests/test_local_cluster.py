@@ -1,11 +1,13 @@
 """``sarship detect``'s local cluster: a small scene runs on an in-process threaded worker (no
 worker processes to start), a large one on one worker process per core; the size is a setting
-(``SARSHIP_THREADS_MAX_PX``), checked before any work."""
+(``SARSHIP_THREADS_MAX_PX``), checked before any work; the processes are forked on Linux
+(``SARSHIP_WORKER_START``)."""
 
 from __future__ import annotations
 
 import json
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -38,11 +40,19 @@ def test_small_scene_runs_on_threads_and_the_setting_switches_to_processes(scene
     assert "threads in this process" in _cluster_line(threaded.stderr)
     procs = _detect(scene, tmp_path / "b", SARSHIP_THREADS_MAX_PX="0")
     assert procs.returncode == 0, procs.stderr
-    assert "worker processes" in _cluster_line(procs.stderr)
+    line = _cluster_line(procs.stderr)
+    assert "worker processes" in line
+    # the command's own cluster forks its workers on Linux (workers/cluster.worker_start_method)
+    if sys.platform.startswith("linux"):
+        assert "(fork)" in line, line
+    spawned = _detect(scene, tmp_path / "s", SARSHIP_THREADS_MAX_PX="0", SARSHIP_WORKER_START="spawn")
+    assert spawned.returncode == 0, spawned.stderr
+    assert "worker processes (spawn)" in _cluster_line(spawned.stderr)
     # the same detections and mask either way
     a = json.loads((tmp_path / "a" / "detections.geojson").read_text())
-    b = json.loads((tmp_path / "b" / "detections.geojson").read_text())
-    assert [f["properties"] for f in a["features"]] == [f["properties"] for f in b["features"]]
+    for other in ("b", "s"):
+        b = json.loads((tmp_path / other / "detections.geojson").read_text())
+        assert [f["properties"] for f in a["features"]] == [f["properties"] for f in b["features"]]
     assert len(a["features"]) >= 1
 
 
@@ -50,6 +60,28 @@ def test_a_bad_setting_is_one_line_and_leaves_nothing(scene, tmp_path):
     res = _detect(scene, tmp_path / "c", SARSHIP_THREADS_MAX_PX="many")
     assert_clean_error(res, "SARSHIP_THREADS_MAX_PX", "many")
     assert not (tmp_path / "c").exists()
+
+
+def test_a_bad_start_method_is_one_line_and_leaves_nothing(scene, tmp_path):
+    res = _detect(scene, tmp_path / "c", SARSHIP_THREADS_MAX_PX="0", SARSHIP_WORKER_START="vfork")
+    assert_clean_error(res, "SARSHIP_WORKER_START", "vfork")
+    assert not (tmp_path / "c").exists()
+
+
+def test_worker_start_method_rule(monkeypatch):
+    from sarship.pipeline.errors import InputError
+    from sarship.workers.cluster import worker_start_method
+
+    monkeypatch.delenv("SARSHIP_WORKER_START", raising=False)
+    assert worker_start_method(short_lived=False) == "spawn"  # the service's long-lived cluster
+    if sys.platform.startswith("linux") and "cupy" not in sys.modules:
+        assert worker_start_method() == "fork"
+    for m in ("spawn", "forkserver", "fork"):
+        monkeypatch.setenv("SARSHIP_WORKER_START", m)
+        assert worker_start_method() == m == worker_start_method(short_lived=False)
+    monkeypatch.setenv("SARSHIP_WORKER_START", "threads")
+    with pytest.raises(InputError, match="SARSHIP_WORKER_START"):
+        worker_start_method()
 
 
 def test_threads_max_px_setting():

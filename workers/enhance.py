@@ -106,7 +106,7 @@ def run_enhance(scene_path: str | Path, out: str | Path, destripe: DestripeParam
         if client is None:
             from sarship.workers.cluster import connect
 
-            client = stack.enter_context(connect(scheduler))
+            client = stack.enter_context(connect(scheduler, short_lived=True))
         tag = uuid.uuid4().hex[:6]
         stats = _run(client, tile_stats, jobs, [f"sarship-destripe-stats-{j.index[0]}-{j.index[1]}-{tag}" for j in jobs],
                      Progress(len(jobs), "enhance: stripe spectrum", progress), params=params)

@@ -263,7 +263,7 @@ def run_request(
                 from sarship.workers.cluster import connect, threads_max_px
 
                 client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu,
-                                                     threads=H * W <= threads_max_px()))
+                                                     threads=H * W <= threads_max_px(), short_lived=True))
                 cluster_start = time.perf_counter() - t_cluster
             placement = plan(device, detector, has_gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
