@@ -207,6 +207,38 @@ def test_local_gpu_cluster_equals_cpu_run(tmp_path):
     assert len(fg) == len(fc) > 0
 
 
+def test_cuda_initialised_is_told_apart_from_an_import():
+    """Zarr imports CuPy whenever it is installed; only CUDA's own initialisation keeps the
+    command's workers from being forked (workers/cluster.cuda_initialised)."""
+    code = ("import zarr, cupy\n"
+            "from sarship.workers.cluster import cuda_initialised, worker_start_method\n"
+            "a, m = cuda_initialised(), worker_start_method()\n"
+            "cupy.zeros(1)\n"
+            "print(a, m, cuda_initialised(), worker_start_method())\n")
+    env = {k: v for k, v in os.environ.items() if k != "SARSHIP_WORKER_START"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["False", "fork", "True", "spawn"]
+
+
+def test_sarship_detect_forks_its_gpu_workers_and_they_use_the_gpu(tmp_path):
+    """`sarship detect --device gpu` as typed: its GPU worker processes are forked from the
+    command (which has not initialised CUDA) and every tile runs on the GPU, equal to the CPU run."""
+    scene = _scene(tmp_path)
+    env = {k: v for k, v in os.environ.items() if k != "SARSHIP_WORKER_START"}
+    runs = {}
+    for device in ("gpu", "cpu"):
+        out = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
+                              "--out", str(tmp_path / device), "--device", device], capture_output=True,
+                             text=True, env=env, timeout=300)
+        assert out.returncode == 0, out.stderr
+        if device == "gpu":
+            assert "GPU worker processes (fork)" in out.stderr, out.stderr
+        runs[device] = json.loads((tmp_path / device / "run.json").read_text())
+    assert {t["device"] for t in runs["gpu"]["tiles"]["per_tile"]} == {"gpu"}
+    assert runs["gpu"]["detections"] == runs["cpu"]["detections"] > 0
+
+
 def test_mixed_cluster_routes_each_tile(tmp_path):
     """One GPU worker and one CPU worker on one scheduler: where each tile ran."""
     import logging

@@ -70,11 +70,11 @@ def test_a_bad_start_method_is_one_line_and_leaves_nothing(scene, tmp_path):
 
 def test_worker_start_method_rule(monkeypatch):
     from sarship.pipeline.errors import InputError
-    from sarship.workers.cluster import worker_start_method
+    from sarship.workers.cluster import cuda_initialised, worker_start_method
 
     monkeypatch.delenv("SARSHIP_WORKER_START", raising=False)
     assert worker_start_method(short_lived=False) == "spawn"  # the service's long-lived cluster
-    if sys.platform.startswith("linux") and "cupy" not in sys.modules:
+    if sys.platform.startswith("linux") and not cuda_initialised():
         assert worker_start_method() == "fork"
     for m in ("spawn", "forkserver", "fork"):
         monkeypatch.setenv("SARSHIP_WORKER_START", m)

@@ -209,26 +209,43 @@ def connect(
 START_METHODS = ("fork", "forkserver", "spawn")
 
 
+def cuda_initialised() -> bool:
+    """Whether this process has initialised CUDA, told without touching CUDA: the driver starts
+    its own threads at ``cuInit`` (named ``cuda0000...``; ``cuda-EvtHandlr`` with a context),
+    and they are listed in ``/proc/self/task``. Importing CuPy does not initialise it (Zarr
+    imports CuPy whenever it is installed)."""
+    import glob
+
+    for path in glob.glob("/proc/self/task/*/comm"):
+        try:
+            with open(path) as f:
+                if f.read().startswith("cuda"):
+                    return True
+        except OSError:  # the thread ended meanwhile
+            continue
+    return False
+
+
 def worker_start_method(short_lived: bool = True) -> str:
     """How a local cluster starts its worker processes: ``SARSHIP_WORKER_START`` when set,
     else ``fork`` for the short-lived cluster of one command on Linux when this process has not
-    imported CuPy, else Dask's default, ``spawn``.
+    initialised CUDA (:func:`cuda_initialised`), else Dask's default, ``spawn``.
 
     A forked worker inherits the interpreter with NumPy, SciPy, Zarr, Dask and sarship already
     imported, so it is ready at once instead of importing them again (1.2-1.5 s for
     ``distributed`` alone on the H100 host). Measured there on the 25000 x 16700 band, one H100,
     4 worker processes, ``sarship detect`` as typed (bench/RESULTS.md): warm 11.9 s with spawn,
     6.7 s with fork (cluster start 3.4 -> 1.1 s, land pass 4.1 -> 2.0 s, close 0.7 -> 0.3 s);
-    cold 28.8 s -> 7.0 s; ``forkserver`` 9.8 s. Fork is refused where it is unsafe: a process
-    that has imported CuPy may hold a CUDA context, which a child cannot use; other platforms
-    (no fork on Windows, macOS system frameworks) and the long-lived service, whose cluster
-    restarts workers from a process with many threads, keep ``spawn``."""
+    cold 28.8 s -> 7.0 s; ``forkserver`` 9.8 s. Fork is not used where it is unsafe: a child of
+    a process that has initialised CUDA cannot use CUDA; other platforms (no fork on Windows,
+    macOS system frameworks) and the long-lived service, whose cluster restarts workers from a
+    process with many threads, keep ``spawn``."""
     raw = os.environ.get("SARSHIP_WORKER_START", "").strip().lower()
     if raw:
         if raw not in START_METHODS:
             raise InputError(f"SARSHIP_WORKER_START must be one of {', '.join(START_METHODS)}, got {raw!r}")
         return raw
-    if short_lived and sys.platform.startswith("linux") and "cupy" not in sys.modules:
+    if short_lived and sys.platform.startswith("linux") and not cuda_initialised():
         return "fork"
     return "spawn"
 
