@@ -403,7 +403,7 @@ def test_service_local_cluster_has_gpu_workers(tmp_path):
     from sarship.workers.gpus import visible_gpus
 
     data = data_with_scene(tmp_path, shape=(700, 600), tile=256)
-    gpus = visible_gpus()  # NVML: no CUDA context in this process
+    gpus = visible_gpus()  # device nodes: no CUDA or NVML in this process
     srv = Server(data, free_port(), SARSHIP_WORKERS="2", CUDA_VISIBLE_DEVICES=",".join(gpus)).start()
     try:
         from sarship.workers.cluster import gpu_procs

@@ -46,6 +46,20 @@ def test_plan_rules():
         plan("tpu", "ca_cfar", True, GPU_W)
 
 
+def test_prefer_kept_blocks_only_where_every_worker_matches():
+    from sarship.workers.routing import prefer_kept_blocks
+
+    gpu_only = {"tcp://a:1": {"resources": {"GPU": 2}}, "tcp://a:2": {"resources": {"GPU": 2}}}
+    assert prefer_kept_blocks(plan("gpu", "ca_cfar", True, gpu_only), gpu_only)
+    assert prefer_kept_blocks(plan("cpu", "ca_cfar", True, CPU_W), CPU_W)
+    assert prefer_kept_blocks(plan("cpu", "ca_cfar", True, PLAIN_W), PLAIN_W)  # unrestricted
+    mixed = {**GPU_W, **CPU_W}
+    assert not prefer_kept_blocks(plan("gpu", "ca_cfar", True, mixed), mixed)
+    assert not prefer_kept_blocks(plan("cpu", "ca_cfar", True, mixed), mixed)
+    with_plain = {**GPU_W, **CPU_W, **PLAIN_W}
+    assert not prefer_kept_blocks(plan("cpu", "ca_cfar", True, with_plain), with_plain)  # a worker list
+
+
 def test_worker_specs_pin_and_advertise():
     specs = worker_specs(["0", "3"], 2, prefix="h-")
     assert list(specs) == ["h-gpu0", "h-gpu3", "h-cpu0", "h-cpu1"]
@@ -189,3 +203,41 @@ def test_worker_cli_errors():
     assert out.returncode == 2 and "no GPU is visible" in out.stderr
     out = _cli("worker", "--scheduler", "tcp://127.0.0.1:1", "--gpus", "none", "--cpus", "0", timeout=60)
     assert out.returncode == 2 and "nothing to start" in out.stderr
+
+
+def test_kept_blocks_never_pull_tiles_onto_workers_the_placement_excludes(tmp_path):
+    """A cluster whose workers do not all match the placement (a worker advertising only GPU
+    next to a CPU worker, device cpu): a texture-masked run keeps every tile on the CPU worker
+    and loses no worker. Dask's work stealing ignores a resource restriction for a task whose
+    worker preference is loose (distributed/stealing.py ``_get_thief``): before
+    routing.prefer_kept_blocks, tiles that asked for the worker that kept their block were
+    stolen by the GPU worker, whose task state then failed (KeyError 'CPU') and which left the
+    cluster."""
+    import logging
+
+    import dask
+    import numpy as np
+    from distributed import Client, Scheduler, SpecCluster, Worker
+
+    from sarship.workers.jobs import run_detection
+
+    rng = np.random.default_rng(11)
+    x = rng.gamma(4.0, 0.25, (1536, 1536)).astype(np.float32)
+    for r, c in ((40, 40), (700, 900), (1400, 100)):
+        x[r:r + 4, c:c + 8] += 60.0
+    scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=128, looks=4.0)
+    workers = {"cpu0": {"cls": Worker, "options": {"name": "cpu0", "nthreads": 1, "resources": {"CPU": 1}}},
+               "gpu0": {"cls": Worker, "options": {"name": "gpu0", "nthreads": 2, "resources": {"GPU": 1}}}}
+    # stealing rebalances every 5 ms instead of 100 (the tiles take milliseconds here, seconds on a band)
+    with dask.config.set({"distributed.scheduler.work-stealing-interval": "5ms"}), \
+            SpecCluster(workers=workers, scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
+                        silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
+        client.wait_for_workers(2, timeout=60)
+        run = run_detection(scene, "ca_cfar", {"land_mask": "texture", "guard": 41, "background": 81},
+                            out_dir=tmp_path / "o", client=client, device="cpu", progress=False)
+        time.sleep(1.0)  # a worker whose task state failed is gone by now
+        names = sorted(w["name"] for w in client.scheduler_info(n_workers=-1)["workers"].values())
+    assert names == ["cpu0", "gpu0"]
+    per = run["tiles"]["per_tile"]
+    assert len(per) == 144 and {t["worker"] for t in per} == {"cpu0"}
+    assert run["detections"] >= 3

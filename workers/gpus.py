@@ -20,23 +20,22 @@ from sarship.pipeline.errors import InputError
 def visible_gpus() -> list[str]:
     """IDs of the GPUs this process may use (as ``CUDA_VISIBLE_DEVICES`` entries).
 
-    ``CUDA_VISIBLE_DEVICES`` if set; else NVML (``pynvml``), else ``nvidia-smi -L``; [] when
-    none answers. None of these creates a CUDA context.
+    ``CUDA_VISIBLE_DEVICES`` if set; else the NVIDIA device nodes ``/dev/nvidia0``,
+    ``/dev/nvidia1``, ... (what a container was given); else ``nvidia-smi -L``; [] when none
+    answers. None of these touches CUDA or NVML in this process: a process that has called
+    either carries the driver's ``cuda...`` thread, and ``sarship detect`` forks its workers
+    only from a process without one (:func:`sarship.workers.cluster.cuda_initialised`).
     """
     env = os.environ.get("CUDA_VISIBLE_DEVICES")
     if env is not None:
         ids = [s.strip() for s in env.split(",") if s.strip()]
         return [] if not ids or ids[0] in ("-1", "NoDevFiles") else ids  # "" and "-1" hide all
     try:
-        import pynvml
-
-        pynvml.nvmlInit()
-        try:
-            return [str(i) for i in range(pynvml.nvmlDeviceGetCount())]
-        finally:
-            pynvml.nvmlShutdown()
-    except Exception:
-        pass
+        nodes = [n for n in os.listdir("/dev") if n.startswith("nvidia") and n[6:].isdigit()]
+    except OSError:
+        nodes = []
+    if nodes:
+        return [str(i) for i in range(len(nodes))]
     exe = shutil.which("nvidia-smi")
     if exe:
         try:

@@ -31,7 +31,7 @@ from sarship.pipeline.inputs import complex_source, intensity_source, make_reade
 from sarship.pipeline.scene import Scene, create_mask_store, finalize_scene, open_scene, tile_slices
 from sarship.workers.land import check_land_file, finish_land, prepare_land
 from sarship.workers.request import JobRequest
-from sarship.workers.routing import plan
+from sarship.workers.routing import plan, prefer_kept_blocks
 from sarship.workers.tasks import TileJob, run_tile, run_tile_stats
 
 OUTPUTS = ("mask.zarr", "detections.geojson", "run.json", "land.zarr")
@@ -265,12 +265,14 @@ def run_request(
                 client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu,
                                                      threads=H * W <= threads_max_px(), short_lived=True))
                 cluster_start = time.perf_counter() - t_cluster
-            placement = plan(device, detector, has_gpu, client.scheduler_info(n_workers=-1).get("workers", {}))
+            cluster_workers = client.scheduler_info(n_workers=-1).get("workers", {})
+            placement = plan(device, detector, has_gpu, cluster_workers)
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
             # the texture land pass's reads serve the detection (workers/blockcache.py): in this
             # process (the threaded worker started here), or on each worker that kept a tile's block,
-            # which the tile's detection then asks for (a placement confined to a worker list excepted)
-            if "texture" in land_mask_parts(params.land_mask)[0] and "workers" not in placement.submit:
+            # which the tile's detection then asks for, where every worker matches the placement
+            # (routing.prefer_kept_blocks: Dask's stealing would break the restriction otherwise)
+            if "texture" in land_mask_parts(params.land_mask)[0] and prefer_kept_blocks(placement, cluster_workers):
                 token = uuid.uuid4().hex
                 jobs = [dataclasses.replace(j, cache_token=token) for j in jobs]
                 stack.callback(_drop_blocks, client, token)  # on every worker (this process's included)
