@@ -40,7 +40,7 @@ def device_count() -> int:
     """Number of CUDA devices visible to this process (0 without CuPy or a driver).
 
     Creates a CUDA context only in the process that calls it; the cluster code counts GPUs
-    with :func:`sarship.workers.gpus.visible_gpus` (NVML / nvidia-smi) instead, before pinning.
+    with :func:`sarship.workers.gpus.visible_gpus` (device nodes / nvidia-smi) instead, before pinning.
     """
     cp = cupy_module()
     if cp is None:
