@@ -185,17 +185,33 @@ def pixel_counts(det_mask: Any, truth_mask: Any) -> dict:
     }
 
 
+def flagged(ship: Ship) -> bool:
+    """Whether a detection is flagged as an azimuth ambiguity (``ambiguity_of`` set:
+    docs/algorithms/ambiguity.md)."""
+    return ship.properties.get("ambiguity_of") is not None
+
+
 def score(
-    detections: list[Ship], truth: list[Ship], det_mask: Any = None, truth_mask: Any = None
+    detections: list[Ship], truth: list[Ship], det_mask: Any = None, truth_mask: Any = None,
+    ignore_flagged: bool = False,
 ) -> dict:
-    """Object scores (and pixel ``tpr``/``fpr`` when both masks are given); see module docstring."""
+    """Object scores (and pixel ``tpr``/``fpr`` when both masks are given); see module docstring.
+
+    ``ignore_flagged``: a detection flagged as an azimuth ambiguity that matches no truth ship
+    is left out like one on a difficult ship (neither a hit nor a false alarm, not in
+    ``n_detections``), counted in ``n_flagged_ignored``; a flagged detection that matches a
+    ship stays a hit (the flag was wrong, the ship was found)."""
     detections, truth = list(detections), list(truth)
     pairs = match(detections, truth)
     n_ignored = sum(1 for _, t in pairs if truth[t].difficult)
     n_hit = len(pairs) - n_ignored
     n_difficult = sum(1 for s in truth if s.difficult)
     n_truth = len(truth) - n_difficult
-    n_det = len(detections) - n_ignored
+    n_flagged = 0
+    if ignore_flagged:
+        matched = {d for d, _ in pairs}
+        n_flagged = sum(1 for i, d in enumerate(detections) if i not in matched and flagged(d))
+    n_det = len(detections) - n_ignored - n_flagged
     counts = {
         "n_truth": n_truth,
         "n_detections": n_det,
@@ -205,6 +221,8 @@ def score(
         "n_difficult": n_difficult,
         "n_ignored": n_ignored,
     }
+    if ignore_flagged:
+        counts["n_flagged_ignored"] = n_flagged
     out: dict[str, Any] = dict(counts)
     out.update(_object_ratios(counts))
     if det_mask is not None and truth_mask is not None:
@@ -222,6 +240,8 @@ def aggregate(per_image: Iterable[dict]) -> dict:
     """
     per_image = list(per_image)
     tot: dict[str, Any] = {k: int(sum(int(s.get(k, 0)) for s in per_image)) for k in OBJECT_COUNTS}
+    if any("n_flagged_ignored" in s for s in per_image):
+        tot["n_flagged_ignored"] = int(sum(int(s.get("n_flagged_ignored", 0)) for s in per_image))
     out: dict[str, Any] = {"n_images": len(per_image)}
     out.update(tot)
     out.update(_object_ratios(tot))
@@ -235,7 +255,8 @@ def aggregate(per_image: Iterable[dict]) -> dict:
 
 
 def evaluate(
-    detections_path: str | os.PathLike, truth_path: str | os.PathLike, mask_path: str | os.PathLike | None = None
+    detections_path: str | os.PathLike, truth_path: str | os.PathLike, mask_path: str | os.PathLike | None = None,
+    ignore_flagged: bool = False,
 ) -> dict:
     """Back-end of ``sarship evaluate DETECTIONS.geojson --truth TRUTH``.
 
@@ -249,6 +270,7 @@ def evaluate(
     the ``mask.zarr`` beside the detections when it exists (a Zarr array, or a group with a
     2-D ``mask`` array; non-zero = detected). Its shape must equal the truth mask's.
     A ``mask_path`` given with a non-mask truth is not used (there is no truth mask).
+    ``ignore_flagged``: see :func:`score`.
     """
     dpath, tpath = Path(detections_path), Path(truth_path)
     dets = load_detections(dpath)
@@ -264,7 +286,7 @@ def evaluate(
                 raise InputError(
                     f"'{mp}': detection mask shape {dmask.shape} differs from truth mask '{tpath}' shape {tmask.shape}"
                 )
-    out = score(dets, ships, det_mask=dmask, truth_mask=tmask)
+    out = score(dets, ships, det_mask=dmask, truth_mask=tmask, ignore_flagged=ignore_flagged)
     out["detections"] = str(dpath)
     out["truth"] = str(tpath)
     out["truth_format"] = "voc" if kind == "voc-folder" else kind
@@ -296,6 +318,8 @@ def format_scores(scores: dict) -> str:
         f"objects: {s['n_truth']} truth ships, {s['n_detections']} detections"
         + (f" ({s['n_difficult']} difficult ships, {s['n_ignored']} detections on them ignored)"
            if s.get("n_difficult") else "")
+        + (f" ({s['n_flagged_ignored']} flagged ambiguities matching no ship ignored)"
+           if "n_flagged_ignored" in s else "")
     )
     lines.append(f"  hits {s['n_hit']}   false alarms {s['n_false']}   missed {s['n_missed']}")
     lines.append(

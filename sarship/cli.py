@@ -260,7 +260,7 @@ def cmd_evaluate(a) -> int:
     mask = a.mask
     if mask is None and (det.parent / "mask.zarr").exists():
         mask = str(det.parent / "mask.zarr")
-    scores = evaluate(det, a.truth, mask_path=mask)
+    scores = evaluate(det, a.truth, mask_path=mask, ignore_flagged=a.ignore_flagged)
     if a.json:
         print(json.dumps(scores, indent=1))
     else:
@@ -501,6 +501,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("detections")
     s.add_argument("--truth", required=True, help="truth GeoJSON, PASCAL-VOC xml (file or folder) or mask image")
     s.add_argument("--mask", help="detection mask (default: mask.zarr beside the detections)")
+    s.add_argument("--ignore-flagged", dest="ignore_flagged", action="store_true",
+                   help="leave out detections flagged as azimuth ambiguities (ambiguity_of) that match no "
+                        "truth ship, as detections on difficult ships are (n_flagged_ignored)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_evaluate)
 

@@ -487,6 +487,26 @@ def test_simulated_ghosts_flagged_end_to_end(ghost_scene):
     assert [f["id"] for f in dets] == list(range(len(dets)))
 
 
+def test_evaluate_ignore_flagged_leaves_out_the_flagged_ghosts(ghost_scene):
+    """`sarship evaluate`: by default every detected ghost is a false alarm (the contract's
+    rule); with --ignore-flagged the flagged ones that match no ship are left out and counted,
+    the hits stay the same."""
+    dets = json.loads((ghost_scene / "out" / "detections.geojson").read_text())["features"]
+    n_flagged = sum(f["properties"]["ambiguity_of"] is not None for f in dets)
+    assert n_flagged >= 4
+    args = ["evaluate", ghost_scene / "out" / "detections.geojson", "--truth", ghost_scene / "s.zarr.truth.geojson",
+            "--json"]
+    plain = json.loads(_cli(*args).stdout)
+    kept = json.loads(_cli(*args, "--ignore-flagged").stdout)
+    assert "n_flagged_ignored" not in plain and kept["n_flagged_ignored"] == n_flagged
+    assert kept["n_hit"] == plain["n_hit"] > 0 and kept["n_missed"] == plain["n_missed"]
+    assert kept["n_false"] == plain["n_false"] - n_flagged and kept["n_false"] == 0
+    assert kept["n_detections"] == plain["n_detections"] - n_flagged
+    assert kept["fom"] > plain["fom"]
+    text = _cli(*args[:-1], "--ignore-flagged").stdout
+    assert f"{n_flagged} flagged ambiguities matching no ship ignored" in text
+
+
 def test_switched_off_and_bad_geometry(ghost_scene, tmp_path):
     import zarr
 

@@ -492,3 +492,22 @@ def test_missing_and_empty_inputs(tmp_path):
     zarr.open_group(str(z), mode="w")
     with pytest.raises(InputError, match="no 'mask'"):
         read_mask(z)
+
+
+def test_ignore_flagged_leaves_out_unmatched_flagged_detections_only():
+    truth = [box(0, 0, 10, 10), box(50, 50, 60, 60, difficult=True), box(100, 100, 110, 110)]
+    dets = [Ship.from_bbox((1, 1, 9, 9), ambiguity_of=7),       # flagged but on a ship: a hit
+            Ship.from_bbox((51, 51, 59, 59), ambiguity_of=None),  # on the difficult ship: ignored
+            Ship.from_bbox((200, 200, 205, 205), ambiguity_of=0),  # flagged ghost: left out with the option
+            Ship.from_bbox((300, 300, 305, 305))]                  # unflagged stray: a false alarm either way
+    plain = score(dets, truth)
+    assert (plain["n_hit"], plain["n_false"], plain["n_detections"], plain["n_ignored"]) == (1, 2, 3, 1)
+    assert "n_flagged_ignored" not in plain
+    kept = score(dets, truth, ignore_flagged=True)
+    assert (kept["n_hit"], kept["n_false"], kept["n_detections"], kept["n_flagged_ignored"]) == (1, 1, 2, 1)
+    assert kept["n_missed"] == plain["n_missed"] == 1
+    assert kept["fom"] == pytest.approx(1 / (1 + 2)) and plain["fom"] == pytest.approx(1 / (2 + 2))
+    agg = aggregate([kept, kept])
+    assert agg["n_flagged_ignored"] == 2 and agg["n_false"] == 2
+    assert "n_flagged_ignored" not in aggregate([plain])
+    assert "1 flagged ambiguities matching no ship ignored" in format_scores(kept)
