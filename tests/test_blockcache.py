@@ -1,10 +1,12 @@
-"""workers/blockcache.py (issue 17): the texture land pass's reads serve the detection pass on
-``sarship detect``'s in-process threaded worker, so the scene is decoded once. Checked: the
-cache's bounded put/take/drop; end to end through the local threaded cluster the detection pass
-takes every tile's block from the land pass (run.json ``per_tile[*].block_from``), and the mask,
-land mask and detections are identical to a run with the cache off (``SARSHIP_BLOCK_CACHE_MB=0``),
-with land present (the kept block is used with its land halo) and absent (trimmed); nothing is
-left in the cache after a job."""
+"""The texture land pass's reads serve the detection pass (issue 17), so the scene is decoded
+once: each tile's read is kept as Dask data and handed to its texture sample and detection
+(workers/jobs.py, ``read_land_block``), within a memory budget per worker
+(workers/blockcache.py). Checked: the budget setting; end to end on the in-process threaded
+worker and on worker processes every detection takes its tile's land-pass read (run.json
+``per_tile[*].block_from``), the mask, land mask and detections are identical to a run that
+keeps none (``SARSHIP_BLOCK_CACHE_MB=0``), with land present (the read is used with its land
+halo) and absent (trimmed), and no read is left on a worker after the job; a budget for part of
+the tiles keeps the first ones."""
 
 from __future__ import annotations
 
@@ -19,16 +21,11 @@ from sarship.workers import blockcache
 from sarship.workers.jobs import run_detection
 
 
-def test_put_take_drop_and_limit(monkeypatch):
-    monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "1")  # 1 MiB
-    a = np.zeros((256, 256), np.float32)  # 256 KiB
-    assert blockcache.put("t1", (0, 0), a) and blockcache.put("t1", (0, 1), a) and blockcache.put("t2", (0, 0), a)
-    assert blockcache.held_bytes() == 3 * a.nbytes
-    assert not blockcache.put("t2", (0, 1), np.zeros((400, 400), np.float32))  # 625 KiB: over the limit
-    assert blockcache.take("t1", (0, 0)) is a and blockcache.take("t1", (0, 0)) is None
-    assert blockcache.drop("t1") == 1 and blockcache.drop("t2") == 1 and blockcache.held_bytes() == 0
+def test_budget_setting(monkeypatch):
+    monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "1")
+    assert blockcache.limit_bytes() == 2**20
     monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "0")
-    assert not blockcache.put("t3", (0, 0), a) and blockcache.held_bytes() == 0
+    assert blockcache.limit_bytes() == 0
     monkeypatch.delenv("SARSHIP_BLOCK_CACHE_MB")
     assert 0 < blockcache.limit_bytes() <= 2 * 2**30
 
@@ -60,16 +57,16 @@ def test_detection_reuses_land_pass_reads(tmp_path, monkeypatch, land):
     on = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "on", progress=False)
     assert on["land"]["land"] is land
     assert [t["block_from"] for t in on["tiles"]["per_tile"]] == ["land pass"] * on["tiles"]["count"]
-    assert blockcache.held_bytes() == 0
     monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "0")
     off = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "off", progress=False)
     assert {t["block_from"] for t in off["tiles"]["per_tile"]} == {"scene"}
     assert bool(_same_outputs(tmp_path / "on", tmp_path / "off").any()) is land
 
 
-def test_worker_processes_keep_and_drop_blocks(tmp_path, monkeypatch):
-    """On a cluster of worker processes each tile's detection is sent to the worker that kept its
-    block; the outputs equal the cache-off run's and no worker holds a block after the job."""
+def test_worker_processes_take_their_reads_and_release_them(tmp_path, monkeypatch):
+    """On worker processes every detection takes its tile's land-pass read (Dask runs it where
+    the read is), the outputs equal the keep-none run's, no read is left on a worker after the
+    job, and a budget for 4 reads keeps the first 4 tiles' reads only."""
     from distributed import Client, LocalCluster
 
     cfg = SimConfig(shape=(384, 384), ships=5, seed=12, looks=4.0, clutter="k", land=True, scr_db=20.0)
@@ -80,11 +77,20 @@ def test_worker_processes_keep_and_drop_blocks(tmp_path, monkeypatch):
             Client(cl) as client:
         on = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "on", client=client,
                            progress=False)
-        kept = [t["block_from"] for t in on["tiles"]["per_tile"]]
-        assert kept.count("land pass") >= on["tiles"]["count"] // 2, kept
-        assert set(client.run(blockcache.held_bytes).values()) == {0}
-        client.run(lambda: __import__("os").environ.__setitem__("SARSHIP_BLOCK_CACHE_MB", "0"))
+        per = on["tiles"]["per_tile"]
+        assert [t["block_from"] for t in per] == ["land pass"] * on["tiles"]["count"] == ["land pass"] * 9
+        assert sum(client.run(lambda dask_worker: len(dask_worker.data)).values()) == 0
+        monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "0")
         off = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "off", client=client,
                             progress=False)
         assert {t["block_from"] for t in off["tiles"]["per_tile"]} == {"scene"}
+        # one read is about 390 px a side at 8 bytes (1.2 MiB): 2 workers x 2.2 MiB keep a few
+        monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "2.2")
+        part = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "part", client=client,
+                             progress=False)
+        got = {tuple(t["index"]): t["block_from"] for t in part["tiles"]["per_tile"]}
+        kept = sorted(k for k, v in got.items() if v == "land pass")
+        assert 0 < len(kept) < 9 and kept == sorted(got)[:len(kept)]  # the first tiles in row order
+        assert sum(client.run(lambda dask_worker: len(dask_worker.data)).values()) == 0
     _same_outputs(tmp_path / "on", tmp_path / "off")
+    _same_outputs(tmp_path / "on", tmp_path / "part")

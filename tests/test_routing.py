@@ -46,20 +46,6 @@ def test_plan_rules():
         plan("tpu", "ca_cfar", True, GPU_W)
 
 
-def test_prefer_kept_blocks_only_where_every_worker_matches():
-    from sarship.workers.routing import prefer_kept_blocks
-
-    gpu_only = {"tcp://a:1": {"resources": {"GPU": 2}}, "tcp://a:2": {"resources": {"GPU": 2}}}
-    assert prefer_kept_blocks(plan("gpu", "ca_cfar", True, gpu_only), gpu_only)
-    assert prefer_kept_blocks(plan("cpu", "ca_cfar", True, CPU_W), CPU_W)
-    assert prefer_kept_blocks(plan("cpu", "ca_cfar", True, PLAIN_W), PLAIN_W)  # unrestricted
-    mixed = {**GPU_W, **CPU_W}
-    assert not prefer_kept_blocks(plan("gpu", "ca_cfar", True, mixed), mixed)
-    assert not prefer_kept_blocks(plan("cpu", "ca_cfar", True, mixed), mixed)
-    with_plain = {**GPU_W, **CPU_W, **PLAIN_W}
-    assert not prefer_kept_blocks(plan("cpu", "ca_cfar", True, with_plain), with_plain)  # a worker list
-
-
 def test_worker_specs_pin_and_advertise():
     specs = worker_specs(["0", "3"], 2, prefix="h-")
     assert list(specs) == ["h-gpu0", "h-gpu3", "h-cpu0", "h-cpu1"]
@@ -207,12 +193,13 @@ def test_worker_cli_errors():
 
 def test_kept_blocks_never_pull_tiles_onto_workers_the_placement_excludes(tmp_path):
     """A cluster whose workers do not all match the placement (a worker advertising only GPU
-    next to a CPU worker, device cpu): a texture-masked run keeps every tile on the CPU worker
-    and loses no worker. Dask's work stealing ignores a resource restriction for a task whose
-    worker preference is loose (distributed/stealing.py ``_get_thief``): before
-    routing.prefer_kept_blocks, tiles that asked for the worker that kept their block were
-    stolen by the GPU worker, whose task state then failed (KeyError 'CPU') and which left the
-    cluster."""
+    next to a CPU worker, device cpu): a texture-masked run keeps every tile on the CPU worker,
+    every detection takes its tile's land-pass read, and no worker is lost. Dask's work stealing
+    ignores a resource restriction for a task whose worker preference is loose
+    (distributed/stealing.py ``_get_thief``): when each detection asked for the worker that had
+    kept its block (``workers=[...]``, ``allow_other_workers``), tiles were stolen by the GPU
+    worker, whose task state then failed (KeyError 'CPU') and which left the cluster. The reads
+    are now Dask data the tasks depend on, which stealing moves only among valid workers."""
     import logging
 
     import dask
@@ -240,4 +227,5 @@ def test_kept_blocks_never_pull_tiles_onto_workers_the_placement_excludes(tmp_pa
     assert names == ["cpu0", "gpu0"]
     per = run["tiles"]["per_tile"]
     assert len(per) == 144 and {t["worker"] for t in per} == {"cpu0"}
+    assert {t["block_from"] for t in per} == {"land pass"}
     assert run["detections"] >= 3

@@ -31,8 +31,8 @@ from sarship.pipeline.inputs import complex_source, intensity_source, make_reade
 from sarship.pipeline.scene import Scene, create_mask_store, finalize_scene, open_scene, tile_slices
 from sarship.workers.land import check_land_file, finish_land, prepare_land
 from sarship.workers.request import JobRequest
-from sarship.workers.routing import plan, prefer_kept_blocks
-from sarship.workers.tasks import TileJob, run_tile, run_tile_stats
+from sarship.workers.routing import plan
+from sarship.workers.tasks import TileJob, read_land_block, run_tile, run_tile_stats
 
 OUTPUTS = ("mask.zarr", "detections.geojson", "run.json", "land.zarr")
 #: Outputs a run writes only with some parameters (``land.zarr``: with ``land_mask``); an older
@@ -268,17 +268,18 @@ def run_request(
             cluster_workers = client.scheduler_info(n_workers=-1).get("workers", {})
             placement = plan(device, detector, has_gpu, cluster_workers)
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
-            # the texture land pass's reads serve the detection (workers/blockcache.py): in this
-            # process (the threaded worker started here), or on each worker that kept a tile's block,
-            # which the tile's detection then asks for, where every worker matches the placement
-            # (routing.prefer_kept_blocks: Dask's stealing would break the restriction otherwise)
-            if "texture" in land_mask_parts(params.land_mask)[0] and prefer_kept_blocks(placement, cluster_workers):
-                token = uuid.uuid4().hex
-                jobs = [dataclasses.replace(j, cache_token=token) for j in jobs]
-                stack.callback(_drop_blocks, client, token)  # on every worker (this process's included)
+            # the texture land pass's reads serve the detection: each tile's read is kept as Dask
+            # data on the worker that made it and handed to the tile's texture sample and detection
+            # (Dask runs them where it is, within the placement), within the memory budget
+            blocks: dict = {}
+            stack.callback(blocks.clear)  # the job's kept reads are released however it ends
+            keep = 0
+            if "texture" in land_mask_parts(params.land_mask)[0]:
+                keep = kept_blocks(jobs, params, len(cluster_workers) or 1)
             jobs, land_record = prepare_land(
                 params, scene, land_file, jobs, tmp, tile,
-                lambda fn, js, stage: _execute(client, js, detector, progress, None, fn, stage, placement.submit),
+                lambda fn, js, stage: _execute_land(client, js, detector, progress, fn, stage, placement.submit,
+                                                    keep, blocks),
                 progress=progress)
             if spec.scene_pass is not None:
                 t_pass = time.perf_counter()
@@ -299,7 +300,7 @@ def run_request(
                 scene_pass = {"tiles": len(stats), "seconds": round(time.perf_counter() - t_pass, 4),
                               "passes": n_pass, "values": scene_values}
             t_prep = time.perf_counter()
-            results = _execute(client, jobs, detector, progress, on_tile, submit=placement.submit)
+            results = _execute(client, jobs, detector, progress, on_tile, submit=placement.submit, extra=blocks)
             t_tiles = time.perf_counter()
         t_closed = time.perf_counter()  # a local cluster started here is closed on leaving the block
         finish_land(tmp, land_record, results, (H, W))
@@ -406,26 +407,47 @@ def run_request(
         raise
 
 
-def _drop_blocks(client, token: str) -> None:
-    """Remove the job's kept blocks from every worker (those no detection took back)."""
+def kept_blocks(jobs: list[TileJob], params, n_workers: int) -> int:
+    """How many tiles' land-pass reads a job keeps for its detection: as many as fit in the
+    cluster's budget, ``blockcache.limit_bytes()`` per worker (``SARSHIP_BLOCK_CACHE_MB``),
+    counting each read at 8 bytes a pixel and channel (the largest sample type read); the first
+    tiles in row order. The others' detections read the scene again."""
     from sarship.workers import blockcache
+    from sarship.workers.land import texture_config
 
-    with contextlib.suppress(Exception):
-        client.run(blockcache.drop, token)
+    if not jobs:
+        return 0
+    big = jobs[0].halo + texture_config(params).halo
+    h, w = (b - a for a, b in zip(jobs[0].bounds[::2], jobs[0].bounds[1::2]))
+    per = (h + 2 * (big + jobs[0].merge_r)) * (w + 2 * (big + jobs[0].merge_r)) * 8
+    per *= len(jobs[0].var) if isinstance(jobs[0].var, tuple) else 1
+    return int(min(len(jobs), blockcache.limit_bytes() * n_workers // max(per, 1)))
+
+
+def _execute_land(client, jobs: list[TileJob], detector: str, progress: bool, fn, stage: str,
+                  submit: dict | None, keep: int, blocks: dict) -> list[dict]:
+    """The land pass: the first ``keep`` tiles are read by :func:`read_land_block` into Dask data
+    (futures in ``blocks``, by tile index, kept for the detection), their samples taken from
+    those reads; the other tiles' samples read the scene themselves."""
+    tag = uuid.uuid4().hex[:6]
+    for j in jobs[:keep]:
+        blocks[j.index] = client.submit(read_land_block, j, pure=False,
+                                        key=f"sarship-{detector}-read-{j.index[0]}-{j.index[1]}-{tag}", **(submit or {}))
+    return _execute(client, jobs, detector, progress, None, fn, stage, submit, extra=blocks)
 
 
 def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile, fn=run_tile,
-             stage: str = "detect", submit: dict | None = None) -> list[dict]:
-    """One future per tile, each carrying the placement's restriction (``submit``); a detection
-    whose block a worker kept (``prefer_worker``) asks for that worker first."""
+             stage: str = "detect", submit: dict | None = None, extra: dict | None = None) -> list[dict]:
+    """One future per tile, each carrying the placement's restriction (``submit``); ``extra``:
+    futures of the tiles' land-pass reads (by tile index), passed as each task's second
+    argument where there is one (Dask runs the task where the read is); a detection's read is
+    released once the tile is done."""
     from distributed import as_completed
 
-    tag = "stats" if fn is run_tile_stats else "tile"
+    tag = {run_tile_stats: "stats", run_tile: "tile"}.get(fn, "land")
     keys = [f"sarship-{detector}-{tag}-{j.index[0]}-{j.index[1]}-{uuid.uuid4().hex[:6]}" for j in jobs]
-    if fn is run_tile and any(j.prefer_worker for j in jobs):
-        futures = [client.submit(fn, j, pure=False, key=k, **(submit or {}),
-                                 **({"workers": [j.prefer_worker], "allow_other_workers": True}
-                                    if j.prefer_worker else {}))
+    if extra:
+        futures = [client.submit(fn, j, extra.get(j.index), pure=False, key=k, **(submit or {}))
                    for j, k in zip(jobs, keys)]
     else:
         futures = client.map(fn, jobs, pure=False, key=keys, **(submit or {}))
@@ -435,6 +457,8 @@ def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile
         for fut in as_completed(futures):
             res = fut.result()
             results.append(res)
+            if fn is run_tile and extra:
+                extra.pop(res["index"], None)
             prog.step(res["pixels"])
             if on_tile is not None:
                 on_tile(len(results), len(jobs))

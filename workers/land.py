@@ -159,10 +159,7 @@ def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: i
             count = rasterize_coastline(land_file, carr, (H, W), tile, progress)
             coast_record = coastline_record(land_file, count, time.perf_counter() - t1)
             land = {**land, "coastline": str(store / "coastline")}
-        # each tile's detection prefers the worker whose land pass kept its block (blockcache)
-        where = {s["index"]: s.get("kept_by") for s in stats}
-        jobs = [dataclasses.replace(j, land=land, land_halo=halo, land_path=str(store / "land"),
-                                    prefer_worker=where.get(j.index)) for j in jobs]
+        jobs = [dataclasses.replace(j, land=land, land_halo=halo, land_path=str(store / "land")) for j in jobs]
         record = {"source": "texture", **decision, "seconds": round(time.perf_counter() - t0, 4)}
         if coast_record is not None:
             record = {**record, "source": "coastline+texture", "texture_land": decision["land"],

@@ -59,20 +59,3 @@ def plan(requested: str, detector: str, has_gpu: bool, workers: dict[str, dict])
                          why + f"{len(cpu_res) + len(plain)} CPU workers")
     return Placement("cpu", {}, why + "no CPU workers: the GPU workers run the CPU code")
 
-
-def prefer_kept_blocks(placement: Placement, workers: dict[str, dict]) -> bool:
-    """Whether a tile's detection may ask for the worker that kept its block in the land pass
-    (workers/blockcache.py) as a loose preference (``workers=[kept_by]``,
-    ``allow_other_workers=True``).
-
-    Only where every worker matches the placement's restriction. Dask's work stealing ignores a
-    resource restriction for a task whose worker preference is loose (distributed/stealing.py,
-    ``_get_thief``: with no valid thief it takes any idle worker), so on a mixed cluster a GPU
-    tile would be stolen by a CPU worker (or a CPU tile by a GPU worker), whose task state then
-    fails on the resource it lacks and which leaves the cluster. A placement confined to a list
-    of workers never gets a preference."""
-    if "workers" in placement.submit:
-        return False
-    need = placement.submit.get("resources") or {}
-    return all(float((w.get("resources") or {}).get(k, 0)) >= float(v)
-               for w in workers.values() for k, v in need.items())

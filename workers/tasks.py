@@ -73,13 +73,6 @@ class TileJob:
     land: dict | None = None
     land_halo: int = 0  # extra context the texture land mask needs beyond ``halo``
     land_path: str | None = None  # land.zarr array this tile writes its core into (texture mode)
-    #: set by the job where both passes run in one process (the in-process threaded worker): the
-    #: land pass keeps each tile's block in :mod:`sarship.workers.blockcache` under this token and
-    #: the detection pass takes it back instead of decoding the scene again
-    cache_token: str | None = None
-    #: the address of the worker whose land pass kept this tile's block: the detection asks for
-    #: it first (``allow_other_workers``: another worker reads the scene instead)
-    prefer_worker: str | None = None
 
 
 def _worker_name() -> str:
@@ -92,22 +85,14 @@ def _worker_name() -> str:
         return "local"
 
 
-def _worker_address() -> str | None:
-    try:
-        from distributed import get_worker
-
-        return str(get_worker().address)
-    except Exception:
-        return None
-
-
-def _read(job: TileJob, r0: int, r1: int, c0: int, c1: int, timing: dict | None = None):
+def _read(job: TileJob, r0: int, r1: int, c0: int, c1: int, timing: dict | None = None, full=None):
     """The job's detector, its parameters, the block ``[r0:r1, c0:c1]`` with its halo (land
     pixels set to NaN when the job has a land mask) and the block's land mask (None without one).
-    ``timing``: filled with the seconds of the land mask (``land_s``) when given."""
+    ``timing``: filled with the seconds of the land mask (``land_s``) when given. ``full``: the
+    land pass's read of the tile (:func:`read_land_block`), used instead of reading the scene."""
     spec = detectors.get(job.detector)
     params = spec.params(**job.params)
-    block = _cached_block(job, (r0, r1, c0, c1))
+    block = _land_pass_block(job, (r0, r1, c0, c1), full)
     if timing is not None:
         timing["block_from"] = "scene" if block is None else "land pass"
     if block is None:
@@ -193,66 +178,67 @@ def _extended(job: TileJob) -> tuple[int, int, int, int]:
     return max(r0 - m, 0), min(r1 + m, H), max(c0 - m, 0), min(c1 + m, W)
 
 
-def _cached_block(job: TileJob, window: tuple[int, int, int, int]):
-    """The detection pass's block from the land pass (:mod:`sarship.workers.blockcache`), with
-    the halo ``job.halo + job.land_halo``; None when there is none for this job and window."""
-    if job.cache_token is None or job.land is None or job.land.get("mode") != "texture":
-        return None
-    if window != _extended(job):
+def _land_pass_block(job: TileJob, window: tuple[int, int, int, int], full):
+    """The detection pass's block cut from the land pass's read ``full`` (with the halo
+    ``job.halo + job.land_halo``); None when there is none for this job and window."""
+    if full is None or job.land is None or job.land.get("mode") != "texture" or window != _extended(job):
         return None
     from sarship.pipeline import landmask
-    from sarship.workers import blockcache
 
-    block = blockcache.take(job.cache_token, job.index)
-    if block is None:
-        return None
-    extra = landmask.TextureConfig(**job.land["config"]).halo - job.land_halo  # kept with the full land halo
+    extra = landmask.TextureConfig(**job.land["config"]).halo - job.land_halo  # read with the full land halo
     if extra < 0:
         return None
-    return block[extra: block.shape[0] - extra, extra: block.shape[1] - extra] if extra else block
+    return full[extra: full.shape[0] - extra, extra: full.shape[1] - extra] if extra else full
 
 
-def run_tile_land_stats(job: TileJob) -> dict[str, Any]:
+def read_land_block(job: TileJob) -> np.ndarray:
+    """The land pass's read of a tile (``land_mask=texture``) with all the context its detection
+    will need: the merge margin, the detector's halo and the land mask's halo (the mirror
+    extension is defined by position, so any sub-window of it is what a smaller read gives).
+    The job keeps the result as Dask data on the worker that read it and hands it to the tile's
+    texture sample and to its detection (workers/jobs.py), so the scene is decoded once; Dask
+    places both where the block is and moves it only when another worker must run them."""
+    from sarship.pipeline import landmask
+
+    cfg = landmask.TextureConfig(**job.land["config"])
+    er0, er1, ec0, ec1 = _extended(job)
+    read = make_reader(job.scene_path, job.var, job.transform)
+    return padded_block(read, job.scene_shape, er0, er1, ec0, ec1, job.halo + cfg.halo)
+
+
+def run_tile_land_stats(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
     """The land pass (``land_mask=texture``): the tile's texture sample on the scene-wide grid
-    (``job.land["stride"]``), for the mixture fitted on the client (workers/land.py).
-
-    With ``job.cache_token`` the tile is read once with all the context its detection will need
-    (merge margin, detector halo and land halo; the mirror extension is defined by position,
-    so any sub-window of the block is what a smaller read would give) and kept for the
-    detection pass (:mod:`sarship.workers.blockcache`); the sample is taken from its middle."""
+    (``job.land["stride"]``), for the mixture fitted on the client (workers/land.py); taken from
+    the middle of ``full`` (:func:`read_land_block`) when the job keeps the tile's read, else
+    from a read of the tile with the texture window's context."""
     from sarship.pipeline import landmask
 
     t0 = time.perf_counter()
     r0, r1, c0, c1 = job.bounds
     cfg = landmask.TextureConfig(**job.land["config"])
     r = cfg.window // 2
-    read = make_reader(job.scene_path, job.var, job.transform)
-    kept_by = None
-    if job.cache_token is not None:
-        from sarship.workers import blockcache
-
-        er0, er1, ec0, ec1 = _extended(job)
+    if full is not None:
+        er0, _er1, ec0, _ec1 = _extended(job)
         big = job.halo + cfg.halo
-        full = padded_block(read, job.scene_shape, er0, er1, ec0, ec1, big)
         a, b = (r0 - r) - (er0 - big), (c0 - r) - (ec0 - big)
         block = full[a: a + (r1 - r0) + 2 * r, b: b + (c1 - c0) + 2 * r]
-        if blockcache.put(job.cache_token, job.index, full):
-            kept_by = _worker_address()
     else:
+        read = make_reader(job.scene_path, job.var, job.transform)
         block = padded_block(read, job.scene_shape, r0, r1, c0, c1, r)
     sample = landmask.texture_sample(block, r, (r0 - r, c0 - r), cfg, int(job.land["stride"]))
     return {"index": job.index, "stats": sample, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
-            "device": "cpu", "seconds": time.perf_counter() - t0, "kept_by": kept_by}
+            "device": "cpu", "seconds": time.perf_counter() - t0, "kept": full is not None}
 
 
-def run_tile(job: TileJob) -> dict[str, Any]:
-    """Process one tile; returns its components and timings."""
+def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
+    """Process one tile; returns its components and timings. ``full``: the land pass's read of
+    the tile (:func:`read_land_block`), when the job kept it."""
     t0 = time.perf_counter()
     r0, r1, c0, c1 = job.bounds
     m = job.merge_r
     er0, er1, ec0, ec1 = _extended(job)
     timing = {"land_s": 0.0}
-    spec, params, block, land = _read(job, er0, er1, ec0, ec1, timing)
+    spec, params, block, land = _read(job, er0, er1, ec0, ec1, timing, full)
     t1 = time.perf_counter()
     gpu = _on_device(job, spec)
     origin = (er0 - job.halo, ec0 - job.halo)
@@ -297,7 +283,7 @@ def run_tile(job: TileJob) -> dict[str, Any]:
         "detected_px": int(core_mask.sum()),
         "land_px": 0 if land is None else int(land[job.halo + a: job.halo + a + h, job.halo + b: job.halo + b + w].sum()),
         "pixels": h * w,
-        "block_from": timing["block_from"],  # "land pass": the land pass's read, kept (blockcache)
+        "block_from": timing["block_from"],  # "land pass": the land pass's read, kept as Dask data
         "read_s": t1 - t0 - timing["land_s"],
         "land_s": timing["land_s"],
         "detect_s": t2 - t1,
