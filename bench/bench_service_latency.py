@@ -15,7 +15,7 @@ Reference, measured in the same run: the same detection by ``sarship detect`` as
 service saves.
 
 The scene: ``--side`` square float32 1-look gamma sea with ships (``bench_end_to_end.make_npy``),
-``sarship ingest`` (tile 2048), or ``--scene`` an existing store (copied by a symlink).
+``sarship ingest`` (tile 2048), or ``--scene`` an existing store (hard-linked into the service's scenes folder).
 
 Usage: python bench/bench_service_latency.py [--side 8192] [--jobs 5] [--set looks=1] [--workers 2]
     [--device auto] [--json out.json]
@@ -95,8 +95,14 @@ def main() -> None:
         data = work / "data"
         (data / "scenes").mkdir(parents=True)
         scene = data / "scenes" / "s1.zarr"
-        if a.scene:
-            os.symlink(Path(a.scene).resolve(), scene)
+        if a.scene:  # hard links (a copy across file systems): the service refuses a symlink out of its folders
+            def link(src, dst):
+                try:
+                    os.link(src, dst)
+                except OSError:
+                    shutil.copy2(src, dst)
+
+            shutil.copytree(Path(a.scene).resolve(), scene, copy_function=link)
         else:
             npy = work / "s.npy"
             make_npy(str(npy), a.side, 1.0)
