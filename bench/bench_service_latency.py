@@ -118,7 +118,7 @@ def main() -> None:
         port = free_port()
         url = f"http://127.0.0.1:{port}"
         t = time.perf_counter()
-        proc = start_server(data, port, a.workers, 1, work / "server.log", a.scheduler)
+        proc = start_server(data, port, a.workers, 1, work / "server.log", a.scheduler, gpus=a.device != "cpu")
         record["server_start_s"] = round(time.perf_counter() - t, 3)
         inputs = {"scene": "s1", "device": a.device, **key_values(a.set)}
         for k, v in list(inputs.items()):  # numbers as numbers (the REST inputs are JSON)

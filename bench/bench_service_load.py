@@ -97,11 +97,14 @@ def start_cluster(workers: int, log: Path) -> tuple[subprocess.Popen, str]:
 
 
 def start_server(data: Path, port: int, workers: int, concurrency: int, log: Path,
-                 scheduler: str | None = None) -> subprocess.Popen:
+                 scheduler: str | None = None, gpus: bool = False) -> subprocess.Popen:
+    """``sarship serve`` on ``data``; its local cluster has ``workers`` CPU worker processes and,
+    with ``gpus``, its GPU workers (hidden otherwise)."""
     import httpx
 
-    env = {**os.environ, "SARSHIP_WORKERS": str(workers), "SARSHIP_CONCURRENCY": str(concurrency),
-           "CUDA_VISIBLE_DEVICES": ""}
+    env = {**os.environ, "SARSHIP_WORKERS": str(workers), "SARSHIP_CONCURRENCY": str(concurrency)}
+    if not gpus:
+        env["CUDA_VISIBLE_DEVICES"] = ""
     if scheduler:
         env["SARSHIP_SCHEDULER"] = scheduler
     proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(data), "--port", str(port)],
