@@ -28,6 +28,24 @@ def test_budget_setting(monkeypatch):
     assert blockcache.limit_bytes() == 0
     monkeypatch.delenv("SARSHIP_BLOCK_CACHE_MB")
     assert 0 < blockcache.limit_bytes() <= 2 * 2**30
+    from sarship.pipeline.errors import InputError
+
+    for bad in ("lots", "-1", "nan", "inf"):
+        monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", bad)
+        with pytest.raises(InputError, match="SARSHIP_BLOCK_CACHE_MB"):
+            blockcache.limit_bytes()
+
+
+def test_a_bad_budget_is_one_line_and_leaves_nothing(tmp_path):
+    """`sarship detect` with a bad SARSHIP_BLOCK_CACHE_MB: exit 2, one line naming it, no output."""
+    from tests.test_cli import assert_clean_error, sarship
+
+    cfg = SimConfig(shape=(200, 180), ships=2, seed=3, looks=4.0, clutter="k", scr_db=20.0)
+    simulate(tmp_path / "s.zarr", cfg, tile=128)
+    res = sarship("detect", tmp_path / "s.zarr", "--detector", "ca_cfar", "--out", tmp_path / "o",
+                  env={"SARSHIP_BLOCK_CACHE_MB": "lots"})
+    assert_clean_error(res, "SARSHIP_BLOCK_CACHE_MB", "lots")
+    assert not (tmp_path / "o").exists()
 
 
 def _outputs(d):

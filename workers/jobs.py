@@ -256,6 +256,10 @@ def run_request(
         ]
         scene_pass = None
         land_record = None
+        if "texture" in land_mask_parts(params.land_mask)[0]:
+            from sarship.workers import blockcache
+
+            blockcache.limit_bytes()  # a bad SARSHIP_BLOCK_CACHE_MB is refused before the cluster starts
         t_cluster = time.perf_counter()
         cluster_start = None  # seconds to start (or reach) the cluster; None: a client was given
         with contextlib.ExitStack() as stack:
