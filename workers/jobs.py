@@ -256,10 +256,11 @@ def run_request(
         ]
         scene_pass = None
         land_record = None
-        if "texture" in land_mask_parts(params.land_mask)[0]:
+        texture = "texture" in land_mask_parts(params.land_mask)[0]
+        if texture:
             from sarship.workers import blockcache
 
-            blockcache.limit_bytes()  # a bad SARSHIP_BLOCK_CACHE_MB is refused before the cluster starts
+            budget = blockcache.limit_bytes()  # a bad SARSHIP_BLOCK_CACHE_MB is refused before the cluster starts
         t_cluster = time.perf_counter()
         cluster_start = None  # seconds to start (or reach) the cluster; None: a client was given
         with contextlib.ExitStack() as stack:
@@ -277,9 +278,7 @@ def run_request(
             # (Dask runs them where it is, within the placement), within the memory budget
             blocks: dict = {}
             stack.callback(blocks.clear)  # the job's kept reads are released however it ends
-            keep = 0
-            if "texture" in land_mask_parts(params.land_mask)[0]:
-                keep = kept_blocks(jobs, params, len(cluster_workers) or 1)
+            keep = kept_blocks(jobs, params, budget * (len(cluster_workers) or 1)) if texture else 0
             jobs, land_record = prepare_land(
                 params, scene, land_file, jobs, tmp, tile,
                 lambda fn, js, stage: _execute_land(client, js, detector, progress, fn, stage, placement.submit,
@@ -411,21 +410,21 @@ def run_request(
         raise
 
 
-def kept_blocks(jobs: list[TileJob], params, n_workers: int) -> int:
-    """How many tiles' land-pass reads a job keeps for its detection: as many as fit in the
-    cluster's budget, ``blockcache.limit_bytes()`` per worker (``SARSHIP_BLOCK_CACHE_MB``),
-    counting each read at 8 bytes a pixel and channel (the largest sample type read); the first
-    tiles in row order. The others' detections read the scene again."""
-    from sarship.workers import blockcache
+def kept_blocks(jobs: list[TileJob], params, budget: int) -> int:
+    """How many tiles' land-pass reads a job keeps for its detection: as many as fit in
+    ``budget`` bytes (the cluster's: ``blockcache.limit_bytes()`` per worker), counting each
+    read (:func:`sarship.workers.tasks.read_land_block`: the tile, its merge margin, the
+    detector's and the land mask's halos) at 8 bytes a pixel and channel (the largest sample
+    type read); the first tiles in row order. The others' detections read the scene again."""
     from sarship.workers.land import texture_config
 
     if not jobs:
         return 0
-    big = jobs[0].halo + texture_config(params).halo
-    h, w = (b - a for a, b in zip(jobs[0].bounds[::2], jobs[0].bounds[1::2]))
-    per = (h + 2 * (big + jobs[0].merge_r)) * (w + 2 * (big + jobs[0].merge_r)) * 8
-    per *= len(jobs[0].var) if isinstance(jobs[0].var, tuple) else 1
-    return int(min(len(jobs), blockcache.limit_bytes() * n_workers // max(per, 1)))
+    j = jobs[0]
+    r0, r1, c0, c1 = j.bounds
+    pad = 2 * (j.merge_r + j.halo + texture_config(params).halo)
+    per = (r1 - r0 + pad) * (c1 - c0 + pad) * 8 * (len(j.var) if isinstance(j.var, tuple) else 1)
+    return int(min(len(jobs), budget // per))
 
 
 def _execute_land(client, jobs: list[TileJob], detector: str, progress: bool, fn, stage: str,

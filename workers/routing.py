@@ -58,4 +58,3 @@ def plan(requested: str, detector: str, has_gpu: bool, workers: dict[str, dict])
         return Placement("cpu", {"workers": sorted(cpu_res + plain), "allow_other_workers": False},
                          why + f"{len(cpu_res) + len(plain)} CPU workers")
     return Placement("cpu", {}, why + "no CPU workers: the GPU workers run the CPU code")
-

@@ -227,7 +227,7 @@ def run_tile_land_stats(job: TileJob, full: np.ndarray | None = None) -> dict[st
         block = padded_block(read, job.scene_shape, r0, r1, c0, c1, r)
     sample = landmask.texture_sample(block, r, (r0 - r, c0 - r), cfg, int(job.land["stride"]))
     return {"index": job.index, "stats": sample, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
-            "device": "cpu", "seconds": time.perf_counter() - t0, "kept": full is not None}
+            "device": "cpu", "seconds": time.perf_counter() - t0}
 
 
 def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
