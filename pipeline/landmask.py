@@ -62,6 +62,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy import ndimage
 
 from sarship.pipeline.boxsum import centered_box_sum
@@ -169,28 +170,102 @@ def sample_stride(shape: tuple[int, int], max_sample: int = MAX_SAMPLE) -> int:
     return max(1, math.ceil(math.sqrt(H * W / max_sample)))
 
 
+@njit(nogil=True, cache=True)
+def _line_sum(v, j, m, phase):
+    """The window sum ``v[j] + ... + v[j + m - 1]`` formed exactly as the van Herk scan of
+    :mod:`sarship.pipeline.boxsum` forms it along a row (``phase``: the global coordinate of
+    ``v[j]`` modulo ``m``): the suffix of the global block holding ``j`` from its end down,
+    plus the prefix of the next block up to ``j + m - 1``, each started as ``0.0 + v[.]``."""
+    s = j - phase
+    e = s + m - 1
+    a = 0.0
+    for c in range(e, j - 1, -1):
+        a = a + v[c]
+    if phase == 0:
+        return a
+    p = 0.0
+    for c in range(s + m, j + m):
+        p = p + v[c]
+    return a + p
+
+
+@njit(nogil=True, cache=True)
+def _vertical_sum(h, m, phase):
+    """The vertical pass of :mod:`sarship.pipeline.boxsum` on one column of horizontal sums
+    ``h`` (``h[0]`` is the window's first row, ``phase`` its global row modulo ``m``): the
+    block's suffix starts at ``h[e]`` itself and the next block's prefix at ``h[s + m]``."""
+    s = -phase
+    e = s + m - 1
+    a = h[e]
+    for r in range(e - 1, -1, -1):
+        a = a + h[r]
+    if phase == 0:
+        return a
+    p = h[s + m]
+    for r in range(s + m + 1, m):
+        p = p + h[r]
+    return a + p
+
+
+@njit(nogil=True, cache=True)
+def _grid_sums(sub, m, g0r, g0c, ri, ci, n_out, s1_out, s2_out):
+    """The window sums of :func:`texture` (present count, amplitude, intensity) at the grid
+    pixels only: window rows ``ri[k] .. ri[k] + m - 1`` and columns ``ci[l] .. ci[l] + m - 1``
+    of ``sub`` (``sub[0, 0]`` is global ``(g0r, g0c)``), each sum formed in the order of
+    :func:`sarship.pipeline.boxsum.centered_box_sum`, so bit for bit its values. Only the
+    pixels of the grid's windows are read (a fraction ``(m / stride)^2`` of the tile)."""
+    ha = np.empty(m)
+    hi = np.empty(m)
+    rowa = np.empty(sub.shape[1])
+    rowi = np.empty(sub.shape[1])
+    for k in range(ri.size):
+        i = ri[k]
+        ph_r = (g0r + i) % m
+        for l in range(ci.size):
+            j = ci[l]
+            ph_c = (g0c + j) % m
+            cnt = 0
+            for q in range(m):
+                x = sub[i + q]
+                for c in range(j, j + m):
+                    v = np.float64(x[c])
+                    if np.isfinite(v) and v >= 0.0:
+                        rowi[c] = v
+                        rowa[c] = np.sqrt(v)
+                        if j <= c < j + m:
+                            cnt += 1
+                    else:
+                        rowi[c] = 0.0
+                        rowa[c] = 0.0
+                ha[q] = _line_sum(rowa, j, m, ph_c)
+                hi[q] = _line_sum(rowi, j, m, ph_c)
+            n_out[k, l] = cnt
+            s1_out[k, l] = _vertical_sum(ha, m, ph_r)
+            s2_out[k, l] = _vertical_sum(hi, m, ph_r)
+
+
 def texture_sample(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: TextureConfig,
                    stride: int) -> dict:
     """A tile's part of the scene-wide sample: finite textures of the core pixels on the global
     ``stride`` grid, with their (row, col), in (row, col) order. ``block`` has ``halo >=
-    window // 2``; ``origin`` is its ``[0, 0]``."""
+    window // 2``; ``origin`` is its ``[0, 0]``. The window sums are formed at the grid pixels
+    alone (:func:`_grid_sums`), bit for bit the values of :func:`texture` there."""
     r = cfg.window // 2
     sub = block[halo - r: block.shape[0] - (halo - r), halo - r: block.shape[1] - (halo - r)]
-    okf, a, Iz = _window_inputs(sub)
+    if sub.dtype not in (np.float32, np.float64) or sub.ndim != 2:
+        sub = power(sub)
     r0, c0 = origin[0] + halo, origin[1] + halo
     rows = np.arange(r0, r0 + sub.shape[0] - 2 * r)
     cols = np.arange(c0, c0 + sub.shape[1] - 2 * r)
     ri = np.flatnonzero(rows % stride == 0)
     ci = np.flatnonzero(cols % stride == 0)
-    # the window sums of the grid rows only, each from its own window-high strip: the sums do not
-    # depend on the block they are computed in (pipeline/boxsum.py), so these are the whole
-    # tile's values, at 1/stride of the vertical pass
-    g = np.empty((ri.size, ci.size))
-    for k, i in enumerate(ri):
-        band = slice(i, i + 2 * r + 1)
-        n, s1, s2 = _sums_of_inputs(None if okf is None else okf[band], a[band], Iz[band], r,
-                                    (r0 - r + i, c0 - r), cfg.window)
-        g[k] = _texture_of_sums(n[0, ci], s1[0, ci], s2[0, ci], cfg.window)
+    n = np.empty((ri.size, ci.size))
+    s1 = np.empty_like(n)
+    s2 = np.empty_like(n)
+    if ri.size and ci.size:
+        _grid_sums(sub, cfg.window, r0 - r, c0 - r, ri.astype(np.int64),
+                   ci.astype(np.int64), n, s1, s2)
+    g = _texture_of_sums(n, s1, s2, cfg.window)
     rr, cc = np.meshgrid(rows[ri], cols[ci], indexing="ij")
     keep = np.isfinite(g)
     return {"t": g[keep].astype(np.float64), "rc": np.stack([rr[keep], cc[keep]], -1).astype(np.int64)}

@@ -4,19 +4,31 @@ and ``run.json`` records every stage of the run (docs/interfaces/files.md, ``tim
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from sarship.pipeline import landmask as lm
 from sarship.pipeline.windows import mirror_pad, padded_block
 
 
-def test_texture_sample_is_the_texture_of_the_grid_pixels_bit_for_bit():
+@pytest.mark.parametrize("kind, stride, window", [("float32", 7, 15), ("float64", 23, 15), ("float32", 5, 9),
+                                                  ("complex", 17, 15)])
+def test_texture_sample_is_the_texture_of_the_grid_pixels_bit_for_bit(kind, stride, window):
+    """The sample's window sums are formed at the grid pixels alone (landmask._grid_sums), in the
+    order of the tiling-invariant box sums: equal to the whole-scene texture bit for bit, for
+    strides below and above the window, and for a stack of complex channels (its span)."""
     rng = np.random.default_rng(7)
-    H, W, stride = 150, 170, 7
+    H, W = 150, 170
     I = rng.gamma(1.0, 1.0, (H, W)).astype(np.float32)
     I[40:90, 60:120] *= rng.gamma(0.5, 8.0, (50, 60)).astype(np.float32)  # a textured patch
     I[10:25, 5:30] = np.nan  # absent pixels: some windows under half present -> NaN, not sampled
     I[100, 100] = -1.0  # invalid power: absent
-    cfg = lm.TextureConfig()
+    if kind == "float64":
+        I = I.astype(np.float64) * np.pi
+    elif kind == "complex":  # two channels whose span is the intensity's order of magnitude
+        ph = rng.uniform(0, 2 * np.pi, (H, W, 2))
+        I = (np.sqrt(np.abs(np.nan_to_num(I)))[..., None] * np.exp(1j * ph)).astype(np.complex64)
+        I[10:25, 5:30] = np.nan
+    cfg = lm.TextureConfig(window=window)
     r = cfg.window // 2
     whole = lm.texture(mirror_pad(I, r), r, (-r, -r), cfg.window)
     rows, cols = np.arange(H), np.arange(W)
