@@ -140,7 +140,7 @@ def cmd_ingest(a) -> int:
     limits = InputLimits(max_pixels=a.max_pixels, max_chunk_mb=a.max_chunk_mb, max_ratio=a.max_ratio)
     scene = ingest(a.inputs, a.out, kind=a.kind, tile=a.tile, progress=_progress("ingest"),
                    band=band, channels=channels, looks=a.looks, overwrite=a.overwrite, spacing=a.spacing,
-                   limits=limits, swath=a.swath)
+                   limits=limits, swath=a.swath, codec=a.codec)
     cal = str(scene.attrs.get("calibration", ""))
     if cal.startswith("none"):  # a SAFE product without calibration annotation: DN^2, not sigma0
         print(f"warning: calibration {cal}: samples are DN^2", file=sys.stderr)
@@ -401,6 +401,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spacing", type=_spacing, metavar="AZ,RG",
                    help="pixel spacing in metres, azimuth,range (overrides the product's)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
+    s.add_argument("--codec", choices=["lz4", "zstd", "none"], default="lz4",
+                   help="compressor of the store: lz4 (Blosc LZ4 + byte shuffle, the fastest to read; default), "
+                        "zstd (smaller for products with few distinct values, e.g. 8-bit images; reads slower), none")
     s.add_argument("--swath", metavar="IW1|IW2|IW3",
                    help="sub-swath of a Sentinel-1 IW SLC product (one scene per sub-swath; required when it has several)")
     s.add_argument("--max-pixels", type=float, default=DEFAULT_MAX_PIXELS,

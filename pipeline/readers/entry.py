@@ -53,12 +53,14 @@ from sarship.pipeline.readers.tiff import _open_tiff
 from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles
 from sarship.pipeline.readers.zarr_input import _ingest_zarr
 from sarship.pipeline.scene import (
+    DEFAULT_CODEC,
     DEFAULT_TILE,
     Scene,
     atomic_store,
     create_scene,
     finalize_scene,
     open_scene,
+    scene_compressors,
 )
 
 #: errno of a full disk, a quota or a file-size limit: an ingest that meets one fails with the
@@ -226,6 +228,7 @@ def ingest(
     sidecar_root: str | Path | bool | None = None,
     limits: InputLimits | None = None,
     swath: str | None = None,
+    codec: str = DEFAULT_CODEC,
 ) -> Scene:
     """Write the scene store ``out`` from ``inputs`` (see the module docstring); return it opened.
 
@@ -242,8 +245,10 @@ def ingest(
     default: its defaults).
     ``swath``: the sub-swath (``IW1``, ``IW2``, ``IW3``) of a Sentinel-1 SLC product, one scene
     per sub-swath (required when the product holds several; see :mod:`.safe_slc`).
+    ``codec``: the store's compressor (:data:`sarship.pipeline.scene.CODECS`; default LZ4 + shuffle).
     """
     paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
+    scene_compressors(codec)  # an unknown codec is refused before any work
     spacing = _check_spacing(spacing)
     user_progress = progress
 
@@ -271,10 +276,10 @@ def ingest(
                 raise InputError(f"'{paths[fmts.index('zarr')]}': a Zarr scene cannot be combined with other inputs")
             (limits or InputLimits()).check_pixels(paths[0], *open_scene(paths[0]).shape)
             if spacing is None:
-                _ingest_zarr(paths[0], outp, tile, progress, looks)
+                _ingest_zarr(paths[0], outp, tile, progress, looks, codec)
             else:  # written to a temporary sibling, given the spacing, then renamed
                 with atomic_store(outp) as tmp:
-                    _ingest_zarr(paths[0], tmp, tile, progress, looks)
+                    _ingest_zarr(paths[0], tmp, tile, progress, looks, codec)
                     finalize_scene(tmp, {"pixel_spacing_m": spacing, "pixel_spacing_source": "argument"})
             return open_scene(outp)
         srcs: list[_Source] = []
@@ -282,7 +287,7 @@ def ingest(
             for p in paths:
                 srcs.append(_open_source(p, sidecar_root if isinstance(sidecar_root, bool) or sidecar_root is None
                                          else Path(sidecar_root), limits, swath))
-            _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing)
+            _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing, codec)
         finally:
             for s in srcs:
                 s.close()
@@ -302,7 +307,7 @@ def ingest(
         raise InputError(f"ingest of {', '.join(str(p) for p in paths)} failed: {_one_line(exc)}") from None
 
 
-def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing=None):
+def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing=None, codec=DEFAULT_CODEC):
     plan = _plan(srcs, kind, band, channels)
     H, W = srcs[0].shape
     attrs = dict(plan.attrs)
@@ -361,7 +366,7 @@ def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spa
         return plan.compute(arrs)
 
     with atomic_store(outp) as tmp:
-        g = create_scene(tmp, (H, W), plan.variables, tile=tile, attrs=attrs)
+        g = create_scene(tmp, (H, W), plan.variables, tile=tile, attrs=attrs, codec=codec)
         _write_tiles(g, (H, W), tile, plan.variables, read_tile, progress)
         row_band.clear()
         for s in srcs:

@@ -10,10 +10,10 @@ import numpy as np
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.common import _one_line
 from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles
-from sarship.pipeline.scene import atomic_store, create_scene, finalize_scene, open_scene
+from sarship.pipeline.scene import DEFAULT_CODEC, atomic_store, create_scene, finalize_scene, open_scene
 
 
-def _ingest_zarr(src: Path, outp: Path, tile: int, progress, looks) -> None:
+def _ingest_zarr(src: Path, outp: Path, tile: int, progress, looks, codec: str = DEFAULT_CODEC) -> None:
     sc = open_scene(src)
     attrs = dict(sc.attrs)
     arrays = {name: sc.array(name) for name in sc.variables}
@@ -36,7 +36,7 @@ def _ingest_zarr(src: Path, outp: Path, tile: int, progress, looks) -> None:
         return out
 
     with atomic_store(outp) as tmp:
-        g = create_scene(tmp, sc.shape, variables, tile=tile, attrs=attrs)
+        g = create_scene(tmp, sc.shape, variables, tile=tile, attrs=attrs, codec=codec)
         _write_tiles(g, sc.shape, tile, variables, read_tile, progress)
         if attrs.get("looks") is None:
             if attrs["kind"] in ("slc", "quadpol"):
