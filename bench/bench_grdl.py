@@ -76,6 +76,8 @@ def main() -> None:
                          "/tmp/grdl-venv/bin/pip install grdl")
     exe = sarship_exe()
     env = {**os.environ, **key_values(a.env)}
+    if a.workdir:
+        Path(a.workdir).mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="sarship-grdl-", dir=a.workdir))
     mpx = a.side * a.side / 1e6
     rec: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),

@@ -3,6 +3,8 @@ and ``run.json`` records every stage of the run (docs/interfaces/files.md, ``tim
 
 from __future__ import annotations
 
+import importlib.util
+
 import numpy as np
 import pytest
 
@@ -75,12 +77,18 @@ def test_mask_stores_only_chunks_with_detections(tmp_path):
     assert all("land_s" in p for p in run["tiles"]["per_tile"])
 
 
-def test_write_sparse_writes_only_the_chunks_that_hold_marks(tmp_path):
+BACKENDS = ["zarr"] + (["tensorstore"] if importlib.util.find_spec("tensorstore") else [])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_write_sparse_writes_only_the_chunks_that_hold_marks(tmp_path, monkeypatch, backend):
     """A tile's mask write encodes only the box of inner chunks its marks fall in (aligned to
     the store's chunk grid, inside the tile's shard): the store reads back exactly what a whole
     tile write gives, the other inner chunks are never written, and an empty tile writes
-    nothing."""
+    nothing; with either writer (``SARSHIP_READER``)."""
     import zarr
+
+    monkeypatch.setenv("SARSHIP_READER", backend)
 
     from sarship.pipeline.scene import create_mask_store
     from sarship.workers.tasks import write_sparse
@@ -104,3 +112,72 @@ def test_write_sparse_writes_only_the_chunks_that_hold_marks(tmp_path):
     shards = sorted(p.relative_to(tmp_path / "m.zarr" / "mask" / "c").as_posix()
                     for p in (tmp_path / "m.zarr" / "mask" / "c").rglob("*") if p.is_file())
     assert shards == ["0/1", "1/2"]
+
+
+@pytest.mark.parametrize("tile", [64, 1024])
+def test_readers_agree_bit_for_bit(tmp_path, monkeypatch, tile):
+    """tensorstore and zarr-python read the scene stores to the same values: float32 intensity
+    in each codec, complex channels stacked, covariance matrices; rectangles inside, across
+    chunks and clipped at the edges (sharded tiles of 512 inner chunks, and plain chunks)."""
+    if "tensorstore" not in BACKENDS:
+        pytest.skip("tensorstore is not installed")
+    from conftest import write_scene
+    from sarship.pipeline.inputs import make_reader
+    from sarship.pipeline.scene import create_scene, finalize_scene
+
+    rng = np.random.default_rng(11)
+    H, W = 1100, 1300
+    x = rng.gamma(1.0, 1.0, (H, W)).astype(np.float32)
+    x[5:9, 7:11] = np.nan
+    hh = (rng.normal(size=(H, W)) + 1j * rng.normal(size=(H, W))).astype(np.complex64)
+    vv = (rng.normal(size=(H, W)) + 1j * rng.normal(size=(H, W))).astype(np.complex64)
+    cov = {f"c{i}{j}": (rng.normal(size=(H, W)) + (1j * rng.normal(size=(H, W)) if i != j else 0)).astype(
+        np.complex64 if i != j else np.float32) for i, j in ((1, 1), (1, 2), (2, 2))}
+    stores = []
+    for codec in ("lz4", "zstd", "none"):
+        g = create_scene(tmp_path / f"{codec}.zarr", (H, W), {"intensity": np.float32, "hh": np.complex64,
+                                                               "vv": np.complex64, **{k: v.dtype for k, v in cov.items()}},
+                         tile=tile, attrs={"kind": "intensity"}, codec=codec)
+        g["intensity"][:] = x
+        g["hh"][:] = hh
+        g["vv"][:] = vv
+        for k, v in cov.items():
+            g[k][:] = v
+        finalize_scene(tmp_path / f"{codec}.zarr")
+        stores.append(str(tmp_path / f"{codec}.zarr"))
+    rects = [(0, 10, 0, 10), (500, 1100, 20, 1300), (1000, 1100, 1250, 1300), (3, 4, 1299, 1300), (600, 600, 0, 5)]
+    for path in stores:
+        for var, transform in (("intensity", "real"), ("hh", "abs2"), ("hh", "complex"), (("hh", "vv"), "stack"),
+                               (("c11", "c12", "c22"), "covariance")):
+            got = {}
+            for backend in ("zarr", "tensorstore"):
+                monkeypatch.setenv("SARSHIP_READER", backend)
+                read = make_reader(path, var, transform)
+                got[backend] = [read(*r) for r in rects]
+            for a, b in zip(got["zarr"], got["tensorstore"]):
+                assert a.dtype == b.dtype and a.shape == b.shape
+                np.testing.assert_array_equal(a, b)
+    # slices as NumPy takes them: clipped at the edges, negative, stepped, empty
+    from sarship.pipeline.inputs import open_array
+
+    monkeypatch.setenv("SARSHIP_READER", "tensorstore")
+    ts_arr = open_array(stores[0] + "/intensity")
+    monkeypatch.setenv("SARSHIP_READER", "zarr")
+    z_arr = open_array(stores[0] + "/intensity")
+    assert type(ts_arr).__name__ == "_TensorStoreArray" and ts_arr.shape == (H, W)
+    for key in ((slice(1000, 1400), slice(-20, None)), (slice(3, 40, 7), slice(90, 1000, 3)), (slice(900, 50), slice(0, 3)),
+                (slice(None), slice(10, 11))):
+        np.testing.assert_array_equal(ts_arr[key], z_arr[key])
+
+
+def test_reader_setting_is_checked(monkeypatch):
+    from sarship.pipeline.errors import InputError
+    from sarship.pipeline.inputs import reader_backend
+
+    monkeypatch.setenv("SARSHIP_READER", "hdf5")
+    with pytest.raises(InputError, match="SARSHIP_READER must be one of tensorstore, zarr, got 'hdf5'"):
+        reader_backend()
+    monkeypatch.setenv("SARSHIP_READER", "zarr")
+    assert reader_backend() == "zarr"
+    monkeypatch.delenv("SARSHIP_READER")
+    assert reader_backend() == ("tensorstore" if "tensorstore" in BACKENDS else "zarr")

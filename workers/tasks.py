@@ -18,14 +18,9 @@ import numpy as np
 from sarship.pipeline import detectors
 from sarship.pipeline.components import tile_components
 from sarship.pipeline.ship_features import keep_mask
-from sarship.pipeline.inputs import make_reader, pixel_power
+from sarship.pipeline.inputs import make_reader, open_array, pixel_power
 from sarship.pipeline.windows import padded_block
 
-
-#: Zarr array config of the mask and land writes: a chunk (or a shard's inner chunk) that is all
-#: fill value (0) is not stored, so the sparse masks cost what they hold and readers see 0 there
-#: (zarr 3's default, stated so that a global ``write_empty_chunks`` setting cannot change it).
-SPARSE_WRITE = {"write_empty_chunks": False}
 
 
 def write_sparse(path: str, r0: int, c0: int, core: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -39,9 +34,7 @@ def write_sparse(path: str, r0: int, c0: int, core: np.ndarray) -> tuple[int, in
     if rows.size == 0:
         return None
     cols = np.flatnonzero(core.any(axis=0))
-    import zarr
-
-    out = zarr.open_array(path, mode="r+", config=SPARSE_WRITE)
+    out = open_array(path, write=True)  # chunks equal to the fill value are not stored
     ch, cw = out.chunks  # the inner chunks of a sharded array
     h, w = core.shape
     a = max((r0 + int(rows[0])) // ch * ch - r0, 0)
