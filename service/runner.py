@@ -49,6 +49,10 @@ log = logging.getLogger("sarship.service")
 __all__ = ["INGEST", "Dismissed", "Runner", "scene_path", "transient_reason", "wait_final"]
 
 
+#: A running job's progress is stored at most this often (seconds; and on its last tile).
+PROGRESS_EVERY_S = 0.25
+
+
 class Dismissed(Exception):
     """The job was dismissed (or re-claimed elsewhere) while it ran."""
 
@@ -271,10 +275,18 @@ class Runner:
         out_dir = self.settings.jobs_dir / job_id
         inputs = dict(job["inputs"])
 
+        last = [0.0]
+
         def on_tile(done: int, total: int) -> None:
-            pct = int(100 * done / max(total, 1))
             if self.metrics is not None:
                 self.metrics.tiles.inc()
+            # progress (and the check that the job is still ours) at most every PROGRESS_EVERY_S
+            # seconds, not per tile: a store write per tile is in the tile results' path
+            now = time.monotonic()
+            if now - last[0] < PROGRESS_EVERY_S and done < total:
+                return
+            last[0] = now
+            pct = int(100 * done / max(total, 1))
             if not self.store.renew(job_id, self.owner, self.settings.lease_s, min(pct, 99), attempt=attempt):
                 raise Dismissed(job_id)
 

@@ -190,7 +190,8 @@ def connect(
     method = worker_start_method(short_lived)
     # Dask's raw "Port 8787 is already in use" and the like; Python's warning that a process
     # with threads forks (the scheduler's loop thread; nothing in it is used by a child)
-    with warnings.catch_warnings(), dask.config.set({"distributed.worker.multiprocessing-method": method}):
+    with warnings.catch_warnings(), dask.config.set({"distributed.worker.multiprocessing-method": method,
+                                                     "distributed.nanny.pre-spawn-environ": nanny_environ()}):
         warnings.simplefilter("ignore")
         client, cluster, what = _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads,
                                              threads)
@@ -203,6 +204,24 @@ def connect(
     finally:
         client.close()
         cluster.close()
+
+
+def nanny_environ() -> dict:
+    """The environment Dask's nannies give a worker process they start
+    (``distributed.nanny.pre-spawn-environ``), without ``MALLOC_TRIM_THRESHOLD_``.
+
+    Dask sets that glibc tuning (64 KiB) to return freed memory to the system sooner; setting
+    it also switches off glibc's dynamic mmap threshold, so every tile-sized buffer (a 2048 tile
+    with its halo is 22 MB) is a fresh mmap whose pages fault in again on each read. Measured
+    on the band (one H100, the service's spawned workers): a tile read 76 ms with it, 25 ms
+    without (bench/RESULTS.md). A forked worker never had it (glibc reads it at process start).
+    A ``MALLOC_TRIM_THRESHOLD_`` in the user's own environment is inherited as before."""
+    import dask
+    import distributed  # noqa: F401  (its defaults are dask config once imported)
+
+    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", None) or {})
+    env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    return env
 
 
 #: Start methods a local cluster's worker processes may use (``SARSHIP_WORKER_START``).

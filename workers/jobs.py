@@ -457,14 +457,16 @@ def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile
     prog = Progress(len(jobs), f"{stage} {detector}", progress)
     results = []
     try:
-        for fut in as_completed(futures):
-            res = fut.result()
-            results.append(res)
-            if fn is run_tile and extra:
-                extra.pop(res["index"], None)
-            prog.step(res["pixels"])
-            if on_tile is not None:
-                on_tile(len(results), len(jobs))
+        # results fetched by the client's event loop as tasks finish, handed over in batches
+        # (not one blocking round trip per future from this thread; a failed task raises here)
+        for batch in as_completed(futures, with_results=True).batches():
+            for _fut, res in batch:
+                results.append(res)
+                if fn is run_tile and extra:
+                    extra.pop(res["index"], None)
+                prog.step(res["pixels"])
+                if on_tile is not None:
+                    on_tile(len(results), len(jobs))
     except BaseException:
         client.cancel(futures)
         raise

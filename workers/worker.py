@@ -78,6 +78,11 @@ def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str 
         gpu_procs = default_gpu_procs(len(gpu_ids)) if gpu_ids else 1
     if gpu_procs < 1:
         raise InputError(f"--gpu-procs must be >= 1, got {gpu_procs}")
-    asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit, gpu_threads=gpu_threads,
-                                              gpu_procs=gpu_procs), echo))
+    import dask
+
+    from sarship.workers.cluster import nanny_environ
+
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": nanny_environ()}):  # (reads: see there)
+        asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit, gpu_threads=gpu_threads,
+                                                  gpu_procs=gpu_procs), echo))
     return 0
