@@ -119,3 +119,25 @@ def test_worker_processes_start_without_dask_malloc_trim(short_lived):
     with connect(n_workers=1, echo=False, short_lived=short_lived) as client:
         env = client.run(lambda: (os.environ.get("MALLOC_TRIM_THRESHOLD_"), os.environ.get("OMP_NUM_THREADS")))
     assert list(env.values()) == [(None, "1")], env
+
+
+def test_forked_workers_read_after_the_command_itself_read_the_scene(tmp_path):
+    """A scene without ``looks`` is sampled by the command (the client) through the scene reader
+    before its cluster forks the worker processes, which then read the tiles with the same
+    library (tensorstore's threads do not survive a fork; its state must not hang the children).
+    Both readers give the same detections."""
+    rng = np.random.default_rng(4)
+    x = rng.gamma(2.0, 0.5, (640, 600)).astype(np.float32)
+    x[300:306, 200:230] += 80.0
+    scene = write_scene(tmp_path / "nolooks.zarr", {"intensity": x}, tile=256)  # no looks attribute
+    got = {}
+    for reader in ("tensorstore", "zarr"):
+        res = _detect(scene, tmp_path / reader, SARSHIP_THREADS_MAX_PX="0", SARSHIP_READER=reader)
+        assert res.returncode == 0, res.stderr
+        if sys.platform.startswith("linux"):
+            assert "(fork)" in _cluster_line(res.stderr)
+        run = json.loads((tmp_path / reader / "run.json").read_text())
+        assert run["looks_source"].startswith("estimated from the scene")
+        got[reader] = json.loads((tmp_path / reader / "detections.geojson").read_text())["features"]
+    assert len(got["tensorstore"]) >= 1
+    assert [f["properties"] for f in got["tensorstore"]] == [f["properties"] for f in got["zarr"]]
