@@ -49,14 +49,14 @@ COVARIANCE2_VARS = ("c11", "c12", "c22")
 ZSTD_LEVEL = 3
 
 #: Compressors a scene store's arrays may be written with (``sarship ingest --codec``):
-#: ``lz4`` (the default) is Blosc LZ4 level 5 with byte shuffle, ``zstd`` is zstd level 3,
-#: ``none`` stores raw bytes. Measured (bench/RESULTS.md, "The scene codec"): on speckled
-#: float32 intensity LZ4 + shuffle stores as small as zstd (ratio 1.10-1.15) and a tile read
-#: with its halo takes 23 ms against zstd's 42 ms (none: 16 ms, 10 % larger); on intensities
-#: from 8-bit products zstd stores about half the bytes (ratio 4.0 against 2.2). Detection
-#: reads every tile with its halo, so the default is the fast codec; ``zstd`` is for archives.
+#: ``zstd`` (the default) is zstd level 3, ``lz4`` is Blosc LZ4 level 5 with byte shuffle,
+#: ``none`` stores raw bytes. Measured (bench/RESULTS.md, issue 17, session 10): on speckled
+#: float32 intensity both store the same bytes and LZ4 reads a tile with its halo 1.7x faster
+#: (tensorstore: 13 ms against 22 ms), but end to end that is 0.1 s of an 8192^2 run on two
+#: cores and nothing measurable on the GPU host; LZ4's ingest peaks 30 MB higher per 256 MB
+#: scene, and on intensities from 8-bit products zstd stores half the bytes (ratio 4.0 / 2.2).
 CODECS = ("lz4", "zstd", "none")
-DEFAULT_CODEC = "lz4"
+DEFAULT_CODEC = "zstd"
 
 
 #: Inner chunk side inside a tile when tiles are stored as Zarr v3 shards (measured: reading

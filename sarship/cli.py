@@ -401,9 +401,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spacing", type=_spacing, metavar="AZ,RG",
                    help="pixel spacing in metres, azimuth,range (overrides the product's)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
-    s.add_argument("--codec", choices=["lz4", "zstd", "none"], default="lz4",
-                   help="compressor of the store: lz4 (Blosc LZ4 + byte shuffle, the fastest to read; default), "
-                        "zstd (smaller for products with few distinct values, e.g. 8-bit images; reads slower), none")
+    s.add_argument("--codec", choices=["lz4", "zstd", "none"], default="zstd",
+                   help="compressor of the store: zstd (default), lz4 (Blosc LZ4 + byte shuffle: reads faster, "
+                        "as small on speckled float data, twice the bytes for 8-bit products), none")
     s.add_argument("--swath", metavar="IW1|IW2|IW3",
                    help="sub-swath of a Sentinel-1 IW SLC product (one scene per sub-swath; required when it has several)")
     s.add_argument("--max-pixels", type=float, default=DEFAULT_MAX_PIXELS,

@@ -245,7 +245,7 @@ def ingest(
     default: its defaults).
     ``swath``: the sub-swath (``IW1``, ``IW2``, ``IW3``) of a Sentinel-1 SLC product, one scene
     per sub-swath (required when the product holds several; see :mod:`.safe_slc`).
-    ``codec``: the store's compressor (:data:`sarship.pipeline.scene.CODECS`; default LZ4 + shuffle).
+    ``codec``: the store's compressor (:data:`sarship.pipeline.scene.CODECS`; default zstd).
     """
     paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
     scene_compressors(codec)  # an unknown codec is refused before any work
