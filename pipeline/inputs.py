@@ -117,7 +117,7 @@ def reader_backend() -> str:
     """The library that reads scene arrays: ``SARSHIP_READER`` if set, else tensorstore when it
     imports, else zarr-python. Both read the same Zarr v3 stores to the same values;
     tensorstore's C++ path decodes 2-3x faster and in parallel (zarr-python runs every read of a
-    process through its one event loop: bench/RESULTS.md, "Reading the scene")."""
+    process through its one event loop: bench/RESULTS.md, "Issue 17, session 10")."""
     import os
 
     want = os.environ.get("SARSHIP_READER", "").strip().lower()
