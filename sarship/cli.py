@@ -149,12 +149,20 @@ def cmd_ingest(a) -> int:
     return 0
 
 
+def _scheduler(given: str | None) -> str | None:
+    """``--scheduler`` of a batch command: the given address, else ``SARSHIP_SCHEDULER`` (the
+    service's setting: a cluster kept running, whose warm workers skip the local cluster's
+    start-up), else None (a local cluster). ``local`` always means a local cluster."""
+    value = (given if given is not None else os.environ.get("SARSHIP_SCHEDULER", "")).strip()
+    return None if value in ("", "local") else value
+
+
 def cmd_detect(a) -> int:
     from sarship.workers.jobs import run_detection
 
     extra = _formats(a.formats, a.scene)  # checked before the run: a missing extra fails at once
     run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile,
-                        scheduler=a.scheduler, device=a.device, progress=True, overwrite=a.overwrite)
+                        scheduler=_scheduler(a.scheduler), device=a.device, progress=True, overwrite=a.overwrite)
     _print_warnings("detect", run)
     o = run["outputs"]
     print(f"detections: {o['detections.geojson']} ({run['detections']} ships)")
@@ -204,7 +212,8 @@ def cmd_enhance(a) -> int:
     if not a.destripe:
         raise InputError("nothing to do: pass --destripe (the only enhancement of this version)")
     params = DestripeParams(stripes_along=a.stripes_along, segment=a.segment, z_min=a.z_min)
-    rec = run_enhance(a.scene, a.out, params, scheduler=a.scheduler, progress=True, overwrite=a.overwrite)
+    rec = run_enhance(a.scene, a.out, params, scheduler=_scheduler(a.scheduler), progress=True,
+                      overwrite=a.overwrite)
     d = rec["destripe"]
     print(f"scene: {a.out}")
     print(f"destripe: {len(d['stop_bins'])} stopped bins, {len(d['lines'])} Hough lines, "
@@ -421,7 +430,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--set", action="append", metavar="KEY=VALUE", help="detector parameter (repeatable)")
     s.add_argument("--out", default="sarship-out", help="output folder (default ./sarship-out)")
     s.add_argument("--tile", type=_positive_int, help="processing tile side (default: the scene's chunk)")
-    s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: start a local cluster)")
+    s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: $SARSHIP_SCHEDULER if set, "
+                                       "else start a local cluster; 'local': a local cluster)")
     s.add_argument("--device", choices=list(DEVICES), default="auto")
     s.add_argument("--overwrite", action="store_true",
                    help="write into an existing non-empty --out folder, replacing its detections.geojson, "
@@ -446,7 +456,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--segment", type=_positive_int, default=32, help="lines per segment of the stripe spectrum")
     s.add_argument("--z-min", dest="z_min", type=float, default=4.0,
                    help="noise floor of the stripe coherence ratio (default 4)")
-    s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: start a local cluster)")
+    s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: $SARSHIP_SCHEDULER if set, "
+                                       "else start a local cluster; 'local': a local cluster)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
     s.set_defaults(func=cmd_enhance)
 

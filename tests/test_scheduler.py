@@ -36,6 +36,31 @@ def test_detect_on_existing_scheduler(tmp_path, two_workers):
     assert run["detections"] >= 5
 
 
+def test_scheduler_from_the_environment(tmp_path, two_workers):
+    """Without --scheduler, `sarship detect` uses SARSHIP_SCHEDULER (a cluster kept running);
+    `--scheduler local` starts a local cluster even so."""
+    import os
+
+    x = blobs_scene((200, 180), looks=2.0, seed=4)
+    scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=2.0)
+    args = [sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar", "--tile", "64",
+            "--set", "guard=11", "--set", "background=31"]
+    env = {**os.environ, "SARSHIP_SCHEDULER": two_workers}
+    res = subprocess.run([*args, "--out", str(tmp_path / "env")], capture_output=True, text=True, timeout=300,
+                         env=env)
+    assert res.returncode == 0, res.stderr
+    assert f"using Dask scheduler {two_workers}" in res.stderr
+    run = json.loads((tmp_path / "env" / "run.json").read_text())
+    assert {t["worker"] for t in run["tiles"]["per_tile"]} <= {"alpha", "beta"}
+    res = subprocess.run([*args, "--out", str(tmp_path / "loc"), "--scheduler", "local"], capture_output=True,
+                         text=True, timeout=300, env=env)
+    assert res.returncode == 0, res.stderr
+    assert "local Dask cluster" in res.stderr and two_workers not in res.stderr
+    local = json.loads((tmp_path / "loc" / "detections.geojson").read_text())["features"]
+    remote = json.loads((tmp_path / "env" / "detections.geojson").read_text())["features"]
+    assert [f["properties"] for f in local] == [f["properties"] for f in remote] and local
+
+
 def test_unreachable_scheduler(tmp_path):
     x = np.ones((32, 32), np.float32)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=32, looks=1.0)
