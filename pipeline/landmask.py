@@ -232,8 +232,7 @@ def _grid_sums(sub, m, g0r, g0c, ri, ci, n_out, s1_out, s2_out):
                     if np.isfinite(v) and v >= 0.0:
                         rowi[c] = v
                         rowa[c] = np.sqrt(v)
-                        if j <= c < j + m:
-                            cnt += 1
+                        cnt += 1
                     else:
                         rowi[c] = 0.0
                         rowa[c] = 0.0

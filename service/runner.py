@@ -275,17 +275,18 @@ class Runner:
         out_dir = self.settings.jobs_dir / job_id
         inputs = dict(job["inputs"])
 
-        last = [0.0]
+        last_saved = 0.0
 
         def on_tile(done: int, total: int) -> None:
+            nonlocal last_saved
             if self.metrics is not None:
                 self.metrics.tiles.inc()
             # progress (and the check that the job is still ours) at most every PROGRESS_EVERY_S
             # seconds, not per tile: a store write per tile is in the tile results' path
             now = time.monotonic()
-            if now - last[0] < PROGRESS_EVERY_S and done < total:
+            if now - last_saved < PROGRESS_EVERY_S and done < total:
                 return
-            last[0] = now
+            last_saved = now
             pct = int(100 * done / max(total, 1))
             if not self.store.renew(job_id, self.owner, self.settings.lease_s, min(pct, 99), attempt=attempt):
                 raise Dismissed(job_id)

@@ -181,3 +181,20 @@ def test_reader_setting_is_checked(monkeypatch):
     assert reader_backend() == "zarr"
     monkeypatch.delenv("SARSHIP_READER")
     assert reader_backend() == ("tensorstore" if "tensorstore" in BACKENDS else "zarr")
+
+
+def test_a_store_tensorstore_cannot_open_is_read_by_zarr_python(tmp_path, monkeypatch):
+    """A Zarr v2 array (tensorstore's zarr3 driver does not open it) is read through zarr-python,
+    with a warning naming the store, and gives its values."""
+    if "tensorstore" not in BACKENDS:
+        pytest.skip("tensorstore is not installed")
+    import zarr
+
+    from sarship.pipeline.inputs import open_array
+
+    monkeypatch.delenv("SARSHIP_READER", raising=False)
+    a = zarr.create_array(str(tmp_path / "v2.zarr"), shape=(10, 12), dtype="f4", chunks=(5, 5), zarr_format=2)
+    a[:] = np.arange(120, dtype="f4").reshape(10, 12)
+    with pytest.warns(UserWarning, match="tensorstore cannot open .*v2.zarr.*using zarr-python"):
+        b = open_array(str(tmp_path / "v2.zarr"))
+    np.testing.assert_array_equal(b[2:4, 3:5], a[2:4, 3:5])

@@ -252,7 +252,7 @@ def worker_start_method(short_lived: bool = True) -> str:
 
     A forked worker inherits the interpreter with NumPy, SciPy, Zarr, Dask and sarship already
     imported, so it is ready at once instead of importing them again (1.2-1.5 s for
-    ``distributed`` alone on the H100 host). Measured there on the 25000 x 16700 band, one H100,
+    ``distributed`` alone on the H100 host, measured there without compiled bytecode). Measured there on the 25000 x 16700 band, one H100,
     4 worker processes, ``sarship detect`` as typed (bench/RESULTS.md): warm 11.9 s with spawn,
     6.7 s with fork (cluster start 3.4 -> 1.1 s, land pass 4.1 -> 2.0 s, close 0.7 -> 0.3 s);
     cold 28.8 s -> 7.0 s; ``forkserver`` 9.8 s. Fork is not used where it is unsafe: a child of
@@ -271,10 +271,12 @@ def worker_start_method(short_lived: bool = True) -> str:
 
 def gpu_procs(n_gpus: int = 1) -> int:
     """Worker processes per GPU of a local cluster: ``SARSHIP_GPU_PROCS``, else a quarter of
-    the cores per GPU, at most 4. A tile's Zarr read and write and its labelling are Python
-    holding one interpreter lock per process; measured on the 25000 x 16700 band, one H100,
-    16 cores, ``ca_cfar`` (bench/RESULTS.md): tiles 11.2 s with 1 process, 5.3 s with 4, 5.3 s
-    with 8 (2 threads each)."""
+    the cores per GPU, at most 4. A tile's labelling and the Python around its transfers hold
+    one interpreter lock per process (its read and write too, with zarr-python); measured on
+    the 25000 x 16700 band, one H100, 16 cores, ``ca_cfar`` (bench/RESULTS.md): tiles 11.2 s
+    with 1 process, 5.3 s with 4, 5.3 s with 8 (2 threads each), with zarr-python; with
+    tensorstore reading, one in-process worker of 4-16 threads was still slower (7.4-8.8 s
+    as typed against 7.3-7.4 s with 4 processes)."""
     raw = os.environ.get("SARSHIP_GPU_PROCS")
     if raw is None:
         return max(1, min(4, (os.cpu_count() or 1) // (4 * max(1, n_gpus))))
