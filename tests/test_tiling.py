@@ -122,3 +122,35 @@ def test_merge_px_joins_fragments(tmp_path, client):
         run, feats, _ = _run(tmp_path, client, scene, "ca_cfar", 16, {**base, "merge_px": str(mp)}, f"mp{mp}")
         n[mp] = len(feats)
     assert n == {0: 3, 2: 2, 3: 1}
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_min_labels_equals_connected_components(seed):
+    """The client's merge labels (numpy label propagation) are scipy's connected components,
+    each labelled by its smallest node; chains numbered against the hooking order (the slow case
+    of label propagation) included."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from sarship.pipeline.components import min_labels
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 3000))
+    m = int(rng.integers(0, 2 * n))
+    a, b = rng.integers(0, n, m), rng.integers(0, n, m)
+    if seed % 2:  # a long chain in descending node order, plus the random edges
+        chain = rng.permutation(n)
+        a = np.r_[a, chain[:-1]]
+        b = np.r_[b, chain[1:]]
+    got = min_labels(n, a, b)
+    _, comp = connected_components(coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)), directed=False)
+    smallest = np.full(comp.max() + 1, n)
+    np.minimum.at(smallest, comp, np.arange(n))
+    np.testing.assert_array_equal(got, smallest[comp])
+
+
+def test_min_labels_without_edges():
+    from sarship.pipeline.components import min_labels
+
+    np.testing.assert_array_equal(min_labels(4, np.zeros(0, int), np.zeros(0, int)), np.arange(4))
+    assert min_labels(0, np.zeros(0, int), np.zeros(0, int)).size == 0
