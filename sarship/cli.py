@@ -472,7 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "other's GPU work; 1: strictly one)")
     s.add_argument("--gpu-procs", type=int, default=None,
                    help="worker processes per GPU (default: SARSHIP_GPU_PROCS, else a quarter of the cores "
-                        "per GPU, at most 4, as sarship detect's local cluster): each runs the Python parts "
+                        "per GPU, at most 4 per GPU and 4 in all, as sarship detect's local cluster): each runs the Python parts "
                         "of its tiles (Zarr read/write, labelling) on its own core")
     s.add_argument("--name", help="worker name prefix (default: the host name)")
     s.add_argument("--memory-limit", help="per-worker memory limit, e.g. 8GiB (default: Dask's auto)")

@@ -271,15 +271,25 @@ def worker_start_method(short_lived: bool = True) -> str:
 
 def gpu_procs(n_gpus: int = 1) -> int:
     """Worker processes per GPU of a local cluster: ``SARSHIP_GPU_PROCS``, else a quarter of
-    the cores per GPU, at most 4. A tile's labelling and the Python around its transfers hold
-    one interpreter lock per process (its read and write too, with zarr-python); measured on
-    the 25000 x 16700 band, one H100, 16 cores, ``ca_cfar`` (bench/RESULTS.md): tiles 11.2 s
-    with 1 process, 5.3 s with 4, 5.3 s with 8 (2 threads each), with zarr-python; with
-    tensorstore reading, one in-process worker of 4-16 threads was still slower (7.4-8.8 s
-    as typed against 7.3-7.4 s with 4 processes)."""
+    the cores per GPU, at most 4 per GPU and at most 4 GPU worker processes in all (one per
+    GPU beyond four GPUs).
+
+    Why several per GPU: a tile's labelling and the Python around its transfers hold one
+    interpreter lock per process (its read and write too, with zarr-python); measured on the
+    25000 x 16700 band, one H100, 16 cores, ``ca_cfar`` (bench/RESULTS.md): tiles 11.2 s with 1
+    process, 5.3 s with 4, 5.3 s with 8 (2 threads each), with zarr-python; with tensorstore
+    reading, one in-process worker of 4-16 threads was still slower (7.4-8.8 s as typed
+    against 7.3-7.4 s with 4 processes).
+
+    Why not more than 4 in all: every fresh process pays its own CUDA context, CuPy kernels and
+    compiled-code loads, and several GPUs' contexts are made at once. On four H200s (64 cores,
+    bench/RESULTS.md, issue 18, session 11) the band as typed took 10.7 s with 4 processes per
+    GPU (16), 8.4 s with 2 (8) and 7.0 s with 1 (4); on warm ``sarship worker`` processes 4.5,
+    4.8 and 4.1 s: more processes bought nothing there either."""
     raw = os.environ.get("SARSHIP_GPU_PROCS")
     if raw is None:
-        return max(1, min(4, (os.cpu_count() or 1) // (4 * max(1, n_gpus))))
+        n = max(1, n_gpus)
+        return max(1, min(4, (os.cpu_count() or 1) // (4 * n), 4 // n))
     try:
         return max(1, int(raw))
     except ValueError:

@@ -57,7 +57,7 @@ def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str 
           gpu_procs: int | None = None) -> int:
     """Start the workers and block until they stop (or SIGINT/SIGTERM). ``gpu_procs``: worker
     processes per GPU (default: the local cluster's rule, :func:`sarship.workers.cluster.gpu_procs`:
-    ``SARSHIP_GPU_PROCS``, else a quarter of the cores per GPU, at most 4)."""
+    ``SARSHIP_GPU_PROCS``, else a quarter of the cores per GPU, at most 4 per GPU and 4 in all)."""
     if not scheduler:
         raise InputError("--scheduler ADDRESS is required (e.g. tcp://10.0.0.1:8786)")
     gpu_ids = parse_gpus(gpus)
