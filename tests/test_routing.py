@@ -60,8 +60,7 @@ def test_worker_specs_pin_and_advertise():
 def test_worker_specs_processes_per_gpu(monkeypatch):
     """gpu_procs > 1: that many pinned worker processes per GPU, each advertising its threads;
     the local cluster's count: SARSHIP_GPU_PROCS, else a quarter of the cores per GPU, at most 4 per GPU
-    and 4 in all (one per GPU beyond four); each GPU worker carries the CUDA warm-up plugin."""
-    from sarship.workers.gpus import CudaWarmup
+    and 4 in all (one per GPU beyond four)."""
 
     from sarship.workers import cluster
 
@@ -69,8 +68,6 @@ def test_worker_specs_processes_per_gpu(monkeypatch):
     assert list(specs) == ["h-gpu0-0", "h-gpu0-1", "h-gpu0-2", "h-gpu1-0", "h-gpu1-1", "h-gpu1-2", "h-cpu0"]
     assert {specs[n]["options"]["env"]["CUDA_VISIBLE_DEVICES"] for n in ("h-gpu1-0", "h-gpu1-2")} == {"1"}
     assert all(specs[n]["options"]["resources"] == {"GPU": 2} for n in specs if "gpu" in n)
-    assert all(any(isinstance(p, CudaWarmup) for p in specs[n]["options"]["plugins"]) for n in specs if "gpu" in n)
-    assert "plugins" not in specs["h-cpu0"]["options"]
     monkeypatch.setenv("SARSHIP_GPU_PROCS", "6")
     assert cluster.gpu_procs(2) == 6
     monkeypatch.setenv("SARSHIP_GPU_PROCS", "many")
@@ -237,26 +234,3 @@ def test_kept_blocks_never_pull_tiles_onto_workers_the_placement_excludes(tmp_pa
     assert {t["block_from"] for t in per} == {"land pass"}
     assert run["detections"] >= 3
 
-
-def _plugins_and_warmup(dask_worker):
-    import threading
-
-    for t in threading.enumerate():
-        if t.name == "sarship-cuda-warmup":
-            t.join(timeout=60)
-    return sorted(dask_worker.plugins), any(t.name == "sarship-cuda-warmup" and t.is_alive()
-                                             for t in threading.enumerate())
-
-
-def test_gpu_worker_spec_starts_with_its_cuda_warmup():
-    """A GPU worker of :func:`worker_specs` (a real Nanny process) starts with the CUDA warm-up
-    plugin, whose thread finishes: it creates the context on a GPU host and does nothing where
-    CuPy or the GPU is missing (this CPU machine), without failing the worker."""
-    from distributed import Client, Scheduler, SpecCluster
-
-    specs = worker_specs(["0"], 0, prefix="w-", gpu_procs=1, gpu_threads=1, silence_logs=50)
-    with SpecCluster(workers=specs, scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
-                     silence_logs=50) as cluster, Client(cluster) as client:
-        client.wait_for_workers(1, timeout=60)
-        (plugins, alive), = client.run(_plugins_and_warmup).values()
-    assert "sarship-cuda-warmup" in plugins and not alive

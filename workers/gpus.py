@@ -13,45 +13,8 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import threading
-
-from distributed.diagnostics.plugin import WorkerPlugin
 
 from sarship.pipeline.errors import InputError
-
-
-class CudaWarmup(WorkerPlugin):
-    """Create a GPU worker's CUDA context in the background as soon as the worker starts.
-
-    Without it the context (and CuPy's memory pool) is made by the worker's first tile: on
-    the 25000 x 16700 band, ``sarship detect`` as typed on H200s, the tiles' host-to-device
-    seconds summed to 5.2 s over 4 fresh worker processes on one GPU and 71 s over 16 on four
-    GPUs, against 0.6-0.8 s on warm workers (bench/RESULTS.md, issue 18, session 11): each
-    process's first transfer waited for its context. Started at worker start, in a thread
-    (the driver's context creation releases the interpreter lock), it overlaps the cluster's
-    start, the client's prepare and the land pass. A failure is left to the first tile, which
-    reports it. Does nothing in a worker without ``SARSHIP_DEVICE=gpu`` or without CuPy."""
-
-    name = "sarship-cuda-warmup"
-
-    def setup(self, worker) -> None:
-        if os.environ.get("SARSHIP_DEVICE") != "gpu":
-            return
-        threading.Thread(target=_warm_cuda, name="sarship-cuda-warmup", daemon=True).start()
-
-
-def _warm_cuda() -> None:
-    try:
-        from sarship.pipeline.gpu import cupy_module, init_device
-
-        cp = cupy_module()
-        if cp is None:
-            return
-        init_device()  # the memory pool's cap: creates the device's primary context
-        cp.empty(1, dtype=cp.float32)
-        cp.cuda.get_current_stream().synchronize()
-    except Exception:  # noqa: BLE001 - the first tile meets the same error and reports it
-        pass
 
 
 def visible_gpus() -> list[str]:
@@ -112,8 +75,7 @@ def worker_specs(gpu_ids: list[str], cpus: int, prefix: str, memory_limit: str |
     and each tile asks for ``GPU=1``, so the scheduler fills both slots of one device.
     ``gpu_procs``: worker processes per GPU (each with ``gpu_threads`` threads), so that the
     Python parts of a tile (Zarr read and write, labelling) run on as many cores, each process
-    with its own interpreter lock, while the kernels share the device. Each GPU worker
-    creates its CUDA context at start (:class:`CudaWarmup`).
+    with its own interpreter lock, while the kernels share the device.
     """
     from distributed import Nanny
 
@@ -124,7 +86,6 @@ def worker_specs(gpu_ids: list[str], cpus: int, prefix: str, memory_limit: str |
             env = {"CUDA_VISIBLE_DEVICES": str(gid), "SARSHIP_DEVICE": "gpu"}
             specs[name] = {"cls": Nanny, "options": {"name": name, "nthreads": gpu_threads,
                                                       "resources": {"GPU": gpu_threads},
-                                                      "plugins": {CudaWarmup()},
                                                       "env": env, **_mem(memory_limit), **options}}
     for k in range(cpus):
         name = f"{prefix}cpu{k}"
