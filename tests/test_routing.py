@@ -234,3 +234,31 @@ def test_kept_blocks_never_pull_tiles_onto_workers_the_placement_excludes(tmp_pa
     assert {t["block_from"] for t in per} == {"land pass"}
     assert run["detections"] >= 3
 
+
+
+def _plugins_and_warmup(dask_worker):
+    import threading
+
+    for t in threading.enumerate():
+        if t.name == "sarship-cuda-warmup":
+            t.join(timeout=60)
+    return sorted(dask_worker.plugins), any(t.name == "sarship-cuda-warmup" and t.is_alive()
+                                             for t in threading.enumerate())
+
+
+def test_gpu_worker_spec_starts_with_its_cuda_warmup():
+    """A GPU worker of :func:`worker_specs` (a real Nanny process) starts with the CUDA warm-up
+    plugin, whose thread finishes once the worker runs: it creates the context on a GPU host
+    and does nothing where CuPy or the GPU is missing (this CPU machine), without failing the
+    worker."""
+    from distributed import Client, Scheduler, SpecCluster
+
+    from sarship.workers.gpus import CudaWarmup
+
+    specs = worker_specs(["0"], 0, prefix="w-", gpu_procs=1, gpu_threads=1, silence_logs=50)
+    assert any(isinstance(p, CudaWarmup) for p in specs["w-gpu0"]["options"]["plugins"])
+    with SpecCluster(workers=specs, scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
+                     silence_logs=50) as cluster, Client(cluster) as client:
+        client.wait_for_workers(1, timeout=60)
+        (plugins, alive), = client.run(_plugins_and_warmup).values()
+    assert "sarship-cuda-warmup" in plugins and not alive
