@@ -267,16 +267,34 @@ def texture_sample(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: T
     g = _texture_of_sums(n, s1, s2, cfg.window)
     rr, cc = np.meshgrid(rows[ri], cols[ci], indexing="ij")
     keep = np.isfinite(g)
-    return {"t": g[keep].astype(np.float64), "rc": np.stack([rr[keep], cc[keep]], -1).astype(np.int64)}
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = s2 / n  # the window's mean power (finite wherever the texture is)
+    return {"t": g[keep].astype(np.float64), "m": m[keep].astype(np.float64),
+            "rc": np.stack([rr[keep], cc[keep]], -1).astype(np.int64)}
 
 
-def pool_samples(parts: list[dict]) -> np.ndarray:
-    """The tiles' samples as one array in (row, col) order (independent of the tiling)."""
+def pool_samples(parts: list[dict], key: str = "t") -> np.ndarray:
+    """The tiles' samples (``key``: ``t`` the texture, ``m`` the window's mean power) as one
+    array in (row, col) order (independent of the tiling)."""
     if not parts:
         return np.zeros(0)
-    t = np.concatenate([np.asarray(p["t"], np.float64) for p in parts])
+    t = np.concatenate([np.asarray(p[key], np.float64) for p in parts])
     rc = np.concatenate([np.asarray(p["rc"], np.int64).reshape(-1, 2) for p in parts])
     return t[np.lexsort((rc[:, 1], rc[:, 0]))]
+
+
+def sea_mean(t: np.ndarray, m: np.ndarray, decision: dict) -> float | None:
+    """The sea's mean power: the mean of the sample windows' mean power (``m``) over the
+    windows whose texture ``t`` is sea (at or below ``t*``; every window when there is no
+    land), in (row, col) order, so the same for any tiling. The clutter reference of each
+    detection's ``tcr_db`` (docs/interfaces/files.md). None without a sea window."""
+    t = np.asarray(t, np.float64)
+    m = np.asarray(m, np.float64)
+    ok = np.isfinite(t) & np.isfinite(m)
+    thr = decision.get("threshold")
+    if decision.get("land") and thr is not None:
+        ok &= t <= thr
+    return float(np.mean(m[ok])) if ok.any() else None
 
 
 def _normal_logpdf(x: np.ndarray, mu: np.ndarray, var: np.ndarray) -> np.ndarray:

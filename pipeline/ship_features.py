@@ -172,6 +172,21 @@ def features(records: np.ndarray, spacing: tuple[float, float] | None, geo: dict
     return out
 
 
+def add_contrast(feats: list[dict], sea: float | None) -> list[dict]:
+    """Each detection's target-to-clutter ratio ``tcr_db`` = 10 log10(``mean`` / ``sea``): its
+    mean pixel power over the sea's mean power of the texture land pass
+    (:func:`sarship.pipeline.landmask.sea_mean`); null without that reference (no texture land
+    pass, or no sea in it) or for a detection whose mean is not positive. The seed's
+    discrimination by "scattering characteristics" (docs/references.md#liu2017, step 4) reads
+    such a ratio; the product reports it and drops nothing by it (bench/REALDATA.md: no
+    threshold serves the 8-bit and the calibrated chips alike)."""
+    for f in feats:
+        mean = f["properties"].get("mean")
+        ok = sea is not None and sea > 0 and mean is not None and mean > 0 and math.isfinite(mean)
+        f["properties"]["tcr_db"] = round(10.0 * math.log10(mean / sea), 3) if ok else None
+    return feats
+
+
 def _centre(props: dict, geo: "Georeference | None") -> list[float] | None:
     if geo is None or not geo.usable:
         return None

@@ -8,6 +8,8 @@ import importlib.util
 import numpy as np
 import pytest
 
+from scipy import ndimage
+
 from sarship.pipeline import landmask as lm
 from sarship.pipeline.windows import mirror_pad, padded_block
 
@@ -45,6 +47,19 @@ def test_texture_sample_is_the_texture_of_the_grid_pixels_bit_for_bit(kind, stri
         parts.append(lm.texture_sample(block, r, (r0 - r, c0 - r), cfg, stride))
     got = lm.pool_samples(parts)
     np.testing.assert_array_equal(got, expect[keep])  # bit for bit, in (row, col) order
+    # and the windows' mean power in the same order: present pixels' power over their count
+    means = lm.pool_samples(parts, "m")
+    assert means.shape == got.shape and np.isfinite(means).all()
+    P = lm.power(I) if kind == "complex" else np.asarray(I, np.float64)
+    Pz = np.where(np.isfinite(P) & (P >= 0), P, 0.0)
+    okf = (np.isfinite(P) & (P >= 0)).astype(np.float64)
+
+    def box(a):
+        return ndimage.uniform_filter(np.pad(a, r, mode="reflect"), window, mode="constant")[r:-r, r:-r]
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        want = (box(Pz) / box(okf))[rr[keep], cc[keep]]
+    np.testing.assert_allclose(means, want, rtol=1e-9)
     rc = np.concatenate([p["rc"] for p in parts])
     assert sorted(map(tuple, rc)) == sorted(zip(rr[keep].tolist(), cc[keep].tolist()))
 

@@ -231,8 +231,50 @@ def test_tiled_equals_whole(client, tmp_path):
         assert np.array_equal(mask(tmp_path / f"r{tile}"), M0)
         assert runs[tile]["land"]["mixture"] == runs[301]["land"]["mixture"]
         assert runs[tile]["land"]["threshold"] == runs[301]["land"]["threshold"]
+        assert runs[tile]["land"]["sea_mean"] == runs[301]["land"]["sea_mean"]  # the tcr_db reference
+        tcr = [f["properties"]["tcr_db"] for f in json.loads((tmp_path / f"r{tile}" / "detections.geojson")
+                                                             .read_text())["features"]]
+        assert tcr == [f["properties"]["tcr_db"] for f in json.loads((tmp_path / "r301" / "detections.geojson")
+                                                                    .read_text())["features"]]
     tc = lm.TextureConfig()
     assert np.array_equal(whole_land(I, tc, runs[301]["land"]), L0)
+
+
+def test_sea_mean_and_detections_tcr(coast, client, tmp_path):
+    """The texture land pass's sea reference is the mean power of the sea's sample windows: near the
+    simulated sea's mean (land 8-12 dB brighter is left out; ships are few), far from the scene's
+    mean; each detection's tcr_db is 10 log10(mean / reference), about the simulated ships' 22 dB
+    SCR for the ships; null without the texture pass."""
+    scene, cfg, truth = coast
+    run = run_detection(scene, "ca_cfar", {"land_mask": "texture", "min_area_px": 10}, out_dir=tmp_path / "t",
+                        client=client, progress=False, tile=128)
+    I = np.asarray(zarr.open_group(str(scene), mode="r")["intensity"][...], np.float64)
+    sea = run["land"]["sea_mean"]
+    assert abs(10 * np.log10(sea / I[~truth].mean())) < 1.0, (sea, I[~truth].mean())
+    assert 10 * np.log10(I.mean() / sea) > 3.0  # the land would have raised it
+    feats = json.loads((tmp_path / "t" / "detections.geojson").read_text())["features"]
+    assert feats
+    for f in feats:
+        p = f["properties"]
+        assert p["tcr_db"] == round(10 * np.log10(p["mean"] / sea), 3)
+    ships = [f["properties"]["bbox_px"] for f in json.loads(Path(f"{scene}.truth.geojson").read_text())["features"]]
+    on_ship = [f["properties"]["tcr_db"] for f in feats
+               if any(r0 <= f["properties"]["centroid_px"][0] < r1 and c0 <= f["properties"]["centroid_px"][1] < c1
+                      for r0, c0, r1, c1 in ships)]
+    assert on_ship and min(on_ship) > 12.0, on_ship
+    run_detection(scene, "ca_cfar", {"land_mask": "none", "min_area_px": 10}, out_dir=tmp_path / "n",
+                  client=client, progress=False, tile=128)
+    feats = json.loads((tmp_path / "n" / "detections.geojson").read_text())["features"]
+    assert feats and all(f["properties"]["tcr_db"] is None for f in feats)
+
+
+def test_sea_mean_rule():
+    t = np.array([0.1, 0.2, 2.0, np.nan, 0.3])
+    m = np.array([1.0, 3.0, 100.0, 7.0, np.nan])
+    assert lm.sea_mean(t, m, {"land": True, "threshold": 1.0}) == 2.0  # land window and absent ones out
+    assert lm.sea_mean(t, m, {"land": False, "threshold": None}) == np.mean([1.0, 3.0, 100.0])
+    assert lm.sea_mean(t, m, {"land": True, "threshold": -5.0}) is None
+    assert lm.sea_mean(np.zeros(0), np.zeros(0), {"land": False}) is None
 
 
 def test_land_zarr_written_listed_and_recorded(coast, client, tmp_path):

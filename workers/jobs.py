@@ -24,7 +24,7 @@ from sarship.pipeline import __version__
 from sarship.pipeline.ambiguity import flag_features
 from sarship.pipeline.components import merge_radius, merge_tiles
 from sarship.pipeline.detectors.base import land_mask_parts, resolve_size
-from sarship.pipeline.ship_features import collection, features, keep_mask, write_json
+from sarship.pipeline.ship_features import add_contrast, collection, features, keep_mask, write_json
 from sarship.pipeline.sidelobes import mask_reader, refine_features
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.inputs import complex_source, intensity_source, make_reader, polarimetric_source
@@ -314,6 +314,7 @@ def run_request(
         if spec.discriminate is not None:  # the detector's own rules on whole components (e.g. peak)
             records = records[spec.discriminate(records, params, prep)]
         feats = features(records, spacing, geo)
+        feats = add_contrast(feats, (land_record or {}).get("sea_mean"))
         if params.sidelobes or spec.detection_properties is not None:
             scene_read = make_reader(str(scene.path), var, transform)
             mask_read = mask_reader(tmp / "mask.zarr" / "mask")

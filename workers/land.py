@@ -140,9 +140,11 @@ def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: i
         stride = landmask.sample_stride((H, W))
         base = {"mode": "texture", "config": dataclasses.asdict(cfg), "stride": stride}
         stats = execute(run_tile_land_stats, [dataclasses.replace(j, land=base) for j in jobs], "land texture")
-        t = landmask.pool_samples([s["stats"] for s in sorted(stats, key=lambda s: s["index"])])
+        parts = [s["stats"] for s in sorted(stats, key=lambda s: s["index"])]
+        t = landmask.pool_samples(parts)
         decision = landmask.decide(t, cfg)
         decision["stride"] = stride
+        decision["sea_mean"] = landmask.sea_mean(t, landmask.pool_samples(parts, "m"), decision)
         create_land_store(store, (H, W), tile, {"source": "+".join(sorted(keys)), **attrs})
         land = {"mode": "texture", "config": dataclasses.asdict(cfg), "decision": decision}
         halo = cfg.halo if decision["land"] else 0
