@@ -276,11 +276,16 @@ def texture_sample(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: T
 def pool_samples(parts: list[dict], key: str = "t") -> np.ndarray:
     """The tiles' samples (``key``: ``t`` the texture, ``m`` the window's mean power) as one
     array in (row, col) order (independent of the tiling)."""
+    return pool_sample_arrays(parts, (key,))[0]
+
+
+def pool_sample_arrays(parts: list[dict], keys: tuple[str, ...]) -> list[np.ndarray]:
+    """:func:`pool_samples` of several ``keys`` with one sort of the positions."""
     if not parts:
-        return np.zeros(0)
-    t = np.concatenate([np.asarray(p[key], np.float64) for p in parts])
+        return [np.zeros(0) for _ in keys]
     rc = np.concatenate([np.asarray(p["rc"], np.int64).reshape(-1, 2) for p in parts])
-    return t[np.lexsort((rc[:, 1], rc[:, 0]))]
+    order = np.lexsort((rc[:, 1], rc[:, 0]))
+    return [np.concatenate([np.asarray(p[k], np.float64) for p in parts])[order] for k in keys]
 
 
 def sea_mean(t: np.ndarray, m: np.ndarray, decision: dict) -> float | None:

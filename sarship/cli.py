@@ -23,6 +23,7 @@ from typing import Any
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.limits import DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO
+from sarship.pipeline.scene import CODECS, DEFAULT_CODEC
 from sarship.workers.request import DEVICES
 
 
@@ -410,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spacing", type=_spacing, metavar="AZ,RG",
                    help="pixel spacing in metres, azimuth,range (overrides the product's)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
-    s.add_argument("--codec", choices=["lz4", "zstd", "none"], default="zstd",
+    s.add_argument("--codec", choices=list(CODECS), default=DEFAULT_CODEC,
                    help="compressor of the store: zstd (default), lz4 (Blosc LZ4 + byte shuffle: reads faster, "
                         "as small on speckled float data, twice the bytes for 8-bit products), none")
     s.add_argument("--swath", metavar="IW1|IW2|IW3",

@@ -140,11 +140,11 @@ def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: i
         stride = landmask.sample_stride((H, W))
         base = {"mode": "texture", "config": dataclasses.asdict(cfg), "stride": stride}
         stats = execute(run_tile_land_stats, [dataclasses.replace(j, land=base) for j in jobs], "land texture")
-        parts = [s["stats"] for s in sorted(stats, key=lambda s: s["index"])]
-        t = landmask.pool_samples(parts)
+        t, m = landmask.pool_sample_arrays([s["stats"] for s in sorted(stats, key=lambda s: s["index"])],
+                                           ("t", "m"))
         decision = landmask.decide(t, cfg)
         decision["stride"] = stride
-        decision["sea_mean"] = landmask.sea_mean(t, landmask.pool_samples(parts, "m"), decision)
+        decision["sea_mean"] = landmask.sea_mean(t, m, decision)
         create_land_store(store, (H, W), tile, {"source": "+".join(sorted(keys)), **attrs})
         land = {"mode": "texture", "config": dataclasses.asdict(cfg), "decision": decision}
         halo = cfg.halo if decision["land"] else 0

@@ -22,7 +22,6 @@ from sarship.pipeline.inputs import make_reader, open_array, pixel_power
 from sarship.pipeline.windows import padded_block
 
 
-
 def write_sparse(path: str, r0: int, c0: int, core: np.ndarray) -> tuple[int, int, int, int] | None:
     """Write a tile's boolean ``core`` (its ``[0, 0]`` at scene ``(r0, c0)``) into the new,
     all-fill (0) uint8 array at ``path``: only the box of (inner) chunks that holds its set
