@@ -22,9 +22,13 @@ run after the commands: the detector's kernel alone (``spec.detect``) on the who
 in this process, without a land mask (``--set`` values passed on otherwise); the ratio is
 wall / kernel.
 
+With ``--warm DEVICE`` the commands run on a warm cluster (``sarship warm start``, started
+first and timed on its own; sarship/warm.py): run 1 is then the first command on it.
+
 Usage:
     python bench/bench_profile.py --side 8192 --detector ca_cfar --set looks=1 [--device cpu]
         [--tile 2048] [--runs 2] [--json out.json] [--scene PATH] [--env K=V ...]
+        [--warm auto|gpu|cpu [--warm-workers N]]
 """
 
 from __future__ import annotations
@@ -148,11 +152,17 @@ def main() -> None:
     ap.add_argument("--workdir", help="folder for the temporary scene and outputs")
     ap.add_argument("--scheduler", help="run the commands on this Dask scheduler (`sarship detect --scheduler`) "
                                         "instead of the local cluster each command starts")
+    ap.add_argument("--warm", choices=("auto", "gpu", "cpu"),
+                    help="run the commands on a warm cluster (`sarship warm start --device WARM` first, "
+                         "`sarship warm stop` after; sarship/warm.py) instead of a cluster per command")
+    ap.add_argument("--warm-workers", type=int, help="`sarship warm start --workers N` (CPU workers)")
     a = ap.parse_args()
 
     exe = sarship_exe()
     env = {**os.environ, **key_values(a.env)}
     work = Path(tempfile.mkdtemp(prefix="sarship-profile-", dir=a.workdir))
+    os.chmod(work, 0o700)
+    env["SARSHIP_WARM_SOCKET"] = str(work / "warm.sock")  # this run's own (none unless --warm)
     record: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                     "machine": machine(), "label": a.label, "detector": a.detector, "device": a.device,
                     "set": a.set, "env": a.env, "tile": a.tile, "scheduler": a.scheduler, "runs": []}
@@ -189,6 +199,16 @@ def main() -> None:
             m = record["scene_made"]
             print(f"# scene made: {a.looks:g}-look gamma + ships, .npy in {m['make_npy_s']:.1f} s, "
                   f"`sarship ingest` {m['ingest_s']:.1f} s ({mpx / m['ingest_s']:.1f} Mpx/s)")
+        if a.warm:
+            wcmd = [exe, "warm", "start", "--device", a.warm, "--dashboard", "127.0.0.1:0"]
+            if a.warm_workers is not None:
+                wcmd += ["--workers", str(a.warm_workers)]
+            t = time.perf_counter()
+            p = subprocess.run(wcmd, env=env, capture_output=True, text=True)
+            if p.returncode != 0:
+                raise SystemExit(f"sarship warm start failed: {p.stderr[-2000:]}")
+            record["warm_start"] = {"s": round(time.perf_counter() - t, 3), "line": p.stdout.strip()}
+            print(f"# `sarship warm start --device {a.warm}`: {record['warm_start']['s']:.2f} s: {p.stdout.strip()}")
         out = work / "out"
         cmd = [exe, "detect", scene, "--detector", a.detector, "--device", a.device, "--out", str(out),
                "--overwrite"]
@@ -199,7 +219,9 @@ def main() -> None:
         if a.scheduler:
             cmd += ["--scheduler", a.scheduler]
         for i in range(a.runs):
-            wall, run, _ = run_once(cmd, env, out)
+            wall, run, err = run_once(cmd, env, out)
+            if a.warm and "sarship: warm cluster," not in err:
+                raise SystemExit(f"the command did not run on the warm cluster:\n{err[-2000:]}")
             label = "cold" if i == 0 else "warm"
             rows = stages(run, wall)
             sums = tile_sums(run)
@@ -239,6 +261,8 @@ def main() -> None:
             Path(a.json).write_text(json.dumps(record, indent=1))
             print(f"# record: {a.json}")
     finally:
+        if a.warm:
+            subprocess.run([exe, "warm", "stop"], env=env, capture_output=True, text=True)
         shutil.rmtree(work, ignore_errors=True)
 
 

@@ -1,6 +1,6 @@
 """``python -m sarship``: the command line (same as the ``sarship`` console script)."""
 
-from sarship.cli import console
+from sarship.launch import console
 
 if __name__ == "__main__":
     console()

@@ -161,9 +161,16 @@ def _scheduler(given: str | None) -> str | None:
 def cmd_detect(a) -> int:
     from sarship.workers.jobs import run_detection
 
+    from sarship import warm
+
     extra = _formats(a.formats, a.scene)  # checked before the run: a missing extra fails at once
-    run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile,
-                        scheduler=_scheduler(a.scheduler), device=a.device, progress=True, overwrite=a.overwrite)
+    scheduler = _scheduler(a.scheduler)
+    client = warm.active_client() if scheduler is None else None  # in the warm process (sarship warm)
+    note = None if client is None else f"sarship: warm cluster, {warm.active_description()}, dashboard " \
+                                       f"{client.dashboard_link}"
+    run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile, client=client,
+                        scheduler=scheduler, device=a.device, progress=True, overwrite=a.overwrite,
+                        cluster_note=note)
     _print_warnings("detect", run)
     o = run["outputs"]
     print(f"detections: {o['detections.geojson']} ({run['detections']} ships)")
@@ -227,6 +234,48 @@ def cmd_worker(a) -> int:
 
     return serve(a.scheduler, gpus=a.gpus, cpus=a.cpus, name=a.name, memory_limit=a.memory_limit,
                  gpu_threads=a.gpu_threads, gpu_procs=a.gpu_procs)
+
+
+def cmd_warm(a) -> int:
+    from sarship import warm
+
+    if a.workers is not None and a.workers < 0:
+        raise InputError(f"--workers must be 0 or more, got {a.workers}")
+    try:
+        if a.action == "run":
+            return warm.serve(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
+                              dashboard=a.dashboard)
+        if a.action == "start":
+            state = warm.start(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
+                               dashboard=a.dashboard)
+            print(f"sarship: warm cluster ready (pid {state['pid']}): {state['what']}, dashboard "
+                  f"{state['dashboard']}, ends after {a.idle_timeout:g} s without a command; socket {state['socket']}")
+            return 0
+        if a.action == "status":
+            state = warm.status()
+            if state is None:
+                print(f"no warm cluster (socket {warm.socket_path()})")
+                return 1
+            idle = "never ends by itself" if not state["idle_timeout_s"] else \
+                f"ends after {state['idle_timeout_s']:g} s without a command"
+            print(f"warm cluster (pid {state['pid']}): {state['what']}, dashboard {state['dashboard']}, "
+                  f"{state['commands']} commands run, {idle}; socket {state['socket']}")
+            return 0
+        state = warm.stop()
+        print("no warm cluster was running" if state is None else f"warm cluster (pid {state['pid']}) stopped")
+        return 0
+    except warm.WarmError as exc:
+        raise InputError(str(exc)) from None
+
+
+def _idle(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0 (0: never), got '{text}'")
+    return value
 
 
 def cmd_serve(a) -> int:
@@ -441,6 +490,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="detection files to write, comma-separated: geojson (always), gpkg (GeoPackage), kml; "
                         "gpkg/kml need a georeferenced scene and the extra: pip install 'sarship[gis]'")
     s.set_defaults(func=cmd_detect)
+
+    s = sub.add_parser("warm", help="keep a local cluster running between sarship detect commands (start, status, "
+                                     "stop; docs/interfaces/cli.md)")
+    s.add_argument("action", choices=["start", "status", "stop", "run"],
+                   help="start: in the background; status; stop (after the command it runs); run: in the foreground")
+    s.add_argument("--device", choices=list(DEVICES), default="auto",
+                   help="auto (default): the GPUs' worker processes when there are GPUs, plus CPU workers on the "
+                        "other cores; gpu: refuse to start without a GPU; cpu: CPU workers only")
+    s.add_argument("--workers", type=int, metavar="N",
+                   help="CPU worker processes (default: one per core, less the GPU worker processes)")
+    s.add_argument("--idle-timeout", dest="idle_timeout", type=_idle, default=900.0, metavar="S",
+                   help="end after S seconds without a command (default 900; 0: never)")
+    s.add_argument("--dashboard", default="127.0.0.1:8787",
+                   help="the Dask dashboard's address (default 127.0.0.1:8787; another free port if taken)")
+    s.set_defaults(func=cmd_warm)
 
     s = sub.add_parser("export", help="detections.geojson as a GeoPackage (.gpkg) or KML (.kml) file for a GIS")
     s.add_argument("detections", help="a detections.geojson written by sarship detect or the service")

@@ -46,6 +46,11 @@ def _generous_http_timeouts() -> None:
 _generous_http_timeouts()
 REAL = SHARED / "data" / "real"
 
+# A warm cluster the developer keeps running (sarship warm start) must not take the tests'
+# commands: they look for one at a socket path of their own, where none runs unless a test
+# starts it (tests/test_warm.py).
+os.environ["SARSHIP_WARM_SOCKET"] = f"/tmp/sarship-tests-{os.getuid()}-{os.getpid()}/none/warm.sock"
+
 
 @pytest.fixture(scope="session")
 def client():

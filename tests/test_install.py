@@ -71,7 +71,7 @@ def test_wheel_has_one_top_level_package(wheel):
             assert f"{pkg}/{rel}" in files, f"{folder}/{rel} is not installed (add its package to pyproject.toml)"
     assert "sarship/service/static/index.html" in files  # the web page travels as package data
     entry = next(n for n in names if n.endswith("entry_points.txt"))
-    assert "sarship = sarship.cli:console" in zipfile.ZipFile(wheel).read(entry).decode()
+    assert "sarship = sarship.launch:console" in zipfile.ZipFile(wheel).read(entry).decode()
 
 
 def test_fresh_virtualenv_imports_sarship_only(fresh_env, tmp_path):

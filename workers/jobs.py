@@ -166,6 +166,7 @@ def run_detection(
     progress: bool = True,
     on_tile: Callable[[int, int], None] | None = None,
     overwrite: bool = False,
+    cluster_note: str | None = None,
 ) -> dict[str, Any]:
     """Run ``detector`` on a scene store; returns the ``run.json`` content.
 
@@ -174,11 +175,12 @@ def run_detection(
     ``distributed.Client`` (else one is made: ``scheduler`` or a local cluster). ``tile``:
     processing/output tile side (default: the scene's chunk). ``out_dir`` must not exist or be
     empty unless ``overwrite`` (then only the three outputs are replaced); it is never allowed
-    inside the scene store.
+    inside the scene store. ``cluster_note``: a line for stderr once the checks have passed and
+    the given ``client``'s cluster is used (as a started cluster's own line).
     """
     request = JobRequest.from_inputs(detector, {**(settings or {}), "scene": str(scene_path), "device": device})
     return run_request(request, out_dir, tile=tile, client=client, scheduler=scheduler, progress=progress,
-                       on_tile=on_tile, overwrite=overwrite)
+                       on_tile=on_tile, overwrite=overwrite, cluster_note=cluster_note)
 
 
 def run_request(
@@ -190,6 +192,7 @@ def run_request(
     progress: bool = True,
     on_tile: Callable[[int, int], None] | None = None,
     overwrite: bool = False,
+    cluster_note: str | None = None,
 ) -> dict[str, Any]:
     """Run a validated :class:`~sarship.workers.request.JobRequest`; its ``scene`` is the
     path of a scene store. Returns the ``run.json`` content (see :func:`run_detection`)."""
@@ -270,6 +273,8 @@ def run_request(
                 client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu,
                                                      threads=H * W <= threads_max_px(), short_lived=True))
                 cluster_start = time.perf_counter() - t_cluster
+            elif cluster_note:
+                print(cluster_note, file=sys.stderr)
             cluster_workers = client.scheduler_info(n_workers=-1).get("workers", {})
             placement = plan(device, detector, has_gpu, cluster_workers)
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]

@@ -1,0 +1,243 @@
+"""The warm cluster (``sarship warm``; sarship/warm.py): ``sarship detect`` runs on a local
+cluster kept running between commands, with the same outputs, messages and exit codes as on a
+cluster of its own; interrupted commands leave nothing; commands it cannot take run on their
+own cluster and say why."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sarship import warm
+
+pytestmark = pytest.mark.skipif(not warm.supported(), reason="the warm cluster needs Linux's Unix socket peer IDs")
+
+
+def _env(sock: Path) -> dict:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "SARSHIP_WARM_SOCKET": str(sock)}
+    env.pop("SARSHIP_DEBUG", None)
+    env.pop("SARSHIP_WARM", None)
+    return env
+
+
+def run(sock, *args, cwd=None, env=None, timeout=240):
+    return subprocess.run([sys.executable, "-m", "sarship", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, env={**_env(sock), **(env or {})}, timeout=timeout)
+
+
+@pytest.fixture()
+def sockdir():
+    d = Path(tempfile.mkdtemp(prefix="sw-"))  # short: a Unix socket path has at most 107 bytes
+    os.chmod(d, 0o700)
+    yield d
+    st = warm.status(d / "warm.sock")
+    if st is not None:
+        with pytest.raises(Exception):  # noqa: PT011  (it may have ended meanwhile)
+            os.kill(st["pid"], signal.SIGTERM)
+            time.sleep(5)
+            os.kill(st["pid"], 0)
+            raise RuntimeError("warm process still running")
+    import shutil
+
+    shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture()
+def warm_cpu(sockdir):
+    sock = sockdir / "warm.sock"
+    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "2", "--idle-timeout", "300",
+              "--dashboard", "127.0.0.1:0")
+    assert res.returncode == 0, res.stderr
+    assert "warm cluster ready" in res.stdout and "2 worker processes" in res.stdout
+    yield sock
+    res = run(sock, "warm", "stop")
+    assert res.returncode == 0 and "stopped" in res.stdout, (res.stdout, res.stderr)
+    assert not sock.exists()
+
+
+def _scene(tmp_path, shape=(600, 500), tile=256):
+    from tests.conftest import write_scene
+
+    rng = np.random.default_rng(3)
+    x = rng.gamma(1.0, 1.0, shape).astype(np.float32)
+    for r, c in ((100, 120), (300, 50), (450, 400), (250, 260)):
+        x[r:r + 5, c:c + 9] += 300.0
+    return write_scene(tmp_path / "scene.zarr", {"intensity": x}, tile=tile, looks=1.0)
+
+
+def _mask(out: Path) -> np.ndarray:
+    import zarr
+
+    return np.asarray(zarr.open_array(str(out / "mask.zarr" / "mask"), mode="r")[...])
+
+
+def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
+    _scene(tmp_path)
+    a = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "warm", cwd=tmp_path)
+    assert a.returncode == 0, a.stderr
+    assert "sarship: warm cluster, 2 worker processes" in a.stderr
+    assert "local Dask cluster" not in a.stderr
+    b = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "own", cwd=tmp_path,
+            env={"SARSHIP_WARM": "0"})
+    assert b.returncode == 0, b.stderr
+    assert "local Dask cluster" in b.stderr and "warm cluster" not in b.stderr
+    # the same lines on stdout, with the paths of each run's folder (relative paths: the command's folder)
+    assert a.stdout.replace("/warm/", "/own/") == b.stdout
+    assert str(tmp_path / "warm" / "detections.geojson") in a.stdout
+    fa = json.loads((tmp_path / "warm" / "detections.geojson").read_text())["features"]
+    fb = json.loads((tmp_path / "own" / "detections.geojson").read_text())["features"]
+    assert len(fa) == 4 and [f["properties"]["bbox_px"] for f in fa] == [f["properties"]["bbox_px"] for f in fb]
+    np.testing.assert_array_equal(_mask(tmp_path / "warm"), _mask(tmp_path / "own"))
+    assert not list(tmp_path.glob("*/.sarship-partial-*"))
+
+    # the command line's refusals, messages and exit codes, from the warm process
+    again = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "warm", cwd=tmp_path)
+    assert again.returncode == 2 and "pass --overwrite" in again.stderr and "Traceback" not in again.stderr
+    assert run(warm_cpu, "detect", "missing.zarr", "--detector", "ca_cfar", cwd=tmp_path).returncode == 2
+    bad = run(warm_cpu, "detect", "scene.zarr", "--detector", "nope", cwd=tmp_path)
+    assert bad.returncode == 2 and "unknown detector 'nope'" in bad.stderr
+    usage = run(warm_cpu, "detect", "scene.zarr", cwd=tmp_path)
+    assert usage.returncode == 2 and "--detector" in usage.stderr
+    helped = run(warm_cpu, "detect", "--help")
+    assert helped.returncode == 0 and helped.stdout.startswith("usage: sarship detect")
+    over = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "warm", "--overwrite",
+               "--set", "pfa=1e-3", cwd=tmp_path)
+    assert over.returncode == 0, over.stderr
+    assert json.loads((tmp_path / "warm" / "run.json").read_text())["parameters"]["pfa"] == pytest.approx(1e-3)
+    st = run(warm_cpu, "warm", "status")
+    assert st.returncode == 0 and "7 commands run" in st.stdout, st.stdout
+
+
+def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_path):
+    _scene(tmp_path)
+    # another setting of the cluster's: said, then run on a cluster of its own
+    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", cwd=tmp_path,
+              env={"SARSHIP_THREADS_MAX_PX": "0"})
+    assert res.returncode == 0, res.stderr
+    assert "not on the warm cluster: it was started with another SARSHIP_THREADS_MAX_PX" in res.stderr
+    assert "local Dask cluster, 2 worker processes" in res.stderr  # the command's own setting
+    # a CPU-only warm cluster and --device gpu: the command's own cluster decides
+    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", "--device", "gpu",
+              cwd=tmp_path)
+    assert "not on the warm cluster: it has no GPU worker" in res.stderr
+    # --scheduler never goes to the warm cluster
+    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o3", "--scheduler",
+              "tcp://127.0.0.1:9", cwd=tmp_path)
+    assert res.returncode == 2 and "cannot reach Dask scheduler" in res.stderr and "warm" not in res.stderr
+    st = warm.status(warm_cpu)
+    assert st["commands"] == 0
+
+
+def test_interrupted_commands_leave_nothing_and_the_cluster_goes_on(warm_cpu, tmp_path):
+    _scene(tmp_path, shape=(3072, 3072), tile=256)
+    for sig, code in ((signal.SIGINT, 130), (signal.SIGTERM, 143)):
+        out = tmp_path / f"out-{code}"
+        p = subprocess.Popen([sys.executable, "-m", "sarship", "detect", "scene.zarr", "--detector", "os_cfar",
+                              "--out", out.name], cwd=tmp_path, env=_env(warm_cpu), stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+        seen = []
+        while True:  # the detection's first progress line: the command is under way on the cluster
+            line = p.stderr.readline()
+            seen.append(line)
+            if not line or line.startswith("detect os_cfar"):
+                break
+        assert line, "".join(seen)
+        p.send_signal(sig)
+        rest = p.stderr.read()
+        assert p.wait(120) == code, "".join(seen) + rest
+        assert "sarship detect: interrupted" in rest
+        assert not out.exists(), sorted(str(x) for x in out.rglob("*"))
+    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "after", cwd=tmp_path)
+    assert res.returncode == 0 and "warm cluster" in res.stderr, res.stderr
+    assert (tmp_path / "after" / "detections.geojson").exists()
+
+
+def test_the_client_imports_no_array_library(warm_cpu, tmp_path):
+    code = ("import sys; from sarship import warm; "
+            "c = warm.run_remote(['detect', 'missing.zarr', '--detector', 'ca_cfar']); "
+            "heavy = sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('numpy', 'scipy', 'numba', 'dask', 'distributed', 'zarr', 'pydantic', 'tensorstore')); "
+            "print(c, heavy)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
+                         env=_env(warm_cpu), timeout=120)
+    assert res.stdout.strip() == "2 []", (res.stdout, res.stderr)
+    assert "scene 'missing.zarr' does not exist" in res.stderr
+
+
+def test_start_twice_idle_timeout_and_a_stale_socket(sockdir, tmp_path):
+    sock = sockdir / "warm.sock"
+    _scene(tmp_path)
+    # a socket left by a warm process that was killed: commands run on their own, silently
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    stale.bind(str(sock))
+    stale.close()
+    res = run(sock, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", cwd=tmp_path)
+    assert res.returncode == 0 and "warm" not in res.stderr, res.stderr
+    assert run(sock, "warm", "status").returncode == 1
+    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "2",
+              "--dashboard", "127.0.0.1:0")
+    assert res.returncode == 0, res.stderr
+    again = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--dashboard", "127.0.0.1:0")
+    assert again.returncode == 2 and "runs already" in again.stderr and len(again.stderr.splitlines()) == 1
+    for _ in range(200):  # idle for 2 s: it ends by itself
+        if warm.status(sock) is None and not sock.exists():
+            break
+        time.sleep(0.1)
+    else:
+        pytest.fail("the warm process did not end after its idle timeout")
+    assert "idle for 2 s: ending" in (sockdir / "warm.sock.log").read_text()
+    assert run(sock, "warm", "stop").stdout.strip() == "no warm cluster was running"
+
+
+def test_the_folder_must_be_private(tmp_path):
+    open_dir = tmp_path / "shared"
+    open_dir.mkdir(mode=0o755)
+    os.chmod(open_dir, 0o755)
+    with pytest.raises(warm.WarmError, match="may be entered by other users"):
+        warm.private_folder(open_dir)
+    made = warm.private_folder(tmp_path / "new" / "sub")
+    assert (made.stat().st_mode & 0o777) == 0o700
+    res = run(open_dir / "warm.sock", "warm", "start", "--device", "cpu")
+    assert res.returncode == 2 and "must be 0700" in res.stderr and "Traceback" not in res.stderr
+    bad = run(open_dir / "warm.sock", "warm", "start", "--idle-timeout", "-3")
+    assert bad.returncode == 2 and "--idle-timeout" in bad.stderr
+
+
+@pytest.mark.gpu
+def test_a_warm_cluster_with_gpus_runs_both_devices(sockdir, tmp_path):
+    from sarship.pipeline.gpu import available
+
+    if not available():
+        pytest.skip("needs CuPy and a CUDA GPU (none here)")
+    sock = sockdir / "warm.sock"
+    _scene(tmp_path, shape=(1500, 1300), tile=512)
+    res = run(sock, "warm", "start", "--workers", "2", "--dashboard", "127.0.0.1:0")
+    assert res.returncode == 0, res.stderr
+    assert "GPU worker processes and 2 CPU" in res.stdout, res.stdout
+    try:
+        outs = {}
+        for device in ("gpu", "cpu", "auto"):
+            r = run(sock, "detect", "scene.zarr", "--detector", "ca_cfar", "--device", device, "--out", device,
+                    cwd=tmp_path)
+            assert r.returncode == 0 and "sarship: warm cluster," in r.stderr, r.stderr
+            rj = json.loads((tmp_path / device / "run.json").read_text())
+            assert rj["device"] == ("cpu" if device == "cpu" else "gpu")
+            outs[device] = _mask(tmp_path / device)
+        own = run(sock, "detect", "scene.zarr", "--detector", "ca_cfar", "--device", "gpu", "--out", "own",
+                  cwd=tmp_path, env={"SARSHIP_WARM": "0"})
+        assert own.returncode == 0 and "local Dask cluster" in own.stderr, own.stderr
+        np.testing.assert_array_equal(outs["gpu"], _mask(tmp_path / "own"))
+        np.testing.assert_array_equal(outs["auto"], outs["gpu"])
+        np.testing.assert_array_equal(outs["cpu"], outs["gpu"])  # the same sums (tests/test_gpu.py)
+    finally:
+        assert run(sock, "warm", "stop").returncode == 0
