@@ -301,8 +301,14 @@ def start(device: str = "auto", workers: int | None = None, idle_timeout: float 
     if workers is not None:
         cmd += ["--workers", str(workers)]
     env = {**os.environ, "SARSHIP_WARM_SOCKET": str(path)}
+    import sarship
+
+    # started in the folder that holds this process's sarship package: `python -m sarship` there
+    # imports this very copy (an installed one, or a source checkout's), whatever folder the
+    # command was typed in
+    home = Path(sarship.__file__).resolve().parent.parent
     with open(log, "ab") as out:
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=out, env=env,
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=out, env=env, cwd=home,
                                 start_new_session=True, close_fds=True)
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:

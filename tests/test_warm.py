@@ -31,8 +31,10 @@ def _env(sock: Path) -> dict:
 
 
 def run(sock, *args, cwd=None, env=None, timeout=240):
+    # never the repository's folder: there `python -m sarship` would import the checkout, elsewhere the
+    # installed copy, and the warm process refuses commands of another copy than its own
     return subprocess.run([sys.executable, "-m", "sarship", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, env={**_env(sock), **(env or {})}, timeout=timeout)
+                          cwd=cwd or tempfile.gettempdir(), env={**_env(sock), **(env or {})}, timeout=timeout)
 
 
 @pytest.fixture()
