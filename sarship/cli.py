@@ -244,10 +244,10 @@ def cmd_warm(a) -> int:
     try:
         if a.action == "run":
             return warm.serve(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
-                              dashboard=a.dashboard)
+                              dashboard=a.dashboard, warm_up=a.warm_up)
         if a.action == "start":
             state = warm.start(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
-                               dashboard=a.dashboard)
+                               dashboard=a.dashboard, warm_up=a.warm_up)
             print(f"sarship: warm cluster ready (pid {state['pid']}): {state['what']}, dashboard "
                   f"{state['dashboard']}, ends after {a.idle_timeout:g} s without a command; socket {state['socket']}")
             return 0
@@ -276,6 +276,18 @@ def _idle(text: str) -> float:
     if not value >= 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0 (0: never), got '{text}'")
     return value
+
+
+def _warm_up_list(text: str) -> tuple[str, ...]:
+    from sarship.pipeline.detectors import names as known
+
+    names = tuple(x.strip() for x in text.split(",") if x.strip())
+    if names in ((), ("none",)):
+        return ()
+    unknown = [n for n in names if n not in known()]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown detector '{unknown[0]}' (known: {', '.join(known())}; or none)")
+    return names
 
 
 def cmd_serve(a) -> int:
@@ -504,6 +516,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="end after S seconds without a command (default 900; 0: never)")
     s.add_argument("--dashboard", default="127.0.0.1:8787",
                    help="the Dask dashboard's address (default 127.0.0.1:8787; another free port if taken)")
+    s.add_argument("--warm-up", dest="warm_up", type=_warm_up_list, default=("ca_cfar",), metavar="LIST",
+                   help="detectors run once on a small simulated scene at the start, so that the first command "
+                        "finds their compiled kernels loaded in every worker (comma-separated; default ca_cfar; "
+                        "none)")
     s.set_defaults(func=cmd_warm)
 
     s = sub.add_parser("export", help="detections.geojson as a GeoPackage (.gpkg) or KML (.kml) file for a GIS")

@@ -55,6 +55,8 @@ PER_COMMAND_ENV = ("SARSHIP_DEBUG", "SARSHIP_FAST_EXIT", "SARSHIP_WARM", "SARSHI
 ENV_PREFIXES = ("SARSHIP_", "DASK_", "CUDA_", "CUPY_", "NUMBA_", "OMP_", "MALLOC_")
 #: Seconds without a command after which the warm process ends (``--idle-timeout``).
 DEFAULT_IDLE_S = 900.0
+#: Detectors run once on a small simulated scene when the warm process starts (``--warm-up``).
+DEFAULT_WARM_UP = ("ca_cfar",)
 #: Seconds ``sarship warm start`` waits for the cluster to be ready.
 START_TIMEOUT_S = 300.0
 
@@ -281,7 +283,7 @@ def stop(path: Path | None = None, timeout: float = 120.0) -> dict | None:
 
 def start(device: str = "auto", workers: int | None = None, idle_timeout: float = DEFAULT_IDLE_S,
           dashboard: str = "127.0.0.1:8787", path: Path | None = None,
-          timeout: float = START_TIMEOUT_S) -> dict:
+          timeout: float = START_TIMEOUT_S, warm_up: tuple[str, ...] = DEFAULT_WARM_UP) -> dict:
     """Start the warm process in the background (its own session, output in ``warm.log`` beside
     the socket) and wait until it answers; its state. :class:`WarmError` if one runs already or
     it could not start (with the end of its log)."""
@@ -297,7 +299,7 @@ def start(device: str = "auto", workers: int | None = None, idle_timeout: float 
     folder = private_folder(path.parent)
     log = folder / f"{path.name}.log"
     cmd = [sys.executable, "-m", "sarship", "warm", "run", "--device", device, "--idle-timeout", f"{idle_timeout:g}",
-           "--dashboard", dashboard]
+           "--dashboard", dashboard, "--warm-up", ",".join(warm_up) or "none"]
     if workers is not None:
         cmd += ["--workers", str(workers)]
     env = {**os.environ, "SARSHIP_WARM_SOCKET": str(path)}
@@ -418,7 +420,8 @@ class _Channel:
 
 
 def serve(device: str = "auto", workers: int | None = None, idle_timeout: float = DEFAULT_IDLE_S,
-          dashboard: str = "127.0.0.1:8787", path: Path | None = None) -> int:
+          dashboard: str = "127.0.0.1:8787", path: Path | None = None,
+          warm_up: tuple[str, ...] = DEFAULT_WARM_UP) -> int:
     """Run the warm process in the foreground (``sarship warm run``): start the cluster, then
     run the commands that arrive on the socket until ``idle_timeout`` seconds pass without one
     (0: never), ``sarship warm stop``, SIGTERM or Ctrl-C."""
@@ -463,6 +466,7 @@ def serve(device: str = "auto", workers: int | None = None, idle_timeout: float 
 
         for name in ("sarship.cli", "sarship.workers.jobs"):  # the commands' imports, done once
             importlib.import_module(name)
+        _warm_up(client, path.parent, warm_up)
 
         info = client.scheduler_info(n_workers=-1).get("workers", {})
         n_gpu = sum(1 for w in info.values() if float((w.get("resources") or {}).get("GPU", 0)) > 0)
@@ -704,3 +708,43 @@ def _settle(client, temps: list, existing: set, timeout: float = 60.0) -> None:
         if folder not in existing:
             with contextlib.suppress(OSError):
                 folder.rmdir()  # only when empty
+
+
+def _warm_up(client, folder: Path, detectors: tuple[str, ...]) -> None:
+    """Run each detector of ``detectors`` (defaults, texture land mask) on a small simulated scene
+    cut into 128 px tiles, at least four tiles a worker, once on the GPU workers (if any) and once
+    on the CPU workers (if any), outputs discarded: every worker then has its compiled kernels
+    loaded (Numba's cache, CuPy's kernels, the CUDA context) and the first command does not pay
+    for them (on a fresh H200 host the first command on a cold cluster took 20 s, the next 1.8 s;
+    bench/RESULTS.md). A detector that fails here (e.g. one that needs another kind of scene) is
+    reported in the log and skipped."""
+    import shutil
+
+    if not detectors:
+        return
+    from sarship.pipeline.simulate import SimConfig, simulate
+    from sarship.workers.jobs import run_detection
+
+    info = client.scheduler_info(n_workers=-1).get("workers", {})
+    gpu = any(float((w.get("resources") or {}).get("GPU", 0)) > 0 for w in info.values())
+    cpu = any(float((w.get("resources") or {}).get("GPU", 0)) <= 0 for w in info.values())
+    import math
+
+    side = 128 * max(4, math.ceil(math.sqrt(4 * max(1, len(info)))))
+    work = Path(tempfile.mkdtemp(prefix=".warm-up-", dir=folder))
+    t0 = time.perf_counter()
+    try:
+        scene = simulate(work / "scene.zarr", SimConfig(shape=(side, side), ships=8, seed=1), tile=128,
+                         truth_path=work / "truth.geojson")
+        for name in detectors:
+            for device in (["gpu"] if gpu else []) + (["cpu"] if cpu else []):
+                try:
+                    run_detection(scene, name, {}, out_dir=work / f"{name}-{device}", tile=128, client=client,
+                                  device=device if device == "cpu" else "auto", progress=False)
+                except Exception as exc:  # noqa: BLE001  (the warm-up is a courtesy; the command reports)
+                    print(f"sarship: warm-up of {name} on {device} skipped: {type(exc).__name__}: {exc}",
+                          file=sys.stderr, flush=True)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    print(f"sarship: warm-up ({', '.join(detectors)}, {side} x {side} px in 128 px tiles) "
+          f"{time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)

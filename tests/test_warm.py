@@ -61,6 +61,7 @@ def warm_cpu(sockdir):
               "--dashboard", "127.0.0.1:0")
     assert res.returncode == 0, res.stderr
     assert "warm cluster ready" in res.stdout and "2 worker processes" in res.stdout
+    assert "warm-up (ca_cfar, " in (sockdir / "warm.sock.log").read_text()
     yield sock
     res = run(sock, "warm", "stop")
     assert res.returncode == 0 and "stopped" in res.stdout, (res.stdout, res.stderr)
@@ -123,11 +124,11 @@ def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
 def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_path):
     _scene(tmp_path)
     # another setting of the cluster's: said, then run on a cluster of its own
-    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", cwd=tmp_path,
-              env={"SARSHIP_THREADS_MAX_PX": "0"})
+    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", "--device", "cpu",
+              cwd=tmp_path, env={"SARSHIP_THREADS_MAX_PX": "0"})
     assert res.returncode == 0, res.stderr
     assert "not on the warm cluster: it was started with another SARSHIP_THREADS_MAX_PX" in res.stderr
-    assert "local Dask cluster, 2 worker processes" in res.stderr  # the command's own setting
+    assert f"local Dask cluster, {os.cpu_count()} worker processes" in res.stderr  # the command's own setting
     # a CPU-only warm cluster and --device gpu: the command's own cluster decides
     res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", "--device", "gpu",
               cwd=tmp_path)
@@ -187,7 +188,7 @@ def test_start_twice_idle_timeout_and_a_stale_socket(sockdir, tmp_path):
     assert res.returncode == 0 and "warm" not in res.stderr, res.stderr
     assert run(sock, "warm", "status").returncode == 1
     res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "2",
-              "--dashboard", "127.0.0.1:0")
+              "--dashboard", "127.0.0.1:0", "--warm-up", "none")
     assert res.returncode == 0, res.stderr
     again = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--dashboard", "127.0.0.1:0")
     assert again.returncode == 2 and "runs already" in again.stderr and len(again.stderr.splitlines()) == 1
@@ -213,6 +214,8 @@ def test_the_folder_must_be_private(tmp_path):
     assert res.returncode == 2 and "must be 0700" in res.stderr and "Traceback" not in res.stderr
     bad = run(open_dir / "warm.sock", "warm", "start", "--idle-timeout", "-3")
     assert bad.returncode == 2 and "--idle-timeout" in bad.stderr
+    bad = run(open_dir / "warm.sock", "warm", "start", "--warm-up", "ca_cfar,nope")
+    assert bad.returncode == 2 and "unknown detector 'nope'" in bad.stderr
 
 
 @pytest.mark.gpu
