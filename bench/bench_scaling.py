@@ -13,6 +13,10 @@ with every stage's share of the wall time from ``run.json``. The configurations:
   --scheduler``: the deployment of docs/deploy, warm (the workers are started once, before the
   runs). On a one-GPU host ``--external 2`` is the dry run of the path: two ``sarship worker
   --gpus 0`` commands sharing GPU 0.
+- ``warm-N``: ``sarship warm start --device gpu`` with ``CUDA_VISIBLE_DEVICES`` = the first N
+  GPUs (a warm cluster kept between commands, sarship/warm.py: its GPU worker processes per GPU
+  are not capped in all, ``gpu_procs(long_lived=True)``), then ``sarship detect`` as typed: the
+  commands run on it.
 
 The reference measured in the same run is the one-GPU run of the same kind (``local-1``,
 ``external-1``; the same host, the same scene): each configuration's speed-up is that run's best
@@ -21,8 +25,8 @@ warm wall over its own (also recorded against ``local-1``). Targets
 
 Usage (on the GPU host, the scene made once by ``sarship ingest``)::
 
-    python bench/bench_scaling.py --scene /tmp/band.zarr --local 1,2,4 --external 1,2,4 --runs 3 \\
-        --json scaling.json [--set land_mask=none]
+    python bench/bench_scaling.py --scene /tmp/band.zarr --local 1,2,4 --external 1,2,4 --warm 1,2,4 \\
+        --runs 3 --json scaling.json [--set land_mask=none]
 """
 
 from __future__ import annotations
@@ -57,9 +61,9 @@ def visible_gpus() -> int:
 
 
 def profile(scene: str, runs: int, sets: list[str], env: dict, json_out: Path, scheduler: str | None = None,
-            detector: str = "ca_cfar") -> dict:
+            detector: str = "ca_cfar", extra: list[str] | None = None) -> dict:
     cmd = [sys.executable, str(HERE / "bench_profile.py"), "--scene", scene, "--detector", detector,
-           "--device", "gpu", "--runs", str(runs), "--no-reference", "--json", str(json_out)]
+           "--device", "gpu", "--runs", str(runs), "--no-reference", "--json", str(json_out), *(extra or [])]
     for s in sets:
         cmd += ["--set", s]
     if scheduler:
@@ -152,13 +156,15 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3, help="commands per configuration (1 cold, then warm)")
     ap.add_argument("--detector", default="ca_cfar")
     ap.add_argument("--set", action="append", default=["looks=1"], metavar="K=V")
+    ap.add_argument("--warm", default="", help="GPU counts of the warm-cluster runs (`sarship warm start --device "
+                                                "gpu` with CUDA_VISIBLE_DEVICES = the first N GPUs), e.g. 1,2,4")
     ap.add_argument("--json", help="write the record here")
     a = ap.parse_args()
     have = visible_gpus()
     if have == 0:
         raise SystemExit("no GPU visible (nvidia-smi -L lists none): this benchmark needs a GPU host")
     counts = [n for n in (int(x) for x in a.local.split(",") if x) if 1 <= n <= have]
-    if 1 not in counts:
+    if counts and 1 not in counts:
         counts = [1] + counts  # the reference
     record = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
               "machine": machine(), "gpus_visible": have, "cores": os.cpu_count(), "scene": a.scene,
@@ -174,9 +180,21 @@ def main() -> None:
             print(f"\n# external-{n}: dask scheduler + sarship worker", flush=True)
             rec = external(a.scene, a.runs, a.set, n, have, work, a.detector)
             record["configs"][f"external-{n}"] = {"gpus": min(have, n), **summary(rec), "record": rec}
-        def base(name: str) -> float:  # the same family's one-GPU run, else local-1
+        warm_counts = [n for n in (int(x) for x in a.warm.split(",") if x) if 1 <= n <= have]
+        if warm_counts and 1 not in warm_counts:
+            warm_counts = [1] + warm_counts
+        for n in warm_counts:
+            env = {**os.environ, "CUDA_VISIBLE_DEVICES": ",".join(str(i) for i in range(n))}
+            print(f"\n# warm-{n}: sarship warm start --device gpu, CUDA_VISIBLE_DEVICES={env['CUDA_VISIBLE_DEVICES']}",
+                  flush=True)
+            rec = profile(a.scene, a.runs, a.set, env, work / f"warm{n}.json", detector=a.detector,
+                          extra=["--warm", "gpu"])
+            record["configs"][f"warm-{n}"] = {"gpus": n, **summary(rec), "record": rec}
+        first = next(iter(record["configs"].values()))
+
+        def base(name: str) -> float:  # the same family's one-GPU run, else local-1 (else the first)
             fam = name.rsplit("-", 1)[0]
-            return record["configs"].get(f"{fam}-1", record["configs"]["local-1"])["warm_best_s"]
+            return record["configs"].get(f"{fam}-1", record["configs"].get("local-1", first))["warm_best_s"]
 
         print(f"\n# {record['date']}  {record['machine']}  {have} GPU(s), {record['cores']} cores")
         print("| config | GPUs | workers | warm best s | warm median s | cold s | speed-up vs its 1-GPU run | "
@@ -184,7 +202,8 @@ def main() -> None:
         print("|---" * (7 + len(STAGES)) + "|")
         for name, c in record["configs"].items():
             c["speedup"] = round(base(name) / c["warm_best_s"], 3)
-            c["speedup_vs_local_1"] = round(record["configs"]["local-1"]["warm_best_s"] / c["warm_best_s"], 3)
+            if "local-1" in record["configs"]:
+                c["speedup_vs_local_1"] = round(record["configs"]["local-1"]["warm_best_s"] / c["warm_best_s"], 3)
             shares = " | ".join(f"{100 * c['shares'].get(k, 0):.0f}%" for k in STAGES)
             print(f"| {name} | {c['gpus']} | {c['workers']} | {c['warm_best_s']:.2f} | {c['warm_median_s']:.2f} | "
                   f"{c['cold_s']:.2f} | {c['speedup']:.2f}x | {shares} |")

@@ -456,12 +456,13 @@ def serve(device: str = "auto", workers: int | None = None, idle_timeout: float 
     if device == "gpu" and not gpus:
         raise WarmError("--device gpu: no GPU is visible here")
     cores = os.cpu_count() or 1
-    n_gpu_procs = len(gpus) * gpu_procs(len(gpus)) if gpus else 0
+    per_gpu = gpu_procs(len(gpus), long_lived=True) if gpus else 0  # started once: no cap on the count
+    n_gpu_procs = len(gpus) * per_gpu
     n_cpu = workers if workers is not None else (max(0, cores - n_gpu_procs) if gpus else cores)
     if not gpus and n_cpu < 1:
         raise WarmError("--workers must be at least 1 without GPUs")
     with connect(None, n_workers=n_cpu if not gpus else None, gpus=bool(gpus), cpu_workers=n_cpu if gpus else 0,
-                 dashboard_address=dashboard, echo=False, short_lived=False) as client:
+                 dashboard_address=dashboard, echo=False, short_lived=False, procs_per_gpu=per_gpu or None) as client:
         import importlib
 
         for name in ("sarship.cli", "sarship.workers.jobs"):  # the commands' imports, done once

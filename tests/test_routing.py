@@ -78,6 +78,8 @@ def test_worker_specs_processes_per_gpu(monkeypatch):
     assert (cluster.gpu_procs(1), cluster.gpu_procs(2), cluster.gpu_procs(8)) == (4, 2, 1)
     monkeypatch.setattr(cluster.os, "cpu_count", lambda: 64)
     assert (cluster.gpu_procs(1), cluster.gpu_procs(2), cluster.gpu_procs(3), cluster.gpu_procs(4)) == (4, 2, 1, 1)
+    # the warm cluster starts once: a quarter of the cores per GPU, at most 4 per GPU, no cap in all
+    assert [cluster.gpu_procs(n, long_lived=True) for n in (1, 2, 4, 8)] == [4, 4, 4, 2]
     monkeypatch.setattr(cluster.os, "cpu_count", lambda: 4)
     assert cluster.gpu_procs(1) == 1
 

@@ -147,6 +147,7 @@ def connect(
     gpu_threads: int | None = None,
     threads: bool = False,
     short_lived: bool = False,
+    procs_per_gpu: int | None = None,
 ) -> Iterator["distributed.Client"]:  # noqa: F821
     """Yield a connected :class:`distributed.Client`.
 
@@ -157,7 +158,8 @@ def connect(
     GPU of a list of IDs, plus ``cpu_workers`` CPU workers. ``threads``: without GPU workers,
     one in-process worker with ``n_workers`` threads (default: all cores) instead of processes.
     ``short_lived``: the cluster lives for one command (``sarship detect``), so its worker
-    processes may be forked (:func:`worker_start_method`).
+    processes may be forked (:func:`worker_start_method`). ``procs_per_gpu``: worker processes
+    per GPU (default :func:`gpu_procs`).
     """
     from distributed import Client
 
@@ -194,7 +196,7 @@ def connect(
                                                      "distributed.nanny.pre-spawn-environ": nanny_environ()}):
         warnings.simplefilter("ignore")
         client, cluster, what = _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads,
-                                             threads)
+                                             threads, procs_per_gpu)
     if "processes" in what:
         what += f" ({method})"
     if echo:
@@ -269,10 +271,11 @@ def worker_start_method(short_lived: bool = True) -> str:
     return "spawn"
 
 
-def gpu_procs(n_gpus: int = 1) -> int:
+def gpu_procs(n_gpus: int = 1, long_lived: bool = False) -> int:
     """Worker processes per GPU of a local cluster: ``SARSHIP_GPU_PROCS``, else a quarter of
     the cores per GPU, at most 4 per GPU and at most 4 GPU worker processes in all (one per
-    GPU beyond four GPUs).
+    GPU beyond four GPUs). ``long_lived`` (the warm cluster, ``sarship warm``): without the cap
+    of 4 in all, whose reason below is the start of a cluster for one command.
 
     Why several per GPU: a tile's labelling and the Python around its transfers hold one
     interpreter lock per process (its read and write too, with zarr-python); measured on the
@@ -289,16 +292,18 @@ def gpu_procs(n_gpus: int = 1) -> int:
     raw = os.environ.get("SARSHIP_GPU_PROCS")
     if raw is None:
         n = max(1, n_gpus)
-        return max(1, min(4, (os.cpu_count() or 1) // (4 * n), 4 // n))
+        return max(1, min(4, (os.cpu_count() or 1) // (4 * n), 4 if long_lived else 4 // n))
     try:
         return max(1, int(raw))
     except ValueError:
         raise InputError(f"SARSHIP_GPU_PROCS must be a whole number, got {raw!r}") from None
 
 
-def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads, threads=False):
+def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads, threads=False, per_gpu=None):
     """Start the local cluster and its client; returns (client, cluster, description)."""
     from distributed import Client, LocalCluster
+
+    per_gpu = per_gpu or (gpu_procs(len(gpu_ids)) if gpu_ids else 1)
 
     if gpu_ids:
         from distributed import Scheduler, SpecCluster
@@ -308,11 +313,11 @@ def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads
         cluster = SpecCluster(
             workers=worker_specs(gpu_ids, cpu_workers, prefix="local-", silence_logs=logging.ERROR,
                                  gpu_threads=gpu_threads or int(os.environ.get("SARSHIP_GPU_THREADS", "2")),
-                                 gpu_procs=gpu_procs(len(gpu_ids))),
+                                 gpu_procs=per_gpu),
             scheduler={"cls": Scheduler, "options": {"dashboard_address": dashboard_address}},
             silence_logs=logging.ERROR,
         )
-        what = f"{len(gpu_ids) * gpu_procs(len(gpu_ids))} GPU worker processes" + (f" and {cpu_workers} CPU" if cpu_workers else "")
+        what = f"{len(gpu_ids) * per_gpu} GPU worker processes" + (f" and {cpu_workers} CPU" if cpu_workers else "")
     elif threads:
         n = n_workers or os.cpu_count() or 1
         cluster = LocalCluster(
@@ -343,5 +348,5 @@ def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads
         what = f"{n} worker processes"
     client = Client(cluster)
     if gpu_ids:
-        client.wait_for_workers(len(gpu_ids) * gpu_procs(len(gpu_ids)) + cpu_workers, timeout=120)
+        client.wait_for_workers(len(gpu_ids) * per_gpu + cpu_workers, timeout=120)
     return client, cluster, what
