@@ -493,7 +493,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="sarship-out", help="output folder (default ./sarship-out)")
     s.add_argument("--tile", type=_positive_int, help="processing tile side (default: the scene's chunk)")
     s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: $SARSHIP_SCHEDULER if set, "
-                                       "else start a local cluster; 'local': a local cluster)")
+                                       "else the warm cluster if one runs (sarship warm), else start a local "
+                                       "cluster; 'local': a local cluster of this command's own)")
     s.add_argument("--device", choices=list(DEVICES), default="auto")
     s.add_argument("--overwrite", action="store_true",
                    help="write into an existing non-empty --out folder, replacing its detections.geojson, "

@@ -20,8 +20,9 @@ When a command runs on a cluster of its own instead, it says why on stderr (exce
 warm cluster runs): the warm process runs another sarship (version, installation or Python
 environment), was started with other settings (any ``SARSHIP_*``, ``DASK_*``, ``CUDA_*``,
 ``CUPY_*``, ``NUMBA_*``, ``OMP_*`` or ``MALLOC_*`` environment variable differs), or has no
-worker for the ``--device`` asked. ``--scheduler ADDRESS`` (or ``SARSHIP_SCHEDULER``) never
-uses it; ``SARSHIP_WARM=0`` turns it off for a command.
+worker for the ``--device`` asked. ``--scheduler`` (an address, or ``local``: a cluster of the
+command's own) and ``SARSHIP_SCHEDULER`` never use it; nor does a command run with
+``SARSHIP_WARM=0``.
 
 Only the user who started it can use it: its socket lives in a folder only that user may
 enter (``$XDG_RUNTIME_DIR/sarship``, else ``/tmp/sarship-UID``; ``SARSHIP_WARM_SOCKET`` names
@@ -95,11 +96,33 @@ def _peer_uid(sock: socket.socket) -> int:
 
 def _identity() -> dict[str, str]:
     """What must be equal for a command to run in the warm process: the sarship version, the
-    installation it was imported from, the Python environment."""
+    installation it was imported from, the Python environment, and the code's newest
+    modification (a reinstall of the same version, an edit of a source checkout)."""
     import sarship
 
     return {"version": sarship.__version__, "package": str(Path(sarship.__file__).resolve().parent),
-            "prefix": sys.prefix}
+            "prefix": sys.prefix, "code": str(_code_stamp(sarship.__path__))}
+
+
+def _code_stamp(paths) -> int:
+    """The newest modification time (ns) of the sarship modules under ``paths`` (the package's
+    ``__path__``: its folder and, in a source checkout, the checkout with ``pipeline/``,
+    ``workers/``, ``service/``); about 2 ms."""
+    roots: list[Path] = []
+    for i, p in enumerate(paths):
+        for sub in (("",) if i == 0 else ()) + ("pipeline", "workers", "service"):
+            d = Path(p) / sub
+            if d not in roots and (d / "__init__.py").is_file():
+                roots.append(d)
+    newest = 0
+    for root in roots:
+        for folder, dirs, files in os.walk(root):
+            dirs[:] = [x for x in dirs if x != "__pycache__"]
+            for f in files:
+                if f.endswith(".py"):
+                    with contextlib.suppress(OSError):
+                        newest = max(newest, os.stat(os.path.join(folder, f)).st_mtime_ns)
+    return newest
 
 
 def relevant_env(environ: dict[str, str] | None = None) -> dict[str, str]:
@@ -153,8 +176,9 @@ def _request(op: str, timeout: float | None = 10.0, path: Path | None = None) ->
 
 def eligible(argv: list[str]) -> bool:
     """Whether ``sarship ARGV`` may run in the warm process: a ``detect`` without
-    ``--scheduler`` or ``SARSHIP_SCHEDULER`` (``local`` is a local cluster: the warm one), unless
-    ``SARSHIP_WARM`` is off. (The warm process checks the parsed command again.)"""
+    ``--scheduler`` or ``SARSHIP_SCHEDULER`` (``local``, there, asks for a cluster of the
+    command's own), unless ``SARSHIP_WARM`` is off. (The warm process checks the parsed command
+    again.)"""
     if os.environ.get("SARSHIP_WARM", "").strip().lower() in _OFF or not supported():
         return False
     command = next((x for x in argv if not x.startswith("-")), None)
@@ -162,7 +186,7 @@ def eligible(argv: list[str]) -> bool:
         return False
     if any(x == "--scheduler" or x.startswith("--scheduler=") for x in argv):
         return False
-    return os.environ.get("SARSHIP_SCHEDULER", "").strip() in ("", "local")
+    return not os.environ.get("SARSHIP_SCHEDULER", "").strip()
 
 
 def run_remote(argv: list[str]) -> int | None:
@@ -177,6 +201,7 @@ def run_remote(argv: list[str]) -> int | None:
     os.umask(umask)
     request = {"op": "detect", "argv": list(argv), "cwd": os.getcwd(), "umask": umask, "env": relevant_env(),
                "identity": _identity(), "debug": os.environ.get("SARSHIP_DEBUG", ""),
+               "columns": _columns(),
                "tty": {"stdout": _isatty(sys.stdout), "stderr": _isatty(sys.stderr)}}
     import signal
     import threading
@@ -203,6 +228,13 @@ def run_remote(argv: list[str]) -> int | None:
 
 class _Terminated(Exception):
     """SIGTERM reached the command while it ran in the warm process."""
+
+
+def _columns() -> int:
+    """This command's terminal width (``COLUMNS``, else its terminal's, else 80): the help texts'."""
+    import shutil
+
+    return shutil.get_terminal_size().columns
 
 
 def _isatty(stream) -> bool:
@@ -570,6 +602,9 @@ def _refusal(req: dict, state: dict) -> str:
     if req.get("identity") != state["identity"]:
         got, have = req.get("identity") or {}, state["identity"]
         key = next((k for k in have if got.get(k) != have[k]), "version")
+        if key == "code":
+            return ("sarship's code was changed since it started (sarship warm stop, then sarship warm start, "
+                    "runs the new code)")
         return f"it runs another sarship ({key} {have[key]}, this command's {got.get(key)})"
     env = req.get("env") or {}
     diff = sorted(k for k in set(env) | set(state["env"]) if env.get(k) != state["env"].get(k))
@@ -578,7 +613,7 @@ def _refusal(req: dict, state: dict) -> str:
                 f"{env.get(diff[0], 'unset')!s})")
     ns = _parse_quietly(req.get("argv") or [])
     if ns is not None:
-        if getattr(ns, "scheduler", None) not in (None, "", "local"):
+        if getattr(ns, "scheduler", None):
             return "--scheduler was given"
         if ns.device == "gpu" and not state["gpu_workers"]:
             return "it has no GPU worker (sarship warm start --device gpu)"
@@ -631,7 +666,7 @@ def _run_command(conn: socket.socket, req: dict, client, state: dict) -> int:
     tty = req.get("tty") or {}
     out, err = _Stream(channel, "o", bool(tty.get("stdout"))), _Stream(channel, "e", bool(tty.get("stderr")))
     cwd, umask = os.getcwd(), os.umask(int(req.get("umask", 0o022)))
-    debug = os.environ.get("SARSHIP_DEBUG")
+    debug, columns = os.environ.get("SARSHIP_DEBUG"), os.environ.get("COLUMNS")
     code = 1
     try:
         os.chdir(req["cwd"])
@@ -650,6 +685,7 @@ def _run_command(conn: socket.socket, req: dict, client, state: dict) -> int:
             os.environ["SARSHIP_DEBUG"] = req["debug"]
         else:
             os.environ.pop("SARSHIP_DEBUG", None)
+        os.environ["COLUMNS"] = str(int(req.get("columns") or 80))  # argparse's help width
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:  # the watcher starts here: its interrupt lands in this block
                 threading.Thread(target=watch, name="sarship-warm-watch", daemon=True).start()
@@ -674,10 +710,11 @@ def _run_command(conn: socket.socket, req: dict, client, state: dict) -> int:
         _ACTIVE.clear()
         if code not in (0, 2):  # interrupted or failed: tiles still running may write again
             _settle(client, temps, existing)
-        if debug is None:
-            os.environ.pop("SARSHIP_DEBUG", None)
-        else:
-            os.environ["SARSHIP_DEBUG"] = debug
+        for key, value in (("SARSHIP_DEBUG", debug), ("COLUMNS", columns)):
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
         os.umask(umask)
         with contextlib.suppress(OSError):
             os.chdir(cwd)

@@ -111,8 +111,10 @@ def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
     assert bad.returncode == 2 and "unknown detector 'nope'" in bad.stderr
     usage = run(warm_cpu, "detect", "scene.zarr", cwd=tmp_path)
     assert usage.returncode == 2 and "--detector" in usage.stderr
-    helped = run(warm_cpu, "detect", "--help")
+    helped = run(warm_cpu, "detect", "--help", env={"COLUMNS": "100"})
+    own_help = run(warm_cpu, "detect", "--help", env={"COLUMNS": "100", "SARSHIP_WARM": "0"})
     assert helped.returncode == 0 and helped.stdout.startswith("usage: sarship detect")
+    assert helped.stdout == own_help.stdout  # the command's terminal width, not the warm process's
     over = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "warm", "--overwrite",
                "--set", "pfa=1e-3", cwd=tmp_path)
     assert over.returncode == 0, over.stderr
@@ -246,3 +248,23 @@ def test_a_warm_cluster_with_gpus_runs_both_devices(sockdir, tmp_path):
         np.testing.assert_array_equal(outs["cpu"], outs["gpu"])  # the same sums (tests/test_gpu.py)
     finally:
         assert run(sock, "warm", "stop").returncode == 0
+
+
+def test_a_changed_code_is_refused(warm_cpu, tmp_path):
+    """A module of sarship modified after the warm process started (a source checkout edited, the
+    same version reinstalled): commands run on their own cluster, with the new code."""
+    _scene(tmp_path)
+    where = subprocess.run([sys.executable, "-c", "import sarship.warm as w; print(w.__file__)"], capture_output=True,
+                           text=True, cwd=tempfile.gettempdir(), env=_env(warm_cpu), check=True)
+    mod = Path(where.stdout.strip())  # the copy the commands import (installed, or this checkout)
+    st = mod.stat()
+    try:
+        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+        res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o", cwd=tmp_path)
+    finally:
+        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert res.returncode == 0, res.stderr
+    assert "not on the warm cluster: sarship's code was changed since it started" in res.stderr
+    assert "local Dask cluster" in res.stderr
+    again = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", cwd=tmp_path)
+    assert again.returncode == 0 and "sarship: warm cluster," in again.stderr, again.stderr  # the time restored
