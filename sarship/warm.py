@@ -194,12 +194,16 @@ def run_remote(argv: list[str]) -> int | None:
     run here (no warm process, or one that cannot take it: then the reason is on stderr)."""
     if not eligible(argv):
         return None
+    try:
+        cwd = os.getcwd()
+    except OSError:  # the command's folder was removed: the command line reports what it can
+        return None
     s = _connect(socket_path())
     if s is None:
         return None
     umask = os.umask(0)
     os.umask(umask)
-    request = {"op": "detect", "argv": list(argv), "cwd": os.getcwd(), "umask": umask, "env": relevant_env(),
+    request = {"op": "detect", "argv": list(argv), "cwd": cwd, "umask": umask, "env": relevant_env(),
                "identity": _identity(), "debug": os.environ.get("SARSHIP_DEBUG", ""),
                "columns": _columns(),
                "tty": {"stdout": _isatty(sys.stdout), "stderr": _isatty(sys.stderr)}}
@@ -269,12 +273,14 @@ def _relay(s: socket.socket) -> int | None:
                 return 1
             s.settimeout(None)
             msg = json.loads(line)
-            if "o" in msg:
-                sys.stdout.write(msg["o"])
-                sys.stdout.flush()
-            elif "e" in msg:
-                sys.stderr.write(msg["e"])
-                sys.stderr.flush()
+            if "o" in msg or "e" in msg:
+                stream = sys.stdout if "o" in msg else sys.stderr
+                try:
+                    stream.write(msg["o"] if "o" in msg else msg["e"])
+                    stream.flush()
+                except BrokenPipeError:  # `sarship detect ... | head`: the reader left; the command goes on
+                    with contextlib.suppress(OSError):
+                        os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
             elif "refuse" in msg:
                 print(f"sarship: not on the warm cluster: {msg['refuse']}; starting a cluster of this command's "
                       "own", file=sys.stderr, flush=True)

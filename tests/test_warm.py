@@ -268,3 +268,16 @@ def test_a_changed_code_is_refused(warm_cpu, tmp_path):
     assert "local Dask cluster" in res.stderr
     again = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", cwd=tmp_path)
     assert again.returncode == 0 and "sarship: warm cluster," in again.stderr, again.stderr  # the time restored
+
+
+def test_output_to_a_closed_pipe(warm_cpu, tmp_path):
+    """`sarship detect ... | head -1`: the reader leaves after one line; the command still ends
+    with its outputs in place and no traceback."""
+    _scene(tmp_path)
+    p = subprocess.Popen(f"{sys.executable} -m sarship detect scene.zarr --detector ca_cfar --out piped | head -1",
+                         shell=True, cwd=tmp_path, env=_env(warm_cpu), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    out, err = p.communicate(timeout=240)
+    assert out.startswith("detections: ") and len(out.splitlines()) == 1, out
+    assert "Traceback" not in err and "warm cluster" in err, err
+    assert (tmp_path / "piped" / "run.json").exists()
