@@ -161,13 +161,13 @@ def _scheduler(given: str | None) -> str | None:
 def cmd_detect(a) -> int:
     from sarship.workers.jobs import run_detection
 
-    from sarship import warm
+    from sarship import warm_process
 
     extra = _formats(a.formats, a.scene)  # checked before the run: a missing extra fails at once
     scheduler = _scheduler(a.scheduler)
-    client = warm.active_client() if scheduler is None else None  # in the warm process (sarship warm)
-    note = None if client is None else f"sarship: warm cluster, {warm.active_description()}, dashboard " \
-                                       f"{client.dashboard_link}"
+    client = warm_process.active_client() if scheduler is None else None  # in the warm process (sarship warm)
+    note = None if client is None else f"sarship: warm cluster, {warm_process.active_description()}, " \
+                                       f"dashboard {client.dashboard_link}"
     run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile, client=client,
                         scheduler=scheduler, device=a.device, progress=True, overwrite=a.overwrite,
                         cluster_note=note)
@@ -243,7 +243,9 @@ def cmd_warm(a) -> int:
         raise InputError(f"--workers must be 0 or more, got {a.workers}")
     try:
         if a.action == "run":
-            return warm.serve(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
+            from sarship.warm_process import serve
+
+            return serve(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
                               dashboard=a.dashboard, warm_up=a.warm_up)
         if a.action == "start":
             state = warm.start(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,

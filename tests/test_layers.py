@@ -28,7 +28,7 @@ ALLOWED = {
 }
 #: the command line's own modules (the console script, ``python -m sarship``, the warm process that
 #: runs its commands): the only importers of ``sarship.cli``
-COMMAND_LINE = {"sarship.__main__", "sarship.launch", "sarship.warm"}
+COMMAND_LINE = {"sarship.__main__", "sarship.launch", "sarship.warm", "sarship.warm_process"}
 #: third-party packages a layer must not use: no cluster and no web in the science
 FORBIDDEN_THIRD_PARTY = {
     "sarship.pipeline": {"distributed", "dask", "fastapi", "starlette", "uvicorn", "httpx", "prometheus_client"},

@@ -54,8 +54,11 @@ def sockdir():
     shutil.rmtree(d, ignore_errors=True)
 
 
-@pytest.fixture()
-def warm_cpu(sockdir):
+@pytest.fixture(scope="module")
+def warm_cpu():
+    """One warm process of 2 CPU workers for the tests of this module that use it."""
+    sockdir = Path(tempfile.mkdtemp(prefix="sw-"))
+    os.chmod(sockdir, 0o700)
     sock = sockdir / "warm.sock"
     res = run(sock, "warm", "start", "--device", "cpu", "--workers", "2", "--idle-timeout", "300",
               "--dashboard", "127.0.0.1:0")
@@ -66,6 +69,9 @@ def warm_cpu(sockdir):
     res = run(sock, "warm", "stop")
     assert res.returncode == 0 and "stopped" in res.stdout, (res.stdout, res.stderr)
     assert not sock.exists()
+    import shutil
+
+    shutil.rmtree(sockdir, ignore_errors=True)
 
 
 def _scene(tmp_path, shape=(600, 500), tile=256):
@@ -86,6 +92,7 @@ def _mask(out: Path) -> np.ndarray:
 
 def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
     _scene(tmp_path)
+    before = warm.status(warm_cpu)["commands"]
     a = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "warm", cwd=tmp_path)
     assert a.returncode == 0, a.stderr
     assert "sarship: warm cluster, 2 worker processes" in a.stderr
@@ -120,11 +127,12 @@ def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
     assert over.returncode == 0, over.stderr
     assert json.loads((tmp_path / "warm" / "run.json").read_text())["parameters"]["pfa"] == pytest.approx(1e-3)
     st = run(warm_cpu, "warm", "status")
-    assert st.returncode == 0 and "7 commands run" in st.stdout, st.stdout
+    assert st.returncode == 0 and f"{before + 7} commands run" in st.stdout, st.stdout
 
 
-def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_path):
+def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_path, monkeypatch):
     _scene(tmp_path)
+    before = warm.status(warm_cpu)["commands"]
     # another setting of the cluster's: said, then run on a cluster of its own
     res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", "--device", "cpu",
               cwd=tmp_path, env={"SARSHIP_THREADS_MAX_PX": "0"})
@@ -135,12 +143,24 @@ def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_pa
     res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", "--device", "gpu",
               cwd=tmp_path)
     assert "not on the warm cluster: it has no GPU worker" in res.stderr
-    # --scheduler never goes to the warm cluster
-    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o3", "--scheduler",
-              "tcp://127.0.0.1:9", cwd=tmp_path)
-    assert res.returncode == 2 and "cannot reach Dask scheduler" in res.stderr and "warm" not in res.stderr
-    st = warm.status(warm_cpu)
-    assert st["commands"] == 0
+    assert warm.status(warm_cpu)["commands"] == before
+    # --scheduler (an address or `local`), SARSHIP_SCHEDULER and SARSHIP_WARM=0 never go to it; other commands
+    # neither (they run here, as always)
+    monkeypatch.delenv("SARSHIP_WARM", raising=False)
+    monkeypatch.delenv("SARSHIP_SCHEDULER", raising=False)
+    assert warm.eligible(["detect", "s.zarr", "--detector", "ca_cfar"])
+    for argv in (["detect", "s.zarr", "--scheduler", "local"], ["detect", "s.zarr", "--scheduler=tcp://h:1"],
+                 ["ingest", "x.npy", "--out", "x.zarr"], ["--version"], ["warm", "status"]):
+        assert not warm.eligible(argv), argv
+    monkeypatch.setenv("SARSHIP_SCHEDULER", "tcp://h:8786")
+    assert not warm.eligible(["detect", "s.zarr"])
+    monkeypatch.delenv("SARSHIP_SCHEDULER")
+    monkeypatch.setenv("SARSHIP_WARM", "0")
+    assert not warm.eligible(["detect", "s.zarr"])
+    # an abbreviation of --scheduler passes the client's check: the warm process refuses it after parsing
+    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o3", "--sched", "local",
+              cwd=tmp_path)
+    assert res.returncode == 0 and "not on the warm cluster: --scheduler was given" in res.stderr, res.stderr
 
 
 def test_interrupted_commands_leave_nothing_and_the_cluster_goes_on(warm_cpu, tmp_path):
@@ -162,9 +182,12 @@ def test_interrupted_commands_leave_nothing_and_the_cluster_goes_on(warm_cpu, tm
         assert p.wait(120) == code, "".join(seen) + rest
         assert "sarship detect: interrupted" in rest
         assert not out.exists(), sorted(str(x) for x in out.rglob("*"))
-    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "after", cwd=tmp_path)
+    small = tmp_path / "small"
+    small.mkdir()
+    _scene(small)
+    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "after", cwd=small)
     assert res.returncode == 0 and "warm cluster" in res.stderr, res.stderr
-    assert (tmp_path / "after" / "detections.geojson").exists()
+    assert (small / "after" / "detections.geojson").exists()
 
 
 def test_the_client_imports_no_array_library(warm_cpu, tmp_path):
