@@ -159,9 +159,8 @@ def _scheduler(given: str | None) -> str | None:
 
 
 def cmd_detect(a) -> int:
-    from sarship.workers.jobs import run_detection
-
     from sarship import warm_process
+    from sarship.workers.jobs import run_detection
 
     extra = _formats(a.formats, a.scene)  # checked before the run: a missing extra fails at once
     scheduler = _scheduler(a.scheduler)
@@ -246,7 +245,7 @@ def cmd_warm(a) -> int:
             from sarship.warm_process import serve
 
             return serve(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
-                              dashboard=a.dashboard, warm_up=a.warm_up)
+                         dashboard=a.dashboard, warm_up=a.warm_up)
         if a.action == "start":
             state = warm.start(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
                                dashboard=a.dashboard, warm_up=a.warm_up)
