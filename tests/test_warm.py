@@ -277,12 +277,14 @@ def test_a_changed_code_is_refused(warm_cpu, tmp_path):
     """A module of sarship modified after the warm process started (a source checkout edited, the
     same version reinstalled): commands run on their own cluster, with the new code."""
     _scene(tmp_path)
-    where = subprocess.run([sys.executable, "-c", "import sarship.warm as w; print(w.__file__)"], capture_output=True,
-                           text=True, cwd=tempfile.gettempdir(), env=_env(warm_cpu), check=True)
-    mod = Path(where.stdout.strip())  # the copy the commands import (installed, or this checkout)
+    code = "import sarship, sarship.warm as w; print(w.__file__); print(w._code_stamp(sarship.__path__))"
+    where = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
+                           env=_env(warm_cpu), check=True)
+    path, newest = where.stdout.split()
+    mod = Path(path)  # the copy the commands import (installed, or this checkout)
     st = mod.stat()
-    try:
-        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    try:  # newer than every module: the stamp changes whichever file was the newest
+        os.utime(mod, ns=(st.st_atime_ns, int(newest) + 10**9))
         res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o", cwd=tmp_path)
     finally:
         os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
