@@ -689,10 +689,7 @@ def main(argv: list[str] | None = None) -> int:
                     # thread, a Dask task) may have re-created a temporary output after its
                     # removal: let them end, then remove what this run left
                     _drain_zarr()
-                    for folder, pattern in temps:
-                        for p in _glob(folder, pattern):
-                            if p not in existing:
-                                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+                    remove_new(temps, existing)
                 raise
             finally:  # (main called in-process, e.g. by tests: the caller's handler again)
                 signal.signal(signal.SIGTERM, handler)
@@ -711,6 +708,15 @@ def _temporaries(a) -> list[tuple[Path, str]]:
     if a.command == "demo":
         return [(out, ".scene.zarr.partial-*"), (out / "detect", ".sarship-partial-*")]
     return []
+
+
+def remove_new(temps: list[tuple[Path, str]], existing: set[Path]) -> None:
+    """Remove the temporary outputs of ``temps`` (:func:`_temporaries`) not in ``existing``: what
+    a command that ended early left (also used by the warm process, sarship/warm_process.py)."""
+    for folder, pattern in temps:
+        for p in _glob(folder, pattern):
+            if p not in existing:
+                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
 
 def _glob(folder: Path, pattern: str) -> list[Path]:

@@ -178,8 +178,7 @@ def eligible(argv: list[str]) -> bool:
     again.)"""
     if os.environ.get("SARSHIP_WARM", "").strip().lower() in _OFF or not supported():
         return False
-    command = next((x for x in argv if not x.startswith("-")), None)
-    if command != "detect" or argv[0] != "detect":
+    if not argv or argv[0] != "detect":
         return False
     if any(x == "--scheduler" or x.startswith("--scheduler=") for x in argv):
         return False

@@ -215,19 +215,21 @@ def _handle(conn: socket.socket, client, state: dict) -> bool:
         return True
     if op != "detect":
         return False
-    reason = _refusal(req, state)
+    ns = _parse_quietly(req.get("argv") or [])
+    reason = _refusal(req, state, ns)
     if reason:
         with contextlib.suppress(OSError):
             _send(conn, {"refuse": reason})
         return False
     conn.settimeout(None)
     state["commands"] += 1
-    code = _run_command(conn, req, client, state)
+    code = _run_command(conn, req, client, state, ns)
     return code == 143  # SIGTERM reached the warm process during the command: it ends
 
 
-def _refusal(req: dict, state: dict) -> str:
-    """Why a command cannot run here ('' when it can)."""
+def _refusal(req: dict, state: dict, ns) -> str:
+    """Why a command cannot run here ('' when it can); ``ns``: its parsed command line, or None
+    when it does not parse (then the command itself reports that)."""
     if req.get("identity") != state["identity"]:
         got, have = req.get("identity") or {}, state["identity"]
         key = next((k for k in have if got.get(k) != have[k]), "version")
@@ -240,7 +242,6 @@ def _refusal(req: dict, state: dict) -> str:
     if diff:
         return (f"it was started with another {diff[0]} ({state['env'].get(diff[0], 'unset')!s}, this command's "
                 f"{env.get(diff[0], 'unset')!s})")
-    ns = _parse_quietly(req.get("argv") or [])
     if ns is not None:
         if getattr(ns, "scheduler", None):
             return "--scheduler was given"
@@ -262,9 +263,10 @@ def _parse_quietly(argv: list[str]):
             return None
 
 
-def _run_command(conn: socket.socket, req: dict, client, state: dict) -> int:
-    """Run the command in this process's main thread (its signal handling is the command line's)
-    with the command's folder, umask and streams; returns its exit code."""
+def _run_command(conn: socket.socket, req: dict, client, state: dict, ns) -> int:
+    """Run the command (``ns``: its parsed command line, or None) in this process's main thread
+    (its signal handling is the command line's) with the command's folder, umask and streams;
+    returns its exit code."""
     import signal
     import threading
 
@@ -291,7 +293,6 @@ def _run_command(conn: socket.socket, req: dict, client, state: dict) -> int:
                 channel.gone = True
             return
 
-    ns = _parse_quietly(list(req["argv"]))
     tty = req.get("tty") or {}
     out, err = _Stream(channel, "o", bool(tty.get("stdout"))), _Stream(channel, "e", bool(tty.get("stderr")))
     cwd, umask = os.getcwd(), os.umask(int(req.get("umask", 0o022)))
@@ -347,8 +348,9 @@ def _run_command(conn: socket.socket, req: dict, client, state: dict) -> int:
         os.umask(umask)
         with contextlib.suppress(OSError):
             os.chdir(cwd)
-    channel.send({"exit": int(code) if isinstance(code, int) else 1})
-    return int(code) if isinstance(code, int) else 1
+    code = code if isinstance(code, int) else 1
+    channel.send({"exit": code})
+    return code
 
 
 def _settle(client, temps: list, existing: set, timeout: float = 60.0) -> None:
@@ -357,8 +359,6 @@ def _settle(client, temps: list, existing: set, timeout: float = 60.0) -> None:
     futures), then remove the temporary outputs those tasks may have written again. The
     command's own clean-up ran already; the warm cluster outlives it, which a command's own
     cluster does not."""
-    import shutil
-
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:
         try:
@@ -367,10 +367,9 @@ def _settle(client, temps: list, existing: set, timeout: float = 60.0) -> None:
         except Exception:
             break
         time.sleep(0.05)
-    for folder, pattern in temps:
-        for p in folder.glob(pattern) if folder.is_dir() else []:
-            if p not in existing:
-                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+    from sarship.cli import remove_new
+
+    remove_new(temps, existing)
     for folder, _ in temps:  # an output folder the command made, which its clean-up had removed
         if folder not in existing:
             with contextlib.suppress(OSError):

@@ -43,12 +43,14 @@ def sockdir():
     os.chmod(d, 0o700)
     yield d
     st = warm.status(d / "warm.sock")
-    if st is not None:
-        with pytest.raises(Exception):  # noqa: PT011  (it may have ended meanwhile)
+    if st is not None:  # a test left its warm process running: end it (clean-up, not a check)
+        try:
             os.kill(st["pid"], signal.SIGTERM)
-            time.sleep(5)
-            os.kill(st["pid"], 0)
-            raise RuntimeError("warm process still running")
+            for _ in range(100):
+                os.kill(st["pid"], 0)
+                time.sleep(0.1)
+        except ProcessLookupError:
+            pass
     import shutil
 
     shutil.rmtree(d, ignore_errors=True)
