@@ -20,6 +20,8 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 from sarship.pipeline import __version__
 from sarship.pipeline.ambiguity import flag_features
 from sarship.pipeline.components import merge_radius, merge_tiles
@@ -27,9 +29,11 @@ from sarship.pipeline.detectors.base import land_mask_parts, resolve_size
 from sarship.pipeline.ship_features import add_contrast, collection, features, keep_mask, write_json
 from sarship.pipeline.sidelobes import mask_reader, refine_features
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.inputs import complex_source, intensity_source, make_reader, polarimetric_source
+from sarship.pipeline.inputs import complex_source, intensity_source, make_reader, pixel_power, polarimetric_source
+from sarship.pipeline.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
+from sarship.pipeline.window_cache import CachedWindows
 from sarship.pipeline.scene import Scene, create_mask_store, finalize_scene, open_scene, tile_slices
-from sarship.workers.land import check_land_file, finish_land, prepare_land
+from sarship.workers.land import LAND_STORE, check_land_file, finish_land, prepare_land
 from sarship.workers.request import JobRequest
 from sarship.workers.routing import plan
 from sarship.workers.tasks import TileJob, read_land_block, run_tile, run_tile_stats
@@ -320,9 +324,23 @@ def run_request(
             records = records[spec.discriminate(records, params, prep)]
         feats = features(records, spacing, geo)
         feats = add_contrast(feats, (land_record or {}).get("sea_mean"))
-        if params.sidelobes or spec.detection_properties is not None:
-            scene_read = make_reader(str(scene.path), var, transform)
-            mask_read = mask_reader(tmp / "mask.zarr" / "mask")
+        # the per-detection steps read small windows: through block caches, each chunk once
+        scene_read = CachedWindows(make_reader(str(scene.path), var, transform), (H, W))
+        # (the uint8 mask and land stores are mostly fill value: whole tiles a read, fewer calls)
+        mblock = min(max(tile, 512), 4096)
+        mask_read = CachedWindows(mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mblock)
+        land_read = (CachedWindows(mask_reader(tmp / LAND_STORE / "land"), (H, W), mblock)
+                     if land_record is not None else None)
+        # each detection's local contrast (pipeline/local_contrast.py) and the min_contrast_db rule
+        feats = add_local_contrast(feats, lambda *w: pixel_power(np.asarray(scene_read(*w))), mask_read, (H, W),
+                                   land_read, getattr(params, "nodata", None))
+        keep = keep_contrast(feats, params.min_contrast_db)
+        contrast_record = {"min_contrast_db": params.min_contrast_db, "gap_px": GAP_PX, "ring_px": RING_PX,
+                           "min_ring_px": MIN_RING_PX, "land_excluded": land_record is not None,
+                           "unmeasured": sum(f["properties"]["contrast_db"] is None for f in feats),
+                           "dropped": len(keep) - sum(keep)}
+        feats = [f for f, k in zip(feats, keep) if k]
+        records = records[np.asarray(keep, bool)] if len(keep) else records
         if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
             feats = refine_features(feats, records, scene_read, mask_read, (H, W), mr, spacing, geo)
         if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
@@ -349,6 +367,7 @@ def run_request(
             "prepared": prep,
             "scene_pass": scene_pass,
             "land": land_record,
+            "contrast": contrast_record,
             "ambiguities": ambiguity_record,
             "scene": {
                 "path": str(Path(scene.path).resolve()),

@@ -66,7 +66,7 @@ HIST_BINS = 80 * HIST_PER_DECADE
 
 
 class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults", pfa=1e-3, merge_px=4,
-                                         land_mask="texture")):
+                                         land_mask="texture", min_contrast_db=7.0)):
     """Parameters of ``superpixel_cfar`` (module docstring; docs/algorithms/superpixel_cfar.md).
 
     The paper's defaults: M_a = 3, CoV over 7x7, kappa 0.4, at most 10 clutter superpixels,
