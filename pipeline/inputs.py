@@ -182,6 +182,17 @@ def open_array(path: str, write: bool = False):
     return zarr.open_array(path, mode="r")
 
 
+def window_reader(path) -> Callable[[int, int, int, int], np.ndarray]:
+    """``read(ra, rb, ca, cb)`` of the 2-D Zarr array at ``path`` as it is stored (e.g. the uint8
+    detection and land masks), through :func:`open_array` (tensorstore when it imports)."""
+    arr = open_array(str(path))
+
+    def read(ra: int, rb: int, ca: int, cb: int) -> np.ndarray:
+        return np.asarray(arr[ra:rb, ca:cb])
+
+    return read
+
+
 def make_reader(path: str, var: str | tuple[str, ...], transform: str
                 ) -> Callable[[int, int, int, int], np.ndarray]:
     """``read(ra, rb, ca, cb)`` -> float32 intensity of the scene rectangle (transform

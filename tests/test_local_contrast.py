@@ -112,12 +112,17 @@ def _run(client, scene, out, tile, **settings):
 
 def test_min_contrast_db_end_to_end(client, tmp_path):
     scene = _two_ships(tmp_path, 200)
-    feats, run = _run(client, scene, tmp_path / "all", 200)
+    # no floor: nothing measured (the property is null), nothing dropped
+    plain, run0 = _run(client, scene, tmp_path / "plain", 200)
+    assert len(plain) == 2 and all(f["properties"]["contrast_db"] is None for f in plain)
+    assert run0["contrast"] == {"min_contrast_db": None, "measured": False}
+    # a floor of -30 dB measures every detection and drops none here
+    feats, run = _run(client, scene, tmp_path / "all", 200, min_contrast_db=-30)
     by_row = sorted(feats, key=lambda f: f["properties"]["bbox_px"][0])
     assert len(by_row) == 2, [f["properties"]["bbox_px"] for f in feats]
     bright, dim = (f["properties"]["contrast_db"] for f in by_row)
     assert 17.0 < bright < 23.0 and 6.0 < dim < 12.0, (bright, dim)
-    assert run["contrast"]["min_contrast_db"] is None and run["contrast"]["dropped"] == 0
+    assert run["contrast"]["measured"] and run["contrast"]["dropped"] == 0
     assert run["contrast"]["ring_px"] == RING_PX and run["contrast"]["unmeasured"] == 0
 
     floor = (bright + dim) / 2
@@ -130,7 +135,7 @@ def test_min_contrast_db_end_to_end(client, tmp_path):
 
     # the tiling does not change the values: 48-px tiles against the one tile
     scene48 = _two_ships(tmp_path, 48)
-    feats48, _ = _run(client, scene48, tmp_path / "t48", 48)
+    feats48, _ = _run(client, scene48, tmp_path / "t48", 48, min_contrast_db=-30)
     a = {tuple(f["properties"]["bbox_px"]): f["properties"]["contrast_db"] for f in feats}
     b = {tuple(f["properties"]["bbox_px"]): f["properties"]["contrast_db"] for f in feats48}
     assert a == b

@@ -27,9 +27,10 @@ from sarship.pipeline.ambiguity import flag_features
 from sarship.pipeline.components import merge_radius, merge_tiles
 from sarship.pipeline.detectors.base import land_mask_parts, resolve_size
 from sarship.pipeline.ship_features import add_contrast, collection, features, keep_mask, write_json
-from sarship.pipeline.sidelobes import mask_reader, refine_features
+from sarship.pipeline.sidelobes import refine_features
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.inputs import complex_source, intensity_source, make_reader, pixel_power, polarimetric_source
+from sarship.pipeline.inputs import (complex_source, intensity_source, make_reader, pixel_power,
+                                     polarimetric_source, window_reader)
 from sarship.pipeline.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
 from sarship.pipeline.window_cache import CachedWindows
 from sarship.pipeline.scene import Scene, create_mask_store, finalize_scene, open_scene, tile_slices
@@ -326,21 +327,27 @@ def run_request(
         feats = add_contrast(feats, (land_record or {}).get("sea_mean"))
         # the per-detection steps read small windows: through block caches, each chunk once
         scene_read = CachedWindows(make_reader(str(scene.path), var, transform), (H, W))
-        # (the uint8 mask and land stores are mostly fill value: whole tiles a read, fewer calls)
-        mblock = min(max(tile, 512), 4096)
-        mask_read = CachedWindows(mask_reader(tmp / "mask.zarr" / "mask"), (H, W), mblock)
-        land_read = (CachedWindows(mask_reader(tmp / LAND_STORE / "land"), (H, W), mblock)
-                     if land_record is not None else None)
-        # each detection's local contrast (pipeline/local_contrast.py) and the min_contrast_db rule
-        feats = add_local_contrast(feats, lambda *w: pixel_power(np.asarray(scene_read(*w))), mask_read, (H, W),
-                                   land_read, getattr(params, "nodata", None))
-        keep = keep_contrast(feats, params.min_contrast_db)
-        contrast_record = {"min_contrast_db": params.min_contrast_db, "gap_px": GAP_PX, "ring_px": RING_PX,
-                           "min_ring_px": MIN_RING_PX, "land_excluded": land_record is not None,
-                           "unmeasured": sum(f["properties"]["contrast_db"] is None for f in feats),
-                           "dropped": len(keep) - sum(keep)}
-        feats = [f for f, k in zip(feats, keep) if k]
-        records = records[np.asarray(keep, bool)] if len(keep) else records
+        mask_read = CachedWindows(window_reader(tmp / "mask.zarr" / "mask"), (H, W))
+        contrast_record = {"min_contrast_db": params.min_contrast_db, "measured": False}
+        if params.min_contrast_db is not None:
+            # each detection's local contrast (pipeline/local_contrast.py) and the min_contrast_db rule;
+            # measured only when a floor is set (it reads a window per detection: a floor of -30 dB
+            # measures every detection and drops practically none)
+            land_read = (CachedWindows(window_reader(tmp / LAND_STORE / "land"), (H, W))
+                         if land_record is not None else None)
+            feats = add_local_contrast(feats, lambda *w: pixel_power(np.asarray(scene_read(*w))), mask_read,
+                                       (H, W), land_read, getattr(params, "nodata", None))
+            keep = keep_contrast(feats, params.min_contrast_db)
+            contrast_record = {"min_contrast_db": params.min_contrast_db, "measured": True, "gap_px": GAP_PX,
+                               "ring_px": RING_PX, "min_ring_px": MIN_RING_PX,
+                               "land_excluded": land_record is not None,
+                               "unmeasured": sum(f["properties"]["contrast_db"] is None for f in feats),
+                               "dropped": len(keep) - sum(keep)}
+            feats = [f for f, k in zip(feats, keep) if k]
+            records = records[np.asarray(keep, bool)] if len(keep) else records
+        else:
+            for f in feats:
+                f["properties"].update(contrast_db=None, contrast_ring_px=None)
         if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
             feats = refine_features(feats, records, scene_read, mask_read, (H, W), mr, spacing, geo)
         if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)

@@ -82,7 +82,8 @@ class DetectorParams(BaseModel):
         None, ge=-30.0, le=60.0,
         description="drop detections whose local contrast contrast_db (mean power over the mean power of the clutter "
                     "ring around them, land and detections left out; pipeline/local_contrast.py) is below this many "
-                    "dB; None keeps every detection (default: the detector's; 7 for superpixel_cfar)")
+                    "dB, measured only when set (-30 measures every detection, dropping practically none); None keeps "
+                    "every detection (default: the detector's; 7 for superpixel_cfar)")
     merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
     sidelobes: bool = Field(True, description="cross-sidelobe suppression: length, width and heading measured on the "
                                               "ship core where a sidelobe cross is found (docs/algorithms/sidelobes.md)")
