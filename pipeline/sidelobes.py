@@ -308,15 +308,3 @@ def refine_features(feats: list[dict], records: np.ndarray, read_power: Callable
         props["core_area_px"] = int(core["n"][0])
         out.append({**f, "geometry": nf["geometry"], "properties": props})
     return out
-
-
-def mask_reader(path) -> Callable[[int, int, int, int], np.ndarray]:
-    """``read(ra, rb, ca, cb)`` of the uint8 detection mask array at ``path`` (Zarr)."""
-    import zarr
-
-    arr = zarr.open_array(str(path), mode="r")
-
-    def read(ra: int, rb: int, ca: int, cb: int) -> np.ndarray:
-        return np.asarray(arr[ra:rb, ca:cb])
-
-    return read
