@@ -19,7 +19,9 @@ Choice on a half, as ``realdata_eval.choose``: the highest mean of the three set
 half among the candidates (setting x floor, "none" included) whose SSDD and HRSID pd are within
 ``PD_SLACK`` of the best pd any candidate reaches there and that find every GRD centre ship of
 the half; ties go to fewer SSDD + HRSID false alarms, then to the lower floor. Both folds are
-reported (tuned on A -> reported on B, and the swap); the shipped default is the A-tuned one.
+reported (tuned on A -> reported on B, and the swap). The other studies ship the A-tuned choice;
+for ``superpixel_cfar`` the shipped floor is the B-tuned one, held out on A, because every HRSID
+false alarm it removes lies in half B (bench/REALDATA.md, "The local-contrast floor").
 
 Usage::
 
