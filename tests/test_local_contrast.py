@@ -209,3 +209,36 @@ def test_contrast_of_complex_scenes(tmp_path, client, kind, detector):
     values = [f["properties"]["contrast_db"] for f in feats]
     assert all(v is not None and math.isfinite(v) for v in values), values
     assert max(values) > 8.0, values
+
+
+def test_land_file_is_left_out_of_the_ring_end_to_end(client, tmp_path):
+    """A land FILE beside a ship: the product's contrast equals the ring computed by hand with the
+    land left out (and differs from the ring with it); ``run.json`` says the land was excluded."""
+    import zarr
+
+    rng = np.random.default_rng(7)
+    x = rng.gamma(4.0, 0.25, (160, 200)).astype(np.float32)
+    x[110:114, 140:150] = rng.gamma(16.0, 0.5, (4, 10))  # the dim ship (9 dB)
+    x[100:125, 156:200] = rng.gamma(4.0, 1.0, (25, 44))  # land 4x brighter than the sea, in its ring
+    scene = write_scene(tmp_path / "land.zarr", {"intensity": x}, tile=200, looks=4.0)
+    land = np.zeros(x.shape, np.uint8)
+    land[100:125, 156:200] = 1
+    np.save(tmp_path / "land.npy", land)
+    feats, run = _run(client, scene, tmp_path / "o", 200, min_contrast_db=-30, land_mask=str(tmp_path / "land.npy"))
+    assert run["contrast"]["land_excluded"] and run["land"]["source"] != "texture"
+    ship = [f["properties"] for f in feats if f["properties"]["bbox_px"] == [110, 140, 114, 150]]
+    assert len(ship) == 1, [f["properties"]["bbox_px"] for f in feats]
+    p = ship[0]
+    detected = np.asarray(zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "mask"), mode="r")[...]) != 0
+    m = GAP_PX + RING_PX
+    win = (slice(110 - m, 114 + m), slice(140 - m, 150 + m))
+    ring = np.ones(x.shape, bool)
+    ring[110 - GAP_PX:114 + GAP_PX, 140 - GAP_PX:150 + GAP_PX] = False
+    ring &= ~detected
+    keep = np.zeros(x.shape, bool)
+    keep[win] = True
+    ref_land_out = x[keep & ring & (land == 0)].astype(np.float64).mean()
+    ref_land_in = x[keep & ring].astype(np.float64).mean()
+    assert p["contrast_ring_px"] == int((keep & ring & (land == 0)).sum())
+    assert p["contrast_db"] == pytest.approx(10 * math.log10(p["mean"] / ref_land_out), abs=2e-3)
+    assert 10 * math.log10(p["mean"] / ref_land_in) < p["contrast_db"] - 1.0
