@@ -62,16 +62,16 @@ class CachedWindows:
     def __call__(self, ra: int, rb: int, ca: int, cb: int) -> np.ndarray:
         ra, rb = max(int(ra), 0), min(int(rb), self.H)
         ca, cb = max(int(ca), 0), min(int(cb), self.W)
+        if rb <= ra or cb <= ca:  # an empty window: what the array itself returns for one
+            return np.asarray(self._read(ra, max(ra, rb), ca, max(ca, cb)))
         b = self.block
         out = None
-        for bi in range(ra // b, (rb - 1) // b + 1 if rb > ra else ra // b):
-            for bj in range(ca // b, (cb - 1) // b + 1 if cb > ca else ca // b):
+        for bi in range(ra // b, (rb - 1) // b + 1):
+            for bj in range(ca // b, (cb - 1) // b + 1):
                 blk = self._get(bi, bj)
                 r0, r1 = max(ra, bi * b), min(rb, (bi + 1) * b)
                 c0, c1 = max(ca, bj * b), min(cb, (bj + 1) * b)
                 if out is None:
                     out = np.empty((rb - ra, cb - ca) + blk.shape[2:], blk.dtype)
                 out[r0 - ra:r1 - ra, c0 - ca:c1 - ca] = blk[r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b]
-        if out is None:  # an empty window: what the array itself returns for one
-            return np.asarray(self._read(ra, max(ra, rb), ca, max(ca, cb)))
         return out

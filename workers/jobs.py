@@ -325,29 +325,14 @@ def run_request(
             records = records[spec.discriminate(records, params, prep)]
         feats = features(records, spacing, geo)
         feats = add_contrast(feats, (land_record or {}).get("sea_mean"))
-        # the per-detection steps read small windows: through block caches, each chunk once
-        scene_read = CachedWindows(make_reader(str(scene.path), var, transform), (H, W))
-        mask_read = CachedWindows(window_reader(tmp / "mask.zarr" / "mask"), (H, W))
-        contrast_record = {"min_contrast_db": params.min_contrast_db, "measured": False}
-        if params.min_contrast_db is not None:
-            # each detection's local contrast (pipeline/local_contrast.py) and the min_contrast_db rule;
-            # measured only when a floor is set (it reads a window per detection: a floor of -30 dB
-            # measures every detection and drops practically none)
-            land_read = (CachedWindows(window_reader(tmp / LAND_STORE / "land"), (H, W))
-                         if land_record is not None else None)
-            feats = add_local_contrast(feats, lambda *w: pixel_power(np.asarray(scene_read(*w))), mask_read,
-                                       (H, W), land_read, getattr(params, "nodata", None))
-            keep = keep_contrast(feats, params.min_contrast_db)
-            contrast_record = {"min_contrast_db": params.min_contrast_db, "measured": True, "gap_px": GAP_PX,
-                               "ring_px": RING_PX, "min_ring_px": MIN_RING_PX,
-                               "land_excluded": land_record is not None,
-                               "unmeasured": sum(f["properties"]["contrast_db"] is None for f in feats),
-                               "dropped": len(keep) - sum(keep)}
-            feats = [f for f, k in zip(feats, keep) if k]
-            records = records[np.asarray(keep, bool)] if len(keep) else records
-        else:
-            for f in feats:
-                f["properties"].update(contrast_db=None, contrast_ring_px=None)
+        scene_read = mask_read = None
+        if params.sidelobes or spec.detection_properties is not None or params.min_contrast_db is not None:
+            # the per-detection steps read small windows: through block caches, each chunk once
+            scene_read = CachedWindows(make_reader(str(scene.path), var, transform), (H, W))
+            mask_read = CachedWindows(window_reader(tmp / "mask.zarr" / "mask"), (H, W))
+        feats, records, contrast_record = _contrast_step(
+            feats, records, params.min_contrast_db, scene_read, mask_read,
+            tmp / LAND_STORE / "land" if land_record is not None else None, (H, W), getattr(params, "nodata", None))
         if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
             feats = refine_features(feats, records, scene_read, mask_read, (H, W), mr, spacing, geo)
         if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
@@ -440,6 +425,27 @@ def run_request(
             with contextlib.suppress(OSError):
                 out_dir.rmdir()
         raise
+
+
+def _contrast_step(feats: list[dict], records, floor: float | None, scene_read, mask_read, land_path: Path | None,
+                   shape: tuple[int, int], nodata: float | None):
+    """The local contrast of every detection and the ``min_contrast_db`` rule
+    (pipeline/local_contrast.py): (kept features, their records, the ``run.json`` record).
+    Measured only when a floor is set (a window read per detection; -30 dB measures every
+    detection and drops practically none); otherwise ``contrast_db`` is null."""
+    if floor is None:
+        for f in feats:
+            f["properties"].update(contrast_db=None, contrast_ring_px=None)
+        return feats, records, {"min_contrast_db": None, "measured": False}
+    land_read = CachedWindows(window_reader(land_path), shape) if land_path is not None else None
+    feats = add_local_contrast(feats, lambda *w: pixel_power(np.asarray(scene_read(*w))), mask_read, shape,
+                               land_read, nodata)
+    keep = keep_contrast(feats, floor)
+    record = {"min_contrast_db": floor, "measured": True, "gap_px": GAP_PX, "ring_px": RING_PX,
+              "min_ring_px": MIN_RING_PX, "land_excluded": land_path is not None,
+              "unmeasured": sum(f["properties"]["contrast_db"] is None for f in feats),
+              "dropped": len(keep) - sum(keep)}
+    return [f for f, k in zip(feats, keep) if k], records[np.asarray(keep, bool)], record
 
 
 def kept_blocks(jobs: list[TileJob], params, budget: int) -> int:
