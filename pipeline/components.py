@@ -79,6 +79,11 @@ def _nonzero(mask):
     return rr, cc
 
 
+def mask_points(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row-major (row, col) coordinates (int64) of the set pixels of a 2-D mask."""
+    return _nonzero(np.ascontiguousarray(mask))
+
+
 @njit(nogil=True, cache=True)
 def _find(parent, a):
     root = a
@@ -201,8 +206,30 @@ def tile_components(
     origin : global (row, col) of the core's first pixel.
     """
     h, w = values.shape
-    rr, cc = _nonzero(np.ascontiguousarray(mask_ext))
-    comp, n = _label_points(rr, cc, mask_ext.shape[0], 2 * r + 1)
+    rr, cc = mask_points(mask_ext)
+    vr, vc = np.clip(rr - r, 0, max(h - 1, 0)), np.clip(cc - r, 0, max(w - 1, 0))  # margin points: unused
+    return points_components(rr, cc, values[vr, vc], stat[vr, vc], (h, w), r, origin, tile)
+
+
+def points_components(
+    rr: np.ndarray,
+    cc: np.ndarray,
+    values: np.ndarray,
+    stat: np.ndarray,
+    core: tuple[int, int],
+    r: int,
+    origin: tuple[int, int],
+    tile: tuple[int, int],
+) -> TileComponents:
+    """:func:`tile_components` from the set pixels of the tile's mask: ``rr``, ``cc`` their
+    coordinates in the ``(h + 2r, w + 2r)`` frame of ``mask_ext``, in row-major order, and
+    ``values``, ``stat`` the input value and detector statistic at each of them (those of
+    points in the margin are not used). A GPU tile hands over only these (a few bytes a
+    detection) instead of its whole mask and statistic (workers/tasks.py)."""
+    h, w = core
+    rr = np.asarray(rr, np.int64)
+    cc = np.asarray(cc, np.int64)
+    comp, n = _label_points(rr, cc, h + 2 * r, 2 * r + 1)
     top, bottom, left, right = _edge_lines(rr, cc, comp, h, w, r)
     mom = np.zeros(n, MOMENT_DTYPE)
     mom["r0"] = np.iinfo(np.int64).max
@@ -215,8 +242,8 @@ def tile_components(
     if n and incore.any():
         lab = comp[incore]
         cr, ccol = rr[incore] - r, cc[incore] - r
-        v = values[cr, ccol].astype(np.float64)
-        sv = stat[cr, ccol].astype(np.float64)
+        v = np.asarray(values)[incore].astype(np.float64)
+        sv = np.asarray(stat)[incore].astype(np.float64)
         grr = cr + origin[0]
         gcc = ccol + origin[1]
         gr = grr.astype(np.float64)

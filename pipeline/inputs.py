@@ -14,7 +14,7 @@ The reader (transform ``"stack"``) returns a complex64 ``(rows, cols, p)`` block
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -135,6 +135,24 @@ def reader_backend() -> str:
     return "tensorstore"
 
 
+_TS_CONTEXT: tuple[int, Any] | None = None
+
+
+def _ts_context():
+    """One tensorstore context per process (its thread pools and concurrency limits shared by
+    every array the process opens, instead of a new set for each open); made again in a forked
+    child, whose copy of the parent's pools has no threads. No cache pool: reads see the store."""
+    global _TS_CONTEXT
+    import os
+
+    import tensorstore as ts
+
+    pid = os.getpid()
+    if _TS_CONTEXT is None or _TS_CONTEXT[0] != pid:
+        _TS_CONTEXT = (pid, ts.Context())
+    return _TS_CONTEXT[1]
+
+
 class _TensorStoreArray:
     """A 2-D Zarr v3 array through tensorstore: ``a[ra:rb, ca:cb]`` -> NumPy, with NumPy's
     clipping of slices at the array's edges (as zarr-python does); ``write``: also
@@ -145,7 +163,7 @@ class _TensorStoreArray:
         import tensorstore as ts
 
         self._t = ts.open({"driver": "zarr3", "kvstore": {"driver": "file", "path": path}},
-                          read=True, write=write, open=True).result()
+                          read=True, write=write, open=True, context=_ts_context()).result()
         self.shape = tuple(int(s) for s in self._t.shape)
         self.chunks = tuple(int(s) for s in self._t.chunk_layout.read_chunk.shape)
 

@@ -129,6 +129,64 @@ def test_write_sparse_writes_only_the_chunks_that_hold_marks(tmp_path, monkeypat
     assert shards == ["0/1", "1/2"]
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_write_points_writes_what_write_sparse_writes(tmp_path, monkeypatch, backend):
+    """The mask write from a tile's detected points (the GPU tile's, which never has the whole
+    mask on the host) stores the same chunks with the same content as the write of the dense
+    tile, and returns the same box; no points write nothing."""
+    import zarr
+
+    monkeypatch.setenv("SARSHIP_READER", backend)
+    from sarship.pipeline.scene import create_mask_store
+    from sarship.workers.tasks import write_points, write_sparse
+
+    rng = np.random.default_rng(3)
+    for name in ("a", "b"):
+        create_mask_store(tmp_path / f"{name}.zarr", (2048, 3072), 1024)
+    for k, (r0, c0) in enumerate([(0, 0), (0, 2048), (1024, 1024)]):
+        core = np.zeros((1024, 1024), bool)
+        if k:  # tile 0 stays empty
+            for _ in range(3 * k):
+                r, c = rng.integers(0, 1024 - 8, 2)
+                core[r: r + int(rng.integers(1, 8)), c: c + int(rng.integers(1, 8))] = True
+        rows, cols = np.nonzero(core)
+        box_a = write_sparse(str(tmp_path / "a.zarr" / "mask"), r0, c0, core)
+        box_b = write_points(str(tmp_path / "b.zarr" / "mask"), r0, c0, rows, cols, core.shape)
+        assert box_a == box_b and (box_a is None) == (k == 0)
+    a = tmp_path / "a.zarr" / "mask"
+    b = tmp_path / "b.zarr" / "mask"
+    assert np.array_equal(zarr.open_array(str(a), mode="r")[:], zarr.open_array(str(b), mode="r")[:])
+    files = [sorted(p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file()) for d in (a, b)]
+    assert files[0] == files[1] and "c/0/0" not in files[1]
+
+
+def test_points_components_equal_the_dense_labelling():
+    """A tile's components from its detected points (coordinates in the margin frame, values
+    and statistic at the points) equal those of :func:`tile_components` on the dense mask, for
+    masks with ships in the margin, across the core's edges and inside it."""
+    from sarship.pipeline.components import mask_points, points_components, tile_components
+
+    rng = np.random.default_rng(5)
+    h, w, r = 96, 80, 3
+    for trial in range(20):
+        mext = np.zeros((h + 2 * r, w + 2 * r), bool)
+        for _ in range(int(rng.integers(0, 12))):
+            a, b = rng.integers(0, h + 2 * r - 4), rng.integers(0, w + 2 * r - 4)
+            mext[a: a + int(rng.integers(1, 5)), b: b + int(rng.integers(1, 5))] = True
+        values = rng.gamma(1.0, 1.0, (h, w)).astype(np.float32)
+        stat = rng.normal(size=(h, w)).astype(np.float32)
+        dense = tile_components(mext, values, stat, r, (1000, 2000), (4, 7))
+        rr, cc = mask_points(mext)
+        inside = (rr >= r) & (rr < r + h) & (cc >= r) & (cc < r + w)
+        vals = np.full(rr.size, np.nan, np.float32)  # margin points carry no value
+        st = np.full(rr.size, np.nan, np.float32)
+        vals[inside] = values[rr[inside] - r, cc[inside] - r]
+        st[inside] = stat[rr[inside] - r, cc[inside] - r]
+        pts = points_components(rr, cc, vals, st, (h, w), r, (1000, 2000), (4, 7))
+        assert np.array_equal(pts.moments, dense.moments) and np.array_equal(pts.complete, dense.complete)
+        assert all(np.array_equal(pts.edges[k], dense.edges[k]) for k in dense.edges), trial
+
+
 @pytest.mark.parametrize("tile", [64, 1024])
 def test_readers_agree_bit_for_bit(tmp_path, monkeypatch, tile):
     """tensorstore and zarr-python read the scene stores to the same values: float32 intensity

@@ -207,6 +207,35 @@ def test_local_gpu_cluster_equals_cpu_run(tmp_path):
     assert len(fg) == len(fc) > 0
 
 
+@pytest.mark.parametrize("detector,kind", [("ca_cfar", "intensity"), ("apwf", "quadpol")])
+def test_gpu_tiles_send_back_detected_pixels_that_give_the_cpu_detections(tmp_path, detector, kind):
+    """A GPU tile sends back only its detected pixels (their coordinates, statistic and input
+    value) instead of the whole mask and statistic: the detections, their properties (peak and
+    mean of the input: intensity, or the span of stacked channels) and the mask equal the CPU
+    run's, with 256 px tiles so that ships cross tile edges."""
+    from sarship.pipeline.simulate import SimConfig, simulate
+    from sarship.workers.jobs import run_detection
+    import zarr
+
+    cfg = SimConfig(kind=kind, shape=(1024, 1024), ships=12, seed=21, clutter="rayleigh" if kind != "intensity"
+                    else "gamma", looks=1)
+    simulate(tmp_path / "s.zarr", cfg, tile=256)
+    runs, feats = {}, {}
+    for device in ("gpu", "cpu"):
+        runs[device] = run_detection(tmp_path / "s.zarr", detector, {"land_mask": "none"}, out_dir=tmp_path / device,
+                                     tile=256, device=device, progress=False)
+        feats[device] = sorted((f["properties"] for f in json.loads(
+            (tmp_path / device / "detections.geojson").read_text())["features"]), key=lambda p: p["bbox_px"])
+    assert {t["device"] for t in runs["gpu"]["tiles"]["per_tile"]} == {"gpu"}
+    mg = zarr.open_group(str(tmp_path / "gpu" / "mask.zarr"), mode="r")["mask"][:]
+    mc = zarr.open_group(str(tmp_path / "cpu" / "mask.zarr"), mode="r")["mask"][:]
+    assert np.array_equal(mg, mc) and mg.any()
+    assert len(feats["gpu"]) == len(feats["cpu"]) > 0
+    for g, c in zip(feats["gpu"], feats["cpu"]):
+        for k in ("bbox_px", "area_px", "centroid_px", "peak_px", "peak", "mean"):
+            assert g[k] == pytest.approx(c[k], rel=1e-6), (k, g, c)
+
+
 def test_cuda_initialised_is_told_apart_from_an_import():
     """Zarr imports CuPy whenever it is installed; only CUDA's own initialisation keeps the
     command's workers from being forked (workers/cluster.cuda_initialised)."""

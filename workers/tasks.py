@@ -16,10 +16,23 @@ from typing import Any
 import numpy as np
 
 from sarship.pipeline import detectors
-from sarship.pipeline.components import tile_components
+from sarship.pipeline.components import mask_points, points_components
 from sarship.pipeline.ship_features import keep_mask
 from sarship.pipeline.inputs import make_reader, open_array, pixel_power
 from sarship.pipeline.windows import padded_block
+
+
+def _chunk_box(chunks: tuple[int, int], r0: int, c0: int, shape: tuple[int, int],
+               rows: tuple[int, int], cols: tuple[int, int]) -> tuple[int, int, int, int]:
+    """The box ``(a, b, c, d)`` (tile coordinates) of the array's chunks that holds the tile's
+    set pixels ``rows = (first, last)``, ``cols = (first, last)``, clipped to the tile."""
+    ch, cw = chunks
+    h, w = shape
+    a = max((r0 + rows[0]) // ch * ch - r0, 0)
+    b = min(-(-(r0 + rows[1] + 1) // ch) * ch - r0, h)
+    c = max((c0 + cols[0]) // cw * cw - c0, 0)
+    d = min(-(-(c0 + cols[1] + 1) // cw) * cw - c0, w)
+    return a, b, c, d
 
 
 def write_sparse(path: str, r0: int, c0: int, core: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -34,14 +47,34 @@ def write_sparse(path: str, r0: int, c0: int, core: np.ndarray) -> tuple[int, in
         return None
     cols = np.flatnonzero(core.any(axis=0))
     out = open_array(path, write=True)  # chunks equal to the fill value are not stored
-    ch, cw = out.chunks  # the inner chunks of a sharded array
-    h, w = core.shape
-    a = max((r0 + int(rows[0])) // ch * ch - r0, 0)
-    b = min(-(-(r0 + int(rows[-1]) + 1) // ch) * ch - r0, h)
-    c = max((c0 + int(cols[0])) // cw * cw - c0, 0)
-    d = min(-(-(c0 + int(cols[-1]) + 1) // cw) * cw - c0, w)
+    a, b, c, d = _chunk_box(out.chunks, r0, c0, core.shape, (int(rows[0]), int(rows[-1])),
+                            (int(cols[0]), int(cols[-1])))  # the inner chunks of a sharded array
     out[r0 + a: r0 + b, c0 + c: c0 + d] = core[a:b, c:d].astype(np.uint8)
     return r0 + a, r0 + b, c0 + c, c0 + d
+
+
+def write_points(path: str, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray,
+                 shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
+    """:func:`write_sparse` of the tile (``shape``, its ``[0, 0]`` at scene ``(r0, c0)``) whose
+    set pixels are at ``(rows, cols)`` (tile coordinates): the same chunks written with the same
+    content, built from the points without scanning the tile."""
+    rows = np.asarray(rows, np.int64)
+    cols = np.asarray(cols, np.int64)
+    if rows.size == 0:
+        return None
+    out = open_array(path, write=True)
+    a, b, c, d = _chunk_box(out.chunks, r0, c0, shape, (int(rows.min()), int(rows.max())),
+                            (int(cols.min()), int(cols.max())))
+    box = np.zeros((b - a, d - c), np.uint8)
+    box[rows - a, cols - c] = 1
+    out[r0 + a: r0 + b, c0 + c: c0 + d] = box
+    return r0 + a, r0 + b, c0 + c, c0 + d
+
+
+def power_at(block, rows, cols) -> np.ndarray:
+    """:func:`~sarship.pipeline.inputs.pixel_power` of ``block`` (2-D intensity, 3-D stacked
+    channels or 4-D covariances) at the pixels ``(rows, cols)`` only: a 1-D array."""
+    return np.asarray(pixel_power(np.asarray(block[rows, cols])[:, None]))[:, 0]
 
 
 @dataclass(frozen=True)
@@ -106,6 +139,9 @@ def _land_block(job: TileJob, block, r0: int, r1: int, c0: int, c1: int):
     from sarship.pipeline import landmask
 
     h, lh = job.halo, job.land_halo
+    if job.land["mode"] == "texture" and not job.land["decision"].get("land") and not job.land.get("coastline"):
+        # the scene has no land (the decision): nothing to compute, mark or write
+        return (block[lh: block.shape[0] - lh, lh: block.shape[1] - lh] if lh else block), None
     if job.land["mode"] == "texture":
         cfg = landmask.TextureConfig(**job.land["config"])
         land = landmask.classify(block, lh, (r0 - h - lh, c0 - h - lh), cfg, job.land["decision"])
@@ -136,17 +172,24 @@ def _to_device(block):
     return to_device(block)
 
 
-def _mask_and_stat_to_host(mask_d, stat_d) -> tuple[np.ndarray, np.ndarray]:
-    """The mask (1 byte a pixel) and the statistic of the detected pixels only (the only
-    values used downstream), instead of the whole float32 statistic: 5x fewer bytes back."""
+def _points_to_host(mask_d, stat_d, block_d, halo: int):
+    """The detected pixels of a GPU tile (``mask_d``, the padded ``block_d``'s core, the
+    extended window) as what :func:`run_tile` needs on the host: their row-major coordinates in
+    the extended window, the statistic at them and the input (``block_d``, its halo ``halo``) at
+    them, found on the device; a few bytes a detection come back instead of the whole mask (1
+    byte a pixel) and statistic (4)."""
     import cupy as cp
 
-    mask = mask_d.get()
     idx = cp.flatnonzero(mask_d)
-    stat = np.zeros(mask.shape, np.float32)
-    if idx.size:
-        stat.reshape(-1)[idx.get()] = stat_d.reshape(-1)[idx].get()
-    return mask, stat
+    if int(idx.size) == 0:
+        e = np.zeros(0, np.int64)
+        return e, e, np.zeros(0, np.float32), np.zeros((0,) + tuple(block_d.shape[2:]), block_d.dtype)
+    we = int(mask_d.shape[1])
+    rr_d, cc_d = idx // we, idx % we
+    stat = stat_d.reshape(-1)[idx].get()
+    vals = block_d[rr_d + halo, cc_d + halo].get()
+    rr, cc = rr_d.get(), cc_d.get()
+    return rr, cc, stat, vals
 
 
 def run_tile_stats(job: TileJob) -> dict[str, Any]:
@@ -235,7 +278,7 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
     gpu = _on_device(job, spec)
     origin = (er0 - job.halo, ec0 - job.halo)
     h2d = d2h = 0.0
-    if gpu:  # one transfer in, the whole detector on the device, mask and statistic back
+    if gpu:  # one transfer in, the whole detector on the device, the detected pixels back
         from sarship.pipeline.gpu import synchronize
 
         dblock = _to_device(block)
@@ -244,27 +287,28 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
         mask_d, stat_d = spec.detect(dblock, job.halo, origin, params, job.prep)
         synchronize()  # kernel time is detect_s - h2d_s - d2h_s
         tb = time.perf_counter()
-        mask_e, stat_e = _mask_and_stat_to_host(mask_d, stat_d)
+        pr, pc, stat_p, vals = _points_to_host(mask_d, stat_d, dblock, job.halo)
+        val_p = np.asarray(pixel_power(vals[:, None]))[:, 0]
         h2d, d2h = ta - t1, time.perf_counter() - tb
         del dblock, mask_d, stat_d
     else:
         mask_e, stat_e = spec.detect(block, job.halo, origin, params, job.prep)
+        pr, pc = mask_points(mask_e)
+        stat_p = np.asarray(stat_e)[pr, pc]
+        val_p = power_at(block, pr + job.halo, pc + job.halo)
     t2 = time.perf_counter()
     a, b = r0 - er0, c0 - ec0
     h, w = r1 - r0, c1 - c0
-    core_mask = mask_e[a:a + h, b:b + w]
+    incore = (pr >= a) & (pr < a + h) & (pc >= b) & (pc < b + w)
     # the stores are new and all fill value (0): a tile writes only the chunks its marks fall in
     if job.mask_path is not None:
-        write_sparse(job.mask_path, r0, c0, core_mask)
+        write_points(job.mask_path, r0, c0, pr[incore] - a, pc[incore] - b, (h, w))
     hb = job.halo
     if job.land_path is not None and land is not None:
         write_sparse(job.land_path, r0, c0, land[hb + a: hb + a + h, hb + b: hb + b + w])
     t3 = time.perf_counter()
-    mext = np.zeros((h + 2 * m, w + 2 * m), bool)
-    mext[m - a: m - a + mask_e.shape[0], m - b: m - b + mask_e.shape[1]] = mask_e
-    hb = job.halo
-    values = pixel_power(block[hb + a: hb + a + h, hb + b: hb + b + w])
-    comps = tile_components(mext, values, stat_e[a:a + h, b:b + w], m, (r0, c0), job.index)
+    # points in the (h + 2m, w + 2m) frame of the tile's mask with its merge margin
+    comps = points_components(pr + (m - a), pc + (m - b), val_p, stat_p, (h, w), m, (r0, c0), job.index)
     comps.complete = comps.complete[keep_mask(comps.complete, params, job.spacing)]
     t4 = time.perf_counter()
     return {
@@ -272,7 +316,7 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
         "components": comps,
         "worker": _worker_name(),
         "device": "gpu" if gpu else "cpu",
-        "detected_px": int(core_mask.sum()),
+        "detected_px": int(incore.sum()),
         "land_px": 0 if land is None else int(land[job.halo + a: job.halo + a + h, job.halo + b: job.halo + b + w].sum()),
         "pixels": h * w,
         "block_from": timing["block_from"],  # "land pass": the land pass's read, kept as Dask data
