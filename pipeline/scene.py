@@ -21,6 +21,7 @@ Stores are written to a temporary sibling path and renamed into place only when 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import shutil
 import uuid
@@ -243,6 +244,31 @@ def create_mask_store(path: str | os.PathLike, shape: tuple[int, int], tile: int
     if attrs:
         g.attrs.update(_jsonable(attrs))
     return arr
+
+
+#: The default processing tile of a large scene (:func:`processing_tile`): the stored tile is
+#: doubled while the doubled tile is at most ``AUTO_TILE_MAX`` px and the scene still has at
+#: least ``AUTO_TILE_MIN_COUNT`` tiles of it. Measured (bench/RESULTS.md, "Session 14"): the
+#: 25000 x 16700 band stored in 2048 tiles runs in 1.06-1.34 s on a warm one-GPU cluster with
+#: 4096 tiles (35 tasks a pass) against 1.64-1.86 s with 2048 tiles (117), and 1.53-1.59 s
+#: against 2.19-2.33 s on 16 CPU workers: each task costs the scheduler and the workers a few
+#: milliseconds, and a tile's halo is a smaller share of a larger tile's read.
+AUTO_TILE_MAX = 4096
+AUTO_TILE_MIN_COUNT = 32
+
+
+def processing_tile(shape: tuple[int, int], stored: int) -> int:
+    """The processing tile of ``sarship detect`` when none is given: the scene's stored tile
+    ``stored``, doubled while the doubled tile is at most :data:`AUTO_TILE_MAX` and the scene
+    has at least :data:`AUTO_TILE_MIN_COUNT` tiles of it (so a large scene keeps enough tiles to
+    spread over a cluster, and a small one keeps its tiles). Depends on the scene only, not on
+    the cluster, so a scene is tiled alike wherever it runs; a multiple of the stored tile, so a
+    processing tile reads whole shards."""
+    H, W = (int(s) for s in shape)
+    t = int(stored)
+    while 2 * t <= AUTO_TILE_MAX and math.ceil(H / (2 * t)) * math.ceil(W / (2 * t)) >= AUTO_TILE_MIN_COUNT:
+        t *= 2
+    return t
 
 
 def tile_slices(shape: tuple[int, int], tile: int) -> Iterator[tuple[int, int, int, int, int, int]]:

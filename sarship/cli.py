@@ -492,7 +492,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--detector", required=True)
     s.add_argument("--set", action="append", metavar="KEY=VALUE", help="detector parameter (repeatable)")
     s.add_argument("--out", default="sarship-out", help="output folder (default ./sarship-out)")
-    s.add_argument("--tile", type=_positive_int, help="processing tile side (default: the scene's chunk)")
+    s.add_argument("--tile", type=_positive_int, help="processing tile side (default: the scene's tile, doubled up to 4096 "
+                   "while the scene keeps at least 32 tiles)")
     s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: $SARSHIP_SCHEDULER if set, "
                                        "else the warm cluster if one runs (sarship warm), else start a local "
                                        "cluster; 'local': a local cluster of this command's own)")

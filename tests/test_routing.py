@@ -227,7 +227,7 @@ def test_kept_blocks_never_pull_tiles_onto_workers_the_placement_excludes(tmp_pa
                         silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
         client.wait_for_workers(2, timeout=60)
         run = run_detection(scene, "ca_cfar", {"land_mask": "texture", "guard": 41, "background": 81},
-                            out_dir=tmp_path / "o", client=client, device="cpu", progress=False)
+                            out_dir=tmp_path / "o", client=client, device="cpu", progress=False, tile=128)
         time.sleep(1.0)  # a worker whose task state failed is gone by now
         names = sorted(w["name"] for w in client.scheduler_info(n_workers=-1)["workers"].values())
     assert names == ["cpu0", "gpu0"]

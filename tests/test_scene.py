@@ -38,6 +38,40 @@ def test_sharded_tiles_read_by_xarray_and_detect(tmp_path, client):
     assert fa == fb and len(fa) >= 10
 
 
+def test_processing_tile_doubles_the_stored_tile_for_large_scenes_only():
+    """The default processing tile: the stored tile, doubled up to 4096 while the scene keeps at
+    least 32 tiles of the doubled size; always a multiple of the stored tile."""
+    from sarship.pipeline.scene import AUTO_TILE_MAX, AUTO_TILE_MIN_COUNT, processing_tile
+
+    assert (AUTO_TILE_MAX, AUTO_TILE_MIN_COUNT) == (4096, 32)
+    assert processing_tile((25000, 16700), 2048) == 4096  # the band: 7 x 5 = 35 tiles of 4096
+    assert processing_tile((25000, 16700), 512) == 4096
+    assert processing_tile((16384, 16384), 2048) == 2048  # 16 tiles of 4096: too few
+    assert processing_tile((1500, 21000), 2048) == 2048  # an IW SLC burst
+    assert processing_tile((8192, 8192), 2048) == 2048
+    assert processing_tile((301, 257), 64) == 64
+    assert processing_tile((1024, 1024), 64) == 128  # 64 tiles of 128; 16 of 256
+    assert processing_tile((24576, 16384), 2048) == 2048  # 6 x 4 = 24 tiles of 4096: too few
+    assert processing_tile((20480, 24576), 4096) == 4096  # already at the cap
+
+
+def test_a_large_scene_runs_in_doubled_tiles_with_the_same_detections(tmp_path, client):
+    """A scene of 32+ tiles of twice its stored tile is processed in the doubled tile by default
+    (recorded in run.json), with the mask and detections of a run in its stored tile."""
+    x = blobs_scene((1030, 1030), looks=2.0, seed=4, n=40)
+    scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=2.0)
+    settings = {"pfa": "1e-4", "guard": "11", "background": "31"}
+    a = run_detection(scene, "ca_cfar", settings, out_dir=tmp_path / "a", client=client, progress=False)
+    b = run_detection(scene, "ca_cfar", settings, out_dir=tmp_path / "b", tile=64, client=client, progress=False)
+    assert (a["tiles"]["size"], a["tiles"]["size_source"], a["tiles"]["count"]) == (128, "scene tile x 2", 81)
+    assert (b["tiles"]["size"], b["tiles"]["size_source"]) == (64, "given")
+    np.testing.assert_array_equal(zarr.open_array(str(tmp_path / "a" / "mask.zarr" / "mask"))[:],
+                                  zarr.open_array(str(tmp_path / "b" / "mask.zarr" / "mask"))[:])
+    fa = json.loads((tmp_path / "a" / "detections.geojson").read_text())["features"]
+    fb = json.loads((tmp_path / "b" / "detections.geojson").read_text())["features"]
+    assert fa == fb and len(fa) >= 10
+
+
 def test_atomic_store_leaves_nothing_on_failure(tmp_path):
     final = tmp_path / "s.zarr"
     with pytest.raises(RuntimeError):

@@ -33,7 +33,8 @@ from sarship.pipeline.inputs import (complex_source, intensity_source, make_read
                                      polarimetric_source, window_reader)
 from sarship.pipeline.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
 from sarship.pipeline.window_cache import CachedWindows
-from sarship.pipeline.scene import Scene, create_mask_store, finalize_scene, open_scene, tile_slices
+from sarship.pipeline.scene import (Scene, create_mask_store, finalize_scene, open_scene, processing_tile,
+                                    tile_slices)
 from sarship.workers.land import LAND_STORE, check_land_file, finish_land, prepare_land
 from sarship.workers.request import JobRequest
 from sarship.workers.routing import plan
@@ -221,7 +222,11 @@ def run_request(
         var, transform = complex_source(scene, channel)
     else:
         var, transform = intensity_source(scene, channel)
-    tile = int(tile or scene.tile)
+    tile_source = "given" if tile else "scene"
+    if not tile:
+        tile = processing_tile(scene.shape, scene.tile)
+        tile_source = "scene" if tile == scene.tile else f"scene tile x {tile // scene.tile}"
+    tile = int(tile)
     if tile < 8:
         raise InputError(f"--tile must be at least 8 pixels, got {tile}")
     # a bad land_mask FILE, or coastline without its package or on a scene without georeference,
@@ -373,6 +378,7 @@ def run_request(
             },
             "tiles": {
                 "size": tile,
+                "size_source": tile_source,
                 "grid": [math.ceil(H / tile), math.ceil(W / tile)],
                 "count": len(jobs),
                 "halo_px": halo,
