@@ -58,6 +58,15 @@ ZSTD_LEVEL = 3
 #: scene, and on intensities from 8-bit products zstd stores half the bytes (ratio 4.0 / 2.2).
 CODECS = ("lz4", "zstd", "none")
 DEFAULT_CODEC = "zstd"
+#: ``sarship ingest --codec``: the codecs, or ``auto`` (the default): zstd when it stores a sample
+#: of the scene's pixels in at most 1 / AUTO_CODEC_MIN_RATIO of their bytes, else none
+#: (:func:`sarship.pipeline.readers.writing.choose_codec`). Speckled float32 intensities hardly
+#: compress (zstd: ratio 1.07-1.10), and decoding them is most of a tile's read: the 25000 x
+#: 16700 band's texture land pass took 0.49-0.52 s on one H100 host stored raw against 0.76-0.86 s
+#: with zstd (bench/RESULTS.md, "Session 14"); 8-bit products compress 2-4x and keep zstd.
+INGEST_CODECS = ("auto",) + CODECS
+DEFAULT_INGEST_CODEC = "auto"
+AUTO_CODEC_MIN_RATIO = 1.2
 
 
 #: Inner chunk side inside a tile when tiles are stored as Zarr v3 shards (measured: reading

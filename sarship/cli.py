@@ -23,7 +23,7 @@ from typing import Any
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.limits import DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO
-from sarship.pipeline.scene import CODECS, DEFAULT_CODEC
+from sarship.pipeline.scene import DEFAULT_INGEST_CODEC, INGEST_CODECS
 from sarship.workers.request import DEVICES
 
 
@@ -473,9 +473,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spacing", type=_spacing, metavar="AZ,RG",
                    help="pixel spacing in metres, azimuth,range (overrides the product's)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
-    s.add_argument("--codec", choices=list(CODECS), default=DEFAULT_CODEC,
-                   help="compressor of the store: zstd (default), lz4 (Blosc LZ4 + byte shuffle: reads faster, "
-                        "as small on speckled float data, twice the bytes for 8-bit products), none")
+    s.add_argument("--codec", choices=list(INGEST_CODECS), default=DEFAULT_INGEST_CODEC,
+                   help="compressor of the store: auto (default: zstd when it stores a sample of the pixels in "
+                        "at most 1/1.2 of their bytes, else none), zstd, lz4 (Blosc LZ4 + byte shuffle), none")
     s.add_argument("--swath", metavar="IW1|IW2|IW3",
                    help="sub-swath of a Sentinel-1 IW SLC product (one scene per sub-swath; required when it has several)")
     s.add_argument("--max-pixels", type=float, default=DEFAULT_MAX_PIXELS,

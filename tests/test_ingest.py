@@ -699,8 +699,9 @@ def test_default_codec_and_unknown_codec(tmp_path):
     np.save(tmp_path / "x.npy", np.ones((40, 40), np.float32))
     sc = ingest([tmp_path / "x.npy"], tmp_path / "d.zarr", kind="intensity", tile=32)
     (c,) = zarr.open_group(str(sc.path), mode="r")["intensity"].compressors
-    assert type(c).__name__ == "ZstdCodec"  # the default
-    with pytest.raises(InputError, match="codec must be one of lz4, zstd, none, got 'gzip'"):
+    assert type(c).__name__ == "ZstdCodec"  # the default (auto): a constant image compresses
+    assert sc.attrs["codec"] == "zstd" and sc.attrs["codec_choice"]["rule"] == "auto"
+    with pytest.raises(InputError, match="codec must be one of auto, lz4, zstd, none, got 'gzip'"):
         ingest([tmp_path / "x.npy"], tmp_path / "e.zarr", kind="intensity", tile=32, codec="gzip")
     assert not (tmp_path / "e.zarr").exists()
     r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out",
@@ -708,3 +709,27 @@ def test_default_codec_and_unknown_codec(tmp_path):
     assert r.returncode == 0, r.stderr
     (c,) = zarr.open_group(str(tmp_path / "f.zarr"), mode="r")["intensity"].compressors
     assert type(c).__name__ == "BloscCodec"
+    assert open_scene(tmp_path / "f.zarr").attrs["codec"] == "lz4"
+
+
+def test_auto_codec_stores_speckle_raw_and_8_bit_products_with_zstd(tmp_path):
+    """``--codec auto`` (the default): speckled float32 intensities, which zstd barely shrinks
+    (ratio about 1.1 < 1.2), are stored without compression, read faster; intensities of an 8-bit
+    product (amplitudes 0..255 squared) compress and keep zstd; a re-ingest of a Zarr scene
+    chooses again for itself. The values are those of the input either way."""
+    rng = np.random.default_rng(8)
+    speckle = rng.gamma(1.0, 1.0, (1100, 1300)).astype(np.float32)
+    eight_bit = (rng.integers(0, 256, (1100, 1300)).astype(np.float32) // 8) ** 2
+    for name, x, want in (("speckle", speckle, "none"), ("8bit", eight_bit, "zstd")):
+        np.save(tmp_path / f"{name}.npy", x)
+        sc = ingest([tmp_path / f"{name}.npy"], tmp_path / f"{name}.zarr", kind="intensity", tile=1024)
+        arr = zarr.open_group(str(sc.path), mode="r")["intensity"]
+        assert [type(c).__name__ for c in arr.compressors] == ([] if want == "none" else ["ZstdCodec"])
+        choice = sc.attrs["codec_choice"]
+        assert sc.attrs["codec"] == want and choice["min_ratio"] == 1.2 and choice["sample_bytes"] > 0
+        assert (choice["zstd_ratio_of_sample"] < 1.2) == (want == "none"), choice
+        np.testing.assert_array_equal(arr[:], x)
+    again = ingest([tmp_path / "8bit.zarr"], tmp_path / "again.zarr", tile=512)
+    assert again.attrs["codec"] == "zstd" and again.attrs["codec_choice"]["rule"] == "auto"
+    raw = ingest([tmp_path / "8bit.zarr"], tmp_path / "raw.zarr", tile=512, codec="none")
+    assert raw.attrs["codec"] == "none" and "codec_choice" not in raw.attrs

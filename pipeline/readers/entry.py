@@ -50,17 +50,17 @@ from sarship.pipeline.readers.plan import _plan
 from sarship.pipeline.readers.polsarpro import _open_polsarpro, _polsarpro_folder
 from sarship.pipeline.readers.safe import _open_safe, check_safe_kind, safe_layout
 from sarship.pipeline.readers.tiff import _open_tiff
-from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles
+from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles, choose_codec
 from sarship.pipeline.readers.zarr_input import _ingest_zarr
 from sarship.pipeline.scene import (
-    DEFAULT_CODEC,
+    DEFAULT_INGEST_CODEC,
     DEFAULT_TILE,
+    INGEST_CODECS,
     Scene,
     atomic_store,
     create_scene,
     finalize_scene,
     open_scene,
-    scene_compressors,
 )
 
 #: errno of a full disk, a quota or a file-size limit: an ingest that meets one fails with the
@@ -228,7 +228,7 @@ def ingest(
     sidecar_root: str | Path | bool | None = None,
     limits: InputLimits | None = None,
     swath: str | None = None,
-    codec: str = DEFAULT_CODEC,
+    codec: str = DEFAULT_INGEST_CODEC,
 ) -> Scene:
     """Write the scene store ``out`` from ``inputs`` (see the module docstring); return it opened.
 
@@ -245,10 +245,14 @@ def ingest(
     default: its defaults).
     ``swath``: the sub-swath (``IW1``, ``IW2``, ``IW3``) of a Sentinel-1 SLC product, one scene
     per sub-swath (required when the product holds several; see :mod:`.safe_slc`).
-    ``codec``: the store's compressor (:data:`sarship.pipeline.scene.CODECS`; default zstd).
+    ``codec``: the store's compressor (:data:`sarship.pipeline.scene.INGEST_CODECS`): ``auto``
+    (the default) chooses zstd or none from a sample of the pixels
+    (:func:`~sarship.pipeline.readers.writing.choose_codec`; the choice is in the scene's
+    attributes ``codec`` and ``codec_choice``).
     """
     paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
-    scene_compressors(codec)  # an unknown codec is refused before any work
+    if codec not in INGEST_CODECS:  # an unknown codec is refused before any work
+        raise InputError(f"codec must be one of {', '.join(INGEST_CODECS)}, got '{codec}'")
     spacing = _check_spacing(spacing)
     user_progress = progress
 
@@ -307,7 +311,8 @@ def ingest(
         raise InputError(f"ingest of {', '.join(str(p) for p in paths)} failed: {_one_line(exc)}") from None
 
 
-def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing=None, codec=DEFAULT_CODEC):
+def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing=None,
+                    codec=DEFAULT_INGEST_CODEC):
     plan = _plan(srcs, kind, band, channels)
     H, W = srcs[0].shape
     attrs = dict(plan.attrs)
@@ -365,6 +370,11 @@ def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spa
         arrs = [read_src(k, s, r0, r1, c0, c1) for k, s in enumerate(srcs)]
         return plan.compute(arrs)
 
+    if codec == "auto":
+        codec, chosen = choose_codec((H, W), tile, read_tile, plan.variables)
+        attrs.update(chosen)
+    else:
+        attrs["codec"] = codec
     with atomic_store(outp) as tmp:
         g = create_scene(tmp, (H, W), plan.variables, tile=tile, attrs=attrs, codec=codec)
         _write_tiles(g, (H, W), tile, plan.variables, read_tile, progress)

@@ -54,6 +54,31 @@ def _write_tiles(g, shape, tile, variables, read_tile, progress):
             progress(done, total)
 
 
+def choose_codec(shape, tile, read_tile, variables) -> tuple[str, dict[str, Any]]:
+    """``--codec auto``: the store's codec from a sample of the pixels about to be written: the
+    centre 512 x 512 of up to 4 tiles spread over the scene (:func:`_sample_windows`), every
+    variable, compressed with the store's zstd (level :data:`~sarship.pipeline.scene.ZSTD_LEVEL`).
+    Returns ``"zstd"`` when that stores the sample in at most 1 / ``AUTO_CODEC_MIN_RATIO`` of
+    its bytes, else ``"none"``, and the scene attributes that record the choice."""
+    from numcodecs import Zstd
+
+    from sarship.pipeline.scene import AUTO_CODEC_MIN_RATIO, ZSTD_LEVEL
+
+    z = Zstd(level=ZSTD_LEVEL)
+    wins = _sample_windows(shape, tile)
+    raw = packed = 0
+    for r0, r1, c0, c1 in wins[:: max(1, len(wins) // 4)][:4]:
+        data = read_tile(r0, r1, c0, c1)
+        for name in variables:
+            b = np.ascontiguousarray(data[name]).tobytes()
+            raw += len(b)
+            packed += len(z.encode(b))
+    ratio = raw / packed if packed else 1.0
+    codec = "zstd" if ratio >= AUTO_CODEC_MIN_RATIO else "none"
+    return codec, {"codec": codec, "codec_choice": {"rule": "auto", "zstd_ratio_of_sample": round(ratio, 4),
+                                                    "min_ratio": AUTO_CODEC_MIN_RATIO, "sample_bytes": raw}}
+
+
 def _sample_windows(shape, tile):
     """The bounded sample of tiles used for looks: ``(r0, r1, c0, c1)`` windows."""
     grid = list(tile_slices(shape, tile))

@@ -9,11 +9,11 @@ import numpy as np
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.common import _one_line
-from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles
-from sarship.pipeline.scene import DEFAULT_CODEC, atomic_store, create_scene, finalize_scene, open_scene
+from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles, choose_codec
+from sarship.pipeline.scene import DEFAULT_INGEST_CODEC, atomic_store, create_scene, finalize_scene, open_scene
 
 
-def _ingest_zarr(src: Path, outp: Path, tile: int, progress, looks, codec: str = DEFAULT_CODEC) -> None:
+def _ingest_zarr(src: Path, outp: Path, tile: int, progress, looks, codec: str = DEFAULT_INGEST_CODEC) -> None:
     sc = open_scene(src)
     attrs = dict(sc.attrs)
     arrays = {name: sc.array(name) for name in sc.variables}
@@ -35,6 +35,12 @@ def _ingest_zarr(src: Path, outp: Path, tile: int, progress, looks, codec: str =
                                  f"({_one_line(exc)})") from None
         return out
 
+    attrs.pop("codec_choice", None)  # the source's choice is not this store's
+    if codec == "auto":
+        codec, chosen = choose_codec(sc.shape, tile, read_tile, variables)
+        attrs.update(chosen)
+    else:
+        attrs["codec"] = codec
     with atomic_store(outp) as tmp:
         g = create_scene(tmp, sc.shape, variables, tile=tile, attrs=attrs, codec=codec)
         _write_tiles(g, sc.shape, tile, variables, read_tile, progress)
