@@ -526,7 +526,7 @@ def test_truncated_npy_and_jpeg(tmp_path):
 _RSS_SCRIPT = textwrap.dedent(
     """
     import json, sys
-    import numpy, zarr, tifffile, scipy.special, scipy.optimize, PIL.Image  # preload libraries
+    import numpy, zarr, tifffile, scipy.special, scipy.optimize, PIL.Image, tensorstore  # preload libraries
     import sarship.pipeline.readers, sarship.pipeline.looks
     def hwm():  # this process's own high-water mark, kB (ru_maxrss keeps the parent's across exec)
         return next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM"))
@@ -733,3 +733,29 @@ def test_auto_codec_stores_speckle_raw_and_8_bit_products_with_zstd(tmp_path):
     assert again.attrs["codec"] == "zstd" and again.attrs["codec_choice"]["rule"] == "auto"
     raw = ingest([tmp_path / "8bit.zarr"], tmp_path / "raw.zarr", tile=512, codec="none")
     assert raw.attrs["codec"] == "none" and "codec_choice" not in raw.attrs
+
+
+def test_tiles_are_written_in_parallel_to_the_same_store(tmp_path, monkeypatch):
+    """``SARSHIP_INGEST_WRITERS`` tiles are written at once (reads stay in order in one thread):
+    the store holds the same values in the same chunk files as one writer's, progress is told
+    for every tile in order, and a bad setting is refused before any work."""
+    rng = np.random.default_rng(12)
+    x = rng.gamma(1.0, 1.0, (1300, 1100)).astype(np.float32)
+    x[:600, :512] = 0.0  # whole fill-value chunks: stored by neither writer
+    np.save(tmp_path / "x.npy", x)
+    stores, calls = {}, {}
+    for n in ("1", "3"):
+        monkeypatch.setenv("SARSHIP_INGEST_WRITERS", n)
+        seen = []
+        sc = ingest([tmp_path / "x.npy"], tmp_path / f"w{n}.zarr", kind="intensity", tile=256, looks=1.0,
+                    codec="zstd", progress=lambda d, t: seen.append((d, t)))
+        calls[n] = seen
+        np.testing.assert_array_equal(zarr.open_group(str(sc.path), mode="r")["intensity"][:], x)
+        root = tmp_path / f"w{n}.zarr" / "intensity"
+        stores[n] = sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
+    assert stores["1"] == stores["3"] and "c/0/0" not in stores["3"]
+    assert calls["3"] == calls["1"] == [(k, 30) for k in range(1, 31)]
+    monkeypatch.setenv("SARSHIP_INGEST_WRITERS", "0")
+    with pytest.raises(InputError, match="SARSHIP_INGEST_WRITERS must be a whole number >= 1, got '0'"):
+        ingest([tmp_path / "x.npy"], tmp_path / "bad.zarr", kind="intensity", tile=256)
+    assert not (tmp_path / "bad.zarr").exists()

@@ -50,7 +50,8 @@ from sarship.pipeline.readers.plan import _plan
 from sarship.pipeline.readers.polsarpro import _open_polsarpro, _polsarpro_folder
 from sarship.pipeline.readers.safe import _open_safe, check_safe_kind, safe_layout
 from sarship.pipeline.readers.tiff import _open_tiff
-from sarship.pipeline.readers.writing import _estimate_scene_looks, _rank_one_looks, _write_tiles, choose_codec
+from sarship.pipeline.readers.writing import (_estimate_scene_looks, _rank_one_looks, _write_tiles, choose_codec,
+                                              ingest_writers)
 from sarship.pipeline.readers.zarr_input import _ingest_zarr
 from sarship.pipeline.scene import (
     DEFAULT_INGEST_CODEC,
@@ -253,6 +254,7 @@ def ingest(
     paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
     if codec not in INGEST_CODECS:  # an unknown codec is refused before any work
         raise InputError(f"codec must be one of {', '.join(INGEST_CODECS)}, got '{codec}'")
+    ingest_writers()  # so is a bad SARSHIP_INGEST_WRITERS
     spacing = _check_spacing(spacing)
     user_progress = progress
 
@@ -377,7 +379,7 @@ def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spa
         attrs["codec"] = codec
     with atomic_store(outp) as tmp:
         g = create_scene(tmp, (H, W), plan.variables, tile=tile, attrs=attrs, codec=codec)
-        _write_tiles(g, (H, W), tile, plan.variables, read_tile, progress)
+        _write_tiles(g, (H, W), tile, plan.variables, read_tile, progress, store=tmp)
         row_band.clear()
         for s in srcs:
             s.release()

@@ -18,6 +18,10 @@ null and ``looks_source`` says why.
 
 from __future__ import annotations
 
+import os
+import re
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -36,22 +40,88 @@ LOOKS_SAMPLE_SIDE = 1024
 RANK_ONE_TOL = 1e-3
 
 
-def _write_tiles(g, shape, tile, variables, read_tile, progress):
-    arrays = {name: g[name] for name in variables}
+#: Tiles an ingest writes at once (:func:`_write_tiles`): ``SARSHIP_INGEST_WRITERS``, a whole
+#: number >= 1, else the machine's cores, at most ``INGEST_WRITERS_MAX``.
+INGEST_WRITERS_MAX = 8
+
+
+def ingest_writers() -> int:
+    """The number of tile writes an ingest keeps going at once (see :data:`INGEST_WRITERS_MAX`);
+    a value of ``SARSHIP_INGEST_WRITERS`` that is not a whole number >= 1 is an InputError."""
+    raw = os.environ.get("SARSHIP_INGEST_WRITERS", "").strip()
+    if raw:
+        if not raw.isdigit() or int(raw) < 1:
+            raise InputError(f"SARSHIP_INGEST_WRITERS must be a whole number >= 1, got '{raw}'")
+        return int(raw)
+    return max(1, min(os.cpu_count() or 1, INGEST_WRITERS_MAX))
+
+
+def _write_error(exc: Exception) -> Exception:
+    """A fault of the output (a full disk, a quota, a file-size limit), not of the input: an
+    OSError with its errno, never an InputError (the service retries it). tensorstore reports the
+    system's error code in its message (``[os_error_code='28']``); other errors pass unchanged."""
+    if isinstance(exc, OSError):
+        return OSError(exc.errno, f"cannot write the scene: {exc.strerror or _one_line(exc)}", exc.filename)
+    m = re.search(r"os_error_code='(\d+)'", str(exc))
+    if m is None:
+        return exc
+    code = int(m.group(1))
+    return OSError(code, f"cannot write the scene: {os.strerror(code)}")
+
+
+def _write_tiles(g, shape, tile, variables, read_tile, progress, store: str | os.PathLike | None = None):
+    """Write the scene tile by tile: ``read_tile(r0, r1, c0, c1)`` -> {variable: array} in the
+    calling thread, in order (the sources need not be thread-safe), each tile's encoding and
+    file writes in :func:`ingest_writers` threads at once through tensorstore when ``store`` (the
+    group's folder) is given and tensorstore is the reader (:func:`sarship.pipeline.inputs.reader_backend`),
+    else in this thread through zarr-python (``g``). At most that many tiles wait to be written, so
+    memory stays bounded; ``progress(done, total)`` in order, as tiles are written."""
+    from sarship.pipeline.inputs import open_array, reader_backend
+
     grid = list(tile_slices(shape, tile))
     total = len(grid)
-    for done, (_i, _j, r0, r1, c0, c1) in enumerate(grid, 1):
-        data = read_tile(r0, r1, c0, c1)
-        for name, arr in arrays.items():
+    n = ingest_writers() if store is not None and reader_backend() == "tensorstore" else 1
+    if n == 1:
+        arrays = {name: g[name] for name in variables}
+        for done, (_i, _j, r0, r1, c0, c1) in enumerate(grid, 1):
+            data = read_tile(r0, r1, c0, c1)
+            for name, arr in arrays.items():
+                try:
+                    arr[r0:r1, c0:c1] = data[name]
+                except OSError as exc:
+                    raise _write_error(exc) from exc
+            if progress is not None:
+                progress(done, total)
+        return
+    outs = {name: open_array(str(Path(store) / name), write=True) for name in variables}
+
+    def put(data: dict, r0: int, r1: int, c0: int, c1: int) -> None:
+        for name, arr in outs.items():
             try:
                 arr[r0:r1, c0:c1] = data[name]
-            except OSError as exc:
-                # a fault of the output (a full disk, a quota, a file-size limit), not of the input:
-                # an OSError with its errno, never an InputError (the service retries it)
-                raise OSError(exc.errno, f"cannot write the scene: {exc.strerror or _one_line(exc)}",
-                              exc.filename) from exc
-        if progress is not None:
-            progress(done, total)
+            except Exception as exc:
+                err = _write_error(exc)
+                if err is exc:
+                    raise
+                raise err from exc
+
+    pending: deque = deque()
+    done = 0
+    with ThreadPoolExecutor(n, thread_name_prefix="sarship-ingest") as ex:
+        for _i, _j, r0, r1, c0, c1 in grid:
+            # every reader allocates what it returns (a view of a memory map keeps its map alive
+            # after the source releases it), so a later read never changes a tile being written
+            pending.append(ex.submit(put, read_tile(r0, r1, c0, c1), r0, r1, c0, c1))
+            while len(pending) >= n or (pending and pending[0].done()):
+                pending.popleft().result()
+                done += 1
+                if progress is not None:
+                    progress(done, total)
+        while pending:
+            pending.popleft().result()
+            done += 1
+            if progress is not None:
+                progress(done, total)
 
 
 def choose_codec(shape, tile, read_tile, variables) -> tuple[str, dict[str, Any]]:

@@ -43,7 +43,7 @@ def _ingest_zarr(src: Path, outp: Path, tile: int, progress, looks, codec: str =
         attrs["codec"] = codec
     with atomic_store(outp) as tmp:
         g = create_scene(tmp, sc.shape, variables, tile=tile, attrs=attrs, codec=codec)
-        _write_tiles(g, sc.shape, tile, variables, read_tile, progress)
+        _write_tiles(g, sc.shape, tile, variables, read_tile, progress, store=tmp)
         if attrs.get("looks") is None:
             if attrs["kind"] in ("slc", "quadpol"):
                 attrs["looks"], attrs["looks_source"] = 1.0, "single-look complex"
