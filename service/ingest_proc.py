@@ -70,6 +70,11 @@ def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb:
     if memory_mb:
         cap = int(memory_mb * 2**20)
         resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+    import os
+
+    # one tile writer unless the operator sets SARSHIP_INGEST_WRITERS: the address-space cap counts
+    # every thread's stack and malloc arena, and parallel writers bring tensorstore's threads
+    os.environ.setdefault("SARSHIP_INGEST_WRITERS", "1")
 
     def stop(signum, frame):  # unwind: the atomic store removes its temporary sibling
         raise SystemExit(128 + signum)
