@@ -126,8 +126,9 @@ def _write_tiles(g, shape, tile, variables, read_tile, progress, store: str | os
 
 def choose_codec(shape, tile, read_tile, variables) -> tuple[str, dict[str, Any]]:
     """``--codec auto``: the store's codec from a sample of the pixels about to be written: the
-    centre 512 x 512 of up to 4 tiles spread over the scene (:func:`_sample_windows`), every
-    variable, compressed with the store's zstd (level :data:`~sarship.pipeline.scene.ZSTD_LEVEL`).
+    centre (at most 1024 x 1024, :data:`LOOKS_SAMPLE_SIDE`) of up to 4 tiles spread over the
+    scene (:func:`_sample_windows`), every variable, compressed with the store's zstd (level
+    :data:`~sarship.pipeline.scene.ZSTD_LEVEL`).
     Returns ``"zstd"`` when that stores the sample in at most 1 / ``AUTO_CODEC_MIN_RATIO`` of
     its bytes, else ``"none"``, and the scene attributes that record the choice."""
     from numcodecs import Zstd
