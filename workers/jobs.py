@@ -222,11 +222,11 @@ def run_request(
         var, transform = complex_source(scene, channel)
     else:
         var, transform = intensity_source(scene, channel)
-    tile_source = "given" if tile else "scene"
-    if not tile:
+    if tile:
+        tile, tile_source = int(tile), "given"
+    else:
         tile = processing_tile(scene.shape, scene.tile)
         tile_source = "scene" if tile == scene.tile else f"scene tile x {tile // scene.tile}"
-    tile = int(tile)
     if tile < 8:
         raise InputError(f"--tile must be at least 8 pixels, got {tile}")
     # a bad land_mask FILE, or coastline without its package or on a scene without georeference,

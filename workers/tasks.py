@@ -71,10 +71,10 @@ def write_points(path: str, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray
     return r0 + a, r0 + b, c0 + c, c0 + d
 
 
-def power_at(block, rows, cols) -> np.ndarray:
-    """:func:`~sarship.pipeline.inputs.pixel_power` of ``block`` (2-D intensity, 3-D stacked
-    channels or 4-D covariances) at the pixels ``(rows, cols)`` only: a 1-D array."""
-    return np.asarray(pixel_power(np.asarray(block[rows, cols])[:, None]))[:, 0]
+def points_power(values) -> np.ndarray:
+    """:func:`~sarship.pipeline.inputs.pixel_power` of the values of some pixels, ``values[k]``
+    being pixel k's (a number, stacked channels or a covariance matrix): a 1-D array."""
+    return np.asarray(pixel_power(np.asarray(values)[:, None]))[:, 0]
 
 
 @dataclass(frozen=True)
@@ -288,14 +288,14 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
         synchronize()  # kernel time is detect_s - h2d_s - d2h_s
         tb = time.perf_counter()
         pr, pc, stat_p, vals = _points_to_host(mask_d, stat_d, dblock, job.halo)
-        val_p = np.asarray(pixel_power(vals[:, None]))[:, 0]
+        val_p = points_power(vals)
         h2d, d2h = ta - t1, time.perf_counter() - tb
         del dblock, mask_d, stat_d
     else:
         mask_e, stat_e = spec.detect(block, job.halo, origin, params, job.prep)
         pr, pc = mask_points(mask_e)
         stat_p = np.asarray(stat_e)[pr, pc]
-        val_p = power_at(block, pr + job.halo, pc + job.halo)
+        val_p = points_power(block[pr + job.halo, pc + job.halo])
     t2 = time.perf_counter()
     a, b = r0 - er0, c0 - ec0
     h, w = r1 - r0, c1 - c0

@@ -107,21 +107,23 @@ def _write_tiles(g, shape, tile, variables, read_tile, progress, store: str | os
 
     pending: deque = deque()
     done = 0
+
+    def finish_oldest() -> None:
+        nonlocal done
+        pending.popleft().result()
+        done += 1
+        if progress is not None:
+            progress(done, total)
+
     with ThreadPoolExecutor(n, thread_name_prefix="sarship-ingest") as ex:
         for _i, _j, r0, r1, c0, c1 in grid:
             # every reader allocates what it returns (a view of a memory map keeps its map alive
             # after the source releases it), so a later read never changes a tile being written
             pending.append(ex.submit(put, read_tile(r0, r1, c0, c1), r0, r1, c0, c1))
             while len(pending) >= n or (pending and pending[0].done()):
-                pending.popleft().result()
-                done += 1
-                if progress is not None:
-                    progress(done, total)
+                finish_oldest()
         while pending:
-            pending.popleft().result()
-            done += 1
-            if progress is not None:
-                progress(done, total)
+            finish_oldest()
 
 
 def choose_codec(shape, tile, read_tile, variables) -> tuple[str, dict[str, Any]]:
