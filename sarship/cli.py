@@ -165,8 +165,11 @@ def cmd_detect(a) -> int:
     extra = _formats(a.formats, a.scene)  # checked before the run: a missing extra fails at once
     scheduler = _scheduler(a.scheduler)
     client = warm_process.active_client() if scheduler is None else None  # in the warm process (sarship warm)
-    note = None if client is None else f"sarship: warm cluster, {warm_process.active_description()}, " \
-                                       f"dashboard {client.dashboard_link}"
+    note = None
+    if client is not None:
+        from sarship.workers.cluster import dashboard_note
+
+        note = f"sarship: warm cluster, {warm_process.active_description()}, {dashboard_note(client)}"
     run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile, client=client,
                         scheduler=scheduler, device=a.device, progress=True, overwrite=a.overwrite,
                         cluster_note=note)

@@ -134,14 +134,15 @@ def serve(device: str = "auto", workers: int | None = None, idle_timeout: float 
         n_gpu = sum(1 for w in info.values() if float((w.get("resources") or {}).get("GPU", 0)) > 0)
         what = (f"{n_gpu} GPU worker processes" + (f" and {len(info) - n_gpu} CPU" if len(info) > n_gpu else "")
                 if n_gpu else f"{len(info)} worker processes")
-        from sarship.workers.cluster import dashboard_url
+        from sarship.workers.cluster import DASHBOARD_HINT, dashboard_url
 
         state = {"pid": os.getpid(), "what": what, "device": "gpu" if n_gpu else "cpu", "gpu_workers": n_gpu,
                  "cpu_workers": len(info) - n_gpu, "dashboard": dashboard_url(client), "socket": str(path),
                  "idle_timeout_s": idle_timeout, "started": time.time(), "commands": 0,
                  "identity": _identity(), "env": env}
         srv = _listen(path)
-        print(f"sarship: warm cluster ready (pid {os.getpid()}), {what}, dashboard {state['dashboard']}, "
+        dash = f"dashboard {state['dashboard']}" if state["dashboard"] else f"no dashboard ({DASHBOARD_HINT})"
+        print(f"sarship: warm cluster ready (pid {os.getpid()}), {what}, {dash}, "
               f"socket {path}", file=sys.stderr, flush=True)
         last = time.monotonic()
         try:

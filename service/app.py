@@ -185,6 +185,16 @@ def remove_job_outputs(settings: Settings, job_id: str) -> None:
     shutil.rmtree(gone, ignore_errors=True)
 
 
+def _dashboard(request: Request) -> Optional[str]:
+    """Where GET /dashboard sends a browser (SARSHIP_DASHBOARD_URL, else the cluster's own link),
+    or None when the scheduler serves no dashboard (``workers.cluster.dashboard_url``)."""
+    from sarship.workers.cluster import dashboard_url
+
+    client = getattr(request.app.state, "client", None)
+    link = dashboard_url(client) if client is not None else None
+    return (request.app.state.settings.dashboard_url or link) if link else None
+
+
 def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
     settings = settings or Settings()
 
@@ -296,7 +306,9 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
                            "type": "application/json"},
                           {"href": f"{b}/jobs", "rel": "http://www.opengis.net/def/rel/ogc/1.0/job-list",
                            "type": "application/json"},
-                          {"href": f"{b}/dashboard", "rel": "related", "title": "Dask dashboard"},
+                          # the dashboard only where the scheduler serves one (bokeh installed)
+                          *([{"href": f"{b}/dashboard", "rel": "related", "title": "Dask dashboard"}]
+                            if _dashboard(request) else []),
                           {"href": f"{b}/ui/", "rel": "alternate", "type": "text/html", "title": "web page"}]}
 
     @app.get("/conformance", responses={200: {"model": Conformance}})
@@ -456,11 +468,11 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
 
     @app.get("/dashboard", responses={307: {"description": "redirect to the Dask dashboard"}, **problems(404)})
     def dashboard(request: Request):
-        link = None
-        with contextlib.suppress(Exception):
-            link = request.app.state.client.dashboard_link
+        link = _dashboard(request)
         if not link:
-            raise Problem(404, "no dashboard", "the Dask cluster has no dashboard")
+            from sarship.workers.cluster import DASHBOARD_HINT
+
+            raise Problem(404, "no dashboard", f"the Dask scheduler serves no dashboard: {DASHBOARD_HINT}")
         return RedirectResponse(link, status_code=307)
 
     app.include_router(results.router)

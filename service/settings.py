@@ -144,6 +144,10 @@ class Settings(BaseSettings):
     tokens: list[str] = Field(default_factory=list,
                               description="API tokens (Authorization: Bearer TOKEN); "
                                           "when set, POST and DELETE need one")
+    dashboard_url: Optional[str] = Field(None, pattern=r"^https?://\S+$",
+                                         description="where GET /dashboard sends browsers when the scheduler "
+                                                     "serves a dashboard (default: the cluster's own link; set "
+                                                     "it when browsers reach the dashboard at another address)")
     protect_reads: bool = Field(False, description="with tokens set, GET requests need one too "
                                                    "(/livez, /readyz and /metrics stay open)")
     # ---------------------------------------------------------------- scheduled ingest

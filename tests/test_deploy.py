@@ -1,28 +1,32 @@
 """The deployment files (docker-compose.yml, deploy/) against the code they start.
 
-No Docker engine runs here, so the containers themselves are not started. What is checked:
-every ``sarship`` command line in the compose file and the systemd units parses with the
+Every ``sarship`` command line in the compose file and the systemd units parses with the
 real CLI parser (a renamed flag breaks this test, not a deployment), the compose topology is
 consistent (shared data volume, scheduler address, health checks), and the same topology
 runs for real as processes: ``dask scheduler`` + ``sarship worker --gpus none`` +
-``sarship serve --scheduler`` running a job end to end.
-"""
+``sarship serve --scheduler`` running a job end to end. The images are built (``slow``) only
+where a Docker engine answers; what can be checked without one is checked by parsing: the
+extras they install, one user for both, the volumes it owns, hadolint's rules. The API's
+binds (no tokens on an address other machines reach: refused) and the Dask dashboard (offered
+only where it serves, with and without bokeh) run for real."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
 yaml = pytest.importorskip("yaml")
 httpx = pytest.importorskip("httpx")
 from conftest import REPO, blobs_scene, write_scene  # noqa: E402
-from svc import Server, free_port, wait_job  # noqa: E402
+from svc import Server, check_problem, free_port, wait_job  # noqa: E402
 
 COMPOSE = REPO / "docker-compose.yml"
 DEPLOY = REPO / "deploy"
@@ -142,8 +146,6 @@ def test_compose_topology_as_processes(tmp_path):
 def test_compose_api_environment_is_valid_settings(tmp_path, monkeypatch):
     """The API container's SARSHIP_* environment (with compose's ``${VAR:-default}`` defaults)
     validates as service settings; the inbox folder is the container's mount point, made here."""
-    import re
-
     from sarship.service.settings import Settings
 
     env = _compose()["services"]["api"]["environment"]
@@ -159,3 +161,73 @@ def test_compose_api_environment_is_valid_settings(tmp_path, monkeypatch):
     assert s.concurrency == 2 and s.tokens == []
     mounts = _compose()["services"]["api"]["volumes"]
     assert any(m.endswith(":/inbox") for m in mounts)
+
+
+# ----------------------------------------------------------------------------- the Dask dashboard
+
+NO_BOKEH = '''import sys
+
+
+class _NoBokeh:
+    """bokeh cannot be imported, as where the 'dashboard' extra is not installed."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name == "bokeh" or name.startswith("bokeh."):
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return None
+
+
+sys.meta_path.insert(0, _NoBokeh())
+'''
+
+
+def _without_bokeh(tmp_path) -> dict[str, str]:
+    """Environment of Python processes without bokeh: a ``sitecustomize`` on PYTHONPATH puts an
+    import blocker first on ``sys.meta_path`` in each of them (no code of ours is replaced)."""
+    d = tmp_path / "nobokeh"
+    d.mkdir()
+    (d / "sitecustomize.py").write_text(NO_BOKEH)
+    return {"PYTHONPATH": os.pathsep.join(p for p in (str(d), os.environ.get("PYTHONPATH", "")) if p)}
+
+
+def test_serve_with_tokens_on_every_interface_offers_the_live_dashboard(tmp_path):
+    """``sarship serve`` on 0.0.0.0 with tokens starts (reached through 127.0.0.1 only); the
+    landing page links the dashboard, GET /dashboard redirects to it and it answers 200 from
+    the real scheduler; the start-up line gives its link."""
+    pytest.importorskip("bokeh", reason="the 'dashboard' extra (in the test extra)")
+    srv = Server(tmp_path / "data", free_port(), SARSHIP_HOST="0.0.0.0", SARSHIP_TOKENS='["s3cret"]').start()
+    try:
+        links = [x["href"] for x in httpx.get(srv.url + "/").json()["links"]]
+        assert f"{srv.url}/dashboard" in links, links
+        r = httpx.get(srv.url + "/dashboard", follow_redirects=False)
+        assert r.status_code == 307 and r.headers["location"].startswith("http://127.0.0.1:"), r.headers
+        page = httpx.get(r.headers["location"])
+        assert page.status_code == 200 and "needs bokeh" not in page.text
+        assert httpx.delete(srv.url + "/jobs/none").status_code == 401  # the tokens guard it
+    finally:
+        srv.stop()
+    line = [ln for ln in Path(srv.log.name).read_text().splitlines() if "Dask cluster" in ln]
+    assert len(line) == 1 and re.search(r"dashboard http://127\.0\.0\.1:\d+/status", line[0]), line
+
+
+def test_serve_without_bokeh_offers_no_dashboard(tmp_path):
+    """Without bokeh (an install without the 'dashboard' extra; ``SARSHIP_ALLOW_UNAUTHENTICATED``
+    lets it serve on 0.0.0.0): no dashboard link on the landing page, GET /dashboard a 404
+    problem saying how to enable it (no server path), and the start-up line (the one
+    ``sarship detect`` prints) gives no link but the same hint."""
+    srv = Server(tmp_path / "data", free_port(), SARSHIP_HOST="0.0.0.0", SARSHIP_ALLOW_UNAUTHENTICATED="1",
+                 **_without_bokeh(tmp_path)).start()
+    try:
+        links = [x["href"] for x in httpx.get(srv.url + "/").json()["links"]]
+        assert not [h for h in links if "dashboard" in h], links
+        r = httpx.get(srv.url + "/dashboard", follow_redirects=False)
+        check_problem(r, 404, "sarship[dashboard]")
+        assert str(tmp_path) not in r.text
+    finally:
+        srv.stop()
+    line = [ln for ln in Path(srv.log.name).read_text().splitlines() if "Dask cluster" in ln]
+    assert len(line) == 1 and "no dashboard" in line[0] and "sarship[dashboard]" in line[0], line
+    assert "http" not in line[0], line
+    from sarship.workers.cluster import dashboard_serves
+
+    assert not dashboard_serves(f"http://127.0.0.1:{free_port()}/status", timeout=1)  # nothing listens there

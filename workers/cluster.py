@@ -99,11 +99,65 @@ def dashboard_address_on(host: str, port: int = 0) -> str:
     return f"{h}:{port}"
 
 
-def dashboard_url(client) -> str | None:
+#: How to get the Dask dashboard where a scheduler serves none (it needs bokeh).
+DASHBOARD_HINT = "install bokeh where the scheduler runs: pip install 'sarship[dashboard]'"
+
+
+#: :func:`dashboard_serves`' answers by link, with when they were found: a run's record
+#: and each start-up line ask again only after this many seconds.
+_DASHBOARD_SEEN: dict[str, tuple[float, bool]] = {}
+_DASHBOARD_TTL_S = 30.0
+
+
+def dashboard_serves(link: str, timeout: float = 3.0) -> bool:
+    """Whether the Dask dashboard at ``link`` really serves its plots.
+
+    A scheduler without bokeh still answers its dashboard address (``/status`` is a page
+    asking to install bokeh), so the link alone proves nothing: the scheduler's JSON index
+    ``individual-plots.json`` lists the dashboard's plots, and is empty without bokeh.
+
+    Parameters
+    ----------
+    link : str
+        The dashboard link, e.g. ``http://127.0.0.1:8787/status``.
+    timeout : float
+        Seconds to wait for the scheduler's answer.
+
+    Returns
+    -------
+    bool
+        True when the index answers with at least one plot (an answer is kept 30 s).
+    """
+    import json
+    import time
+    import urllib.request
+
+    seen = _DASHBOARD_SEEN.get(link)
+    if seen is not None and time.monotonic() - seen[0] < _DASHBOARD_TTL_S:
+        return seen[1]
+    base = link.rsplit("/", 1)[0] if link.rstrip("/").endswith("/status") else link.rstrip("/")
     try:
-        return client.dashboard_link
+        with urllib.request.urlopen(f"{base}/individual-plots.json", timeout=timeout) as r:  # noqa: S310
+            ok = r.status == 200 and bool(json.loads(r.read(1 << 20) or b"{}"))
+    except Exception:  # unreachable, not a Dask scheduler, not JSON: no dashboard to offer
+        ok = False
+    _DASHBOARD_SEEN[link] = (time.monotonic(), ok)
+    return ok
+
+
+def dashboard_url(client) -> str | None:
+    """The cluster's dashboard link, or None when it serves no dashboard (:func:`dashboard_serves`)."""
+    try:
+        link = client.dashboard_link
     except Exception:
         return None
+    return link if link and dashboard_serves(link) else None
+
+
+def dashboard_note(client) -> str:
+    """The start-up line's words on the dashboard: its link, or why there is none."""
+    link = dashboard_url(client)
+    return f"dashboard {link}" if link else f"no dashboard ({DASHBOARD_HINT})"
 
 
 def _sarship_version() -> str:
@@ -176,7 +230,7 @@ def connect(
             raise
         if echo:
             n = len(client.scheduler_info().get("workers", {}))
-            print(f"sarship: using Dask scheduler {scheduler} ({n} workers), dashboard {dashboard_url(client)}",
+            print(f"sarship: using Dask scheduler {scheduler} ({n} workers), {dashboard_note(client)}",
                   file=sys.stderr)
         try:
             yield client
@@ -200,7 +254,7 @@ def connect(
     if "processes" in what:
         what += f" ({method})"
     if echo:
-        print(f"sarship: local Dask cluster, {what}, dashboard {dashboard_url(client)}{note}", file=sys.stderr)
+        print(f"sarship: local Dask cluster, {what}, {dashboard_note(client)}{note}", file=sys.stderr)
     try:
         yield client
     finally:

@@ -286,6 +286,9 @@ def run_request(
             elif cluster_note:
                 print(cluster_note, file=sys.stderr)
             cluster_workers = client.scheduler_info(n_workers=-1).get("workers", {})
+            from sarship.workers.cluster import dashboard_url
+
+            dashboard = dashboard_url(client)  # None when the scheduler serves no dashboard (no bokeh)
             placement = plan(device, detector, has_gpu, cluster_workers)
             jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
             # the texture land pass's reads serve the detection: each tile's read is kept as Dask
@@ -350,9 +353,6 @@ def run_request(
         feats, ambiguity_record = flag_features(feats, scene.attrs, params.ambiguities, params.ambiguity_tol_px,
                                                 params.ambiguity_min_db)
         t_merge = time.perf_counter()
-        dashboard = None
-        with contextlib.suppress(Exception):
-            dashboard = client.dashboard_link
         run = {
             "sarship_version": __version__,
             "detector": detector,

@@ -146,16 +146,21 @@
 
   // ---------------------------------------------------------------- dashboard link
 
-  /** Probe GET /dashboard without following its (cross-origin) redirect. */
+  /** Probe GET /dashboard without following its (cross-origin) redirect: a redirect keeps the
+   *  link; anything else (404 when the scheduler serves no dashboard) disables it, its title
+   *  saying how to enable it. */
   async function checkDashboard() {
     const a = $('dashboard-link');
+    let why = 'the Dask dashboard cannot be reached';
     try {
       const r = await fetch(api('dashboard'), { redirect: 'manual', headers: authHeaders() });
       if (r.type === 'opaqueredirect' || r.ok) return;
-      a.removeAttribute('href');
-      a.setAttribute('aria-disabled', 'true');
-      a.append(' (not available)');
-    } catch (e) { /* keep the link */ }
+      why = (await r.json()).detail || why;
+    } catch (e) { /* no answer, or not JSON: the default reason */ }
+    a.removeAttribute('href');
+    a.setAttribute('aria-disabled', 'true');
+    a.title = why;
+    a.append(' (not available)');
   }
 
   // ---------------------------------------------------------------- submit form
