@@ -304,7 +304,8 @@ def cmd_serve(a) -> int:
                                "concurrency": a.concurrency, "inbox": a.inbox,
                                "inbox_interval_s": a.inbox_interval, "inbox_cron": a.inbox_cron,
                                "inbox_detectors": a.inbox_detectors, "inbox_settle_s": a.inbox_settle,
-                               "inbox_quarantine": a.inbox_quarantine}.items() if v is not None}
+                               "inbox_quarantine": a.inbox_quarantine,
+                               "allow_unauthenticated": a.allow_unauthenticated or None}.items() if v is not None}
     try:
         settings = Settings(**over)
     except ValidationError as exc:
@@ -570,8 +571,11 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Every setting is a flag below or a SARSHIP_* environment variable "
                                    "(flags win); the full list follows.",
                        epilog_fn=_settings_help, formatter_class=argparse.RawDescriptionHelpFormatter)
-    s.add_argument("--host")
+    s.add_argument("--host", help="address to listen on (default 127.0.0.1); an address other machines reach "
+                                  "needs tokens (SARSHIP_TOKENS) or --allow-unauthenticated")
     s.add_argument("--port", type=int)
+    s.add_argument("--allow-unauthenticated", action="store_true",
+                   help="serve without tokens on an address other machines reach (refused otherwise)")
     s.add_argument("--scheduler", help="Dask scheduler address (default: start a local cluster)")
     s.add_argument("--data", help="data folder (default ./sarship-data)")
     s.add_argument("--workers", type=_positive_int, help="local cluster CPU worker processes (default: all cores; "

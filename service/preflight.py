@@ -2,8 +2,8 @@
 
 Anything that can stop the service because of what the operator gave it (a data folder that
 cannot be created or written, a job store that is not a SQLite database, a port already in
-use or an address that does not resolve, an unreachable Dask scheduler, GPUs that are not
-there) is found here and raised as one :class:`~sarship.pipeline.errors.InputError` naming the
+use or an address that does not resolve, an address other machines reach without tokens, an
+unreachable Dask scheduler, GPUs that are not there) is found here and raised as one :class:`~sarship.pipeline.errors.InputError` naming the
 setting, so that ``sarship serve`` exits 2 with one line (docs/interfaces/cli.md) instead of a traceback from
 inside the ASGI server's start-up. The application's own start-up (``service.app``) then
 repeats the same steps, which cannot fail for these reasons any more.
@@ -16,6 +16,7 @@ import socket
 import sqlite3
 import tempfile
 from pathlib import Path
+from typing import Optional
 
 from sarship.pipeline.errors import InputError
 from sarship.service.settings import Settings
@@ -62,6 +63,33 @@ def check_listen(host: str, port: int) -> None:
                              "(setting 'host' / 'port')") from None
 
 
+def is_loopback(host: str) -> Optional[bool]:
+    """Whether every address ``host`` resolves to is a loopback address (127.0.0.0/8, ``::1``);
+    ``0.0.0.0``, ``::`` and an empty host are every interface: False. None when ``host`` does
+    not resolve (:func:`check_listen` names it)."""
+    import ipaddress
+
+    h = (host or "").strip().strip("[]")
+    if not h:
+        return False
+    try:
+        infos = socket.getaddrinfo(h, None, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError):
+        return None
+    return bool(infos) and all(ipaddress.ip_address(i[4][0].split("%")[0]).is_loopback for i in infos)
+
+
+def check_exposure(settings: Settings) -> None:
+    """Refuse to serve without tokens on an address other machines can reach, unless the
+    operator says so (``allow_unauthenticated``): anyone who reaches such an API could run
+    and dismiss jobs and upload scenes."""
+    if settings.tokens or settings.allow_unauthenticated or is_loopback(settings.host) is not False:
+        return  # (a host that does not resolve: check_listen says so)
+    raise InputError(f"refusing to serve on '{settings.host}' (reachable from other machines) without tokens: "
+                     "set SARSHIP_TOKENS, listen on 127.0.0.1, or pass --allow-unauthenticated "
+                     "(SARSHIP_ALLOW_UNAUTHENTICATED=1) to serve without them")
+
+
 def check_scheduler(address: str) -> None:
     """Connect to the Dask scheduler once (10 s at most)."""
     from sarship.workers.cluster import connect
@@ -72,6 +100,7 @@ def check_scheduler(address: str) -> None:
 
 def preflight(settings: Settings) -> None:
     """Every start-up check, cheapest first; raises :class:`InputError` at the first failure."""
+    check_exposure(settings)  # before anything is created
     check_folder(settings.data, "data folder")
     for sub in (settings.scenes_dir, settings.jobs_dir, settings.uploads_dir):
         check_folder(sub, "data folder")

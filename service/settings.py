@@ -144,6 +144,8 @@ class Settings(BaseSettings):
     tokens: list[str] = Field(default_factory=list,
                               description="API tokens (Authorization: Bearer TOKEN); "
                                           "when set, POST and DELETE need one")
+    allow_unauthenticated: bool = Field(False, description="serve on an address other machines can reach "
+                                                           "(not loopback) without tokens; refused otherwise")
     dashboard_url: Optional[str] = Field(None, pattern=r"^https?://\S+$",
                                          description="where GET /dashboard sends browsers when the scheduler "
                                                      "serves a dashboard (default: the cluster's own link; set "

@@ -155,12 +155,89 @@ def test_compose_api_environment_is_valid_settings(tmp_path, monkeypatch):
         monkeypatch.delenv(k)
     for k, v in env.items():
         v = re.sub(r"\$\{[A-Z_]+:-([^}]*)\}", r"\1", str(v))
+        v = re.sub(r"\$\{SARSHIP_TOKENS:\?[^}]*\}", '["from-dot-env"]', v)  # required: .env gives it
         monkeypatch.setenv(k, str(inbox) if v == "/inbox" else v)
     s = Settings()
     assert s.inbox == [inbox] and [d["detector"] for d in s.inbox_detectors] == ["os_cfar"]
-    assert s.concurrency == 2 and s.tokens == []
+    assert s.concurrency == 2 and s.tokens == ["from-dot-env"]
     mounts = _compose()["services"]["api"]["volumes"]
     assert any(m.endswith(":/inbox") for m in mounts)
+
+
+# ----------------------------------------------------------------------------- binds of the API
+
+
+def _settings(monkeypatch, **env):
+    from sarship.service.settings import Settings
+
+    for k in [k for k in os.environ if k.startswith("SARSHIP_")]:
+        monkeypatch.delenv(k)
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    return Settings()
+
+
+@pytest.mark.parametrize("host,env,exposed", [
+    ("0.0.0.0", {}, True), ("::", {}, True), ("127.0.0.1", {}, False), ("::1", {}, False),
+    ("localhost", {}, False), ("0.0.0.0", {"SARSHIP_TOKENS": '["t"]'}, False),
+    ("0.0.0.0", {"SARSHIP_ALLOW_UNAUTHENTICATED": "1"}, False), ("::", {"SARSHIP_ALLOW_UNAUTHENTICATED": "true"}, False),
+])
+def test_exposed_address_without_tokens_is_refused(monkeypatch, host, env, exposed):
+    from sarship.pipeline.errors import InputError
+    from sarship.service.preflight import check_exposure
+
+    settings = _settings(monkeypatch, SARSHIP_HOST=host, **env)
+    if exposed:
+        with pytest.raises(InputError, match="SARSHIP_TOKENS"):
+            check_exposure(settings)
+    else:
+        check_exposure(settings)
+
+
+def test_serve_on_every_interface_without_tokens_exits_2(tmp_path):
+    """``sarship serve --host 0.0.0.0`` without tokens: exit 2, one line, nothing made; with
+    ``--allow-unauthenticated`` that check passes (the next start-up check then stops it:
+    its data folder is a file), so the flag reaches the setting."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SARSHIP_")}
+    data = tmp_path / "data"
+    argv = [sys.executable, "-m", "sarship", "serve", "--host", "0.0.0.0", "--port", str(free_port())]
+    res = subprocess.run([*argv, "--data", str(data)], capture_output=True, text=True, env=env, timeout=120)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1, (res.returncode, res.stderr)
+    assert "0.0.0.0" in lines[0] and "SARSHIP_TOKENS" in lines[0] and "--allow-unauthenticated" in lines[0]
+    assert not data.exists()
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    res = subprocess.run([*argv, "--allow-unauthenticated", "--data", str(a_file)], capture_output=True, text=True,
+                         env=env, timeout=120)
+    assert res.returncode == 2 and "is not a folder" in res.stderr and "SARSHIP_TOKENS" not in res.stderr, res.stderr
+
+
+def test_compose_and_systemd_are_safe_by_default(monkeypatch):
+    """Compose: the API (every interface of its container, published) needs SARSHIP_TOKENS from
+    .env (``${VAR:?}``: compose stops without it), and with none ``serve`` would refuse anyway;
+    the dashboard (no tokens) is published on the host's loopback only. systemd: the API
+    listens on SARSHIP_HOST, loopback in sarship.env, and the scheduler's dashboard too."""
+    from sarship.pipeline.errors import InputError
+    from sarship.service.preflight import check_exposure, is_loopback
+
+    doc = _compose()
+    api = doc["services"]["api"]
+    assert re.fullmatch(r"\$\{SARSHIP_TOKENS:\?[^}]+\}", api["environment"]["SARSHIP_TOKENS"])
+    argv = _sarship_argv(api)
+    host = argv[argv.index("--host") + 1]
+    with pytest.raises(InputError):
+        check_exposure(_settings(monkeypatch, SARSHIP_HOST=host))
+    check_exposure(_settings(monkeypatch, SARSHIP_HOST=host, SARSHIP_TOKENS='["t"]'))
+    assert all(str(p).startswith("127.0.0.1:") for p in doc["services"]["scheduler"]["ports"])
+
+    env = dict(line.split("=", 1) for line in (DEPLOY / "systemd" / "sarship.env").read_text().splitlines()
+               if line and not line.startswith("#"))
+    unit = (DEPLOY / "systemd" / "sarship-api.service").read_text()
+    assert "--host" not in unit and "SARSHIP_TOKENS" not in env
+    check_exposure(_settings(monkeypatch, **env))  # loopback: no tokens needed
+    assert is_loopback(env["SARSHIP_HOST"]) and is_loopback(env["SARSHIP_DASHBOARD_ADDRESS"].rpartition(":")[0])
+    assert "${SARSHIP_DASHBOARD_ADDRESS}" in (DEPLOY / "systemd" / "sarship-scheduler.service").read_text()
 
 
 # ----------------------------------------------------------------------------- the Dask dashboard
