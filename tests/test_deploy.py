@@ -160,8 +160,188 @@ def test_compose_api_environment_is_valid_settings(tmp_path, monkeypatch):
     s = Settings()
     assert s.inbox == [inbox] and [d["detector"] for d in s.inbox_detectors] == ["os_cfar"]
     assert s.concurrency == 2 and s.tokens == ["from-dot-env"]
+    assert s.dashboard_url == "http://localhost:8787/status"
     mounts = _compose()["services"]["api"]["volumes"]
     assert any(m.endswith(":/inbox") for m in mounts)
+
+
+# ----------------------------------------------------------------------------- images (by parsing)
+
+#: the extras real passes need in both images: Sentinel-1 SAFE ingest (the inbox), GeoPackage/KML
+#: export, the coastline land mask, and the Dask dashboard
+FEATURE_EXTRAS = {"safe", "gis", "coastline", "dashboard"}
+IMAGES = {"Dockerfile": FEATURE_EXTRAS, "Dockerfile.gpu": FEATURE_EXTRAS | {"gpu"}}
+#: the optional modules those features import, the distribution that brings each and its extra
+FEATURE_MODULES = {"xarray_sentinel": ("xarray-sentinel", "safe"), "pyogrio": ("pyogrio", "gis"),
+                   "roaring_landmask": ("roaring-landmask", "coastline"), "bokeh": ("bokeh", "dashboard")}
+
+
+def _pyproject() -> dict:
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        tomllib = pytest.importorskip("tomli")
+    return tomllib.loads((REPO / "pyproject.toml").read_text())
+
+
+def _instructions(dockerfile: str) -> list[tuple[str, str]]:
+    """The (INSTRUCTION, arguments) of ``deploy/DOCKERFILE``: comments dropped, continued lines joined."""
+    out, cur = [], ""
+    for line in (DEPLOY / dockerfile).read_text().splitlines():
+        if not cur and (not line.strip() or line.lstrip().startswith("#")):
+            continue
+        if line.rstrip().endswith("\\"):
+            cur += line.rstrip()[:-1] + " "
+            continue
+        word, _, rest = (cur + line).strip().partition(" ")
+        out.append((word.upper(), " ".join(rest.split())))
+        cur = ""
+    return out
+
+
+def _run_text(dockerfile: str) -> str:
+    return " && ".join(a for i, a in _instructions(dockerfile) if i == "RUN")
+
+
+def _installed_extras(dockerfile: str) -> set[str]:
+    found = re.findall(r"pip install '\.\[([^\]]*)\]'", _run_text(dockerfile))
+    assert len(found) == 1, (dockerfile, found)
+    return {e.strip() for e in found[0].split(",")}
+
+
+def test_images_install_the_extras_real_passes_need():
+    """Both images install the extras of the inbox's SAFE ingest, the GPKG/KML export, the
+    coastline mask and the dashboard (and the GPU one CuPy); every extra exists in pyproject
+    (pip only warns about an unknown one); the modules those features import come with those
+    extras, and the test extra installs them too, so that CI tests what the images ship."""
+    from packaging.requirements import Requirement
+
+    extras = _pyproject()["project"]["optional-dependencies"]
+    for dockerfile, need in IMAGES.items():
+        got = _installed_extras(dockerfile)
+        assert need <= got, (dockerfile, need - got)
+        assert got <= set(extras), (dockerfile, got - set(extras))
+    code = "\n".join(p.read_text() for d in ("pipeline", "workers", "service") for p in (REPO / d).rglob("*.py"))
+    tested = {Requirement(r).name for r in extras["test"]}
+    for module, (dist, extra) in FEATURE_MODULES.items():
+        assert dist in {Requirement(r).name for r in extras[extra]}, (module, extra, extras[extra])
+        assert dist in tested, (dist, "missing from the test extra")
+        if module != "bokeh":  # bokeh is imported by distributed's dashboard, not by our code
+            assert re.search(rf"^\s*(import|from) {module}\b", code, re.M), f"nothing imports {module} any more"
+
+
+def test_images_run_as_one_user_that_owns_the_compose_volumes():
+    """One non-root uid/gid for both images (build arguments with the same defaults, the same
+    that Compose passes), the USER of both; every compose volume is a named volume (the engine
+    creates a missing host folder root-owned) mounted where the images made a folder owned by
+    that user (a new named volume takes the owner of its mount point), and no service
+    overrides the user."""
+    doc = _compose()
+    ids, owned = {}, {}
+    for dockerfile in IMAGES:
+        ins = _instructions(dockerfile)
+        args = dict(a.split("=", 1) for i, a in ins if i == "ARG")
+        ids[dockerfile] = (args["SARSHIP_UID"], args["SARSHIP_GID"])
+        assert int(args["SARSHIP_UID"]) > 0 and int(args["SARSHIP_GID"]) > 0, args
+        assert [a for i, a in ins if i == "USER"][-1] == "$SARSHIP_UID:$SARSHIP_GID", dockerfile
+        run = _run_text(dockerfile)
+        assert '--uid "$SARSHIP_UID" --gid "$SARSHIP_GID" sarship' in run, dockerfile
+        made = set(re.search(r"mkdir -p ((?:/\S+ ?)+)", run).group(1).split())
+        chowned = set(re.search(r'chown "\$SARSHIP_UID:\$SARSHIP_GID" ((?:/\S+ ?)+)', run).group(1).split())
+        owned[dockerfile] = made & chowned
+    assert len(set(ids.values())) == 1, ids
+    builds = {"worker": doc["x-sarship"]["build"], "gpu-worker": doc["services"]["gpu-worker"]["build"]}
+    assert builds["worker"]["args"] == builds["gpu-worker"]["args"], builds
+    defaults = {k: re.fullmatch(r"\$\{\w+:-(\d+)\}", v).group(1) for k, v in builds["worker"]["args"].items()}
+    assert (defaults["SARSHIP_UID"], defaults["SARSHIP_GID"]) == ids["Dockerfile"]
+    for name, svc in doc["services"].items():
+        if not str(svc.get("image", "sarship")).startswith("sarship"):
+            continue
+        assert "user" not in svc, name
+        dockerfile = (svc.get("build") or doc["x-sarship"]["build"])["dockerfile"].rsplit("/", 1)[-1]
+        for mount in svc.get("volumes") or doc["x-sarship"]["volumes"]:
+            source, target = str(mount).split(":")[:2]
+            assert source in doc["volumes"], (name, mount, "a host folder: created root-owned")
+            assert target in owned[dockerfile], (name, mount, owned[dockerfile])
+    api = doc["services"]["api"]
+    assert f"inbox:{api['environment']['SARSHIP_INBOX']}" in api["volumes"]
+
+
+def test_dockerfiles_pass_the_lint_rules():
+    """What hadolint would flag, by parsing (no hadolint here): a pinned base image (DL3006/7),
+    absolute WORKDIRs (DL3000), no ``cd`` (DL3003) or ``sudo`` (DL3004), apt-get with ``-y
+    --no-install-recommends`` and its lists removed (DL3014/15, DL3009), pip without its cache
+    (DL3042), exec-form ENTRYPOINT/CMD (DL3025: signals reach sarship), a non-root last USER
+    (DL3002); and every COPY source exists, covering the package folders and the readme."""
+    pyproject = _pyproject()
+    package = set(pyproject["tool"]["setuptools"]["package-dir"].values()) | {"pyproject.toml",
+                                                                             pyproject["project"]["readme"]}
+    for dockerfile in IMAGES:
+        ins = _instructions(dockerfile)
+        base = [a for i, a in ins if i == "FROM"]
+        assert len(base) == 1 and ":" in base[0] and not base[0].endswith(":latest"), base
+        copied = set()
+        for i, a in ins:
+            if i == "WORKDIR":
+                assert a.startswith("/"), (dockerfile, a)
+            elif i in ("ENTRYPOINT", "CMD"):
+                assert isinstance(json.loads(a), list), (dockerfile, i, a)
+            elif i == "COPY":
+                sources = a.split()[:-1]
+                assert all((REPO / s).exists() for s in sources), (dockerfile, a)
+                copied |= set(sources)
+            elif i == "RUN":
+                words = a.split()
+                assert "sudo" not in words and "cd" not in words, (dockerfile, a)
+                if "apt-get" in words and "install" in words:
+                    assert "-y" in words and "--no-install-recommends" in words, a
+                    assert "rm -rf /var/lib/apt/lists/*" in a, a
+        assert package <= copied, (dockerfile, package - copied)
+        assert "PIP_NO_CACHE_DIR=1" in " ".join(a for i, a in ins if i == "ENV"), dockerfile
+        assert [a for i, a in ins if i == "USER"][-1].split(":")[0] not in ("root", "0"), dockerfile
+
+
+def _engine() -> str | None:
+    """Why no image can be built here, or None when a Docker engine answers."""
+    import shutil
+
+    if not shutil.which("docker"):
+        return "no docker client"
+    try:
+        r = subprocess.run(["docker", "info", "--format", "{{.ServerVersion}}"], capture_output=True, text=True,
+                           timeout=30)
+    except subprocess.TimeoutExpired:
+        return "docker info did not answer in 30 s"
+    if r.returncode != 0:
+        return f"no Docker engine answers ({(r.stderr.strip().splitlines() or ['docker info failed'])[-1]})"
+    return None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dockerfile", sorted(IMAGES))
+def test_image_builds_with_its_extras_and_user(dockerfile):
+    """Where a Docker engine answers: the image builds, its Python imports every feature
+    module, it runs as uid/gid 1000 with /data and /inbox writable, and the CPU image's
+    ``serve`` (every interface, no tokens) refuses to start with one line."""
+    why = _engine()
+    if why:
+        pytest.skip(why)
+    tag = f"sarship-test-{dockerfile.lower().replace('.', '-')}:{os.getpid()}"
+    built = subprocess.run(["docker", "build", "-f", str(DEPLOY / dockerfile), "-t", tag, str(REPO)],
+                           capture_output=True, text=True, timeout=3600)
+    assert built.returncode == 0, built.stderr[-4000:]
+    try:
+        probe = (f"import os, {', '.join(FEATURE_MODULES)}; "
+                 "print(os.getuid(), os.getgid(), os.access('/data', os.W_OK), os.access('/inbox', os.W_OK))")
+        r = subprocess.run(["docker", "run", "--rm", "--entrypoint", "python", tag, "-c", probe],
+                           capture_output=True, text=True, timeout=600)
+        assert r.stdout.split() == ["1000", "1000", "True", "True"], (r.stdout, r.stderr[-2000:])
+        if dockerfile == "Dockerfile":
+            r = subprocess.run(["docker", "run", "--rm", tag, "serve"], capture_output=True, text=True, timeout=600)
+            lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+            assert r.returncode == 2 and len(lines) == 1 and "SARSHIP_TOKENS" in lines[0], r.stderr
+    finally:
+        subprocess.run(["docker", "rmi", "-f", tag], capture_output=True, timeout=300)
 
 
 # ----------------------------------------------------------------------------- binds of the API
