@@ -272,7 +272,9 @@ def test_dockerfiles_pass_the_lint_rules():
     absolute WORKDIRs (DL3000), no ``cd`` (DL3003) or ``sudo`` (DL3004), apt-get with ``-y
     --no-install-recommends`` and its lists removed (DL3014/15, DL3009), pip without its cache
     (DL3042), exec-form ENTRYPOINT/CMD (DL3025: signals reach sarship), a non-root last USER
-    (DL3002); and every COPY source exists, covering the package folders and the readme."""
+    (DL3002), ``pipefail`` before a RUN with a pipe (DL4006: a failing ``getent`` would go
+    unseen); and every COPY source exists, covering the package folders and the readme.
+    (hadolint 2.15 itself passes both files, with the DL3008/DL3013 ignores they explain.)"""
     pyproject = _pyproject()
     package = set(pyproject["tool"]["setuptools"]["package-dir"].values()) | {"pyproject.toml",
                                                                              pyproject["project"]["readme"]}
@@ -280,9 +282,11 @@ def test_dockerfiles_pass_the_lint_rules():
         ins = _instructions(dockerfile)
         base = [a for i, a in ins if i == "FROM"]
         assert len(base) == 1 and ":" in base[0] and not base[0].endswith(":latest"), base
-        copied = set()
+        copied, pipefail = set(), False
         for i, a in ins:
-            if i == "WORKDIR":
+            if i == "SHELL":
+                pipefail = "pipefail" in json.loads(a)
+            elif i == "WORKDIR":
                 assert a.startswith("/"), (dockerfile, a)
             elif i in ("ENTRYPOINT", "CMD"):
                 assert isinstance(json.loads(a), list), (dockerfile, i, a)
@@ -293,6 +297,7 @@ def test_dockerfiles_pass_the_lint_rules():
             elif i == "RUN":
                 words = a.split()
                 assert "sudo" not in words and "cd" not in words, (dockerfile, a)
+                assert pipefail or "|" not in a.replace("||", ""), (dockerfile, "a pipe without pipefail", a)
                 if "apt-get" in words and "install" in words:
                     assert "-y" in words and "--no-install-recommends" in words, a
                     assert "rm -rf /var/lib/apt/lists/*" in a, a
