@@ -493,3 +493,18 @@ def test_serve_without_bokeh_offers_no_dashboard(tmp_path):
     from sarship.workers.cluster import dashboard_serves
 
     assert not dashboard_serves(f"http://127.0.0.1:{free_port()}/status", timeout=1)  # nothing listens there
+
+
+def test_detect_without_bokeh_prints_no_dashboard_link(tmp_path):
+    """``sarship detect`` where bokeh cannot be imported: its cluster line offers no link but
+    says how to get one, and run.json records no dashboard."""
+    scene = tmp_path / "s.zarr"
+    write_scene(scene, {"intensity": blobs_scene((96, 96), looks=2.0, seed=2, n=2)}, tile=96, looks=2.0)
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": "", **_without_bokeh(tmp_path)}
+    res = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
+                          "--out", str(tmp_path / "out")], capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr
+    line = [ln for ln in res.stderr.splitlines() if "Dask cluster" in ln]
+    assert len(line) == 1 and "no dashboard" in line[0] and "sarship[dashboard]" in line[0], res.stderr
+    assert "http" not in line[0], line
+    assert json.loads((tmp_path / "out" / "run.json").read_text())["cluster"]["dashboard"] is None
