@@ -26,7 +26,8 @@ OpenSARShip layout ``<product>/Patch/<chip>.tif`` + ``<product>/Metedata.xml`` o
 ``<product>/<product>.xml``); files without ``Abstracted_Metadata`` are skipped. It gives
 ``sensor`` (MISSION + ACQUISITION_MODE), ``acquired`` (first_line_time), ``product``,
 ``polarisations`` (``mdsN_tx_rx_polar``, else the ``Band_*`` ``polarization`` items, else the
-polarisation token of each ``Band_*`` element's name, e.g. ``Band_IW1_VV``; they name the channels), ``SAMPLE_TYPE`` (COMPLEX: (re, im) band pairs), ``pixel_spacing_m``
+polarisation token of each ``Band_*`` element's name, e.g. ``Band_IW1_VV``; they name the
+channels), ``SAMPLE_TYPE`` (COMPLEX: (re, im) band pairs), ``pixel_spacing_m``
 (azimuth_spacing, range_spacing) and the nominal looks (azimuth_looks x range_looks).
 A caller can turn the sidecar off (``sidecar_root=False``: a service upload is one file, so
 nothing beside it belongs to it).
