@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Any
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers.limits import DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO
+from sarship.pipeline.readers.limits import (DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO,
+                                             DEFAULT_MAX_XML_MB)
 from sarship.pipeline.scene import DEFAULT_INGEST_CODEC, INGEST_CODECS
 from sarship.workers.request import DEVICES
 
@@ -138,7 +139,8 @@ def cmd_ingest(a) -> int:
     band: Any = a.band
     if band is not None and band.isdigit():
         band = int(band)
-    limits = InputLimits(max_pixels=a.max_pixels, max_chunk_mb=a.max_chunk_mb, max_ratio=a.max_ratio)
+    limits = InputLimits(max_pixels=a.max_pixels, max_chunk_mb=a.max_chunk_mb, max_ratio=a.max_ratio,
+                         max_xml_mb=a.max_xml_mb)
     scene = ingest(a.inputs, a.out, kind=a.kind, tile=a.tile, progress=_progress("ingest"),
                    band=band, channels=channels, looks=a.looks, overwrite=a.overwrite, spacing=a.spacing,
                    limits=limits, swath=a.swath, codec=a.codec)
@@ -489,6 +491,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-ratio", type=float, default=DEFAULT_MAX_RATIO,
                    help="refuse a compressed/sparse TIFF declaring more decoded bytes per file byte "
                         f"(default {DEFAULT_MAX_RATIO:g})")
+    s.add_argument("--max-xml-mb", type=float, default=DEFAULT_MAX_XML_MB,
+                   help="refuse a Sentinel-1 SAFE product with an XML member (annotation, manifest...) of more MiB "
+                        f"(default {DEFAULT_MAX_XML_MB:g})")
     s.set_defaults(func=cmd_ingest)
 
     s = sub.add_parser("detect", help="run a detector on a scene store")

@@ -425,7 +425,7 @@ class Runner:
                 ingest_in_child(src, stage, sidecar_root=root, progress=progress,
                                 memory_mb=st.ingest_memory_mb or None,
                                 limits={"max_pixels": st.max_pixels, "max_chunk_mb": st.max_chunk_mb,
-                                        "max_ratio": st.max_ratio})
+                                        "max_ratio": st.max_ratio, "max_xml_mb": st.max_xml_mb})
             if not self.store.finish(job_id, self.owner, "successful", f"scene {sid} ready", {"scene": sid},
                                      attempt=attempt, publish=publish):
                 log.warning("ingest %s (attempt %d) finished, but the job is no longer ours: discarded",

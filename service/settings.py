@@ -17,7 +17,8 @@ from pydantic import Field, ValidationInfo, field_validator
 from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from sarship.pipeline.readers.limits import DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO
+from sarship.pipeline.readers.limits import (DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO,
+                                             DEFAULT_MAX_XML_MB)
 
 #: Scan interval used when neither an interval nor a cron expression is set.
 DEFAULT_INBOX_INTERVAL_S = 30.0
@@ -126,6 +127,9 @@ class Settings(BaseSettings):
     max_ratio: float = Field(DEFAULT_MAX_RATIO, gt=0.0,
                              description="largest ratio of declared decoded bytes to file size of a compressed or "
                                          "sparse TIFF an ingest takes")
+    max_xml_mb: float = Field(DEFAULT_MAX_XML_MB, gt=0.0,
+                              description="largest XML member (annotation, manifest...) of a Sentinel-1 SAFE product "
+                                          "an ingest takes, MiB (checked before it is inflated)")
     ingest_memory_mb: float = Field(4096.0, ge=0.0,
                                     description="address-space cap of the child process each ingest runs in, MiB "
                                                 "(0: no cap); an ingest beyond it fails its job, the file is refused")

@@ -759,3 +759,28 @@ def test_tiles_are_written_in_parallel_to_the_same_store(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="SARSHIP_INGEST_WRITERS must be a whole number >= 1, got '0'"):
         ingest([tmp_path / "x.npy"], tmp_path / "bad.zarr", kind="intensity", tile=256)
     assert not (tmp_path / "bad.zarr").exists()
+
+
+# --------------------------------------------------------------------------- issue 30: --out's folders
+
+
+def test_missing_output_folders_are_created_and_removed_on_failure(tmp_path):
+    """``--out a/b/c.zarr`` with no ``a/b``: the folders are made (as ``mkdir -p``); an ingest
+    that fails leaves none of them; a file in the way is refused in one line."""
+    np.save(tmp_path / "x.npy", rand_f32((16, 16)))
+    out = tmp_path / "a" / "b" / "c.zarr"
+    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out", str(out)],
+                       capture_output=True, text=True, cwd=REPO, timeout=120, check=False)
+    assert r.returncode == 0, r.stderr
+    np.testing.assert_array_equal(read(open_scene(out), "intensity"), np.load(tmp_path / "x.npy"))
+    assert sorted(os.listdir(out.parent)) == ["c.zarr"]  # published atomically, no temporary left
+    np.save(tmp_path / "neg.npy", -rand_f32((16, 16)))  # refused while planning: nothing made stays
+    with pytest.raises(InputError, match="negative"):
+        ingest([tmp_path / "neg.npy"], tmp_path / "d" / "e" / "f.zarr")
+    assert not (tmp_path / "d").exists()
+    (tmp_path / "file").write_text("not a folder")
+    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out",
+                        str(tmp_path / "file" / "g" / "o.zarr")],
+                       capture_output=True, text=True, cwd=REPO, timeout=120, check=False)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "is a file, not a folder" in r.stderr, r.stderr
+    assert (tmp_path / "file").read_text() == "not a folder"

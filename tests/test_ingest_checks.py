@@ -359,3 +359,60 @@ def test_declared_zero_nodata_is_absent_and_undeclared_zeros_are_data(tmp_path):
     write_tif(tmp_path / "u.tif", a)
     out = read(ingest([tmp_path / "u.tif"], tmp_path / "u.zarr", tile=32), "intensity")
     assert (out[:, :8] == 0).all()
+
+
+# --------------------------------------------------------------------------------------
+# issue 30: an SLC chip's channel is never named after a polarisation its product lacks
+# --------------------------------------------------------------------------------------
+
+
+def test_one_pair_of_a_dual_pol_chip_is_not_stored_as_hh(tmp_path):
+    """The OpenSARShip layout ``<product>/Patch/<chip>.tif`` + ``<product>/<product>.xml``: a chip
+    holding one (re, im) pair of a VH + VV product, nothing in its name saying which, was
+    stored as ``hh`` (the default by count); now refused in one line asking for --channels."""
+    prod = tmp_path / "S1A_IW_SLC__1SDV_TEST"
+    (prod / "Patch").mkdir(parents=True)
+    (prod / f"{prod.name}.xml").write_text(snap_xml(pols=("VH", "VV")))
+    chip = prod / "Patch" / "Cargo_x1_y2.tif"
+    write_tif(chip, slc_bands())
+    with pytest.raises(InputError) as e:
+        ingest([chip], tmp_path / "o.zarr")
+    msg = str(e.value)
+    assert "\n" not in msg and "Cargo_x1_y2.tif" in msg and "vh, vv" in msg and "--channels" in msg, msg
+    assert not (tmp_path / "o.zarr").exists()
+    sc = ingest([chip], tmp_path / "o.zarr", channels=["vv"])
+    assert sc.attrs["channels"] == ["vv"] and sc.attrs["kind"] == "slc"
+
+
+def test_vv_sidecar_band_element_names_the_channel(tmp_path):
+    """A SNAP sidecar of a VV product whose ``Band_IW1_VV`` element has no ``polarization``
+    item (nor ``mdsN_tx_rx_polar``): the element's name says VV, so the chip is ``vv``, not ``hh``."""
+    prod = tmp_path / "S1A_IW_SLC__1SSV_TEST"
+    (prod / "Patch").mkdir(parents=True)
+    xml = snap_xml(pols=("VV",), band_pols_only=True).replace('<attrib name="polarization" value="VV" />', "")
+    assert "polarization" not in xml and "Band_IW1_VV" in xml
+    (prod / "Metedata.xml").write_text(xml)
+    chip = prod / "Patch" / "Tanker_x3_y4.tif"
+    write_tif(chip, slc_bands())
+    sc = ingest([chip], tmp_path / "o.zarr")
+    assert sc.attrs["kind"] == "slc" and sc.attrs["channels"] == ["vv"] and set(sc.variables) == {"vv"}
+    assert sc.attrs["polarisations"] == ["vv"]
+
+
+@needs_oss
+def test_real_slc_chip_vv_pair_with_its_product_sidecar(tmp_path):
+    """The VV pair of a real OpenSARShip SLC chip, beside a copy of its product's sidecar: named
+    ``vv`` when the file name says so, refused (never ``hh``) when nothing does."""
+    src = sorted(OSS.glob("S1A_IW_SLC_*"))[0]
+    chip = sorted((src / "Patch").glob("*.tif"))[0]
+    prod = tmp_path / src.name
+    (prod / "Patch").mkdir(parents=True)
+    shutil.copyfile(src / f"{src.name}.xml", prod / f"{src.name}.xml")
+    vv = np.ascontiguousarray(tifffile.imread(chip)[:, :, 2:4])  # [VH re, VH im, VV re, VV im]
+    write_tif(prod / "Patch" / (chip.stem + "_vv.tif"), vv)
+    sc = ingest([prod / "Patch" / (chip.stem + "_vv.tif")], tmp_path / "vv.zarr")
+    assert sc.attrs["channels"] == ["vv"]
+    np.testing.assert_array_equal(read(sc, "vv"), vv[..., 0] + 1j * vv[..., 1])
+    write_tif(prod / "Patch" / chip.name, vv)
+    with pytest.raises(InputError, match="--channels"):
+        ingest([prod / "Patch" / chip.name], tmp_path / "o.zarr")

@@ -23,11 +23,17 @@ import numpy as np
 import pytest
 
 from sarship.pipeline.errors import InputError
+from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.readers.safe import bilinear_lut, calibrate_sigma0
 
 SAFE_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "sentinel1-safe"
 GRD = next(iter(sorted(SAFE_DIR.glob("S1B_IW_GRDH_*.SAFE"))), None) if SAFE_DIR.is_dir() else None
 H, W = 16685, 25788
+#: The samples' constant pixels are zstd strips declaring ~1900:1 (GRD) and ~3000:1 (SLC IW1)
+#: decoded bytes per byte of file, ~33000:1 and ~53000:1 deflated in a zip: by ``--max-ratio``
+#: they are decompression bombs (a real measurement is uncompressed, ~1:1, a few to one
+#: zipped), so the tests that read them raise the limit.
+SAMPLE_RATIO = 1e5
 
 
 
@@ -89,7 +95,8 @@ def grd_store(tmp_path_factory):
     # VmHWM is this process's own high-water mark: ru_maxrss would carry over the peak of the
     # pytest worker that spawned it (Linux keeps the parent's high-water mark across vfork+exec)
     code = ("import sys; from sarship.pipeline.readers import ingest; "
-            "ingest([sys.argv[1]], sys.argv[2]); "
+            "from sarship.pipeline.readers import InputLimits; "
+            "ingest([sys.argv[1]], sys.argv[2], limits=InputLimits(max_ratio=1e5)); "
             "print(next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith('VmHWM')))")
     r = subprocess.run([sys.executable, "-c", code, str(GRD), str(out)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -156,7 +163,7 @@ class TestGRD:
             for f in sorted(GRD.rglob("*")):
                 if f.is_file():
                     zf.write(f, f"{GRD.name}/{f.relative_to(GRD)}")
-        sz = ingest([z], tmp_path / "z.zarr")
+        sz = ingest([z], tmp_path / "z.zarr", limits=InputLimits(max_ratio=SAMPLE_RATIO))
         sd = open_scene(grd_store[0])
         assert sz.shape == sd.shape
         assert {k: v for k, v in sz.attrs.items() if k != "source"} == {
@@ -272,7 +279,7 @@ def test_calibration_and_noise_wired_from_the_annotation(tmp_path, with_noise):
     noise_xml = next((SLC / "annotation" / "calibration").glob("noise-s1b-iw1-slc-vv-*.xml"))
     if with_noise:
         shutil.copy(noise_xml, prod / "annotation" / "calibration" / f"noise-{base}.xml")
-    src = _open_source(prod)
+    src = _open_source(prod, limits=InputLimits(max_ratio=SAMPLE_RATIO))
     try:
         a = src.read(600, 640, 50, 130)[:, :, 0]
     finally:
@@ -317,7 +324,7 @@ def test_dual_pol_channels_and_band(tmp_path):
     vv = next((prod / "measurement").glob("*-vv-*.tiff"))
     vh_ann = next((prod / "annotation").glob("*-vh-*.xml"))
     shutil.copy(vv, prod / "measurement" / (vh_ann.stem + ".tiff"))
-    src = _open_source(prod)
+    src = _open_source(prod, limits=InputLimits(max_ratio=SAMPLE_RATIO))
     try:
         assert src.nbands == 2 and src.meta["pols"] == ["vv", "vh"]
         plan = _plan([src], "auto", "vh", None)

@@ -246,6 +246,8 @@ def ingest(
     default: its defaults).
     ``swath``: the sub-swath (``IW1``, ``IW2``, ``IW3``) of a Sentinel-1 SLC product, one scene
     per sub-swath (required when the product holds several; see :mod:`.safe_slc`).
+    ``out``'s missing parent folders are created (``mkdir -p``) and removed again when the
+    ingest fails.
     ``codec``: the store's compressor (:data:`sarship.pipeline.scene.INGEST_CODECS`): ``auto``
     (the default) chooses zstd or none from a sample of the pixels
     (:func:`~sarship.pipeline.readers.writing.choose_codec`; the choice is in the scene's
@@ -256,6 +258,52 @@ def ingest(
         raise InputError(f"codec must be one of {', '.join(INGEST_CODECS)}, got '{codec}'")
     ingest_writers()  # so is a bad SARSHIP_INGEST_WRITERS
     spacing = _check_spacing(spacing)
+    made = _make_parents(outp)
+    try:
+        return _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, sidecar_root, limits,
+                       swath, codec)
+    except BaseException:
+        _remove_made(made)
+        raise
+
+
+def _make_parents(outp: Path) -> list[Path]:
+    """Create the missing folders above ``outp`` (``--out a/b/c.zarr`` with no ``a/b``), as
+    ``mkdir -p`` does; return those created, deepest first, for :func:`_remove_made`. A path
+    whose parent cannot be a folder (a file in the way, no permission) is refused in one line."""
+    parent = outp.parent if str(outp.parent) else Path(".")
+    missing = []
+    d = parent
+    while not d.exists() and d != d.parent:
+        missing.append(d)
+        d = d.parent
+    if d.exists() and not d.is_dir():
+        raise InputError(f"--out '{outp}': '{d}' is a file, not a folder")
+    made = []
+    for m in reversed(missing):
+        try:
+            m.mkdir()
+        except FileExistsError:  # made by someone else meanwhile
+            continue
+        except OSError as exc:
+            _remove_made(made[::-1])
+            raise InputError(f"--out '{outp}': cannot create the folder '{m}' ({_one_line(exc)})") from None
+        made.append(m)
+    return made[::-1]
+
+
+def _remove_made(made: list[Path]) -> None:
+    """Remove the folders :func:`_make_parents` created, deepest first, while they are empty (a
+    failed ingest leaves nothing behind, not even the folders made for its output)."""
+    for m in made:
+        try:
+            m.rmdir()
+        except OSError:
+            return
+
+
+def _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, sidecar_root, limits, swath,
+            codec) -> Scene:
     user_progress = progress
 
     def progress(done: int, total: int) -> None:  # noqa: F811 - the caller's, exceptions passed through

@@ -15,13 +15,23 @@ probe or any tile is read:
     bound by it.
 ``max_ratio``
     declared decoded bytes / file size on disk, for compressed or sparse TIFFs: deflate cannot
-    exceed about 1032:1, so a real image never reaches the default.
+    exceed about 1032:1, so a real image never reaches the default. A Sentinel-1 SAFE product
+    (folder or zip) has it applied to each measurement GeoTIFF (the annotation's lines x
+    samples x the TIFF's bytes per pixel against the measurement's bytes on disk, or its
+    compressed bytes inside a zip), and to every member of a SAFE zip (uncompressed size /
+    compressed size: a zip bomb beyond it); see :mod:`.safe`.
+``max_xml_mb``
+    size of each XML member of a Sentinel-1 SAFE product (manifest, annotation, calibration,
+    noise, schema files), MiB, from the zip's directory or the folder's file sizes, before
+    any is inflated or parsed; reads of them stop at this many bytes whatever a header says.
+    A real IW annotation is about 2 MiB.
 
 The defaults hold every real product the project reads (a Sentinel-1 IW GRD is about
 25000 x 17000 = 4.3e8 pixels in uncompressed files; a full-resolution tiled GeoTIFF uses
 chunks of a few hundred KB). They are settings of the command line (``sarship ingest
---max-pixels/--max-chunk-mb/--max-ratio``) and of the service (``SARSHIP_MAX_PIXELS``,
-``SARSHIP_MAX_CHUNK_MB``, ``SARSHIP_MAX_RATIO``); a refusal names the one to raise.
+--max-pixels/--max-chunk-mb/--max-ratio/--max-xml-mb``) and of the service (``SARSHIP_MAX_PIXELS``,
+``SARSHIP_MAX_CHUNK_MB``, ``SARSHIP_MAX_RATIO``, ``SARSHIP_MAX_XML_MB``); a refusal names the one
+to raise.
 """
 
 from __future__ import annotations
@@ -42,6 +52,8 @@ DEFAULT_MAX_PIXELS = 2_000_000_000
 DEFAULT_MAX_CHUNK_MB = 256.0
 #: Default largest ratio of declared decoded bytes to file size (compressed or sparse TIFF).
 DEFAULT_MAX_RATIO = 1000.0
+#: Default largest XML member of a Sentinel-1 SAFE product, MiB.
+DEFAULT_MAX_XML_MB = 64.0
 
 
 @dataclass(frozen=True)
@@ -53,9 +65,10 @@ class InputLimits:
     max_chunk_mb: float = DEFAULT_MAX_CHUNK_MB
     max_ratio: float = DEFAULT_MAX_RATIO
     option: str = "cli"
+    max_xml_mb: float = DEFAULT_MAX_XML_MB
 
     def __post_init__(self):
-        for name in ("max_pixels", "max_chunk_mb", "max_ratio"):
+        for name in ("max_pixels", "max_chunk_mb", "max_ratio", "max_xml_mb"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise InputError(f"{self._knob(name)} must be a positive number, got {v!r}")
@@ -70,6 +83,23 @@ class InputLimits:
             raise InputError(
                 f"'{p}': declares {H} x {W} = {int(H) * int(W):.3g} pixels, above the limit of "
                 f"{self.max_pixels:.3g} ({self._knob('max_pixels')})")
+
+    def check_ratio(self, p: Path | str, what: str, declared: float, stored: float) -> None:
+        """Refuse ``declared`` decoded bytes held in ``stored`` bytes beyond ``max_ratio``;
+        ``what`` names the member or file in the one-line refusal."""
+        size = max(float(stored), 1.0)
+        if declared / size > self.max_ratio:
+            raise InputError(
+                f"'{p}': {what} declares {declared / 2**20:.0f} MiB in {size / 2**10:.0f} KiB "
+                f"(ratio {declared / size:.0f}:1, above the limit of {self.max_ratio:g}:1, "
+                f"{self._knob('max_ratio')}): a decompression bomb or a mostly empty file")
+
+    def check_xml(self, p: Path | str, member: str, size: float) -> None:
+        """Refuse an XML member of ``size`` bytes beyond ``max_xml_mb``."""
+        if size > self.max_xml_mb * 2**20:
+            raise InputError(
+                f"'{p}': {member} is {size / 2**20:.0f} MiB, above the limit of {self.max_xml_mb:g} MiB for an "
+                f"XML member ({self._knob('max_xml_mb')}; a real annotation is about 2 MiB)")
 
     def check_tiff(self, p: Path, series: Any, nbands: int, dtype: np.dtype) -> None:
         """The chunk and ratio limits of a TIFF series, from its page headers."""

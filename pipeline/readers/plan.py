@@ -47,8 +47,11 @@ it, is the ``channels`` attribute.
 Several input files are stacked as channels; they must have equal shapes. Complex channel
 names come from ``channels``, else the sidecar polarisations (as for real bands), else
 polarisation tokens in the file names (``hh``, ``hv``, ``vh``, ``vv``), else by count
-(1: ``hh``; 2: ``vh, vv``; 3: ``hh, hv, vv``; 4: ``hh, hv, vh, vv``). Complex channels must
-be named among ``hh, hv, vh, vv``.
+(1: ``hh``; 2: ``vh, vv``; 3: ``hh, hv, vv``; 4: ``hh, hv, vh, vv``), except where the
+metadata names other polarisations (one (re, im) pair of an OpenSARShip chip of a VH + VV
+product, no ``_vv`` in its name or folders): that is refused in one line asking for
+``--channels``, never stored under a polarisation the product does not have. Complex
+channels must be named among ``hh, hv, vh, vv``.
 ``kind`` attribute: ``quadpol`` when ``hh, hv, vv`` are all present, else ``slc``.
 """
 
@@ -119,6 +122,14 @@ def _complex_names(n: int, srcs: list[_Source], channels: list[str] | None) -> l
         if n not in defaults:
             raise InputError(f"{n} complex channels: at most 4 (hh, hv, vh, vv) are supported")
         names = defaults[n]
+        meta = [str(q) for q in (srcs[0].meta.get("pols") or [])] if len(srcs) == 1 else []
+        if meta and not set(names) <= set(meta):  # never a polarisation the product does not have
+            side = srcs[0].meta.get("sidecar")
+            raise InputError(
+                f"'{srcs[0].path}': {n} complex channel(s), but its metadata"
+                + (f" ({side})" if side else "") + f" names the polarisations {', '.join(meta)} and neither "
+                "the file name nor its folders say which: name them with --channels (e.g. --channels "
+                f"{','.join(meta[:n])})")
     bad = [c for c in names if c not in COMPLEX_CHANNELS]
     if bad:
         raise InputError(f"complex channel names must be among {', '.join(COMPLEX_CHANNELS)}; got {', '.join(bad)}")

@@ -21,13 +21,22 @@ Samples written: intensity ``DN^2``, with, when the product carries them,
   line/pixel grid.
 
 Without ``annotation/calibration/`` the samples stay ``DN^2`` and the attribute
-``calibration`` says so. Pixels with ``DN = 0`` are the zero fill outside the swath: absent
+``calibration`` says so.
+
+Hostile and damaged products are refused in one line before any pixel is read (see
+``docs/sentinel1.md``, "Hostile and damaged products"): XML members above ``max_xml_mb`` and
+zip members inflating beyond ``max_ratio`` from the zip's directory alone
+(:meth:`_Product.check_members`), XML reads capped at ``max_xml_mb`` whatever a header says
+(:meth:`_Product.open_member`), a measurement whose TIFF size is not the annotation's or
+whose declared bytes exceed ``max_ratio`` x its stored bytes (:func:`check_measurement`), and
+calibration / noise LUTs with a non-finite or non-positive node (:func:`check_lut`). Pixels with ``DN = 0`` are the zero fill outside the swath: absent
 (NaN). IW SLC products are read one sub-swath at a time by
 :mod:`sarship.pipeline.readers.safe_slc` (debursted, calibrated ``DN / A``, deramped).
 """
 
 from __future__ import annotations
 
+import io
 import re
 import zipfile
 from pathlib import Path
@@ -145,32 +154,78 @@ def check_safe_kind(p: Path, kind: str) -> None:
                          f"--kind {kind} does not apply")
 
 
-class _Product:
-    """File access inside a SAFE folder or zip (paths relative to the SAFE root)."""
+#: Bytes read at a time from an XML member (:meth:`_Product.open_member`).
+XML_READ_CHUNK = 2**20
 
-    def __init__(self, p: Path, layout: tuple[str, str | None]):
+
+class _Product:
+    """File access inside a SAFE folder or zip (paths relative to the SAFE root).
+
+    ``sizes[member]`` = (declared size, stored size): the file's size twice in a folder; in a
+    zip the uncompressed size its directory declares and its compressed size. ``limits``
+    (:class:`.limits.InputLimits`) caps what :meth:`open_member` inflates of an XML member."""
+
+    def __init__(self, p: Path, layout: tuple[str, str | None], limits: InputLimits | None = None):
         self.path = p
         self.kind, self.inner = layout
+        self.limits = limits or InputLimits()
+        self.sizes: dict[str, tuple[int, int]] = {}
         if self.kind == "dir":
-            self.members = sorted(str(f.relative_to(p)).replace("\\", "/") for f in p.rglob("*") if f.is_file())
+            for f in p.rglob("*"):
+                if f.is_file():
+                    n = f.stat().st_size
+                    self.sizes[str(f.relative_to(p)).replace("\\", "/")] = (n, n)
             self.url = str(p)
         else:
             with zipfile.ZipFile(p) as z:
                 pre = self.inner + "/"
-                self.members = sorted(n[len(pre):] for n in z.namelist() if n.startswith(pre) and not n.endswith("/"))
+                self.sizes = {i.filename[len(pre):]: (int(i.file_size), int(i.compress_size)) for i in z.infolist()
+                              if i.filename.startswith(pre) and not i.filename.endswith("/")}
             self.url = f"zip://{self.inner}/manifest.safe::{p.resolve()}"
+        self.members = sorted(self.sizes)
         self.name = p.name if self.kind == "dir" else str(self.inner)
+
+    def check_members(self) -> None:
+        """Refuse, from the zip's directory or the folder's file sizes alone (nothing inflated):
+        an XML member above ``max_xml_mb`` and, in a zip, a member whose uncompressed size is
+        more than ``max_ratio`` times its compressed size (a zip bomb: SAR samples and XML
+        compress a few to a few tens of times)."""
+        for m in self.members:
+            size, stored = self.sizes[m]
+            if not m.startswith("measurement/"):
+                self.limits.check_xml(self.path, m, size)
+            if self.kind == "zip":
+                self.limits.check_ratio(self.path, f"the zip member {m}", size, stored)
 
     def raster_path(self, member: str) -> str:
         if self.kind == "dir":
             return str(self.path / member)
         return f"/vsizip/{self.path.resolve()}/{self.inner}/{member}"
 
-    def open_member(self, member: str):
+    def _open_raw(self, member: str):
         if self.kind == "dir":
             return open(self.path / member, "rb")
         z = zipfile.ZipFile(self.path)
         return z.open(f"{self.inner}/{member}")
+
+    def open_member(self, member: str):
+        """A binary file of ``member``: a measurement as is (seekable, for tifffile); any other
+        member read into memory in ``XML_READ_CHUNK`` pieces, stopping with a one-line
+        :class:`InputError` as soon as more than ``max_xml_mb`` came out, whatever its header
+        declared (never more than the cap is inflated)."""
+        if member.startswith("measurement/"):
+            return self._open_raw(member)
+        cap = int(self.limits.max_xml_mb * 2**20)
+        buf = io.BytesIO()
+        with self._open_raw(member) as f:
+            while chunk := f.read(min(XML_READ_CHUNK, cap + 1 - buf.tell())):
+                buf.write(chunk)
+                if buf.tell() > cap:
+                    raise InputError(
+                        f"'{self.path}': {member} inflates to more than {self.limits.max_xml_mb:g} MiB, the limit "
+                        f"for an XML member ({self.limits._knob('max_xml_mb')}): read stopped there")
+        buf.seek(0)
+        return buf
 
 
 def _require():
@@ -228,22 +283,60 @@ class _SafeSource(_Source):
         self._ds = []
 
 
-def _check_chunks(p: Path, prod: _Product, member: str, limits: InputLimits) -> None:
-    """Refuse a measurement whose compressed strip/tile decodes to more than ``max_chunk_mb``
-    (GDAL decodes a chunk whole). The ratio limit is not applied: real GRD measurements are
-    uncompressed, and the shared sample's constant zstd strips reach about 1900:1."""
+def check_image_size(p: Path, ann: str, hw: tuple[int, int]) -> None:
+    """Refuse an annotation declaring an empty image (0 lines or 0 samples)."""
+    if hw[0] < 1 or hw[1] < 1:
+        raise InputError(f"'{p}': the annotation {ann} declares an empty image ({hw[0]} x {hw[1]} pixels)")
+
+
+def check_measurement(p: Path, prod: _Product, member: str, ann: str, hw: tuple[int, int],
+                      limits: InputLimits) -> None:
+    """What a measurement GeoTIFF may declare, from its header alone, before any pixel is read:
+    its size must be the annotation's ``hw`` (lines, samples); the chunk limit (GDAL decodes a
+    compressed strip/tile whole); the ratio limit: its declared bytes (lines x samples x bytes
+    per pixel) against its bytes on disk, or compressed in the zip (a real measurement is
+    uncompressed: about 1:1 in a folder, a few to one in a zip)."""
     import tifffile
 
     try:
         with prod.open_member(member) as fh, tifffile.TiffFile(fh) as t:
             page = t.pages[0]
             comp = int(getattr(page, "compression", 1) or 1)
-            chunk = int(np.prod(page.chunks, dtype=np.int64)) * page.dtype.itemsize
+            th, tw = int(page.imagelength), int(page.imagewidth)
+            sample_bytes = max(int(np.max(page.bitspersample)) // 8, 1)  # a complex sample counts whole
+            pixel_bytes = sample_bytes * int(page.samplesperpixel or 1)
+            chunk = int(np.prod(page.chunks, dtype=np.int64)) * sample_bytes  # chunks include the samples axis
     except Exception as exc:
         raise InputError(f"'{p}': cannot read the measurement {member} ({_one_line(exc)})") from None
+    if (th, tw) != tuple(hw):
+        raise InputError(f"'{p}': the annotation {ann} declares {hw[0]} x {hw[1]} pixels but the measurement "
+                         f"{member} is {th} x {tw}: a damaged or edited product")
+    limits.check_pixels(p, th, tw)
     if comp != 1 and chunk > limits.max_chunk_mb * 2**20:
         raise InputError(f"'{p}': one compressed strip/tile of {member} decodes to {chunk / 2**20:.3g} MiB, above "
                          f"the limit of {limits.max_chunk_mb:g} MiB ({limits._knob('max_chunk_mb')})")
+    where = "compressed in the zip" if prod.kind == "zip" else "on disk"
+    limits.check_ratio(p, f"the measurement {member} ({where})", float(th) * tw * pixel_bytes, prod.sizes[member][1])
+
+
+def check_lut(p: Path, what: str, lines: Any, pixels: Any, values: Any, positive: bool = True) -> None:
+    """Refuse a calibration or noise LUT that cannot be interpolated into the scene: line or
+    pixel coordinates not finite and increasing, values of another shape, or values not
+    finite and > 0 (``positive``; noise: >= 0). One bad node would make every pixel that
+    interpolates from it NaN (a NaN sigmaNought node blanks its whole cell, up to 99.9 % of a
+    scene), zero or infinite: refused in one line rather than written as a scene of no ships."""
+    lines, pixels, v = (np.asarray(a, dtype=float) for a in (lines, pixels, values))
+    for name, ax in (("line", lines), ("pixel", pixels)):
+        if ax.size == 0 or not np.all(np.isfinite(ax)) or np.any(np.diff(ax) <= 0):
+            raise InputError(f"'{p}': the {what} has {name} coordinates that are not finite and increasing")
+    if v.shape != (lines.size, pixels.size):
+        raise InputError(f"'{p}': the {what} has {v.shape} values for {lines.size} lines x {pixels.size} pixels")
+    bad = ~np.isfinite(v) | ((v <= 0) if positive else (v < 0))
+    if bad.any():
+        i, j = (int(k[0]) for k in np.nonzero(bad))
+        want = "finite positive" if positive else "finite non-negative"
+        raise InputError(f"'{p}': the {what} has {int(bad.sum())} of {v.size} nodes that are not {want} numbers "
+                         f"(first at line {lines[i]:g}, pixel {pixels[j]:g}: {v[i, j]:g}): a damaged product")
 
 
 def manifest_attrs(p: Path, prod) -> dict[str, Any]:
@@ -262,7 +355,8 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swa
     import xarray as xr
     from xarray_sentinel import esa_safe
 
-    prod = _Product(p, layout)
+    prod = _Product(p, layout, limits)
+    prod.check_members()  # XML sizes and zip ratios, from the directory alone: nothing inflated yet
     meas: dict[str, str] = {}
     swaths = set()
     slc: dict[str, dict[str, str]] = {}
@@ -302,15 +396,19 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swa
         try:
             with prod.open_member(ann) as f:
                 info = esa_safe.parse_tag(f, "//imageInformation")
+        except InputError:
+            raise
         except Exception as exc:
             raise InputError(f"'{p}': cannot read the annotation {ann} ({_one_line(exc)})") from None
         hw = (int(info["numberOfLines"]), int(info["numberOfSamples"]))
+        check_image_size(p, ann, hw)
         if shape is None:
             shape = hw
             limits.check_pixels(p, *shape)
             spacing = [float(info["azimuthPixelSpacing"]), float(info["rangePixelSpacing"])]
         elif hw != shape:
             raise InputError(f"'{p}': the {pol.upper()} measurement is {hw[0]} x {hw[1]}, not {shape[0]} x {shape[1]}")
+        check_measurement(p, prod, meas[pol], ann, hw, limits)  # its header, before any pixel or LUT
         group = f"{swath}/{pol.upper()}"
         try:
             if gcps is None:
@@ -326,10 +424,13 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swa
             if f"annotation/calibration/calibration-{base}.xml" in prod.members:
                 c = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/calibration")
                 lut["sigma"] = (c["line"].values, c["pixel"].values, c["sigmaNought"].values)
+                check_lut(p, f"sigmaNought calibration LUT of {pol.upper()} (calibration-{base}.xml)", *lut["sigma"])
                 calibrated.append(pol)
             if f"annotation/calibration/noise-{base}.xml" in prod.members:
                 n = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/noise_range")
                 lut["noise_range"] = (n["line"].values, n["pixel"].values, n["noiseRangeLut"].values)
+                check_lut(p, f"noise range LUT of {pol.upper()} (noise-{base}.xml)", *lut["noise_range"],
+                          positive=False)
                 # every block (xarray-sentinel 0.9's noise_azimuth group keeps only the first)
                 with prod.open_member(f"annotation/calibration/noise-{base}.xml") as f:
                     vecs = esa_safe.parse_tag_as_list(f, "//noiseAzimuthVector", "noise")
@@ -339,13 +440,16 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swa
                      np.array(str(v["line"]["$"]).split(), float),
                      np.array(str(v["noiseAzimuthLut"]["$"]).split(), float))
                     for v in vecs]
+                for b in lut["noise_azimuth"]:
+                    check_lut(p, f"noise azimuth LUT of {pol.upper()} (noise-{base}.xml)", b[4], [b[2]], b[5][:, None],
+                              positive=False)
                 denoised.append(pol)
             luts[pol] = lut
+        except InputError:
+            raise
         except Exception as exc:
             raise InputError(f"'{p}': cannot read the {group} annotation ({_one_line(exc)})") from None
     assert shape is not None
-    for pol in pols:  # the chunk limit of the measurement TIFFs, from their headers
-        _check_chunks(p, prod, meas[pol], limits)
     m = re.search(r"_(GRD[HMF])_", prod.name)
     res = m.group(1) if m else "GRD"
     mode = str(root.get("mode", swath))

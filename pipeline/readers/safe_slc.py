@@ -146,7 +146,7 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
     if sw not in slc:
         raise InputError(f"'{p}': --swath {swath}: the product has no such sub-swath (it has {', '.join(have)})")
     meas = slc[sw]
-    from sarship.pipeline.readers.safe import POL_ORDER, manifest_attrs
+    from sarship.pipeline.readers.safe import POL_ORDER, check_image_size, check_lut, check_measurement, manifest_attrs
 
     pols = sorted(meas, key=lambda q: POL_ORDER[q])
     root = manifest_attrs(p, prod)
@@ -173,10 +173,15 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
             fm = sentinel1.open_azimuth_fm_rate_dataset(f)
         with prod.open_member(ann0) as f:
             orbit = sentinel1.open_orbit_dataset(f)
+    except InputError:
+        raise
     except Exception as exc:
         raise InputError(f"'{p}': cannot read the annotation {ann0} ({_one_line(exc)})") from None
     try:
         lines_in, width = int(info["numberOfLines"]), int(info["numberOfSamples"])
+        check_image_size(p, ann0, (lines_in, width))
+        for pol in pols:  # each measurement's header against the annotation, before any pixel or LUT
+            check_measurement(p, prod, meas[pol], ann0, (lines_in, width), limits)
         lpb = int(timing["linesPerBurst"])
         bursts = timing["burstList"]["burst"]
         if isinstance(bursts, dict):
@@ -241,14 +246,12 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
             if f"annotation/calibration/calibration-{base}.xml" in prod.members:
                 c = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/calibration")
                 luts[pol] = (c["line"].values, c["pixel"].values, c["sigmaNought"].values)
+                check_lut(p, f"sigmaNought calibration LUT of {sw} {pol.upper()} (calibration-{base}.xml)",
+                          *luts[pol])
         except InputError:
             raise
         except Exception as exc:
             raise InputError(f"'{p}': cannot read the {group} annotation ({_one_line(exc)})") from None
-    from sarship.pipeline.readers.safe import _check_chunks
-
-    for pol in pols:
-        _check_chunks(p, prod, meas[pol], limits)
     spacing = [float(info["azimuthPixelSpacing"]), float(info["rangePixelSpacing"])]
     inc = float(info.get("incidenceAngleMidSwath", "nan"))
     if len(luts) == len(pols):

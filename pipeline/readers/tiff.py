@@ -25,8 +25,9 @@ when one is given: the inbox folder of a pass) a file named
 OpenSARShip layout ``<product>/Patch/<chip>.tif`` + ``<product>/Metedata.xml`` or
 ``<product>/<product>.xml``); files without ``Abstracted_Metadata`` are skipped. It gives
 ``sensor`` (MISSION + ACQUISITION_MODE), ``acquired`` (first_line_time), ``product``,
-``polarisations`` (``mdsN_tx_rx_polar``, else the ``Band_*`` ``polarization`` items; they name
-the channels), ``SAMPLE_TYPE`` (COMPLEX: (re, im) band pairs), ``pixel_spacing_m``
+``polarisations`` (``mdsN_tx_rx_polar``, else the ``Band_*`` ``polarization`` items, else the
+polarisation token of each ``Band_*`` element's name, e.g. ``Band_IW1_VV``; they name the
+channels), ``SAMPLE_TYPE`` (COMPLEX: (re, im) band pairs), ``pixel_spacing_m``
 (azimuth_spacing, range_spacing) and the nominal looks (azimuth_looks x range_looks).
 A caller can turn the sidecar off (``sidecar_root=False``: a service upload is one file, so
 nothing beside it belongs to it).
@@ -427,6 +428,9 @@ def _snap_sidecar(p: Path, stop: Path | None = None) -> dict[str, Any]:
             for b in am:
                 if b.tag.startswith("Band_"):
                     v = next((e.get("value") for e in b.findall("attrib") if e.get("name") == "polarization"), None)
+                    if not v:  # no polarization item: the one token of the element's name (Band_IW1_VV)
+                        toks = set(_POL_RE.findall(b.tag.lower()))
+                        v = toks.pop() if len(toks) == 1 else None
                     if v and v.strip().lower() not in pols:
                         pols.append(v.strip().lower())
         if pols and all(v in COMPLEX_CHANNELS for v in pols) and len(set(pols)) == len(pols):
