@@ -200,3 +200,31 @@ def test_readme_install_order_with_a_detect_before_and_after(wheel, tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     run = json.loads((tmp_path / "work" / "run2" / "run.json").read_text())
     assert run["detector"] == "ca_cfar"
+
+
+def test_numba_cache_dir_is_the_first_writable_user_cache_folder(tmp_path):
+    from sarship import numba_cache_dir
+
+    xdg, home = tmp_path / "xdg", tmp_path / "home"
+    assert numba_cache_dir({"XDG_CACHE_HOME": str(xdg), "HOME": str(home)}) == xdg / "sarship" / "numba"
+    assert (xdg / "sarship" / "numba").is_dir()
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")  # XDG_CACHE_HOME naming a file: no folder can be made under it
+    assert numba_cache_dir({"XDG_CACHE_HOME": str(blocked), "HOME": str(home)}) == home / ".cache" / "sarship" / "numba"
+    got = numba_cache_dir({})
+    assert got.parent.name.startswith("sarship-") and got.name == "numba" and site.getsitepackages()[0] not in str(got)
+
+
+@pytest.mark.parametrize("numba_first", [False, True], ids=["sarship-first", "numba-first"])
+def test_sarship_processes_cache_numba_in_the_user_folder(tmp_path, numba_first):
+    """Importing sarship sets NUMBA_CACHE_DIR (and Numba's configuration, if Numba was imported
+    first); a value the user set wins."""
+    code = ("import numba; " if numba_first else "") + \
+        "import sarship, os, numba.core.config as c; print(os.environ['NUMBA_CACHE_DIR']); print(c.CACHE_DIR)"
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    r = _run([sys.executable, "-c", code], cwd=tmp_path, env={**env, "XDG_CACHE_HOME": str(tmp_path / "xdg")})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == [str(tmp_path / "xdg" / "sarship" / "numba")] * 2
+    r = _run([sys.executable, "-c", code], cwd=tmp_path, env={**env, "NUMBA_CACHE_DIR": str(tmp_path / "mine")})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == [str(tmp_path / "mine")] * 2
