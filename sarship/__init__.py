@@ -18,9 +18,8 @@ or the source tree.
 """
 
 import os as _os
-from collections.abc import Mapping as _Mapping
 import sys as _sys
-import tempfile as _tempfile
+from collections.abc import Mapping as _Mapping
 from pathlib import Path as _Path
 
 
@@ -41,15 +40,13 @@ def numba_cache_dir(environ: _Mapping[str, str] = _os.environ) -> _Path:
     Returns
     -------
     pathlib.Path
-        The folder (created), or the last candidate where none could be created.
+        The folder (created; the temporary one even where it could not be created).
     """
     candidates = []
     if environ.get("XDG_CACHE_HOME", "").strip():
         candidates.append(_Path(environ["XDG_CACHE_HOME"]) / "sarship" / "numba")
     if environ.get("HOME", "").strip():
         candidates.append(_Path(environ["HOME"]) / ".cache" / "sarship" / "numba")
-    uid = _os.getuid() if hasattr(_os, "getuid") else "user"
-    candidates.append(_Path(_tempfile.gettempdir()) / f"sarship-{uid}" / "numba")
     for path in candidates:
         try:
             path.mkdir(parents=True, exist_ok=True)
@@ -57,7 +54,15 @@ def numba_cache_dir(environ: _Mapping[str, str] = _os.environ) -> _Path:
             continue
         if _os.access(path, _os.W_OK | _os.X_OK):
             return path
-    return candidates[-1]
+    import tempfile  # only here: the command line's start-up imports as little as it can
+
+    uid = _os.getuid() if hasattr(_os, "getuid") else "user"
+    path = _Path(tempfile.gettempdir()) / f"sarship-{uid}" / "numba"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        pass  # Numba then falls back to its own locations
+    return path
 
 
 def _use_user_numba_cache() -> None:
