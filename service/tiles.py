@@ -9,7 +9,7 @@ grid instead of Web Mercator:
   scene pixel; at zoom z a tile covers ``256 * 2^(Z - z)`` scene pixels a side;
 - tile (z, x, y) covers scene rows ``y*s .. (y+1)*s`` and columns ``x*s .. (x+1)*s``
   (``s = 256 * 2^(Z - z)``); it exists when ``0 <= z <= Z`` and its top-left is in the scene;
-- a tile is a 256 x 256 RGBA PNG: the scene in dB, grey (:mod:`sarship.service.render`'s one stretch per
+- a tile is a 256 x 256 RGBA PNG: the scene grey (:mod:`sarship.service.render`'s one stretch per
   job), detected pixels red; outside the scene transparent.
 
 Reads are bounded by the tile: the grey of tile pixel (i, j) is the scene pixel
@@ -39,8 +39,7 @@ from typing import Optional
 import numpy as np
 
 from sarship.service.cog import TILE, cog_tile, mask_cog
-from sarship.service.render import (grey_base, job_stretch, land_array, source_of, strided_reader, stretch,
-                                    tint_land, to_db)
+from sarship.service.render import grey, grey_base, job_stretch, land_array, source_of, strided_reader, tint_land
 
 #: ``land``: the job's land mask (``land.zarr``, jobs run with ``land_mask``), tinted blue over the
 #: scene as in the preview; asked for explicitly (``?layers=scene,mask,land``).
@@ -117,8 +116,8 @@ def scene_grey(job_dir: Path, w: Window, base_max: Optional[int] = None) -> np.n
         k = w.f // step
         out = base[w.r0 // step: -(-w.r1 // step): k, w.c0 // step: -(-w.c1 // step): k]
     else:
-        read = strided_reader(source_of(meta))
-        out = stretch(to_db(read(w.r0, w.r1, w.c0, w.c1, w.f)), meta["lo"], meta["hi"])
+        src = source_of(meta)
+        out = grey(src, strided_reader(src)(w.r0, w.r1, w.c0, w.c1, w.f), meta)
     assert out.shape == (w.rows, w.cols), (out.shape, w)
     return out
 
