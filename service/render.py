@@ -14,8 +14,9 @@ neighbouring tiles and the preview match. The stretch depends on what the scene'
   its 2 and 99 % percentiles instead;
 - ``linear`` (8-bit samples of another quantity): the stored value, linear 2-99 %.
 
-Zero (no signal, no data) is black in all three; percentiles are taken over the other pixels. The band is the one the job's detector
-read when that was a single channel (``run.json`` ``channel``), else
+Zero (no signal, no data) is black in all three; percentiles are taken over the other pixels.
+
+The band is the one the job's detector read when that was a single channel (``run.json`` ``channel``), else
 :func:`sarship.pipeline.inputs.intensity_source`'s choice (``intensity``, else ``|hh|^2`` ... for complex
 and quad-pol scenes, else ``c11`` for covariance scenes).
 
