@@ -1,7 +1,9 @@
 """The quicklook's grey stretch (service/render.py) on what users upload: an 8-bit amplitude chip
 (PNG, as HRSID / SSDD / SAR-Ship-Dataset ship chips are) ingested by the project's own ingest
 is shown with contrast (sea dark to mid grey, ship white), not washed out by the dB of data
-already scaled for display; float intensity keeps its 2-98 % dB stretch."""
+already scaled for display; float intensity keeps its 2-98 % dB stretch. And the lon/lat grid
+of a georeferenced scene's TileJSON, which the web page draws its lon/lat map with
+(service/tiles.py; the page itself: tests/test_web.py)."""
 
 from __future__ import annotations
 
@@ -100,3 +102,32 @@ def test_display_scale_from_the_scene_attributes(attrs, scale):
 def test_a_stretch_saved_before_scales_existed_reads_as_db(tmp_path):
     meta = {"lo": 1.0, "hi": 2.0, "path": "x", "var": "intensity", "transform": "real", "shape": [4, 4]}
     assert render.source_of(meta).scale == "db"
+
+
+# --------------------------------------------------------------------------- the map's lon/lat grid
+
+
+def test_tilejson_lonlat_grid_of_a_georeferenced_scene():
+    from sarship.pipeline.ship_features import Georeference
+
+    H, W = 300, 500
+    affine = {"crs": "EPSG:32631", "transform": [500000.0, 10.0, 0.0, 5000000.0, 0.0, -10.0]}
+    doc = tiles.tilejson("http://x", "J", (H, W), affine)
+    g = doc["lonlat"]
+    n = tiles.GRID_CELLS
+    assert g["rows"][0] == 0 and g["rows"][-1] == H and g["cols"][-1] == W and len(g["rows"]) == n + 1
+    want_lon, want_lat = Georeference(affine).lonlat([0, 0, H, H], [0, W, W, 0])
+    got = [(g["lon"][i][j], g["lat"][i][j]) for i, j in ((0, 0), (0, n), (n, n), (n, 0))]
+    assert np.allclose(got, np.c_[want_lon, want_lat], atol=1e-6)
+    assert g["method"] == "affine transform"
+    # GCPs (a 3 x 3 geolocation grid) give their own positions at the nodes they share
+    gcps = [{"row": r, "col": c, "x": 3.0 + c * 1e-4, "y": 45.0 - r * 1e-4, "z": 0.0}
+            for r in (0, H / 2, H) for c in (0, W / 2, W)]
+    g2 = tiles.lonlat_grid({"gcps": gcps}, (H, W))
+    assert g2["lon"][n][n] == pytest.approx(3.0 + W * 1e-4) and g2["lat"][n][0] == pytest.approx(45.0 - H * 1e-4)
+    # across the antimeridian the grid stays continuous (no jump of 360 degrees between nodes)
+    g3 = tiles.lonlat_grid({"crs": "EPSG:4326", "transform": [179.99, 1e-4, 0.0, -16.0, 0.0, -1e-4]}, (H, W))
+    assert g3["lon"][0][n] == pytest.approx(180.04) and np.all(np.diff(g3["lon"], axis=1) > 0)
+    # no georeference, or one that cannot be evaluated: no grid, the page keeps pixel coordinates
+    assert "lonlat" not in tiles.tilejson("http://x", "J", (H, W), {})
+    assert tiles.lonlat_grid({"crs": "EPSG:99999999", "transform": [0, 1, 0, 0, 0, -1]}, (H, W)) is None
