@@ -1,9 +1,22 @@
-"""Scene quicklooks of a finished job: the intensity in dB, grey-stretched with one range per job.
+"""Scene quicklooks of a finished job: the scene grey-stretched with one range per job.
 
 Every picture of a job (the preview PNG, every XYZ tile of :mod:`sarship.service.tiles`) uses the same
-2-98 % dB stretch, computed once from a decimated read of the scene and cached in the job
-folder, so neighbouring tiles and the preview match. The band is the one the job's detector
-read when that was a single channel (``run.json`` ``channel``), else
+stretch, computed once from a decimated read of the scene and cached in the job folder, so
+neighbouring tiles and the preview match. The stretch depends on what the scene's samples were
+(:func:`display_scale`, from the scene attributes the ingest wrote):
+
+- ``db`` (float or 16-bit data: calibrated intensity, GRD digital numbers ...): the intensity in
+  dB, linear between its 2 and 98 % percentiles;
+- ``amplitude`` (8-bit amplitude: PNG/JPEG chips such as HRSID's or SSDD's, 8-bit GeoTIFFs): those
+  samples were already scaled for display by whoever made them (often log-like), so the dB of
+  their square compresses them twice and the sea comes out light grey with the ships barely
+  brighter; the amplitude (the square root of the stored intensity) is stretched linearly between
+  its 2 and 99 % percentiles instead;
+- ``linear`` (8-bit samples of another quantity): the stored value, linear 2-99 %.
+
+Zero (no signal, no data) is black in all three; percentiles are taken over the other pixels.
+
+The band is the one the job's detector read when that was a single channel (``run.json`` ``channel``), else
 :func:`sarship.pipeline.inputs.intensity_source`'s choice (``intensity``, else ``|hh|^2`` ... for complex
 and quad-pol scenes, else ``c11`` for covariance scenes).
 
@@ -32,6 +45,12 @@ BASE_MAX = 2048
 STRIP_OUT = 256
 
 
+#: Quicklook scales (:func:`display_scale`) and their percentile range.
+PERCENTILES = {"db": (2.0, 98.0), "amplitude": (2.0, 99.0), "linear": (2.0, 99.0)}
+#: Suffixes of the 8-bit picture formats the ingest reads (PNG / JPEG amplitude).
+EIGHT_BIT_FILES = (".png", ".jpg", ".jpeg")
+
+
 @dataclass(frozen=True)
 class Source:
     """Where a job's quicklook intensity comes from."""
@@ -40,6 +59,32 @@ class Source:
     var: str
     transform: str  # "real" or "abs2"
     shape: tuple[int, int]
+    scale: str = "db"
+
+
+def display_scale(attrs: dict) -> str:
+    """How a scene's quicklook maps its intensity to grey (see the module doc).
+
+    Parameters
+    ----------
+    attrs : dict
+        The scene's attributes (``sample_dtype``, ``source``, ``quantity`` as the ingest writes them).
+
+    Returns
+    -------
+    str
+        ``"amplitude"`` for 8-bit amplitude samples (an 8-bit ``sample_dtype``, or a PNG / JPEG
+        source, whose grey may have been averaged from RGB into float), ``"linear"`` for 8-bit
+        samples of another quantity, else ``"db"``.
+    """
+    sources = attrs.get("source") or []
+    if isinstance(sources, str):
+        sources = [sources]
+    eight_bit = str(attrs.get("sample_dtype", "")) in ("uint8", "int8") or any(
+        str(f).lower().endswith(EIGHT_BIT_FILES) for f in sources)
+    if not eight_bit:
+        return "db"
+    return "amplitude" if str(attrs.get("quantity", "")).lower().startswith("amplitude") else "linear"
 
 
 def job_run(job_dir: Path) -> dict:
@@ -55,7 +100,9 @@ def scene_source(job_dir: Path) -> Source:
     scene = open_scene(run["scene"]["path"])
     ch = run.get("channel")
     var, transform = intensity_source(scene, ch if isinstance(ch, str) and ch in scene.variables else None)
-    return Source(str(scene.path), var, transform, tuple(scene.shape))
+    # the 8-bit rule concerns the stored samples: a complex channel's |z|^2 is always shown in dB
+    scale = display_scale(scene.attrs) if transform == "real" else "db"
+    return Source(str(scene.path), var, transform, tuple(scene.shape), scale)
 
 
 def strided_reader(src: Source) -> Callable[[int, int, int, int, int], np.ndarray]:
@@ -81,6 +128,17 @@ def to_db(x: np.ndarray) -> np.ndarray:
         return (10.0 * np.log10(np.where(np.isfinite(x) & (x > 0), x, np.nan))).astype(np.float32)
 
 
+def to_level(x: np.ndarray, scale: str = "db") -> np.ndarray:
+    """The quantity a quicklook stretches linearly, from the intensity ``x``: its dB
+    (:func:`to_db`), its amplitude ``sqrt(x)`` (``scale="amplitude"``) or ``x`` itself
+    (``"linear"``); NaN where ``x`` is not positive or not finite (drawn black)."""
+    if scale == "db":
+        return to_db(x)
+    with np.errstate(all="ignore"):
+        ok = np.where(np.isfinite(x) & (x > 0), x, np.nan).astype(np.float32)
+    return np.sqrt(ok) if scale == "amplitude" else ok
+
+
 def percentile_range(db: np.ndarray, lo_pct: float = 2.0, hi_pct: float = 98.0) -> tuple[float, float]:
     """The ``lo_pct``-``hi_pct`` % range of the finite values (0, 1 when there are none; widened
     to a non-empty range when constant)."""
@@ -94,7 +152,8 @@ def percentile_range(db: np.ndarray, lo_pct: float = 2.0, hi_pct: float = 98.0) 
 
 
 def stretch(db: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """dB to uint8 grey, linear between ``lo`` (0) and ``hi`` (255); NaN (no signal) is black."""
+    """Levels (dB, or :func:`to_level`'s) to uint8 grey, linear between ``lo`` (0) and ``hi`` (255);
+    NaN (no signal) is black."""
     g = (np.nan_to_num(db, nan=lo) - lo) * (255.0 / (hi - lo))
     return np.clip(g + 0.5, 0, 255).astype(np.uint8)
 
@@ -137,25 +196,36 @@ def _base_path(job_dir: Path, base_max: int) -> Path:
 
 def job_stretch(job_dir: Path) -> dict:
     """The job's quicklook settings, made once (``JOB/quicklook.json``): the band (``path``,
-    ``var``, ``transform``, ``shape``) and the scene-wide 2-98 % dB range ``lo``, ``hi``, taken
-    from the scene decimated by ``step`` (a power of two, at most :data:`BASE_MAX` px a side);
-    that decimated grey image is kept too (:func:`grey_base`)."""
+    ``var``, ``transform``, ``shape``), its ``scale`` (:func:`display_scale`) and the scene-wide
+    percentile range ``lo``, ``hi`` of that scale (:data:`PERCENTILES`: 2-98 % of the dB, 2-99 %
+    of an 8-bit amplitude), taken from the scene decimated by ``step`` (a power of two, at most
+    :data:`BASE_MAX` px a side); that decimated grey image is kept too (:func:`grey_base`).
+    Settings written before ``scale`` existed read as ``db``, as they were made."""
     out = job_dir / "quicklook.json"
 
     def build(tmp: Path) -> None:
         src = scene_source(job_dir)
         step = base_step(src.shape)
-        db = to_db(_decimate(strided_reader(src), src.shape, step))
-        lo, hi = percentile_range(db)
-        build_once(_base_path(job_dir, BASE_MAX), lambda t: _save_npy(t, stretch(db, lo, hi)))
-        tmp.write_text(json.dumps({"lo": lo, "hi": hi, "percentiles": [2, 98], "step": step, "path": src.path,
-                                   "var": src.var, "transform": src.transform, "shape": list(src.shape)}))
+        lev = to_level(_decimate(strided_reader(src), src.shape, step), src.scale)
+        pct = PERCENTILES[src.scale]
+        lo, hi = percentile_range(lev, *pct)
+        build_once(_base_path(job_dir, BASE_MAX), lambda t: _save_npy(t, stretch(lev, lo, hi)))
+        tmp.write_text(json.dumps({"lo": lo, "hi": hi, "scale": src.scale, "percentiles": list(pct), "step": step,
+                                   "path": src.path, "var": src.var, "transform": src.transform,
+                                   "shape": list(src.shape)}))
 
     return _memo(("stretch", str(out)), lambda: json.loads(build_once(out, build).read_text()))
 
 
 def source_of(meta: dict) -> Source:
-    return Source(meta["path"], meta["var"], meta["transform"], (int(meta["shape"][0]), int(meta["shape"][1])))
+    return Source(meta["path"], meta["var"], meta["transform"], (int(meta["shape"][0]), int(meta["shape"][1])),
+                  meta.get("scale", "db"))
+
+
+def grey(src: Source, x: np.ndarray, meta: dict) -> np.ndarray:
+    """The job's grey of the intensity ``x`` read from ``src``: its level in the job's scale,
+    stretched over the job's range."""
+    return stretch(to_level(x, src.scale), meta["lo"], meta["hi"])
 
 
 def grey_base(job_dir: Path, base_max: int = BASE_MAX) -> tuple[int, np.ndarray]:
@@ -167,7 +237,7 @@ def grey_base(job_dir: Path, base_max: int = BASE_MAX) -> tuple[int, np.ndarray]
     path = _base_path(job_dir, base_max)
 
     def build(tmp: Path) -> None:
-        _save_npy(tmp, stretch(to_db(_decimate(strided_reader(src), src.shape, step)), meta["lo"], meta["hi"]))
+        _save_npy(tmp, grey(src, _decimate(strided_reader(src), src.shape, step), meta))
 
     return step, _memo(("base", str(path)), lambda: np.load(build_once(path, build)))
 
@@ -200,8 +270,8 @@ def tint_land(rgb: np.ndarray, land: np.ndarray) -> np.ndarray:
 
 
 def preview_png(job_dir: Path, size: int) -> Path:
-    """Quicklook of a finished job (made once per size, atomically): the scene's intensity in dB
-    (the job's 2-98 % stretch) decimated to at most ``size`` pixels a side, the land mask of a
+    """Quicklook of a finished job (made once per size, atomically): the scene in the job's
+    stretch (:func:`job_stretch`) decimated to at most ``size`` pixels a side, the land mask of a
     job run with ``land_mask`` (``land.zarr``) as a blue tint (:func:`tint_land`), detected pixels
     in red (max-pooled, so that small ships stay visible), detection boxes in yellow. Read in
     strips: memory is the output plus a strip of mask rows."""
@@ -222,7 +292,7 @@ def preview_png(job_dir: Path, size: int) -> Path:
         greys, marks, lands = [], [], []
         for r0 in range(0, H, rows):
             r1 = min(r0 + rows, H)
-            greys.append(stretch(to_db(read(r0, r1, 0, W, step)), meta["lo"], meta["hi"]))
+            greys.append(grey(src, read(r0, r1, 0, W, step), meta))
             marks.append(maxpool(np.asarray(m[r0:r1, :], np.uint8), step) > 0)
             if land is not None:
                 lands.append(np.asarray(land[r0:r1:step, 0:W:step]) > 0)

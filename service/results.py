@@ -241,7 +241,8 @@ def tiles_json(request: Request, job_id: str):
     from sarship.service.tiles import tilejson
 
     finished(request, job_id)
-    return tilejson(base_url(request), job_id, _shape(request, job_id))
+    attrs = json.loads((_job_dir(request, job_id) / "run.json").read_text())["scene"].get("attrs") or {}
+    return tilejson(base_url(request), job_id, _shape(request, job_id), attrs)
 
 
 @router.get("/jobs/{job_id}/tiles/{z}/{x}/{y}.png", responses=_PNG_DOC)

@@ -9,7 +9,7 @@ grid instead of Web Mercator:
   scene pixel; at zoom z a tile covers ``256 * 2^(Z - z)`` scene pixels a side;
 - tile (z, x, y) covers scene rows ``y*s .. (y+1)*s`` and columns ``x*s .. (x+1)*s``
   (``s = 256 * 2^(Z - z)``); it exists when ``0 <= z <= Z`` and its top-left is in the scene;
-- a tile is a 256 x 256 RGBA PNG: the scene in dB, grey (:mod:`sarship.service.render`'s one stretch per
+- a tile is a 256 x 256 RGBA PNG: the scene grey (:mod:`sarship.service.render`'s one stretch per
   job), detected pixels red; outside the scene transparent.
 
 Reads are bounded by the tile: the grey of tile pixel (i, j) is the scene pixel
@@ -20,6 +20,10 @@ at most ``256 f`` pixels a side). The mask is max-pooled (a tile pixel is red wh
 pixel under it is set, so ships stay visible at every zoom): it is exactly one tile of the
 job's COG (:mod:`sarship.service.cog`), whose overview k is the mask max-pooled by 2^k on the same
 256-pixel grid, so the deepest zoom reads one full-resolution tile and zoom 0 one overview tile.
+
+A georeferenced scene's TileJSON also carries ``lonlat`` (:func:`lonlat_grid`): the WGS84
+position of a 17 x 17 grid of pixel positions, from which a map in lon/lat places each tile
+(the web page draws each tile warped onto its four corners' map position).
 
 Rendered PNGs are kept in an in-memory LRU (:data:`CACHE_TILES` tiles, a few tens of MiB):
 rendering is cheap once the job's pyramid exists (a tile decode, a PNG encode), browsers keep
@@ -39,8 +43,7 @@ from typing import Optional
 import numpy as np
 
 from sarship.service.cog import TILE, cog_tile, mask_cog
-from sarship.service.render import (grey_base, job_stretch, land_array, source_of, strided_reader, stretch,
-                                    tint_land, to_db)
+from sarship.service.render import grey, grey_base, job_stretch, land_array, source_of, strided_reader, tint_land
 
 #: ``land``: the job's land mask (``land.zarr``, jobs run with ``land_mask``), tinted blue over the
 #: scene as in the preview; asked for explicitly (``?layers=scene,mask,land``).
@@ -117,8 +120,8 @@ def scene_grey(job_dir: Path, w: Window, base_max: Optional[int] = None) -> np.n
         k = w.f // step
         out = base[w.r0 // step: -(-w.r1 // step): k, w.c0 // step: -(-w.c1 // step): k]
     else:
-        read = strided_reader(source_of(meta))
-        out = stretch(to_db(read(w.r0, w.r1, w.c0, w.c1, w.f)), meta["lo"], meta["hi"])
+        src = source_of(meta)
+        out = grey(src, strided_reader(src)(w.r0, w.r1, w.c0, w.c1, w.f), meta)
     assert out.shape == (w.rows, w.cols), (out.shape, w)
     return out
 
@@ -181,8 +184,65 @@ def cached_tile(job_dir: Path, version: str, shape: tuple[int, int], z: int, x: 
     return png
 
 
-def tilejson(base: str, job_id: str, shape: tuple[int, int]) -> dict:
-    """The TileJSON 3.0.0 document of a job's tiles (plus the scene's ``width`` and ``height``)."""
+#: Cells a side of the lon/lat grid of a georeferenced scene's TileJSON (:func:`lonlat_grid`).
+GRID_CELLS = 16
+
+
+def lonlat_grid(attrs: dict, shape: tuple[int, int], n: int = GRID_CELLS) -> Optional[dict]:
+    """The WGS84 position of a regular grid of scene pixel coordinates, for a map drawing the
+    scene in lon/lat (the web page warps each tile between the grid's nodes, bilinearly).
+
+    Parameters
+    ----------
+    attrs : dict
+        The scene's attributes: ``crs`` + ``transform`` or ``gcps``
+        (:class:`sarship.pipeline.ship_features.Georeference`).
+    shape : tuple of int
+        The scene's (rows, columns).
+    n : int
+        Cells a side: nodes at rows ``0, H/n, ..., H`` and columns ``0, W/n, ..., W``
+        (continuous pixel coordinates: pixel (r, c) covers [r, r+1) x [c, c+1)).
+
+    Returns
+    -------
+    dict or None
+        ``{"rows": [n+1], "cols": [n+1], "lon": [[n+1] * (n+1)], "lat": [...], "method": str}``
+        (``lon[i][j]`` at ``rows[i]``, ``cols[j]``; longitudes unwrapped around ``lon[0][0]``, so
+        continuous across the antimeridian, possibly past +-180); None when the scene is not georeferenced or
+        its georeference gives no finite WGS84 position.
+    """
+    from sarship.pipeline.ship_features import Georeference
+
+    geo = {k: attrs[k] for k in ("crs", "transform", "gcps") if k in attrs}
+    if not geo:
+        return None
+    try:
+        g = Georeference(geo)
+        if not g.usable:
+            return None
+        rows = np.linspace(0.0, float(shape[0]), n + 1)
+        cols = np.linspace(0.0, float(shape[1]), n + 1)
+        rr, cc = np.meshgrid(rows, cols, indexing="ij")
+        lon, lat = (np.asarray(v, float).reshape(rr.shape) for v in g.lonlat(rr.ravel(), cc.ravel()))
+    except Exception:  # a georeference that cannot be evaluated: the page keeps pixel coordinates
+        return None
+    # continuous across the antimeridian: unwrapped around the first node (values may pass +-180)
+    lon = lon[0, 0] + (lon - lon[0, 0] + 180.0) % 360.0 - 180.0
+    if not (np.isfinite(lon).all() and np.isfinite(lat).all() and (np.abs(lon) <= 360).all()
+            and (np.abs(lat) <= 90).all()):
+        return None
+    # 1e-7 degree: about a centimetre
+    return {"rows": rows.tolist(), "cols": cols.tolist(), "lon": np.round(lon, 7).tolist(),
+            "lat": np.round(lat, 7).tolist(), "method": g.method}
+
+
+def tilejson(base: str, job_id: str, shape: tuple[int, int], attrs: Optional[dict] = None) -> dict:
+    """The TileJSON 3.0.0 document of a job's tiles (plus the scene's ``width`` and ``height``,
+    and ``lonlat``, :func:`lonlat_grid`, when the scene's attributes ``attrs`` georeference it)."""
     H, W = shape
-    return {"tilejson": "3.0.0", "tiles": [f"{base}/jobs/{job_id}/tiles/{{z}}/{{x}}/{{y}}.png"], "minzoom": 0,
-            "maxzoom": max_zoom(shape), "tileSize": TILE, "width": int(W), "height": int(H)}
+    doc = {"tilejson": "3.0.0", "tiles": [f"{base}/jobs/{job_id}/tiles/{{z}}/{{x}}/{{y}}.png"], "minzoom": 0,
+           "maxzoom": max_zoom(shape), "tileSize": TILE, "width": int(W), "height": int(H)}
+    grid = lonlat_grid(attrs or {}, shape)
+    if grid is not None:
+        doc["lonlat"] = grid
+    return doc

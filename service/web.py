@@ -1,5 +1,8 @@
-"""The web page served by the API (``/ui/``): jobs with live status, a submit form built from
-the process schemas, a job view with the quicklook tiles on a pan/zoom map and the detections
+"""The web page served by the API (``/ui/``): jobs with live status, scene upload, a submit form
+built from the process schemas (main parameters open, the others in a collapsed "Advanced
+parameters"), a job view with the quicklook tiles on a pan/zoom map (in lon/lat on a Web
+Mercator map when the scene is georeferenced: ``tiles.json``'s ``lonlat`` grid,
+:func:`sarship.service.tiles.lonlat_grid`; else on the scene's pixel grid) and the detections
 drawn and listed, the scheduled-ingest state and a link to the Dask dashboard.
 
 The page is static (``service/static/``: HTML, JavaScript, CSS and the vendored Leaflet); it

@@ -125,6 +125,8 @@ def test_tiles_and_tilejson(env):
     jid = jobs["geo"]
     tj = httpx.get(f"{srv.url}/jobs/{jid}/tiles.json").json()
     Z = max(0, math.ceil(math.log2(300 / 256)))
+    grid = tj.pop("lonlat")  # the scene is georeferenced: the lon/lat of its pixel grid (tests/test_quicklook.py)
+    assert grid["rows"][-1] == 300 and grid["cols"][-1] == 260 and len(grid["lon"]) == len(grid["rows"])
     assert tj == {"tilejson": "3.0.0", "tiles": [f"{srv.url}/jobs/{jid}/tiles/{{z}}/{{x}}/{{y}}.png"],
                   "minzoom": 0, "maxzoom": Z, "tileSize": 256, "width": 260, "height": 300}
     tile_url = tj["tiles"][0]

@@ -136,11 +136,24 @@ def test_submit_see_it_finish_and_its_detections(server, page, tmp_path):
     assert pg.input_value("#param-guard") == str(desc["guard"]["schema"]["default"])
     assert pg.input_value("#param-device") == "auto"
     assert pg.locator("label[for=param-guard]").count() == 1
+    # the upload form comes first, in view without scrolling; the detector's few main parameters
+    # are open and the rest (about twenty) wait in a closed "Advanced parameters" section
+    view_h = pg.viewport_size["height"]
+    up, adv = pg.locator("#upload-btn").bounding_box(), pg.locator("#advanced").bounding_box()
+    assert up["y"] + up["height"] <= view_h and up["y"] < adv["y"], (up, adv)
+    assert pg.locator("#advanced").get_attribute("open") is None
+    assert pg.locator("#param-pfa").is_visible() and pg.locator("#param-background").is_visible()
+    assert pg.locator("#param-min_area_px").is_hidden() and pg.locator("#param-land_mask").is_hidden()
+    n_adv = pg.locator("#advanced [data-param]").count()
+    assert n_adv >= 15 and pg.locator("#params [data-param]").count() == len(desc) - 1  # all but the scene
+    assert f"({n_adv})" in pg.inner_text("#advanced summary")
 
     pg.select_option("#scene-select", "s1")
     pg.select_option("#process", "ca_cfar")
     pg.fill("#param-guard", "11")
     pg.fill("#param-background", "31")
+    pg.click("#advanced summary")
+    assert pg.locator("#param-min_area_px").is_visible()
     pg.fill("#param-min_area_px", "1")
     before = set(job_ids(u))
     page.expected.add((401, u + "/processes/ca_cfar/execution"))
@@ -222,6 +235,16 @@ def test_bad_parameter_shows_the_problem(server, page):
     assert api.json()["detail"] in shown and "400" in shown
     assert pg.get_attribute("#param-guard", "aria-invalid") == "true"
     assert set(job_ids(u)) == before
+    # an advanced parameter the API refuses: its closed section opens on it
+    pg.fill("#param-guard", "41")
+    pg.click("#advanced summary")
+    pg.fill("#param-land_window", "16")  # in range, but even
+    pg.click("#advanced summary")
+    assert pg.locator("#param-land_window").is_hidden()
+    pg.click("#submit-btn")
+    pg.wait_for_function("() => document.querySelector('#submit-error').innerText.includes('land_window')")
+    assert pg.get_attribute("#param-land_window", "aria-invalid") == "true" and pg.locator("#param-land_window").is_visible()
+    pg.fill("#param-land_window", "15")
     # a scene outside the allowed folders: the API's detail again
     pg.fill("#param-guard", "41")
     pg.fill("#scene-path", "/etc")
@@ -367,6 +390,7 @@ def test_upload_a_scene_then_detect_on_it(server, page, tmp_path):
     pg.select_option("#process", "ca_cfar")
     pg.fill("#param-guard", "11")
     pg.fill("#param-background", "31")
+    pg.click("#advanced summary")
     pg.fill("#param-min_area_px", "1")
     pg.click("#submit-btn")
     job_id = pg.wait_for_selector("#submit-ok a").inner_text()
@@ -388,7 +412,11 @@ def test_upload_of_a_bad_file_shows_why(server, page, tmp_path):
     assert pg.locator("#upload-state[data-scene]").count() == 0
 
 
-def test_job_view_shows_scores_when_the_scene_has_truth(server, page, tmp_path):
+def test_job_view_shows_scores_and_lonlat_of_a_georeferenced_scene(server, page, tmp_path):
+    """A job on a scene with ground truth shows its scores; the scene is georeferenced, so its
+    map is in lon/lat: Web Mercator, graticule labelled in degrees around the scene's position,
+    quicklook tiles warped into place, detections drawn from their WGS84 outlines and listed by
+    lat/lon, the pointer's lon/lat. A scene without georeference keeps its pixel grid."""
     import subprocess
     import sys
 
@@ -396,7 +424,7 @@ def test_job_view_shows_scores_when_the_scene_has_truth(server, page, tmp_path):
     scene = server.data / "scenes" / "truthy.zarr"
     if not scene.exists():
         subprocess.run([sys.executable, "-m", "sarship", "simulate", str(scene), "--shape", "512x512", "--ships", "5",
-                        "--seed", "2"], check=True, capture_output=True)
+                        "--seed", "2", "--geo", "10.5,55.2"], check=True, capture_output=True)
     assert Path(f"{scene}.truth.geojson").is_file()
     r = httpx.post(u + "/processes/os_cfar/execution", json={"inputs": {"scene": "truthy"}}, headers=AUTH)
     assert r.status_code == 201, r.text
@@ -410,6 +438,40 @@ def test_job_view_shows_scores_when_the_scene_has_truth(server, page, tmp_path):
     assert shown["n_truth"] == "5" == str(scores["n_truth"])
     for k in ("pd", "precision"):
         assert k in shown and abs(float(shown[k]) - scores[k]) < 1e-3, (k, shown, scores)
+
+    grid = httpx.get(f"{u}/jobs/{job_id}/tiles.json").json()["lonlat"]
+    lon = np.array(grid["lon"])
+    lat = np.array(grid["lat"])
+    pg.wait_for_selector("#map[data-ready=true][data-crs='EPSG:3857']")
+    pg.wait_for_selector("#map img.warp-tile.loaded")
+    tiles = [(url, st) for url, st in page.responses if TILE_RE.search(url) and job_id in url]
+    assert tiles and all(st == 200 for _, st in tiles), tiles
+    # graticule: degree labels on both edges, their values around the scene's extent
+    lons = [float(x) for x in pg.eval_on_selector_all(".grat-lon", "els => els.map(e => e.dataset.lon)")]
+    lats = [float(x) for x in pg.eval_on_selector_all(".grat-lat", "els => els.map(e => e.dataset.lat)")]
+    assert len(lons) >= 2 and len(lats) >= 2, (lons, lats)
+    assert all(t.endswith("° E") for t in pg.locator(".grat-lon").all_inner_texts())
+    assert all(t.endswith("° N") for t in pg.locator(".grat-lat").all_inner_texts())
+    span_lon, span_lat = lon.max() - lon.min(), lat.max() - lat.min()
+    assert lon.min() - span_lon < min(lons) and max(lons) < lon.max() + span_lon, (lons, lon.min(), lon.max())
+    assert lat.min() - span_lat < min(lats) and max(lats) < lat.max() + span_lat, (lats, lat.min(), lat.max())
+    # detections: drawn from their WGS84 outlines, listed by lat/lon
+    fc = httpx.get(f"{u}/jobs/{job_id}/results/detections").json()
+    assert pg.locator("#map path.det-box").count() == len(fc["features"]) >= 1
+    clon, clat = fc["features"][0]["properties"]["centroid_lonlat"]
+    assert pg.inner_text("#det-table tbody tr:first-child td:nth-child(2)") == f"{clat:.5f}° N, {clon:.5f}° E"
+    # the pointer in the middle of the scene reads the scene centre's lon/lat
+    pg.locator("#map").scroll_into_view_if_needed()
+    m = pg.locator("#map").bounding_box()
+    ctr = pg.evaluate("() => { const c = document.querySelector('#map .scene-outline').getBoundingClientRect(); "
+                      "return [c.x + c.width / 2, c.y + c.height / 2]; }")
+    assert m["x"] < ctr[0] < m["x"] + m["width"] and m["y"] < ctr[1] < m["y"] + m["height"]
+    pg.mouse.move(*ctr)
+    pg.wait_for_function("() => document.querySelector('#map-cursor').textContent.includes('°')")
+    got = re.fullmatch(r"([\d.]+)° N, ([\d.]+)° E", pg.inner_text("#map-cursor"))
+    assert got, pg.inner_text("#map-cursor")
+    n = len(grid["rows"]) // 2
+    assert abs(float(got[1]) - lat[n, n]) < 0.1 * span_lat and abs(float(got[2]) - lon[n, n]) < 0.1 * span_lon
     pg.screenshot(path=str(tmp_path / "scores.png"), full_page=True)
     # a scene without truth: no scores on its job view
     r = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1"}}, headers=AUTH)
@@ -419,3 +481,10 @@ def test_job_view_shows_scores_when_the_scene_has_truth(server, page, tmp_path):
     pg.wait_for_selector("#map[data-ready=true]")
     assert "scores" not in httpx.get(f"{u}/jobs/{other}/results/metrics").json()
     assert pg.locator("#scores").count() == 0
+    # no georeference: the scene's pixel grid, the pointer in rows and columns, no graticule
+    assert "lonlat" not in httpx.get(f"{u}/jobs/{other}/tiles.json").json()
+    assert pg.get_attribute("#map", "data-crs") == "pixels" and pg.locator(".grat-label").count() == 0
+    pg.locator("#map").scroll_into_view_if_needed()
+    m = pg.locator("#map").bounding_box()
+    pg.mouse.move(m["x"] + m["width"] / 2, m["y"] + m["height"] / 2)
+    pg.wait_for_function("() => /^row \\d+, col \\d+$/.test(document.querySelector('#map-cursor').textContent)")

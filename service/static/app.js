@@ -1,5 +1,7 @@
-/* sarship web page: jobs (live), submit form built from the process schemas, scene upload (with
- * its ingest job followed), job view with the quicklook tiles on a Leaflet map (CRS.Simple over
+/* sarship web page: jobs (live), scene upload (with its ingest job followed), submit form built
+ * from the process schemas (main parameters open, the others in a collapsed "Advanced
+ * parameters"), job view with the quicklook tiles on a Leaflet map (a georeferenced scene: in
+ * lon/lat on a Web Mercator map with a graticule, tiles warped into place; else CRS.Simple over
  * the scene's pixel grid), the detections drawn and listed and the scores when the scene has
  * ground truth, scheduled-ingest state.
  *
@@ -7,7 +9,7 @@
  * page works behind a path prefix. Text from the API is only ever put into the page as text
  * nodes (textContent / append(string)); links from the API are restricted to http(s).
  *
- * One file of about 970 lines, on purpose: the page is served as static files with no build
+ * One file of about 1200 lines, on purpose: the page is served as static files with no build
  * step and no bundler, and its views share one small state and fetch helpers inside one
  * closure; split into ES modules it would gain imports, not clarity.
  */
@@ -299,8 +301,21 @@
     const inputs = Object.entries(desc.inputs || {}).filter(([k]) => k !== 'scene');
     // device first (where the job runs), then the detector's own parameters in schema order
     inputs.sort((a, b) => (b[0] === 'device') - (a[0] === 'device'));
-    fs.replaceChildren(h('legend', {}, `Parameters of ${id}`), ...inputs.map(([k, v]) => paramField(k, v)));
+    const main = inputs.filter(([k, v]) => isMain(k, v));
+    const rest = inputs.filter(([k, v]) => !isMain(k, v));
+    const adv = rest.length ? h('details', { id: 'advanced', class: 'advanced' },
+      h('summary', {}, `Advanced parameters (${rest.length})`),
+      h('p', { class: 'hint' }, 'Their defaults suit most scenes; a changed value is sent, the others are left to the detector.'),
+      ...rest.map(([k, v]) => paramField(k, v))) : null;
+    fs.replaceChildren(h('legend', {}, `Parameters of ${id}`), ...main.map(([k, v]) => paramField(k, v)), adv);
   }
+
+  /** The parameters shown open: where the job runs, the false-alarm rate (the operating point) and
+   * the CFAR windows (set from the ships' size in pixels), plus any required input; the other
+   * inputs of a detector (size filters, land mask, sidelobes, ambiguities, fit details ...) are
+   * in the collapsed "Advanced parameters". */
+  const MAIN_PARAMS = new Set(['device', 'pfa', 'guard', 'background']);
+  const isMain = (name, input) => MAIN_PARAMS.has(name) || (input.minOccurs || 0) > 0;
 
   /** The inputs document: the scene and every parameter that differs from its default. */
   function collectInputs() {
@@ -323,8 +338,11 @@
   function markInvalid(detail) {
     for (const el of $('params').querySelectorAll('[data-param]')) {
       const re = new RegExp(`(^|[^A-Za-z0-9_])${el.dataset.param}([^A-Za-z0-9_]|$)`);
-      if (detail && re.test(detail)) el.setAttribute('aria-invalid', 'true');
-      else el.removeAttribute('aria-invalid');
+      if (detail && re.test(detail)) {
+        el.setAttribute('aria-invalid', 'true');
+        const adv = el.closest('details');
+        if (adv) adv.open = true;  // the API named an advanced parameter: show it
+      } else el.removeAttribute('aria-invalid');
     }
     const sceneBad = !!detail && /scene/.test(detail);
     for (const id of ['scene-select', 'scene-path']) {
@@ -444,7 +462,7 @@
           sel.value = sid;
           $('scene-path').value = '';
         }
-        say('scene ', sceneEl, ' is ready: selected in the form above.');
+        say('scene ', sceneEl, ' is ready: selected in the form below.');
         state.dataset.scene = sid;
         input.value = '';
       } catch (e) {
@@ -715,15 +733,18 @@
   function detectionsTable(feats) {
     if (!feats.length) return h('p', { class: 'hint', id: 'det-none' }, 'No detections.');
     const shown = feats.slice(0, MAX_ROWS);
+    // a georeferenced scene: every detection has its WGS84 centre
+    const geo = feats.every((f) => Array.isArray(f.properties.centroid_lonlat) && f.properties.centroid_lonlat.length === 2);
     const tbody = h('tbody', {}, shown.map((f, i) => {
       const p = f.properties;
       const [r0, c0, r1, c1] = p.bbox_px;
       const cen = Array.isArray(p.centroid_px) ? p.centroid_px : [(r0 + r1) / 2, (c0 + c1) / 2];
+      const ll = geo ? p.centroid_lonlat : null;
       const len = p.length_m !== null && p.length_m !== undefined ? `${fmtNum(p.length_m, 3)} m` : (p.length_px !== undefined ? `${fmtNum(p.length_px, 3)} px` : '');
       const wid = p.width_m !== null && p.width_m !== undefined ? `${fmtNum(p.width_m, 3)} m` : (p.width_px !== undefined ? `${fmtNum(p.width_px, 3)} px` : '');
       const tr = h('tr', { dataset: { det: i } },
         h('td', {}, h('button', { type: 'button', class: 'small det-go', 'aria-label': `Show detection ${i + 1} on the map`, onclick: () => selectDet(i, true) }, String(i + 1))),
-        h('td', {}, `${fmtNum(cen[0], 5)}, ${fmtNum(cen[1], 5)}`),
+        h('td', {}, ll ? `${fmtLat(ll[1])}, ${fmtLon(ll[0])}` : `${fmtNum(cen[0], 5)}, ${fmtNum(cen[1], 5)}`),
         h('td', {}, `${r1 - r0}×${c1 - c0}`),
         h('td', { class: 'num' }, fmtNum(p.area_px)),
         h('td', { class: 'num' }, len), h('td', { class: 'num' }, wid),
@@ -733,7 +754,7 @@
     }));
     const wrap = h('div', { class: 'scroll det-scroll' }, h('table', { id: 'det-table' },
       h('caption', { class: 'sr-only' }, 'Detections; choose one to show it on the map'),
-      h('thead', {}, h('tr', {}, ['#', 'centroid (row, col)', 'box (rows×cols)', 'area px', 'length', 'width', 'score', 'peak']
+      h('thead', {}, h('tr', {}, ['#', geo ? 'centre (lat, lon)' : 'centroid (row, col)', 'box (rows×cols)', 'area px', 'length', 'width', 'score', 'peak']
         .map((t) => h('th', { scope: 'col' }, t)))), tbody));
     const out = [wrap];
     if (feats.length > shown.length) out.push(h('p', { class: 'hint' }, `The first ${MAX_ROWS} of ${feats.length} are listed; all are drawn.`));
@@ -767,7 +788,8 @@
     return new Layer(url, opts);
   }
 
-  /** Leaflet map over the scene's pixel grid (CRS.Simple): map pixels at zoom Z are scene pixels. */
+  /** The job's map: in lon/lat (Web Mercator, graticule) when the tiles' TileJSON carries the
+   * scene's lon/lat grid (a georeferenced scene), else over the scene's pixel grid. */
   async function buildMap(id, el, note, feats, links, jobUrl) {
     if (typeof window.L === 'undefined') { note.textContent = 'The map library did not load.'; return; }
     let tj = null;
@@ -785,12 +807,45 @@
     }
     if (current.id !== id) return;
     if (!H || !W) { note.textContent = 'No quicklook for this job.'; el.hidden = true; return; }
+    const grid = tj && lonLatGrid(tj.lonlat, H, W);
+    if (grid) buildGeoMap(el, note, feats, tj, grid);
+    else buildPixelMap(el, note, feats, tj, H, W, jobUrl);
+    finishMap(el);
+  }
+
+  /** Common end of both maps: the zoom in data-zoom (tests and styles read it), ready. */
+  function finishMap(el) {
+    const map = current.map;
+    map.on('zoomend', () => { el.dataset.zoom = String(map.getZoom()); });
+    el.dataset.zoom = String(map.getZoom());
+    el.dataset.ready = 'true';
+  }
+
+  /** A small box in the map's corner showing the position under the pointer. */
+  function cursorControl(map, text) {
+    const Ctl = L.Control.extend({
+      onAdd() {
+        const div = L.DomUtil.create('div', 'map-cursor');
+        div.id = 'map-cursor';
+        div.setAttribute('aria-live', 'off');
+        div.textContent = '';
+        map.on('mousemove', (ev) => { div.textContent = text(ev.latlng); });
+        map.on('mouseout', () => { div.textContent = ''; });
+        return div;
+      },
+    });
+    new Ctl({ position: 'bottomleft' }).addTo(map);
+  }
+
+  /** Leaflet map over the scene's pixel grid (CRS.Simple): map pixels at zoom Z are scene pixels. */
+  function buildPixelMap(el, note, feats, tj, H, W, jobUrl) {
     const Z = tj ? tj.maxzoom : nativeZoom(H, W);
     const map = L.map(el, {
       crs: L.CRS.Simple, minZoom: 0, maxZoom: Z + 2, attributionControl: false, zoomSnap: 0.5,
       preferCanvas: feats.length > 2000,
     });
     current.map = map;
+    el.dataset.crs = 'pixels';
     const px = (r, c) => map.unproject([c, r], Z);
     const bounds = L.latLngBounds(px(H, 0), px(0, W));
     if (tj) {
@@ -810,17 +865,241 @@
     map.setMaxBounds(bounds.pad(0.5));
     current.boxes = feats.map((f, i) => {
       const [r0, c0, r1, c1] = f.properties.bbox_px;
-      const rect = L.rectangle(L.latLngBounds(px(r1, c0), px(r0, c1)), { ...BOX, className: 'det-box' });
-      rect.bindTooltip(h('span', {}, `#${i + 1}`), { direction: 'top' });
-      rect.on('click', () => selectDet(i, false));
-      return rect.addTo(map);
+      return detBox(L.rectangle(L.latLngBounds(px(r1, c0), px(r0, c1)), { ...BOX, className: 'det-box' }), i);
     });
     current.feats = feats;
-    current.Z = Z;
-    map.on('zoomend', () => { el.dataset.zoom = String(map.getZoom()); });
+    current.focus = (f) => {
+      const [r0, c0, r1, c1] = f.properties.bbox_px;
+      const m = Math.max(24, r1 - r0, c1 - c0);
+      return [L.latLngBounds(px(r1 + m, c0 - m), px(r0 - m, c1 + m)), Z + 2];
+    };
+    cursorControl(map, (ll) => {
+      const p = map.project(ll, Z);
+      return (p.y < 0 || p.x < 0 || p.y > H || p.x > W) ? '' : `row ${Math.floor(p.y)}, col ${Math.floor(p.x)}`;
+    });
     map.fitBounds(bounds);
-    el.dataset.zoom = String(map.getZoom());
-    el.dataset.ready = 'true';
+  }
+
+  function detBox(layer, i) {
+    layer.bindTooltip(h('span', {}, `#${i + 1}`), { direction: 'top' });
+    layer.on('click', () => selectDet(i, false));
+    return layer.addTo(current.map);
+  }
+
+  // ---------------------------------------------------------------- lon/lat map
+
+  const fmtDeg = (v, pos, neg, d = 5) => `${Math.abs(v).toFixed(d)}° ${v >= 0 ? pos : neg}`;
+  const fmtLat = (v, d) => fmtDeg(v, 'N', 'S', d);
+  const fmtLon = (v, d) => fmtDeg(((v + 540) % 360) - 180, 'E', 'W', d);
+
+  /** The scene's pixel -> lon/lat map from TileJSON's ``lonlat`` grid (nodes at rows
+   * 0, H/n, ..., H and columns 0, W/n, ..., W): bilinear inside a cell, extended linearly past
+   * the edges. null when the grid is absent or malformed. */
+  function lonLatGrid(g, H, W) {
+    if (!g || !Array.isArray(g.lon) || !Array.isArray(g.lat) || !Array.isArray(g.rows) || !Array.isArray(g.cols)) return null;
+    const n = g.rows.length - 1;
+    const m = g.cols.length - 1;
+    const ok = (a) => a.length === n + 1 && a.every((row) => Array.isArray(row) && row.length === m + 1
+      && row.every((v) => typeof v === 'number' && Number.isFinite(v)));
+    if (n < 1 || m < 1 || !ok(g.lon) || !ok(g.lat)) return null;
+    const at = (r, c) => {
+      const fi = (r / H) * n;
+      const fj = (c / W) * m;
+      const i = Math.max(0, Math.min(n - 1, Math.floor(fi)));
+      const j = Math.max(0, Math.min(m - 1, Math.floor(fj)));
+      const u = fi - i;
+      const v = fj - j;
+      const bl = (a) => (1 - u) * ((1 - v) * a[i][j] + v * a[i][j + 1]) + u * ((1 - v) * a[i + 1][j] + v * a[i + 1][j + 1]);
+      return L.latLng(bl(g.lat), bl(g.lon));
+    };
+    const border = [];
+    for (let j = 0; j <= m; j++) border.push(L.latLng(g.lat[0][j], g.lon[0][j]));
+    for (let i = 1; i <= n; i++) border.push(L.latLng(g.lat[i][m], g.lon[i][m]));
+    for (let j = m - 1; j >= 0; j--) border.push(L.latLng(g.lat[n][j], g.lon[n][j]));
+    for (let i = n - 1; i > 0; i--) border.push(L.latLng(g.lat[i][0], g.lon[i][0]));
+    return { at, border, bounds: L.latLngBounds(border), method: g.method };
+  }
+
+  /** The CSS matrix3d drawing a size x size image onto the quadrilateral q (layer points of its
+   * corners: top-left, top-right, bottom-right, bottom-left): the projective map of the unit
+   * square onto q (Heckbert, "Fundamentals of texture mapping", 1989, sec. 2.2.3). */
+  function quadMatrix(q, size) {
+    const [p0, p1, p2, p3] = q;
+    const dx1 = p1.x - p2.x; const dx2 = p3.x - p2.x; const dx3 = p0.x - p1.x + p2.x - p3.x;
+    const dy1 = p1.y - p2.y; const dy2 = p3.y - p2.y; const dy3 = p0.y - p1.y + p2.y - p3.y;
+    const det = dx1 * dy2 - dx2 * dy1;
+    const g = det ? (dx3 * dy2 - dx2 * dy3) / det : 0;
+    const k = det ? (dx1 * dy3 - dx3 * dy1) / det : 0;
+    const a = p1.x - p0.x + g * p1.x; const b = p3.x - p0.x + k * p3.x;
+    const d = p1.y - p0.y + g * p1.y; const e = p3.y - p0.y + k * p3.y;
+    const s = 1 / size;
+    return `matrix3d(${a * s},${d * s},0,${g * s},${b * s},${e * s},0,${k * s},0,0,1,0,${p0.x},${p0.y},0,1)`;
+  }
+
+  /** The quicklook tiles (XYZ over the scene's pixel grid) drawn in the map's projection: at
+   * each view, the tile level whose pixels are about screen pixels, each visible tile warped
+   * onto its four corners' map position (lon/lat from the grid). */
+  const WarpedTiles = L.Layer.extend({
+    initialize(url, tj, grid, note) {
+      this.url = url; this.tj = tj; this.grid = grid; this.note = note;
+      this.imgs = new Map();
+      this.failed = 0;
+    },
+    getEvents() {
+      return { zoom: this.place, viewreset: this.update, zoomend: this.update, moveend: this.update, resize: this.update };
+    },
+    onAdd(map) {
+      this.box = L.DomUtil.create('div', 'warp-tiles', map.getPane('tilePane'));
+      this.update();
+    },
+    onRemove() {
+      this.box.remove();
+      this.imgs.clear();
+    },
+    /** During a zoom (a fly to a detection): the tiles shown so far, moved to their places. */
+    place() {
+      const map = this._map;
+      for (const img of this.imgs.values()) img.style.transform = quadMatrix(img.corners.map((ll) => map.latLngToLayerPoint(ll)), img.width);
+    },
+    update() {
+      const map = this._map;
+      const { height: H, width: W, maxzoom: Z } = this.tj;
+      const T = this.tj.tileSize || 256;
+      const at = this.grid.at;
+      const lp = (r, c) => map.latLngToLayerPoint(at(r, c));
+      const perPx = lp(0, 0).distanceTo(lp(H, W)) / Math.hypot(H, W);  // screen px per scene px
+      const z = Math.max(0, Math.min(Z, Math.round(Z + Math.log2(perPx))));
+      const s = T * 2 ** (Z - z);
+      const view = map.getBounds().pad(0.2);
+      const keep = new Set();
+      for (let y = 0; y * s < H; y++) {
+        for (let x = 0; x * s < W; x++) {
+          const r0 = y * s; const c0 = x * s;
+          const corners = [at(r0, c0), at(r0, c0 + s), at(r0 + s, c0 + s), at(r0 + s, c0)];
+          if (!L.latLngBounds(corners).intersects(view)) continue;
+          const key = `${z}/${x}/${y}`;
+          keep.add(key);
+          let img = this.imgs.get(key);
+          if (!img) {
+            img = this.tile(this.url.replace('{z}', z).replace('{x}', x).replace('{y}', y), T);
+            this.imgs.set(key, img);
+            this.box.append(img);
+          }
+          img.corners = corners;
+          img.style.transform = quadMatrix(corners.map((ll) => map.latLngToLayerPoint(ll)), T);
+        }
+      }
+      for (const [key, img] of this.imgs) if (!keep.has(key)) { img.remove(); this.imgs.delete(key); }
+      this.box.dataset.level = String(z);
+    },
+    tile(url, T) {
+      const img = document.createElement('img');
+      img.alt = '';
+      img.setAttribute('role', 'presentation');
+      img.className = 'warp-tile';
+      img.width = T;
+      img.height = T;
+      img.onload = () => img.classList.add('loaded');
+      img.onerror = () => { this.failed += 1; this.note.textContent = `${this.failed} tile(s) failed to load.`; };
+      if (!token()) { img.src = url; return img; }
+      fetch(url, { headers: authHeaders() })  // reads may need the token: an <img> cannot send it
+        .then((r) => { if (!r.ok) throw new Error(`tile: HTTP ${r.status}`); return r.blob(); })
+        .then((b) => {
+          const u = URL.createObjectURL(b);
+          img.addEventListener('load', () => URL.revokeObjectURL(u), { once: true });
+          img.src = u;
+        })
+        .catch(() => img.onerror());
+      return img;
+    },
+  });
+
+  /** Graticule step (degrees) giving about 3 to 7 lines across a span of `span` degrees. */
+  function gratStep(span) {
+    const steps = [30, 20, 10, 5, 2, 1, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002, 0.001, 0.0005, 0.0002, 0.0001];
+    return steps.find((st) => span / st >= 3) || steps[steps.length - 1];
+  }
+
+  /** A lon/lat graticule with its values labelled on the map's left (latitude) and top
+   * (longitude) edges, redrawn as the view moves. */
+  const Graticule = L.Layer.extend({
+    onAdd(map) {
+      this.lines = L.layerGroup().addTo(map);
+      this.labels = L.DomUtil.create('div', 'grat-labels', map.getContainer());
+      map.on('move zoomend resize', this.update, this);
+      this.update();
+    },
+    onRemove(map) {
+      map.off('move zoomend resize', this.update, this);
+      this.lines.remove();
+      this.labels.remove();
+    },
+    update() {
+      const map = this._map;
+      const b = map.getBounds();
+      const size = map.getSize();
+      const stLon = gratStep(b.getEast() - b.getWest());
+      const stLat = gratStep(b.getNorth() - b.getSouth());
+      const dec = (st) => Math.max(0, Math.ceil(-Math.log10(st) - 1e-9));
+      this.lines.clearLayers();
+      const kids = [];
+      const style = { color: '#9fd3ff', weight: 1, opacity: 0.55, interactive: false, className: 'graticule' };
+      for (let lon = Math.ceil(b.getWest() / stLon) * stLon; lon <= b.getEast(); lon += stLon) {
+        this.lines.addLayer(L.polyline([[b.getSouth(), lon], [b.getNorth(), lon]], style));
+        const x = map.latLngToContainerPoint([b.getNorth(), lon]).x;
+        if (x > 60 && x < size.x - 60) {  // clear of the corners (and of the zoom buttons)
+          kids.push(h('span', { class: 'grat-label grat-lon', dataset: { lon: lon.toFixed(6) } }, fmtLon(lon, dec(stLon))));
+          kids[kids.length - 1].style.left = `${x}px`;
+        }
+      }
+      for (let lat = Math.ceil(b.getSouth() / stLat) * stLat; lat <= b.getNorth(); lat += stLat) {
+        this.lines.addLayer(L.polyline([[lat, b.getWest()], [lat, b.getEast()]], style));
+        const y = map.latLngToContainerPoint([lat, b.getWest()]).y;
+        if (y > 20 && y < size.y - 20) {
+          kids.push(h('span', { class: 'grat-label grat-lat', dataset: { lat: lat.toFixed(6) } }, fmtLat(lat, dec(stLat))));
+          kids[kids.length - 1].style.top = `${y}px`;
+        }
+      }
+      this.labels.replaceChildren(...kids);
+    },
+  });
+
+  /** The scene in lon/lat: a Web Mercator map (EPSG:3857, no basemap: offline) with the
+   * quicklook tiles warped into place, the scene's outline, a lon/lat graticule with labelled
+   * edges, a scale bar, the detections drawn from their WGS84 outlines and the pointer's lon/lat. */
+  function buildGeoMap(el, note, feats, tj, grid) {
+    const map = L.map(el, {
+      crs: L.CRS.EPSG3857, attributionControl: false, zoomSnap: 0.5, zoomAnimation: false,
+      maxZoom: 22, preferCanvas: feats.length > 2000, zoomControl: false,
+    });
+    L.control.zoom({ position: 'topright' }).addTo(map);  // the left and top edges carry the graticule's labels
+    current.map = map;
+    el.dataset.crs = 'EPSG:3857';
+    el.classList.add('geo');
+    map.fitBounds(grid.bounds);
+    const url = safeHref(tj.tiles[0]).replace(/%7B/g, '{').replace(/%7D/g, '}');
+    new WarpedTiles(url, tj, grid, note).addTo(map);
+    L.polygon(grid.border, { color: '#9fd3ff', weight: 1, fill: false, interactive: false, className: 'scene-outline' }).addTo(map);
+    new Graticule().addTo(map);
+    L.control.scale({ imperial: false, position: 'bottomright' }).addTo(map);
+    map.setMaxBounds(grid.bounds.pad(1));
+    const pixelRing = (f) => {  // a detection without an outline: its pixel box through the grid
+      const [r0, c0, r1, c1] = f.properties.bbox_px;
+      return [grid.at(r0, c0), grid.at(r0, c1), grid.at(r1, c1), grid.at(r1, c0)];
+    };
+    const ring = (f) => {
+      const g = f.geometry;
+      if (g && g.type === 'Polygon' && Array.isArray(g.coordinates) && Array.isArray(g.coordinates[0])) {
+        return g.coordinates[0].map(([lon, lat]) => L.latLng(lat, lon));
+      }
+      return pixelRing(f);
+    };
+    current.boxes = feats.map((f, i) => detBox(L.polygon(ring(f), { ...BOX, className: 'det-box' }), i));
+    current.feats = feats;
+    current.focus = (f) => [L.latLngBounds(ring(f)).pad(2), 20];
+    cursorControl(map, (ll) => `${fmtLat(ll.lat)}, ${fmtLon(ll.lng)}`);
+    note.textContent = `Web Mercator map (EPSG:3857) of the scene's WGS84 position (${grid.method || 'georeferenced'}); `
+      + 'no basemap. The pointer shows longitude and latitude.';
   }
 
   /** Highlight detection i in the table and on the map; pan/zoom to it when asked. */
@@ -838,11 +1117,8 @@
       if (on && !zoom) tr.scrollIntoView({ block: 'nearest' });
     }
     if (zoom) {
-      const [r0, c0, r1, c1] = current.feats[i].properties.bbox_px;
-      const m = Math.max(24, r1 - r0, c1 - c0);
-      const Z = current.Z;
-      const b = L.latLngBounds(current.map.unproject([c0 - m, r1 + m], Z), current.map.unproject([c1 + m, r0 - m], Z));
-      current.map.flyToBounds(b, { maxZoom: Z + 2, duration: 0.4 });
+      const [b, maxZoom] = current.focus(current.feats[i]);
+      current.map.flyToBounds(b, { maxZoom, duration: 0.4 });
     }
   }
 
