@@ -171,13 +171,15 @@
 
   async function loadScenes() {
     const sel = $('scene-select');
-    const keep = sel.value;
     let scenes = [];
     try {
       scenes = (await getJSON(api('scenes'))).scenes || [];
     } catch (e) {
       showProblem($('submit-error'), e);
     }
+    // the choice as it is now, after the wait: a refresh started before an upload chose its new
+    // scene must not put the older choice back
+    const keep = sel.value;
     const opts = scenes.map((s) => {
       const ready = s.status === 'ready';
       const info = ready ? [Array.isArray(s.shape) ? s.shape.join('×') : '', s.kind].filter(Boolean).join(', ')
