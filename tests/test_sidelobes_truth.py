@@ -24,9 +24,11 @@ there is nothing to cut there.
 The detectors whose decision is a per-tile ``detect`` run here directly on the arrays (as
 tests/test_sidelobes.py does), with the pipeline's components, features and sidelobe step;
 those with scene-wide passes, their own discrimination or other scene kinds (``gamma_mrf``,
-``superpixel_cfar``, ``csk``, ``apwf``, ``pcdm``, ``vb_polsar``) run through
-``run_detection`` on the Dask cluster (slow: the rule they exercise is the same sidelobe step
-on their masks, covered by the direct ones in the default run).
+``superpixel_cfar``, ``csk``, ``apwf``, ``pcdm``, ``vb_polsar``; the simulator writes their
+SLC and quad-pol scenes with the same ships) run through ``run_detection`` on the Dask
+cluster, with ``sidelobes`` on and off (four runs each; ``gamma_mrf``, ``superpixel_cfar``
+and ``csk`` are slow there: the rule they exercise is the same sidelobe step on their masks,
+covered by the others in the default run).
 """
 
 from __future__ import annotations
@@ -56,7 +58,11 @@ SIDELOBES = SimConfig(shape=(256, 256), ships=3, seed=0, clutter="k", looks=1, s
                       pixel_spacing_m=(3.0, 3.0), length_m=(75.0, 150.0))
 
 DIRECT = ["two_parameter", "ca_cfar", "os_cfar", "lmm", "g0_cfar", "k_cfar", "ggd_cfar"]
-PIPELINE = [("gamma_mrf", "intensity"), ("superpixel_cfar", "intensity"), ("csk", "slc"),
+#: through the whole run; the quad-pol ones are cheap on these scenes (~1.5 s for their four
+#: runs), the others slow (8-30 s on the shared 2-core machine)
+PIPELINE = [pytest.param("gamma_mrf", "intensity", marks=pytest.mark.slow),
+            pytest.param("superpixel_cfar", "intensity", marks=pytest.mark.slow),
+            pytest.param("csk", "slc", marks=pytest.mark.slow),
             ("apwf", "quadpol"), ("pcdm", "quadpol"), ("vb_polsar", "quadpol")]
 
 
@@ -97,17 +103,17 @@ def _direct(detector: str, cfg: SimConfig) -> tuple[dict, list[dict], list[dict]
     return truth, feats, features(recs, cfg.pixel_spacing_m, None)
 
 
-def _check_truth(truth: dict, feats: list[dict], detector: str, raw: list[dict] | None = None) -> None:
+def _check_truth(truth: dict, feats: list[dict], raw: list[dict] | None = None) -> None:
     """Length and heading of each truth ship's detection within the tolerances (module doc);
-    for the detectors of :data:`SHORT` (``raw``: their components' features, in the same
-    order), no further from the truth than the component."""
+    with ``raw`` (the same detections without the sidelobe step, in the same order) also
+    whatever is no further from the truth than those (+ 5 points, + 3 deg)."""
     by_raw = {id(f["properties"]): g["properties"] for f, g in zip(feats, raw or [])}
     for t, p in _match(truth, feats):
         assert p is not None, f"ship {t['id']} ({t['length_m']:.0f} m) not detected"
         err = abs(p["length_m"] / t["length_m"] - 1)
         herr = _heading_error(p["heading_deg"], t["heading_deg"])
         tol, htol = LENGTH_TOL, HEADING_TOL
-        if detector in SHORT and raw is not None:
+        if raw is not None:
             q = by_raw[id(p)]
             tol = max(tol, abs(q["length_m"] / t["length_m"] - 1) + 0.05)
             htol = max(htol, _heading_error(q["heading_deg"], t["heading_deg"]) + 3.0)
@@ -122,13 +128,15 @@ def test_ships_without_sidelobes_keep_their_geometry(detector):
     assert not any(f["properties"]["sidelobes"] for f in feats)
     for f, g in zip(feats, raw):  # no cross: the component's geometry, exactly
         assert all(f["properties"][k] == g["properties"][k] for k in S.GEOMETRY_KEYS)
-    _check_truth(truth, feats, detector, raw)
+    _check_truth(truth, feats, raw if detector in SHORT else None)
 
 
-@pytest.mark.parametrize("detector", DIRECT)
+@pytest.mark.parametrize("detector", [pytest.param(d, marks=pytest.mark.slow) if d == "lmm" else d for d in DIRECT])
 def test_ships_with_sidelobes_within_tolerance_and_crosses_cut(detector):
+    """(``lmm``'s per-cell fits make its two scenes ~5-10 s: slow; its scene without
+    sidelobes stays in the default run.)"""
     truth, feats, raw = _direct(detector, SIDELOBES)
-    _check_truth(truth, feats, detector, raw)
+    _check_truth(truth, feats, raw if detector in SHORT else None)
     flagged = [f["properties"] for f in feats if f["properties"]["sidelobes"]]
     assert flagged or detector == "two_parameter", "no sidelobe cross cut"  # module doc
     assert all(p["core_area_px"] < p["area_px"] for p in flagged)
@@ -161,18 +169,25 @@ def test_issue_ship_is_not_cut():
     assert abs(det["length_m"] / 196 - 1) <= LENGTH_TOL and _heading_error(det["heading_deg"], 109) <= HEADING_TOL
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("detector, kind", PIPELINE)
 def test_pipeline_detectors_against_truth(detector, kind, tmp_path, client):
+    """The other detectors through the whole run, on the same ships in their scene kind: with
+    the default ``sidelobes=true`` no further from the truth than the tolerances, or than the
+    same run with ``sidelobes=false`` (these detectors' own detections of single-look hulls
+    are not all within them: csk's kurtosis, for one, finds part of a 15 dB hull)."""
     from sarship.workers.jobs import run_detection
 
     for name, cfg in (("plain", NO_SIDELOBES), ("crosses", SIDELOBES)):
         cfg = SimConfig(**{**cfg.__dict__, "kind": kind})
         scene = simulate(tmp_path / f"{name}.zarr", cfg, tile=256)
-        run = run_detection(scene, detector, {}, out_dir=tmp_path / name, client=client, progress=False)
-        assert run["parameters"]["sidelobes"] is True
+        feats = {}
+        for sl in ("true", "false"):
+            run = run_detection(scene, detector, {"sidelobes": sl}, out_dir=tmp_path / f"{name}-{sl}", client=client,
+                                progress=False)
+            assert run["parameters"]["sidelobes"] is (sl == "true")
+            feats[sl] = json.loads((tmp_path / f"{name}-{sl}" / "detections.geojson").read_text())["features"]
         truth = json.loads((tmp_path / f"{name}.zarr.truth.geojson").read_text())
-        feats = json.loads((tmp_path / name / "detections.geojson").read_text())["features"]
-        _check_truth(truth, feats, detector)
+        assert len(feats["true"]) == len(feats["false"])
+        _check_truth(truth, feats["true"], feats["false"])
         if name == "plain":
-            assert not any(f["properties"]["sidelobes"] for f in feats)
+            assert not any(f["properties"]["sidelobes"] for f in feats["true"])
