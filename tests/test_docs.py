@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
 from urllib.parse import unquote
 
@@ -56,6 +57,9 @@ def test_relative_links_resolve(md):
     assert not broken, f"{md.relative_to(REPO)} links to paths that do not exist: {broken}"
 
 
+@pytest.mark.skipif(sys.version_info[:2] != (3, 11),
+                    reason="the page is generated with Python 3.11 (CI's); argparse lays help out "
+                           "differently in other versions")
 def test_cli_reference_is_generated_from_the_parser():
     from sarship.docs_cli import PAGE, REGENERATE, help_texts, rewrite
 
