@@ -1,7 +1,8 @@
 """Issue #30 (the service's submission checks, scenes, non-finite parameters, land-mask files),
 without a server: every float parameter of every detector refuses non-finite values; the one
 detector/scene check (vb_polsar on a covariance scene) and land-mask files that are no regular
-file, nested too deep or too large are one line and exit 2 on the command line."""
+file, nested too deep or too large are one line and exit 2 on the command line; the scene
+retention and deletion keep scenes that queued jobs name; job errors lose the data folder."""
 
 from __future__ import annotations
 
@@ -137,3 +138,50 @@ def test_json_depth_streams_in_chunks():
     for raw in docs:
         for chunk in (1, 2, 3, 5, 8, 1 << 22):
             assert json_depth(raw, chunk) == whole(raw), (raw, chunk)
+
+
+def test_hide_paths(tmp_path):
+    from sarship.service.settings import Settings
+
+    data = tmp_path / "d"
+    (tmp_path / "link").symlink_to(tmp_path, target_is_directory=True)
+    s = Settings(data=tmp_path / "link" / "d")
+    text = (f"scene '{data}/scenes/s1.zarr' has no hh; '{s.data}/uploads/a.tif' bad; {data}: full; "
+            f"{data}x stays; {s.data}/scenes")
+    assert s.hide_paths(text) == ("scene 's1.zarr' has no hh; 'uploads/a.tif' bad; the data folder: full; "
+                                  f"{data}x stays; the scene folder")
+
+
+def test_scene_retention_and_deletion(tmp_path):
+    """Scenes older than scene_retention_days go unless an accepted or running job names them
+    (by id or by path); retention off keeps everything; a deletion interrupted after its rename
+    is finished by the next pass."""
+    from sarship.service.scenes import SceneInUse, delete_scene, expire_scenes, label_scene
+    from sarship.service.settings import Settings
+    from sarship.service.store import JobStore
+
+    s = Settings(data=tmp_path / "data")
+    s.scenes_dir.mkdir(parents=True)
+    s.uploads_dir.mkdir()
+    store = JobStore(s.db_path)
+    old = time.time() - 10 * 86400
+    for sid in ("old", "old_used", "old_by_path", "new"):
+        p = write_scene(s.scenes_dir / f"{sid}.zarr", {"intensity": blobs_scene((32, 32))}, tile=64, looks=2.0)
+        if sid.startswith("old"):
+            for f in (p, p / "zarr.json"):
+                os.utime(f, (old, old))
+    (s.uploads_dir / "old.tif").write_bytes(b"x")
+    label_scene(s.scenes_dir / "new.zarr", "new.tif")  # ingested now (recorded)
+    store.create("ca_cfar", {"scene": "old_used"})
+    store.create("ca_cfar", {"scene": str(s.scenes_dir / "old_by_path.zarr")})
+    (s.scenes_dir / ".deleted-x-abc123").mkdir()
+    assert expire_scenes(s, store) == []  # retention off
+    assert not (s.scenes_dir / ".deleted-x-abc123").exists()
+    s7 = Settings(data=s.data, scene_retention_days=7)
+    assert expire_scenes(s7, store) == ["old"]
+    assert sorted(p.name for p in s.scenes_dir.iterdir()) == ["new.zarr", "old_by_path.zarr", "old_used.zarr"]
+    assert not (s.uploads_dir / "old.tif").exists()
+    with pytest.raises(SceneInUse):
+        delete_scene(s, store, "old_used")
+    assert delete_scene(s, store, "new") and not delete_scene(s, store, "new")
+    assert expire_scenes(Settings(data=s.data, scene_retention_days=0), store) == []
