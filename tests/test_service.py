@@ -16,8 +16,16 @@ from svc import Server, check_problem, data_with_scene, free_port, wait_job  # n
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    srv = Server(data_with_scene(tmp_path_factory.mktemp("svc")), free_port(), SARSHIP_MAX_UPLOAD_MB="1",
-                 SARSHIP_LAND_MAX_MB="1").start()
+    import os
+
+    data = data_with_scene(tmp_path_factory.mktemp("svc"))
+    # a scene last written 400 days ago: the retention (365 days) removes it at start-up
+    old = write_scene(data / "scenes" / "old.zarr", {"intensity": blobs_scene((32, 32))}, tile=64, looks=2.0)
+    t = time.time() - 400 * 86400
+    for f in (old, old / "zarr.json"):
+        os.utime(f, (t, t))
+    srv = Server(data, free_port(), SARSHIP_MAX_UPLOAD_MB="1", SARSHIP_LAND_MAX_MB="1",
+                 SARSHIP_SCENE_RETENTION_DAYS="365").start()
     yield srv
     srv.stop()
 
@@ -391,6 +399,17 @@ def test_submission_checks_and_no_server_paths(server):
     no_server_path(server, st["message"])
     assert wait_job(u, httpx.post(ex.format("apwf"), json={"inputs": {"scene": "cov", "guard": 5, "background": 9}}
                                   ).json()["jobID"])["status"] == "successful"
+
+
+def test_scene_retention_at_start_up(server):
+    """SARSHIP_SCENE_RETENTION_DAYS=365: the scene last written 400 days ago was removed when the
+    server started; the fresh one stays."""
+    t_end = time.time() + 30
+    while (server.data / "scenes" / "old.zarr").exists() and time.time() < t_end:
+        time.sleep(0.1)
+    assert not (server.data / "scenes" / "old.zarr").exists()
+    assert (server.data / "scenes" / "s1.zarr").is_dir()
+    check_problem(httpx.get(server.url + "/scenes/old"), 404, "old")
 
 
 def test_scene_names_and_delete(server):
