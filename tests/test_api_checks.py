@@ -185,3 +185,32 @@ def test_scene_retention_and_deletion(tmp_path):
         delete_scene(s, store, "old_used")
     assert delete_scene(s, store, "new") and not delete_scene(s, store, "new")
     assert expire_scenes(Settings(data=s.data, scene_retention_days=0), store) == []
+
+
+def test_land_file_is_parsed_in_a_capped_child(tmp_path):
+    """The service's land_mask FILE is parsed and rasterised by a spawned child under the ingest's
+    memory cap (the API process never parses it): a small GeoJSON becomes the job's raster; a
+    27 MB one, whose parse needs more than the 350 MiB cap, is one line saying so (the parent
+    unharmed)."""
+    import zarr
+
+    from sarship.service.ingest_proc import land_in_child
+
+    small = tmp_path / "small.geojson"
+    small.write_text(json.dumps({"type": "Polygon", "coordinates": [[[0, 0], [8, 0], [8, 4], [0, 4]]],
+                                 "pixel_coordinates": True}))
+    out = tmp_path / "land.zarr"
+    seen = []
+    answer = land_in_child(small, out, shape=(16, 20), attrs={}, tile=8, max_bytes=2**30, memory_mb=350.0,
+                           progress=lambda done, total: seen.append((done, total)))
+    assert answer == {"kind": "vector", "format": "geojson",
+                      "info": {"polygons": 1, "coordinates": "pixel", "overlaps_scene": True}}
+    land = np.asarray(zarr.open_group(str(out), mode="r")["land"][...])
+    assert land.shape == (16, 20) and land[:4, :8].all() and land.sum() == 32
+    assert seen[-1] == (16, 16)
+    big = tmp_path / "big.geojson"  # two million positions
+    big.write_bytes(b'{"type": "Polygon", "pixel_coordinates": true, "coordinates": [[[0, 0], '
+                    + b"[12.5, 3.25], " * 2_000_000 + b"[0, 0]]]}")
+    with pytest.raises(InputError, match="needs more memory than the cap of 350 MiB"):
+        land_in_child(big, tmp_path / "big.zarr", shape=(16, 20), attrs={}, tile=8, max_bytes=2**30,
+                      memory_mb=350.0, progress=lambda done, total: None)
