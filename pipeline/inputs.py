@@ -109,6 +109,29 @@ def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tupl
     return tuple(found), "stack"
 
 
+def detector_source(spec: Any, scene: Scene, channel: str | None = None) -> tuple[Any, str]:
+    """``(variable(s), transform)`` that detector ``spec`` reads from ``scene``: the one check
+    of a detector against a scene, used by the command line and the job runner
+    (:func:`sarship.workers.jobs.run_request`) and by the service when a job is submitted, so
+    that a detector that cannot run on a scene is refused before any work (exit 2 / a 400).
+
+    By ``spec.input``: ``polarimetric`` reads :func:`polarimetric_source` (complex channels,
+    or a C3/C2 covariance scene only when ``spec.covariance``), ``slc`` reads
+    :func:`complex_source`, anything else :func:`intensity_source`. :class:`InputError`, one
+    line naming the detector, what it reads and what the scene has, otherwise."""
+    if spec.input == "polarimetric":
+        var, transform = polarimetric_source(scene, channel)
+        if transform == "covariance" and not getattr(spec, "covariance", True):
+            raise InputError(
+                f"detector '{spec.name}' reads complex polarimetric channels (2 or 3 of hh, hv, vh, vv: a dual- or "
+                f"quad-pol SLC), not a covariance matrix; this scene is a {'C3' if len(var) == 6 else 'C2'} "
+                f"covariance scene ({', '.join(var)}): use apwf or pcdm, which read covariance scenes")
+        return var, transform
+    if spec.input == "slc":
+        return complex_source(scene, channel)
+    return intensity_source(scene, channel)
+
+
 #: ``SARSHIP_READER``: ``tensorstore`` (the default when it is installed) or ``zarr`` (zarr-python).
 READERS = ("tensorstore", "zarr")
 

@@ -19,11 +19,21 @@ rule over the polygon's rings, so holes are sea); polygons are united.
 
 Every problem is one :class:`~sarship.pipeline.errors.InputError` line naming the file,
 raised by :func:`open_land_file` before any tile runs.
+
+Only a regular file (or a folder: a Zarr store) is opened: a FIFO, a device or a socket is
+refused from its ``stat`` (a FIFO would block the reader forever), and the file is opened
+``O_NONBLOCK`` and checked again on the open descriptor, so a FIFO swapped in meanwhile cannot
+hang it either. A GeoJSON file is at most ``SARSHIP_LAND_MAX_MB`` MiB
+(:data:`DEFAULT_LAND_MAX_MB` by default; checked from its size before it is read) and nested at
+most :data:`MAX_GEOJSON_DEPTH` deep (counted by a linear scan before it is parsed, so a file
+nested 200 000 deep is one line, not a ``RecursionError``).
 """
 
 from __future__ import annotations
 
 import json
+import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -32,8 +42,28 @@ import numpy as np
 
 from sarship.pipeline.errors import InputError
 
-#: Largest GeoJSON land-mask file read (bytes).
-MAX_GEOJSON_BYTES = 256 * 2**20
+#: Largest GeoJSON land-mask file read, MiB, unless ``SARSHIP_LAND_MAX_MB`` says otherwise.
+DEFAULT_LAND_MAX_MB = 64.0
+#: Deepest nesting of ``[``/``{`` in a GeoJSON land mask (a FeatureCollection of MultiPolygons
+#: is 7 deep; GeometryCollections nest further).
+MAX_GEOJSON_DEPTH = 64
+#: Suffixes of files read as GeoJSON (besides content starting with ``{``).
+GEOJSON_SUFFIXES = (".geojson", ".json")
+
+
+def land_max_bytes() -> int:
+    """The largest GeoJSON land-mask file, bytes: ``SARSHIP_LAND_MAX_MB`` MiB (a positive
+    number), else :data:`DEFAULT_LAND_MAX_MB`. InputError for a bad value."""
+    raw = os.environ.get("SARSHIP_LAND_MAX_MB", "").strip()
+    if not raw:
+        return int(DEFAULT_LAND_MAX_MB * 2**20)
+    try:
+        mb = float(raw)
+    except ValueError:
+        mb = float("nan")
+    if not (mb > 0 and mb < float("inf")):
+        raise InputError(f"SARSHIP_LAND_MAX_MB must be a positive number of MiB, got '{raw}'")
+    return int(mb * 2**20)
 
 
 @dataclass
@@ -51,25 +81,87 @@ def _bad(path: Any, what: str) -> InputError:
     return InputError(f"parameter 'land_mask': '{path}' {what}")
 
 
-def open_land_file(path: str, shape: tuple[int, int], attrs: dict) -> LandFile:
-    """Check the land-mask file ``path`` against a scene of ``shape`` with georeference
-    ``attrs`` (``crs``, ``transform``, ``gcps``) and return its reader."""
-    p = Path(path)
-    if not p.exists():
-        raise _bad(path, "does not exist (land_mask is none, texture or a raster/GeoJSON file)")
-    if p.is_dir():
-        return _zarr_mask(p, shape)
-    head = b""
+def check_land_path(path: str | os.PathLike, max_bytes: int | None = None) -> os.stat_result:
+    """The cheap checks of a land-mask FILE, from its ``stat`` alone (nothing is opened): it
+    exists, is a regular file or a folder (a Zarr store), and a GeoJSON file (by its suffix)
+    is at most ``max_bytes`` (default :func:`land_max_bytes`). Its ``stat``; InputError
+    otherwise."""
     try:
-        with open(p, "rb") as fh:
-            head = fh.read(64)
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise _bad(path, "does not exist (land_mask is none, texture or a raster/GeoJSON file)") from None
     except OSError as exc:
         raise _bad(path, f"cannot be read ({exc.strerror})") from None
-    if not head:
-        raise _bad(path, "is empty")
-    if head.lstrip()[:1] in (b"{",) or p.suffix.lower() in (".geojson", ".json"):
-        return _vector_mask(p, shape, attrs)
+    if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
+        raise _bad(path, "is not a regular file (a FIFO, device or socket): give a raster or GeoJSON file, "
+                         "or a Zarr folder")
+    if stat.S_ISREG(st.st_mode) and Path(path).suffix.lower() in GEOJSON_SUFFIXES:
+        _check_size(path, st.st_size, max_bytes)
+    return st
+
+
+def _check_size(path: Any, size: int, max_bytes: int | None) -> None:
+    limit = land_max_bytes() if max_bytes is None else int(max_bytes)
+    if size > limit:
+        raise _bad(path, f"is {size / 2**20:.1f} MiB, larger than the {limit / 2**20:g} MiB a GeoJSON land mask "
+                         "may be (SARSHIP_LAND_MAX_MB)")
+
+
+def open_land_file(path: str, shape: tuple[int, int], attrs: dict, max_bytes: int | None = None) -> LandFile:
+    """Check the land-mask file ``path`` against a scene of ``shape`` with georeference
+    ``attrs`` (``crs``, ``transform``, ``gcps``) and return its reader. ``max_bytes``: the
+    largest GeoJSON file (default :func:`land_max_bytes`)."""
+    p = Path(path)
+    st = check_land_path(p, max_bytes)
+    if stat.S_ISDIR(st.st_mode):
+        return _zarr_mask(p, shape)
+    try:  # O_NONBLOCK: a FIFO put in its place since the stat cannot block the open or the read
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        raise _bad(path, f"cannot be read ({exc.strerror})") from None
+    with os.fdopen(fd, "rb") as fh:
+        st = os.fstat(fh.fileno())
+        if not stat.S_ISREG(st.st_mode):
+            raise _bad(path, "is not a regular file (a FIFO, device or socket): give a raster or GeoJSON file, "
+                             "or a Zarr folder")
+        try:
+            head = fh.read(64)
+        except OSError as exc:
+            raise _bad(path, f"cannot be read ({exc.strerror})") from None
+        if not head:
+            raise _bad(path, "is empty")
+        if head.lstrip()[:1] in (b"{",) or p.suffix.lower() in GEOJSON_SUFFIXES:
+            _check_size(path, st.st_size, max_bytes)
+            fh.seek(0)
+            try:
+                raw = fh.read(st.st_size + 1)
+            except (OSError, MemoryError) as exc:
+                raise _bad(path, f"cannot be read ({getattr(exc, 'strerror', None) or type(exc).__name__})") from None
+            return _vector_mask(p, raw, shape, attrs, max_bytes)
     return _raster_mask(p, shape)
+
+
+def json_depth(raw: bytes, chunk: int = 1 << 22) -> int:
+    """The deepest nesting of ``[``/``{`` in JSON text ``raw`` (brackets inside strings do not
+    count), in linear time without parsing and without recursion, ``chunk`` bytes at a time
+    (the memory it needs stays a few times ``chunk``, whatever the size of ``raw``)."""
+    step = np.zeros(256, np.int64)
+    step[[ord("["), ord("{")]], step[[ord("]"), ord("}")]] = 1, -1
+    deepest, depth, inside, carry = 0, 0, False, 0  # carry: backslashes ending the previous chunk
+    for k in range(0, len(raw), chunk):
+        b = np.frombuffer(raw, np.uint8, count=min(chunk, len(raw) - k), offset=k)
+        pos = np.arange(b.size)
+        # last_other[i]: the last position <= i that is not a backslash (-1: none in this chunk)
+        last_other = np.maximum.accumulate(np.where(b == ord("\\"), -1, pos))
+        run = np.empty(b.size, np.int64)  # backslashes right before each character
+        run[0] = carry
+        run[1:] = pos[:-1] - last_other[:-1] + np.where(last_other[:-1] < 0, carry, 0)
+        quote = (b == ord('"')) & (run % 2 == 0)  # an unescaped quote opens or closes a string
+        ins = (np.cumsum(quote) % 2 == 1) != inside  # inside a string after each character
+        d = depth + np.cumsum(np.where(ins, 0, step[b]))
+        deepest, depth, inside = max(deepest, int(d.max())), int(d[-1]), bool(ins[-1])
+        carry = b.size - 1 - int(last_other[-1]) + (carry if last_other[-1] < 0 else 0)
+    return deepest
 
 
 def _zarr_mask(p: Path, shape: tuple[int, int]) -> LandFile:
@@ -227,13 +319,16 @@ def lonlat_to_pixel(lon: np.ndarray, lat: np.ndarray, attrs: dict) -> tuple[np.n
     return out[..., 0], out[..., 1]
 
 
-def _vector_mask(p: Path, shape: tuple[int, int], attrs: dict) -> LandFile:
-    if p.stat().st_size > MAX_GEOJSON_BYTES:
-        raise _bad(p, f"is larger than {MAX_GEOJSON_BYTES // 2**20} MiB")
+def _vector_mask(p: Path, raw: bytes, shape: tuple[int, int], attrs: dict, max_bytes: int | None = None) -> LandFile:
+    _check_size(p, len(raw), max_bytes)  # (the file may have grown since its stat)
+    if json_depth(raw) > MAX_GEOJSON_DEPTH:
+        raise _bad(p, f"is nested deeper than {MAX_GEOJSON_DEPTH} levels (not a GeoJSON land mask)")
     try:
-        obj = json.loads(p.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        obj = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise _bad(p, f"is not valid JSON ({type(exc).__name__}: {str(exc).splitlines()[0]})") from None
+    except RecursionError:  # (the depth scan refuses such files first)
+        raise _bad(p, f"is nested deeper than {MAX_GEOJSON_DEPTH} levels (not a GeoJSON land mask)") from None
     polys = _polygons(obj, p)
     pixel = obj.get("pixel_coordinates") is True if isinstance(obj, dict) else False
     if not pixel:

@@ -107,8 +107,8 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
             path = None
             if store is None or pending_ingest(settings, store, request.scene) is None:
                 scene_path(settings, request.scene)  # raises again, unless an ingest finished meanwhile
-        if path is not None and request.spec.input == "slc":
-            check_complex_scene(path, request.channel)  # csk: an amplitude-only scene is a 400, not a failed job
+        if path is not None:  # the detector against the scene (csk on amplitude, vb_polsar on a covariance
+            check_scene_input(path, request)  # scene, a channel the scene lacks): a 400, not a failed job
         check_coastline(request, path)  # land_mask=coastline: its package, a georeferenced scene
     except InputError as exc:
         title = "missing input" if "is required" in str(exc) else "invalid input"
@@ -121,18 +121,20 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
     return dict(body["inputs"])
 
 
-def check_complex_scene(path, channel) -> None:
-    """:class:`InputError` when a detector that reads one complex SLC channel (``input == "slc"``,
-    e.g. ``csk``) gets a scene without one (or a real ``channel``); a store that cannot be
+def check_scene_input(path, request: JobRequest) -> None:
+    """:class:`InputError` when the request's detector cannot read the scene at ``path`` (its
+    ``channel`` a variable the scene lacks or of the wrong kind, a complex-SLC detector on
+    amplitude data, a complex-channel detector on a covariance scene): the check the job
+    itself makes (:func:`sarship.pipeline.inputs.detector_source`). A store that cannot be
     opened is left to the job, as for every detector."""
-    from sarship.pipeline.inputs import complex_source
+    from sarship.pipeline.inputs import detector_source
     from sarship.pipeline.scene import open_scene
 
     try:
         scene = open_scene(path)
     except Exception:
         return
-    complex_source(scene, channel)
+    detector_source(request.spec, scene, request.channel)
 
 
 def request_scene(body: dict) -> str:
@@ -227,11 +229,15 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
             from sarship.service.inbox import start_inbox  # scheduled ingest (idle without SARSHIP_INBOX)
 
             app.state.inbox = start_inbox(settings, store, runner)
+            from sarship.service.scenes import Retention  # SARSHIP_SCENE_RETENTION_DAYS (idle when off)
+
+            app.state.retention = Retention(settings, store).start()
             app.state.store, app.state.client, app.state.runner = store, c, runner
             try:
                 yield
             finally:
                 app.state.inbox.stop()
+                app.state.retention.stop()
                 runner.stop()
 
     app = FastAPI(title="sarship", version=__version__, lifespan=lifespan,
@@ -252,7 +258,8 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
 
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem):
-        return problem(exc.status, exc.title, exc.detail, exc.headers)
+        # no server path in any problem (a scene resolved in DATA/scenes, a land_mask FILE, ...)
+        return problem(exc.status, exc.title, settings.hide_paths(exc.detail), exc.headers)
 
     async def _storage(request: Request, exc: Exception):
         # a full disk (or a file-size limit, a quota) or a busy job store: 507 / 503, not a bug
@@ -260,7 +267,7 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
         if p is None:
             return await _internal(request, exc)
         log.error("%s %s: %s", request.method, request.url.path, p.detail)
-        return problem(p.status, p.title, p.detail, p.headers)
+        return problem(p.status, p.title, settings.hide_paths(p.detail), p.headers)
 
     app.add_exception_handler(OSError, _storage)
     app.add_exception_handler(sqlite3.OperationalError, _storage)
@@ -268,7 +275,7 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
         title = {404: "not found", 405: "method not allowed"}.get(exc.status_code, "error")
-        r = problem(exc.status_code, title, str(exc.detail))
+        r = problem(exc.status_code, title, settings.hide_paths(str(exc.detail)))
         for k, v in (exc.headers or {}).items():  # e.g. 405's Allow (RFC 9110 requires it)
             r.headers[k] = v
         return r
@@ -277,7 +284,7 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
     async def _internal(request: Request, exc: Exception):
         # a bug, not bad input: still a problem document, and logged with its traceback
         log.exception("internal error on %s %s", request.method, request.url.path)
-        return problem(500, "internal error", f"{type(exc).__name__}: {exc}")
+        return problem(500, "internal error", settings.hide_paths(f"{type(exc).__name__}: {exc}"))
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):

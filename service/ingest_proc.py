@@ -15,6 +15,10 @@ progress and the outcome through a pipe:
   tried again later and the file is never quarantined for it;
 - anything else (the child killed by a signal, an unexpected error) is :class:`IngestCrashed`.
 
+A job's ``land_mask`` FILE is parsed and rasterised the same way (:func:`land_in_child`): in
+a spawned child under the same cap, which writes the mask as a Zarr raster the job then reads;
+a GeoJSON or hostile raster can exhaust that child only.
+
 Cancelling (the job dismissed) sends SIGTERM: the child's handler unwinds, so the scene
 store's temporary sibling is removed (:func:`sarship.pipeline.scene.atomic_store`); a child
 that does not end within 10 s is killed.
@@ -28,7 +32,8 @@ import signal
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-__all__ = ["IngestCrashed", "IngestRefused", "IngestTransient", "NO_SPACE", "ingest_in_child", "transient_fault"]
+__all__ = ["IngestCrashed", "IngestRefused", "IngestTransient", "NO_SPACE", "ingest_in_child", "land_in_child",
+           "transient_fault"]
 
 #: errno values of a write that failed for want of space (EFBIG: a file-size limit, RLIMIT_FSIZE).
 NO_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
@@ -125,10 +130,22 @@ def ingest_in_child(src: Path, out: Path, *, sidecar_root: Any, limits: dict, me
 
     ``progress(done, total)`` is called in this process for every tile the child reports; an
     exception it raises (e.g. the job was dismissed) stops the child and is re-raised."""
+    answer = _run_child(_child, (str(src), str(out), sidecar_root, limits, memory_mb), progress, "sarship-ingest")
+    if answer[0] == "refused":
+        raise IngestRefused(answer[1])
+    if answer[0] == "transient":
+        raise IngestTransient(answer[1])
+    if answer[0] == "error":
+        raise IngestCrashed(answer[1])
+
+
+def _run_child(target: Callable, args: tuple, progress: Callable[[int, int], None], name: str) -> tuple:
+    """Start ``target(conn, *args)`` in a spawned child and wait for its answer (the first
+    message that is not ``("progress", done, total)``, each of which is handed to
+    ``progress``); :class:`IngestCrashed` when the child ends without one."""
     ctx = mp.get_context("spawn")
     parent, child_end = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, name="sarship-ingest", daemon=True,
-                       args=(child_end, str(src), str(out), sidecar_root, limits, memory_mb))
+    proc = ctx.Process(target=target, name=name, daemon=True, args=(child_end, *args))
     proc.start()
     child_end.close()
     answer = None
@@ -155,13 +172,78 @@ def ingest_in_child(src: Path, out: Path, *, sidecar_root: Any, limits: dict, me
         _stop(proc)
         code = proc.exitcode
         how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit status {code}"
-        raise IngestCrashed(f"the ingest process ended without an answer ({how})")
+        raise IngestCrashed(f"the {name.removeprefix('sarship-')} process ended without an answer ({how})")
+    return answer
+
+
+def _land_child(conn, src: str, out: str, shape: tuple, attrs: dict, tile: int, max_bytes: int,
+                memory_mb: Optional[float]) -> None:
+    import resource
+
+    if memory_mb:
+        cap = int(memory_mb * 2**20)
+        resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+
+    def stop(signum, frame):
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        import numpy as np
+
+        from sarship.pipeline.landmask_files import open_land_file
+        from sarship.pipeline.scene import finalize_scene
+        from sarship.workers.land import create_land_store
+
+        H, W = (int(v) for v in shape)
+        land = open_land_file(src, (H, W), attrs, max_bytes=max_bytes)
+        arr = create_land_store(Path(out), (H, W), tile, {})
+        rows = max(int(tile), 1)
+        for r0 in range(0, H, rows):
+            r1 = min(r0 + rows, H)
+            arr[r0:r1, :] = np.asarray(land.read(r0, r1, 0, W), bool).astype(np.uint8)
+            conn.send(("progress", r1, H))
+        finalize_scene(out)
+        conn.send(("ok", {"kind": land.kind, "format": land.format, "info": land.info}))
+    except SystemExit:
+        raise
+    except MemoryError:
+        conn.send(("refused", f"parameter 'land_mask': '{src}' needs more memory than the cap of {memory_mb:g} MiB "
+                              "(SARSHIP_INGEST_MEMORY_MB)"))
+    except Exception as exc:
+        if isinstance(exc, _input_error()):
+            conn.send(("refused", str(exc)))
+        elif transient_fault(exc) is not None:
+            fault = transient_fault(exc)
+            conn.send(("transient", f"[Errno {fault.errno}] cannot write the land mask: {fault.strerror or fault}"))
+        else:
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    except BaseException as exc:
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+def land_in_child(src: Path, out: Path, *, shape: tuple[int, int], attrs: dict, tile: int, max_bytes: int,
+                  memory_mb: Optional[float], progress: Callable[[int, int], None]) -> dict:
+    """Check and rasterise the ``land_mask`` FILE ``src`` onto a scene grid of ``shape`` (its
+    georeference ``attrs``) in a child process under the same memory cap as an ingest: the
+    file (a GeoJSON of any size up to ``max_bytes``, a hostile TIFF) is parsed there, never in
+    the API process. The child writes the mask to the Zarr group ``out`` (array ``land``, 1 =
+    land; what the job then reads as its land_mask) and answers the file's ``kind``, ``format``
+    and ``info`` (:class:`~sarship.pipeline.landmask_files.LandFile`). A bad file (the
+    reader's one line, or beyond the memory cap) raises
+    :class:`~sarship.pipeline.errors.InputError`; the data folder full,
+    :class:`IngestTransient`; anything else, :class:`IngestCrashed`."""
+    answer = _run_child(_land_child, (str(src), str(out), tuple(shape), dict(attrs), int(tile), int(max_bytes),
+                                      memory_mb), progress, "sarship-land")
+    if answer[0] == "ok":
+        return answer[1]
     if answer[0] == "refused":
-        raise IngestRefused(answer[1])
+        raise _input_error()(answer[1])
     if answer[0] == "transient":
         raise IngestTransient(answer[1])
-    if answer[0] == "error":
-        raise IngestCrashed(answer[1])
+    raise IngestCrashed(answer[1])
 
 
 def _stop(proc) -> None:

@@ -100,6 +100,11 @@ def land_file_path(settings: Settings, request) -> Optional[Path]:
                          "or relative to the scene folder)") from None
     if not any(real == r or r in real.parents for r in settings.roots()):
         raise InputError(f"parameter 'land_mask': '{s}' is outside the allowed scene folders")
+    from sarship.pipeline.landmask_files import check_land_path
+
+    # from its stat alone (the API process opens no user file): a regular file or a Zarr folder,
+    # a GeoJSON within land_max_mb; the job's capped child parses it (Runner._land_file)
+    check_land_path(real, int(settings.land_max_mb * 2**20))
     return real
 
 
@@ -263,7 +268,8 @@ class Runner:
         delay = min(self.settings.retry_s * 2 ** min(n - 1, 30), self.settings.retry_max_s)
         log.warning("job %s (attempt %d): %s; retrying in %g s", job["id"], n, why, delay)
         try:
-            self.store.retry_later(job["id"], self.owner, n, delay, f"{why}; retrying in {delay:g} s (attempt {n})")
+            self.store.retry_later(job["id"], self.owner, n, delay,
+                                   self._public(f"{why}; retrying in {delay:g} s (attempt {n})"))
         except Exception:  # the store itself is unavailable: the lease lapses and the job runs again
             log.exception("job %s: could not record the retry", job["id"])
 
@@ -291,6 +297,10 @@ class Runner:
             if not self.store.renew(job_id, self.owner, self.settings.lease_s, min(pct, 99), attempt=attempt):
                 raise Dismissed(job_id)
 
+        def still_ours(done: int, total: int) -> None:  # (the land_mask child's progress)
+            if not self.store.renew(job_id, self.owner, self.settings.lease_s, attempt=attempt):
+                raise Dismissed(job_id)
+
         if job["process"] == INGEST:
             self._ingest(job)
             return
@@ -305,12 +315,19 @@ class Runner:
             request = JobRequest.from_inputs(job["process"], inputs)
             scene = scene_path(self.settings, request.scene)
             land = land_file_path(self.settings, request)
-            if land is not None:
-                request = request.model_copy(update={"params": {**request.params, "land_mask": str(land)}})
+            land_src = None
+            if land is not None:  # parsed and rasterised in a memory-capped child: the job reads that raster
+                land_src = self._land_file(land, scene, Path(f"{stage}-land.zarr"), still_ours)
+                request = request.model_copy(update={"params": {**request.params,
+                                                                "land_mask": str(land_src["raster"])}})
             run = run_request(request.model_copy(update={"scene": str(scene)}), out_dir=stage,
                               client=self.client, progress=False, on_tile=on_tile, overwrite=True)
             final = {name: str((out_dir / name).resolve()) for name in OUTPUTS if name in run.get("outputs", {})}
-            if run.get("outputs") != final:  # run.json names where the outputs will be
+            if land_src is not None and isinstance(run.get("land"), dict):  # the file the job named, not the raster
+                info = land_src["answer"]
+                run["land"].update({"path": str(land), "kind": info["kind"], "format": info["format"],
+                                    **info["info"]})
+            if land_src is not None or run.get("outputs") != final:  # run.json names where the outputs will be
                 from sarship.pipeline.ship_features import write_json
 
                 run["outputs"] = final
@@ -337,15 +354,44 @@ class Runner:
             elif why is not None:
                 self._retry(job, why)
             elif isinstance(exc, InputError):
-                if self.store.finish(job_id, self.owner, "failed", str(exc), attempt=attempt):
+                if self.store.finish(job_id, self.owner, "failed", self._public(str(exc)), attempt=attempt):
                     self._observe_failure(job)
             else:  # never lose the job: record why it failed
                 log.error("job %s failed: %s", job_id, traceback.format_exc())
-                if self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}",
-                                     attempt=attempt):
+                if self.store.finish(job_id, self.owner, "failed",
+                                     self._public(f"internal error: {type(exc).__name__}: {exc}"), attempt=attempt):
                     self._observe_failure(job)
         finally:
             _remove(stage)
+            _remove(Path(f"{stage}-land.zarr"))
+
+    def _land_file(self, land: Path, scene: Path, out: Path, progress) -> dict:
+        """The ``land_mask`` FILE ``land`` checked and rasterised onto the scene's grid into the
+        Zarr group ``out`` by a child process under ``ingest_memory_mb``
+        (:func:`~sarship.service.ingest_proc.land_in_child`): ``{"raster": out, "answer":
+        the file's kind, format and info}``. InputError for a bad file; a full data folder is
+        raised as an ``OSError`` (ENOSPC: the job is retried)."""
+        import errno
+
+        from sarship.pipeline.scene import open_scene
+        from sarship.service.ingest_proc import IngestTransient, land_in_child
+
+        sc = open_scene(scene)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        attrs = {k: sc.attrs[k] for k in ("crs", "transform", "gcps") if k in sc.attrs}
+        st = self.settings
+        try:
+            answer = land_in_child(land, out, shape=sc.shape, attrs=attrs, tile=sc.tile,
+                                   max_bytes=int(st.land_max_mb * 2**20), memory_mb=st.ingest_memory_mb or None,
+                                   progress=progress)
+        except IngestTransient as exc:
+            raise OSError(errno.ENOSPC, str(exc)) from None
+        return {"raster": out, "answer": answer}
+
+    def _public(self, message: str) -> str:
+        """A job's message as clients see it (stored, then listed): no server data path
+        (:meth:`Settings.hide_paths`); the log keeps the full text."""
+        return self.settings.hide_paths(message)
 
     def _holds(self, job_id: str, attempt: int) -> bool:
         """Whether this runner still holds the job as ``attempt`` (renews its lease)."""
@@ -375,7 +421,7 @@ class Runner:
             why = f"scene {scene}: its ingest job {dep['id']} was dismissed"
         else:  # (claim never hands out a job whose ingest is still accepted or running)
             why = f"scene {scene}: its ingest job {dep['id']} is {dep['status']}"
-        if self.store.finish(job["id"], self.owner, "failed", why, attempt=int(job["attempts"])):
+        if self.store.finish(job["id"], self.owner, "failed", self._public(why), attempt=int(job["attempts"])):
             self._observe_failure(job)
         return False
 
@@ -426,6 +472,9 @@ class Runner:
                                 memory_mb=st.ingest_memory_mb or None,
                                 limits={"max_pixels": st.max_pixels, "max_chunk_mb": st.max_chunk_mb,
                                         "max_ratio": st.max_ratio, "max_xml_mb": st.max_xml_mb})
+                from sarship.service.scenes import label_scene  # GET /scenes: the file name, the ingest time
+
+                label_scene(stage, inputs.get("filename") or src.name)
             if not self.store.finish(job_id, self.owner, "successful", f"scene {sid} ready", {"scene": sid},
                                      attempt=attempt, publish=publish):
                 log.warning("ingest %s (attempt %d) finished, but the job is no longer ours: discarded",
@@ -433,20 +482,21 @@ class Runner:
         except Dismissed:
             pass
         except IngestRefused as exc:
-            self.store.finish(job_id, self.owner, "failed", str(exc), {"bad_input": True}, attempt=attempt)
+            self.store.finish(job_id, self.owner, "failed", self._public(str(exc)), {"bad_input": True},
+                              attempt=attempt)
         except IngestTransient as exc:
             self._retry(job, f"the data folder is full: {exc}")
         except IngestCrashed as exc:
             log.error("ingest %s failed: %s", job_id, exc)
-            self.store.finish(job_id, self.owner, "failed", f"ingest failed: {exc}", attempt=attempt)
+            self.store.finish(job_id, self.owner, "failed", self._public(f"ingest failed: {exc}"), attempt=attempt)
         except Exception as exc:
             why = transient_reason(exc)
             if why is not None:
                 self._retry(job, why)
                 return
             log.error("ingest %s failed: %s", job_id, traceback.format_exc())
-            self.store.finish(job_id, self.owner, "failed", f"internal error: {type(exc).__name__}: {exc}",
-                              attempt=attempt)
+            self.store.finish(job_id, self.owner, "failed",
+                              self._public(f"internal error: {type(exc).__name__}: {exc}"), attempt=attempt)
         finally:
             _remove(stage)
 

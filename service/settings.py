@@ -133,6 +133,13 @@ class Settings(BaseSettings):
     ingest_memory_mb: float = Field(4096.0, ge=0.0,
                                     description="address-space cap of the child process each ingest runs in, MiB "
                                                 "(0: no cap); an ingest beyond it fails its job, the file is refused")
+    land_max_mb: float = Field(64.0, gt=0.0, allow_inf_nan=False,
+                               description="largest GeoJSON land_mask FILE, MiB (the command line reads the same "
+                                           "SARSHIP_LAND_MAX_MB); a larger one is refused when the job is submitted")
+    scene_retention_days: Optional[float] = Field(
+        None, ge=0.0, allow_inf_nan=False, description="scenes in DATA/scenes older than this many days (since their ingest finished, "
+                                  "else since the store was last written) that no accepted or running job names "
+                                  "are removed, at start-up and then hourly (unset or 0: scenes are kept forever)")
     min_free_mb: float = Field(100.0, ge=0.0,
                                description="free space the data folder needs, MiB: below it /readyz answers 503 "
                                            "(not ready) with the reason (0: not checked)")
@@ -260,6 +267,26 @@ class Settings(BaseSettings):
         if self.inbox_cron:
             return {"interval_s": None, "cron": self.inbox_cron}
         return {"interval_s": self.inbox_interval_s or DEFAULT_INBOX_INTERVAL_S, "cron": None}
+
+    def hide_paths(self, text: str) -> str:
+        """``text`` (a job's error, a problem's detail) without the server's data folder: a path
+        in ``DATA/scenes`` becomes its name there (how clients name scenes and land_mask files),
+        any other path in ``DATA`` its path relative to it (``jobs/ID/...``, ``uploads/ID.tif``),
+        and the folder itself ``the data folder``; as given, absolute and with symlinks
+        resolved."""
+        import os
+
+        if not text:
+            return text
+        forms: dict[str, str] = {}
+        for base, name in ((self.data, "the data folder"), (self.scenes_dir, "the scene folder")):
+            for f in {str(base), os.path.abspath(base), str(base.resolve())}:
+                if f not in ("", ".", "/"):
+                    forms[f + os.sep] = ""
+                    forms[f] = name
+        alts = sorted(forms, key=len, reverse=True)  # the longest (most specific) first
+        pattern = "|".join(re.escape(f) + ("" if f.endswith(os.sep) else r"(?![\w.-])") for f in alts)
+        return re.sub(pattern, lambda m: forms[m.group(0)], text)
 
     def roots(self) -> list[Path]:
         """Resolved folders scenes may come from."""

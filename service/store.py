@@ -163,6 +163,13 @@ class JobStore:
                                    (scene_id,)).fetchone()
         return _row(row)
 
+    def active_jobs(self) -> list[dict]:
+        """Accepted and running jobs (every process), oldest first (the index ``jobs_status``):
+        what a scene deletion must not pull a scene from under."""
+        rows = self._conn().execute("SELECT * FROM jobs WHERE status IN ('accepted', 'running') "
+                                    "ORDER BY created").fetchall()
+        return [_row(r) for r in rows]
+
     def get(self, job_id: str) -> Optional[dict]:
         row = self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return _row(row)

@@ -16,7 +16,16 @@ from svc import Server, check_problem, data_with_scene, free_port, wait_job  # n
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    srv = Server(data_with_scene(tmp_path_factory.mktemp("svc")), free_port(), SARSHIP_MAX_UPLOAD_MB="1").start()
+    import os
+
+    data = data_with_scene(tmp_path_factory.mktemp("svc"))
+    # a scene last written 400 days ago: the retention (365 days) removes it at start-up
+    old = write_scene(data / "scenes" / "old.zarr", {"intensity": blobs_scene((32, 32))}, tile=64, looks=2.0)
+    t = time.time() - 400 * 86400
+    for f in (old, old / "zarr.json"):
+        os.utime(f, (t, t))
+    srv = Server(data, free_port(), SARSHIP_MAX_UPLOAD_MB="1", SARSHIP_LAND_MAX_MB="1",
+                 SARSHIP_SCENE_RETENTION_DAYS="365").start()
     yield srv
     srv.stop()
 
@@ -321,3 +330,124 @@ def test_serve_start_problems_are_one_line(tmp_path):
     finally:
         busy.close()
     assert (tmp_path / "bad" / "jobs.sqlite").read_bytes() == b"garbage " * 64  # a bad store is left as it was
+
+
+def no_server_path(server, text: str) -> None:
+    """``text`` (a problem body, a job's message) names no path of the server's data folder."""
+    for form in {str(server.data), str(server.data.resolve())}:
+        assert form not in text, text
+
+
+def cov_scene(path, shape=(64, 64)):
+    """A C3 covariance scene (c11 ... c33), as `sarship ingest` writes PolSARpro C3 folders."""
+    rng = np.random.default_rng(0)
+    k = (rng.normal(size=(*shape, 3)) + 1j * rng.normal(size=(*shape, 3))).astype(np.complex64)
+    arrays = {}
+    for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+        c = k[..., i] * np.conj(k[..., j])
+        arrays[f"c{i + 1}{j + 1}"] = c.real.astype(np.float32) if i == j else c.astype(np.complex64)
+    return write_scene(path, arrays, tile=64, kind="covariance", looks=1.0)
+
+
+def test_submission_checks_and_no_server_paths(server):
+    """A detector that cannot read the scene (vb_polsar on a covariance scene, csk on intensity),
+    a channel that is a path or a variable the scene lacks, non-finite parameters (NaN,
+    Infinity, 1e999, "nan"), and land_mask FILEs that are no regular file or too large: each a
+    400 at submission naming the problem, and no 4xx body, nor a failed job's message (a
+    GeoJSON nested 200 000 deep, parsed in the job's capped child), shows the data folder."""
+    import os
+
+    u = server.url
+    scenes = server.data / "scenes"
+    cov_scene(scenes / "cov.zarr")
+    ex = u + "/processes/{}/execution"
+    bodies = []
+
+    def refused(detector, inputs, *words, raw=None):
+        r = (httpx.post(ex.format(detector), content=raw, headers={"content-type": "application/json"}) if raw
+             else httpx.post(ex.format(detector), json={"inputs": inputs}))
+        check_problem(r, 400, *words)
+        bodies.append(r.text)
+
+    refused("vb_polsar", {"scene": "cov"}, "vb_polsar", "covariance")
+    refused("csk", {"scene": "s1"}, "complex")
+    refused("ca_cfar", {"scene": "s1", "channel": "../../s1.zarr/intensity"}, "channel", "never a path")
+    refused("ca_cfar", {"scene": "s1", "channel": "hh"}, "channel", "no variable 'hh'")
+    refused("ca_cfar", {}, "nodata", "finite", raw=b'{"inputs": {"scene": "s1", "nodata": NaN}}')
+    refused("ca_cfar", {}, "max_length_m", "finite", raw=b'{"inputs": {"scene": "s1", "max_length_m": 1e999}}')
+    refused("ca_cfar", {}, "max_elongation", "finite", raw=b'{"inputs": {"scene": "s1", "max_elongation": Infinity}}')
+    refused("ca_cfar", {"scene": "s1", "min_length_m": "nan"}, "min_length_m", "finite")
+    os.mkfifo(scenes / "land.fifo")
+    refused("ca_cfar", {"scene": "s1", "land_mask": "land.fifo"}, "land_mask", "not a regular file")
+    (scenes / "big.geojson").write_bytes(b" " * 2**20 + b"{}")  # beyond land_max_mb (1 MiB here)
+    refused("ca_cfar", {"scene": "s1", "land_mask": "big.geojson"}, "land_mask", "SARSHIP_LAND_MAX_MB")
+    (scenes / "big.geojson").unlink()
+    refused("ca_cfar", {"scene": str(scenes / "nope.zarr")}, "scene")
+    for b in bodies:
+        no_server_path(server, b)
+    # apwf reads the covariance scene (the same check accepts it)
+    r = httpx.post(ex.format("apwf"), json={"inputs": {"scene": "cov", "guard": 5, "background": 9}})
+    assert r.status_code == 201, r.text
+    # a GeoJSON nested 200 000 deep: accepted (only its stat is checked here), then refused by the
+    # job's child process with one line (no RecursionError), naming the file as the client did
+    (scenes / "deep.geojson").write_bytes(b"[" * 200_000 + b"]" * 200_000)
+    r = httpx.post(ex.format("ca_cfar"), json={"inputs": {"scene": "s1", "land_mask": "deep.geojson"}})
+    assert r.status_code == 201, r.text
+    st = wait_job(u, r.json()["jobID"])
+    assert st["status"] == "failed" and "nested deeper than" in st["message"], st
+    assert "'deep.geojson'" in st["message"] and "\n" not in st["message"], st
+    no_server_path(server, st["message"])
+    assert wait_job(u, httpx.post(ex.format("apwf"), json={"inputs": {"scene": "cov", "guard": 5, "background": 9}}
+                                  ).json()["jobID"])["status"] == "successful"
+
+
+def test_scene_retention_at_start_up(server):
+    """SARSHIP_SCENE_RETENTION_DAYS=365: the scene last written 400 days ago was removed when the
+    server started; the fresh one stays."""
+    t_end = time.time() + 30
+    while (server.data / "scenes" / "old.zarr").exists() and time.time() < t_end:
+        time.sleep(0.1)
+    assert not (server.data / "scenes" / "old.zarr").exists()
+    assert (server.data / "scenes" / "s1.zarr").is_dir()
+    check_problem(httpx.get(server.url + "/scenes/old"), 404, "old")
+
+
+def test_scene_names_and_delete(server):
+    """GET /scenes lists each scene's uploaded file name, product name and acquisition time;
+    DELETE /scenes/{id} refuses (409) while a queued job names the scene, then removes the
+    store and its upload (404 afterwards)."""
+    import io
+
+    import tifffile
+
+    from sarship.service.store import JobStore
+
+    u = server.url
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, blobs_scene((64, 72), looks=2.0, seed=21))
+    r = httpx.post(u + "/scenes?filename=../harbour_2026.tif", content=buf.getvalue())
+    assert r.status_code == 201, r.text
+    sid = r.json()["sceneID"]
+    st = wait_job(u, r.json()["jobID"])
+    assert st["status"] == "successful", st
+    doc = httpx.get(f"{u}/scenes/{sid}").json()
+    assert doc["filename"] == "harbour_2026.tif" and doc["product"] == "harbour_2026", doc
+    assert doc["acquired"] is None and doc["ingested"].endswith("Z"), doc
+    listed = {s["sceneID"]: s for s in httpx.get(u + "/scenes").json()["scenes"]}
+    assert listed[sid]["filename"] == "harbour_2026.tif" and {"product", "acquired"} <= set(listed["s1"])
+    # a job queued for later (a retry's back-off) names the scene: 409, nothing removed
+    store = JobStore(server.data / "jobs.sqlite")
+    queued = store.create("ca_cfar", {"scene": sid})
+    store._conn().execute("UPDATE jobs SET not_before = ? WHERE id = ?", (time.time() + 3600, queued["id"]))
+    check_problem(httpx.delete(f"{u}/scenes/{sid}"), 409, queued["id"])
+    assert (server.data / "scenes" / f"{sid}.zarr").is_dir()
+    httpx.delete(f"{u}/jobs/{queued['id']}")
+    r = httpx.delete(f"{u}/scenes/{sid}")
+    assert r.status_code == 200 and r.json() == {"sceneID": sid, "status": "deleted"}, r.text
+    assert not (server.data / "scenes" / f"{sid}.zarr").exists()
+    assert not list((server.data / "uploads").glob(f"{sid}.*"))
+    assert not [p for p in (server.data / "scenes").iterdir() if p.name.startswith(".deleted-")]
+    check_problem(httpx.get(f"{u}/scenes/{sid}"), 404, sid)
+    check_problem(httpx.delete(f"{u}/scenes/{sid}"), 404, sid)
+    assert sid not in {s["sceneID"] for s in httpx.get(u + "/scenes").json()["scenes"]}
+    check_problem(httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": sid}}), 400, "no scene")

@@ -29,8 +29,7 @@ from sarship.pipeline.detectors.base import land_mask_parts, resolve_size
 from sarship.pipeline.ship_features import add_contrast, collection, features, keep_mask, write_json
 from sarship.pipeline.sidelobes import refine_features
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.inputs import (complex_source, intensity_source, make_reader, pixel_power,
-                                     polarimetric_source, window_reader)
+from sarship.pipeline.inputs import detector_source, make_reader, pixel_power, window_reader
 from sarship.pipeline.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
 from sarship.pipeline.window_cache import CachedWindows
 from sarship.pipeline.scene import (Scene, create_mask_store, finalize_scene, open_scene, processing_tile,
@@ -216,12 +215,7 @@ def run_request(
     check_out(Path(out_dir), Path(request.scene), overwrite)
     scene = dataclasses.replace(scene, path=Path(request.scene).absolute())
     out_dir = Path(out_dir).absolute()
-    if spec.input == "polarimetric":
-        var, transform = polarimetric_source(scene, channel)
-    elif spec.input == "slc":
-        var, transform = complex_source(scene, channel)
-    else:
-        var, transform = intensity_source(scene, channel)
+    var, transform = detector_source(spec, scene, channel)  # (the service checks the same at submission)
     if tile:
         tile, tile_source = int(tile), "given"
     else:

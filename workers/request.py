@@ -14,6 +14,7 @@ The detector's parameters are checked against its own pydantic model
 
 from __future__ import annotations
 
+import re
 from typing import Any, Literal, Mapping, Optional, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -26,6 +27,9 @@ from sarship.pipeline.errors import InputError
 #: has GPU code, else CPU workers), ``gpu`` or ``cpu`` (forced).
 Device = Literal["auto", "cpu", "gpu"]
 DEVICES: tuple[str, ...] = get_args(Device)
+#: ``channel``: a scene variable name, or a comma list of them (a polarimetric detector's
+#: channels, e.g. ``hh,vv``); no path separator, so never a path (``../../s1.zarr/intensity``).
+CHANNEL = re.compile(r"\s*[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\s*(,\s*[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\s*){0,3}")
 #: Inputs of a job that are not detector parameters.
 RESERVED = ("scene", "device", "channel")
 
@@ -102,8 +106,9 @@ class JobRequest(BaseModel):
         if device not in DEVICES:
             raise InputError(f"input 'device' must be {', '.join(DEVICES[:-1])} or {DEVICES[-1]}, got {device!r}")
         channel = inputs.get("channel")
-        if channel is not None and (not isinstance(channel, str) or not channel):
-            raise InputError(f"input 'channel' must be a scene variable name, got {channel!r}")
+        if channel is not None and (not isinstance(channel, str) or not CHANNEL.fullmatch(channel)):
+            raise InputError(f"input 'channel' must be a scene variable name (or a comma list of them, "
+                             f"e.g. hh,vv), never a path: got {channel!r}")
         params = {k: v for k, v in inputs.items() if k not in RESERVED}
         fields = detectors.get(detector).params.model_fields
         for k, v in params.items():

@@ -48,9 +48,17 @@ PFA_MIN = 1e-15
 
 
 class DetectorParams(BaseModel):
-    """Parameters shared by every detector (their names are public: docs/algorithms/README.md)."""
+    """Parameters shared by every detector (their names are public: docs/algorithms/README.md).
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    Every float parameter of every detector must be finite (``allow_inf_nan=False``): NaN,
+    ``Infinity``, a JSON ``1e999`` (which parses to infinity) and strings such as ``"nan"`` or
+    ``"inf"`` are refused when the parameters are parsed, naming the parameter. None of them
+    has a meaning no finite value or None already gives: ``nodata`` NaN or infinity would mark
+    what is always absent (non-finite pixels are never data), an infinite ``max_length_m`` or
+    ``max_elongation`` is None (no limit).
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
     pfa: float = Field(1e-5, ge=PFA_MIN, lt=0.5,
                        description=f"probability of false alarm per pixel ({PFA_MIN:g} to 0.5)")
@@ -329,6 +337,9 @@ class DetectorSpec:
     prepare: Callable[[Any], dict]
     detect: Callable[..., tuple[np.ndarray, np.ndarray]]
     input: str = "intensity"  # the scene quantity the detector reads (see pipeline.inputs)
+    #: with ``input == "polarimetric"``: whether it also reads a covariance (C3/C2) scene
+    #: (:func:`sarship.pipeline.inputs.detector_source` refuses the scene otherwise)
+    covariance: bool = True
     needs_looks: bool = False
     #: Scene-wide statistics before detection (two passes): ``scene_pass(block, halo,
     #: origin, params, prep) -> dict`` runs on every tile (same block as ``detect``), and

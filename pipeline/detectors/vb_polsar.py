@@ -835,6 +835,7 @@ SPEC = DetectorSpec(
     prepare=prepare,
     detect=detect,
     input="polarimetric",
+    covariance=False,  # its mixture is over the complex channels of each pixel, not a covariance
     needs_looks=False,
     scene_pass=scene_pass,
     reduce=reduce,
