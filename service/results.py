@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
-from typing import Iterator, Optional
+from typing import Any, Callable, Iterator, Optional
 
 from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
@@ -148,7 +148,20 @@ def metrics_out(request: Request, job_id: str):
     scores = job_scores(d, run)
     if scores is not None:
         run["scores"] = scores
-    return run
+    return _without_paths(run, settings_of(request).hide_paths)
+
+
+def _without_paths(doc: Any, hide: Callable[[str], str]) -> Any:
+    """``doc`` (run.json) with the server's data folder taken out of every string
+    (:meth:`Settings.hide_paths`): the scene, the outputs and a land-mask file are named as a
+    client names them (``SCENE.zarr``, ``jobs/ID/mask.zarr``), never by the server's path."""
+    if isinstance(doc, str):
+        return hide(doc)
+    if isinstance(doc, dict):
+        return {k: _without_paths(v, hide) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [_without_paths(v, hide) for v in doc]
+    return doc
 
 
 @router.get("/jobs/{job_id}/results/mask", responses=_MASK_DOC)

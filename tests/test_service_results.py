@@ -223,3 +223,8 @@ def test_metrics_scores_when_the_scene_has_truth(env):
     assert httpx.get(f"{srv.url}/jobs/{jobs['sim']}/results/metrics").json()["scores"] == s
     geo = httpx.get(f"{srv.url}/jobs/{jobs['geo']}/results/metrics").json()
     assert "scores" not in geo and geo["detector"] == "ca_cfar"
+    # run.json names the scene and outputs as a client does, never by the server's paths
+    for doc in (met, geo):
+        text = json.dumps(doc)
+        assert str(srv.data) not in text and str(srv.data.resolve()) not in text, text[:300]
+    assert met["scene"]["path"] == "sim.zarr"
