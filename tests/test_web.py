@@ -387,6 +387,8 @@ def test_upload_a_scene_then_detect_on_it(server, page, tmp_path):
     # the new scene is listed and chosen in the form: submit a detection on it
     assert pg.locator(f"#scene-select option[value='{scene}']:not([disabled])").count() == 1
     assert pg.input_value("#scene-select") == scene
+    # listed by what the person uploaded, not by the hash alone
+    assert "upload-me" in pg.inner_text(f"#scene-select option[value='{scene}']")
     pg.select_option("#process", "ca_cfar")
     pg.fill("#param-guard", "11")
     pg.fill("#param-background", "31")

@@ -182,9 +182,14 @@
     const keep = sel.value;
     const opts = scenes.map((s) => {
       const ready = s.status === 'ready';
-      const info = ready ? [Array.isArray(s.shape) ? s.shape.join('×') : '', s.kind].filter(Boolean).join(', ')
+      const info = ready ? [Array.isArray(s.shape) ? s.shape.join('×') : '', s.kind,
+        s.acquired ? String(s.acquired).replace('T', ' ').slice(0, 16) : ''].filter(Boolean).join(', ')
         : s.status;
-      return h('option', { value: s.sceneID, disabled: !ready }, info ? `${s.sceneID} (${info})` : s.sceneID);
+      // the product (or uploaded file) name first: a hash alone says nothing to a person
+      const name = s.product || s.filename;
+      const label = name && name !== s.sceneID ? `${name} · ${s.sceneID}` : s.sceneID;
+      return h('option', { value: s.sceneID, disabled: !ready, title: s.filename || s.sceneID },
+        info ? `${label} (${info})` : label);
     });
     if (!opts.length) opts.push(h('option', { value: '' }, '(no scenes: give a path)'));
     sel.replaceChildren(...opts);
