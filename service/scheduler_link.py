@@ -8,9 +8,11 @@ client stood (the runner and the routes call it as they called the client) and w
 the client has closed, a new one is made with an exponential back-off between tries
 (``SARSHIP_RECONNECT_S``, doubled after each failed try up to ``SARSHIP_RECONNECT_MAX_S``), and
 the new cluster's workers are checked for this sarship version as at start-up. While no client
-is connected, every use raises :class:`ConnectionError` naming the scheduler, which the runner
-counts as a fault of the service (the job is retried after its back-off, never failed for it)
-and ``/readyz`` reports as not ready.
+is connected (:attr:`SchedulerLink.connected` false), the runners claim no job (jobs wait in
+the store instead of being retried again and again), and every use raises
+:class:`ConnectionError` naming the scheduler, which the runner counts as a fault of the service
+for a job in flight (retried after its back-off, never failed for it) and ``/readyz`` reports as
+not ready.
 """
 
 from __future__ import annotations

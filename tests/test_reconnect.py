@@ -120,8 +120,9 @@ def _wait_ready(url: str, want: int, timeout: float) -> dict:
 def test_service_reconnects_after_the_scheduler_restarts(tmp_path):
     """``sarship serve --scheduler``: the scheduler killed (its worker exits 1, as a service
     manager would restart it) and started again on the same address after the API's Dask client
-    gave up: ``/readyz`` says 503 with the reason meanwhile, returns to 200 once the API has
-    reconnected (capped back-off), and a job posted then succeeds on the new cluster."""
+    gave up: ``/readyz`` says 503 with the reason meanwhile, a job posted meanwhile waits (no
+    retries), ``/readyz`` returns to 200 once the API has reconnected (capped back-off), and jobs
+    succeed on the new cluster."""
     port = free_port()
     addr = f"tcp://127.0.0.1:{port}"
     data = data_with_scene(tmp_path, shape=(200, 180))
@@ -144,6 +145,14 @@ def test_service_reconnects_after_the_scheduler_restarts(tmp_path):
             time.sleep(0.5)
         code, body = _ready(srv.url)
         assert code == 503 and f"Dask scheduler at '{addr}' is unreachable (reconnecting" in json.dumps(body), body
+        # a job posted meanwhile waits in the store (not claimed, so not failed over to the retry)
+        r = httpx.post(srv.url + "/processes/ca_cfar/execution",
+                       json={"inputs": {"scene": "s1", "pfa": 1e-4, "min_area_px": 1}})
+        assert r.status_code == 201, r.text
+        waiting = r.json()["jobID"]
+        time.sleep(2)
+        st = httpx.get(f"{srv.url}/jobs/{waiting}").json()
+        assert st["status"] == "accepted" and "retrying" not in st.get("message", ""), st
         sched = scheduler(port)
         w = worker(addr, "two")
         _wait_line(w, "sarship: worker two-cpu0")
@@ -156,6 +165,7 @@ def test_service_reconnects_after_the_scheduler_restarts(tmp_path):
         assert st["status"] == "successful", st
         met = httpx.get(f"{srv.url}/jobs/{st['jobID']}/results/metrics").json()
         assert {t["worker"] for t in met["tiles"]["per_tile"]} == {"two-cpu0"}
+        assert wait_job(srv.url, waiting, timeout=120)["status"] == "successful"
     finally:
         if srv is not None:
             srv.stop()
