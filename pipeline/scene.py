@@ -16,6 +16,8 @@ provenance (``source``, ``looks_source``, ``sarship_version``).
 
 Stores are written to a temporary sibling path and renamed into place only when complete
 (:func:`atomic_store`), so a failed or interrupted write never leaves a half-written scene.
+A command's output is claimed for the command first (:func:`claim_output`), so that two
+commands writing one output never both succeed.
 """
 
 from __future__ import annotations
@@ -315,6 +317,118 @@ def atomic_store(final: str | os.PathLike, overwrite: bool = True) -> Iterator[P
     except BaseException:
         _rm(tmp)
         raise
+
+
+#: The name of an output's claim (:func:`claim_output`): a lock file beside the output
+#: (``.NAME.sarship-claim``), or inside it (``.sarship-claim``) when its folder is not writable.
+CLAIM_SUFFIX = ".sarship-claim"
+
+
+def claim_path(final: str | os.PathLike) -> Path:
+    """Where the claim of the output ``final`` lives: ``PARENT/.NAME.sarship-claim``, or
+    ``final/.sarship-claim`` when the parent exists but is not writable and ``final`` is a
+    folder that is (e.g. ``--overwrite`` into a user's folder of a root-owned one)."""
+    final = Path(final)
+    parent = final.parent if str(final.parent) else Path(".")
+    if parent.is_dir() and not os.access(parent, os.W_OK) and final.is_dir() and os.access(final, os.W_OK):
+        return final / CLAIM_SUFFIX
+    return parent / f".{final.name}{CLAIM_SUFFIX}"
+
+
+def _lock_or_none(lock: Path) -> int | None:
+    """An open descriptor of ``lock`` holding its exclusive ``flock``; None when another open
+    file holds it. Retries when the file was removed (and maybe made again) by the holder that
+    just released it, so two claimers never hold two different files of one name."""
+    import fcntl
+
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            return None
+        except BaseException:
+            os.close(fd)
+            raise
+        try:
+            if os.path.samestat(os.fstat(fd), os.stat(lock)):
+                return fd
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+
+
+def _holder(lock: Path) -> str:
+    with contextlib.suppress(OSError):
+        text = lock.read_text(errors="replace").strip()
+        if text:
+            return text.splitlines()[0][:200]
+    return "another process"
+
+
+@contextlib.contextmanager
+def claim_output(final: str | os.PathLike, what: str = "--out", create_parents: bool = False) -> Iterator[None]:
+    """Hold the output ``final`` for this process for the block: an exclusive ``flock`` on
+    :func:`claim_path` (made if missing, recording ``pid N on HOST``), taken without waiting.
+
+    Two commands writing the same output: the second is refused at once with
+    :class:`InputError` naming the holder, so it can never replace the first one's output
+    without ``--overwrite`` (checked by the writer *after* the claim: the first one's
+    published output is found then). A crashed holder blocks nothing: the kernel releases its
+    lock when the process ends, and the next claimer takes the file over (a leftover file is
+    empty of meaning; the holder removes it when it releases the claim). ``create_parents``:
+    make missing parent folders (removed again if still empty at the end); otherwise a missing
+    parent takes no claim and is left to the writer's own check. The lock works across the
+    processes of one machine and, where the file system supports ``flock`` (NFSv4, CephFS,
+    Lustre with ``flock``), across machines.
+    """
+    import socket
+
+    final = Path(final)
+    parent = final.parent if str(final.parent) else Path(".")
+    made: list[Path] = []
+    if create_parents:
+        missing = [d for d in (parent, *parent.parents) if not d.exists()]
+        for d in reversed(missing):
+            try:
+                d.mkdir()
+            except FileExistsError:
+                continue
+            except OSError as exc:
+                _rm_empty(made)
+                raise InputError(f"cannot create output folder '{d}': {exc.strerror}") from None
+            made.append(d)
+    elif not parent.is_dir():
+        yield
+        return
+    lock = claim_path(final)
+    try:
+        fd = _lock_or_none(lock)
+    except OSError as exc:
+        _rm_empty(made)
+        raise InputError(f"cannot claim {what} '{final}': cannot write '{lock.name}' in '{lock.parent}' "
+                         f"({exc.strerror})") from None
+    if fd is None:
+        _rm_empty(made)
+        raise InputError(f"{what} '{final}' is being written by another sarship command ({_holder(lock)}): "
+                         "wait for it to finish, or choose another output")
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock)  # still holding it: a waiter that opened this file retries on a new one
+        os.close(fd)
+        _rm_empty(made)
+
+
+def _rm_empty(folders: list[Path]) -> None:
+    """Remove the folders :func:`claim_output` made, innermost first, where they are empty."""
+    for d in reversed(folders):
+        with contextlib.suppress(OSError):
+            d.rmdir()
 
 
 def _rm(p: Path) -> None:

@@ -93,33 +93,45 @@ def _peer_uid(sock: socket.socket) -> int:
 
 def _identity() -> dict[str, str]:
     """What must be equal for a command to run in the warm process: the sarship version, the
-    installation it was imported from, the Python environment, and the code's newest
-    modification (a reinstall of the same version, an edit of a source checkout)."""
+    installation it was imported from, the Python environment, and the code's content (a
+    reinstall of the same version, an edit of a source checkout, also one that kept the file's
+    old modification time: ``rsync -a``, ``cp -p``)."""
     import sarship
 
     return {"version": sarship.__version__, "package": str(Path(sarship.__file__).resolve().parent),
-            "prefix": sys.prefix, "code": str(_code_stamp(sarship.__path__))}
+            "prefix": sys.prefix, "code": _code_stamp(sarship.__path__)}
 
 
-def _code_stamp(paths) -> int:
-    """The newest modification time (ns) of the sarship modules under ``paths`` (the package's
-    ``__path__``: its folder and, in a source checkout, the checkout with ``pipeline/``,
-    ``workers/``, ``service/``); about 2 ms."""
+def _code_stamp(paths) -> str:
+    """A hash (BLAKE2b, hex) of the sarship modules under ``paths`` (the package's ``__path__``:
+    its folder and, in a source checkout, the checkout with ``pipeline/``, ``workers/``,
+    ``service/``): each ``.py`` file's path relative to its root and its bytes, in sorted order.
+    By content, not modification times: a copy that keeps the old times (``rsync -a``,
+    ``cp -p``, a checkout of an older commit) changes it too. About 1.5 MB of source: a few
+    ms, once per command."""
+    import hashlib
+
     roots: list[Path] = []
     for i, p in enumerate(paths):
         for sub in (("",) if i == 0 else ()) + ("pipeline", "workers", "service"):
             d = Path(p) / sub
             if d not in roots and (d / "__init__.py").is_file():
                 roots.append(d)
-    newest = 0
-    for root in roots:
-        for folder, dirs, files in os.walk(root):
+    files: list[tuple[str, str]] = []
+    for k, root in enumerate(roots):
+        for folder, dirs, names in os.walk(root):
             dirs[:] = [x for x in dirs if x != "__pycache__"]
-            for f in files:
-                if f.endswith(".py"):
-                    with contextlib.suppress(OSError):
-                        newest = max(newest, os.stat(os.path.join(folder, f)).st_mtime_ns)
-    return newest
+            files += [(f"{k}:{os.path.relpath(os.path.join(folder, f), root)}", os.path.join(folder, f))
+                      for f in names if f.endswith(".py")]
+    h = hashlib.blake2b(digest_size=16)
+    for rel, path in sorted(files):
+        try:
+            with open(path, "rb") as f:
+                data = f.read()
+        except OSError:  # removed meanwhile: its absence is the content
+            data = b"\0missing"
+        h.update(rel.encode() + b"\0" + len(data).to_bytes(8, "little") + data)
+    return h.hexdigest()
 
 
 def relevant_env(environ: dict[str, str] | None = None) -> dict[str, str]:

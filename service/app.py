@@ -217,8 +217,11 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
                 # the local cluster's dashboard listens where the API does (never wider: it has
                 # no tokens), on any free port; GET /dashboard redirects to it
                 dash = dashboard_address_on(settings.host)
-                if settings.scheduler:
-                    c = stack.enter_context(connect(settings.scheduler, dashboard_address=dash, echo=True))
+                if settings.scheduler:  # a client made again when the scheduler restarts
+                    from sarship.service.scheduler_link import open_link
+
+                    c = open_link(settings.scheduler, settings.reconnect_s, settings.reconnect_max_s)
+                    stack.callback(c.close)
                 else:  # one pinned worker per GPU (SARSHIP_GPUS) besides the CPU workers
                     gpu_ids, n_cpu = settings.local_workers()
                     c = stack.enter_context(connect(None, n_workers=n_cpu, dashboard_address=dash, echo=True,

@@ -243,6 +243,12 @@ class Runner:
 
     def _loop(self) -> None:
         while not self._stop.is_set():
+            # no cluster now (an external scheduler gone, its link reconnecting: scheduler_link.py):
+            # jobs wait in the store instead of being claimed and failed over to their retry again and again
+            if not getattr(self.client, "connected", True):
+                self.wake.wait(0.5)
+                self.wake.clear()
+                continue
             try:
                 job = self.store.claim(self.owner, self.settings.lease_s)
             except Exception:  # a locked database under load: try again shortly

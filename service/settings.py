@@ -149,6 +149,12 @@ class Settings(BaseSettings):
                                        "doubled at each attempt up to retry_max_s; such a job is never failed for it "
                                        "(an inbox pass is never quarantined for it)")
     retry_max_s: float = Field(300.0, gt=0.0, description="longest wait between two tries of such a job, seconds")
+    reconnect_s: float = Field(1.0, gt=0.0,
+                               description="with an external scheduler: first wait before the API makes a new Dask "
+                                           "client once its client has closed (the scheduler went away), seconds; "
+                                           "doubled after each failed try up to reconnect_max_s")
+    reconnect_max_s: float = Field(30.0, gt=0.0,
+                                   description="longest wait between two reconnection tries to the scheduler, seconds")
     preview_cache_mb: float = Field(256.0, ge=0.0,
                                     description="disk space of the cached preview PNGs of all jobs together, MiB; "
                                                 "beyond it the oldest are removed (0: none kept)")

@@ -142,3 +142,74 @@ def test_forked_workers_read_after_the_command_itself_read_the_scene(tmp_path):
         got[reader] = json.loads((tmp_path / reader / "detections.geojson").read_text())["features"]
     assert len(got["tensorstore"]) >= 1
     assert [f["properties"] for f in got["tensorstore"]] == [f["properties"] for f in got["zarr"]]
+
+
+def test_cluster_host_setting(monkeypatch):
+    """Loopback unless ``SARSHIP_CLUSTER_HOST`` says otherwise; a bad value is refused."""
+    from sarship.pipeline.errors import InputError
+    from sarship.workers.cluster import cluster_host
+
+    monkeypatch.delenv("SARSHIP_CLUSTER_HOST", raising=False)
+    assert cluster_host() == "127.0.0.1"
+    for value, want in (("10.0.0.5", "10.0.0.5"), ("[::1]", "::1"), ("gpu-host.example", "gpu-host.example"),
+                        ("0.0.0.0", "0.0.0.0")):
+        monkeypatch.setenv("SARSHIP_CLUSTER_HOST", value)
+        assert cluster_host() == want
+    monkeypatch.setenv("SARSHIP_CLUSTER_HOST", "tcp://x:1")
+    with pytest.raises(InputError, match="SARSHIP_CLUSTER_HOST"):
+        cluster_host()
+
+
+def test_gpu_cluster_spec_carries_the_host():
+    """The GPU local cluster's scheduler and every nanny (GPU and CPU) get the cluster's host
+    (before: none, so they bound every interface); checked without a GPU."""
+    from sarship.workers.cluster import gpu_cluster_spec
+
+    for host in ("127.0.0.1", "10.1.2.3"):
+        spec = gpu_cluster_spec(["0", "1"], 2, "127.0.0.1:0", host, gpu_threads=2, per_gpu=2)
+        assert spec["scheduler"]["options"]["host"] == host
+        assert spec["scheduler"]["options"]["dashboard_address"] == "127.0.0.1:0"
+        assert len(spec["workers"]) == 2 * 2 + 2
+        for name, w in spec["workers"].items():
+            assert w["options"]["host"] == host, name
+        gpu = [w["options"] for w in spec["workers"].values() if "GPU" in w["options"]["resources"]]
+        assert sorted(o["env"]["CUDA_VISIBLE_DEVICES"] for o in gpu) == ["0", "0", "1", "1"]
+
+
+def _listening(procs) -> set[tuple[str, int]]:
+    import psutil
+
+    out = set()
+    for p in procs:
+        try:
+            conns = p.net_connections(kind="inet")
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+        out |= {(c.laddr.ip, c.laddr.port) for c in conns if c.status == psutil.CONN_LISTEN}
+    return out
+
+
+@pytest.mark.parametrize("branch", ["processes", "threads", "gpu"])
+def test_local_cluster_listens_on_loopback_only(branch, monkeypatch):
+    """Every socket a started local cluster listens on (scheduler, nannies, workers, their HTTP
+    servers, the dashboard) is on loopback. The GPU branch runs with a GPU ID given (``--gpus 0``):
+    its pinned worker process starts without a GPU here (it only runs no GPU tile)."""
+    import psutil
+
+    from sarship.workers.cluster import connect
+
+    monkeypatch.delenv("SARSHIP_CLUSTER_HOST", raising=False)
+    me = psutil.Process()
+    before = _listening([me, *me.children(recursive=True)])
+    kw = {"gpus": ["0"], "cpu_workers": 0} if branch == "gpu" else {"n_workers": 1, "threads": branch == "threads"}
+    with connect(echo=False, short_lived=True, dashboard_address="127.0.0.1:0", **kw) as client:
+        n = len(client.scheduler_info()["workers"])
+        assert n == 1
+        if branch == "gpu":
+            assert list(client.scheduler_info()["workers"].values())[0]["resources"].get("GPU") == 2
+        addresses = [client.scheduler.address, *client.scheduler_info()["workers"]]
+        opened = _listening([me, *me.children(recursive=True)]) - before
+    assert all(a.startswith("tcp://127.0.0.1:") for a in addresses), addresses
+    # at least the scheduler, its dashboard and the worker (with its nanny, for processes)
+    assert len(opened) >= 3, opened
+    assert {ip for ip, _ in opened} == {"127.0.0.1"}, opened

@@ -243,3 +243,69 @@ def test_no_space_to_write_is_exit_3_in_one_line_and_leaves_nothing(tmp_path):
     assert res.returncode == 3, (res.returncode, res.stderr)
     assert len(res.stderr.strip().splitlines()) == 1 and "no space to write" in res.stderr, res.stderr
     assert "Traceback" not in res.stderr and os.listdir(out) == [], os.listdir(out)
+
+
+# ----------------------------------------------------------------------------- output claims
+
+
+def test_claim_output_is_exclusive_and_a_dead_holder_blocks_nothing(tmp_path):
+    """:func:`claim_output`: a second claim of one output is refused naming the holder; a claim
+    file left by a process that died (its lock went with it) is taken over; the claim file goes
+    at release, and parents it made are removed again when still empty."""
+    from sarship.pipeline.errors import InputError
+    from sarship.pipeline.scene import claim_output, claim_path
+
+    out = tmp_path / "a" / "b" / "out"
+    with claim_output(out, create_parents=True):
+        assert claim_path(out).read_text().startswith(f"pid {os.getpid()} on ")
+        with pytest.raises(InputError, match=f"being written by another sarship command \\(pid {os.getpid()} "):
+            with claim_output(out, create_parents=True):
+                pass
+    assert not (tmp_path / "a").exists()  # the claim file and the parents it made
+    (tmp_path / ".x.sarship-claim").write_text("pid 999999 on elsewhere\n")  # a crashed holder's file
+    with claim_output(tmp_path / "x"):
+        assert claim_path(tmp_path / "x").read_text().startswith(f"pid {os.getpid()} ")
+    assert not (tmp_path / ".x.sarship-claim").exists()
+    with claim_output(tmp_path / "missing" / "y"):  # no parent, no claim: the writer's own check says so
+        assert not (tmp_path / "missing").exists()
+
+
+def test_a_held_output_refuses_another_command(tmp_path):
+    """While another command holds ``--out`` (here: this process), ``sarship ingest`` to it exits 2
+    with one line naming the holder, and writes nothing."""
+    from sarship.pipeline.scene import claim_output
+
+    src = tmp_path / "x.npy"
+    np.save(src, np.random.default_rng(1).gamma(2.0, 0.5, (64, 64)).astype(np.float32))
+    with claim_output(tmp_path / "x.zarr"):
+        res = sarship("ingest", src, "--out", tmp_path / "x.zarr")
+    assert_clean_error(res, "x.zarr", "being written by another sarship command", f"pid {os.getpid()}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.npy"]
+
+
+@pytest.mark.parametrize("command", ["ingest", "detect"])
+def test_two_commands_to_one_new_out_never_both_succeed(command, scene, tmp_path):
+    """Two ``sarship detect`` (or ``ingest``) started together to the same new ``--out`` without
+    ``--overwrite``: exactly one succeeds; the other exits 2 with one line (refused while the
+    first holds the output, or finding its outputs), and the winner's outputs are intact."""
+    out = tmp_path / ("both.zarr" if command == "ingest" else "both")
+    args = ["ingest", scene, "--out", out] if command == "ingest" else \
+        ["detect", scene, "--detector", "ca_cfar", "--out", out]
+    from tests.test_cli import ENV
+
+    procs = [subprocess.Popen([sys.executable, "-m", "sarship", *map(str, args)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, env=ENV) for _ in range(2)]
+    results = [(p.wait(timeout=240), *p.communicate()) for p in procs]
+    codes = sorted(r[0] for r in results)
+    assert codes == [0, 2], results
+    loser = next(r for r in results if r[0] == 2)
+    lines = [ln for ln in loser[2].splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in loser[2], loser
+    assert "being written by another sarship command" in lines[0] or "--overwrite" in lines[0], lines
+    assert not list(tmp_path.glob("*.sarship-claim")) and not list(tmp_path.glob(".*partial*"))
+    if command == "detect":
+        assert json.loads((out / "run.json").read_text())["detections"] >= 1
+    else:
+        from sarship.pipeline.scene import open_scene
+
+        assert open_scene(out).shape == (96, 80)

@@ -275,26 +275,49 @@ def test_a_warm_cluster_with_gpus_runs_both_devices(sockdir, tmp_path):
         assert run(sock, "warm", "stop").returncode == 0
 
 
+def test_code_stamp_is_by_content(tmp_path):
+    """The code stamp changes with a module's bytes even when its modification time is kept
+    (``rsync -a``, ``cp -p``), and with a module added; not with a timestamp alone."""
+    pkg = tmp_path / "sarship"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    mod = pkg / "sub" / "mod.py"
+    mod.write_text("X = 1\n")
+    before = warm._code_stamp([str(pkg)])
+    st = mod.stat()
+    os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # touched: the same code
+    assert warm._code_stamp([str(pkg)]) == before
+    mod.write_text("X = 2\n")
+    os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))  # edited, its old time kept
+    assert warm._code_stamp([str(pkg)]) != before
+    mod.write_text("X = 1\n")
+    assert warm._code_stamp([str(pkg)]) == before
+    (pkg / "new.py").write_text("")
+    assert warm._code_stamp([str(pkg)]) != before
+
+
 def test_a_changed_code_is_refused(warm_cpu, tmp_path):
     """A module of sarship modified after the warm process started (a source checkout edited, the
-    same version reinstalled): commands run on their own cluster, with the new code."""
+    same version reinstalled), even with its old modification time kept (``rsync -a``,
+    ``cp -p``): commands run on their own cluster, with the new code."""
     _scene(tmp_path)
-    code = "import sarship, sarship.warm as w; print(w.__file__); print(w._code_stamp(sarship.__path__))"
+    code = "import sarship.warm as w; print(w.__file__)"
     where = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
                            env=_env(warm_cpu), check=True)
-    path, newest = where.stdout.split()
-    mod = Path(path)  # the copy the commands import (installed, or this checkout)
-    st = mod.stat()
-    try:  # newer than every module: the stamp changes whichever file was the newest
-        os.utime(mod, ns=(st.st_atime_ns, int(newest) + 10**9))
+    mod = Path(where.stdout.strip())  # the copy the commands import (installed, or this checkout)
+    st, text = mod.stat(), mod.read_bytes()
+    try:  # an edit that keeps the file's modification time
+        mod.write_bytes(text + b"\n# edited\n")
+        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
         res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o", cwd=tmp_path)
     finally:
+        mod.write_bytes(text)
         os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
     assert res.returncode == 0, res.stderr
     assert "not on the warm cluster: sarship's code was changed since it started" in res.stderr
     assert "local Dask cluster" in res.stderr
     again = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", cwd=tmp_path)
-    assert again.returncode == 0 and "sarship: warm cluster," in again.stderr, again.stderr  # the time restored
+    assert again.returncode == 0 and "sarship: warm cluster," in again.stderr, again.stderr  # the code restored
 
 
 def test_output_to_a_closed_pipe(warm_cpu, tmp_path):

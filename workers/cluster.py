@@ -48,6 +48,33 @@ def threads_max_px() -> int:
     return value
 
 
+#: The interface a local cluster's scheduler, nannies and workers listen on (``SARSHIP_CLUSTER_HOST``
+#: overrides it). Loopback: Dask's comms have no authentication, and whoever reaches a
+#: scheduler or worker port can run code there (``SARSHIP_TOKENS`` guards the API only).
+CLUSTER_HOST = "127.0.0.1"
+
+
+def cluster_host() -> str:
+    """The interface a local cluster listens on: :data:`CLUSTER_HOST`, or the
+    ``SARSHIP_CLUSTER_HOST`` setting (an IP address or a host name of this machine; ``0.0.0.0``
+    opens the cluster to every network the machine is on). :class:`InputError` for a value
+    that is not one."""
+    import ipaddress
+
+    raw = os.environ.get("SARSHIP_CLUSTER_HOST", "").strip()
+    if not raw:
+        return CLUSTER_HOST
+    h = raw.strip("[]")
+    try:
+        ipaddress.ip_address(h)
+        return h
+    except ValueError:
+        pass
+    if all(part and len(part) <= 63 and part.replace("-", "").isalnum() for part in h.split(".")) and len(h) <= 253:
+        return h
+    raise InputError(f"SARSHIP_CLUSTER_HOST must be an IP address or host name of this machine, got '{raw}'")
+
+
 def _quiet() -> None:
     for name in ("distributed", "distributed.scheduler", "distributed.worker", "distributed.nanny",
                  "distributed.core", "distributed.http.proxy", "bokeh", "tornado"):
@@ -353,24 +380,39 @@ def gpu_procs(n_gpus: int = 1, long_lived: bool = False) -> int:
         raise InputError(f"SARSHIP_GPU_PROCS must be a whole number, got {raw!r}") from None
 
 
+def gpu_cluster_spec(gpu_ids: list[str], cpu_workers: int, dashboard_address: str, host: str,
+                     gpu_threads: int = 2, per_gpu: int = 1) -> dict:
+    """The keyword arguments of the GPU local cluster's :class:`distributed.SpecCluster`: its
+    scheduler and one pinned nanny per GPU process (:func:`sarship.workers.gpus.worker_specs`),
+    the scheduler, every nanny and worker (and the worker's HTTP server, which listens where
+    its worker does) on ``host`` (:func:`cluster_host`). A pure function of its arguments, so
+    the GPU branch's binding is checked without a GPU."""
+    from distributed import Scheduler
+
+    from sarship.workers.gpus import worker_specs
+
+    return {
+        "workers": worker_specs(gpu_ids, cpu_workers, prefix="local-", silence_logs=logging.ERROR,
+                                gpu_threads=gpu_threads, gpu_procs=per_gpu, host=host),
+        "scheduler": {"cls": Scheduler, "options": {"host": host, "dashboard_address": dashboard_address}},
+        "silence_logs": logging.ERROR,
+    }
+
+
 def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads, threads=False, per_gpu=None):
-    """Start the local cluster and its client; returns (client, cluster, description)."""
+    """Start the local cluster and its client; returns (client, cluster, description). Every
+    branch listens on :func:`cluster_host` (loopback unless configured)."""
     from distributed import Client, LocalCluster
 
     per_gpu = per_gpu or (gpu_procs(len(gpu_ids)) if gpu_ids else 1)
+    host = cluster_host()
 
     if gpu_ids:
-        from distributed import Scheduler, SpecCluster
+        from distributed import SpecCluster
 
-        from sarship.workers.gpus import worker_specs
-
-        cluster = SpecCluster(
-            workers=worker_specs(gpu_ids, cpu_workers, prefix="local-", silence_logs=logging.ERROR,
-                                 gpu_threads=gpu_threads or int(os.environ.get("SARSHIP_GPU_THREADS", "2")),
-                                 gpu_procs=per_gpu),
-            scheduler={"cls": Scheduler, "options": {"dashboard_address": dashboard_address}},
-            silence_logs=logging.ERROR,
-        )
+        cluster = SpecCluster(**gpu_cluster_spec(
+            gpu_ids, cpu_workers, dashboard_address, host, per_gpu=per_gpu,
+            gpu_threads=gpu_threads or int(os.environ.get("SARSHIP_GPU_THREADS", "2"))))
         what = f"{len(gpu_ids) * per_gpu} GPU worker processes" + (f" and {cpu_workers} CPU" if cpu_workers else "")
     elif threads:
         n = n_workers or os.cpu_count() or 1
@@ -379,12 +421,12 @@ def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads
             threads_per_worker=n,
             processes=False,
             # loopback TCP as the process cluster (inproc:// would name the machine's address in
-            # the dashboard link), and the worker's own HTTP server where the dashboard listens
+            # the dashboard link), and the worker's own HTTP server on the cluster's interface
             # (Dask's default for it is every interface)
             protocol="tcp://",
-            host="127.0.0.1",
+            host=host,
             dashboard_address=dashboard_address,
-            worker_dashboard_address=f"{(dashboard_address or '').rpartition(':')[0]}:0",
+            worker_dashboard_address=dashboard_address_on(host),
             silence_logs=logging.ERROR,
             resources={"CPU": n},
         )
@@ -395,6 +437,7 @@ def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads
             n_workers=n,
             threads_per_worker=1,
             processes=True,
+            host=host,
             dashboard_address=dashboard_address,
             silence_logs=logging.ERROR,
             resources={"CPU": 1},

@@ -32,8 +32,8 @@ from sarship.pipeline.errors import InputError
 from sarship.pipeline.inputs import detector_source, make_reader, pixel_power, window_reader
 from sarship.pipeline.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
 from sarship.pipeline.window_cache import CachedWindows
-from sarship.pipeline.scene import (Scene, create_mask_store, finalize_scene, open_scene, processing_tile,
-                                    tile_slices)
+from sarship.pipeline.scene import (CLAIM_SUFFIX, Scene, claim_output, create_mask_store, finalize_scene,
+                                    open_scene, processing_tile, tile_slices)
 from sarship.workers.land import LAND_STORE, check_land_file, finish_land, prepare_land
 from sarship.workers.request import JobRequest
 from sarship.workers.routing import plan
@@ -112,16 +112,23 @@ def _versions() -> dict[str, str]:
     return out
 
 
-def check_out(out_dir: Path, scene_path: Path, overwrite: bool) -> None:
-    """Refuse an output folder inside (or equal to) the scene store, one whose outputs would
-    replace the scene, and an existing non-empty folder unless ``overwrite``."""
+def check_out_path(out_dir: Path, scene_path: Path) -> None:
+    """Refuse an output folder inside (or equal to) the scene store, and one whose outputs
+    would replace the scene (paths only: checked before the output is claimed)."""
     out, scene = out_dir.resolve(), scene_path.resolve()
     if out == scene or scene in out.parents:
         raise InputError(f"--out '{out_dir}' is inside the scene store '{scene_path}': "
                          "choose a folder outside it (not even --overwrite writes into an input)")
     if scene in {out / name for name in OUTPUTS}:
         raise InputError(f"--out '{out_dir}' would replace the scene '{scene_path}' itself: choose another folder")
-    if not overwrite and out.is_dir() and any(out.iterdir()):
+
+
+def check_out(out_dir: Path, scene_path: Path, overwrite: bool) -> None:
+    """:func:`check_out_path`, and refuse an existing non-empty folder unless ``overwrite``
+    (its claim file, :func:`sarship.pipeline.scene.claim_output`, aside)."""
+    check_out_path(out_dir, scene_path)
+    out = out_dir.resolve()
+    if not overwrite and out.is_dir() and any(p.name != CLAIM_SUFFIX for p in out.iterdir()):
         raise InputError(f"output folder '{out_dir}' exists and is not empty: pass --overwrite to replace "
                          f"its {', '.join(OUTPUTS)}, or choose another folder")
 
@@ -181,11 +188,14 @@ def run_detection(
     processing/output tile side (default: the scene's chunk). ``out_dir`` must not exist or be
     empty unless ``overwrite`` (then only the three outputs are replaced); it is never allowed
     inside the scene store. ``cluster_note``: a line for stderr once the checks have passed and
-    the given ``client``'s cluster is used (as a started cluster's own line).
+    the given ``client``'s cluster is used (as a started cluster's own line). ``out_dir`` is
+    claimed for the run (:func:`sarship.pipeline.scene.claim_output`): a second run to the same
+    folder meanwhile is refused with :class:`InputError`, and one that starts after it finds its
+    outputs (refused too without ``overwrite``).
     """
     request = JobRequest.from_inputs(detector, {**(settings or {}), "scene": str(scene_path), "device": device})
     return run_request(request, out_dir, tile=tile, client=client, scheduler=scheduler, progress=progress,
-                       on_tile=on_tile, overwrite=overwrite, cluster_note=cluster_note)
+                       on_tile=on_tile, overwrite=overwrite, cluster_note=cluster_note, claim=True)
 
 
 def run_request(
@@ -198,9 +208,23 @@ def run_request(
     on_tile: Callable[[int, int], None] | None = None,
     overwrite: bool = False,
     cluster_note: str | None = None,
+    claim: bool = False,
 ) -> dict[str, Any]:
     """Run a validated :class:`~sarship.workers.request.JobRequest`; its ``scene`` is the
-    path of a scene store. Returns the ``run.json`` content (see :func:`run_detection`)."""
+    path of a scene store. Returns the ``run.json`` content (see :func:`run_detection`).
+    ``claim``: hold ``out_dir`` for the run (:func:`sarship.pipeline.scene.claim_output`; the
+    output checks run under the claim). The service's runner does not: each attempt writes its
+    own folder and the job store fences publication."""
+    args = (request, out_dir, tile, client, scheduler, progress, on_tile, overwrite, cluster_note)
+    if not claim:
+        return _run_request(*args)
+    check_out_path(Path(out_dir), Path(request.scene))  # first: never a claim inside the scene
+    with claim_output(out_dir, "--out", create_parents=True):
+        return _run_request(*args)
+
+
+def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
+                 cluster_note) -> dict[str, Any]:
     t_start = time.perf_counter()
     spec, detector, device, channel = request.spec, request.detector, request.device, request.channel
     params = request.detector_params()

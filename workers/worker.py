@@ -5,7 +5,10 @@ starts, ``--gpu-threads`` task slots each, resource ``GPU`` = one unit per slot;
 number of processes is the local cluster's, so a deployed worker feeds its GPU as
 ``sarship detect`` does) and ``--cpus``
 single-threaded CPU worker processes (resource ``CPU=1`` each), all under one command that
-stops them together on SIGINT/SIGTERM.
+stops them together on SIGINT/SIGTERM (exit 0). When its scheduler goes away (killed,
+restarted, unreachable) Dask's workers close; the command then closes the rest and exits 1
+(:data:`EXIT_SCHEDULER_GONE`), so that a service manager restarts it (systemd's
+``Restart=on-failure``) and the new command joins the restarted scheduler.
 """
 
 from __future__ import annotations
@@ -30,7 +33,15 @@ async def _reachable(address: str, timeout: float = 10.0) -> None:
         raise InputError(f"cannot reach Dask scheduler at '{address}': {exc}") from None
 
 
-async def _main(address: str, specs: dict[str, dict], echo: bool) -> None:
+#: ``sarship worker``'s exit status when its workers ended without being asked to (the
+#: scheduler went away, or closed them): a failure, so that a service manager restarts it
+#: (systemd's ``Restart=on-failure``; the restarted command waits for the scheduler to answer).
+EXIT_SCHEDULER_GONE = 1
+
+
+async def _main(address: str, specs: dict[str, dict], echo: bool) -> int:
+    """Run the nannies until SIGINT/SIGTERM (0) or until one of them ends on its own
+    (:data:`EXIT_SCHEDULER_GONE`, after closing the others, with one line on stderr)."""
     await _reachable(address)
     nannies = [s["cls"](address, **s["options"]) for s in specs.values()]
     stop = asyncio.Event()
@@ -44,18 +55,29 @@ async def _main(address: str, specs: dict[str, dict], echo: bool) -> None:
             pin = s["options"]["env"].get("CUDA_VISIBLE_DEVICES")
             where = f"GPU {pin}" if "GPU" in res else "CPU"
             print(f"sarship: worker {name} ({where}, resources {res}) -> {address}", file=sys.stderr, flush=True)
-    finished = asyncio.ensure_future(asyncio.gather(*(n.finished() for n in nannies)))
+    # a nanny ends on its own when its worker lost the scheduler (Dask's workers close then:
+    # "worker-handle-scheduler-connection-broken") or the scheduler closed it; it restarts a
+    # worker process that crashed by itself
+    ended = [asyncio.ensure_future(n.finished()) for n in nannies]
     stopped = asyncio.ensure_future(stop.wait())
-    await asyncio.wait([finished, stopped], return_when=asyncio.FIRST_COMPLETED)
+    await asyncio.wait([*ended, stopped], return_when=asyncio.FIRST_COMPLETED)
+    gone = [name for name, f in zip(specs, ended) if f.done()] if not stop.is_set() else []
     await asyncio.gather(*(n.close(timeout=20) for n in nannies), return_exceptions=True)
-    for f in (finished, stopped):
+    for f in (*ended, stopped):
         f.cancel()
+    if gone:
+        print(f"sarship worker: worker {', '.join(gone)} ended without being asked to: the scheduler at "
+              f"'{address}' went away or closed it; exiting {EXIT_SCHEDULER_GONE} so that a service manager "
+              "restarts it", file=sys.stderr, flush=True)
+        return EXIT_SCHEDULER_GONE
+    return 0
 
 
 def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str | None = None,
           memory_limit: str | None = None, echo: bool = True, gpu_threads: int = 2,
           gpu_procs: int | None = None) -> int:
-    """Start the workers and block until they stop (or SIGINT/SIGTERM). ``gpu_procs``: worker
+    """Start the workers and block until they stop: 0 after SIGINT/SIGTERM,
+    :data:`EXIT_SCHEDULER_GONE` (1) when they ended on their own (the scheduler went away). ``gpu_procs``: worker
     processes per GPU (default: the local cluster's rule, :func:`sarship.workers.cluster.gpu_procs`:
     ``SARSHIP_GPU_PROCS``, else a quarter of the cores per GPU, at most 4 per GPU and 4 in all)."""
     if not scheduler:
@@ -83,6 +105,5 @@ def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str 
     from sarship.workers.cluster import nanny_environ
 
     with dask.config.set({"distributed.nanny.pre-spawn-environ": nanny_environ()}):  # (reads: see there)
-        asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit, gpu_threads=gpu_threads,
-                                                  gpu_procs=gpu_procs), echo))
-    return 0
+        return asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit,
+                                                         gpu_threads=gpu_threads, gpu_procs=gpu_procs), echo))

@@ -59,6 +59,7 @@ from sarship.pipeline.scene import (
     INGEST_CODECS,
     Scene,
     atomic_store,
+    claim_output,
     create_scene,
     finalize_scene,
     open_scene,
@@ -252,7 +253,35 @@ def ingest(
     (the default) chooses zstd or none from a sample of the pixels
     (:func:`~sarship.pipeline.readers.writing.choose_codec`; the choice is in the scene's
     attributes ``codec`` and ``codec_choice``).
+
+    ``out`` is claimed for the call once the arguments are checked
+    (:func:`sarship.pipeline.scene.claim_output`): a second ingest to it meanwhile is refused
+    with :class:`InputError`, one that starts after it finds the scene (refused without
+    ``overwrite``); never two that both succeed.
     """
+    _check_args(inputs, out, kind, tile, looks, channels, overwrite)  # first: never a claim inside an input
+    with claim_output(out, "--out"):
+        return _ingest(inputs, out, kind, tile, progress, band, channels, looks, overwrite, spacing, sidecar_root,
+                       limits, swath, codec)
+
+
+def _ingest(
+    inputs: list[str | Path],
+    out: str | Path,
+    kind: str = "auto",
+    tile: int = DEFAULT_TILE,
+    progress: Callable[[int, int], None] | None = None,
+    band: str | int | None = None,
+    channels: list[str] | None = None,
+    looks: float | None = None,
+    overwrite: bool = True,
+    spacing: tuple[float, float] | str | None = None,
+    sidecar_root: str | Path | bool | None = None,
+    limits: InputLimits | None = None,
+    swath: str | None = None,
+    codec: str = DEFAULT_INGEST_CODEC,
+) -> Scene:
+    """:func:`ingest` under the claim of ``out`` (its checks again, now authoritative)."""
     paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
     if codec not in INGEST_CODECS:  # an unknown codec is refused before any work
         raise InputError(f"codec must be one of {', '.join(INGEST_CODECS)}, got '{codec}'")
