@@ -261,11 +261,11 @@ def ingest(
     """
     _check_args(inputs, out, kind, tile, looks, channels, overwrite)  # first: never a claim inside an input
     with claim_output(out, "--out"):
-        return _ingest(inputs, out, kind, tile, progress, band, channels, looks, overwrite, spacing, sidecar_root,
-                       limits, swath, codec)
+        return _ingest_claimed(inputs, out, kind, tile, progress, band, channels, looks, overwrite, spacing,
+                               sidecar_root, limits, swath, codec)
 
 
-def _ingest(
+def _ingest_claimed(
     inputs: list[str | Path],
     out: str | Path,
     kind: str = "auto",
