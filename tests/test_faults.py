@@ -294,7 +294,10 @@ def test_a_runner_stopped_past_its_lease_cannot_publish(tmp_path):
         out = data / "jobs" / job_id
         assert {p.name for p in out.iterdir()} >= {"detections.geojson", "mask.zarr", "run.json"}
         assert not [p.name for p in out.iterdir() if p.name.startswith(".")], list(out.iterdir())
-        assert all(Path(v).parent == out.resolve() for v in run["outputs"].values()), run["outputs"]
+        on_disk = json.loads((out / "run.json").read_text())["outputs"]
+        assert all(Path(v).parent == out.resolve() for v in on_disk.values()), on_disk
+        # the API names them relative to the data folder, never by the server's path
+        assert run["outputs"] == {k: f"jobs/{job_id}/{k}" for k in on_disk}, run["outputs"]
     finally:
         if stopped is not None:
             os.killpg(stopped.proc.pid, signal.SIGCONT)

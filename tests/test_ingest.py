@@ -528,6 +528,10 @@ _RSS_SCRIPT = textwrap.dedent(
     import json, sys
     import numpy, zarr, tifffile, scipy.special, scipy.optimize, PIL.Image, tensorstore  # preload libraries
     import sarship.pipeline.readers, sarship.pipeline.looks
+    import os, tempfile
+    with tempfile.TemporaryDirectory() as warm:  # compile (Numba, cold cache in CI) and start the
+        numpy.save(os.path.join(warm, "w.npy"), numpy.ones((256, 256), "<f4"))  # writers outside the measure
+        sarship.pipeline.readers.ingest([os.path.join(warm, "w.npy")], os.path.join(warm, "w.zarr"), tile=128)
     def hwm():  # this process's own high-water mark, kB (ru_maxrss keeps the parent's across exec)
         return next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM"))
     base = hwm()
