@@ -160,9 +160,10 @@ def test_texture_config_validation():
 # end to end
 
 
-# lmm's fit is the slowest of the four (~13 s here): slow; its absent-pixel handling is also
-# tested by tests/test_nodata_cfar.py
-@pytest.mark.parametrize("detector", [pytest.param(d, marks=pytest.mark.slow) if d == "lmm" else d
+# lmm's fit (~13 s here) and os_cfar's order statistics (~16 s) are the slowest: under -m slow (the
+# mask is applied the same way for every detector, and the others run it in the default run); lmm's
+# absent-pixel handling is also tested by tests/test_nodata_cfar.py
+@pytest.mark.parametrize("detector", [pytest.param(d, marks=pytest.mark.slow) if d in ("lmm", "os_cfar") else d
                                       for d in INTENSITY_DETECTORS])
 def test_no_detections_on_land(coast, client, tmp_path, detector):
     """Every intensity detector, land_mask=texture: no detected pixel on the simulated land, no

@@ -199,6 +199,9 @@ def test_local_cluster_listens_on_loopback_only(branch, monkeypatch):
     from sarship.workers.cluster import connect
 
     monkeypatch.delenv("SARSHIP_CLUSTER_HOST", raising=False)
+    # one worker process for the GPU (the default is a quarter of the cores, up to 4: 4 on a 16-core
+    # GPU host, where this test runs for real)
+    monkeypatch.setenv("SARSHIP_GPU_PROCS", "1")
     me = psutil.Process()
     before = _listening([me, *me.children(recursive=True)])
     kw = {"gpus": ["0"], "cpu_workers": 0} if branch == "gpu" else {"n_workers": 1, "threads": branch == "threads"}
