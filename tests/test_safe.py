@@ -154,6 +154,9 @@ class TestGRD:
         full = H * W * 4  # the band as float32
         assert grd_store[1] < 0.4 * full, f"peak RSS {grd_store[1] / 2**20:.0f} MiB vs band {full / 2**20:.0f} MiB"
 
+    # slow (a second full ingest of the band, ~25 s of the 2-core machine): a GRD zip is ingested in
+    # the default run by test_safe_slc.test_inbox_ingests_a_grd_zip_and_quarantines_a_multi_swath_slc_zip
+    @pytest.mark.slow
     def test_zip_gives_the_same_store(self, grd_store, tmp_path):
         from sarship.pipeline.readers import ingest
         from sarship.pipeline.scene import open_scene
