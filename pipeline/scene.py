@@ -390,6 +390,9 @@ def claim_output(final: str | os.PathLike, what: str = "--out", create_parents: 
     made: list[Path] = []
     if create_parents:
         missing = [d for d in (parent, *parent.parents) if not d.exists()]
+        above = (missing[-1].parent if missing else parent)
+        if above.exists() and not above.is_dir():
+            raise InputError(f"{what} '{final}': '{above}' is a file, not a folder")
         for d in reversed(missing):
             try:
                 d.mkdir()

@@ -131,22 +131,10 @@ class SchedulerLink:
 
 def _client(address: str, timeout_s: float = 10.0):
     """A client of ``address`` whose workers run this sarship version
-    (:func:`sarship.workers.cluster.check_versions`); :class:`InputError` otherwise."""
-    from distributed import Client
+    (:func:`sarship.workers.cluster.connect_checked`); :class:`InputError` otherwise."""
+    from sarship.workers.cluster import connect_checked
 
-    from sarship.pipeline.errors import InputError
-    from sarship.workers.cluster import check_versions
-
-    try:
-        client = Client(address, timeout=f"{timeout_s}s")
-    except Exception as exc:
-        raise InputError(f"cannot reach Dask scheduler at '{address}': {exc}") from None
-    try:
-        check_versions(client)
-    except BaseException:
-        client.close()
-        raise
-    return client
+    return connect_checked(address, timeout_s)
 
 
 def open_link(address: str, first_s: float = 1.0, max_s: float = 30.0, echo: bool = True) -> SchedulerLink:
@@ -154,13 +142,13 @@ def open_link(address: str, first_s: float = 1.0, max_s: float = 30.0, echo: boo
     :func:`sarship.workers.cluster.connect` prints it)."""
     import sys
 
-    from sarship.workers.cluster import _quiet, dashboard_url
+    from sarship.workers.cluster import _quiet, dashboard_note
 
     _quiet()
     link = SchedulerLink(address, first_s, max_s)
     if echo:
         c = link.current()
         print(f"sarship: using Dask scheduler {address} ({len(c.scheduler_info().get('workers', {}))} workers), "
-              f"dashboard {dashboard_url(c)}, reconnected with a back-off of {first_s:g}-{max_s:g} s when it goes "
+              f"{dashboard_note(c)}, reconnected with a back-off of {first_s:g}-{max_s:g} s when it goes "
               "away", file=sys.stderr)
     return link

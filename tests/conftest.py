@@ -142,3 +142,14 @@ def dask_processes(tmp_path, workers: dict[str, list[str]], cwd=None):
                 p.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+def cov_scene(path, shape=(64, 64)):
+    """A C3 covariance scene (c11 ... c33), as `sarship ingest` writes PolSARpro C3 folders."""
+    rng = np.random.default_rng(0)
+    k = (rng.normal(size=(*shape, 3)) + 1j * rng.normal(size=(*shape, 3))).astype(np.complex64)
+    arrays = {}
+    for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+        c = k[..., i] * np.conj(k[..., j])
+        arrays[f"c{i + 1}{j + 1}"] = c.real.astype(np.float32) if i == j else c.astype(np.complex64)
+    return write_scene(path, arrays, tile=64, kind="covariance", looks=1.0)

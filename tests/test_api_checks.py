@@ -11,12 +11,11 @@ import os
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import blobs_scene, write_scene
+from conftest import blobs_scene, cov_scene, write_scene
 from sarship.pipeline.errors import InputError
 
 NON_FINITE = ("nan", "-Infinity", "1e999", float("inf"))
@@ -49,14 +48,6 @@ def test_channel_is_a_variable_name_never_a_path():
     assert JobRequest.from_inputs("apwf", {"scene": "x", "channel": "hh, vv"}).channel == "hh, vv"
 
 
-def cov_scene(path: Path, shape=(48, 40)) -> Path:
-    rng = np.random.default_rng(0)
-    k = (rng.normal(size=(*shape, 3)) + 1j * rng.normal(size=(*shape, 3))).astype(np.complex64)
-    arrays = {}
-    for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
-        c = k[..., i] * np.conj(k[..., j])
-        arrays[f"c{i + 1}{j + 1}"] = c.real.astype(np.float32) if i == j else c.astype(np.complex64)
-    return write_scene(path, arrays, tile=64, kind="covariance", looks=1.0)
 
 
 def sarship(*args, timeout=60, **env):
@@ -80,7 +71,7 @@ def test_detector_scene_mismatch_is_one_check(tmp_path):
     from sarship.pipeline.inputs import detector_source
     from sarship.pipeline.scene import open_scene
 
-    sc = open_scene(cov_scene(tmp_path / "cov.zarr"))
+    sc = open_scene(cov_scene(tmp_path / "cov.zarr", shape=(48, 40)))
     with pytest.raises(InputError, match="vb_polsar.*covariance"):
         detector_source(detectors.get("vb_polsar"), sc)
     for ok in ("apwf", "pcdm"):

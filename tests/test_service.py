@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 httpx = pytest.importorskip("httpx")
-from conftest import blobs_scene, write_scene  # noqa: E402
+from conftest import blobs_scene, cov_scene, write_scene  # noqa: E402
 from svc import Server, check_problem, data_with_scene, free_port, wait_job  # noqa: E402
 
 
@@ -338,15 +338,6 @@ def no_server_path(server, text: str) -> None:
         assert form not in text, text
 
 
-def cov_scene(path, shape=(64, 64)):
-    """A C3 covariance scene (c11 ... c33), as `sarship ingest` writes PolSARpro C3 folders."""
-    rng = np.random.default_rng(0)
-    k = (rng.normal(size=(*shape, 3)) + 1j * rng.normal(size=(*shape, 3))).astype(np.complex64)
-    arrays = {}
-    for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
-        c = k[..., i] * np.conj(k[..., j])
-        arrays[f"c{i + 1}{j + 1}"] = c.real.astype(np.float32) if i == j else c.astype(np.complex64)
-    return write_scene(path, arrays, tile=64, kind="covariance", looks=1.0)
 
 
 def test_submission_checks_and_no_server_paths(server):

@@ -172,6 +172,23 @@ def dashboard_serves(link: str, timeout: float = 3.0) -> bool:
     return ok
 
 
+def connect_checked(address: str, timeout_s: float = 10.0):
+    """A :class:`distributed.Client` of the scheduler at ``address`` whose workers run this
+    sarship version (:func:`check_versions`); one-line :class:`InputError` otherwise."""
+    from distributed import Client
+
+    try:
+        client = Client(address, timeout=f"{timeout_s:g}s")
+    except Exception as exc:
+        raise InputError(f"cannot reach Dask scheduler at '{address}': {exc}") from None
+    try:
+        check_versions(client)
+    except BaseException:
+        client.close()
+        raise
+    return client
+
+
 def dashboard_url(client) -> str | None:
     """The cluster's dashboard link, or None when it serves no dashboard (:func:`dashboard_serves`)."""
     try:
@@ -242,19 +259,9 @@ def connect(
     processes may be forked (:func:`worker_start_method`). ``procs_per_gpu``: worker processes
     per GPU (default :func:`gpu_procs`).
     """
-    from distributed import Client
-
     _quiet()
     if scheduler:
-        try:
-            client = Client(scheduler, timeout="10s")
-        except Exception as exc:
-            raise InputError(f"cannot reach Dask scheduler at '{scheduler}': {exc}") from None
-        try:
-            check_versions(client)
-        except BaseException:
-            client.close()
-            raise
+        client = connect_checked(scheduler)
         if echo:
             n = len(client.scheduler_info().get("workers", {}))
             print(f"sarship: using Dask scheduler {scheduler} ({n} workers), {dashboard_note(client)}",

@@ -260,75 +260,17 @@ def ingest(
     ``overwrite``); never two that both succeed.
     """
     _check_args(inputs, out, kind, tile, looks, channels, overwrite)  # first: never a claim inside an input
-    with claim_output(out, "--out"):
-        return _ingest_claimed(inputs, out, kind, tile, progress, band, channels, looks, overwrite, spacing,
-                               sidecar_root, limits, swath, codec)
-
-
-def _ingest_claimed(
-    inputs: list[str | Path],
-    out: str | Path,
-    kind: str = "auto",
-    tile: int = DEFAULT_TILE,
-    progress: Callable[[int, int], None] | None = None,
-    band: str | int | None = None,
-    channels: list[str] | None = None,
-    looks: float | None = None,
-    overwrite: bool = True,
-    spacing: tuple[float, float] | str | None = None,
-    sidecar_root: str | Path | bool | None = None,
-    limits: InputLimits | None = None,
-    swath: str | None = None,
-    codec: str = DEFAULT_INGEST_CODEC,
-) -> Scene:
-    """:func:`ingest` under the claim of ``out`` (its checks again, now authoritative)."""
-    paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
-    if codec not in INGEST_CODECS:  # an unknown codec is refused before any work
-        raise InputError(f"codec must be one of {', '.join(INGEST_CODECS)}, got '{codec}'")
-    ingest_writers()  # so is a bad SARSHIP_INGEST_WRITERS
-    spacing = _check_spacing(spacing)
-    made = _make_parents(outp)
-    try:
+    # the missing folders above out are made for the claim (mkdir -p) and removed again, while
+    # empty, when the ingest fails
+    with claim_output(out, "--out", create_parents=True):
+        # under the claim: the checks again, now authoritative
+        paths, outp, tile, channels = _check_args(inputs, out, kind, tile, looks, channels, overwrite)
+        if codec not in INGEST_CODECS:  # an unknown codec is refused before any work
+            raise InputError(f"codec must be one of {', '.join(INGEST_CODECS)}, got '{codec}'")
+        ingest_writers()  # so is a bad SARSHIP_INGEST_WRITERS
+        spacing = _check_spacing(spacing)
         return _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, sidecar_root, limits,
                        swath, codec)
-    except BaseException:
-        _remove_made(made)
-        raise
-
-
-def _make_parents(outp: Path) -> list[Path]:
-    """Create the missing folders above ``outp`` (``--out a/b/c.zarr`` with no ``a/b``), as
-    ``mkdir -p`` does; return those created, deepest first, for :func:`_remove_made`. A path
-    whose parent cannot be a folder (a file in the way, no permission) is refused in one line."""
-    parent = outp.parent if str(outp.parent) else Path(".")
-    missing = []
-    d = parent
-    while not d.exists() and d != d.parent:
-        missing.append(d)
-        d = d.parent
-    if d.exists() and not d.is_dir():
-        raise InputError(f"--out '{outp}': '{d}' is a file, not a folder")
-    made = []
-    for m in reversed(missing):
-        try:
-            m.mkdir()
-        except FileExistsError:  # made by someone else meanwhile
-            continue
-        except OSError as exc:
-            _remove_made(made[::-1])
-            raise InputError(f"--out '{outp}': cannot create the folder '{m}' ({_one_line(exc)})") from None
-        made.append(m)
-    return made[::-1]
-
-
-def _remove_made(made: list[Path]) -> None:
-    """Remove the folders :func:`_make_parents` created, deepest first, while they are empty (a
-    failed ingest leaves nothing behind, not even the folders made for its output)."""
-    for m in made:
-        try:
-            m.rmdir()
-        except OSError:
-            return
 
 
 def _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, sidecar_root, limits, swath,
