@@ -89,18 +89,24 @@ def _direct(detector: str, cfg: SimConfig) -> tuple[dict, list[dict], list[dict]
     mask, the pipeline's components and features, then the sidelobe step as workers/jobs.py
     runs it. Returns the truth, the features after the step and the components' features."""
     data, truth = simulate_array(cfg)
-    intensity = data["intensity"]
     spec = detectors.get(detector)
     p = spec.params(looks=cfg.looks) if "looks" in spec.params.model_fields else spec.params()
     assert p.sidelobes is True
+    feats, raw = _detect_and_refine(data["intensity"], spec, p, cfg.pixel_spacing_m)
+    return truth, feats, raw
+
+
+def _detect_and_refine(image: np.ndarray, spec, p, spacing) -> tuple[list[dict], list[dict]]:
+    """``spec`` with parameters ``p`` on the whole ``image``: mask, the pipeline's components, and
+    their features after the sidelobe step as workers/jobs.py runs it, and before it."""
     halo = spec.halo(p)
-    mask, stat = spec.detect(np.pad(intensity, halo, mode="reflect"), halo, (-halo, -halo), p, spec.prepare(p))
+    mask, stat = spec.detect(np.pad(image, halo, mode="reflect"), halo, (-halo, -halo), p, spec.prepare(p))
     r = merge_radius(p.merge_px)
-    recs = tile_components(np.pad(mask, r), intensity, stat, r, (0, 0), (0, 0)).complete
-    feats = S.refine_features(features(recs, cfg.pixel_spacing_m, None), recs,
-                              lambda a, b, c, d: intensity[a:b, c:d], lambda a, b, c, d: mask[a:b, c:d],
-                              intensity.shape, r, cfg.pixel_spacing_m, None)
-    return truth, feats, features(recs, cfg.pixel_spacing_m, None)
+    recs = tile_components(np.pad(mask, r), image, stat, r, (0, 0), (0, 0)).complete
+    feats = S.refine_features(features(recs, spacing, None), recs,
+                              lambda a, b, c, d: image[a:b, c:d], lambda a, b, c, d: mask[a:b, c:d],
+                              image.shape, r, spacing, None)
+    return feats, features(recs, spacing, None)
 
 
 def _check_truth(truth: dict, feats: list[dict], raw: list[dict] | None = None) -> None:
@@ -155,14 +161,7 @@ def test_issue_ship_is_not_cut():
     a, c = r0 - 64, c0 - 64
     window = data["intensity"][a:r1 + 64, c:c1 + 64]
     spec = detectors.get("os_cfar")
-    p = spec.params(looks=1)
-    halo = spec.halo(p)
-    mask, stat = spec.detect(np.pad(window, halo, mode="reflect"), halo, (-halo, -halo), p, spec.prepare(p))
-    r = merge_radius(p.merge_px)
-    recs = tile_components(np.pad(mask, r), window, stat, r, (0, 0), (0, 0)).complete
-    feats = S.refine_features(features(recs, cfg.pixel_spacing_m, None), recs,
-                              lambda ra, rb, ca, cb: window[ra:rb, ca:cb], lambda ra, rb, ca, cb: mask[ra:rb, ca:cb],
-                              window.shape, r, cfg.pixel_spacing_m, None)
+    feats, _ = _detect_and_refine(window, spec, spec.params(looks=1), cfg.pixel_spacing_m)
     local = {"features": [{"properties": {**t, "bbox_px": [r0 - a, c0 - c, r1 - a, c1 - c]}}]}
     (_, det), = _match(local, feats)
     assert det is not None and det["sidelobes"] is False
