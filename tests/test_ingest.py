@@ -569,7 +569,11 @@ def test_bounded_memory_large_npy(tmp_path):
     size_mb = p.stat().st_size / 2**20
     res = _rss_growth(tmp_path, p)
     assert res["shape"] == [N_BIG, N_BIG]
-    assert res["growth_mb"] < 0.4 * size_mb, res  # measured ~60 MiB of 256 MiB
+    # Design peak: one tile row mapped (32 MiB of file pages count in RSS) and its copy (32 MiB),
+    # plus the tiles in flight to the writers (<= 8 x 4 MiB, and their encoded copies): ~130 MiB
+    # at worst. Measured 60 MiB here and 102 MiB on CI (2 cores, 2026-12-02): half the file is
+    # the bound that still proves the scene is never held whole.
+    assert res["growth_mb"] < 0.5 * size_mb, res
     assert abs(res["looks"] / 2.0 - 1) < 0.1
     a = zarr.open_array(str(tmp_path / "big.zarr" / "intensity"), mode="r")
     np.testing.assert_array_equal(a[5000:5010, 7000:7010], band[5000 - 4096:5010 - 4096, 7000:7010] * 5)
@@ -591,7 +595,7 @@ def test_bounded_memory_large_tiled_tiff(tmp_path):
     tifffile.imwrite(p, tiles(), shape=(N_BIG, N_BIG), dtype="float32", tile=(512, 512),
                      compression="zstd", compressionargs={"level": 1})
     res = _rss_growth(tmp_path, p)
-    assert res["growth_mb"] < 0.4 * 256, res  # measured ~60 MiB
+    assert res["growth_mb"] < 0.5 * 256, res  # the same design bound as the .npy test
     a = zarr.open_array(str(tmp_path / "big.zarr" / "intensity"), mode="r")
     np.testing.assert_array_equal(a[8000:8010, 100:110], band[8000 - 7168:8010 - 7168, 100:110] * 8)
 

@@ -214,18 +214,20 @@ def test_start_twice_idle_timeout_and_a_stale_socket(sockdir, tmp_path):
     res = run(sock, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", cwd=tmp_path)
     assert res.returncode == 0 and "warm" not in res.stderr, res.stderr
     assert run(sock, "warm", "status").returncode == 1
-    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "2",
+    # idle timeout 4 s: long enough for the second start below to find it on a loaded machine
+    # (a Python start-up there took over 2 s), short enough to wait for
+    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "4",
               "--dashboard", "127.0.0.1:0", "--warm-up", "none")
     assert res.returncode == 0, res.stderr
     again = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--dashboard", "127.0.0.1:0")
     assert again.returncode == 2 and "runs already" in again.stderr and len(again.stderr.splitlines()) == 1
-    for _ in range(200):  # idle for 2 s: it ends by itself
+    for _ in range(300):  # idle for 4 s: it ends by itself
         if warm.status(sock) is None and not sock.exists():
             break
         time.sleep(0.1)
     else:
         pytest.fail("the warm process did not end after its idle timeout")
-    assert "idle for 2 s: ending" in (sockdir / "warm.sock.log").read_text()
+    assert "idle for 4 s: ending" in (sockdir / "warm.sock.log").read_text()
     assert run(sock, "warm", "stop").stdout.strip() == "no warm cluster was running"
 
 
