@@ -45,15 +45,23 @@ def test_small_scene_runs_on_threads_and_the_setting_switches_to_processes(scene
     # the command's own cluster forks its workers on Linux (workers/cluster.worker_start_method)
     if sys.platform.startswith("linux"):
         assert "(fork)" in line, line
+    # the same detections either way
+    a = json.loads((tmp_path / "a" / "detections.geojson").read_text())
+    b = json.loads((tmp_path / "b" / "detections.geojson").read_text())
+    assert [f["properties"] for f in a["features"]] == [f["properties"] for f in b["features"]]
+    assert len(a["features"]) >= 1
+
+
+@pytest.mark.slow  # spawned workers each start a fresh interpreter; the fork and thread paths: above
+def test_spawned_workers_give_what_threads_give(scene, tmp_path):
+    threaded = _detect(scene, tmp_path / "a", SARSHIP_THREADS_MAX_PX="")
+    assert threaded.returncode == 0, threaded.stderr
     spawned = _detect(scene, tmp_path / "s", SARSHIP_THREADS_MAX_PX="0", SARSHIP_WORKER_START="spawn")
     assert spawned.returncode == 0, spawned.stderr
     assert "worker processes (spawn)" in _cluster_line(spawned.stderr)
-    # the same detections and mask either way
     a = json.loads((tmp_path / "a" / "detections.geojson").read_text())
-    for other in ("b", "s"):
-        b = json.loads((tmp_path / other / "detections.geojson").read_text())
-        assert [f["properties"] for f in a["features"]] == [f["properties"] for f in b["features"]]
-    assert len(a["features"]) >= 1
+    s = json.loads((tmp_path / "s" / "detections.geojson").read_text())
+    assert [f["properties"] for f in a["features"]] == [f["properties"] for f in s["features"]]
 
 
 def test_a_bad_setting_is_one_line_and_leaves_nothing(scene, tmp_path):

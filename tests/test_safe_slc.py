@@ -259,6 +259,72 @@ def _expected(a: dict, dn: complex, row: int, col: int) -> complex:
     return dn / A * np.exp(-1j * phi)
 
 
+def _check_burst_seams(bursts: list[dict]) -> None:
+    """The scene's bursts join at the overlap midpoints the annotation gives (rows of IW1)."""
+    a = _annotation(SLC, "iw1", "vv")
+    assert [b["burst"] for b in bursts] == list(range(9))
+    assert bursts[0]["rows"][0] == 0 and bursts[-1]["rows"][1] == _rows(a)
+    for prev, b in zip(bursts, bursts[1:]):
+        r = b["rows"][0]
+        assert prev["rows"][1] == r
+        assert _row_source(a, r - 1)[0] == b["burst"] - 1 and _row_source(a, r)[0] == b["burst"]
+        assert b["measurement_lines"][0] == b["burst"] * a["lpb"] + _row_source(a, r)[1]
+
+
+def _check_samples(read) -> None:
+    """Each sample = DN / A exp(-j phi) (see test_samples_are_dn_over_a_deramped); ``read(pol,
+    r, c0, c1)`` gives row ``r``, columns ``c0:c1`` of polarisation ``pol``."""
+    import tifffile
+
+    for pol in ("vv", "vh"):
+        a = _annotation(SLC, "iw1", pol)
+        with tifffile.TiffFile(next((SLC / "measurement").glob(f"*-iw1-slc-{pol}-*.tiff"))) as t:
+            page = t.pages[0]  # the sample's constant, from the first strip (not the 2.3 GB band)
+            t.filehandle.seek(page.dataoffsets[0])
+            dn = complex(page.decode(t.filehandle.read(page.databytecounts[0]), 0)[0].ravel()[0])
+        assert dn == {"vv": 2, "vh": 1}[pol]
+        for r, c in [(0, 600), (700, 10000), (1402, 20900), (1403, 3000), (6000, 15000), (12198, 20000),
+                     (12198, 600)]:
+            want = _expected(a, dn, r, c)
+            got = complex(read(pol, r, c, c + 1)[0])
+            assert abs(got - want) <= 2e-5 * abs(want), (pol, r, c, got, want)
+
+
+def _check_invalid_edges(read_row) -> None:
+    """Outside a burst line's valid samples the scene has no data (NaN), inside it has."""
+    a = _annotation(SLC, "iw1", "vv")
+    for r in (0, 1402, 1403, 5000, 12198):
+        b, line = _row_source(a, r)
+        fv, lv = a["bursts"][b][1][line], a["bursts"][b][2][line]
+        assert fv >= 0
+        row = read_row(r)
+        assert np.isnan(row[:fv]).all() and np.isnan(row[lv + 1:]).all()
+        assert np.isfinite(row[fv:lv + 1]).all()
+
+
+@needs_slc
+def test_iw1_source_seams_samples_and_edges():
+    """The default run's check of the SLC reader on the real product without the full-size
+    ingest (TestIW1, slow: 3.4 GB written): the IW1 source read from the zip has the
+    annotation's shape, channels and spacing, its bursts join at the overlap midpoints, its
+    samples are DN / A exp(-j phi) and its invalid burst edges are absent. TestIW1 checks that
+    the ingested store holds exactly what this source reads."""
+    pytest.importorskip("xarray_sentinel", reason="xarray-sentinel not installed (pip install 'sarship[safe]')")
+    from sarship.pipeline.readers.entry import _open_source
+
+    a = _annotation(SLC, "iw1", "vv")
+    src = _open_source(SLC, swath="IW1", limits=InputLimits(max_ratio=1e5))
+    try:
+        pols = src.meta["pols"]
+        assert pols == ["vv", "vh"] and src.shape == (_rows(a), a["samples"]) == (12199, 21632)
+        assert src.meta["pixel_spacing_m"] == [a["az"], a["rg"]]
+        _check_burst_seams(src.meta["extra_attrs"]["bursts"])
+        _check_samples(lambda pol, r, c0, c1: src.read(r, r + 1, c0, c1)[0, :, pols.index(pol)])
+        _check_invalid_edges(lambda r: src.read(r, r + 1, 0, src.shape[1])[0, :, 0])
+    finally:
+        src.close()
+
+
 # --------------------------------------------------------------------------------------
 # the full-size IW1 sub-swath, ingested once from a zip in a fresh process
 # --------------------------------------------------------------------------------------
@@ -295,6 +361,7 @@ def iw1(tmp_path_factory):
 
 
 @needs_slc
+@pytest.mark.slow  # the full-size ingest writes 3.4 GB: test_iw1_source_seams_samples_and_edges is its sibling
 class TestIW1:
     def test_shape_channels_spacing_times(self, iw1):
         from sarship.pipeline.scene import open_scene
@@ -328,15 +395,7 @@ class TestIW1:
     def test_burst_seams_at_the_overlap_midpoints(self, iw1):
         from sarship.pipeline.scene import open_scene
 
-        bursts = open_scene(iw1[0]).attrs["bursts"]
-        a = _annotation(SLC, "iw1", "vv")
-        assert [b["burst"] for b in bursts] == list(range(9))
-        assert bursts[0]["rows"][0] == 0 and bursts[-1]["rows"][1] == _rows(a)
-        for prev, b in zip(bursts, bursts[1:]):
-            r = b["rows"][0]
-            assert prev["rows"][1] == r
-            assert _row_source(a, r - 1)[0] == b["burst"] - 1 and _row_source(a, r)[0] == b["burst"]
-            assert b["measurement_lines"][0] == b["burst"] * a["lpb"] + _row_source(a, r)[1]
+        _check_burst_seams(open_scene(iw1[0]).attrs["bursts"])
 
     def test_gcps_match_the_geolocation_grid(self, iw1):
         from sarship.pipeline.scene import open_scene
@@ -366,37 +425,16 @@ class TestIW1:
         """Each sample = DN / A exp(-j phi): A bilinear from the calibration XML at the
         measurement line, phi the TOPS deramping function from the annotation's orbit,
         Doppler centroid, FM rate and steering rate, all computed here."""
-        import tifffile
-
         from sarship.pipeline.scene import open_scene
 
         sc = open_scene(iw1[0])
-        for pol in ("vv", "vh"):
-            a = _annotation(SLC, "iw1", pol)
-            with tifffile.TiffFile(next((SLC / "measurement").glob(f"*-iw1-slc-{pol}-*.tiff"))) as t:
-                page = t.pages[0]  # the sample's constant, from the first strip (not the 2.3 GB band)
-                t.filehandle.seek(page.dataoffsets[0])
-                dn = complex(page.decode(t.filehandle.read(page.databytecounts[0]), 0)[0].ravel()[0])
-            assert dn == {"vv": 2, "vh": 1}[pol]
-            v = sc.array(pol)
-            for r, c in [(0, 600), (700, 10000), (1402, 20900), (1403, 3000), (6000, 15000), (12198, 20000),
-                         (12198, 600)]:
-                want = _expected(a, dn, r, c)
-                got = complex(v[r, c])
-                assert abs(got - want) <= 2e-5 * abs(want), (pol, r, c, got, want)
+        _check_samples(lambda pol, r, c0, c1: np.asarray(sc.array(pol)[r, c0:c1]))
 
     def test_invalid_burst_edges_are_absent(self, iw1):
         from sarship.pipeline.scene import open_scene
 
         v = open_scene(iw1[0]).array("vv")
-        a = _annotation(SLC, "iw1", "vv")
-        for r in (0, 1402, 1403, 5000, 12198):
-            b, line = _row_source(a, r)
-            fv, lv = a["bursts"][b][1][line], a["bursts"][b][2][line]
-            assert fv >= 0
-            row = v[r, :]
-            assert np.isnan(row[:fv]).all() and np.isnan(row[lv + 1:]).all()
-            assert np.isfinite(row[fv:lv + 1]).all()
+        _check_invalid_edges(lambda r: np.asarray(v[r, :]))
 
     def test_peak_memory_bounded(self, iw1):
         from sarship.pipeline.scene import open_scene
@@ -533,6 +571,40 @@ def test_a_safe_zip_is_an_inbox_pass(tmp_path):
     assert {p.name for p in list_passes(tmp_path)} == {"S1B_IW_GRDH_X.zip", "S1B.ZIP"}
 
 
+def _inbox_server(tmp_path):
+    import json
+
+    from svc import Server, free_port
+
+    data, inbox = tmp_path / "data", tmp_path / "inbox"
+    data.mkdir()
+    inbox.mkdir()
+    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.5",
+                 SARSHIP_INBOX_SETTLE_S="1",
+                 SARSHIP_MAX_RATIO="1e5").start()  # the constant-pixel samples: ~53000:1 zipped
+    return srv, data, inbox
+
+
+@needs_slc
+def test_inbox_quarantines_a_multi_swath_slc_zip(tmp_path):
+    """A real ``sarship serve`` with an inbox (no detectors): the SLC zip, whose sub-swath the
+    inbox cannot choose, is quarantined with the one-line reason (the GRD zip ingested in full
+    beside it: test_inbox_ingests_a_grd_zip_and_quarantines_a_multi_swath_slc_zip, slow)."""
+    pytest.importorskip("xarray_sentinel")
+    from svc import wait_pass
+
+    slc = _zip(SLC, tmp_path / (SLC.stem + ".zip"))
+    srv, data, inbox = _inbox_server(tmp_path)
+    try:
+        slc.rename(inbox / slc.name)
+        q = wait_pass(srv.url, slc.name, ("quarantined", "failed", "ingested", "submitted"), timeout=120)
+        assert q["status"] == "quarantined" and "IW1, IW2" in q["reason"] and "--swath" in q["reason"], q
+        assert (data / "quarantine" / slc.name).is_file() and not (inbox / slc.name).exists()
+    finally:
+        srv.stop()
+
+
+@pytest.mark.slow  # the full-size GRD (16685 x 25788) through the service's capped child
 @pytest.mark.skipif(SLC is None or GRD is None, reason=f"Sentinel-1 SAFE samples not found at {SAFE_DIR}")
 def test_inbox_ingests_a_grd_zip_and_quarantines_a_multi_swath_slc_zip(tmp_path):
     """A real ``sarship serve`` with an inbox (no detectors): the GRD zip becomes the scene
@@ -540,20 +612,14 @@ def test_inbox_ingests_a_grd_zip_and_quarantines_a_multi_swath_slc_zip(tmp_path)
     zip, whose sub-swath the inbox cannot choose, is quarantined with the one-line reason."""
     pytest.importorskip("xarray_sentinel")
     httpx = pytest.importorskip("httpx")
-    import json
 
-    from svc import Server, free_port, wait_job, wait_pass
+    from svc import wait_job, wait_pass
 
     from sarship.pipeline.scene import open_scene
 
-    data, inbox = tmp_path / "data", tmp_path / "inbox"
-    data.mkdir()
-    inbox.mkdir()
     grd = _zip(GRD, tmp_path / (GRD.stem + ".zip"))
     slc = _zip(SLC, tmp_path / (SLC.stem + ".zip"))
-    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.5",
-                 SARSHIP_INBOX_SETTLE_S="1",
-                 SARSHIP_MAX_RATIO="1e5").start()  # the constant-pixel samples: ~53000:1 zipped
+    srv, data, inbox = _inbox_server(tmp_path)
     try:
         grd.rename(inbox / grd.name)
         slc.rename(inbox / slc.name)
