@@ -20,11 +20,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "bench" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    """A bench/ script as a module, under a name of its own (``datasets`` is also a PyPI package)."""
+    key = f"sarship_bench_{name}"
+    if key not in sys.modules:
+        spec = importlib.util.spec_from_file_location(key, REPO / "bench" / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[key] = mod  # dataclasses need the module registered while it executes
+        spec.loader.exec_module(mod)
+    return sys.modules[key]
 
 
 ds_mod = _load("datasets")
