@@ -185,6 +185,8 @@ DATASETS: dict[str, Dataset] = {
                   "(Official-SSDD-OPEN.rar)",
                   "https://pan.baidu.com/s/1Lpg28ZvMSgNXq00abHMZ5Q (password 2021)"),
         layout=ssdd_official_layout,
+        # 928 / 232 follow from the division rule over ids 1..1160; 46 / 186 inshore / offshore
+        # as a third-party copy of the release describes it (not checked against the paper here).
         counts={"train": 928, "test": 232, "test_inshore": 46, "test_offshore": 186},
         total_images=1160,
         rules=ssdd_rules,
