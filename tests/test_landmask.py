@@ -449,3 +449,28 @@ def test_polarimetric_land_is_absent(client, tmp_path, detector, settings):
     ref = write_scene(tmp_path / "qn.zarr", arrays, tile=64, kind="quadpol")
     run_detection(ref, detector, settings, out_dir=tmp_path / "n", client=client, progress=False, tile=64)
     assert np.array_equal(mask(tmp_path / "t"), mask(tmp_path / "n"))
+
+
+# ---------------------------------------------------------------------------------------------
+# the shared real chips (skipped where ../shared/data/real is absent)
+
+REAL_GRD = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "opensarship"
+
+
+@pytest.mark.skipif(not REAL_GRD.is_dir(), reason=f"real SAR data not found at {REAL_GRD.parent}")
+def test_opensarship_centre_ships_stay_sea():
+    """Issue 31's target on the shared OpenSARShip GRD chips (25-125 px, each centred on one
+    AIS-matched ship): at the detectors' texture defaults no chip's centre pixel is land in VH,
+    the band the detectors read by default (a ship lost to the mask is lost to every detector). bench/realdata_landmask.py reports
+    the same for the candidate rules of issue 31."""
+    import glob
+
+    import tifffile
+
+    files = sorted(glob.glob(str(REAL_GRD / "S1A_IW_GRDH_*" / "Patch" / "*.tif")))
+    assert len(files) >= 30, len(files)
+    tc = lm.TextureConfig(open_px=51)  # the detectors' defaults
+    for f in files:
+        I = np.asarray(tifffile.imread(f), np.float64)[..., 0] ** 2  # bands: amplitude [VH, VV]
+        L = whole_land(I, tc, whole_decision(I, tc))
+        assert not L[I.shape[0] // 2, I.shape[1] // 2], f
