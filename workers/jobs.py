@@ -269,7 +269,7 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
     if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
         warnings.append("min_length_m/max_length_m ignored: the scene's pixel spacing is unknown")
     if spec.for_scene is not None:  # settings for the scene's shape; a scene too small is refused here
-        params, notes = spec.for_scene(params, scene.shape)
+        params, notes = spec.for_scene(params, scene.shape, spacing)
         warnings.extend(notes)
     halo = spec.halo(params)
     mr = merge_radius(params.merge_px)

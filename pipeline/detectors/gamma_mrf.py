@@ -198,7 +198,7 @@ def sample_plan(shape, p: GammaMRFParams) -> tuple[int, Optional[str]]:
                f"{p.sample_stride}; wanted {want})")
 
 
-def for_scene(p: GammaMRFParams, shape) -> tuple[GammaMRFParams, list[str]]:
+def for_scene(p: GammaMRFParams, shape, spacing=None) -> tuple[GammaMRFParams, list[str]]:
     """``DetectorSpec.for_scene``: the parameters with :func:`sample_plan`'s stride, and its warning."""
     s, note = sample_plan(shape, p)
     if note is None:
