@@ -463,3 +463,18 @@ def test_real_opensarship_small_chips(tmp_path, client):
         run = run_detection(sc.path, "gamma_mrf", {}, out_dir=tmp_path / prod.name[17:32], client=client,
                             progress=False)
         assert run["parameters"]["sample_stride"] < 8 and run["prepared"]["sample_size"] >= 40
+
+
+def test_service_submission_refuses_too_small_scene(tmp_path):
+    """The service's submission check (a 400 before a job is queued) runs the same rule."""
+    from sarship.service.app import check_scene_input
+    from sarship.workers.request import JobRequest
+
+    rng = np.random.default_rng(0)
+    scene = write_scene(tmp_path / "s.zarr", {"intensity": rng.gamma(2.0, 0.5, (6, 6)).astype(np.float32)},
+                        tile=64, looks=2.0)
+    with pytest.raises(InputError, match="at least 40 pixels"):
+        check_scene_input(scene, JobRequest.from_inputs("gamma_mrf", {"scene": str(scene)}))
+    ok = write_scene(tmp_path / "t.zarr", {"intensity": rng.gamma(2.0, 0.5, (24, 24)).astype(np.float32)},
+                     tile=64, looks=2.0)
+    check_scene_input(ok, JobRequest.from_inputs("gamma_mrf", {"scene": str(ok)}))
