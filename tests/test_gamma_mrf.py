@@ -381,7 +381,7 @@ REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 def test_sample_plan_on_small_scenes():
     """The EM sample's stride is lowered where the chip is small (at least sample_min pixels, or
     10 a class with a given stride); a scene under 10 x classes pixels is refused, naming the minimum."""
-    p = SPEC.params(looks=2.0)
+    p = SPEC.params(looks=2.0, sample_min=400)
     assert gm.sample_plan((800, 800), p) == (8, None)  # 10 000 pixels at stride 8: kept
     assert gm.sample_plan((24, 24), p)[0] == 1  # 9 at stride 8, 144 at 2: all 576 at 1
     s, note = gm.sample_plan((40, 40), p)
@@ -396,6 +396,9 @@ def test_sample_plan_on_small_scenes():
             gm.sample_plan(shape, p)
     q, notes = gm.for_scene(p, (33, 33))
     assert q.sample_stride == 1 and len(notes) == 1 and q.beta == p.beta
+    d = SPEC.params(looks=2.0)  # the default sample_min
+    assert gm.sample_plan((800, 800), d) == (8, None)  # HRSID-sized chips keep stride 8
+    assert gm.grid_count((125, 125), gm.sample_plan((125, 125), d)[0]) >= min(d.sample_min, 125 * 125)
 
 
 def test_small_chips_run_on_cluster(tmp_path, client):
@@ -408,7 +411,8 @@ def test_small_chips_run_on_cluster(tmp_path, client):
         scene = write_scene(tmp_path / f"s{side}.zarr", {"intensity": x}, tile=64, looks=2.0)
         run = run_detection(scene, "gamma_mrf", {}, out_dir=tmp_path / f"o{side}", client=client, progress=False)
         stride = run["parameters"]["sample_stride"]
-        assert stride == {24: 1, 40: 2}[side] and run["prepared"]["sample_stride"] == stride
+        assert stride == gm.sample_plan((side, side), SPEC.params(looks=2.0))[0] < 8
+        assert run["prepared"]["sample_stride"] == stride
         assert any(f"sample_stride 8 lowered to {stride}" in w for w in run["warnings"])
         assert run["detections"] == 1
 
@@ -421,8 +425,8 @@ def test_land_short_sample_is_sampled_again(tmp_path, client):
     x[10:20, 10:20] = rng.gamma(2.0, 0.5, (10, 10))
     x[14:16, 14:17] = 80.0
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=2.0)
-    run = run_detection(scene, "gamma_mrf", {"min_area_px": "1"}, out_dir=tmp_path / "o", client=client,
-                        progress=False)
+    run = run_detection(scene, "gamma_mrf", {"min_area_px": "1", "sample_min": "400"}, out_dir=tmp_path / "o",
+                        client=client, progress=False)
     assert run["parameters"]["sample_stride"] == 2 and run["prepared"]["sample_stride"] == 1
     assert run["prepared"]["sample_size"] == 100
     assert any("sampled again at stride 1" in w for w in run["warnings"])

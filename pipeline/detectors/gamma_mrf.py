@@ -45,7 +45,8 @@ Small scenes (:func:`sample_plan`, before any work; :func:`reduce`, after the la
 needs ``SAMPLES_PER_CLASS`` (10) sampled pixels with data a class. A scene of fewer pixels than
 ``10 x classes`` (40 by default: a 6 x 6 chip) is refused (:class:`InputError`, exit 2, naming
 the minimum). Otherwise, where the grid at ``sample_stride`` holds fewer than ``sample_min``
-pixels (default 400; with ``sample_stride`` given, fewer than ``10 x classes``), the stride is
+pixels (default 1600, chosen on half A of the real chips; with ``sample_stride`` given, fewer
+than ``10 x classes``), the stride is
 lowered to the largest that holds that many (1 at the least; all of a scene smaller than
 ``sample_min``), recorded in ``run.json`` ``parameters.sample_stride`` and ``warnings``. When
 absent pixels (land, no-data) leave the sample short of ``10 x classes``, pass 0 runs again at
@@ -123,11 +124,11 @@ class GammaMRFParams(with_defaults(DetectorParams, "GammaMRFDefaults", pfa=1e-3,
                     "classes above are ship classes (at least the brightest, the paper's man-made class)")
     sample_stride: int = Field(8, ge=1, le=256, description="EM sample: pixels with row, col % stride == 0 (lowered "
                                                             "on a small scene: see sample_min)")
-    sample_min: int = Field(400, ge=1, le=1_000_000,
+    sample_min: int = Field(1600, ge=1, le=1_000_000,
                             description="EM sample size wanted: where the grid at the default sample_stride holds "
                                         "fewer pixels (a small chip), the stride is lowered to the largest that "
                                         "holds this many (1 at the least); a given sample_stride is lowered only "
-                                        "below 10 x classes")
+                                        "below 10 x classes (1600: chosen on half A of the real chips)")
     em_max_iter: int = Field(300, ge=1, le=10000, description="EM iterations at most")
     nodata: Optional[float] = Field(None, description="value marking absent pixels besides NaN")
 
