@@ -473,8 +473,7 @@ def reduce(parts: list[dict], p: GammaMRFParams, prep: dict) -> dict:
                 half = stride // 2
                 note = (f"gamma_mrf: {y.size} sampled pixels with data at sample_stride {stride} (fewer than "
                         f"{need}): sampled again at stride {half}")
-                return {"passes": npass, "sample_stride": half, ANOTHER_PASS: True,
-                        "sample_notes": [*prep.get("sample_notes", []), note], "warnings": [note]}
+                return {"passes": npass, "sample_stride": half, ANOTHER_PASS: True, "warnings": [note]}
             raise InputError(f"gamma_mrf: {y.size} pixels with data (after the land mask and nodata) are too few "
                              f"for {p.classes} classes: at least {need} needed ({SAMPLES_PER_CLASS} a class)")
         mix = fit_gamma_mixture(y, prep["looks"], p.classes, max_iter=p.em_max_iter)
