@@ -135,6 +135,8 @@ def check_scene_input(path, request: JobRequest) -> None:
     except Exception:
         return
     detector_source(request.spec, scene, request.channel)
+    if request.spec.for_scene is not None:  # a scene too small for the method (gamma_mrf): a 400
+        request.spec.for_scene(request.detector_params(), scene.shape, scene.ground_spacing_m)
 
 
 def request_scene(body: dict) -> str:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from fractions import Fraction
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -370,3 +371,114 @@ def test_ship_classes():
     assert gm.ship_from([0.5, 0.2, 0.2, 0.1], [1.0, 2.0, 3.0, 9.0], 0.05) == 3
     assert gm.ship_from([0.25] * 4, [2.0] * 4, 0.05) == 4  # a constant scene: no ship class
     assert gm.ship_from([0.9, 0.1], [1.0, 5.0], 0.5) == 1
+
+
+# ---------------------------------------------------------------------------- small chips
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+
+
+def test_sample_plan_on_small_scenes():
+    """The EM sample's stride is lowered where the chip is small (at least sample_min pixels, or
+    10 a class with a given stride); a scene under 10 x classes pixels is refused, naming the minimum."""
+    p = SPEC.params(looks=2.0, sample_min=400)
+    assert gm.sample_plan((800, 800), p) == (8, None)  # 10 000 pixels at stride 8: kept
+    assert gm.sample_plan((24, 24), p)[0] == 1  # 9 at stride 8, 144 at 2: all 576 at 1
+    s, note = gm.sample_plan((40, 40), p)
+    assert s == 2 and gm.grid_count((40, 40), 2) == 400 and "lowered to 2" in note
+    assert gm.sample_plan((125, 125), p)[0] == 6  # 21^2 = 441 >= 400 > 18^2
+    given = SPEC.params(looks=2.0, sample_stride=8)  # given: lowered only below 10 a class
+    assert gm.sample_plan((60, 60), given) == (8, None)  # 64 sampled >= 40
+    assert gm.sample_plan((33, 33), given)[0] == 5  # 7^2 = 49 >= 40 > 6^2
+    assert gm.sample_plan((7, 7), p)[0] == 1
+    for shape in ((6, 6), (1, 39), (0, 100)):
+        with pytest.raises(InputError, match=r"at least 40 pixels"):
+            gm.sample_plan(shape, p)
+    q, notes = gm.for_scene(p, (33, 33))
+    assert q.sample_stride == 1 and len(notes) == 1 and q.beta == p.beta
+    d = SPEC.params(looks=2.0)  # the default sample_min
+    assert gm.sample_plan((800, 800), d) == (8, None)  # HRSID-sized chips keep stride 8
+    assert gm.grid_count((125, 125), gm.sample_plan((125, 125), d)[0]) >= min(d.sample_min, 125 * 125)
+
+
+def test_small_chips_run_on_cluster(tmp_path, client):
+    """24 x 24 and 40 x 40 chips (the EM sample at stride 8: 9 and 25 pixels, fewer than the 40 that
+    4 classes need: an internal error before) run, find their ship, and say what was chosen."""
+    for side in (24, 40):
+        rng = np.random.default_rng(side)
+        x = rng.gamma(2.0, 0.5, (side, side)).astype(np.float32)
+        x[side // 2 - 2:side // 2 + 2, side // 2 - 3:side // 2 + 3] = 60.0  # a 4 x 6 ship
+        scene = write_scene(tmp_path / f"s{side}.zarr", {"intensity": x}, tile=64, looks=2.0)
+        run = run_detection(scene, "gamma_mrf", {}, out_dir=tmp_path / f"o{side}", client=client, progress=False)
+        stride = run["parameters"]["sample_stride"]
+        assert stride == gm.sample_plan((side, side), SPEC.params(looks=2.0))[0] < 8
+        assert run["prepared"]["sample_stride"] == stride
+        assert any(f"sample_stride 8 lowered to {stride}" in w for w in run["warnings"])
+        assert run["detections"] == 1
+
+
+def test_land_short_sample_is_sampled_again(tmp_path, client):
+    """Absent pixels (here no-data; land alike) leave the stride-2 sample of a 40 x 40 chip 25
+    pixels: pass 0 runs again at stride 1 (a warning); with no pixel left the job is refused."""
+    rng = np.random.default_rng(1)
+    x = np.full((40, 40), np.nan, np.float32)
+    x[10:20, 10:20] = rng.gamma(2.0, 0.5, (10, 10))
+    x[14:16, 14:17] = 80.0
+    scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=2.0)
+    run = run_detection(scene, "gamma_mrf", {"min_area_px": "1", "sample_min": "400"}, out_dir=tmp_path / "o",
+                        client=client, progress=False)
+    assert run["parameters"]["sample_stride"] == 2 and run["prepared"]["sample_stride"] == 1
+    assert run["prepared"]["sample_size"] == 100
+    assert any("sampled again at stride 1" in w for w in run["warnings"])
+    assert run["detections"] == 1
+    x[:] = np.nan
+    x[0, :30] = 1.0  # 30 pixels with data: fewer than 40 even at stride 1
+    scene = write_scene(tmp_path / "t.zarr", {"intensity": x}, tile=64, looks=2.0)
+    with pytest.raises(InputError, match="30 pixels with data .* at least 40"):
+        run_detection(scene, "gamma_mrf", {}, out_dir=tmp_path / "o2", client=client, progress=False)
+    assert not (tmp_path / "o2").exists()
+
+
+def test_too_small_scene_exits_2_before_work(tmp_path):
+    """Through the CLI: a 6 x 6 scene is refused with exit 2 and one line naming the minimum,
+    before any cluster starts or output is written."""
+    from tests.test_cli import assert_clean_error, sarship
+
+    rng = np.random.default_rng(0)
+    scene = write_scene(tmp_path / "s.zarr", {"intensity": rng.gamma(2.0, 0.5, (6, 6)).astype(np.float32)},
+                        tile=64, looks=2.0)
+    res = sarship("detect", scene, "--detector", "gamma_mrf", "--out", tmp_path / "o", "--scheduler", "local",
+                  timeout=60)
+    assert_clean_error(res, "gamma_mrf", "6 x 6", "at least 40 pixels")
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason=f"real SAR data not found at {REAL} (see shared/data/README.md)")
+def test_real_opensarship_small_chips(tmp_path, client):
+    """The smallest OpenSARShip GRD chip of each product (25-33 px, where gamma_mrf crashed)
+    through ingest and detect at the defaults (texture land mask): a run, its stride recorded."""
+    import tifffile
+
+    from sarship.pipeline.readers import ingest
+
+    for prod in sorted(REAL.glob("opensarship/S1A_IW_GRDH_*")):
+        chips = sorted(prod.glob("Patch/*.tif"), key=lambda f: (tifffile.TiffFile(f).series[0].shape[0], f.name))
+        sc = ingest([chips[0]], tmp_path / f"{prod.name[17:32]}.zarr", channels=["vh", "vv"])
+        run = run_detection(sc.path, "gamma_mrf", {}, out_dir=tmp_path / prod.name[17:32], client=client,
+                            progress=False)
+        assert run["parameters"]["sample_stride"] < 8 and run["prepared"]["sample_size"] >= 40
+
+
+def test_service_submission_refuses_too_small_scene(tmp_path):
+    """The service's submission check (a 400 before a job is queued) runs the same rule."""
+    from sarship.service.app import check_scene_input
+    from sarship.workers.request import JobRequest
+
+    rng = np.random.default_rng(0)
+    scene = write_scene(tmp_path / "s.zarr", {"intensity": rng.gamma(2.0, 0.5, (6, 6)).astype(np.float32)},
+                        tile=64, looks=2.0)
+    with pytest.raises(InputError, match="at least 40 pixels"):
+        check_scene_input(scene, JobRequest.from_inputs("gamma_mrf", {"scene": str(scene)}))
+    ok = write_scene(tmp_path / "t.zarr", {"intensity": rng.gamma(2.0, 0.5, (24, 24)).astype(np.float32)},
+                     tile=64, looks=2.0)
+    check_scene_input(ok, JobRequest.from_inputs("gamma_mrf", {"scene": str(ok)}))

@@ -75,3 +75,23 @@ def test_detect_and_scene_pass_twin(cp, kw):
     np.testing.assert_array_equal(a["acc"], b["acc"])
     np.testing.assert_array_equal(a["counts"], b["counts"])
     assert a["changed"] == b["changed"]
+
+
+@pytest.mark.parametrize("side", [24, 40])
+def test_small_chip_twin(cp, side):
+    """On a small chip both paths take the stride of the shared rule (gamma_mrf.for_scene) and the
+    device's mask and statistic equal the CPU's; the EM sample (pass 0) is the same on either."""
+    rng = np.random.default_rng(side)
+    x = rng.gamma(2.0, 0.5, (side, side)).astype(np.float32)
+    x[side // 2 - 2:side // 2 + 2, side // 2 - 3:side // 2 + 3] = 60.0
+    p, notes = gm.for_scene(SPEC.params(looks=2.0), x.shape)
+    assert p.sample_stride < 8 and notes
+    prep, P, h, _ = scene_values(x, p)
+    a = SPEC.scene_pass(P, h, (-h, -h), p, SPEC.prepare(p))
+    b = SPEC.scene_pass(cp.asarray(P), h, (-h, -h), p, SPEC.prepare(p))
+    np.testing.assert_array_equal(a["y"], b["y"])
+    mc, sc = SPEC.detect(P, h, (-h, -h), p, prep)
+    mg, sg = SPEC.detect(cp.asarray(P), h, (-h, -h), p, prep)
+    np.testing.assert_array_equal(mg.get(), mc)
+    np.testing.assert_array_equal(sg.get(), sc)
+    assert mc[side // 2, side // 2]

@@ -4,7 +4,9 @@ parameters and absent pixels. docs/algorithms/superpixel_cfar.md gives the measu
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -499,3 +501,139 @@ def test_absent_pixels_never_detected_nor_labelled():
     y = np.full((120, 120), np.nan)
     (m2, _), prep2 = whole(y, p)
     assert prep2["superpixels"] == 0 and not m2.any()
+
+
+# --------------------------------------------------------------------------- issue 31: small ships, land with ships
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+
+
+def small_ships_scene(seed: int = 0, scr_db: float = 15.0, shape=(192, 192), looks: float = 4.0):
+    """Gamma sea (L looks, mean 1) with 9 ships of 2-6 pixels (Sentinel-1 GRD: 10 m pixels, ships
+    of 20-60 m) at ``scr_db`` above it; returns (intensity, truth labels 1..9)."""
+    rng = np.random.default_rng(seed)
+    x = rng.gamma(looks, 1.0 / looks, shape).astype(np.float32)
+    truth = np.zeros(shape, np.int32)
+    sizes = [(1, 2), (2, 2), (2, 1), (1, 3), (2, 2), (2, 3), (1, 2), (2, 2), (1, 4)]
+    for k, ((r, c), (h, w)) in enumerate(zip([(a, b) for a in (30, 90, 150) for b in (30, 90, 150)], sizes)):
+        r, c = r + k % 5, c + 2 * (k % 4)
+        x[r:r + h, c:c + w] = 10 ** (scr_db / 10)
+        truth[r:r + h, c:c + w] = k + 1
+    return x, truth
+
+
+def test_small_ships_are_found():
+    """Ships of 2-6 pixels at 15 dB on L = 4 sea: the paper's decision finds 1 of 9 (a ship raises
+    its ~150-pixel superpixel's mean by 1-2 dB: never a potential target); with the point rule
+    (point_pfa, default) every one, and no pixel of the sea."""
+    x, truth = small_ships_scene()
+    found = {}
+    for pp in (None, D.POINT_PFA):
+        p = D.SuperpixelCFARParams(looks=4.0, point_pfa=pp)
+        (mask, stat), _ = whole(x, p)
+        found[pp] = len(set(np.unique(truth[mask])) - {0})
+        if pp is not None:
+            assert not mask[truth == 0].any() or (mask & (truth == 0)).sum() <= 40  # the hit superpixel's sea
+            assert np.all(stat[mask] > p.fraction)
+    assert found[None] <= 2 and found[D.POINT_PFA] == 9, found
+
+
+def test_point_rule_false_alarms_on_sea():
+    """Point rule on sea alone (L = 4, 0.26 Mpx): its pixels above the point threshold of their
+    superpixel's mean number about M x point_pfa (the mean is estimated from ~144 pixels, which
+    widens the tail a little: at most 5 x M x point_pfa + 5); 1e-3 gives hundreds more."""
+    rng = np.random.default_rng(3)
+    x = rng.gamma(4.0, 0.25, (512, 512))
+    counts = {}
+    for pp in (1e-6, 1e-3):
+        p = D.SuperpixelCFARParams(looks=4.0, point_pfa=pp)
+        (mask, _), prep = whole(x, p)
+        assert prep["target_count"] == 0
+        counts[pp] = int(mask.sum())
+    assert counts[1e-6] <= 5 * x.size * 1e-6 + 5 and counts[1e-3] > 50 * max(counts[1e-6], 1), counts
+
+
+def test_small_ships_tile_bit_for_bit():
+    x, _ = small_ships_scene(1)
+    p = D.SuperpixelCFARParams(**{**SMALL, "looks": 4.0})
+    prep = D.scene_prep(x, p)
+    h = D.halo(p)
+    m0, s0 = D.detect(mirror_pad(x, h), h, (-h, -h), p, prep)
+    assert m0.sum() >= 15
+    m, s, _ = _tiled(x, p, prep, 41)
+    np.testing.assert_array_equal(m, m0)
+    np.testing.assert_array_equal(s, s0)
+
+
+def land_with_ships_scene(seed: int = 0):
+    """Sea (L = 4) with a bright textured land block (80 x 80, +12 dB) and three ships moored
+    against it, and one ship in open sea; returns (intensity, truth labels: 1-3 moored, 4 open)."""
+    rng = np.random.default_rng(seed)
+    x = rng.gamma(4.0, 0.25, (224, 224)).astype(np.float32)
+    x[10:90, 10:90] *= 16.0 * rng.gamma(2.0, 0.5, (80, 80)).astype(np.float32)
+    truth = np.zeros(x.shape, np.int32)
+    for k, (r, c) in enumerate([(15, 90), (42, 90), (70, 90)], 1):  # moored: their bow on the quay
+        x[r:r + 8, c:c + 30] = 40.0
+        truth[r:r + 8, c:c + 30] = k
+    x[170:178, 150:180] = 40.0
+    truth[170:178, 150:180] = 4
+    return x, truth
+
+
+def test_land_with_moored_ships_is_not_one_ship(tmp_path, client):
+    """Where the land mask misses land (land_mask none), the superpixel decision marks the land's
+    edge superpixels and the ships against it: one connected piece of land and three ships in the
+    mask (10 683 px with 3 ships on a harbour chip, issue 31). The largest ship (max_ship_px where
+    the spacing is unknown) drops it from the detections; the ship in open sea stays."""
+    import zarr
+
+    from sarship.workers.jobs import run_detection
+    from tests.conftest import write_scene
+
+    x, truth = land_with_ships_scene()
+    scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=512, looks=4.0)
+    run = run_detection(scene, "superpixel_cfar", {"land_mask": "none"}, out_dir=tmp_path / "o", client=client,
+                        progress=False)
+    mask = zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "mask"), mode="r")[:] > 0
+    lab, _ = ndimage.label(mask, structure=np.ones((3, 3)))
+    merged = [k for k in range(1, lab.max() + 1) if len(set(np.unique(truth[lab == k])) - {0}) >= 3]
+    assert merged and (lab == merged[0]).sum() > D.MAX_SHIP_PX  # land and the moored ships: one piece
+    assert run["parameters"]["max_area_px"] == D.MAX_SHIP_PX
+    feats = json.loads((tmp_path / "o" / "detections.geojson").read_text())["features"]
+    ships = []
+    for f in feats:
+        r0, c0, r1, c1 = f["properties"]["bbox_px"]
+        ships.append(set(np.unique(truth[r0:r1, c0:c1])) - {0})
+    assert all(len(s) <= 1 for s in ships) and {4} in ships
+    assert all(f["properties"]["area_px"] <= D.MAX_SHIP_PX for f in feats)
+
+
+def test_largest_ship_rule():
+    p = D.SuperpixelCFARParams()
+    assert D.largest_ship_px(p, None) == D.MAX_SHIP_PX
+    assert D.largest_ship_px(p, (10.0, 10.0)) == math.ceil(p.max_ship_m2 / 100.0)
+    assert D.largest_ship_px(p, (1.0, 2.0)) == math.ceil(p.max_ship_m2 / 2.0)
+    assert D.largest_ship_px(D.SuperpixelCFARParams(max_area_px=77), (10.0, 10.0)) == 77
+    assert D.largest_ship_px(D.SuperpixelCFARParams(max_ship_px=None), None) is None
+    q, notes = D.for_scene(p, (100, 100), (10.0, 10.0))
+    assert q.max_area_px == math.ceil(p.max_ship_m2 / 100.0) and notes == []
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason=f"real SAR data not found at {REAL} (see shared/data/README.md)")
+def test_real_harbour_chip_land_not_merged_with_ships(tmp_path, client):
+    """SSDD harbour chip Gao_ship_hh_02017110638010408 (13 moored ships) without the land mask:
+    without a largest ship, land and ships come out as detections of 7 000-11 000 px; at the
+    defaults no kept detection is larger than max_ship_px."""
+    from sarship.pipeline.readers import ingest
+    from sarship.workers.jobs import run_detection
+
+    chip = REAL / "sar-ship-dataset" / "Gao_ship_hh_02017110638010408.jpg"
+    sc = ingest([chip], tmp_path / "g.zarr", tile=256)
+    areas = {}
+    for name, extra in (("off", {"max_ship_px": "none"}), ("default", {})):
+        run_detection(sc.path, "superpixel_cfar", {"land_mask": "none", **extra}, out_dir=tmp_path / name,
+                      client=client, progress=False)
+        feats = json.loads((tmp_path / name / "detections.geojson").read_text())["features"]
+        areas[name] = sorted(f["properties"]["area_px"] for f in feats)
+    assert areas["off"][-1] > 5000, areas
+    assert areas["default"] and areas["default"][-1] <= D.MAX_SHIP_PX, areas

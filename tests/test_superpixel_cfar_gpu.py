@@ -170,3 +170,22 @@ def test_local_gpu_cluster_equals_cpu_run(tmp_path):
     fg = json.loads((tmp_path / "g" / "detections.geojson").read_text())["features"]
     fc = json.loads((tmp_path / "c" / "detections.geojson").read_text())["features"]
     assert len(fg) == len(fc) > 0
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_small_ships_point_rule_twin(cp, dtype):
+    """Issue 31's point rule (small ships in background superpixels) on the device path: the same
+    host arrays as the CPU's, so mask and statistic equal the CPU's bit for bit."""
+    from tests.test_superpixel_cfar import small_ships_scene
+
+    x, truth = small_ships_scene(2)
+    x = x.astype(dtype)
+    p = D.SuperpixelCFARParams(looks=4.0)
+    prep = D.scene_prep(x, p)
+    h = D.halo(p)
+    P = mirror_pad(x, h)
+    mc, sc = D.detect(P, h, (-h, -h), p, prep)
+    mg, sg = D.detect(cp.asarray(P), h, (-h, -h), p, prep)
+    np.testing.assert_array_equal(mg.get(), mc)
+    np.testing.assert_array_equal(sg.get(), sc)
+    assert len(set(np.unique(truth[mc])) - {0}) == 9

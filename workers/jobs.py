@@ -268,6 +268,9 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
                             "pixels need not be square; give it with sarship ingest --spacing AZ,RG)")
     if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
         warnings.append("min_length_m/max_length_m ignored: the scene's pixel spacing is unknown")
+    if spec.for_scene is not None:  # settings for the scene's shape; a scene too small is refused here
+        params, notes = spec.for_scene(params, scene.shape, spacing)
+        warnings.extend(notes)
     halo = spec.halo(params)
     mr = merge_radius(params.merge_px)
     H, W = scene.shape
@@ -329,6 +332,7 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
                     values = spec.reduce([s["stats"] for s in sorted(stats, key=lambda s: s["index"])],
                                          params, prep)
                     again = bool(values.pop("another_pass", False))
+                    warnings.extend(values.pop("warnings", []))  # e.g. gamma_mrf's EM sample made denser
                     scene_values.update(values)
                     prep = {**prep, **values}
                     jobs = [dataclasses.replace(j, prep=prep) for j in jobs]

@@ -362,6 +362,12 @@ class DetectorSpec:
     #: and ``geo``: the scene's pixel spacing in metres or None, its georeference attributes, to
     #: re-measure geometry), e.g. ``csk``'s complex statistics, RFI flag and ship segmentation.
     detection_properties: Optional[Callable[..., list]] = None
+    #: ``for_scene(params, shape, spacing) -> (params, warnings)``: settings chosen for the scene's
+    #: shape (rows, cols) and ground pixel spacing in metres (None: unknown) before any work (e.g.
+    #: ``gamma_mrf``'s EM sample on a small chip, ``superpixel_cfar``'s largest ship); raises
+    #: :class:`~sarship.pipeline.errors.InputError` when the scene is too small for the method.
+    #: The returned parameters are the run's (``run.json`` ``parameters``), the lines its warnings.
+    for_scene: Optional[Callable[..., tuple[Any, list[str]]]] = None
     #: ``halo_fn(params) -> int`` for detectors whose context is not ``background // 2``.
     halo_fn: Optional[Callable[[Any], int]] = None
     halo_rule: str = "background // 2"

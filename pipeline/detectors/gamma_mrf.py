@@ -41,6 +41,19 @@ sweeps known so far on every tile and returns the per-class exact sums of the co
 intensities (float32 values summed as integers per binary exponent: the same bits for any
 tiling) and label counts, from which ``reduce`` takes mu for the next sweep.
 
+Small scenes (:func:`sample_plan`, before any work; :func:`reduce`, after the land mask). EM
+needs ``SAMPLES_PER_CLASS`` (10) sampled pixels with data a class. A scene of fewer pixels than
+``10 x classes`` (40 by default: a 6 x 6 chip) is refused (:class:`InputError`, exit 2, naming
+the minimum). Otherwise, where the grid at ``sample_stride`` holds fewer than ``sample_min``
+pixels (default 1600, chosen on half A of the real chips; with ``sample_stride`` given, fewer
+than ``10 x classes``), the stride is
+lowered to the largest that holds that many (1 at the least; all of a scene smaller than
+``sample_min``), recorded in ``run.json`` ``parameters.sample_stride`` and ``warnings``. When
+absent pixels (land, no-data) leave the sample short of ``10 x classes``, pass 0 runs again at
+half the stride (``prepared.sample_stride``, a warning) down to 1; too few pixels with data at
+stride 1 is an :class:`InputError`. The rule is the detector's (:func:`for_scene`,
+:func:`reduce`): the GPU path reads the same parameters and prepared values.
+
 Absent pixels (NaN, +-inf, negative, or ``nodata``) are never ships, are left out of the
 mixture sample and of the class sums, carry no label and cast no vote: a present pixel's
 Potts term counts only its present neighbours (an absent neighbour adds 0 to every class's
@@ -58,14 +71,18 @@ from numba import njit
 from pydantic import Field, model_validator
 
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
+from sarship.pipeline.errors import InputError
 from sarship.pipeline.gamma_mixture import (MEAN_FLOOR, class_energy_terms, fit_gamma_mixture, mixture_isf)
 from sarship.pipeline.gpu import is_device_array
 
 #: Bins of the exact class sums: float32 binary exponents, offset so that every finite value fits.
 EXP_BINS = 300
 EXP_OFFSET = 180
-#: Scene passes at most: the EM pass and one a sweep (``sweeps`` <= 20: 21), with a margin.
-MAX_PASSES = 22
+#: EM sample pixels (with data) a class at least; a scene of fewer than this x ``classes`` pixels is refused.
+SAMPLES_PER_CLASS = 10
+#: Scene passes at most: the EM pass, its repeats at half the stride (``sample_stride`` <= 256:
+#: 8), and one a sweep (``sweeps`` <= 20), with a margin.
+MAX_PASSES = 31
 ANOTHER_PASS = "another_pass"
 
 
@@ -105,7 +122,13 @@ class GammaMRFParams(with_defaults(DetectorParams, "GammaMRFDefaults", pfa=1e-3,
         0.05, gt=0.0, lt=1.0,
         description="classes up to the brightest holding at least this fraction of the scene are clutter; the "
                     "classes above are ship classes (at least the brightest, the paper's man-made class)")
-    sample_stride: int = Field(8, ge=1, le=256, description="EM sample: pixels with row, col % stride == 0")
+    sample_stride: int = Field(8, ge=1, le=256, description="EM sample: pixels with row, col % stride == 0 (lowered "
+                                                            "on a small scene: see sample_min)")
+    sample_min: int = Field(1600, ge=1, le=1_000_000,
+                            description="EM sample size wanted: where the grid at the default sample_stride holds "
+                                        "fewer pixels (a small chip), the stride is lowered to the largest that "
+                                        "holds this many (1 at the least); a given sample_stride is lowered only "
+                                        "below 10 x classes (1600: chosen on half A of the real chips)")
     em_max_iter: int = Field(300, ge=1, le=10000, description="EM iterations at most")
     nodata: Optional[float] = Field(None, description="value marking absent pixels besides NaN")
 
@@ -126,6 +149,62 @@ def colours(p: GammaMRFParams) -> int:
 def halo(p: GammaMRFParams) -> int:
     """Every colour phase widens a label's dependence by one pixel: sweeps x colours."""
     return int(p.sweeps) * colours(p)
+
+
+def grid_count(shape, stride: int) -> int:
+    """Pixels of a ``shape`` scene on the global sample grid ``row % stride == 0 and col % stride == 0``."""
+    H, W = (int(v) for v in shape)
+    return -(-H // int(stride)) * -(-W // int(stride))
+
+
+def sample_plan(shape, p: GammaMRFParams) -> tuple[int, Optional[str]]:
+    """The EM sample's stride for a scene of ``shape`` (rows, cols), before any work.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The scene's rows and columns.
+    p : GammaMRFParams
+        The run's parameters (``classes``, ``sample_stride``, ``sample_min``).
+
+    Returns
+    -------
+    stride : int
+        ``sample_stride`` where its grid holds at least the wanted sample (``sample_min``, or
+        ``SAMPLES_PER_CLASS x classes`` when ``sample_stride`` was given), else the largest
+        stride below it whose grid does (1 at the least).
+    note : str or None
+        A one-line warning naming the change, None when the stride is kept.
+
+    Raises
+    ------
+    InputError
+        The scene holds fewer than ``SAMPLES_PER_CLASS x classes`` pixels (the minimum size).
+    """
+    H, W = (int(v) for v in shape)
+    need = SAMPLES_PER_CLASS * int(p.classes)
+    if H * W < need:
+        raise InputError(f"gamma_mrf: the scene is {H} x {W} = {H * W} pixels, too small for {p.classes} classes: "
+                         f"at least {need} pixels needed ({SAMPLES_PER_CLASS} a class, e.g. "
+                         f"{math.isqrt(need - 1) + 1} x {math.isqrt(need - 1) + 1})")
+    s = int(p.sample_stride)
+    want = need if "sample_stride" in p.model_fields_set else min(int(p.sample_min), H * W)
+    want = max(want, need)
+    while s > 1 and grid_count((H, W), s) < want:
+        s -= 1
+    if s == int(p.sample_stride):
+        return s, None
+    return s, (f"gamma_mrf: sample_stride {p.sample_stride} lowered to {s} on this {H} x {W} scene "
+               f"(EM sample {grid_count((H, W), s)} pixels, {grid_count((H, W), p.sample_stride)} at stride "
+               f"{p.sample_stride}; wanted {want})")
+
+
+def for_scene(p: GammaMRFParams, shape, spacing=None) -> tuple[GammaMRFParams, list[str]]:
+    """``DetectorSpec.for_scene``: the parameters with :func:`sample_plan`'s stride, and its warning."""
+    s, note = sample_plan(shape, p)
+    if note is None:
+        return p, []
+    return p.model_copy(update={"sample_stride": s}), [note]
 
 
 def prepare(p: GammaMRFParams) -> dict:
@@ -323,7 +402,7 @@ def scene_pass(block, halo_px, origin, p: GammaMRFParams, prep: dict) -> dict:
     if not prep.get("mixture"):
         core = _core(x, hp)
         r0, c0 = origin[0] + hp, origin[1] + hp
-        s = int(p.sample_stride)
+        s = int(prep.get("sample_stride", p.sample_stride))
         ri, ci = _grid(r0, core.shape[0], s), _grid(c0, core.shape[1], s)
         sub = core[np.ix_(ri, ci)]
         keep = present(sub, p.nodata)
@@ -387,16 +466,24 @@ def reduce(parts: list[dict], p: GammaMRFParams, prep: dict) -> dict:
         rc = np.concatenate([q["rc"] for q in parts])
         y = np.concatenate([q["y"] for q in parts])
         y = y[np.lexsort((rc[:, 1], rc[:, 0]))]
-        if y.size < 10 * p.classes:
-            raise ValueError(f"gamma_mrf: {y.size} sampled pixels (with data) are too few for {p.classes} "
-                             "classes; lower sample_stride")
+        need = SAMPLES_PER_CLASS * int(p.classes)
+        stride = int(prep.get("sample_stride", p.sample_stride))
+        if y.size < need:
+            if stride > 1:  # absent pixels (land, no-data) left the sample short: pass 0 again, denser
+                half = stride // 2
+                note = (f"gamma_mrf: {y.size} sampled pixels with data at sample_stride {stride} (fewer than "
+                        f"{need}): sampled again at stride {half}")
+                return {"passes": npass, "sample_stride": half, ANOTHER_PASS: True, "warnings": [note]}
+            raise InputError(f"gamma_mrf: {y.size} pixels with data (after the land mask and nodata) are too few "
+                             f"for {p.classes} classes: at least {need} needed ({SAMPLES_PER_CLASS} a class)")
         mix = fit_gamma_mixture(y, prep["looks"], p.classes, max_iter=p.em_max_iter)
         floor = MEAN_FLOOR * max(float(y.mean()), 1e-300)
         ks = ship_from(mix.weights, mix.means, p.clutter_weight)
         wc, mc = mix.weights[:ks], mix.means[:ks]
         q = mixture_isf(p.pfa, wc, mc, prep["looks"]) if p.scatter == "quantile" else 0.0
         qp = mixture_isf(p.peak_pfa, wc, mc, prep["looks"]) if p.peak_pfa is not None else None
-        out = {"mixture": mix.to_dict(), "sample_size": int(y.size), "mean_floor": floor, "ship_from": ks,
+        out = {"mixture": mix.to_dict(), "sample_size": int(y.size), "sample_stride": stride,
+               "mean_floor": floor, "ship_from": ks,
                "scatter_threshold": float(q), "peak_threshold": qp, "passes": npass}
         if p.reestimate:
             out.update({"sweep_means": [], ANOTHER_PASS: True})
@@ -468,6 +555,7 @@ SPEC = DetectorSpec(
     needs_looks=True,
     scene_pass=scene_pass,
     reduce=reduce,
+    for_scene=for_scene,
     halo_fn=halo,
     halo_rule="sweeps x colours (2 for the 4-neighbourhood, 4 for the 8-neighbourhood)",
     gpu=True,

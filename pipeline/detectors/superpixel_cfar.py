@@ -28,6 +28,14 @@ Equation numbers are the paper's; docs/algorithms/superpixel_cfar.md states ever
 7. Superpixel decision (section 3.4): a target superpixel whose fraction of detected present
    pixels exceeds ``fraction`` is target whole (``decision="pixel"``: eq 16's pixels; ``decision="boundaries"``: the superpixel boundaries
    as the mask, a debugging view for the mask quicklook).
+8. Additions (issue 31). **Small ships** (``point_pfa``): a ship of a few pixels raises its
+   superpixel's mean by a dB or two, so step 3 never tests it and step 7's fraction would drop
+   it; in a background superpixel the pixels above ``mean x point_level(point_pfa, L)`` (the
+   gamma law of the superpixel's mean, L looks) are detected too (:func:`point_targets`).
+   **Largest ship** (``max_ship_m2`` where the pixel spacing is known, ``max_ship_px`` where it
+   is not; :func:`for_scene` sets the shared ``max_area_px``): where land escapes the land mask
+   (harbours), step 7 marks its edge superpixels and every ship moored against it as one
+   connected detection; the size rule drops such a detection after the tiles are merged.
 
 Tiling. Every superpixel is a function of the pixels within a bounded distance of its anchor
 (``superpixels.context_px``) and extends at most ``superpixels.extent_px`` from it; clutter
@@ -48,14 +56,14 @@ device (:mod:`sarship.pipeline.gpu.superpixel_cfar`); masks equal the CPU's bit 
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, Optional
 
 import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 
 from sarship.pipeline import superpixels as spx
-from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, float_block, with_defaults
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, area_px, float_block, with_defaults
 from sarship.pipeline.gpu import is_device_array, to_host
 from sarship.pipeline.rayleigh_mixture import BIN_WIDTH, fit_binned, threshold_intensity
 
@@ -63,6 +71,12 @@ from sarship.pipeline.rayleigh_mixture import BIN_WIDTH, fit_binned, threshold_i
 HIST_LO = -40.0
 HIST_PER_DECADE = 128
 HIST_BINS = 80 * HIST_PER_DECADE
+#: ``max_ship_px``'s default: chosen on half A of the real chips (bench/REALDATA.md, "Issue 31").
+MAX_SHIP_PX = 5000
+#: ``max_ship_m2``'s default: chosen on half A of the real chips (bench/REALDATA.md, "Issue 31").
+MAX_SHIP_M2 = 300000.0
+#: ``point_pfa``'s default: chosen on half A of the real chips (bench/REALDATA.md, "Issue 31").
+POINT_PFA = 1e-7
 
 
 class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults", pfa=1e-3, merge_px=4,
@@ -109,6 +123,22 @@ class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults
     cov_window: int = Field(7, ge=3, le=31, description="CoV window side of eq 13 (odd, pixels)")
     fraction: float = Field(0.7, ge=0.0, lt=1.0, description="a target superpixel whose detected fraction "
                                                              "exceeds this is target whole (section 3.4)")
+    point_pfa: Optional[float] = Field(
+        POINT_PFA, ge=1e-15, lt=0.5,
+        description="small ships (a few pixels: they raise their superpixel's mean too little to make it a "
+                    "potential target): in a background superpixel, a pixel whose intensity exceeds the (1 - "
+                    "point_pfa) quantile of the gamma law (L looks) of the superpixel's mean is detected (chosen on "
+                    "half A of the real chips; none: off, the paper)")
+    max_ship_m2: Optional[float] = Field(
+        MAX_SHIP_M2, gt=0.0, le=1e9,
+        description="largest detection kept where the scene's pixel spacing is known, in m^2 (the superpixel "
+                    "decision marks whole superpixels, so a ship's detection is larger than its hull: chosen on "
+                    "half A of the real chips); a larger one is land, a quay or a structure with the ships it "
+                    "swallowed; sets max_area_px when that is not given (none: no limit)")
+    max_ship_px: Optional[int] = Field(
+        MAX_SHIP_PX, ge=1, le=10**9,
+        description="largest ship kept where the pixel spacing is unknown, in pixels (chosen on half A of the "
+                    "real chips, bench/REALDATA.md); sets max_area_px when that is not given (none: no limit)")
     decision: Literal["superpixel", "pixel", "boundaries"] = Field(
         "superpixel", description="superpixel: step 7's decision; pixel: eq 16's pixel mask; boundaries: the "
                                   "mask is the superpixel boundaries (to view the segmentation in the mask "
@@ -125,6 +155,28 @@ class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults
         if self.tl_clu > self.th_clu:
             raise ValueError(f"tl_clu ({self.tl_clu}) must not exceed th_clu ({self.th_clu})")
         return self
+
+
+def largest_ship_px(p: SuperpixelCFARParams, spacing) -> Optional[int]:
+    """The largest detection kept, in pixels: ``max_area_px`` when given; else ``max_ship_m2`` as
+    pixels (:func:`~sarship.pipeline.detectors.base.area_px`) where the ground ``spacing``
+    (azimuth, range metres) is known, ``max_ship_px`` where it is not (None: no limit)."""
+    if "max_area_px" in p.model_fields_set or p.max_area_px is not None:
+        return p.max_area_px
+    if spacing is not None:
+        return None if p.max_ship_m2 is None else area_px(p.max_ship_m2, spacing)
+    return p.max_ship_px
+
+
+def for_scene(p: SuperpixelCFARParams, shape, spacing=None) -> tuple[SuperpixelCFARParams, list[str]]:
+    """``DetectorSpec.for_scene``: ``max_area_px`` from :func:`largest_ship_px` (the shared size
+    rule then drops larger merged detections, whatever the tiling, on CPU and GPU alike)."""
+    cap = largest_ship_px(p, spacing)
+    if cap == p.max_area_px:
+        return p, []
+    if p.min_area_px is not None and cap < p.min_area_px:
+        cap = p.min_area_px
+    return p.model_copy(update={"max_area_px": int(cap)}), []
 
 
 def halo(p: SuperpixelCFARParams) -> int:
@@ -318,6 +370,36 @@ def _pixels(cands, decided, thr, somega, pix_ptr, pix, amp, zeta, use_contrast, 
         frac[t] = cnt / (pix_ptr[t + 1] - pix_ptr[t])
 
 
+def point_level(point_pfa: float, looks: float) -> float:
+    """The (1 - ``point_pfa``) quantile of a unit-mean gamma law of ``looks`` looks (speckle of
+    mean 1): a background superpixel's point threshold is its mean intensity times this."""
+    from scipy.special import gammainccinv
+
+    return float(gammainccinv(float(looks), float(point_pfa))) / float(looks)
+
+
+def point_targets(x: np.ndarray, ok: np.ndarray, sp: spx.Superpixels, bg: np.ndarray, p: SuperpixelCFARParams,
+                  looks: float) -> tuple[np.ndarray, np.ndarray]:
+    """Small ships (issue 31): ``(det, ratio)`` block arrays, ``det`` the present pixels of
+    background superpixels whose intensity exceeds ``mean x point_level(point_pfa, looks)`` of
+    their superpixel, ``ratio`` intensity / that threshold there (0 elsewhere). A ship of a few
+    pixels raises its ~144-pixel superpixel's mean by a dB or two: it is never a potential target
+    (step 3), and step 7's fraction would drop it anyway. Per-superpixel means are the same in
+    every tile: tiling-invariant; host code, so the GPU path uses the same arrays."""
+    det = np.zeros(x.shape, bool)
+    ratio = np.zeros(x.shape)
+    if p.point_pfa is None or sp.size.size == 0:
+        return det, ratio
+    lab = sp.labels
+    safe = np.where(lab >= 0, lab, 0)
+    thr = sp.mean.astype(np.float64) * point_level(p.point_pfa, looks)
+    t = thr[safe]
+    with np.errstate(invalid="ignore"):
+        det = (lab >= 0) & ok & bg[safe] & (x > t) & (t > 0)
+    ratio[det] = x[det] / t[det]
+    return det, ratio
+
+
 def host_steps(x: np.ndarray, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) -> dict:
     """Steps 1-5 on a host block ``x`` (float_block'ed, halo checked): superpixels, classes,
     candidates (target superpixels touching the core), their pixel lists and, per candidate,
@@ -353,9 +435,10 @@ def host_steps(x: np.ndarray, halo_px: int, origin, p: SuperpixelCFARParams, pre
                 sp.anchor[:, 1].copy(), pix_ptr, order, np.where(ok, x, 0.0).ravel(), int(p.clutter_radius),
                 float(p.th_clu), float(p.tl_clu), int(p.max_clutter), int(p.rings), looks, int(p.components),
                 int(p.em_iter), float(BIN_WIDTH), float(p.pfa), thr, somega, decided, n_clutter)
+    point, point_ratio = point_targets(x, ok, sp, bg, p, looks)
     return {"sp": sp, "ok": ok, "shadow": shadow, "target": target, "background": bg, "candidates": cands,
             "pix_ptr": pix_ptr, "pix": order, "threshold": thr, "somega": somega, "decided": decided,
-            "n_clutter": n_clutter}
+            "n_clutter": n_clutter, "point": point, "point_ratio": point_ratio}
 
 
 def analyse(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) -> dict:
@@ -419,11 +502,20 @@ def detect(block, halo_px, origin, p: SuperpixelCFARParams, prep: dict):
     lab = _core(res["sp"].labels, hp)
     if res["frac"].size == 0:  # nothing present
         return np.zeros(lab.shape, bool), np.zeros(lab.shape, np.float32)
-    hit = res["frac"] > p.fraction
-    hit &= res["target"]
-    safe = np.where(lab >= 0, lab, 0)
-    mask = (lab >= 0) & hit[safe]
-    return mask, _above(res["frac"][safe], mask, float(p.fraction))
+    return superpixel_mask(lab, res["frac"], res["target"], _core(res["point"], hp), _core(res["point_ratio"], hp),
+                           p)
+
+
+def superpixel_mask(lab, frac, target, point, point_ratio, p: SuperpixelCFARParams):
+    """Step 7's ``(mask, stat)`` of a core: the target superpixels whose detected ``frac`` exceeds
+    ``fraction`` (stat: the fraction), with the point targets (:func:`point_targets`; stat:
+    intensity / point threshold, > 1); NumPy or CuPy arrays alike (the GPU path calls it)."""
+    hit = (frac > p.fraction) & target
+    safe = (lab >= 0) * lab
+    whole = (lab >= 0) & hit[safe]
+    mask = whole | point
+    stat = frac[safe] * whole + point_ratio * (point & ~whole)
+    return mask, _above(stat, mask, float(p.fraction))
 
 
 def boundaries(lab: np.ndarray) -> np.ndarray:
@@ -459,6 +551,7 @@ SPEC = DetectorSpec(
     needs_looks=True,
     scene_pass=scene_pass,
     reduce=reduce,
+    for_scene=for_scene,
     halo_fn=halo,
     halo_rule="10 reach + 5 + clutter_radius",
     gpu=True,  # steps 6-7 on the device, 1-5 on a host copy of the block (pipeline/gpu/superpixel_cfar.py)

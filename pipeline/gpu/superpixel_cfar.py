@@ -209,7 +209,6 @@ def detect(block, halo_px: int, origin, p, prep: dict):
     lab = dev["labels"][core]
     if res["sp"].size.size == 0:  # nothing present
         return cp.zeros(lab.shape, cp.bool_), cp.zeros(lab.shape, cp.float32)
-    hit = (dev["frac"] > float(p.fraction)) & cp.asarray(res["target"])
-    safe = cp.where(lab >= 0, lab, 0)
-    mask = (lab >= 0) & hit[safe]
-    return mask, D._above(dev["frac"][safe], mask, float(p.fraction))
+    # the point targets (small ships) are host arrays of host_steps: the CPU's, bit for bit
+    return D.superpixel_mask(lab, dev["frac"], cp.asarray(res["target"]), cp.asarray(D._core(res["point"], hp)),
+                             cp.asarray(D._core(res["point_ratio"], hp)), p)
