@@ -118,6 +118,12 @@ def test_k_sea_ca_cfar_too_many_k_cfar_fits(client, seas, tmp_path):
     assert [m["pfa"] for m in k["model_fit"]["measurements"]] == [1e-3]  # its default PFA is the probe
 
 
+def test_os_cfar_on_k_sea_too_many(client, seas, tmp_path):
+    mf = _run(client, seas["k"], "os_cfar", tmp_path)["model_fit"]
+    assert [m["pfa"] for m in mf["measurements"]] == [1e-6, 1e-3] and mf["probe_by"] == "ca_cfar"
+    assert mf["verdict"] == "too many false alarms" and mf["ratio"] > 10, mf
+
+
 def test_record_is_identical_for_two_tilings(client, seas, tmp_path):
     a = _run(client, seas["k"], "ca_cfar", tmp_path, tile=64)
     b = _run(client, seas["k"], "ca_cfar", tmp_path, tile=256)
@@ -139,6 +145,11 @@ def test_fit_measured_for_the_cfar_detectors_only():
     k = detectors.get("k_cfar")
     assert _fit_config("k_cfar", k, k.params(looks=4.0), (800, 800))["probes"] == []
     assert _fit_config("k_cfar", k, k.params(looks=4.0), (8000, 8000))["stride"] == 16
+    os_ = detectors.get("os_cfar")  # its probe: its gamma model's cell-averaging decision, same windows
+    (probe,) = _fit_config("os_cfar", os_, os_.params(looks=4.0), (800, 800))["probes"]
+    assert probe["detector"] == "ca_cfar" and probe["params"]["guard"] == os_.params().guard
+    assert probe["prep"]["threshold"] == ca.prepare(ca.params(looks=4.0, pfa=1e-3, guard=21, background=41))[
+        "threshold"]
     for name in ("lmm", "superpixel_cfar", "gamma_mrf", "csk"):
         assert _fit_config(name, None, None, (800, 800)) is None
 

@@ -271,9 +271,20 @@ def _fit_config(detector: str, spec, params, shape: tuple[int, int]) -> dict | N
     detector whose fit is not measured (pipeline/model_fit.py, ``FIT_DETECTORS``)."""
     if detector not in model_fit.FIT_DETECTORS:
         return None
-    probes = [{"pfa": p, "prep": spec.prepare(params.model_copy(update={"pfa": p})),
-               "statistic": detector in model_fit.STATISTIC_PROBE}
-              for p in model_fit.pfas_of(params.pfa)[1:]]
+    probes = []
+    for p in model_fit.pfas_of(params.pfa)[1:]:
+        other = model_fit.MODEL_PROBE.get(detector)
+        if other is None:
+            probes.append({"pfa": p, "prep": spec.prepare(params.model_copy(update={"pfa": p})),
+                           "statistic": detector in model_fit.STATISTIC_PROBE})
+            continue
+        from sarship.pipeline import detectors
+
+        ospec = detectors.get(other)  # the same model, windows, looks and absent pixels
+        same = {k: getattr(params, k) for k in ("target", "guard", "background", "looks", "nodata")}
+        oparams = ospec.params(pfa=p, land_mask=None, **same)
+        probes.append({"pfa": p, "prep": ospec.prepare(oparams), "statistic": False, "detector": other,
+                       "params": oparams.model_dump()})
     return {"stride": model_fit.sample_stride(shape), "probes": probes}
 
 
@@ -283,7 +294,10 @@ def _fit_record(detector: str, params, fit: dict, results: list[dict], records, 
     grid = model_fit.assemble((r["fit"] for r in results), shape, stride)
     boxes = np.stack([records["r0"], records["c0"], records["r1"], records["c1"]], axis=1) if len(records) else []
     excluded = model_fit.exclude_targets(grid, stride, boxes)
-    return model_fit.record(detector, grid, model_fit.pfas_of(params.pfa), stride, excluded)
+    rec = model_fit.record(detector, grid, model_fit.pfas_of(params.pfa), stride, excluded)
+    # whose decision the probe PFA's exceedances are: the detector's, or its model's (MODEL_PROBE)
+    rec["probe_by"] = fit["probes"][0].get("detector") or detector if fit["probes"] else detector
+    return rec
 
 
 def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,

@@ -100,7 +100,8 @@ class TileJob:
     land_path: str | None = None  # land.zarr array this tile writes its core into (texture mode)
     #: clutter-model fit (pipeline/model_fit.py): None, or {"stride", "probes": [{"pfa", "prep",
     #: "statistic"}]}: the tile's cells of the scene's sample grid, flagged at the job's PFA and
-    #: at each probe PFA (``statistic``: the statistic against the probe's ``prep["threshold"]``)
+    #: at each probe PFA (``statistic``: the statistic against the probe's ``prep["threshold"]``;
+    #: ``detector``, ``params``: another detector of the same model decides, model_fit.MODEL_PROBE)
     fit: dict | None = None
 
 
@@ -295,6 +296,10 @@ def _fit_flags(job: TileJob, spec, params, host_block, block, origin, mask, stat
     for probe in job.fit["probes"]:
         if probe["statistic"]:
             exceed.append(_host(stat[er, ec]) > float(probe["prep"]["threshold"]))
+        elif probe.get("detector"):  # another detector of the same model (model_fit.MODEL_PROBE)
+            other = detectors.get(probe["detector"])
+            pm, _ = other.detect(block, hb, origin, other.params(**probe["params"]), probe["prep"])
+            exceed.append(_host(pm[er, ec]))
         else:
             pm, _ = spec.detect(block, hb, origin, params.model_copy(update={"pfa": probe["pfa"]}), probe["prep"])
             exceed.append(_host(pm[er, ec]))
