@@ -59,6 +59,12 @@ MIN_STRIDE = 2
 CONFIDENCE = 0.95
 #: The verdict's allowance (eq 2): a rate within this factor of the PFA (interval included) fits.
 TOLERANCE = 2.0
+#: ``--detector auto`` moves from a candidate to the next only when the candidate's rate is off by
+#: more than this factor (eq 2 with this tolerance): chosen on half A of the shared real chips
+#: (bench/REALDATA.md, "Issue 31: clutter-model fit and --detector auto"; 2 to 6 there moved SSDD
+#: and HRSID chips to ``k_cfar``/``g0_cfar`` at their defaults and lowered the half's FoM, 8 and
+#: more kept ``ca_cfar`` on every real chip); the README's K sea is off by 30 times.
+AUTO_TOLERANCE = 8.0
 #: Fewer expected exceedances (n x pfa) than this: the sample cannot resolve the PFA.
 MIN_EXPECTED = 5.0
 #: Cells nearer than this to a detection's bounding box are the target's, not clutter.
@@ -214,24 +220,27 @@ def advice(rec: dict) -> str | None:
     return line
 
 
-def choose(records: dict[str, dict], order: Sequence[str] = AUTO_CANDIDATES) -> tuple[str, str]:
+def choose(records: dict[str, dict], order: Sequence[str] = AUTO_CANDIDATES,
+           tolerance: float = AUTO_TOLERANCE) -> tuple[str, str]:
     """``auto``'s choice among the candidates' fit ``records`` (by name): the first in ``order``
-    that fits; else the one whose rate is nearest its PFA (|log ratio|, a rate of zero counted
-    as half an exceedance); else (nothing measurable) the first. Returns (name, why)."""
+    that fits at the probe PFA within ``tolerance`` (eq 2 with it); else the one whose rate is
+    nearest its PFA (|log ratio|, a rate of zero counted as half an exceedance) among those the
+    sample resolves; else (nothing resolved) the first. Returns (name, why)."""
+    verdicts = {n: verdict(records[n]["probe_pfa"], records[n]["exceedances"], records[n]["sample"], tolerance)[0]
+                for n in order}
     for name in order:
-        if records[name]["verdict"] == "fits":
-            return name, f"the first candidate (simplest model first) whose clutter model fits ({name})"
+        if verdicts[name] == "fits":
+            return name, (f"the first candidate, simplest model first, whose false-alarm rate at "
+                          f"{records[name]['probe_pfa']:g} is within {tolerance:g}x of it")
 
     def off(name: str) -> float:
         r = records[name]
-        if r["sample"] == 0:
-            return math.inf
         rate = max(r["exceedances"], 0.5) / r["sample"]
         return abs(math.log(rate / r["probe_pfa"]))
 
-    measured = [n for n in order if records[n]["sample"] > 0 and records[n]["verdict"] != "undetermined"]
+    measured = [n for n in order if verdicts[n] != "undetermined"]
     if measured:
         best = min(measured, key=off)
-        return best, (f"no candidate's model fits; {best}'s false-alarm rate is nearest its PFA "
-                      f"({records[best]['ratio']:.3g}x)")
+        return best, (f"no candidate's model fits within {tolerance:g}x; {best}'s false-alarm rate is nearest its "
+                      f"PFA ({records[best]['ratio']:.3g}x)")
     return order[0], "the sample cannot resolve the probe PFA (too few sea pixels): the simplest model"

@@ -85,9 +85,13 @@ def test_choose_rule():
     few = {**rec, "verdict": "too few", "exceedances": 0, "ratio": 0.0}
     assert model_fit.choose({"ca_cfar": rec, "k_cfar": fits, "g0_cfar": fits})[0] == "k_cfar"
     assert model_fit.choose({"ca_cfar": fits, "k_cfar": fits, "g0_cfar": few})[0] == "ca_cfar"
-    # none fits: the nearest on a log scale (30x against 0 exceedances = 1/20 of 10 expected)
-    name, why = model_fit.choose({"ca_cfar": rec, "k_cfar": {**rec, "exceedances": 40, "ratio": 4.0},
-                                  "g0_cfar": few})
+    # auto's tolerance (8x, chosen on half A of the real chips): 4x and 0 of 10 expected fit there
+    four = {**rec, "exceedances": 40, "ratio": 4.0}
+    assert model_fit.choose({"ca_cfar": four, "k_cfar": fits, "g0_cfar": fits})[0] == "ca_cfar"
+    assert model_fit.choose({"ca_cfar": rec, "k_cfar": few, "g0_cfar": fits})[0] == "k_cfar"
+    # none fits: the nearest on a log scale (30x, 15x, 300x)
+    name, why = model_fit.choose({"ca_cfar": rec, "k_cfar": {**rec, "exceedances": 150, "ratio": 15.0},
+                                  "g0_cfar": {**rec, "exceedances": 3000, "ratio": 300.0}})
     assert name == "k_cfar" and "no candidate" in why
 
 

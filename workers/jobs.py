@@ -253,6 +253,7 @@ def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, o
         record = {
             "candidates": list(model_fit.AUTO_CANDIDATES),
             "probe_pfa": model_fit.PROBE_PFA,
+            "tolerance": model_fit.AUTO_TOLERANCE,
             "fits": {n: {k: r[k] for k in ("verdict", "ratio", "rate", "interval", "exceedances", "sample")}
                      for n, r in fits.items()},
             "chosen": chosen,
