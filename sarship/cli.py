@@ -498,7 +498,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("detect", help="run a detector on a scene store")
     s.add_argument("scene")
-    s.add_argument("--detector", required=True)
+    s.add_argument("--detector", required=True,
+                   help="detector name (sarship detectors), or auto: the simplest of ca_cfar, k_cfar, g0_cfar "
+                        "whose clutter model fits the scene (measured first; run.json detector_auto)")
     s.add_argument("--set", action="append", metavar="KEY=VALUE", help="detector parameter (repeatable)")
     s.add_argument("--out", default="sarship-out", help="output folder (default ./sarship-out)")
     s.add_argument("--tile", type=_positive_int, help="processing tile side (default: the scene's tile, doubled up to 4096 "

@@ -30,12 +30,13 @@ from sarship.pipeline.ship_features import add_contrast, collection, features, k
 from sarship.pipeline.sidelobes import refine_features
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.inputs import detector_source, make_reader, pixel_power, window_reader
+from sarship.pipeline import model_fit
 from sarship.pipeline.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
 from sarship.pipeline.window_cache import CachedWindows
 from sarship.pipeline.scene import (CLAIM_SUFFIX, Scene, claim_output, create_mask_store, finalize_scene,
                                     open_scene, processing_tile, tile_slices)
 from sarship.workers.land import LAND_STORE, check_land_file, finish_land, prepare_land
-from sarship.workers.request import JobRequest
+from sarship.workers.request import AUTO, JobRequest
 from sarship.workers.routing import plan
 from sarship.workers.tasks import TileJob, read_land_block, run_tile, run_tile_stats
 
@@ -216,15 +217,95 @@ def run_request(
     output checks run under the claim). The service's runner does not: each attempt writes its
     own folder and the job store fences publication."""
     args = (request, out_dir, tile, client, scheduler, progress, on_tile, overwrite, cluster_note)
+    run = _run_auto if request.detector == AUTO else _run_request
     if not claim:
-        return _run_request(*args)
+        return run(*args)
     check_out_path(Path(out_dir), Path(request.scene))  # first: never a claim inside the scene
     with claim_output(out_dir, "--out", create_parents=True):
-        return _run_request(*args)
+        return run(*args)
+
+
+def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
+              cluster_note) -> dict[str, Any]:
+    """``--detector auto``: the clutter-model fit of each candidate (pipeline/model_fit.py,
+    ``AUTO_CANDIDATES``) measured on the scene's sample (the candidate run with the request's
+    parameters, its own PFA and the probe PFA, its kept detections excluded, no output
+    written), then the chosen one (:func:`~sarship.pipeline.model_fit.choose`) run again to
+    write the outputs; its ``run.json`` records the choice as ``detector_auto``. (A candidate
+    run at the probe PFA itself would merge the clutter's exceedances of a model that does not
+    fit into detections, and exclude them from its own sample.)"""
+    scene = open_scene(request.scene)
+    check_out(Path(out_dir), Path(request.scene), overwrite)
+    with contextlib.ExitStack() as stack:
+        if client is None:
+            from sarship.workers.cluster import connect, threads_max_px
+
+            H, W = scene.shape
+            client = stack.enter_context(connect(scheduler, gpus=request.device != "cpu",
+                                                 threads=H * W <= threads_max_px(), short_lived=True))
+        elif cluster_note:
+            print(cluster_note, file=sys.stderr)
+        fits = {}
+        for name in model_fit.AUTO_CANDIDATES:
+            probe = request.model_copy(update={"detector": name})
+            fits[name] = _run_request(probe, out_dir, tile, client, None, progress, None, True, None, fit_only=True)
+        chosen, why = model_fit.choose(fits)
+        record = {
+            "candidates": list(model_fit.AUTO_CANDIDATES),
+            "probe_pfa": model_fit.PROBE_PFA,
+            "tolerance": model_fit.AUTO_TOLERANCE,
+            "fits": {n: {k: r[k] for k in ("verdict", "ratio", "rate", "interval", "exceedances", "sample")}
+                     for n, r in fits.items()},
+            "chosen": chosen,
+            "why": why,
+        }
+        if progress:
+            print(f"detector auto: {chosen} ({why})", file=sys.stderr)
+        final = request.model_copy(update={"detector": chosen})
+        return _run_request(final, out_dir, tile, client, None, progress, on_tile, overwrite, None,
+                            extra_run={"detector_auto": record})
+
+
+def _fit_config(detector: str, spec, params, shape: tuple[int, int]) -> dict | None:
+    """The tiles' clutter-model-fit settings (:attr:`TileJob.fit`): the scene's grid step and,
+    for each probe PFA beyond the asked one, the detector's ``prepare`` there; None for a
+    detector whose fit is not measured (pipeline/model_fit.py, ``FIT_DETECTORS``)."""
+    if detector not in model_fit.FIT_DETECTORS:
+        return None
+    probes = []
+    for p in model_fit.pfas_of(params.pfa)[1:]:
+        other = model_fit.MODEL_PROBE.get(detector)
+        if other is None:
+            probes.append({"pfa": p, "prep": spec.prepare(params.model_copy(update={"pfa": p})),
+                           "statistic": detector in model_fit.STATISTIC_PROBE})
+            continue
+        from sarship.pipeline import detectors
+
+        ospec = detectors.get(other)  # the same model, windows, looks and absent pixels
+        same = {k: getattr(params, k) for k in ("target", "guard", "background", "looks", "nodata")}
+        oparams = ospec.params(pfa=p, land_mask=None, **same)
+        probes.append({"pfa": p, "prep": ospec.prepare(oparams), "statistic": False, "detector": other,
+                       "params": oparams.model_dump()})
+    return {"stride": model_fit.sample_stride(shape), "probes": probes}
+
+
+def _fit_record(detector: str, params, fit: dict, results: list[dict], records, shape) -> dict:
+    """``run.json``'s ``model_fit`` from the tiles' flags, the kept detections' cells left out."""
+    stride = int(fit["stride"])
+    grid = model_fit.assemble((r["fit"] for r in results), shape, stride)
+    boxes = np.stack([records["r0"], records["c0"], records["r1"], records["c1"]], axis=1) if len(records) else []
+    excluded = model_fit.exclude_targets(grid, stride, boxes)
+    rec = model_fit.record(detector, grid, model_fit.pfas_of(params.pfa), stride, excluded)
+    # whose decision the probe PFA's exceedances are: the detector's, or its model's (MODEL_PROBE)
+    rec["probe_by"] = fit["probes"][0].get("detector") or detector if fit["probes"] else detector
+    return rec
 
 
 def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
-                 cluster_note) -> dict[str, Any]:
+                 cluster_note, fit_only: bool = False, extra_run: dict | None = None) -> dict[str, Any]:
+    """One detection run (:func:`run_request`). ``fit_only``: only the clutter-model fit
+    (``--detector auto``'s candidates): no output is written, the ``model_fit`` record is
+    returned. ``extra_run``: entries added to ``run.json``."""
     t_start = time.perf_counter()
     spec, detector, device, channel = request.spec, request.detector, request.device, request.channel
     params = request.detector_params()
@@ -274,6 +355,9 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
     halo = spec.halo(params)
     mr = merge_radius(params.merge_px)
     H, W = scene.shape
+    fit = _fit_config(detector, spec, params, (H, W))
+    if fit_only and fit is None:
+        raise ValueError(f"fit_only: the fit of '{detector}' is not measured")
     created = not out_dir.exists()
     tmp = _prepare_out(out_dir)
     try:
@@ -283,8 +367,8 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
             TileJob(
                 scene_path=str(scene.path), var=var, transform=transform, scene_shape=(H, W),
                 index=(i, j), bounds=(r0, r1, c0, c1), halo=halo, merge_r=mr, detector=detector,
-                params=params.model_dump(), prep=prep, mask_path=str(tmp / "mask.zarr" / "mask"),
-                spacing=spacing,
+                params=params.model_dump(), prep=prep,
+                mask_path=None if fit_only else str(tmp / "mask.zarr" / "mask"), spacing=spacing, fit=fit,
             )
             for i, j, r0, r1, c0, c1 in tile_slices((H, W), tile)
         ]
@@ -353,6 +437,9 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
         records = records[keep_mask(records, params, spacing)]
         if spec.discriminate is not None:  # the detector's own rules on whole components (e.g. peak)
             records = records[spec.discriminate(records, params, prep)]
+        if fit_only:  # --detector auto's candidate: the fit of its model, nothing written
+            shutil.rmtree(tmp, ignore_errors=True)
+            return _fit_record(detector, params, fit, results, records, (H, W))
         feats = features(records, spacing, geo)
         feats = add_contrast(feats, (land_record or {}).get("sea_mean"))
         scene_read = mask_read = None
@@ -374,6 +461,12 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
         # azimuth-ambiguity flags: ambiguity_of on every detection (pipeline/ambiguity.py)
         feats, ambiguity_record = flag_features(feats, scene.attrs, params.ambiguities, params.ambiguity_tol_px,
                                                 params.ambiguity_min_db)
+        fit_record = None
+        if fit is not None:  # does the detector's clutter model fit the scene? (pipeline/model_fit.py)
+            fit_record = _fit_record(detector, params, fit, results, records, (H, W))
+            line = model_fit.advice(fit_record)
+            if line:
+                warnings.append(line)
         t_merge = time.perf_counter()
         run = {
             "sarship_version": __version__,
@@ -388,6 +481,8 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
             "land": land_record,
             "contrast": contrast_record,
             "ambiguities": ambiguity_record,
+            "model_fit": fit_record,
+            **(extra_run or {}),
             "scene": {
                 "path": str(Path(scene.path).resolve()),
                 "shape": [H, W],

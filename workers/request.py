@@ -32,6 +32,9 @@ DEVICES: tuple[str, ...] = get_args(Device)
 CHANNEL = re.compile(r"\s*[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\s*(,\s*[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\s*){0,3}")
 #: Inputs of a job that are not detector parameters.
 RESERVED = ("scene", "device", "channel")
+#: The detector name that has the clutter-model fit choose among ``AUTO_CANDIDATES``
+#: (pipeline/model_fit.py; workers/jobs.py runs it); its parameters must suit every candidate.
+AUTO = "auto"
 
 
 def format_validation(exc: ValidationError, detector: str) -> str:
@@ -71,6 +74,15 @@ def parse_params(spec: DetectorSpec, settings: Mapping[str, Any]) -> DetectorPar
         raise InputError(format_validation(exc, spec.name)) from None
 
 
+def _specs(detector: str) -> list[DetectorSpec]:
+    """The detector's spec; for ``auto``, the candidates' (pipeline/model_fit.py)."""
+    if detector == AUTO:
+        from sarship.pipeline.model_fit import AUTO_CANDIDATES
+
+        return [detectors.get(n) for n in AUTO_CANDIDATES]
+    return [detectors.get(detector)]
+
+
 class JobRequest(BaseModel):
     """A detection job: scene, detector, device, channel and the detector's parameters.
 
@@ -93,8 +105,8 @@ class JobRequest(BaseModel):
         ``channel`` and parameters), validated: unknown detector, missing scene, bad device or
         channel, parameter values that are not numbers or strings, and every parameter the
         detector's model refuses, each named in one line (:class:`InputError`)."""
-        if not isinstance(detector, str) or detector not in detectors.names():
-            raise InputError(f"unknown detector '{detector}' (known: {', '.join(detectors.names())})")
+        if not isinstance(detector, str) or (detector not in detectors.names() and detector != AUTO):
+            raise InputError(f"unknown detector '{detector}' (known: {', '.join(detectors.names())}; or {AUTO})")
         if not isinstance(inputs, Mapping):
             raise InputError("inputs must be an object (scene, device, channel and parameters)")
         scene = inputs.get("scene")
@@ -110,7 +122,7 @@ class JobRequest(BaseModel):
             raise InputError(f"input 'channel' must be a scene variable name (or a comma list of them, "
                              f"e.g. hh,vv), never a path: got {channel!r}")
         params = {k: v for k, v in inputs.items() if k not in RESERVED}
-        fields = detectors.get(detector).params.model_fields
+        fields = {k: f for s in _specs(detector) for k, f in s.params.model_fields.items()}
         for k, v in params.items():
             if isinstance(v, bool) and k in fields and fields[k].annotation is bool:
                 continue  # a true/false parameter (e.g. sidelobes): JSON booleans as its schema says
@@ -125,7 +137,17 @@ class JobRequest(BaseModel):
         return detectors.get(self.detector)
 
     def detector_params(self) -> DetectorParams:
-        """The detector's parameters, parsed by its model (:func:`parse_params`)."""
+        """The detector's parameters, parsed by its model (:func:`parse_params`); for ``auto``,
+        checked against every candidate's model and those of the first returned."""
+        if self.detector == AUTO:
+            parsed = []
+            for spec in _specs(AUTO):
+                try:
+                    parsed.append(parse_params(spec, self.params))
+                except InputError as exc:
+                    raise InputError(f"detector auto (candidates {', '.join(s.name for s in _specs(AUTO))}): "
+                                     f"{exc}") from None
+            return parsed[0]
         return parse_params(self.spec, self.params)
 
     def inputs(self) -> dict[str, Any]:

@@ -98,6 +98,11 @@ class TileJob:
     land: dict | None = None
     land_halo: int = 0  # extra context the texture land mask needs beyond ``halo``
     land_path: str | None = None  # land.zarr array this tile writes its core into (texture mode)
+    #: clutter-model fit (pipeline/model_fit.py): None, or {"stride", "probes": [{"pfa", "prep",
+    #: "statistic"}]}: the tile's cells of the scene's sample grid, flagged at the job's PFA and
+    #: at each probe PFA (``statistic``: the statistic against the probe's ``prep["threshold"]``;
+    #: ``detector``, ``params``: another detector of the same model decides, model_fit.MODEL_PROBE)
+    fit: dict | None = None
 
 
 def _worker_name() -> str:
@@ -265,6 +270,42 @@ def run_tile_land_stats(job: TileJob, full: np.ndarray | None = None) -> dict[st
             "device": "cpu", "seconds": time.perf_counter() - t0}
 
 
+def _host(a) -> np.ndarray:
+    """A (small) array on the host: a CuPy array copied back, a numpy one as it is."""
+    return a.get() if hasattr(a, "get") and not isinstance(a, np.ndarray) else np.asarray(a)
+
+
+def _fit_flags(job: TileJob, spec, params, host_block, block, origin, mask, stat) -> dict | None:
+    """The tile's cells of the scene's clutter-model-fit sample (pipeline/model_fit.py): present
+    pixels of the core, whether the detection (``mask``, ``stat`` of the extended window) marks
+    them, and whether the decision at each probe PFA does (``block``: the detector's input, on
+    the device for a GPU tile; ``host_block``: the same on the host). None without ``job.fit``."""
+    if job.fit is None:
+        return None
+    from sarship.pipeline import intensity_absent, model_fit
+
+    r0, r1, c0, c1 = job.bounds
+    er0, _er1, ec0, _ec1 = _extended(job)
+    a, b, hb = r0 - er0, c0 - ec0, job.halo
+    rs, cs, gi, gj = model_fit.grid_slices(r0, c0, r1 - r0, c1 - c0, int(job.fit["stride"]))
+    er = slice(a + rs.start, a + rs.stop, rs.step)
+    ec = slice(b + cs.start, b + cs.stop, cs.step)
+    core = np.asarray(host_block[hb + er.start: hb + er.stop: er.step, hb + ec.start: hb + ec.stop: ec.step])
+    valid = intensity_absent.present(core, getattr(params, "nodata", None))
+    exceed = [_host(mask[er, ec])]
+    for probe in job.fit["probes"]:
+        if probe["statistic"]:
+            exceed.append(_host(stat[er, ec]) > float(probe["prep"]["threshold"]))
+        elif probe.get("detector"):  # another detector of the same model (model_fit.MODEL_PROBE)
+            other = detectors.get(probe["detector"])
+            pm, _ = other.detect(block, hb, origin, other.params(**probe["params"]), probe["prep"])
+            exceed.append(_host(pm[er, ec]))
+        else:
+            pm, _ = spec.detect(block, hb, origin, params.model_copy(update={"pfa": probe["pfa"]}), probe["prep"])
+            exceed.append(_host(pm[er, ec]))
+    return model_fit.pack(valid, exceed, (gi, gj))
+
+
 def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
     """Process one tile; returns its components and timings. ``full``: the land pass's read of
     the tile (:func:`read_land_block`), when the job kept it."""
@@ -290,12 +331,14 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
         pr, pc, stat_p, vals = _points_to_host(mask_d, stat_d, dblock, job.halo)
         val_p = points_power(vals)
         h2d, d2h = ta - t1, time.perf_counter() - tb
+        fit = _fit_flags(job, spec, params, block, dblock, origin, mask_d, stat_d)
         del dblock, mask_d, stat_d
     else:
         mask_e, stat_e = spec.detect(block, job.halo, origin, params, job.prep)
         pr, pc = mask_points(mask_e)
         stat_p = np.asarray(stat_e)[pr, pc]
         val_p = points_power(block[pr + job.halo, pc + job.halo])
+        fit = _fit_flags(job, spec, params, block, block, origin, mask_e, stat_e)
     t2 = time.perf_counter()
     a, b = r0 - er0, c0 - ec0
     h, w = r1 - r0, c1 - c0
@@ -327,4 +370,5 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
         "label_s": t4 - t3,
         "h2d_s": h2d,
         "d2h_s": d2h,
+        "fit": fit,
     }
