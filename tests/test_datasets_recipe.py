@@ -326,15 +326,6 @@ def test_report_and_table_per_subset():
     assert "One image in 2 of each subset" in md
 
 
-def _ship_chip(path: Path, seed: int, boxes) -> None:
-    """Rayleigh sea (8-bit amplitude) with bright rectangular ships."""
-    rng = np.random.default_rng(seed)
-    a = rng.rayleigh(20.0, (160, 160))
-    for r0, c0, r1, c1 in boxes:
-        a[r0:r1, c0:c1] = 250.0
-    Image.fromarray(np.clip(a, 0, 255).astype(np.uint8)).save(path)
-
-
 def test_split_eval_end_to_end(tmp_path, client):
     """A converted test image through ingest + run_detection at ca_cfar's defaults (the path
     users' scenes take): its two ships found under both matchers."""

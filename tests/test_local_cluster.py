@@ -134,22 +134,19 @@ def test_forked_workers_read_after_the_command_itself_read_the_scene(tmp_path):
     """A scene without ``looks`` is sampled by the command (the client) through the scene reader
     before its cluster forks the worker processes, which then read the tiles with the same
     library (tensorstore's threads do not survive a fork; its state must not hang the children).
-    Both readers give the same detections."""
+    That both readers give the same detections is tests/test_data_path.py's (in one process)."""
     rng = np.random.default_rng(4)
     x = rng.gamma(2.0, 0.5, (640, 600)).astype(np.float32)
     x[300:306, 200:230] += 80.0
     scene = write_scene(tmp_path / "nolooks.zarr", {"intensity": x}, tile=256)  # no looks attribute
-    got = {}
-    for reader in ("tensorstore", "zarr"):
-        res = _detect(scene, tmp_path / reader, SARSHIP_THREADS_MAX_PX="0", SARSHIP_READER=reader)
-        assert res.returncode == 0, res.stderr
-        if sys.platform.startswith("linux"):
-            assert "(fork)" in _cluster_line(res.stderr)
-        run = json.loads((tmp_path / reader / "run.json").read_text())
-        assert run["looks_source"].startswith("estimated from the scene")
-        got[reader] = json.loads((tmp_path / reader / "detections.geojson").read_text())["features"]
-    assert len(got["tensorstore"]) >= 1
-    assert [f["properties"] for f in got["tensorstore"]] == [f["properties"] for f in got["zarr"]]
+    res = _detect(scene, tmp_path / "ts", SARSHIP_THREADS_MAX_PX="0", SARSHIP_READER="tensorstore")
+    assert res.returncode == 0, res.stderr
+    if sys.platform.startswith("linux"):
+        assert "(fork)" in _cluster_line(res.stderr)
+    run = json.loads((tmp_path / "ts" / "run.json").read_text())
+    assert run["looks_source"].startswith("estimated from the scene")
+    feats = json.loads((tmp_path / "ts" / "detections.geojson").read_text())["features"]
+    assert len(feats) >= 1 and any(f["properties"]["bbox_px"][0] <= 300 < f["properties"]["bbox_px"][2] for f in feats)
 
 
 def test_cluster_host_setting(monkeypatch):

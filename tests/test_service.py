@@ -320,14 +320,22 @@ def test_serve_start_problems_are_one_line(tmp_path):
              (["--data", str(tmp_path / "ok"), "--scheduler", f"tcp://127.0.0.1:{free_port()}"],
               "cannot reach Dask scheduler"),
              (["--data", str(tmp_path / "ok"), "--gpus", "0"], "no GPU is visible")]  # (GPUs hidden below)
+    procs = []
     try:
-        for args, words in cases:
-            r = subprocess.run([sys.executable, "-m", "sarship", "serve", *args], capture_output=True, text=True,
-                               timeout=60, env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})
-            lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-            assert r.returncode == 2 and len(lines) == 1 and words in lines[0], (args, r.returncode, r.stderr)
-            assert lines[0].startswith("sarship serve: error: ") and "Traceback" not in r.stderr
+        for args, _ in cases:  # the cases at once (each is a process start-up; none writes to another's)
+            procs.append(subprocess.Popen([sys.executable, "-m", "sarship", "serve", *args], stdout=subprocess.PIPE,
+                                          stderr=subprocess.PIPE, text=True,
+                                          env={**os.environ, "CUDA_VISIBLE_DEVICES": ""}))
+        for (args, words), p in zip(cases, procs):
+            _, err = p.communicate(timeout=120)
+            lines = [ln for ln in err.splitlines() if ln.strip()]
+            assert p.returncode == 2 and len(lines) == 1 and words in lines[0], (args, p.returncode, err)
+            assert lines[0].startswith("sarship serve: error: ") and "Traceback" not in err
     finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
         busy.close()
     assert (tmp_path / "bad" / "jobs.sqlite").read_bytes() == b"garbage " * 64  # a bad store is left as it was
 

@@ -173,8 +173,9 @@ def test_pure_k_clutter_pixel_false_alarms_with_three_components():
     """K clutter (nu = 4, texture correlated over 8 px), 1 Mpx, calibration mode with the paper's
     M_a = 3: the three Rayleigh components approximate the gamma texture's mixture of
     exponentials and the pixel count lies within 5 sqrt(1.5 M pfa) of M pfa (measured over 6
-    seeds: 1.00-1.04 x M pfa; 0.994 x on 4.2 Mpx in bench/bench_superpixel.py); a threshold for
-    1.25 x the PFA falls outside, and so does M_a = 1 (a single Rayleigh law: 2.7 x)."""
+    seeds: 1.00-1.04 x M pfa; 0.994 x on 4.2 Mpx in bench/bench_superpixel.py); M_a = 1 (a single
+    Rayleigh law: 2.7 x) falls outside, so the check can fail (that the bound rejects a threshold
+    for 1.25 x the PFA is test_pure_rayleigh_pixel_false_alarms_within_binomial_bound's)."""
     rng = np.random.default_rng(21)
     x = k_sea(rng, (1024, 1024))
     h = D.halo(D.SuperpixelCFARParams(**CAL))
@@ -182,12 +183,11 @@ def test_pure_k_clutter_pixel_false_alarms_with_three_components():
     M = x.size
     bound = 5 * math.sqrt(1.5 * M * 1e-3)
     counts = {}
-    for pfa, comps in ((1e-3, 3), (1.25e-3, 3), (1e-3, 1)):
+    for pfa, comps in ((1e-3, 3), (1e-3, 1)):
         p = D.SuperpixelCFARParams(pfa=pfa, **{**CAL, "components": comps})
         res = D.analyse(P, h, (-h, -h), p, D.scene_prep(x, p))
         counts[(pfa, comps)] = int(np.count_nonzero(res["ratio"][h:-h, h:-h] > 1.0))
     assert abs(counts[(1e-3, 3)] - M * 1e-3) <= bound, counts
-    assert abs(counts[(1.25e-3, 3)] - M * 1e-3) > bound, counts
     assert abs(counts[(1e-3, 1)] - M * 1e-3) > bound, counts
 
 
