@@ -132,7 +132,7 @@ def test_line_across_tiles_dropped_convoy_and_long_ship_kept_end_to_end(client, 
         feats, run = _detect(client, _lines_scene(tmp_path, tile), tmp_path / f"t{tile}", tile)
         boxes[tile] = sorted(tuple(f["properties"]["bbox_px"]) for f in feats)
         assert run["discarded"]["line"] == 14, run["discarded"]
-        assert run["parameters"]["line_gap_px"] == 8 and run["parameters"]["line_angle_deg"] == 10.0
+        assert run["parameters"]["line_gap_px"] == 16 and run["parameters"]["line_angle_deg"] == 10.0
         assert not any(55 <= b[0] <= 65 for b in boxes[tile]), boxes[tile]      # nothing of the line
         assert sum(b[0] >= 148 and b[3] <= 48 for b in boxes[tile]) == 4       # the convoy
         assert sum(b[0] >= 178 and b[3] >= 240 for b in boxes[tile]) == 1      # the long ship

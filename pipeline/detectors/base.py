@@ -41,9 +41,10 @@ LENGTH_HELP = ("shortest ship kept, in metres (needs the scene's pixel spacing);
                "0 turns it off")
 
 
-#: Defaults of the line rule (pipeline/lines.py); chosen on half A of the shared chips
-#: (bench/REALDATA.md, "Issue 31: kept-detection masks and line discrimination").
-LINE_GAP_PX = 8
+#: Defaults of the line rule (pipeline/lines.py): the gap chosen on half A of the shared chips
+#: (bench/REALDATA.md, "Issue 31: kept-detection masks and line discrimination"; the angle and
+#: the dominance setting made no difference there and keep their prior values).
+LINE_GAP_PX = 16
 LINE_ANGLE_DEG = 10.0
 LINE_DOMINANT_DB = 10.0
 
