@@ -150,3 +150,20 @@ def test_line_settings_are_validated(bad):
 
     with pytest.raises(ValidationError):
         detectors.get("ca_cfar").params(**bad)
+
+
+def test_land_gap_drops_detections_at_the_land_edge_end_to_end(client, tmp_path):
+    """``land_gap_px`` with a land FILE: the ship 3 px from the land is dropped (``discarded.land``),
+    the one in open sea kept; off by default (both kept)."""
+    rng = np.random.default_rng(11)
+    x = rng.gamma(4.0, 0.25, (160, 200)).astype(np.float32)
+    x[40:44, 40:52] = rng.gamma(4.0, 50.0, (4, 12))      # open sea
+    x[110:114, 140:152] = rng.gamma(4.0, 50.0, (4, 12))  # 3 px from the land
+    scene = write_scene(tmp_path / "coast.zarr", {"intensity": x}, tile=200, looks=4.0)
+    land = np.zeros(x.shape, np.uint8)
+    land[:, 155:] = 1
+    np.save(tmp_path / "land.npy", land)
+    feats, run = _detect(client, scene, tmp_path / "gap", 200, land_mask=str(tmp_path / "land.npy"), land_gap_px=4)
+    assert [f["properties"]["bbox_px"] for f in feats] == [[40, 40, 44, 52]] and run["discarded"]["land"] == 1
+    feats, run = _detect(client, scene, tmp_path / "off", 200, land_mask=str(tmp_path / "land.npy"))
+    assert len(feats) == 2 and run["discarded"]["land"] == 0 and run["parameters"]["land_gap_px"] is None
