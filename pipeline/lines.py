@@ -77,18 +77,25 @@ def collinear_pairs(seg: dict[str, np.ndarray], gap_px: float, angle_deg: float)
         return np.zeros((0, 2), np.int64)
     c, u, h, w, el = seg["centre"], seg["axis"], seg["half"], seg["width"], seg["elongation"]
     ends = np.concatenate([c + h[:, None] * u, c - h[:, None] * u])
-    cand = cKDTree(ends).query_pairs(float(gap_px) + float(w.max()) + 1.0, output_type="ndarray")
+    # facing ends of a joinable pair are at most gap + lateral offset apart; the offset allowed
+    # grows with the widths, capped so that one wide blob (land, a harbour) does not make every
+    # end a candidate of every other: pieces more than gap_px + 3 px off each other's axis are
+    # not searched (a line's pieces are thin)
+    radius = float(gap_px) + min(float(w.max()), float(gap_px) + 2.0) + 1.0
+    cand = cKDTree(ends).query_pairs(radius, output_type="ndarray")
     if len(cand) == 0:
         return np.zeros((0, 2), np.int64)
     i, j = cand[:, 0] % k, cand[:, 1] % k
-    keep = i != j
+    rnd = el < ROUND
+    keep = (i != j) & ~(rnd[i] & rnd[j])  # two near-round pieces are never joined
     i, j = np.minimum(i[keep], j[keep]), np.maximum(i[keep], j[keep])
     if len(i) == 0:
         return np.zeros((0, 2), np.int64)
-    pairs = np.unique(np.stack([i, j], axis=1), axis=0)
-    i, j = pairs[:, 0], pairs[:, 1]
+    key = np.unique(i.astype(np.int64) * k + j)
+    i, j = key // k, key % k
+    pairs = np.stack([i, j], axis=1)
     ui, uj = u[i], u[j]
-    round_i, round_j = el[i] < ROUND, el[j] < ROUND
+    round_i, round_j = rnd[i], rnd[j]
     dot = np.sum(ui * uj, axis=1)
     cross = np.abs(ui[:, 0] * uj[:, 1] - ui[:, 1] * uj[:, 0])
     aligned = cross <= np.sin(np.radians(angle_deg))
@@ -100,7 +107,7 @@ def collinear_pairs(seg: dict[str, np.ndarray], gap_px: float, angle_deg: float)
     along = np.abs(np.sum(d * ax, axis=1))
     lateral = np.abs(d[:, 0] * ax[:, 1] - d[:, 1] * ax[:, 0])
     gap = along - h[i] - h[j]
-    ok = ((aligned | round_i | round_j) & ~(round_i & round_j)
+    ok = ((aligned | round_i | round_j)
           & (lateral <= (w[i] + w[j]) / 2.0 + 1.0)
           & (gap <= gap_px) & (gap >= -0.5 * np.minimum(h[i], h[j])))
     return pairs[ok]
@@ -169,16 +176,18 @@ def discard_lines(records: np.ndarray, gap_px: int | None, angle_deg: float, dom
     gseg = segments(gm)
     along_azimuth = np.abs(gseg["axis"][:, 0]) >= np.cos(np.radians(angle_deg))
     peak_db = 10.0 * np.log10(np.maximum(records["peak"].astype(np.float64), 1e-30))
-    for g in np.flatnonzero(line):
-        members = np.flatnonzero(lab == g)
-        drop = np.ones(len(members), bool)
-        if dominant_db is not None:
+    in_line = line[lab]
+    reason[in_line & along_azimuth[lab]] = "smear"
+    reason[in_line & ~along_azimuth[lab]] = "line"
+    if dominant_db is not None:  # the bright ship of its streak or wake stays
+        idx = np.flatnonzero(in_line)
+        idx = idx[np.argsort(lab[idx], kind="stable")]
+        starts = np.flatnonzero(np.r_[True, lab[idx][1:] != lab[idx][:-1]])
+        for members in np.split(idx, starts[1:]):
             p = peak_db[members]
             for t in range(len(members)):
-                rest = np.delete(p, t)
-                if p[t] >= np.median(rest) + dominant_db:
-                    drop[t] = False
-        reason[members[drop]] = "smear" if along_azimuth[g] else "line"
+                if p[t] >= np.median(np.delete(p, t)) + dominant_db:
+                    reason[members[t]] = ""
     return reason
 
 
