@@ -73,3 +73,41 @@ def test_pixel_scores_read_the_kept_mask(client, tmp_path):
     assert not mask[120:122, 30:32].any() and np.asarray(g["detected"][120:122, 30:32]).all()
     assert s["px_fp"] == int((mask & (truth == 0)).sum()) and s["px_tp"] == int((mask & (truth > 0)).sum()), s
     assert s["px_tp"] > 0
+
+
+def test_merge_members_give_each_record_its_pixels_tile_by_tile():
+    """``merge_tiles(members=True)``: the tiles' component ids of each merged record, picked from
+    the tiles' own labels (as ``run_tile_keep`` picks them), are exactly that component's pixels."""
+    from conftest import blobs_scene
+    from sarship.pipeline.components import mask_points, merge_radius, merge_tiles, point_labels, tile_components
+
+    m = blobs_scene((150, 130), seed=4, n=30) > 4.0
+    r, t = merge_radius(2), 32
+    H, W = m.shape
+    pad = np.pad(m, r)
+    tiles, labels = {}, np.zeros((H, W), np.int64)
+    owner = {}
+    for i in range(0, H, t):
+        for j in range(0, W, t):
+            h, w = min(t, H - i), min(t, W - j)
+            ext = pad[i:i + h + 2 * r, j:j + w + 2 * r]
+            v = np.ones((h, w), np.float32)
+            tiles[(i // t, j // t)] = tile_components(ext, v, v, r, (i, j), (i // t, j // t))
+            rr, cc = mask_points(ext)
+            comp = point_labels(rr, cc, (h, w), r)
+            core = (rr >= r) & (rr < r + h) & (cc >= r) & (cc < r + w)
+            labels[rr[core] - r + i, cc[core] - r + j] = comp[core]
+            owner[(i // t, j // t)] = (slice(i, i + h), slice(j, j + w))
+    recs, members = merge_tiles(tiles, members=True)
+    assert np.array_equal(recs, merge_tiles(tiles)) and len(recs) > 10
+    got = np.full((H, W), -1)
+    for key, (ids, rec) in members.items():
+        sl = owner[key]
+        lut = dict(zip(ids.tolist(), rec.tolist()))
+        sub = np.where(m[sl], [[lut.get(int(x), -2) for x in row] for row in labels[sl]], -1)
+        got[sl] = sub
+    assert (got[m] >= 0).all() and (got[~m] == -1).all()
+    for k, rec in enumerate(recs):
+        rows, cols = np.nonzero(got == k)
+        assert len(rows) == rec["n"] and (rows.min(), cols.min(), rows.max() + 1, cols.max() + 1) == \
+            (rec["r0"], rec["c0"], rec["r1"], rec["c1"])
