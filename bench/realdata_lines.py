@@ -211,10 +211,12 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--md", type=Path)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--detectors", default=",".join(DETS), help="comma list (the choice averages over them)")
     ap.add_argument("--defaults", default="", help="comma list of detectors: only their scores at the shipped "
                                                     "defaults, line rule off and on, and HRSID pixel TPR / FPR of "
                                                     "the raw decision and the kept detections")
     a = ap.parse_args(argv)
+    dets = tuple(a.detectors.split(","))
     from distributed import Client, LocalCluster
 
     work = a.work or Path(tempfile.mkdtemp(prefix="sarship-lines-"))
@@ -237,7 +239,7 @@ def main(argv=None) -> int:
                       silence_logs=logging.ERROR) as cl, Client(cl) as client:
         root = work / "runs"
         root.mkdir(exist_ok=True)
-        for det in DETS:
+        for det in dets:
             t1 = time.perf_counter()
             raws = [raw_run(client, c, det, root) for c in chips]
             for c, raw in zip(chips, raws):  # the published mask is the kept-detection mask of the run itself
@@ -255,7 +257,7 @@ def main(argv=None) -> int:
                 res[det][cand]["dropped"] = drops
             print(f"{det}: {time.perf_counter() - t1:.0f} s", flush=True)
         # choice on half A: the mean over the detectors of mean(SSDD, HRSID, GRD-VH FoM)
-        obj = {cand: float(np.mean([E.objective(res[d][cand]["A"]) for d in DETS])) for cand in cands}
+        obj = {cand: float(np.mean([E.objective(res[d][cand]["A"]) for d in dets])) for cand in cands}
         best = max(cands, key=lambda c: (round(obj[c], 9), -prior_distance(c), -cands.index(c)))
         print(f"chosen on half A: gap {best[0]} angle {best[1]} dominant {best[2]} (objective {obj[best]:.4f}; "
               f"off {obj[cands[-1]]:.4f})", flush=True)
@@ -279,7 +281,7 @@ def main(argv=None) -> int:
                 assert np.array_equal(mask, kept), c.name
                 shutil.rmtree(out, ignore_errors=True)
     rows = []
-    for det in DETS:
+    for det in dets:
         for cand in (cands[-1], best):
             for h in ("B", "A", "all"):
                 sc = res[det][cand][h]
