@@ -270,7 +270,9 @@ def split_halves(chips: list[Chip]) -> None:
 
 
 def run_mask(client, chip: Chip, detector: str, settings: dict, out_root: Path) -> tuple[np.ndarray, dict]:
-    """One ``run_detection`` on the chip (one tile); returns its mask and run.json."""
+    """One ``run_detection`` on the chip (one tile); returns its raw decision (``mask.zarr/detected``:
+    the size rules and ``merge_px`` are swept on it afterwards; ``mask`` holds only the detections
+    the run kept) and run.json."""
     import zarr
     from sarship.workers.jobs import run_detection
 
@@ -278,7 +280,7 @@ def run_mask(client, chip: Chip, detector: str, settings: dict, out_root: Path) 
     try:
         run = run_detection(chip.scene, detector, dict(settings), out_dir=out, tile=max(chip.shape),
                             client=client, progress=False)
-        mask = np.asarray(zarr.open_array(str(out / "mask.zarr" / "mask"), mode="r")[...]) != 0
+        mask = np.asarray(zarr.open_array(str(out / "mask.zarr" / "detected"), mode="r")[...]) != 0
         dets = json.loads((out / "detections.geojson").read_text())["features"]
     finally:
         shutil.rmtree(out, ignore_errors=True)
@@ -528,7 +530,8 @@ def self_check(client, chips: list[Chip], detectors_: list[str], work: Path) -> 
                 cases.append(({"min_length_m": 30.0, "merge_px": 2}, size_filter("m30a" + f"{d.auto_min_area_m2:g}",
                                                                                  c.spacing), 2))
             for st, flt, mg in cases:
-                mask, out = run_mask(client, c, det, st, runs_root)
+                # the line rule (pipeline/lines.py) is not part of this sweep: off for the comparison
+                mask, out = run_mask(client, c, det, {"line_gap_px": None, **st}, runs_root)
                 direct = sorted(tuple(f["properties"]["bbox_px"]) + (f["properties"]["area_px"],)
                                 + tuple(round(v, 6) for v in f["properties"]["centroid_px"])
                                 for f in out["features"])

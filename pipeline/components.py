@@ -56,6 +56,17 @@ class TileComponents:
     moments: np.ndarray                         # MOMENT_DTYPE of edge components, index = edge label - 1
     edges: dict[str, np.ndarray] = field(default_factory=dict)  # top/bottom/left/right label lines
     complete: np.ndarray | None = None          # MOMENT_DTYPE of components inside the tile (final)
+    #: the tile's own component ids (:func:`points_components`' labels - 1) of ``moments`` and
+    #: ``complete``, row for row: what the tile wrote in its label store, so the kept
+    #: detections' pixels can be picked tile by tile (:func:`merge_tiles` ``members``)
+    ids: np.ndarray | None = None
+    complete_ids: np.ndarray | None = None
+
+    def keep_complete(self, keep: np.ndarray) -> None:
+        """Keep only the complete components where ``keep`` (a boolean array) is set."""
+        self.complete = self.complete[keep]
+        if self.complete_ids is not None:
+            self.complete_ids = self.complete_ids[keep]
 
 
 @njit(nogil=True, cache=True)
@@ -180,6 +191,15 @@ def _edge_lines(rr, cc, comp, h, w, r):
     return top, bottom, left, right
 
 
+def point_labels(rr: np.ndarray, cc: np.ndarray, core: tuple[int, int], r: int) -> np.ndarray:
+    """Component id (0..) of each set pixel of a tile's mask, as :func:`points_components`
+    labels them: ``rr``, ``cc`` row-major coordinates in the ``(h + 2r, w + 2r)`` frame, two
+    pixels joined at Chebyshev distance ``<= 2r + 1``; ids numbered in order of each
+    component's first pixel. The ids of :class:`TileComponents` ``ids`` / ``complete_ids``."""
+    comp, _n = _label_points(np.asarray(rr, np.int64), np.asarray(cc, np.int64), core[0] + 2 * r, 2 * r + 1)
+    return comp
+
+
 def tile_components(
     mask_ext: np.ndarray,
     values: np.ndarray,
@@ -220,16 +240,20 @@ def points_components(
     r: int,
     origin: tuple[int, int],
     tile: tuple[int, int],
+    comp: np.ndarray | None = None,
 ) -> TileComponents:
     """:func:`tile_components` from the set pixels of the tile's mask: ``rr``, ``cc`` their
     coordinates in the ``(h + 2r, w + 2r)`` frame of ``mask_ext``, in row-major order, and
     ``values``, ``stat`` the input value and detector statistic at each of them (those of
     points in the margin are not used). A GPU tile hands over only these (a few bytes a
-    detection) instead of its whole mask and statistic (workers/tasks.py)."""
+    detection) instead of its whole mask and statistic (workers/tasks.py). ``comp``: the
+    points' component ids when already labelled (:func:`point_labels`)."""
     h, w = core
     rr = np.asarray(rr, np.int64)
     cc = np.asarray(cc, np.int64)
-    comp, n = _label_points(rr, cc, h + 2 * r, 2 * r + 1)
+    if comp is None:
+        comp = point_labels(rr, cc, core, r)
+    n = int(comp.max()) + 1 if len(comp) else 0
     top, bottom, left, right = _edge_lines(rr, cc, comp, h, w, r)
     mom = np.zeros(n, MOMENT_DTYPE)
     mom["r0"] = np.iinfo(np.int64).max
@@ -278,9 +302,10 @@ def points_components(
     tid = np.flatnonzero(touching)
     remap[tid + 1] = np.arange(1, len(tid) + 1)
     edges = {k: remap[v] for k, v in edges.items()}
-    complete = mom[~touching]
-    complete = complete[complete["n"] > 0]
-    return TileComponents(tile=tile, shape=(h, w), moments=mom[touching], edges=edges, complete=complete)
+    inner = np.flatnonzero(~touching)
+    inner = inner[mom["n"][inner] > 0]
+    return TileComponents(tile=tile, shape=(h, w), moments=mom[touching], edges=edges, complete=mom[inner],
+                          ids=tid, complete_ids=inner)
 
 
 def _pairs_line(a: np.ndarray, b: np.ndarray) -> set[tuple[int, int]]:
@@ -350,11 +375,16 @@ def min_labels(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return lab
 
 
-def merge_tiles(tiles: dict[tuple[int, int], TileComponents]) -> np.ndarray:
+def merge_tiles(tiles: dict[tuple[int, int], TileComponents], members: bool = False):
     """Join components across tile borders; returns one moment record per component.
 
     ``tiles`` maps grid index (i, j) to the tile's :class:`TileComponents`. Components
     inside a tile (``complete``) pass through; edge components are joined by :func:`min_labels`.
+
+    ``members``: also return, for each tile, ``(ids, record)``: the tile's component ids
+    (:class:`TileComponents` ``ids`` / ``complete_ids``) with a part in the scene and the index
+    of the returned record each belongs to, so that the pixels of chosen records can be picked
+    tile by tile from the tiles' label stores (workers/tasks.py ``run_tile_keep``).
     """
     keys = sorted(tiles)
     offset: dict[tuple[int, int], int] = {}
@@ -390,30 +420,48 @@ def merge_tiles(tiles: dict[tuple[int, int], TileComponents]) -> np.ndarray:
             if a > 0 and b > 0:
                 link((i, j), (i + 1, j - 1), [(a, b)])
     complete = [tiles[k].complete for k in keys if tiles[k].complete is not None]
-    if total == 0:
-        res = np.concatenate(complete) if complete else np.zeros(0, MOMENT_DTYPE)
-        return res[_order(res)]
-    allm = np.concatenate([tiles[k].moments for k in keys])
-    roots = min_labels(total, np.concatenate(ends_a) if ends_a else np.zeros(0, np.int64),
-                       np.concatenate(ends_b) if ends_b else np.zeros(0, np.int64))
-    order = np.argsort(roots, kind="stable")
-    rs = roots[order]
-    starts = np.flatnonzero(np.r_[True, rs[1:] != rs[:-1]])
-    ends = np.r_[starts[1:], len(rs)]
-    out = []
-    for s, e in zip(starts, ends):
-        idx = order[s:e]
-        if e - s == 1:
-            rec = allm[idx]
-        else:
-            rec = combine([allm[idx]])
-        if rec["n"][0] > 0:
-            out.append(rec)
+    out: list[np.ndarray] = []
+    owner = np.full(total, -1, np.int64)  # record (before ordering) of each edge part
+    if total:
+        allm = np.concatenate([tiles[k].moments for k in keys])
+        roots = min_labels(total, np.concatenate(ends_a) if ends_a else np.zeros(0, np.int64),
+                           np.concatenate(ends_b) if ends_b else np.zeros(0, np.int64))
+        order = np.argsort(roots, kind="stable")
+        rs = roots[order]
+        starts = np.flatnonzero(np.r_[True, rs[1:] != rs[:-1]])
+        ends = np.r_[starts[1:], len(rs)]
+        for s, e in zip(starts, ends):
+            idx = order[s:e]
+            rec = allm[idx] if e - s == 1 else combine([allm[idx]])
+            if rec["n"][0] > 0:
+                owner[idx] = len(out)
+                out.append(rec)
+    n_edge = len(out)
     parts = out + complete
-    if not parts:
-        return np.zeros(0, MOMENT_DTYPE)
-    res = np.concatenate(parts)
-    return res[_order(res)]
+    res = np.concatenate(parts) if parts else np.zeros(0, MOMENT_DTYPE)
+    perm = _order(res)
+    res = res[perm]
+    if not members:
+        return res
+    rank = np.empty(len(perm), np.int64)
+    rank[perm] = np.arange(len(perm))  # position of each record after ordering
+    member: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    base = n_edge
+    for k in keys:
+        t = tiles[k]
+        ids, recs = [], []
+        if len(t.moments):
+            own = owner[offset[k]: offset[k] + len(t.moments)]
+            sel = (own >= 0) & (t.moments["n"] > 0)  # parts with pixels in this tile's core
+            ids.append(np.asarray(t.ids, np.int64)[sel])
+            recs.append(rank[own[sel]])
+        if t.complete is not None and len(t.complete):
+            ids.append(np.asarray(t.complete_ids, np.int64))
+            recs.append(rank[base + np.arange(len(t.complete))])
+            base += len(t.complete)
+        if ids:
+            member[k] = (np.concatenate(ids), np.concatenate(recs))
+    return res, member
 
 
 def shape_from_moments(

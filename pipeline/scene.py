@@ -242,19 +242,20 @@ def finalize_scene(path: str | os.PathLike, attrs: dict[str, Any] | None = None)
 
 
 def create_mask_store(path: str | os.PathLike, shape: tuple[int, int], tile: int,
-                      attrs: dict[str, Any] | None = None):
-    """Create the detection mask store at ``path``: a group with one ``uint8`` array ``mask``
-    (1 = detected), chunked like a scene of tile side ``tile`` (one shard per tile, so one
-    tile task writes exactly one chunk or shard), zstd compressed, fill value 0. Returns the
-    zarr array."""
+                      attrs: dict[str, Any] | None = None, arrays: tuple[str, ...] = ("mask",),
+                      dtype: str = "uint8"):
+    """Create the detection mask store at ``path``: a group with one ``uint8`` array per name in
+    ``arrays`` (default ``mask``: 1 = detected), chunked like a scene of tile side ``tile`` (one
+    shard per tile, so one tile task writes exactly one chunk or shard), zstd compressed, fill
+    value 0. ``dtype``: the arrays' type (e.g. int32 component labels). Returns the first array."""
     import zarr
 
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
-    arr = g.create_array("mask", shape=tuple(int(s) for s in shape), dtype="uint8", **chunking(tile),
-                         compressors=_zstd(), dimension_names=("y", "x"), fill_value=0)
+    out = [g.create_array(name, shape=tuple(int(s) for s in shape), dtype=dtype, **chunking(tile),
+                          compressors=_zstd(), dimension_names=("y", "x"), fill_value=0) for name in arrays]
     if attrs:
         g.attrs.update(_jsonable(attrs))
-    return arr
+    return out[0]
 
 
 #: The default processing tile of a large scene (:func:`processing_tile`): the stored tile is

@@ -76,6 +76,18 @@ def keep_mask(records: np.ndarray, params: Any, spacing: tuple[float, float] | N
     return keep
 
 
+def size_prefilter(params: Any, line_join: bool) -> Any:
+    """The filter a tile applies to its own complete components before the merge: the whole
+    :func:`keep_mask` rule, or, when collinear pieces are joined into lines on the client
+    (:mod:`sarship.pipeline.lines`, ``line_join``), the area rule only: a line's pieces must
+    reach the join whatever their shape (each may be thinner or shorter than a ship), and the
+    client applies the same area rule before the join, so the pieces joined do not depend on
+    the tiling."""
+    if not line_join:
+        return params
+    return params.model_copy(update={"max_elongation": None, "min_length_m": None, "max_length_m": None})
+
+
 _WGS84 = ("EPSG:4326", "OGC:CRS84", "WGS84", "CRS84")
 
 
@@ -232,4 +244,4 @@ def _default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-__all__ = ["MOMENT_DTYPE", "keep_mask", "lengths_m", "features", "geolocate", "collection", "write_json"]
+__all__ = ["MOMENT_DTYPE", "keep_mask", "size_prefilter", "lengths_m", "features", "geolocate", "collection", "write_json"]

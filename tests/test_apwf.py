@@ -196,7 +196,7 @@ def test_tiled_equals_untiled(tmp_path, client, p, estimator):
         run = run_detection(scene, "apwf", settings, out_dir=o, tile=tile, client=client, progress=False)
         assert run["channel"] == list(names)
         fc = json.loads((o / "detections.geojson").read_text())
-        mask = zarr.open_array(str(o / "mask.zarr" / "mask"), mode="r")[:]
+        mask = zarr.open_array(str(o / "mask.zarr" / "detected"), mode="r")[:]
         out[tile] = (fc["features"], mask)
     prm = apwf.APWFParams(**{k: v for k, v in settings.items()})
     ref, stat = _detect_whole(x, prm)

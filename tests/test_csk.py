@@ -212,7 +212,7 @@ def test_tiled_equals_whole(tmp_path, client):
                             progress=False)
         import zarr
 
-        mask = np.asarray(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "mask"), mode="r")[:]).astype(bool)
+        mask = np.asarray(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "detected"), mode="r")[:]).astype(bool)
         np.testing.assert_array_equal(mask, ref_mask)
         feats = json.loads((tmp_path / f"t{tile}" / "detections.geojson").read_text())["features"]
         out[tile] = [f["properties"] for f in feats]
@@ -313,7 +313,7 @@ def test_detections_carry_complex_properties(tmp_path, client):
     assert len(feats) >= 8
     import zarr
 
-    mask = np.asarray(zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "mask"), mode="r")[:]) > 0
+    mask = np.asarray(zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "detected"), mode="r")[:]) > 0
     same = 0
     for f in feats:
         p = f["properties"]

@@ -223,7 +223,7 @@ def test_tiled_equals_whole_on_cluster(tmp_path, client):
     for tile in (4096, 11):  # 11: smaller than the halo (12), not dividing 61 x 53
         out = tmp_path / f"o{tile}"
         run = run_detection(scene, "gamma_mrf", settings, out_dir=out, tile=tile, client=client, progress=False)
-        mask = zarr.open_array(str(out / "mask.zarr" / "mask"), mode="r")[:]
+        mask = zarr.open_array(str(out / "mask.zarr" / "detected"), mode="r")[:]
         feats = json.loads((out / "detections.geojson").read_text())["features"]
         runs[tile] = (run, mask, feats)
     (r1, m1, f1), (r2, m2, f2) = runs[4096], runs[11]

@@ -202,7 +202,7 @@ def test_csk_detections_carry_the_segmented_geometry(tmp_path, client):
         feats = json.loads((tmp_path / f"t{tile}" / "detections.geojson").read_text())["features"]
         props[tile] = [f["properties"] for f in feats]
     assert props[37] == props[4096]
-    mask = np.asarray(zarr.open_array(str(tmp_path / "t4096" / "mask.zarr" / "mask"), mode="r")[:]) > 0
+    mask = np.asarray(zarr.open_array(str(tmp_path / "t4096" / "mask.zarr" / "detected"), mode="r")[:]) > 0
     found = set()
     for p in props[4096]:
         assert p["segmentation"] == "kurtosis" and p["segmented_area_px"] >= 0

@@ -606,7 +606,7 @@ def test_tiled_equals_untiled_dask(tmp_path, client):
         out = tmp_path / tag
         r = run_detection(scene, "lmm", settings, out_dir=out, tile=tile, client=client, progress=False)
         fc = json.loads((out / "detections.geojson").read_text())
-        return r, fc["features"], zarr.open_array(str(out / "mask.zarr" / "mask"), mode="r")[:]
+        return r, fc["features"], zarr.open_array(str(out / "mask.zarr" / "detected"), mode="r")[:]
 
     p = LMMParams(**settings)
     assert p.method == "grid" and LMMParams().method == "grid"

@@ -229,7 +229,7 @@ def test_land_file_is_left_out_of_the_ring_end_to_end(client, tmp_path):
     ship = [f["properties"] for f in feats if f["properties"]["bbox_px"] == [110, 140, 114, 150]]
     assert len(ship) == 1, [f["properties"]["bbox_px"] for f in feats]
     p = ship[0]
-    detected = np.asarray(zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "mask"), mode="r")[...]) != 0
+    detected = np.asarray(zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "detected"), mode="r")[...]) != 0
     m = GAP_PX + RING_PX
     win = (slice(110 - m, 114 + m), slice(140 - m, 150 + m))
     ring = np.ones(x.shape, bool)

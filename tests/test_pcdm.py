@@ -88,14 +88,14 @@ def test_scene_wide_threshold_and_tiling(tmp_path, client, rule):
     span, _ = pcdm.span_psh(mirror_pad(X, h), h, (-h, -h), prm)
     if rule == "fraction":  # the thesis' 0.005 * (max - min) over the whole scene
         assert whole["prepared"]["t_span"] == pytest.approx(0.005 * (span.max() - span.min()), rel=1e-12)
-    m_whole = zarr.open_array(str(tmp_path / "w" / "mask.zarr" / "mask"))[:]
+    m_whole = zarr.open_array(str(tmp_path / "w" / "mask.zarr" / "detected"))[:]
     np.testing.assert_array_equal(m_whole.astype(bool), span > whole["prepared"]["t_span"])
     for tile in (40, 97):
         run = run_detection(scene, "pcdm", settings, out_dir=tmp_path / f"t{tile}", tile=tile, client=client,
                             progress=False)
         assert run["scene_pass"]["values"] == whole["scene_pass"]["values"]
         assert run["scene_pass"]["tiles"] == run["tiles"]["count"]
-        np.testing.assert_array_equal(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "mask"))[:], m_whole)
+        np.testing.assert_array_equal(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "detected"))[:], m_whole)
         a = json.loads((tmp_path / f"t{tile}" / "detections.geojson").read_text())["features"]
         b = json.loads((tmp_path / "w" / "detections.geojson").read_text())["features"]
         assert a == b

@@ -61,7 +61,7 @@ def test_ogc_state_machine_and_results(server):
     import tifffile
 
     m = tifffile.imread(io.BytesIO(tif.content))
-    assert m.shape == (300, 260) and m.dtype == np.uint8 and m.sum() == met["detected_px"]
+    assert m.shape == (300, 260) and m.dtype == np.uint8 and m.sum() == met["mask_px"] > 0
     listed = [j["jobID"] for j in httpx.get(u + "/jobs").json()["jobs"]]
     assert listed.count(job_id) == 1
 

@@ -65,7 +65,7 @@ def _run(tmp_path, client, scene, det, tile, settings, tag):
     out = tmp_path / f"{det}-{tag}"
     run = run_detection(scene, det, settings, out_dir=out, tile=tile, client=client, progress=False)
     fc = json.loads((out / "detections.geojson").read_text())
-    mask = zarr.open_array(str(out / "mask.zarr" / "mask"), mode="r")[:]
+    mask = zarr.open_array(str(out / "mask.zarr" / "detected"), mode="r")[:]
     return run, fc["features"], mask
 
 
@@ -116,7 +116,9 @@ def _tiled_equals_untiled(tmp_path, client, det, tiles):
 def test_components_equal_global_labelling(tmp_path, client, merge_px):
     x = blobs_scene((211, 199), looks=1.0, seed=5, n=40, amp=30.0)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=32, looks=1.0)
-    settings = {"pfa": "1e-2", "guard": "7", "background": "15", "min_area_px": "1", "merge_px": str(merge_px)}
+    # every component kept (no line rule: chance-collinear false alarms at pfa 1e-2 would be joined)
+    settings = {"pfa": "1e-2", "guard": "7", "background": "15", "min_area_px": "1", "merge_px": str(merge_px),
+                "line_gap_px": "none"}
     run, feats, mask = _run(tmp_path, client, scene, "ca_cfar", 23, settings, f"m{merge_px}")
     m = mask.astype(bool)
     r = merge_radius(merge_px)

@@ -138,7 +138,7 @@ def test_tiled_equals_untiled(tmp_path, client):
     settings = {"min_area_px": "1", "sample_stride": "3"}
     whole = run_detection(scene, "vb_polsar", settings, out_dir=tmp_path / "w", tile=4096, client=client,
                           progress=False)
-    m_whole = zarr.open_array(str(tmp_path / "w" / "mask.zarr" / "mask"))[:]
+    m_whole = zarr.open_array(str(tmp_path / "w" / "mask.zarr" / "detected"))[:]
     assert 0 < m_whole.sum() < 0.01 * m_whole.size
     assert whole["scene_pass"]["values"]["calibration"] == "tail"  # the calibrated threshold is compared
     # the same as detect on the whole scene in memory
@@ -152,7 +152,7 @@ def test_tiled_equals_untiled(tmp_path, client):
         run = run_detection(scene, "vb_polsar", settings, out_dir=tmp_path / f"t{tile}", tile=tile,
                             client=client, progress=False)
         assert run["scene_pass"]["values"] == whole["scene_pass"]["values"]
-        np.testing.assert_array_equal(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "mask"))[:],
+        np.testing.assert_array_equal(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "detected"))[:],
                                       m_whole)
         a = json.loads((tmp_path / f"t{tile}" / "detections.geojson").read_text())["features"]
         b = json.loads((tmp_path / "w" / "detections.geojson").read_text())["features"]

@@ -1,7 +1,8 @@
 """``sarship detect``: submit one task per output tile to Dask, merge, write the outputs.
 
-Outputs (docs/interfaces/files.md) in ``DIR``: ``mask.zarr`` (a Zarr v3 group with the uint8 array
-``mask`` chunked like the tiles), ``detections.geojson`` and ``run.json``. They are written
+Outputs (docs/interfaces/files.md) in ``DIR``: ``mask.zarr`` (a Zarr v3 group with the uint8 arrays
+``mask``, the pixels of the detections kept, and ``detected``, the detector's raw decision, chunked
+like the tiles), ``detections.geojson`` and ``run.json``. They are written
 under a temporary folder inside ``DIR`` and renamed into place only when the run has
 succeeded, so a failed or interrupted run leaves the previous outputs (or nothing) behind.
 """
@@ -26,7 +27,8 @@ from sarship.pipeline import __version__
 from sarship.pipeline.ambiguity import flag_features
 from sarship.pipeline.components import merge_radius, merge_tiles
 from sarship.pipeline.detectors.base import land_mask_parts, resolve_size
-from sarship.pipeline.ship_features import add_contrast, collection, features, keep_mask, write_json
+from sarship.pipeline.lines import discard_lines, near_land
+from sarship.pipeline.ship_features import add_contrast, collection, features, keep_mask, size_prefilter, write_json
 from sarship.pipeline.sidelobes import refine_features
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.inputs import detector_source, make_reader, pixel_power, window_reader
@@ -38,8 +40,14 @@ from sarship.pipeline.scene import (CLAIM_SUFFIX, Scene, claim_output, create_ma
 from sarship.workers.land import LAND_STORE, check_land_file, finish_land, prepare_land
 from sarship.workers.request import AUTO, JobRequest
 from sarship.workers.routing import plan
-from sarship.workers.tasks import TileJob, read_land_block, run_tile, run_tile_stats
+from sarship.workers.tasks import TileJob, read_land_block, run_tile, run_tile_keep, run_tile_stats
 
+#: ``mask.zarr``'s second array: the detector's raw per-pixel decision, before any detection
+#: was dropped (``mask`` holds the pixels of the detections kept: docs/interfaces/files.md)
+DETECTED_ARRAY = "detected"
+#: The run's scratch store of each tile's component labels (int32, id + 1), in its temporary
+#: folder only: the kept-detection mask is picked from it tile by tile (tasks.run_tile_keep)
+LABEL_STORE = "labels.zarr"
 OUTPUTS = ("mask.zarr", "detections.geojson", "run.json", "land.zarr")
 #: Outputs a run writes only with some parameters (``land.zarr``: with ``land_mask``); an older
 #: one in the folder is removed when the new run has none.
@@ -362,13 +370,18 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
     tmp = _prepare_out(out_dir)
     try:
         geo = {k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs}
-        create_mask_store(tmp / "mask.zarr", (H, W), tile, {"detector": detector, "scene": str(scene.path), **geo})
+        create_mask_store(tmp / "mask.zarr", (H, W), tile, {"detector": detector, "scene": str(scene.path), **geo},
+                          arrays=("mask", DETECTED_ARRAY))
+        create_mask_store(tmp / LABEL_STORE, (H, W), tile, arrays=("labels",), dtype="int32")
         jobs = [
             TileJob(
                 scene_path=str(scene.path), var=var, transform=transform, scene_shape=(H, W),
                 index=(i, j), bounds=(r0, r1, c0, c1), halo=halo, merge_r=mr, detector=detector,
                 params=params.model_dump(), prep=prep,
                 mask_path=None if fit_only else str(tmp / "mask.zarr" / "mask"), spacing=spacing, fit=fit,
+                detected_path=None if fit_only else str(tmp / "mask.zarr" / DETECTED_ARRAY),
+                label_path=None if fit_only else str(tmp / LABEL_STORE / "labels"),
+                line_join=params.line_gap_px is not None,
             )
             for i, j, r0, r1, c0, c1 in tile_slices((H, W), tile)
         ]
@@ -429,45 +442,58 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
             t_prep = time.perf_counter()
             results = _execute(client, jobs, detector, progress, on_tile, submit=placement.submit, extra=blocks)
             t_tiles = time.perf_counter()
-        t_closed = time.perf_counter()  # a local cluster started here is closed on leaving the block
-        finish_land(tmp, land_record, results, (H, W))
-        t_land_done = time.perf_counter()
-        comps = {r["index"]: r["components"] for r in results}
-        records = merge_tiles(comps)
-        records = records[keep_mask(records, params, spacing)]
-        if spec.discriminate is not None:  # the detector's own rules on whole components (e.g. peak)
-            records = records[spec.discriminate(records, params, prep)]
-        if fit_only:  # --detector auto's candidate: the fit of its model, nothing written
-            shutil.rmtree(tmp, ignore_errors=True)
-            return _fit_record(detector, params, fit, results, records, (H, W))
-        feats = features(records, spacing, geo)
-        feats = add_contrast(feats, (land_record or {}).get("sea_mean"))
-        scene_read = mask_read = None
-        if params.sidelobes or spec.detection_properties is not None or params.min_contrast_db is not None:
-            # the per-detection steps read small windows: through block caches, each chunk once
-            scene_read = CachedWindows(make_reader(str(scene.path), var, transform), (H, W))
-            mask_read = CachedWindows(window_reader(tmp / "mask.zarr" / "mask"), (H, W))
-        feats, records, contrast_record = _contrast_step(
-            feats, records, params.min_contrast_db, scene_read, mask_read,
-            tmp / LAND_STORE / "land" if land_record is not None else None, (H, W), getattr(params, "nodata", None))
-        if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
-            feats = refine_features(feats, records, scene_read, mask_read, (H, W), mr, spacing, geo)
-        if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
-            feats = spec.detection_properties(feats, records, scene_read, mask_read, (H, W), mr, params, prep,
-                                              spacing=spacing, geo=geo)
-        from sarship.pipeline.ship_features import geolocate  # WGS84 outline + centre of the final geometry
+            # the decision on whole components: on the client, from the tiles' moment tables
+            finish_land(tmp, land_record, results, (H, W))
+            t_land_done = time.perf_counter()
+            comps = {r["index"]: r["components"] for r in results}
+            merged, members = merge_tiles(comps, members=True)
+            records, discarded = _discriminate(merged, params, spacing, sum(r.get("size_dropped", 0) for r in results))
+            if spec.discriminate is not None:  # the detector's own rules on whole components (e.g. peak)
+                n0 = len(records)
+                records = records[spec.discriminate(records, params, prep)]
+                discarded["detector"] = n0 - len(records)
+            if fit_only:  # --detector auto's candidate: the fit of its model, nothing written
+                shutil.rmtree(tmp, ignore_errors=True)
+                return _fit_record(detector, params, fit, results, records, (H, W))
+            land_path = tmp / LAND_STORE / "land" if land_record is not None else None
+            if params.land_gap_px is not None and land_path is not None and len(records):
+                near = near_land(records, CachedWindows(window_reader(land_path), (H, W)), (H, W), params.land_gap_px)
+                records, discarded["land"] = records[~near], int(near.sum())
+            feats = features(records, spacing, geo)
+            feats = add_contrast(feats, (land_record or {}).get("sea_mean"))
+            scene_read = mask_read = None
+            if params.sidelobes or spec.detection_properties is not None or params.min_contrast_db is not None:
+                # the per-detection steps read small windows: through block caches, each chunk once; the
+                # mask they read is the detector's own decision (each detection's component, and the
+                # detections left out of the clutter ring)
+                scene_read = CachedWindows(make_reader(str(scene.path), var, transform), (H, W))
+                mask_read = CachedWindows(window_reader(tmp / "mask.zarr" / DETECTED_ARRAY), (H, W))
+            feats, records, contrast_record = _contrast_step(
+                feats, records, params.min_contrast_db, scene_read, mask_read, land_path, (H, W),
+                getattr(params, "nodata", None))
+            discarded["contrast"] = contrast_record.get("dropped", 0)
+            if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
+                feats = refine_features(feats, records, scene_read, mask_read, (H, W), mr, spacing, geo)
+            if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
+                feats = spec.detection_properties(feats, records, scene_read, mask_read, (H, W), mr, params, prep,
+                                                  spacing=spacing, geo=geo)
+            from sarship.pipeline.ship_features import geolocate  # WGS84 outline + centre of the final geometry
 
-        feats = geolocate(feats, geo)
-        # azimuth-ambiguity flags: ambiguity_of on every detection (pipeline/ambiguity.py)
-        feats, ambiguity_record = flag_features(feats, scene.attrs, params.ambiguities, params.ambiguity_tol_px,
-                                                params.ambiguity_min_db)
-        fit_record = None
-        if fit is not None:  # does the detector's clutter model fit the scene? (pipeline/model_fit.py)
-            fit_record = _fit_record(detector, params, fit, results, records, (H, W))
-            line = model_fit.advice(fit_record)
-            if line:
-                warnings.append(line)
-        t_merge = time.perf_counter()
+            feats = geolocate(feats, geo)
+            # azimuth-ambiguity flags: ambiguity_of on every detection (pipeline/ambiguity.py)
+            feats, ambiguity_record = flag_features(feats, scene.attrs, params.ambiguities, params.ambiguity_tol_px,
+                                                    params.ambiguity_min_db)
+            fit_record = None
+            if fit is not None:  # does the detector's clutter model fit the scene? (pipeline/model_fit.py)
+                fit_record = _fit_record(detector, params, fit, results, records, (H, W))
+                line = model_fit.advice(fit_record)
+                if line:
+                    warnings.append(line)
+            t_merge = time.perf_counter()
+            # mask.zarr/mask: the pixels of the detections kept, written tile by tile on the workers
+            kept_px = _write_kept(client, jobs, merged, members, records, detector, placement.submit)
+            t_mask = time.perf_counter()
+        t_closed = time.perf_counter()  # a local cluster started here is closed on leaving the block
         run = {
             "sarship_version": __version__,
             "detector": detector,
@@ -510,12 +536,15 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
             },
             "detections": len(feats),
             "detected_px": int(sum(r["detected_px"] for r in results)),
+            "mask_px": kept_px,
+            "discarded": discarded,
             "timings": {
                 "prepare_s": round(t_prep - t_start, 4),
                 "tiles_s": round(t_tiles - t_prep, 4),
                 "cluster_start_s": None if cluster_start is None else round(cluster_start, 4),
-                "cluster_close_s": round(t_closed - t_tiles, 4),
+                "cluster_close_s": round(t_closed - t_mask, 4),
                 "merge_s": round(t_merge - t_land_done, 4),
+                "mask_s": round(t_mask - t_merge, 4),
                 "detect_cpu_s": round(sum(r["detect_s"] for r in results), 4),
                 "read_cpu_s": round(sum(r["read_s"] for r in results), 4),
                 "mpx_per_s": round(H * W / max(t_tiles - t_prep, 1e-9) / 1e6, 3),
@@ -536,7 +565,7 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
         fc = collection(feats, detector=detector, scene=str(scene.path), parameters=params.model_dump())
         write_json(tmp / "detections.geojson", fc)
         t_end = time.perf_counter()
-        run["timings"]["consolidate_s"] = round(t_cons - t_fin + t_land_done - t_closed, 4)
+        run["timings"]["consolidate_s"] = round(t_cons - t_fin + t_land_done - t_tiles, 4)
         run["timings"]["geojson_s"] = round(t_end - t_cons, 4)
         run["timings"]["total_s"] = round(t_end - t_start, 4)
         write_json(tmp / "run.json", run)
@@ -547,6 +576,54 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
         if created:  # a failed run leaves no trace, not even the empty folder it made
             with contextlib.suppress(OSError):
                 out_dir.rmdir()
+        raise
+
+
+def _discriminate(records: np.ndarray, params, spacing: tuple[float, float] | None,
+                  tile_size_dropped: int) -> tuple[np.ndarray, dict[str, int]]:
+    """The size, shape and line rules on the merged components: the area rule the tiles applied
+    (:func:`sarship.pipeline.ship_features.size_prefilter`), the line rule
+    (:func:`sarship.pipeline.lines.discard_lines`, on the pieces before the shape test), then the
+    whole size and shape rule (:func:`keep_mask`). Returns the kept records and the count of
+    components dropped by each rule (``tile_size_dropped``: those the tiles dropped already)."""
+    pre = size_prefilter(params, params.line_gap_px is not None)
+    keep = keep_mask(records, pre, spacing) if pre is not params else np.ones(len(records), bool)
+    size = tile_size_dropped + int(len(keep) - keep.sum())
+    records = records[keep]
+    reason = discard_lines(records, params.line_gap_px, params.line_angle_deg, params.line_dominant_db,
+                           params.max_elongation, params.max_length_m, spacing)
+    counts = {"line": int((reason == "line").sum()), "smear": int((reason == "smear").sum())}
+    records = records[reason == ""]
+    keep = keep_mask(records, params, spacing)
+    counts = {"size": size + int(len(keep) - keep.sum()), **counts, "detector": 0, "land": 0, "contrast": 0}
+    return records[keep], counts
+
+
+def _write_kept(client, jobs: list[TileJob], merged: np.ndarray, members: dict, kept: np.ndarray, detector: str,
+                submit: dict | None) -> int:
+    """Write ``mask.zarr/mask``: each tile with a part of a kept detection (``kept``: the final
+    records, a subset of ``merged``, matched by their peak pixel, which belongs to one component)
+    writes its pixels of them from its label store (:func:`run_tile_keep`), on the workers.
+    Returns the number of pixels written."""
+    if not len(kept):
+        return 0
+    index = {(int(r), int(c)): k for k, (r, c) in enumerate(zip(merged["peak_r"], merged["peak_c"]))}
+    chosen = np.zeros(len(merged), bool)
+    chosen[[index[(int(r), int(c))] for r, c in zip(kept["peak_r"], kept["peak_c"])]] = True
+    todo = []
+    for job in jobs:
+        ids, recs = members.get(job.index, (np.zeros(0, np.int64), np.zeros(0, np.int64)))
+        sel = ids[chosen[recs]]
+        if len(sel):
+            todo.append((job, sel))
+    tag = uuid.uuid4().hex[:6]
+    futures = [client.submit(run_tile_keep, job, ids, pure=False,
+                             key=f"sarship-{detector}-keep-{job.index[0]}-{job.index[1]}-{tag}", **(submit or {}))
+               for job, ids in todo]
+    try:
+        return int(sum(r["kept_px"] for r in client.gather(futures)))
+    except BaseException:
+        client.cancel(futures)
         raise
 
 

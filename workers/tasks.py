@@ -2,9 +2,12 @@
 
 Each task reads its tile plus halo straight from the scene's Zarr store (so only tile
 metadata travels through the scheduler), runs the detector on it, writes into its own
-chunk (shard) of the output mask only, and only the inner chunks its detections fall in
+chunk (shard) of the raw decision (``mask.zarr/detected``) and of the run's scratch store of
+its component labels only, and only the inner chunks its detections fall in
 (so no two tasks ever write the same chunk or shard), and returns the
-tile's component moments and edge labels (small) for the cross-tile merge.
+tile's component moments and edge labels (small) for the cross-tile merge. Once the client has
+decided which detections are kept, :func:`run_tile_keep` writes the tile's part of
+``mask.zarr/mask``: the pixels of its components that belong to kept detections.
 """
 
 from __future__ import annotations
@@ -16,8 +19,8 @@ from typing import Any
 import numpy as np
 
 from sarship.pipeline import detectors
-from sarship.pipeline.components import mask_points, points_components
-from sarship.pipeline.ship_features import keep_mask
+from sarship.pipeline.components import mask_points, point_labels, points_components
+from sarship.pipeline.ship_features import keep_mask, size_prefilter
 from sarship.pipeline.inputs import make_reader, open_array, pixel_power
 from sarship.pipeline.windows import padded_block
 
@@ -54,10 +57,11 @@ def write_sparse(path: str, r0: int, c0: int, core: np.ndarray) -> tuple[int, in
 
 
 def write_points(path: str, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray,
-                 shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
+                 shape: tuple[int, int], values: np.ndarray | None = None) -> tuple[int, int, int, int] | None:
     """:func:`write_sparse` of the tile (``shape``, its ``[0, 0]`` at scene ``(r0, c0)``) whose
     set pixels are at ``(rows, cols)`` (tile coordinates): the same chunks written with the same
-    content, built from the points without scanning the tile."""
+    content, built from the points without scanning the tile. ``values``: what each point holds
+    (default 1), in the array's own dtype (e.g. the tile's component labels)."""
     rows = np.asarray(rows, np.int64)
     cols = np.asarray(cols, np.int64)
     if rows.size == 0:
@@ -65,8 +69,13 @@ def write_points(path: str, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray
     out = open_array(path, write=True)
     a, b, c, d = _chunk_box(out.chunks, r0, c0, shape, (int(rows.min()), int(rows.max())),
                             (int(cols.min()), int(cols.max())))
-    box = np.zeros((b - a, d - c), np.uint8)
-    box[rows - a, cols - c] = 1
+    if values is None:
+        box = np.zeros((b - a, d - c), np.uint8)
+        box[rows - a, cols - c] = 1
+    else:
+        values = np.asarray(values)
+        box = np.zeros((b - a, d - c), values.dtype)
+        box[rows - a, cols - c] = values
     out[r0 + a: r0 + b, c0 + c: c0 + d] = box
     return r0 + a, r0 + b, c0 + c, c0 + d
 
@@ -97,12 +106,17 @@ class TileJob:
     #: or {"mode": "file", "store"}; land pixels become NaN (absent) before the detector sees them
     land: dict | None = None
     land_halo: int = 0  # extra context the texture land mask needs beyond ``halo``
+    line_join: bool = False  # lines are joined on the client: the tile keeps elongated components
     land_path: str | None = None  # land.zarr array this tile writes its core into (texture mode)
     #: clutter-model fit (pipeline/model_fit.py): None, or {"stride", "probes": [{"pfa", "prep",
     #: "statistic"}]}: the tile's cells of the scene's sample grid, flagged at the job's PFA and
     #: at each probe PFA (``statistic``: the statistic against the probe's ``prep["threshold"]``;
     #: ``detector``, ``params``: another detector of the same model decides, model_fit.MODEL_PROBE)
     fit: dict | None = None
+    #: the raw per-pixel decision (``mask.zarr/detected``) and the scratch store of the tile's
+    #: component labels (int32, id + 1) from which :func:`run_tile_keep` writes ``mask``
+    detected_path: str | None = None
+    label_path: str | None = None
 
 
 def _worker_name() -> str:
@@ -343,16 +357,26 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
     a, b = r0 - er0, c0 - ec0
     h, w = r1 - r0, c1 - c0
     incore = (pr >= a) & (pr < a + h) & (pc >= b) & (pc < b + w)
-    # the stores are new and all fill value (0): a tile writes only the chunks its marks fall in
-    if job.mask_path is not None:
-        write_points(job.mask_path, r0, c0, pr[incore] - a, pc[incore] - b, (h, w))
+    # points in the (h + 2m, w + 2m) frame of the tile's mask with its merge margin
+    rr, cc = pr + (m - a), pc + (m - b)
+    comp = point_labels(rr, cc, (h, w), m)
+    # the stores are new and all fill value (0): a tile writes only the chunks its marks fall in;
+    # mask.zarr/mask is written once the detections are decided (run_tile_keep)
+    if job.detected_path is not None:
+        write_points(job.detected_path, r0, c0, pr[incore] - a, pc[incore] - b, (h, w))
+    if job.label_path is not None:
+        write_points(job.label_path, r0, c0, pr[incore] - a, pc[incore] - b, (h, w), (comp[incore] + 1).astype(np.int32))
     hb = job.halo
     if job.land_path is not None and land is not None:
         write_sparse(job.land_path, r0, c0, land[hb + a: hb + a + h, hb + b: hb + b + w])
     t3 = time.perf_counter()
-    # points in the (h + 2m, w + 2m) frame of the tile's mask with its merge margin
-    comps = points_components(pr + (m - a), pc + (m - b), val_p, stat_p, (h, w), m, (r0, c0), job.index)
-    comps.complete = comps.complete[keep_mask(comps.complete, params, job.spacing)]
+    comps = points_components(rr, cc, val_p, stat_p, (h, w), m, (r0, c0), job.index, comp)
+    pre = size_prefilter(params, job.line_join)
+    size_dropped = 0
+    if pre is not None:
+        keep = keep_mask(comps.complete, pre, job.spacing)
+        size_dropped = int(len(keep) - keep.sum())
+        comps.keep_complete(keep)
     t4 = time.perf_counter()
     return {
         "index": job.index,
@@ -360,6 +384,7 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
         "worker": _worker_name(),
         "device": "gpu" if gpu else "cpu",
         "detected_px": int(incore.sum()),
+        "size_dropped": size_dropped,  # complete components the size rule dropped here
         "land_px": 0 if land is None else int(land[job.halo + a: job.halo + a + h, job.halo + b: job.halo + b + w].sum()),
         "pixels": h * w,
         "block_from": timing["block_from"],  # "land pass": the land pass's read, kept as Dask data
@@ -372,3 +397,17 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
         "d2h_s": d2h,
         "fit": fit,
     }
+
+
+def run_tile_keep(job: TileJob, ids: np.ndarray) -> dict[str, Any]:
+    """Write the tile's part of ``mask.zarr/mask``: the pixels of its components ``ids`` (the
+    tile's own component ids, :func:`sarship.pipeline.components.merge_tiles` ``members``,
+    of the detections kept), read from the tile's label store; nothing else. Returns the tile's
+    index and its count of kept pixels."""
+    r0, r1, c0, c1 = job.bounds
+    labels = np.asarray(open_array(job.label_path)[r0:r1, c0:c1])
+    rows, cols = np.nonzero(labels)
+    sel = np.isin(labels[rows, cols] - 1, np.asarray(ids, np.int64))
+    write_points(job.mask_path, r0, c0, rows[sel], cols[sel], (r1 - r0, c1 - c0))
+    return {"index": job.index, "kept_px": int(sel.sum()), "pixels": (r1 - r0) * (c1 - c0),
+            "worker": _worker_name()}

@@ -41,6 +41,13 @@ LENGTH_HELP = ("shortest ship kept, in metres (needs the scene's pixel spacing);
                "0 turns it off")
 
 
+#: Defaults of the line rule (pipeline/lines.py): the gap chosen on half A of the shared chips
+#: (bench/REALDATA.md, "Issue 31: kept-detection masks and line discrimination"; the angle and
+#: the dominance setting made no difference there and keep their prior values).
+LINE_GAP_PX = 16
+LINE_ANGLE_DEG = 10.0
+LINE_DOMINANT_DB = 10.0
+
 #: Smallest ``pfa`` accepted: every detector's threshold is a finite float64 down to it (checked
 #: by tests/test_pfa_bounds.py); below it a request is refused (a pfa of 1e-320 is not a
 #: probability any threshold can honour: subnormal, its quantiles overflow).
@@ -93,6 +100,23 @@ class DetectorParams(BaseModel):
                     "dB, measured only when set (-30 measures every detection, dropping practically none); None keeps "
                     "every detection (default: the detector's; 7 for superpixel_cfar)")
     merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
+    # discrimination of lines, smear and land edges (pipeline/lines.py, docs/algorithms/discrimination.md)
+    line_gap_px: Optional[int] = Field(
+        LINE_GAP_PX, ge=0, le=256,
+        description="lines: collinear detections (same orientation within line_angle_deg, one's end within this many "
+                    "pixels of the next one's along their common axis) are joined into one object before the "
+                    "max_elongation / max_length_m test, which drops the pieces of a line together; None turns the "
+                    "join off")
+    line_angle_deg: float = Field(LINE_ANGLE_DEG, ge=0.0, le=45.0,
+                                  description="lines: largest orientation difference (degrees) of joined pieces")
+    line_dominant_db: Optional[float] = Field(
+        LINE_DOMINANT_DB, ge=0.0, le=60.0,
+        description="lines: a piece whose peak is at least this many dB above the median peak of the rest of its line "
+                    "is a ship with its smear or wake: kept (the rest dropped); None keeps no piece of a line")
+    land_gap_px: Optional[int] = Field(
+        None, ge=0, le=1000,
+        description="land edges: drop detections with land within this many pixels of their bounding box (0: "
+                    "touching it), where a land mask is in use; None (default) keeps them (ships moored at quays)")
     sidelobes: bool = Field(True, description="cross-sidelobe suppression: length, width and heading measured on the "
                                               "ship core where a sidelobe cross is found (docs/algorithms/sidelobes.md)")
     # azimuth-ambiguity flags (pipeline/ambiguity.py, docs/algorithms/ambiguity.md; defaults = its DEFAULT_*)
