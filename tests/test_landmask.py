@@ -49,7 +49,9 @@ def land(run_dir: Path) -> np.ndarray:
 
 
 def mask(run_dir: Path) -> np.ndarray:
-    return np.asarray(zarr.open_group(str(run_dir / "mask.zarr"), mode="r")["mask"][...]) > 0
+    """The detector's per-pixel decision (``mask.zarr/detected``: what these land tests are about;
+    ``mask.zarr/mask`` holds only the kept detections' pixels)."""
+    return np.asarray(zarr.open_group(str(run_dir / "mask.zarr"), mode="r")["detected"][...]) > 0
 
 
 @pytest.fixture(scope="module")

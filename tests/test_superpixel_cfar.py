@@ -594,10 +594,14 @@ def test_land_with_moored_ships_is_not_one_ship(tmp_path, client):
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=512, looks=4.0)
     run = run_detection(scene, "superpixel_cfar", {"land_mask": "none"}, out_dir=tmp_path / "o", client=client,
                         progress=False)
-    mask = zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "mask"), mode="r")[:] > 0
-    lab, _ = ndimage.label(mask, structure=np.ones((3, 3)))
+    # the decision (mask.zarr/detected) marks land and the moored ships as one piece; the kept
+    # detections' pixels (mask.zarr/mask) do not hold it
+    decided = zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "detected"), mode="r")[:] > 0
+    lab, _ = ndimage.label(decided, structure=np.ones((3, 3)))
     merged = [k for k in range(1, lab.max() + 1) if len(set(np.unique(truth[lab == k])) - {0}) >= 3]
     assert merged and (lab == merged[0]).sum() > D.MAX_SHIP_PX  # land and the moored ships: one piece
+    kept = zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "mask"), mode="r")[:] > 0
+    assert not kept[lab == merged[0]].any() and kept[truth == 4].any()  # the piece dropped whole
     assert run["parameters"]["max_area_px"] == D.MAX_SHIP_PX
     feats = json.loads((tmp_path / "o" / "detections.geojson").read_text())["features"]
     ships = []
