@@ -214,6 +214,7 @@ def test_land_is_absent_from_rings(coast, client, tmp_path):
         assert np.array_equal(mt, mn)
 
 
+@pytest.mark.slow  # sibling in the default run: test_coastline.py::test_union_with_texture_and_tiled_equals_whole
 def test_tiled_equals_whole(client, tmp_path):
     """Land mask and detection mask bit for bit for tiles smaller than the windows (land halo 111 px)
     and not dividing the scene; the land mask equals classify() on the whole mirror-padded scene."""

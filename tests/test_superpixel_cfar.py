@@ -253,6 +253,7 @@ def _tiled(x, p, prep, tile, halo=None):
     return mask, stat, lab
 
 
+@pytest.mark.slow  # siblings in the default run: test_small_tiles_on_a_small_scene, test_small_ships_tile_bit_for_bit
 def test_tiled_equals_whole_scene_bit_for_bit(monkeypatch):
     x, _ = hires_scene(7, shape=(301, 257), n_ships=3, lengths=(40.0, 120.0))
     x[50:60, 30:45] = np.nan
