@@ -362,8 +362,8 @@ def _settle(client, temps: list, existing: set, timeout: float = 60.0) -> None:
     cluster does not."""
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:
-        try:
-            if not any(client.processing().values()):
+        try:  # a cancelled task leaves the scheduler's view at once but runs on in its worker's thread
+            if not any(client.processing().values()) and not _executing(client):
                 break
         except Exception:
             break
@@ -375,6 +375,12 @@ def _settle(client, temps: list, existing: set, timeout: float = 60.0) -> None:
         if folder not in existing:
             with contextlib.suppress(OSError):
                 folder.rmdir()  # only when empty
+
+
+def _executing(client) -> int:
+    """The number of tasks the cluster's workers are executing now, cancelled ones included."""
+    counts = client.run(lambda dask_worker: int(dask_worker.state.executing_count))
+    return int(sum(counts.values()))
 
 
 def _warm_up(client, folder: Path, detectors: tuple[str, ...]) -> None:
