@@ -49,6 +49,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from sarship.pipeline import landmask
+
 #: The PFA at which a model is judged when the asked one is smaller (and the probe of ``auto``).
 PROBE_PFA = 1e-3
 #: Largest sample (grid cells) of a scene.
@@ -94,8 +96,7 @@ VALID = np.uint8(1)  # flag bit 0: a counted cell; bit i + 1: exceeds at the i-t
 def sample_stride(shape: tuple[int, int], max_sample: int = MAX_SAMPLE) -> int:
     """The grid step of the scene's sample: at most ``max_sample`` cells, at least
     :data:`MIN_STRIDE`."""
-    H, W = shape
-    return max(MIN_STRIDE, math.ceil(math.sqrt(H * W / max_sample)))
+    return max(MIN_STRIDE, landmask.sample_stride(shape, max_sample))  # the land mask's rule, floored
 
 
 def pfas_of(pfa: float) -> tuple[float, ...]:
