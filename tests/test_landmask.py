@@ -100,6 +100,48 @@ def test_open_sea_has_no_land(clutter, looks):
         assert not whole_land(data["intensity"], tc, dec).any()
 
 
+def town_and_fields(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A single-look scene that is 90 % land of two kinds: textured fields 3x the sea (rows below
+    30 %) and a town of 20-px blocks 1-10x the sea with 2 % point scatterers 100x brighter; the
+    sea is the left 10 % of the columns. Returns (intensity, land truth)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    I = rng.exponential(1.0, (n, n))
+    truth = np.zeros((n, n), bool)
+    truth[:, n // 10:] = True
+    town = truth.copy()
+    town[int(0.3 * n):] = False
+    fields = truth & ~town
+    tex = ndimage.gaussian_filter(rng.gamma(1.0, 1.0, (n, n)), 6)
+    I[fields] *= 3 * (tex / tex.mean())[fields]
+    blocks = np.kron(10 ** rng.uniform(0, 1, (n // 20 + 1, n // 20 + 1)), np.ones((20, 20)))[:n, :n]
+    I[town] *= blocks[town]
+    I[town & (rng.random((n, n)) < 0.02)] *= 100
+    return I, truth
+
+
+def test_two_kinds_of_land_with_little_sea_get_an_extra_class():
+    """Issue 31's urban mechanism: with two kinds of land and 10 % sea, two classes split the
+    land and hide the sea in the lower one (Ashman's D about 1.1 < 2: "no land"). The decision
+    then fits one more class, which gives the sea its own, and finds the land; the sea strip
+    stays sea except the window's fringe along the coast."""
+    I, truth = town_and_fields(300, seed=2)
+    tc = lm.TextureConfig()
+    dec = whole_decision(I, tc)
+    assert dec["extra_class"]["classes"] == 3 and dec["extra_class"]["land"], dec["reason"]
+    assert dec["land"] and dec["ashman_d"] >= 2.0 and len(dec["mixture"]["means"]) == 3
+    assert "no land: Ashman's D" in dec["reason"] and "with 3 classes" in dec["reason"]
+    L = whole_land(I, tc, dec)
+    assert (L & truth).sum() / truth.sum() >= 0.99
+    assert (~L & ~truth).sum() / (~truth).sum() >= 0.75
+    # on open sea of one speckle population the extra class is tried and splits the sea: no land
+    # (with ships, the 2-class fit separates their texture, D >= 2, and the weight rule applies)
+    d2 = whole_decision(np.random.default_rng(4).exponential(1.0, (300, 300)), tc)
+    assert "extra_class" in d2 and not d2["extra_class"]["land"] and not d2["land"], d2["reason"]
+    assert not d2["land"], d2["reason"]
+
+
 def test_mixture_em_recovers_parameters_and_gate_can_fail():
     """EM on a known two-Gaussian sample recovers weights/means/sds (to sampling error), is
     deterministic, and Ashman's D separates a bimodal sample (D ~ 5.7) from a unimodal one."""
