@@ -33,6 +33,11 @@ STRIP_ROWS = 256
 GPU_STRIP_ROWS = 2048
 
 
+#: The GPU twin of :func:`detect_block` (the ``gpu`` of ``g0_cfar``, ``k_cfar`` and ``ggd_cfar``'s specs),
+#: resolved on first use by :func:`sarship.pipeline.gpu.twin`.
+GPU_TWIN = "sarship.pipeline.gpu.molc:molc_cfar"
+
+
 def min_ring(n_ring: int) -> int:
     """The fewest usable ring samples for a pixel to be tested."""
     return max(3, min_valid(n_ring))
@@ -142,14 +147,12 @@ def decide(xp, box, block, halo: int, origin, b: int, g: int, censor, kind: str,
 def detect_block(block, halo: int, origin, b: int, g: int, censor, kind: str, tab, looks: float):
     """The detectors' ``detect`` body: CPU (NumPy + :mod:`sarship.pipeline.boxsum`) or, for a
     CuPy block, the GPU twin :func:`sarship.pipeline.gpu.molc.molc_cfar` (same operations)."""
-    from sarship.pipeline.gpu import is_device_array
+    from sarship.pipeline.gpu import is_device_array, twin
 
     if censor is not None and halo < censor_halo(b):
         raise ValueError(f"censoring with background {b} needs a halo of {censor_halo(b)}, block has {halo}")
     if is_device_array(block):
-        from sarship.pipeline.gpu.molc import molc_cfar
-
-        return molc_cfar(block, halo, origin, b, g, censor, kind, tab, looks)
+        return twin(GPU_TWIN)(block, halo, origin, b, g, censor, kind, tab, looks)
     from sarship.pipeline.boxsum import centered_box_sum
 
     x = np.asarray(block)

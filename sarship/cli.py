@@ -16,7 +16,6 @@ import contextlib
 import errno
 import json
 import os
-import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -25,6 +24,7 @@ from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.limits import (DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO,
                                              DEFAULT_MAX_XML_MB)
 from sarship.pipeline.scene import DEFAULT_INGEST_CODEC, INGEST_CODECS
+from sarship.temporaries import present, remove_new, temporaries
 from sarship.workers.request import DEVICES
 
 
@@ -106,7 +106,7 @@ def _print_warnings(command: str, run: dict) -> None:
 
 
 def _progress(label: str):
-    from sarship.workers.jobs import Progress
+    from sarship.workers.progress import Progress
 
     return Progress.callback(label)
 
@@ -247,10 +247,10 @@ def cmd_warm(a) -> int:
         raise InputError(f"--workers must be 0 or more, got {a.workers}")
     try:
         if a.action == "run":
-            from sarship.warm_process import serve
+            from sarship.warm_process import CommandLine, serve
 
-            return serve(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
-                         dashboard=a.dashboard, warm_up=a.warm_up)
+            return serve(CommandLine(parser=build_parser, main=main), device=a.device, workers=a.workers,
+                         idle_timeout=a.idle_timeout, dashboard=a.dashboard, warm_up=a.warm_up)
         if a.action == "start":
             state = warm.start(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
                                dashboard=a.dashboard, warm_up=a.warm_up)
@@ -693,8 +693,8 @@ def main(argv: list[str] | None = None) -> int:
 
         if threading.current_thread() is threading.main_thread():
             handler = signal.getsignal(signal.SIGTERM)
-            temps = _temporaries(a)
-            existing = {p for folder, pattern in temps for p in _glob(folder, pattern)}
+            temps = temporaries(a)
+            existing = present(temps)
             _exit_on_sigterm(a.command)
             try:
                 return _main(a)
@@ -709,36 +709,6 @@ def main(argv: list[str] | None = None) -> int:
             finally:  # (main called in-process, e.g. by tests: the caller's handler again)
                 signal.signal(signal.SIGTERM, handler)
     return _main(a)
-
-
-def _temporaries(a) -> list[tuple[Path, str]]:
-    """Where a writing command's temporary outputs go: (folder, glob pattern) pairs."""
-    out = Path(a.out) if getattr(a, "out", None) else None
-    if out is None:
-        return []
-    if a.command in ("simulate", "ingest", "enhance"):
-        return [(out.parent, f".{out.name}.partial-*")]
-    if a.command == "detect":
-        return [(out, ".sarship-partial-*")]
-    if a.command == "demo":
-        return [(out, ".scene.zarr.partial-*"), (out / "detect", ".sarship-partial-*")]
-    return []
-
-
-def remove_new(temps: list[tuple[Path, str]], existing: set[Path]) -> None:
-    """Remove the temporary outputs of ``temps`` (:func:`_temporaries`) not in ``existing``: what
-    a command that ended early left (also used by the warm process, sarship/warm_process.py)."""
-    for folder, pattern in temps:
-        for p in _glob(folder, pattern):
-            if p not in existing:
-                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
-
-
-def _glob(folder: Path, pattern: str) -> list[Path]:
-    try:
-        return list(folder.glob(pattern)) if folder.is_dir() else []
-    except OSError:
-        return []
 
 
 def _drain_zarr(timeout: float = 10.0) -> None:

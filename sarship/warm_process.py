@@ -16,8 +16,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, NamedTuple
 
+from sarship.temporaries import present, remove_new, temporaries
 from sarship.warm import (
     DEFAULT_IDLE_S,
     DEFAULT_WARM_UP,
@@ -80,7 +81,15 @@ class _Channel:
                 self.gone = True
 
 
-def serve(device: str = "auto", workers: int | None = None, idle_timeout: float = DEFAULT_IDLE_S,
+class CommandLine(NamedTuple):
+    """The command line the warm process runs (``sarship.cli`` passes its own: this module does not
+    import it): ``parser()`` builds its argument parser, ``main(argv)`` runs one command."""
+
+    parser: Callable[[], Any]
+    main: Callable[[list[str]], int]
+
+
+def serve(commands: CommandLine, device: str = "auto", workers: int | None = None, idle_timeout: float = DEFAULT_IDLE_S,
           dashboard: str = "127.0.0.1:8787", path: Path | None = None,
           warm_up: tuple[str, ...] = DEFAULT_WARM_UP) -> int:
     """Run the warm process in the foreground (``sarship warm run``): start the cluster, then
@@ -160,7 +169,7 @@ def serve(device: str = "auto", workers: int | None = None, idle_timeout: float 
                     continue
                 n = state["commands"]
                 with conn:
-                    end = _handle(conn, client, state)
+                    end = _handle(conn, client, state, commands)
                 if state["commands"] != n:  # a command (not a status) keeps it warm
                     last = time.monotonic()
                 if end:
@@ -192,7 +201,7 @@ def _listen(path: Path) -> socket.socket:
     return srv
 
 
-def _handle(conn: socket.socket, client, state: dict) -> bool:
+def _handle(conn: socket.socket, client, state: dict, commands: CommandLine) -> bool:
     """Serve one connection; True when the warm process should end."""
     conn.settimeout(10.0)
     try:
@@ -216,7 +225,7 @@ def _handle(conn: socket.socket, client, state: dict) -> bool:
         return True
     if op != "detect":
         return False
-    ns = _parse_quietly(req.get("argv") or [])
+    ns = _parse_quietly(req.get("argv") or [], commands.parser)
     reason = _refusal(req, state, ns)
     if reason:
         with contextlib.suppress(OSError):
@@ -224,7 +233,7 @@ def _handle(conn: socket.socket, client, state: dict) -> bool:
         return False
     conn.settimeout(None)
     state["commands"] += 1
-    code = _run_command(conn, req, client, state, ns)
+    code = _run_command(conn, req, client, state, ns, commands.main)
     return code == 143  # SIGTERM reached the warm process during the command: it ends
 
 
@@ -253,10 +262,8 @@ def _refusal(req: dict, state: dict, ns) -> str:
     return ""
 
 
-def _parse_quietly(argv: list[str]):
+def _parse_quietly(argv: list[str], build_parser: Callable[[], Any]):
     """The parsed command line, or None when it does not parse (the command reports that)."""
-    from sarship.cli import build_parser
-
     with open(os.devnull, "w") as null, contextlib.redirect_stdout(null), contextlib.redirect_stderr(null):
         try:
             return build_parser().parse_args(argv)
@@ -264,14 +271,12 @@ def _parse_quietly(argv: list[str]):
             return None
 
 
-def _run_command(conn: socket.socket, req: dict, client, state: dict, ns) -> int:
+def _run_command(conn: socket.socket, req: dict, client, state: dict, ns, main: Callable[[list[str]], int]) -> int:
     """Run the command (``ns``: its parsed command line, or None) in this process's main thread
     (its signal handling is the command line's) with the command's folder, umask and streams;
     returns its exit code."""
     import signal
     import threading
-
-    from sarship import cli
 
     channel = _Channel(conn)
     done = threading.Event()
@@ -306,8 +311,8 @@ def _run_command(conn: socket.socket, req: dict, client, state: dict, ns) -> int
         channel.send({"e": f"sarship detect: error: cannot enter the command's folder ({exc.strerror})\n"})
         channel.send({"exit": 2})
         return 2
-    temps = cli._temporaries(ns) if ns is not None else []
-    existing = {p for folder, pattern in temps for p in cli._glob(folder, pattern)}
+    temps = temporaries(ns) if ns is not None else []
+    existing = present(temps)
     existing |= {folder for folder, _ in temps if folder.exists()}
     channel.send({"started": True})
     _ACTIVE.update(client=client, what=state["what"])
@@ -320,7 +325,7 @@ def _run_command(conn: socket.socket, req: dict, client, state: dict, ns) -> int
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:  # the watcher starts here: its interrupt lands in this block
                 threading.Thread(target=watch, name="sarship-warm-watch", daemon=True).start()
-                code = cli.main(list(req["argv"]))
+                code = main(list(req["argv"]))
             except SystemExit as exc:  # argparse's errors and --help; SIGTERM's unwinding
                 code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
                 if not isinstance(exc.code, (int, type(None))):
@@ -328,7 +333,7 @@ def _run_command(conn: socket.socket, req: dict, client, state: dict, ns) -> int
             except KeyboardInterrupt:
                 print("sarship detect: interrupted", file=sys.stderr)
                 code = 130
-            except Exception as exc:  # what cli.main does not report itself
+            except Exception as exc:  # what the command line's main does not report itself
                 print(f"sarship detect: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
                 code = 1
     finally:
@@ -368,8 +373,6 @@ def _settle(client, temps: list, existing: set, timeout: float = 60.0) -> None:
         except Exception:
             break
         time.sleep(0.05)
-    from sarship.cli import remove_new
-
     remove_new(temps, existing)
     for folder, _ in temps:  # an output folder the command made, which its clean-up had removed
         if folder not in existing:

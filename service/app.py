@@ -33,7 +33,8 @@ from sarship.service.openapi import (EXECUTE_BODY, JOB_STATUSES, PREFER_DOC, Con
                              ProcessDescription, ProcessList, Results, StatusInfo, problems)
 from sarship.service.openapi import install as install_openapi
 from sarship.service.openapi import media
-from sarship.service.runner import Runner, check_coastline, land_file_path, scene_path
+from sarship.service.job_inputs import check_coastline, land_file_path, scene_path
+from sarship.service.runner import Runner
 from sarship.service.settings import Settings
 from sarship.service.store import FINAL, JobStore
 from sarship.workers.request import DEVICES, JobRequest

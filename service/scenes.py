@@ -107,7 +107,7 @@ async def upload(request: Request, filename: Optional[str] = None):
 def inside_roots(settings: Settings, p: Path) -> bool:
     """Whether scene store ``p``, symlinks followed, lies in ``DATA/scenes`` or an allowed root:
     a store that leads elsewhere (``DATA/scenes/x.zarr -> /elsewhere``) is no scene of this
-    service (a job naming it is refused, see ``runner.scene_path``), so it is not listed."""
+    service (a job naming it is refused, see ``job_inputs.scene_path``), so it is not listed."""
     try:
         real = p.resolve(strict=True)
     except (OSError, RuntimeError):
@@ -185,7 +185,7 @@ def scene_users(settings: Settings, store: JobStore, scene_id: str) -> list[str]
     """IDs of the accepted or running jobs that name scene ``scene_id`` (by id, or by the path of
     its store), and of its accepted or running ingest job."""
     from sarship.pipeline.errors import InputError
-    from sarship.service.runner import scene_path
+    from sarship.service.job_inputs import scene_path
 
     target = settings.scenes_dir / f"{scene_id}.zarr"
     out = []

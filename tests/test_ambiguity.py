@@ -186,10 +186,10 @@ def test_grd_geometry_values_read_independently_from_the_xml():
 @needs_grd
 def test_safe_ingest_carries_the_geometry():
     from sarship.pipeline.readers.limits import InputLimits
-    from sarship.pipeline.readers.safe import _open_safe, safe_layout
+    from sarship.pipeline.readers.entry import _open_safe
     from sarship.pipeline.readers.safe_geometry import read_geometry
 
-    src = _open_safe(GRD, InputLimits(max_ratio=1e5), safe_layout(GRD))  # the constant-pixel sample: ~1900:1
+    src = _open_safe(GRD, InputLimits(max_ratio=1e5))  # the constant-pixel sample: ~1900:1
     try:
         got = src.meta["extra_attrs"]["sar_geometry"]
     finally:

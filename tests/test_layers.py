@@ -139,3 +139,106 @@ def test_lower_layers_import_alone(layer):
     above = [m for m in loaded if _layer(m) not in ALLOWED[layer] and m != "sarship"]
     assert not above, f"importing {layer} loaded {above}"
     assert importlib.util.find_spec("sarship") is not None
+
+
+def _module_graph(modules) -> dict[str, set[str]]:
+    """Module -> the project modules it imports (every import statement, also inside functions;
+    ``from package import name`` counts as importing ``package.name`` when that is a module)."""
+    known = {name: (path, is_pkg) for path, name, is_pkg in modules}
+    graph: dict[str, set[str]] = {}
+    for name, (path, is_pkg) in known.items():
+        deps = set()
+        for _, mod in _imports(path, name, is_pkg):
+            while mod and mod not in known:
+                mod = mod.rpartition(".")[0]
+            if mod and mod != name:
+                deps.add(mod)
+        graph[name] = deps
+    return graph
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import circles: strongly connected components of more than one module (Tarjan 1972,
+    iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = len(index)
+                    stack.append(w)
+                    on_stack.add(w)
+                    work.append((w, iter(sorted(graph.get(w, ())))))
+                elif w in on_stack:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    x = stack.pop()
+                    on_stack.discard(x)
+                    comp.append(x)
+                    if x == v:
+                        break
+                if len(comp) > 1:
+                    out.append(sorted(comp))
+    return out
+
+
+def test_no_import_circle():
+    """No two modules of the product import each other, directly or through others (issue 32:
+    a GPU twin is named on its detector's spec and resolved by name, so the twin may import
+    its detector's maths; the warm process gets the command line passed in)."""
+    circles = _circles(_module_graph(MODULES))
+    assert not circles, "import circles:\n" + "\n".join(" <-> ".join(c) for c in circles)
+
+
+def test_circle_checker_finds_one(tmp_path):
+    """The checker finds a circle made by an import inside a function, and none in a chain."""
+    (tmp_path / "a.py").write_text("import sarship.pipeline.b\n")
+    (tmp_path / "b.py").write_text("def f():\n    from sarship.pipeline import a\n")
+    (tmp_path / "c.py").write_text("from sarship.pipeline.b import f\n")
+    mods = [(tmp_path / f"{n}.py", f"sarship.pipeline.{n}", False) for n in "abc"]
+    g = _module_graph(mods)
+    assert g == {"sarship.pipeline.a": {"sarship.pipeline.b"}, "sarship.pipeline.b": {"sarship.pipeline.a"},
+                 "sarship.pipeline.c": {"sarship.pipeline.b"}}
+    assert _circles(g) == [["sarship.pipeline.a", "sarship.pipeline.b"]]
+    del g["sarship.pipeline.b"]
+    assert _circles({**g, "sarship.pipeline.b": set()}) == []
+
+
+def test_every_gpu_twin_resolves():
+    """A detector's ``gpu`` names its twin; every name resolves (the twin modules import CuPy
+    only when they run, so this needs no GPU) to a function, or a module with the functions its
+    detector calls."""
+    from sarship.pipeline import detectors
+
+    with_twin = [n for n in detectors.names() if detectors.get(n).gpu]
+    assert len(with_twin) >= 13, with_twin
+    for n in with_twin:
+        spec = detectors.get(n)
+        twin = spec.twin()
+        assert spec.gpu.startswith("sarship.pipeline.gpu."), spec.gpu
+        if ":" in spec.gpu:
+            assert callable(twin), (n, spec.gpu)
+        else:
+            assert all(callable(getattr(twin, f, None)) for f in ("labels", "detect")), (n, spec.gpu)
+    import dataclasses
+
+    with pytest.raises(ValueError, match="no GPU twin"):
+        dataclasses.replace(detectors.get("ca_cfar"), gpu=None).twin()

@@ -87,7 +87,7 @@ def run_enhance(scene_path: str | Path, out: str | Path, destripe: DestripeParam
                 client=None, scheduler: str | None = None, progress: bool = True,
                 overwrite: bool = False, channel: str | None = None) -> dict[str, Any]:
     """Destripe ``scene_path`` into the new scene store ``out``; returns the ``enhance`` record."""
-    from sarship.workers.jobs import Progress
+    from sarship.workers.progress import Progress
 
     t0 = time.perf_counter()
     params = destripe or DestripeParams()

@@ -77,7 +77,7 @@ def check_land_file(params, scene: Scene):
 def rasterize_coastline(coast, arr, shape: tuple[int, int], rows: int, progress: bool = False) -> int:
     """Write the buffered coastline mask into ``arr`` strip by strip (``rows`` rows a strip);
     returns the land pixel count. ``progress``: a line per 10 % of the strips on stderr."""
-    from sarship.workers.jobs import Progress
+    from sarship.workers.progress import Progress
 
     H, W = shape
     count = 0

@@ -181,7 +181,7 @@ def _land_block(job: TileJob, block, r0: int, r1: int, c0: int, c1: int):
 
 
 def _on_device(job: TileJob, spec) -> bool:
-    return job.device == "gpu" and spec.gpu  # placement already chose: spec.gpu_for(params)
+    return job.device == "gpu" and bool(spec.gpu)  # placement already chose: spec.gpu_for(params)
 
 
 def _to_device(block):

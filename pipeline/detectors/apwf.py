@@ -446,9 +446,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
     check_windows(halo, b)
     p = block.shape[2]
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.polsar)
-        from sarship.pipeline.gpu.polsar import apwf
-
-        return apwf(block, halo, origin, b, int(prm.guard), prm.estimator == "ring",
+        return SPEC.twin()(block, halo, origin, b, int(prm.guard), prm.estimator == "ring",
                     float(prep["n_samples"]), float(prep["thresholds"][str(p)]),
                     pfa=float(prm.pfa), kmin=min_valid(int(prep["n_samples"]), p))
     h = block.shape[0] - 2 * halo
@@ -491,5 +489,5 @@ SPEC = DetectorSpec(
     detect=detect,
     input="polarimetric",
     needs_looks=False,
-    gpu=True,
+    gpu="sarship.pipeline.gpu.polsar:apwf",
 )

@@ -395,9 +395,10 @@ class DetectorSpec:
     #: ``halo_fn(params) -> int`` for detectors whose context is not ``background // 2``.
     halo_fn: Optional[Callable[[Any], int]] = None
     halo_rule: str = "background // 2"
-    #: ``detect`` (and ``scene_pass``) accept a CuPy block and run on its GPU
-    #: (:mod:`sarship.pipeline.gpu`); otherwise GPU workers run the CPU code for this detector.
-    gpu: bool = False
+    #: The GPU twin, when ``detect`` (and ``scene_pass``) accept a CuPy block and run on its GPU:
+    #: ``"package.module:function"`` or ``"package.module"`` under :mod:`sarship.pipeline.gpu`,
+    #: resolved on first use by :meth:`twin`; None: GPU workers run the CPU code for this detector.
+    gpu: Optional[str] = None
     #: with ``gpu``: the scene pass runs on the device too (else on the host block)
     scene_pass_gpu: bool = True
     #: with ``gpu``: ``gpu_params(params) -> bool``, whether these parameters have GPU code
@@ -409,6 +410,14 @@ class DetectorSpec:
         """Whether a job with ``params`` runs on GPU workers' devices (``gpu`` and, where the
         detector says which, GPU code for these parameters)."""
         return bool(self.gpu and (self.gpu_params is None or self.gpu_params(params)))
+
+    def twin(self) -> Any:
+        """The GPU twin named by ``gpu`` (its function, or its module), imported on first use."""
+        if not self.gpu:
+            raise ValueError(f"{self.name}: no GPU twin")
+        from sarship.pipeline.gpu import twin
+
+        return twin(self.gpu)
 
     def halo(self, params: DetectorParams) -> int:
         """Pixels of context each side of a tile: half the largest window by default."""
@@ -426,7 +435,7 @@ class DetectorSpec:
             "input": self.input,
             "halo": self.halo_rule,
             "scene_wide_pass": self.scene_pass is not None,
-            "gpu": self.gpu,
+            "gpu": bool(self.gpu),
             "halo_default_px": self.halo(self.params()),
             "parameters": schema.get("properties", {}),
             "defaults": defaults,

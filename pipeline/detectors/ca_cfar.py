@@ -153,9 +153,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: CAParams, p
     b, g, t = int(p.background), int(p.guard), int(p.target)
     check_windows(halo, b, g, t)
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.cfar), same sums and rule
-        from sarship.pipeline.gpu.cfar import ca_cfar
-
-        return ca_cfar(block, halo, origin, b, g, t, int(prep["n_ring"]), float(prep["threshold"]),
+        return SPEC.twin()(block, halo, origin, b, g, t, int(prep["n_ring"]), float(prep["threshold"]),
                        pfa=float(p.pfa), looks=float(prep["looks"]), nodata=p.nodata)
     ok = intensity_absent.present(block, p.nodata)
     if not ok.all():  # absent pixels (module docstring of pipeline.intensity_absent)
@@ -193,5 +191,5 @@ SPEC = DetectorSpec(
     detect=detect,
     input="intensity",
     needs_looks=True,
-    gpu=True,
+    gpu="sarship.pipeline.gpu.cfar:ca_cfar",
 )

@@ -162,9 +162,7 @@ def detect(block, halo: int, origin: tuple[int, int], p: CSKParams, prep: dict):
     """``csk`` on one padded complex tile; returns (mask, CSK) of the core."""
     check_windows(halo, int(p.window))
     if is_device_array(block):
-        from sarship.pipeline.gpu.csk import csk_detect
-
-        return csk_detect(block, halo, origin, p, prep)
+        return SPEC.twin()(block, halo, origin, p, prep)
     b = _complex_block(block)
     k, tested, pw, s11 = csk_window(b, halo, origin, int(p.window), p.nodata, boxsum.centered_box_sum, np)
     return decide(k, tested, pw, s11, int(prep["n_window"]), float(prep["threshold"]), p.cells, np)
@@ -327,6 +325,6 @@ SPEC = DetectorSpec(
     needs_looks=False,
     halo_fn=lambda p: int(p.window) // 2,
     halo_rule="window // 2",
-    gpu=True,
+    gpu="sarship.pipeline.gpu.csk:csk_detect",
     detection_properties=detection_properties,
 )

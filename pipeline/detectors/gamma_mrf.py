@@ -387,7 +387,7 @@ def scene_pass(block, halo_px, origin, p: GammaMRFParams, prep: dict) -> dict:
     Pass m >= 1: the m - 1 known sweeps on the block; exact class sums and counts of the
     core's labels, and the labels changed by the last sweep."""
     if is_device_array(block):
-        from sarship.pipeline.gpu.gamma_mrf import labels as gpu_labels
+        gpu_labels = SPEC.twin().labels
 
         if not prep.get("mixture"):
             block = block.get()
@@ -513,9 +513,7 @@ def detect(block, halo_px, origin, p: GammaMRFParams, prep: dict):
     """Labels after the sweeps; mask = brightest class & present & (intensity > scattering
     threshold); stat = the ship class's ICM energy gap (> 0 where the mask is set)."""
     if is_device_array(block):
-        from sarship.pipeline.gpu.gamma_mrf import detect as gpu_detect
-
-        return gpu_detect(block, halo_px, origin, p, prep)
+        return SPEC.twin().detect(block, halo_px, origin, p, prep)
     x = np.asarray(block)
     if x.ndim != 2:
         raise ValueError(f"gamma_mrf needs a 2-D intensity block, got shape {x.shape}")
@@ -558,7 +556,7 @@ SPEC = DetectorSpec(
     for_scene=for_scene,
     halo_fn=halo,
     halo_rule="sweeps x colours (2 for the 4-neighbourhood, 4 for the 8-neighbourhood)",
-    gpu=True,
+    gpu="sarship.pipeline.gpu.gamma_mrf",
     scene_passes_max=MAX_PASSES,
     discriminate=discriminate,
 )

@@ -51,5 +51,5 @@ SPEC = DetectorSpec(
     needs_looks=True,
     halo_fn=halo_of,
     halo_rule="background // 2 (2 x (background // 2) with censor)",
-    gpu=True,
+    gpu=molc_cfar.GPU_TWIN,
 )

@@ -471,9 +471,7 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
 
         block = fill(block, present(block, params.nodata), np.nan)
     if gpu:  # CuPy block: the GPU twin (pipeline.gpu.lmm), one thread per ring fit
-        from sarship.pipeline.gpu.lmm import detect as detect_gpu
-
-        return detect_gpu(block, halo, origin, rb, rg, rt, K, prep, prep["method"], step, refine)
+        return SPEC.twin()(block, halo, origin, rb, rg, rt, K, prep, prep["method"], step, refine)
     mask = np.zeros((h, w), dtype=np.bool_)
     stat = np.zeros((h, w), dtype=np.float32)
     iters = np.zeros((h, w), dtype=np.int32)
@@ -528,6 +526,6 @@ SPEC = DetectorSpec(
     needs_looks=False,
     halo_fn=_halo,
     halo_rule="background // 2 (+ grid_step for method='grid')",
-    gpu=True,
+    gpu="sarship.pipeline.gpu.lmm:detect",
     gpu_params=lambda p: not cpu_only_fit({}, p),  # censored/refused fits: CPU workers
 )

@@ -768,9 +768,7 @@ def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: b
     if not float(a32) > alpha:
         a32 = np.nextafter(a32, np.float32(np.inf))
     if gpu:
-        from sarship.pipeline.gpu.cfar import os_cfar
-
-        return os_cfar(block, halo, rb, rg, rt, k, alpha, float(a32), origin=origin, params=params, prep=prep)
+        return SPEC.twin()(block, halo, rb, rg, rt, k, alpha, float(a32), origin=origin, params=params, prep=prep)
     mask = np.zeros((h, w), dtype=np.bool_)
     stat = np.zeros((h, w), dtype=np.float32)
     ok = intensity_absent.present(block, params.nodata)
@@ -800,5 +798,5 @@ SPEC = DetectorSpec(
     detect=detect,
     input="intensity",
     needs_looks=True,
-    gpu=True,
+    gpu="sarship.pipeline.gpu.cfar:os_cfar",
 )

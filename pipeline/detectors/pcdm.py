@@ -261,9 +261,7 @@ def span_psh(block: np.ndarray, halo_px: int, origin, p: PCDMParams) -> tuple[np
     if not (block.ndim in (3, 4) and block.shape[2] in (2, 3)):
         raise ValueError("pcdm needs (rows, cols, p) complex channels or (rows, cols, p, p) covariances, p = 2 or 3")
     if is_device_array(block):  # CuPy block: the GPU twin, CuPy results
-        from sarship.pipeline.gpu.polsar import pcdm_span_psh
-
-        return pcdm_span_psh(block, halo_px, origin, p.looks_window)
+        return SPEC.twin()(block, halo_px, origin, p.looks_window)
     r = p.looks_window // 2
     ok = present(block)
     complete = bool(ok.all())
@@ -389,5 +387,5 @@ SPEC = DetectorSpec(
     reduce=reduce,
     halo_fn=halo,
     halo_rule="1 + looks_window // 2",
-    gpu=True,
+    gpu="sarship.pipeline.gpu.polsar:pcdm_span_psh",
 )

@@ -486,9 +486,7 @@ def detect(block, halo_px, origin, p: SuperpixelCFARParams, prep: dict):
     A CuPy ``block`` runs steps 6-7 on its device (:mod:`sarship.pipeline.gpu.superpixel_cfar`)
     and returns CuPy arrays equal to these."""
     if is_device_array(block):
-        from sarship.pipeline.gpu.superpixel_cfar import detect as gpu_detect
-
-        return gpu_detect(block, halo_px, origin, p, prep)
+        return SPEC.twin()(block, halo_px, origin, p, prep)
     hp = int(halo_px)
     if p.decision == "boundaries":
         x = _check(block, halo_px, p)
@@ -554,6 +552,6 @@ SPEC = DetectorSpec(
     for_scene=for_scene,
     halo_fn=halo,
     halo_rule="10 reach + 5 + clutter_radius",
-    gpu=True,  # steps 6-7 on the device, 1-5 on a host copy of the block (pipeline/gpu/superpixel_cfar.py)
+    gpu="sarship.pipeline.gpu.superpixel_cfar:detect",  # steps 6-7 on the device, 1-5 on a host copy of the block (pipeline/gpu/superpixel_cfar.py)
     scene_pass_gpu=False,  # the scene pass is the segmentation: host work, so GPU workers pass it the host block
 )

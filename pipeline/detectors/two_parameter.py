@@ -519,9 +519,7 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: TwoParamete
     b, g, t = int(p.background), int(p.guard), int(p.target)
     check_windows(halo, b, g, t)
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.cfar), same sums and rule
-        from sarship.pipeline.gpu.cfar import two_parameter
-
-        return two_parameter(block, halo, origin, b, g, t, float(prep["n_ring"]), float(prep["threshold"]),
+        return SPEC.twin()(block, halo, origin, b, g, t, float(prep["n_ring"]), float(prep["threshold"]),
                              p.domain, pfa=float(p.pfa), kind=p.threshold, nodata=p.nodata)
     ok = intensity_absent.present(block, p.nodata)
     if not ok.all():  # absent pixels (module docstring of pipeline.intensity_absent)
@@ -576,5 +574,5 @@ SPEC = DetectorSpec(
     detect=detect,
     input="intensity",
     needs_looks=False,
-    gpu=True,
+    gpu="sarship.pipeline.gpu.cfar:two_parameter",
 )

@@ -808,9 +808,7 @@ def detect(block, halo_px, origin, p: VBPolSARParams, prep: dict):
     complete = bool(ok.all())
     core = zero_absent(core, ok)
     if is_device_array(core):  # CuPy block: the same per-pixel updates on its GPU
-        from sarship.pipeline.gpu.polsar import vb_pixels
-
-        mask, stat = vb_pixels(core, terms["c"], terms["P"], terms["m"], terms["g1"], float(prep["t_init"]),
+        mask, stat = SPEC.twin()(core, terms["c"], terms["P"], terms["m"], terms["g1"], float(prep["t_init"]),
                                float(prep["alpha0"]), float(prep["beta0"]), int(p.max_iter), float(p.tol),
                                p.coupling == "joint")
     else:
@@ -841,6 +839,6 @@ SPEC = DetectorSpec(
     reduce=reduce,
     halo_fn=halo,
     halo_rule="0 (pixels are independent given the scene-wide mixture)",
-    gpu=True,
+    gpu="sarship.pipeline.gpu.polsar:vb_pixels",
     scene_pass_gpu=False,
 )

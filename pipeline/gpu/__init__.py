@@ -14,6 +14,7 @@ CuPy is optional (the ``gpu`` extra): nothing here imports it at module import t
 from __future__ import annotations
 
 import functools
+import importlib
 import os
 from typing import Any
 
@@ -28,6 +29,17 @@ def cupy_module():
     except Exception:  # ImportError, or a CUDA library error at import
         return None
     return cupy
+
+
+@functools.lru_cache(maxsize=None)
+def twin(ref: str) -> Any:
+    """The GPU twin named by ``ref``: ``"package.module"`` (the module) or ``"package.module:name"``
+    (one of its attributes), imported on first use. The one place where a detector's CPU code
+    reaches its device code (``DetectorSpec.gpu``, docs/adding-a-detector.md): the twin imports
+    the detector's maths, the detector names its twin, so no import goes both ways."""
+    module, _, name = ref.partition(":")
+    mod = importlib.import_module(module)
+    return getattr(mod, name) if name else mod
 
 
 def is_device_array(a: Any) -> bool:

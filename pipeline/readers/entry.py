@@ -48,7 +48,8 @@ from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.readers.npy import _open_npy
 from sarship.pipeline.readers.plan import _plan
 from sarship.pipeline.readers.polsarpro import _open_polsarpro, _polsarpro_folder
-from sarship.pipeline.readers.safe import _open_safe, check_safe_kind, safe_layout
+from sarship.pipeline.readers.safe import check_safe_kind, open_grd, product_measurements, safe_layout
+from sarship.pipeline.readers.safe_slc import open_slc
 from sarship.pipeline.readers.tiff import _open_tiff
 from sarship.pipeline.readers.writing import (_estimate_scene_looks, _rank_one_looks, _write_tiles, choose_codec,
                                               ingest_writers)
@@ -75,6 +76,14 @@ INGEST_KINDS = ("auto", "amplitude", "intensity", "slc", "quadpol", "covariance"
 #: A source that prefers whole tile rows (stripped TIFF) is read a tile row at a time when
 #: the row band is at most this many bytes; otherwise tile by tile.
 ROW_BAND_BYTES = 256 * 2**20
+
+
+def _open_safe(p: Path, limits: InputLimits, swath: str | None = None) -> _Source:
+    """A Sentinel-1 SAFE product (directory or zip): an SLC's sub-swath or a GRD."""
+    prod, meas, swaths, slc = product_measurements(p, limits, safe_layout(p))
+    if slc:
+        return open_slc(p, prod, slc, limits, swath)
+    return open_grd(p, prod, meas, swaths, limits, swath)
 
 
 def _sniff(p: Path) -> str:
@@ -129,7 +138,7 @@ def _open_source(p: Path, sidecar_root: Path | bool | None = None, limits: Input
         if fmt == "image":
             return _open_image(p, limits)
         if fmt == "safe":
-            return _open_safe(p, limits, safe_layout(p), swath)
+            return _open_safe(p, limits, swath)
         if fmt in ("npy", "polsarpro"):  # headers only: the pixels are memory-mapped
             src = _open_npy(p) if fmt == "npy" else _open_polsarpro(_polsarpro_folder(p))
             try:

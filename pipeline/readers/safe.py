@@ -143,8 +143,6 @@ def check_safe_kind(p: Path, kind: str) -> None:
     layout = safe_layout(p)
     if kind == "auto" or layout is None:
         return
-    from sarship.pipeline.readers.safe_slc import product_is_slc
-
     if product_is_slc(_Product(p, layout).members):
         if kind != "slc":
             raise InputError(f"'{p}': a Sentinel-1 SLC product is ingested as complex channels (kind slc); "
@@ -155,6 +153,12 @@ def check_safe_kind(p: Path, kind: str) -> None:
 
 
 #: Bytes read at a time from an XML member (:meth:`_Product.open_member`).
+def product_is_slc(members: list[str]) -> bool:
+    """Whether a SAFE product's member names include an SLC measurement."""
+    pat = re.compile(r"^measurement/s1[abcd]-[a-z0-9]+-slc-", re.IGNORECASE)
+    return any(pat.match(m) for m in members)
+
+
 XML_READ_CHUNK = 2**20
 
 
@@ -350,11 +354,13 @@ def manifest_attrs(p: Path, prod) -> dict[str, Any]:
         raise InputError(f"'{p}': cannot read the SAFE manifest ({_one_line(exc)})") from None
 
 
-def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swath: str | None = None) -> _Source:
+def product_measurements(p: Path, limits: InputLimits, layout: tuple[str, str | None]
+                         ) -> tuple[_Product, dict[str, str], set[str], dict[str, dict[str, str]]]:
+    """The product's members checked, and its measurements: ``(product, {pol: member},
+    swaths, {swath: {pol: member}} of SLC measurements)`` (the last empty for a GRD). The entry
+    point opens an SLC with :func:`sarship.pipeline.readers.safe_slc.open_slc`, a GRD with
+    :func:`open_grd`."""
     _require()
-    import xarray as xr
-    from xarray_sentinel import esa_safe
-
     prod = _Product(p, layout, limits)
     prod.check_members()  # XML sizes and zip ratios, from the directory alone: nothing inflated yet
     meas: dict[str, str] = {}
@@ -370,10 +376,15 @@ def _open_safe(p: Path, limits: InputLimits, layout: tuple[str, str | None], swa
                 meas[mm.group(3).lower()] = m
     if not meas:
         raise InputError(f"'{p}': a SAFE product without measurement GeoTIFFs (measurement/*.tiff): nothing to read")
-    if slc:
-        from sarship.pipeline.readers.safe_slc import open_slc
+    return prod, meas, swaths, slc
 
-        return open_slc(p, prod, slc, limits, swath)
+
+def open_grd(p: Path, prod: _Product, meas: dict[str, str], swaths: set[str], limits: InputLimits,
+             swath: str | None = None) -> _Source:
+    """A GRD product as a source (its measurements from :func:`product_measurements`)."""
+    import xarray as xr
+    from xarray_sentinel import esa_safe
+
     if swath is not None:
         raise InputError(f"'{p}': --swath applies to Sentinel-1 SLC products; this is a GRD product")
     if len(swaths) != 1:

@@ -28,14 +28,13 @@ swath's geolocation grid, rows mapped to the debursted grid by azimuth time.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers import tops
+import sarship.pipeline.readers.tops as tops
 from sarship.pipeline.readers.common import _one_line, _Source
 from sarship.pipeline.readers.limits import InputLimits
 
@@ -301,7 +300,3 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
     return SlcSource(p, prod, pols, meas, meta, (H, width), segs, lpb, valid_samples, ramps, luts)
 
 
-def product_is_slc(members: list[str]) -> bool:
-    """Whether a SAFE product's member names include an SLC measurement."""
-    pat = re.compile(r"^measurement/s1[abcd]-[a-z0-9]+-slc-", re.IGNORECASE)
-    return any(pat.match(m) for m in members)

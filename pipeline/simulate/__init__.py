@@ -33,7 +33,8 @@ from sarship.pipeline.simulate.artefacts import (  # noqa: F401
 from sarship.pipeline.simulate.clutter import (  # noqa: F401
     SEA_EPS, SEA_GAMMA, SEA_RHO, sea_covariance)
 from sarship.pipeline.simulate.config import (  # noqa: F401
-    BORDER_PX, CLUTTERS, GAP_PX, KINDS, SimConfig, effective_looks, max_ships, validate, variables)
+    BORDER_PX, CLUTTERS, GAP_PX, KINDS, SimConfig, max_ships, validate, variables)
+from sarship.pipeline.simulate.clutter import effective_looks  # noqa: F401
 from sarship.pipeline.simulate.fields import (  # noqa: F401
     BLOCK, NODE_BLOCK, _S_TEXTURE, _gamma_texture, _gauss_field)
 from sarship.pipeline.simulate.geometry import ghost_offsets, sar_geometry  # noqa: F401

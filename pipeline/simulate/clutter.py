@@ -147,6 +147,16 @@ def ggd_enl(v: float, kappa: float) -> float:
     return float(m1 * m1 / (m2 - m1 * m1))
 
 
+def effective_looks(cfg: SimConfig) -> float:
+    """The scene's number of looks: cfg.looks for gamma/K/G0 intensity (the speckle's L), the
+    equivalent number of looks mean^2 / variance of the GGD for ``ggd``, else 1."""
+    if cfg.kind != "intensity" or cfg.clutter == "rayleigh":
+        return 1.0
+    if cfg.clutter == "ggd":
+        return ggd_enl(cfg.ggd_power, cfg.ggd_shape)
+    return float(cfg.looks)
+
+
 def ggd_speckle(rng: np.random.Generator, cfg: SimConfig, shape: tuple[int, ...]) -> np.ndarray:
     """Unit-mean GGD intensity (float32): (G / kappa)^(1 / v) / E[(G / kappa)^(1 / v)]."""
     v, kappa = float(cfg.ggd_power), float(cfg.ggd_shape)

@@ -93,18 +93,6 @@ def _pair(v: Any, field: str, rng: str) -> tuple[Any, Any]:
     return v[0], v[1]
 
 
-def effective_looks(cfg: SimConfig) -> float:
-    """The scene's number of looks: cfg.looks for gamma/K/G0 intensity (the speckle's L), the
-    equivalent number of looks mean^2 / variance of the GGD for ``ggd``, else 1."""
-    if cfg.kind != "intensity" or cfg.clutter == "rayleigh":
-        return 1.0
-    if cfg.clutter == "ggd":
-        from sarship.pipeline.simulate.clutter import ggd_enl
-
-        return ggd_enl(cfg.ggd_power, cfg.ggd_shape)
-    return float(cfg.looks)
-
-
 def _px_per_m(cfg: SimConfig) -> float:
     """Largest pixels per metre over the two axes (ship length in px, worst heading)."""
     return 1.0 / min(cfg.pixel_spacing_m)

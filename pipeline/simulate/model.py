@@ -16,8 +16,8 @@ import numpy as np
 
 from sarship.pipeline.simulate.artefacts import (AMBIG_SMEAR, SIDELOBE_FLOOR, SIDELOBE_MAX_PX, SIDELOBE_MIN,
                                                  SIDELOBE_OS, _rfi_events, _stripes_gain)
-from sarship.pipeline.simulate.clutter import SEA_EPS, SEA_GAMMA, _sea_power, _span_factor
-from sarship.pipeline.simulate.config import SimConfig, effective_looks
+from sarship.pipeline.simulate.clutter import SEA_EPS, SEA_GAMMA, _sea_power, _span_factor, effective_looks
+from sarship.pipeline.simulate.config import SimConfig
 from sarship.pipeline.simulate.fields import BLOCK
 from sarship.pipeline.simulate.geometry import ghost_offsets
 from sarship.pipeline.simulate.land import _Land, _land_model
