@@ -216,7 +216,8 @@ class Runner:
             log.exception("job %s: could not record the retry", job["id"])
 
     def _run(self, job: dict) -> None:
-        from sarship.workers.jobs import OUTPUTS, _commit, run_request
+        from sarship.pipeline.run.outputs import OUTPUTS, publish as publish_outputs
+        from sarship.workers.jobs import run_request
         from sarship.workers.request import JobRequest
 
         job_id, attempt = job["id"], int(job["attempts"])
@@ -278,7 +279,7 @@ class Runner:
                                        "outputs": run["outputs"], "timings": run["timings"]}
             if not self.store.finish(job_id, self.owner, "successful",
                                      f"{run['detections']} detections in {run['timings']['total_s']:.1f} s",
-                                     summary, attempt=attempt, publish=lambda: _commit(stage, out_dir)):
+                                     summary, attempt=attempt, publish=lambda: publish_outputs(stage, out_dir)):
                 log.warning("job %s (attempt %d) finished, but the job is no longer ours (dismissed, or re-run "
                             "after its lease lapsed): its results are discarded", job_id, attempt)
                 return

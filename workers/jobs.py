@@ -34,8 +34,9 @@ from sarship.pipeline.errors import InputError
 from sarship.pipeline.inputs import detector_source, make_reader, pixel_power, window_reader
 from sarship.pipeline import model_fit
 from sarship.pipeline.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
+from sarship.pipeline.run.outputs import OPTIONAL_OUTPUTS, OUTPUTS, check_out, check_out_path, prepare_out, publish
 from sarship.pipeline.window_cache import CachedWindows
-from sarship.pipeline.scene import (CLAIM_SUFFIX, Scene, claim_output, create_mask_store, finalize_scene,
+from sarship.pipeline.scene import (Scene, claim_output, create_mask_store, finalize_scene,
                                     open_scene, processing_tile, tile_slices)
 from sarship.workers.land import LAND_STORE, check_land_file, finish_land, prepare_land
 from sarship.workers.progress import Progress
@@ -49,10 +50,6 @@ DETECTED_ARRAY = "detected"
 #: The run's scratch store of each tile's component labels (int32, id + 1), in its temporary
 #: folder only: the kept-detection mask is picked from it tile by tile (tasks.run_tile_keep)
 LABEL_STORE = "labels.zarr"
-OUTPUTS = ("mask.zarr", "detections.geojson", "run.json", "land.zarr")
-#: Outputs a run writes only with some parameters (``land.zarr``: with ``land_mask``); an older
-#: one in the folder is removed when the new run has none.
-OPTIONAL_OUTPUTS = ("land.zarr",)
 
 
 def resolve_looks(spec, params, scene: Scene, var: str, transform: str) -> tuple[Any, str]:
@@ -76,60 +73,6 @@ def _versions() -> dict[str, str]:
         with contextlib.suppress(Exception):
             out[pkg] = md.version(pkg)
     return out
-
-
-def check_out_path(out_dir: Path, scene_path: Path) -> None:
-    """Refuse an output folder inside (or equal to) the scene store, and one whose outputs
-    would replace the scene (paths only: checked before the output is claimed)."""
-    out, scene = out_dir.resolve(), scene_path.resolve()
-    if out == scene or scene in out.parents:
-        raise InputError(f"--out '{out_dir}' is inside the scene store '{scene_path}': "
-                         "choose a folder outside it (not even --overwrite writes into an input)")
-    if scene in {out / name for name in OUTPUTS}:
-        raise InputError(f"--out '{out_dir}' would replace the scene '{scene_path}' itself: choose another folder")
-
-
-def check_out(out_dir: Path, scene_path: Path, overwrite: bool) -> None:
-    """:func:`check_out_path`, and refuse an existing non-empty folder unless ``overwrite``
-    (its claim file, :func:`sarship.pipeline.scene.claim_output`, aside)."""
-    check_out_path(out_dir, scene_path)
-    out = out_dir.resolve()
-    if not overwrite and out.is_dir() and any(p.name != CLAIM_SUFFIX for p in out.iterdir()):
-        raise InputError(f"output folder '{out_dir}' exists and is not empty: pass --overwrite to replace "
-                         f"its {', '.join(OUTPUTS)}, or choose another folder")
-
-
-def _prepare_out(out_dir: Path) -> Path:
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create output folder '{out_dir}': {exc.strerror}") from None
-    if not out_dir.is_dir():
-        raise InputError(f"output '{out_dir}' is not a folder")
-    if not os.access(out_dir, os.W_OK):
-        raise InputError(f"output folder '{out_dir}' is not writable")
-    tmp = out_dir / f".sarship-partial-{uuid.uuid4().hex[:8]}"
-    try:
-        tmp.mkdir()
-    except OSError as exc:
-        raise InputError(f"output folder '{out_dir}' is not writable: {exc.strerror}") from None
-    return tmp
-
-
-def _commit(tmp: Path, out_dir: Path) -> None:
-    for name in OUTPUTS:
-        src, dst = tmp / name, out_dir / name
-        if not src.exists() and name not in OPTIONAL_OUTPUTS:
-            raise FileNotFoundError(src)
-        old = None
-        if dst.exists():  # moved aside first; an optional output this run lacks is stale: removed
-            old = out_dir / f".{name}.old-{uuid.uuid4().hex[:8]}"
-            os.replace(dst, old)
-        if src.exists():
-            os.replace(src, dst)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
-    shutil.rmtree(tmp, ignore_errors=True)
 
 
 def run_detection(
@@ -324,7 +267,7 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
     if fit_only and fit is None:
         raise ValueError(f"fit_only: the fit of '{detector}' is not measured")
     created = not out_dir.exists()
-    tmp = _prepare_out(out_dir)
+    tmp = prepare_out(out_dir)
     try:
         geo = {k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs}
         create_mask_store(tmp / "mask.zarr", (H, W), tile, {"detector": detector, "scene": str(scene.path), **geo},
@@ -526,7 +469,7 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
         run["timings"]["geojson_s"] = round(t_end - t_cons, 4)
         run["timings"]["total_s"] = round(t_end - t_start, 4)
         write_json(tmp / "run.json", run)
-        _commit(tmp, out_dir)
+        publish(tmp, out_dir)
         return run
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
