@@ -132,20 +132,14 @@ def detector_source(spec: Any, scene: Scene, channel: str | None = None) -> tupl
     return intensity_source(scene, channel)
 
 
-#: ``SARSHIP_READER``: ``tensorstore`` (the default when it is installed) or ``zarr`` (zarr-python).
-READERS = ("tensorstore", "zarr")
-
-
 def reader_backend() -> str:
     """The library that reads scene arrays: ``SARSHIP_READER`` if set, else tensorstore when it
     imports, else zarr-python. Both read the same Zarr v3 stores to the same values;
     tensorstore's C++ path decodes 2-3x faster and in parallel (zarr-python runs every read of a
     process through its one event loop: bench/RESULTS.md, "Issue 17, session 10")."""
-    import os
+    from sarship.pipeline import settings
 
-    want = os.environ.get("SARSHIP_READER", "").strip().lower()
-    if want and want not in READERS:
-        raise InputError(f"SARSHIP_READER must be one of {', '.join(READERS)}, got '{want}'")
+    want = settings.read("reader")
     if want == "zarr":
         return "zarr"
     try:

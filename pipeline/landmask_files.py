@@ -40,10 +40,11 @@ from typing import Any, Callable
 
 import numpy as np
 
+from sarship.pipeline import settings
 from sarship.pipeline.errors import InputError
 
 #: Largest GeoJSON land-mask file read, MiB, unless ``SARSHIP_LAND_MAX_MB`` says otherwise.
-DEFAULT_LAND_MAX_MB = 64.0
+DEFAULT_LAND_MAX_MB = settings.VARIABLES["land_max_mb"].default
 #: Deepest nesting of ``[``/``{`` in a GeoJSON land mask (a FeatureCollection of MultiPolygons
 #: is 7 deep; GeometryCollections nest further).
 MAX_GEOJSON_DEPTH = 64
@@ -54,16 +55,7 @@ GEOJSON_SUFFIXES = (".geojson", ".json")
 def land_max_bytes() -> int:
     """The largest GeoJSON land-mask file, bytes: ``SARSHIP_LAND_MAX_MB`` MiB (a positive
     number), else :data:`DEFAULT_LAND_MAX_MB`. InputError for a bad value."""
-    raw = os.environ.get("SARSHIP_LAND_MAX_MB", "").strip()
-    if not raw:
-        return int(DEFAULT_LAND_MAX_MB * 2**20)
-    try:
-        mb = float(raw)
-    except ValueError:
-        mb = float("nan")
-    if not (mb > 0 and mb < float("inf")):
-        raise InputError(f"SARSHIP_LAND_MAX_MB must be a positive number of MiB, got '{raw}'")
-    return int(mb * 2**20)
+    return int(settings.read("land_max_mb") * 2**20)
 
 
 @dataclass

@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from sarship.pipeline import settings as env_settings
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.limits import (DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO,
                                              DEFAULT_MAX_XML_MB)
@@ -156,7 +157,7 @@ def _scheduler(given: str | None) -> str | None:
     """``--scheduler`` of a batch command: the given address, else ``SARSHIP_SCHEDULER`` (the
     service's setting: a cluster kept running, whose warm workers skip the local cluster's
     start-up), else None (a local cluster). ``local`` always means a local cluster."""
-    value = (given if given is not None else os.environ.get("SARSHIP_SCHEDULER", "")).strip()
+    value = (given if given is not None else env_settings.read("scheduler") or "").strip()
     return None if value in ("", "local") else value
 
 
@@ -676,7 +677,7 @@ def console() -> None:
     argv = sys.argv[1:]
     code = main(argv)
     command = next((x for x in argv if not x.startswith("-")), None)
-    if command in FAST_EXIT and os.environ.get("SARSHIP_FAST_EXIT", "1") != "0":
+    if command in FAST_EXIT and env_settings.read("fast_exit"):
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(Exception):
                 stream.flush()
@@ -761,7 +762,7 @@ def _main(a) -> int:
 
 
 def _internal(a, exc: BaseException) -> int:
-    if os.environ.get("SARSHIP_DEBUG"):
+    if env_settings.read("debug"):
         raise exc
     msg = str(exc).splitlines()[0] if str(exc) else ""
     print(f"sarship {a.command}: internal error: {type(exc).__name__}: {msg} "

@@ -46,6 +46,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from sarship.pipeline import settings
+
 #: Environment variables that may differ between the warm process and a command (they change
 #: nothing the warm process fixed at its start: the error report, the client's exit).
 PER_COMMAND_ENV = ("SARSHIP_DEBUG", "SARSHIP_FAST_EXIT", "SARSHIP_WARM", "SARSHIP_WARM_SOCKET")
@@ -59,7 +61,6 @@ DEFAULT_WARM_UP = ("ca_cfar",)
 #: Seconds ``sarship warm start`` waits for the cluster to be ready.
 START_TIMEOUT_S = 300.0
 
-_OFF = ("0", "false", "no", "off")
 
 
 class WarmError(Exception):
@@ -72,9 +73,9 @@ class WarmError(Exception):
 def socket_path() -> Path:
     """The warm process's socket: ``SARSHIP_WARM_SOCKET``, else ``warm.sock`` in
     ``$XDG_RUNTIME_DIR/sarship`` (when that folder exists), else in ``/tmp/sarship-UID``."""
-    raw = os.environ.get("SARSHIP_WARM_SOCKET", "").strip()
-    if raw:
-        return Path(raw).expanduser()
+    given = settings.read("warm_socket")
+    if given is not None:
+        return given.expanduser()
     run = os.environ.get("XDG_RUNTIME_DIR", "").strip()
     if run and os.path.isdir(run):
         return Path(run) / "sarship" / "warm.sock"
@@ -188,13 +189,13 @@ def eligible(argv: list[str]) -> bool:
     ``--scheduler`` or ``SARSHIP_SCHEDULER`` (``local``, there, asks for a cluster of the
     command's own), unless ``SARSHIP_WARM`` is off. (The warm process checks the parsed command
     again.)"""
-    if os.environ.get("SARSHIP_WARM", "").strip().lower() in _OFF or not supported():
+    if not settings.read("warm") or not supported():
         return False
     if not argv or argv[0] != "detect":
         return False
     if any(x == "--scheduler" or x.startswith("--scheduler=") for x in argv):
         return False
-    return not os.environ.get("SARSHIP_SCHEDULER", "").strip()
+    return not settings.read("scheduler")
 
 
 def run_remote(argv: list[str]) -> int | None:
@@ -212,7 +213,7 @@ def run_remote(argv: list[str]) -> int | None:
     umask = os.umask(0)
     os.umask(umask)
     request = {"op": "detect", "argv": list(argv), "cwd": cwd, "umask": umask, "env": relevant_env(),
-               "identity": _identity(), "debug": os.environ.get("SARSHIP_DEBUG", ""),
+               "identity": _identity(), "debug": settings.raw("debug") or "",
                "columns": _columns(),
                "tty": {"stdout": _isatty(sys.stdout), "stderr": _isatty(sys.stderr)}}
     import signal

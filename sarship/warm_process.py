@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
 
+from sarship.pipeline import settings
 from sarship.temporaries import present, remove_new, temporaries
 from sarship.warm import (
     DEFAULT_IDLE_S,
@@ -302,7 +303,7 @@ def _run_command(conn: socket.socket, req: dict, client, state: dict, ns, main: 
     tty = req.get("tty") or {}
     out, err = _Stream(channel, "o", bool(tty.get("stdout"))), _Stream(channel, "e", bool(tty.get("stderr")))
     cwd, umask = os.getcwd(), os.umask(int(req.get("umask", 0o022)))
-    debug, columns = os.environ.get("SARSHIP_DEBUG"), os.environ.get("COLUMNS")
+    debug, columns = settings.raw("debug"), os.environ.get("COLUMNS")
     code = 1
     try:
         os.chdir(req["cwd"])

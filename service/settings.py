@@ -1,6 +1,9 @@
 """Service settings: environment variables with the ``SARSHIP_`` prefix, overridden by
 ``sarship serve`` flags (``sarship serve --help`` lists them).
 
+The variables the layers below read too (``SARSHIP_SCHEDULER``, ``SARSHIP_LAND_MAX_MB``) are
+fields of :mod:`sarship.pipeline.settings`, taken from there (one definition each).
+
 The inbox settings (``SARSHIP_INBOX*``) are checked here, at start-up, so that a bad cron
 expression, an unknown detector or a bad detector parameter stops ``sarship serve`` with one
 line naming the setting and the key (exit 2) instead of failing pass after pass later.
@@ -17,6 +20,7 @@ from pydantic import Field, ValidationInfo, field_validator
 from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from sarship.pipeline import settings as env_settings
 from sarship.pipeline.readers.limits import (DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO,
                                              DEFAULT_MAX_XML_MB)
 
@@ -97,7 +101,7 @@ class Settings(BaseSettings):
     data: Path = Field(Path("sarship-data"), description="data folder: job store, scenes, job outputs")
     host: str = Field("127.0.0.1", description="address the API listens on")
     port: int = Field(8080, ge=0, le=65535, description="port the API listens on")
-    scheduler: Optional[str] = Field(None, description="Dask scheduler address (default: a local cluster)")
+    scheduler: Optional[str] = env_settings.field("scheduler")  # shared with the command line
     workers: Optional[int] = Field(None, ge=1, description="local cluster CPU worker processes (default: all cores; "
                                                            "with GPU workers, all cores less two per GPU, at least 1)")
     worker_threads: bool = Field(False, description="local cluster CPU workers as threads of the API process "
@@ -133,9 +137,7 @@ class Settings(BaseSettings):
     ingest_memory_mb: float = Field(4096.0, ge=0.0,
                                     description="address-space cap of the child process each ingest runs in, MiB "
                                                 "(0: no cap); an ingest beyond it fails its job, the file is refused")
-    land_max_mb: float = Field(64.0, gt=0.0, allow_inf_nan=False,
-                               description="largest GeoJSON land_mask FILE, MiB (the command line reads the same "
-                                           "SARSHIP_LAND_MAX_MB); a larger one is refused when the job is submitted")
+    land_max_mb: float = env_settings.field("land_max_mb")  # shared with the land-mask reader
     scene_retention_days: Optional[float] = Field(
         None, ge=0.0, allow_inf_nan=False, description="scenes in DATA/scenes older than this many days (since their ingest finished, "
                                   "else since the store was last written) that no accepted or running job names "

@@ -18,24 +18,17 @@ memory).
 
 from __future__ import annotations
 
-import math
 import os
 
-from sarship.pipeline.errors import InputError
+from sarship.pipeline import settings
 
 
 def limit_bytes() -> int:
     """The byte budget per worker: ``SARSHIP_BLOCK_CACHE_MB`` (MiB, a number >= 0), else
     min(memory / (4 x cores), 2 GiB); a value that is not such a number is an
     :class:`InputError` naming the setting."""
-    raw = os.environ.get("SARSHIP_BLOCK_CACHE_MB", "").strip()
-    if raw:
-        try:
-            mib = float(raw)
-        except ValueError:
-            mib = -1.0
-        if not (math.isfinite(mib) and mib >= 0):
-            raise InputError(f"SARSHIP_BLOCK_CACHE_MB must be a number of MiB >= 0, got '{raw}'")
+    mib = settings.read("block_cache_mb")
+    if mib is not None:
         return int(mib * 2**20)
     try:
         total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")

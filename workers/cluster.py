@@ -21,6 +21,7 @@ import sys
 import warnings
 from typing import Iterator
 
+from sarship.pipeline import settings
 from sarship.pipeline.errors import InputError
 
 #: ``sarship detect`` without ``--scheduler`` runs scenes of at most this many pixels on an
@@ -31,27 +32,18 @@ from sarship.pipeline.errors import InputError
 #: worker, and results pickled back; the kernels release the GIL, so threads lose nothing:
 #: ``ca_cfar`` on 8192 x 8192 takes 4.4 s on threads against 7.7 s on processes, and on 4096 x
 #: 4096 ``os_cfar`` 3.2 against 5.7 s, ``two_parameter`` 3.0 against 5.3 s.
-THREADS_MAX_PX = 8192 * 8192
+THREADS_MAX_PX = settings.VARIABLES["threads_max_px"].default
 
 
 def threads_max_px() -> int:
     """:data:`THREADS_MAX_PX`, or the ``SARSHIP_THREADS_MAX_PX`` setting (an integer >= 0)."""
-    raw = os.environ.get("SARSHIP_THREADS_MAX_PX", "").strip()
-    if not raw:
-        return THREADS_MAX_PX
-    try:
-        value = int(float(raw))
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise InputError(f"SARSHIP_THREADS_MAX_PX must be a whole number of pixels >= 0, got '{raw}'")
-    return value
+    return settings.read("threads_max_px")
 
 
 #: The interface a local cluster's scheduler, nannies and workers listen on (``SARSHIP_CLUSTER_HOST``
 #: overrides it). Loopback: Dask's comms have no authentication, and whoever reaches a
 #: scheduler or worker port can run code there (``SARSHIP_TOKENS`` guards the API only).
-CLUSTER_HOST = "127.0.0.1"
+CLUSTER_HOST = settings.VARIABLES["cluster_host"].default
 
 
 def cluster_host() -> str:
@@ -59,20 +51,7 @@ def cluster_host() -> str:
     ``SARSHIP_CLUSTER_HOST`` setting (an IP address or a host name of this machine; ``0.0.0.0``
     opens the cluster to every network the machine is on). :class:`InputError` for a value
     that is not one."""
-    import ipaddress
-
-    raw = os.environ.get("SARSHIP_CLUSTER_HOST", "").strip()
-    if not raw:
-        return CLUSTER_HOST
-    h = raw.strip("[]")
-    try:
-        ipaddress.ip_address(h)
-        return h
-    except ValueError:
-        pass
-    if all(part and len(part) <= 63 and part.replace("-", "").isalnum() for part in h.split(".")) and len(h) <= 253:
-        return h
-    raise InputError(f"SARSHIP_CLUSTER_HOST must be an IP address or host name of this machine, got '{raw}'")
+    return settings.read("cluster_host")
 
 
 def _quiet() -> None:
@@ -315,7 +294,7 @@ def nanny_environ() -> dict:
 
 
 #: Start methods a local cluster's worker processes may use (``SARSHIP_WORKER_START``).
-START_METHODS = ("fork", "forkserver", "spawn")
+START_METHODS = settings.START_METHODS
 
 
 def cuda_initialised() -> bool:
@@ -349,11 +328,9 @@ def worker_start_method(short_lived: bool = True) -> str:
     a process that has initialised CUDA cannot use CUDA; other platforms (no fork on Windows,
     macOS system frameworks) and the long-lived service, whose cluster restarts workers from a
     process with many threads, keep ``spawn``."""
-    raw = os.environ.get("SARSHIP_WORKER_START", "").strip().lower()
-    if raw:
-        if raw not in START_METHODS:
-            raise InputError(f"SARSHIP_WORKER_START must be one of {', '.join(START_METHODS)}, got {raw!r}")
-        return raw
+    method = settings.read("worker_start")
+    if method:
+        return method
     if short_lived and sys.platform.startswith("linux") and not cuda_initialised():
         return "fork"
     return "spawn"
@@ -377,14 +354,11 @@ def gpu_procs(n_gpus: int = 1, long_lived: bool = False) -> int:
     bench/RESULTS.md, issue 18, session 11) the band as typed took 10.7 s with 4 processes per
     GPU (16), 8.4 s with 2 (8) and 7.0 s with 1 (4); on warm ``sarship worker`` processes 4.5,
     4.8 and 4.1 s: more processes bought nothing there either."""
-    raw = os.environ.get("SARSHIP_GPU_PROCS")
-    if raw is None:
+    procs = settings.read("gpu_procs")
+    if procs is None:
         n = max(1, n_gpus)
         return max(1, min(4, (os.cpu_count() or 1) // (4 * n), 4 if long_lived else 4 // n))
-    try:
-        return max(1, int(raw))
-    except ValueError:
-        raise InputError(f"SARSHIP_GPU_PROCS must be a whole number, got {raw!r}") from None
+    return procs
 
 
 def gpu_cluster_spec(gpu_ids: list[str], cpu_workers: int, dashboard_address: str, host: str,
@@ -419,7 +393,7 @@ def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads
 
         cluster = SpecCluster(**gpu_cluster_spec(
             gpu_ids, cpu_workers, dashboard_address, host, per_gpu=per_gpu,
-            gpu_threads=gpu_threads or int(os.environ.get("SARSHIP_GPU_THREADS", "2"))))
+            gpu_threads=gpu_threads or settings.read("gpu_threads")))
         what = f"{len(gpu_ids) * per_gpu} GPU worker processes" + (f" and {cpu_workers} CPU" if cpu_workers else "")
     elif threads:
         n = n_workers or os.cpu_count() or 1

@@ -18,6 +18,7 @@ import time
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
+from sarship.pipeline import settings
 from sarship.pipeline.errors import InputError
 
 
@@ -43,7 +44,7 @@ class CudaWarmup(WorkerPlugin):
     name = "sarship-cuda-warmup"
 
     def setup(self, worker) -> None:
-        if os.environ.get("SARSHIP_DEVICE") != "gpu" or os.environ.get("SARSHIP_CUDA_WARMUP", "1") == "0":
+        if settings.read("device") != "gpu" or not settings.read("cuda_warmup"):
             return
         threading.Thread(target=_warm_cuda, args=(worker,), name="sarship-cuda-warmup", daemon=True).start()
 

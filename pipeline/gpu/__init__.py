@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import functools
 import importlib
-import os
 from typing import Any
 
+from sarship.pipeline import settings
+
 #: Fraction of the device memory the CuPy pool may hold (``SARSHIP_GPU_POOL_FRACTION``).
-DEFAULT_POOL_FRACTION = 0.8
+DEFAULT_POOL_FRACTION = settings.VARIABLES["gpu_pool_fraction"].default
 
 
 def cupy_module():
@@ -83,7 +84,7 @@ def init_device() -> None:
     cp = cupy_module()
     if cp is None:
         raise RuntimeError("CuPy is not installed (pip install 'sarship[gpu]')")
-    frac = float(os.environ.get("SARSHIP_GPU_POOL_FRACTION", DEFAULT_POOL_FRACTION))
+    frac = settings.read("gpu_pool_fraction")
     cp.get_default_memory_pool().set_limit(fraction=min(max(frac, 0.05), 1.0))
     _POOL_SET = True
 

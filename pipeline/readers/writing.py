@@ -48,11 +48,11 @@ INGEST_WRITERS_MAX = 8
 def ingest_writers() -> int:
     """The number of tile writes an ingest keeps going at once (see :data:`INGEST_WRITERS_MAX`);
     a value of ``SARSHIP_INGEST_WRITERS`` that is not a whole number >= 1 is an InputError."""
-    raw = os.environ.get("SARSHIP_INGEST_WRITERS", "").strip()
-    if raw:
-        if not raw.isdigit() or int(raw) < 1:
-            raise InputError(f"SARSHIP_INGEST_WRITERS must be a whole number >= 1, got '{raw}'")
-        return int(raw)
+    from sarship.pipeline import settings
+
+    n = settings.read("ingest_writers")
+    if n is not None:
+        return n
     return max(1, min(os.cpu_count() or 1, INGEST_WRITERS_MAX))
 
 
