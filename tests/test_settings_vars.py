@@ -81,12 +81,20 @@ def _known() -> set[str]:
     return {v.env for v in settings.VARIABLES.values()} | {settings.PREFIX + n.upper() for n in Settings.model_fields}
 
 
+#: Names that are no setting of sarship (docs/interfaces/settings.md says so): the docs' placeholder,
+#: the deployment's own build arguments and unit substitutions, the tests' and benchmarks' knobs.
+NOT_SETTINGS = {"SARSHIP_NAME", "SARSHIP_UID", "SARSHIP_GID", "SARSHIP_CPU_WORKERS", "SARSHIP_SCHEDULER_ADDRESS",
+                "SARSHIP_DASHBOARD_ADDRESS", "SARSHIP_FUZZ_EXAMPLES", "SARSHIP_BENCH_TMP"}
+
+
 def test_every_variable_named_is_defined():
     """A ``SARSHIP_*`` name in the product's code or docs is a defined variable (no stale name)."""
     names = re.compile(r"\bSARSHIP_[A-Z0-9][A-Z0-9_]*[A-Z0-9]\b")
-    files = [*_product_files(), REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+    files = [*_product_files(), REPO / "README.md", *sorted((REPO / "docs").rglob("*.md")),
+             *sorted(p for p in (REPO / "deploy").rglob("*") if p.is_file() and "static" not in p.parts),
+             REPO / "docker-compose.yml"]
     unknown = {}
-    known = _known() | {"SARSHIP_NAME"}  # the docs' placeholder for any of them
+    known = _known() | NOT_SETTINGS
     for path in files:
         for name in set(names.findall(path.read_text())) - known:
             unknown.setdefault(name, []).append(str(path.relative_to(REPO)))
