@@ -19,12 +19,10 @@ only when :func:`model` is first called.
 from __future__ import annotations
 
 import functools
-import ipaddress
 import math
 import os
-from dataclasses import dataclass, field as _dc_field
 from pathlib import Path
-from typing import Any, Callable, Literal, Optional
+from typing import Any, Callable, Literal, NamedTuple, Optional
 
 from sarship.pipeline.errors import InputError
 
@@ -40,9 +38,9 @@ START_METHODS = ("fork", "forkserver", "spawn")
 HSUM_METHODS = ("direct", "transpose")
 
 
-@dataclass(frozen=True)
-class Var:
-    """One ``SARSHIP_*`` variable.
+class Var(NamedTuple):
+    """One ``SARSHIP_*`` variable (a named tuple, not a dataclass: ``dataclasses`` costs the
+    warm cluster's client ~10 ms of imports).
 
     Attributes
     ----------
@@ -64,7 +62,7 @@ class Var:
         The text parsed: stripped, stripped and lower-cased, or as set.
     blank_is_unset : bool
         Whether a blank value means the default (else it is parsed like any other).
-    bounds : dict
+    bounds : dict, optional
         Constraints of the model field (``gt``, ``ge``, ``allow_inf_nan``...).
     default_text : str, optional
         The default as the docs state it, where the code computes it.
@@ -83,7 +81,7 @@ class Var:
     bad: str
     text: Literal["strip", "lower", "raw"] = "strip"
     blank_is_unset: bool = True
-    bounds: dict[str, Any] = _dc_field(default_factory=dict)
+    bounds: Optional[dict[str, Any]] = None
     default_text: Optional[str] = None
     typed_by_model: bool = False
 
@@ -133,6 +131,8 @@ def _pixels(text: str) -> int:
 
 def _host(text: str) -> str:
     """An IP address (brackets dropped) or a well-formed host name."""
+    import ipaddress
+
     h = text.strip("[]")
     try:
         ipaddress.ip_address(h)
@@ -330,7 +330,7 @@ def model() -> type:
     fields = {}
     for v in VARIABLES.values():
         annotation = v.type if v.typed_by_model else Annotated[v.type, BeforeValidator(rule(v))]
-        fields[v.name] = (annotation, Field(v.default, description=v.meaning, **v.bounds))
+        fields[v.name] = (annotation, Field(v.default, description=v.meaning, **(v.bounds or {})))
     return create_model("Environment", __base__=Environment, __module__=__name__, **fields)
 
 
