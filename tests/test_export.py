@@ -143,9 +143,18 @@ def test_gdal_failure_leaves_nothing(tmp_path, monkeypatch):
 
 
 def test_cli_export_overwrite_rules(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
     src = _geojson(tmp_path)
     dst = tmp_path / "ships.gpkg"
-    res = sarship("export", src, "--to", dst)
+    plain = tmp_path / "plain.geojson"
+    plain.write_text(json.dumps(_collection(None)))
+    # the first export and three refusals (none writes) at once; then the overwrite rules in turn
+    with ThreadPoolExecutor(4) as pool:
+        res, no_geo, csv, no_gis = pool.map(lambda a: sarship("export", *a[0], env=a[1]), [
+            ((src, "--to", dst), None), ((plain, "--to", tmp_path / "p.kml"), None),
+            ((src, "--to", tmp_path / "p.csv"), None),
+            ((src, "--to", tmp_path / "p.kml"), {"PYTHONPATH": str(_no_pyogrio(tmp_path))})])
     assert res.returncode == 0, res.stderr
     assert "3 ships" in res.stdout
     before = dst.read_bytes()
@@ -155,12 +164,9 @@ def test_cli_export_overwrite_rules(tmp_path):
     res = sarship("export", src, "--to", dst, "--overwrite")
     assert res.returncode == 0, res.stderr
     assert pyogrio.read_info(dst)["features"] == 3
-    plain = tmp_path / "plain.geojson"
-    plain.write_text(json.dumps(_collection(None)))
-    assert_clean_error(sarship("export", plain, "--to", tmp_path / "p.kml"), "not georeferenced")
-    assert_clean_error(sarship("export", src, "--to", tmp_path / "p.csv"), ".gpkg")
-    res = sarship("export", src, "--to", tmp_path / "p.kml", env={"PYTHONPATH": str(_no_pyogrio(tmp_path))})
-    assert_clean_error(res, "sarship[gis]")
+    assert_clean_error(no_geo, "not georeferenced")
+    assert_clean_error(csv, ".gpkg")
+    assert_clean_error(no_gis, "sarship[gis]")
     assert not (tmp_path / "p.kml").exists()
 
 
@@ -179,18 +185,22 @@ def test_cli_detect_formats(tmp_path):
     geo = write_scene(tmp_path / "geo.zarr", {"intensity": x}, tile=64, looks=2.0, pixel_spacing_m=[10.0, 10.0], **UTM)
     plain = write_scene(tmp_path / "plain.zarr", {"intensity": x}, tile=64, looks=2.0)
     out = tmp_path / "run"
-    res = sarship("detect", geo, "--detector", "ca_cfar", "--out", out, "--formats", "geojson,gpkg,kml",
-                  "--set", "min_area_px=2", "--set", "guard=9", "--set", "background=21")
+    from concurrent.futures import ThreadPoolExecutor
+
+    runs = [(geo, "--detector", "ca_cfar", "--out", out, "--formats", "geojson,gpkg,kml",
+             "--set", "min_area_px=2", "--set", "guard=9", "--set", "background=21"),
+            (geo, "--detector", "ca_cfar", "--out", tmp_path / "r2", "--formats", "shp"),
+            (plain, "--detector", "ca_cfar", "--out", tmp_path / "r3", "--formats", "kml")]
+    with ThreadPoolExecutor(len(runs)) as pool:  # the three commands at once (each writes its own folder)
+        res, shp, kml = pool.map(lambda args: sarship("detect", *args), runs)
     assert res.returncode == 0, res.stderr
     assert {"detections.geojson", "detections.gpkg", "detections.kml"} <= set(os.listdir(out))
     assert not [p for p in os.listdir(out) if p.startswith(".")]
     fc = json.loads((out / "detections.geojson").read_text())
     assert fc["features"] and pyogrio.read_info(out / "detections.gpkg")["features"] == len(fc["features"])
     # refused before any work: unknown format, a scene without georeference
-    assert_clean_error(sarship("detect", geo, "--detector", "ca_cfar", "--out", tmp_path / "r2", "--formats", "shp"),
-                       "--formats", "shp")
-    res = sarship("detect", plain, "--detector", "ca_cfar", "--out", tmp_path / "r3", "--formats", "kml")
-    assert_clean_error(res, "not georeferenced")
+    assert_clean_error(shp, "--formats", "shp")
+    assert_clean_error(kml, "not georeferenced")
     assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
 
 
@@ -265,44 +275,42 @@ def test_product_fields_agree_with_the_manifest(pattern):
 # ------------------------------------------------------------------ the service offers them too
 
 
-def test_service_results_offer_gpkg_and_kml(tmp_path):
+def test_service_results_offer_gpkg_and_kml(tmp_path, tmp_path_factory):
     """``/jobs/{id}/results`` links ``detections-gpkg`` / ``detections-kml`` for a georeferenced
     scene (``/results/detections?f=gpkg|kml``, built once, cached), not for one without."""
     httpx = pytest.importorskip("httpx")
-    from tests.svc import Server, check_problem, free_port, wait_job
+    from svc import check_problem, shared_server, wait_job  # (svc, as the other modules import it: one shared server)
 
-    data = tmp_path / "data"
-    (data / "scenes").mkdir(parents=True)
+    # the test process's shared server, with this test's scenes (names of their own) in its folder
+    srv = shared_server(tmp_path_factory.getbasetemp())
+    data = srv.data
     rng = np.random.default_rng(1)
     x = rng.gamma(2.0, 0.5, (160, 140)).astype(np.float32)
     x[40:44, 30:40] += 60.0
     x[100:110, 90:93] += 60.0
-    write_scene(data / "scenes" / "geo.zarr", {"intensity": x}, tile=80, looks=2.0, pixel_spacing_m=[10.0, 10.0], **UTM)
-    write_scene(data / "scenes" / "plain.zarr", {"intensity": x}, tile=80, looks=2.0)
-    srv = Server(data, free_port()).start()
-    try:
-        u = srv.url + "/processes/ca_cfar/execution"
-        body = {"guard": 9, "background": 21, "min_area_px": 2}
-        jobs = {k: httpx.post(u, json={"inputs": {"scene": k, **body}}).json()["jobID"] for k in ("geo", "plain")}
-        for j in jobs.values():
-            assert wait_job(srv.url, j)["status"] == "successful"
-        res = httpx.get(f"{srv.url}/jobs/{jobs['geo']}/results").json()
-        assert res["detections-gpkg"]["type"] == "application/geopackage+sqlite3"
-        assert res["detections-kml"]["type"] == "application/vnd.google-earth.kml+xml"
-        fc = httpx.get(res["detections"]["href"]).json()
-        assert len(fc["features"]) == 2
-        g = httpx.get(res["detections-gpkg"]["href"])
-        assert g.status_code == 200 and g.headers["content-type"] == "application/geopackage+sqlite3"
-        (tmp_path / "d.gpkg").write_bytes(g.content)
-        assert pyogrio.read_info(tmp_path / "d.gpkg")["features"] == 2
-        k = httpx.get(res["detections-kml"]["href"])
-        assert k.status_code == 200 and k.headers["content-type"].startswith("application/vnd.google-earth.kml+xml")
-        assert len(ET.fromstring(k.content).findall(f".//{KML}Placemark")) == 2
-        assert (data / "jobs" / jobs["geo"] / "detections.gpkg").is_file()  # cached in the job folder
-        assert httpx.get(res["detections-gpkg"]["href"], headers={"If-None-Match": g.headers["etag"]}).status_code == 304
-        plain = httpx.get(f"{srv.url}/jobs/{jobs['plain']}/results").json()
-        assert "detections-gpkg" not in plain and "detections-kml" not in plain
-        check_problem(httpx.get(plain["detections"]["href"] + "?f=kml"), 404, "not georeferenced")
-        check_problem(httpx.get(res["detections"]["href"] + "?f=shp"), 400, "'f'")
-    finally:
-        srv.stop()
+    write_scene(data / "scenes" / "exp_geo.zarr", {"intensity": x}, tile=80, looks=2.0, pixel_spacing_m=[10.0, 10.0],
+                **UTM)
+    write_scene(data / "scenes" / "exp_plain.zarr", {"intensity": x}, tile=80, looks=2.0)
+    u = srv.url + "/processes/ca_cfar/execution"
+    body = {"guard": 9, "background": 21, "min_area_px": 2}
+    jobs = {k: httpx.post(u, json={"inputs": {"scene": f"exp_{k}", **body}}).json()["jobID"] for k in ("geo", "plain")}
+    for j in jobs.values():
+        assert wait_job(srv.url, j)["status"] == "successful"
+    res = httpx.get(f"{srv.url}/jobs/{jobs['geo']}/results").json()
+    assert res["detections-gpkg"]["type"] == "application/geopackage+sqlite3"
+    assert res["detections-kml"]["type"] == "application/vnd.google-earth.kml+xml"
+    fc = httpx.get(res["detections"]["href"]).json()
+    assert len(fc["features"]) == 2
+    g = httpx.get(res["detections-gpkg"]["href"])
+    assert g.status_code == 200 and g.headers["content-type"] == "application/geopackage+sqlite3"
+    (tmp_path / "d.gpkg").write_bytes(g.content)
+    assert pyogrio.read_info(tmp_path / "d.gpkg")["features"] == 2
+    k = httpx.get(res["detections-kml"]["href"])
+    assert k.status_code == 200 and k.headers["content-type"].startswith("application/vnd.google-earth.kml+xml")
+    assert len(ET.fromstring(k.content).findall(f".//{KML}Placemark")) == 2
+    assert (data / "jobs" / jobs["geo"] / "detections.gpkg").is_file()  # cached in the job folder
+    assert httpx.get(res["detections-gpkg"]["href"], headers={"If-None-Match": g.headers["etag"]}).status_code == 304
+    plain = httpx.get(f"{srv.url}/jobs/{jobs['plain']}/results").json()
+    assert "detections-gpkg" not in plain and "detections-kml" not in plain
+    check_problem(httpx.get(plain["detections"]["href"] + "?f=kml"), 404, "not georeferenced")
+    check_problem(httpx.get(res["detections"]["href"] + "?f=shp"), 400, "'f'")
