@@ -143,18 +143,9 @@ def test_gdal_failure_leaves_nothing(tmp_path, monkeypatch):
 
 
 def test_cli_export_overwrite_rules(tmp_path):
-    from concurrent.futures import ThreadPoolExecutor
-
     src = _geojson(tmp_path)
     dst = tmp_path / "ships.gpkg"
-    plain = tmp_path / "plain.geojson"
-    plain.write_text(json.dumps(_collection(None)))
-    # the first export and three refusals (none writes) at once; then the overwrite rules in turn
-    with ThreadPoolExecutor(4) as pool:
-        res, no_geo, csv, no_gis = pool.map(lambda a: sarship("export", *a[0], env=a[1]), [
-            ((src, "--to", dst), None), ((plain, "--to", tmp_path / "p.kml"), None),
-            ((src, "--to", tmp_path / "p.csv"), None),
-            ((src, "--to", tmp_path / "p.kml"), {"PYTHONPATH": str(_no_pyogrio(tmp_path))})])
+    res = sarship("export", src, "--to", dst)
     assert res.returncode == 0, res.stderr
     assert "3 ships" in res.stdout
     before = dst.read_bytes()
@@ -164,9 +155,12 @@ def test_cli_export_overwrite_rules(tmp_path):
     res = sarship("export", src, "--to", dst, "--overwrite")
     assert res.returncode == 0, res.stderr
     assert pyogrio.read_info(dst)["features"] == 3
-    assert_clean_error(no_geo, "not georeferenced")
-    assert_clean_error(csv, ".gpkg")
-    assert_clean_error(no_gis, "sarship[gis]")
+    plain = tmp_path / "plain.geojson"
+    plain.write_text(json.dumps(_collection(None)))
+    assert_clean_error(sarship("export", plain, "--to", tmp_path / "p.kml"), "not georeferenced")
+    assert_clean_error(sarship("export", src, "--to", tmp_path / "p.csv"), ".gpkg")
+    res = sarship("export", src, "--to", tmp_path / "p.kml", env={"PYTHONPATH": str(_no_pyogrio(tmp_path))})
+    assert_clean_error(res, "sarship[gis]")
     assert not (tmp_path / "p.kml").exists()
 
 
@@ -185,22 +179,18 @@ def test_cli_detect_formats(tmp_path):
     geo = write_scene(tmp_path / "geo.zarr", {"intensity": x}, tile=64, looks=2.0, pixel_spacing_m=[10.0, 10.0], **UTM)
     plain = write_scene(tmp_path / "plain.zarr", {"intensity": x}, tile=64, looks=2.0)
     out = tmp_path / "run"
-    from concurrent.futures import ThreadPoolExecutor
-
-    runs = [(geo, "--detector", "ca_cfar", "--out", out, "--formats", "geojson,gpkg,kml",
-             "--set", "min_area_px=2", "--set", "guard=9", "--set", "background=21"),
-            (geo, "--detector", "ca_cfar", "--out", tmp_path / "r2", "--formats", "shp"),
-            (plain, "--detector", "ca_cfar", "--out", tmp_path / "r3", "--formats", "kml")]
-    with ThreadPoolExecutor(len(runs)) as pool:  # the three commands at once (each writes its own folder)
-        res, shp, kml = pool.map(lambda args: sarship("detect", *args), runs)
+    res = sarship("detect", geo, "--detector", "ca_cfar", "--out", out, "--formats", "geojson,gpkg,kml",
+                  "--set", "min_area_px=2", "--set", "guard=9", "--set", "background=21")
     assert res.returncode == 0, res.stderr
     assert {"detections.geojson", "detections.gpkg", "detections.kml"} <= set(os.listdir(out))
     assert not [p for p in os.listdir(out) if p.startswith(".")]
     fc = json.loads((out / "detections.geojson").read_text())
     assert fc["features"] and pyogrio.read_info(out / "detections.gpkg")["features"] == len(fc["features"])
     # refused before any work: unknown format, a scene without georeference
-    assert_clean_error(shp, "--formats", "shp")
-    assert_clean_error(kml, "not georeferenced")
+    assert_clean_error(sarship("detect", geo, "--detector", "ca_cfar", "--out", tmp_path / "r2", "--formats", "shp"),
+                       "--formats", "shp")
+    res = sarship("detect", plain, "--detector", "ca_cfar", "--out", tmp_path / "r3", "--formats", "kml")
+    assert_clean_error(res, "not georeferenced")
     assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
 
 
