@@ -28,6 +28,16 @@ def data_with_scene(root: Path, shape: tuple[int, int] = (300, 260), seed: int =
     return data
 
 
+def make_store(data: Path) -> None:
+    """Create the job store of ``data`` (in WAL mode) before servers start on it at once: two
+    server processes creating one fresh store together can meet "database is locked" (the
+    switch to WAL mode of a new database does not wait for the other's lock)."""
+    from sarship.service.store import JobStore
+
+    data.mkdir(parents=True, exist_ok=True)
+    JobStore(data / "jobs.sqlite").close()
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -58,7 +68,7 @@ class Server:
                     return self
             except httpx.HTTPError:
                 pass
-            time.sleep(0.3)
+            time.sleep(0.05)
         raise RuntimeError("server did not become ready")
 
     def kill(self, sig=signal.SIGKILL) -> None:
@@ -70,13 +80,33 @@ class Server:
         self.kill(signal.SIGTERM)
 
 
+_SHARED: dict[str, Server] = {}
+
+
+def shared_server(root: Path) -> Server:
+    """One plain server (``data_with_scene`` under ``root``, the default settings of
+    :class:`Server`) per test process, started by the first module that asks and stopped when
+    the process exits: a server start costs seconds of the 2-core CI machine. For modules whose
+    tests do not interfere: each writes its own scenes (names of its own) into ``srv.data`` and
+    looks at its own jobs only; nothing changes the server's settings. ``root`` is used only
+    by the first call (a session-lived folder, e.g. ``tmp_path_factory.getbasetemp()``)."""
+    import atexit
+
+    srv = _SHARED.get("plain")
+    if srv is None or srv.proc.poll() is not None:
+        srv = Server(data_with_scene(Path(root) / f"shared-{time.time_ns()}"), free_port()).start()
+        atexit.register(srv.stop)
+        _SHARED["plain"] = srv
+    return srv
+
+
 def wait_job(url: str, job_id: str, timeout: float = 120.0) -> dict:
     t_end = time.time() + timeout
     while time.time() < t_end:
         st = httpx.get(f"{url}/jobs/{job_id}").json()
         if st["status"] in ("successful", "failed", "dismissed"):
             return st
-        time.sleep(0.2)
+        time.sleep(0.05)
     raise AssertionError(f"job {job_id} did not finish: {st}")
 
 

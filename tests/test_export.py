@@ -265,44 +265,42 @@ def test_product_fields_agree_with_the_manifest(pattern):
 # ------------------------------------------------------------------ the service offers them too
 
 
-def test_service_results_offer_gpkg_and_kml(tmp_path):
+def test_service_results_offer_gpkg_and_kml(tmp_path, tmp_path_factory):
     """``/jobs/{id}/results`` links ``detections-gpkg`` / ``detections-kml`` for a georeferenced
     scene (``/results/detections?f=gpkg|kml``, built once, cached), not for one without."""
     httpx = pytest.importorskip("httpx")
-    from tests.svc import Server, check_problem, free_port, wait_job
+    from svc import check_problem, shared_server, wait_job  # (svc, as the other modules import it: one shared server)
 
-    data = tmp_path / "data"
-    (data / "scenes").mkdir(parents=True)
+    # the test process's shared server, with this test's scenes (names of their own) in its folder
+    srv = shared_server(tmp_path_factory.getbasetemp())
+    data = srv.data
     rng = np.random.default_rng(1)
     x = rng.gamma(2.0, 0.5, (160, 140)).astype(np.float32)
     x[40:44, 30:40] += 60.0
     x[100:110, 90:93] += 60.0
-    write_scene(data / "scenes" / "geo.zarr", {"intensity": x}, tile=80, looks=2.0, pixel_spacing_m=[10.0, 10.0], **UTM)
-    write_scene(data / "scenes" / "plain.zarr", {"intensity": x}, tile=80, looks=2.0)
-    srv = Server(data, free_port()).start()
-    try:
-        u = srv.url + "/processes/ca_cfar/execution"
-        body = {"guard": 9, "background": 21, "min_area_px": 2}
-        jobs = {k: httpx.post(u, json={"inputs": {"scene": k, **body}}).json()["jobID"] for k in ("geo", "plain")}
-        for j in jobs.values():
-            assert wait_job(srv.url, j)["status"] == "successful"
-        res = httpx.get(f"{srv.url}/jobs/{jobs['geo']}/results").json()
-        assert res["detections-gpkg"]["type"] == "application/geopackage+sqlite3"
-        assert res["detections-kml"]["type"] == "application/vnd.google-earth.kml+xml"
-        fc = httpx.get(res["detections"]["href"]).json()
-        assert len(fc["features"]) == 2
-        g = httpx.get(res["detections-gpkg"]["href"])
-        assert g.status_code == 200 and g.headers["content-type"] == "application/geopackage+sqlite3"
-        (tmp_path / "d.gpkg").write_bytes(g.content)
-        assert pyogrio.read_info(tmp_path / "d.gpkg")["features"] == 2
-        k = httpx.get(res["detections-kml"]["href"])
-        assert k.status_code == 200 and k.headers["content-type"].startswith("application/vnd.google-earth.kml+xml")
-        assert len(ET.fromstring(k.content).findall(f".//{KML}Placemark")) == 2
-        assert (data / "jobs" / jobs["geo"] / "detections.gpkg").is_file()  # cached in the job folder
-        assert httpx.get(res["detections-gpkg"]["href"], headers={"If-None-Match": g.headers["etag"]}).status_code == 304
-        plain = httpx.get(f"{srv.url}/jobs/{jobs['plain']}/results").json()
-        assert "detections-gpkg" not in plain and "detections-kml" not in plain
-        check_problem(httpx.get(plain["detections"]["href"] + "?f=kml"), 404, "not georeferenced")
-        check_problem(httpx.get(res["detections"]["href"] + "?f=shp"), 400, "'f'")
-    finally:
-        srv.stop()
+    write_scene(data / "scenes" / "exp_geo.zarr", {"intensity": x}, tile=80, looks=2.0, pixel_spacing_m=[10.0, 10.0],
+                **UTM)
+    write_scene(data / "scenes" / "exp_plain.zarr", {"intensity": x}, tile=80, looks=2.0)
+    u = srv.url + "/processes/ca_cfar/execution"
+    body = {"guard": 9, "background": 21, "min_area_px": 2}
+    jobs = {k: httpx.post(u, json={"inputs": {"scene": f"exp_{k}", **body}}).json()["jobID"] for k in ("geo", "plain")}
+    for j in jobs.values():
+        assert wait_job(srv.url, j)["status"] == "successful"
+    res = httpx.get(f"{srv.url}/jobs/{jobs['geo']}/results").json()
+    assert res["detections-gpkg"]["type"] == "application/geopackage+sqlite3"
+    assert res["detections-kml"]["type"] == "application/vnd.google-earth.kml+xml"
+    fc = httpx.get(res["detections"]["href"]).json()
+    assert len(fc["features"]) == 2
+    g = httpx.get(res["detections-gpkg"]["href"])
+    assert g.status_code == 200 and g.headers["content-type"] == "application/geopackage+sqlite3"
+    (tmp_path / "d.gpkg").write_bytes(g.content)
+    assert pyogrio.read_info(tmp_path / "d.gpkg")["features"] == 2
+    k = httpx.get(res["detections-kml"]["href"])
+    assert k.status_code == 200 and k.headers["content-type"].startswith("application/vnd.google-earth.kml+xml")
+    assert len(ET.fromstring(k.content).findall(f".//{KML}Placemark")) == 2
+    assert (data / "jobs" / jobs["geo"] / "detections.gpkg").is_file()  # cached in the job folder
+    assert httpx.get(res["detections-gpkg"]["href"], headers={"If-None-Match": g.headers["etag"]}).status_code == 304
+    plain = httpx.get(f"{srv.url}/jobs/{jobs['plain']}/results").json()
+    assert "detections-gpkg" not in plain and "detections-kml" not in plain
+    check_problem(httpx.get(plain["detections"]["href"] + "?f=kml"), 404, "not georeferenced")
+    check_problem(httpx.get(res["detections"]["href"] + "?f=shp"), 400, "'f'")

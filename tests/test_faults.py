@@ -33,8 +33,8 @@ import numpy as np
 import pytest
 
 httpx = pytest.importorskip("httpx")
-from conftest import blobs_scene, fsize_limit, write_scene  # noqa: E402
-from svc import Server, free_port, passes, tif_bytes, wait_job, wait_pass  # noqa: E402
+from conftest import fsize_limit, write_scene  # noqa: E402
+from svc import Server, free_port, make_store, passes, tif_bytes, wait_job, wait_pass  # noqa: E402
 
 from sarship.service.inbox_files import marker  # noqa: E402
 
@@ -208,7 +208,8 @@ def test_kill_9_mid_ingest_leaves_no_partial_after_restart(tmp_path):
     scenes = data / "scenes"
     rng = np.random.default_rng(3)
     raws = [npy_bytes(rng.gamma(2.0, 0.5, (3000, 3000)).astype(np.float32)) for _ in range(2)]
-    srv = Server(data, free_port(), SARSHIP_WORKERS="1").start()
+    # a 2 s lease (the least allowed is above 1 s): after the restart the killed ingest runs again that much sooner
+    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_LEASE_S="2").start()
     try:
         docs = [_upload(srv.url, f"p{k}.npy", raw) for k, raw in enumerate(raws)]
         t_end = time.time() + 60
@@ -224,7 +225,7 @@ def test_kill_9_mid_ingest_leaves_no_partial_after_restart(tmp_path):
     store = JobStore(data / "jobs.sqlite")
     assert store.dismiss(docs[1]["jobID"])[1] == "running"  # what DELETE /jobs/ID does, the server down
     store.close()
-    srv = Server(data, free_port(), SARSHIP_WORKERS="1").start()
+    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_LEASE_S="2").start()
     try:
         st = wait_job(srv.url, docs[0]["jobID"], timeout=120)
         assert st["status"] == "successful" and st["attempts"] == 2, st
@@ -241,6 +242,24 @@ def test_kill_9_mid_ingest_leaves_no_partial_after_restart(tmp_path):
 # ----------------------------------------------------------------------------- 4. fencing
 
 
+def many_blobs(shape, n: int, seed: int, looks: float = 2.0, amp: float = 40.0) -> np.ndarray:
+    """``conftest.blobs_scene`` vectorised (its loop takes seconds for 100 000 blobs): gamma
+    clutter with ``n`` bright rectangles of 1-5 x 1-11 pixels at random places."""
+    rng = np.random.default_rng(seed)
+    x = rng.gamma(looks, 1.0 / looks, shape).astype(np.float32)
+    r = rng.integers(0, shape[0] - 6, n)
+    c = rng.integers(0, shape[1] - 12, n)
+    hh, ww = rng.integers(1, 6, n), rng.integers(1, 12, n)
+    for h in range(1, 6):
+        for w in range(1, 12):
+            k = (hh == h) & (ww == w)
+            rows = (r[k, None, None] + np.arange(h)[None, :, None]).repeat(w, axis=2)
+            cols = (c[k, None, None] + np.arange(w)[None, None, :]).repeat(h, axis=1)
+            vals = amp * rng.random(rows.shape).astype(np.float32) + amp / 4
+            np.add.at(x, (rows, cols), vals)
+    return x
+
+
 def _job_row(data: Path, job_id: str) -> dict:
     c = sqlite3.connect(data / "jobs.sqlite", timeout=30)
     c.row_factory = sqlite3.Row
@@ -250,15 +269,17 @@ def _job_row(data: Path, job_id: str) -> dict:
         c.close()
 
 
+@pytest.mark.slow  # two servers and a 2000 x 2000 job run twice; test_the_store_fences_a_stale_attempt_of_the_same_owner keeps the rule in the default run
 def test_a_runner_stopped_past_its_lease_cannot_publish(tmp_path):
     """Two API processes on one store; the one running a job is stopped (SIGSTOP, its Dask
     workers too) once the job's last tile is done, past its lease: the other re-runs the job
     and publishes; the stopped one, continued, finishes its run but publishes nothing."""
     data = tmp_path / "data"
     (data / "scenes").mkdir(parents=True)
-    write_scene(data / "scenes" / "many.zarr", {"intensity": blobs_scene((2000, 2000), looks=2.0, seed=1,
-                                                                         n=100_000)}, tile=512, looks=2.0)
+    write_scene(data / "scenes" / "many.zarr", {"intensity": many_blobs((2000, 2000), n=100_000, seed=1)}, tile=512,
+                looks=2.0)
     env = dict(SARSHIP_WORKERS="1", SARSHIP_LEASE_S="2", SARSHIP_CONCURRENCY="1")
+    make_store(data)  # (before the two start at once)
     servers = [Server(data, free_port(), **env), Server(data, free_port(), **env)]
     stopped = None
     try:

@@ -79,13 +79,13 @@ def real_ids(server) -> dict[str, str]:
     dismiss (dismissing a finished job removes its results, so DELETE gets its own job)."""
     u = server.url
     inputs = {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1}
-    ok = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": inputs}).json()["jobID"]
-    assert wait_job(u, ok)["status"] == "successful"
-    victim = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": inputs}).json()["jobID"]
-    assert wait_job(u, victim)["status"] == "successful"
-    gone = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": inputs}).json()["jobID"]
+    # submitted together (the server runs two jobs at once); the third is dismissed at once
+    ok, victim, gone = (httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": inputs}).json()["jobID"]
+                        for _ in range(3))
     httpx.delete(f"{u}/jobs/{gone}")
-    wait_job(u, gone)
+    assert wait_job(u, gone)["status"] == "dismissed"
+    assert wait_job(u, ok)["status"] == "successful"
+    assert wait_job(u, victim)["status"] == "successful"
     return {"successful": ok, "dismissed": gone, "victim": victim}
 
 
@@ -175,6 +175,7 @@ def test_tokens_in_schema_and_odd_authorization_headers(tmp_path):
         ex = doc["paths"]["/processes/{process_id}/execution"]["post"]
         assert ex["security"] == [{"bearer": []}] and {"401", "403"} <= set(ex["responses"])
         assert "security" not in doc["paths"]["/jobs"]["get"]  # reads stay open without protect_reads
+        assert httpx.get(srv.url + "/jobs").status_code == 200  # (test_service.py::test_tokens: protect_reads)
         url = srv.url + "/jobs/nosuchjob"
         for header, status in ((b"Bearer t\xe9st", 403), (b"Bearer \xff\xfe", 403), (b"Basic dDow", 401),
                                (b"Bearer", 401), (b"Bearer  t0ken2", 403), (b"bearer t0ken", 404)):

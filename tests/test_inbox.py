@@ -164,25 +164,36 @@ def test_schedule():
     assert Schedule(cron="0 3 * * *").next_after(t) == 1_700_017_200.0  # 03:00 UTC the next day
 
 
-def test_serve_exits_2_on_bad_inbox_settings(tmp_path):
+def test_serve_exits_2_on_bad_inbox_settings(tmp_path, monkeypatch, capsys):
+    """``sarship serve`` with a bad inbox setting: exit status 2, one line naming the setting.
+    The first case runs the command as a process; the others call its ``main`` in this process
+    (the same code from the settings on; a process start-up costs seconds on the CI machine)."""
+    from sarship.cli import main
+
     inbox = tmp_path / "in"
     inbox.mkdir()
     cases = {"cron": ({"SARSHIP_INBOX_CRON": "61 * * * *"}, "inbox_cron"),
              "detector": ({"SARSHIP_INBOX_DETECTORS": "os_cfar,nope"}, "nope"),
              "parameter": ({"SARSHIP_INBOX_DETECTORS": '[{"detector": "os_cfar", "pfa": 2}]'}, "'pfa'")}
     env = {k: v for k, v in os.environ.items() if not k.startswith("SARSHIP_")}
-    procs = {name: subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(tmp_path / "d"),
-                                     "--port", str(free_port()), "--inbox", str(inbox)],
-                                    env={**env, **extra}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for name, (extra, _) in cases.items()}
-    for name, p in procs.items():
-        try:
-            out, err = p.communicate(timeout=60)
-        finally:
-            p.kill()
+    args = ["serve", "--data", str(tmp_path / "d"), "--port", str(free_port()), "--inbox", str(inbox)]
+    for k in list(os.environ):
+        if k.startswith("SARSHIP_"):
+            monkeypatch.delenv(k)
+    for k, (name, (extra, word)) in enumerate(cases.items()):
+        if k == 0:
+            p = subprocess.run([sys.executable, "-m", "sarship", *args], env={**env, **extra}, capture_output=True,
+                               text=True, timeout=60)
+            rc, err = p.returncode, p.stderr
+        else:
+            with monkeypatch.context() as m:
+                for key, value in extra.items():
+                    m.setenv(key, value)
+                rc = main(args)
+            err = capsys.readouterr().err
         lines = err.strip().splitlines()
-        assert p.returncode == 2 and len(lines) == 1, (name, p.returncode, err)
-        assert lines[0].startswith("sarship serve: error: setting 'inbox_") and cases[name][1] in lines[0], lines
+        assert rc == 2 and len(lines) == 1, (name, rc, err)
+        assert lines[0].startswith("sarship serve: error: setting 'inbox_") and word in lines[0], lines
     assert not (tmp_path / "d").exists()  # refused before anything was created
 
 
@@ -253,7 +264,7 @@ def server(tmp_path_factory):
     data, inbox = root / "data", root / "inbox"
     data.mkdir()
     inbox.mkdir()
-    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.5",
+    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.2",
                  SARSHIP_INBOX_SETTLE_S="2", SARSHIP_INBOX_DETECTORS=json.dumps(DETECTOR)).start()
     srv.inbox = inbox
     yield srv
@@ -282,7 +293,7 @@ def test_a_pass_is_ingested_once_and_its_detector_runs(server):
     # the upload of that content is the same scene, already there
     up = httpx.post(u + "/scenes?filename=up.tif", content=raw)
     assert up.status_code == 200 and up.json()["sceneID"] == key and up.json()["status"] == "ready"
-    time.sleep(1.5)  # three more scans
+    more_scans(u, 3)
     assert jobs_by_process(u) == before
     assert passes(u)["pass1.tif"]["jobs"] == p["jobs"]
 
@@ -298,12 +309,14 @@ def test_a_pass_reads_its_sidecar_from_the_inbox_but_never_from_above_it(server)
     above.write_text(snap_xml(pols=("VV",), sample_type="DETECTED", az=13.9, rg=2.33))
     try:
         (server.inbox / "far.tif").write_bytes(tif_bytes(seed=41))
+        marker(server.inbox / "far.tif").touch()  # complete: taken at once (the settle rule: the tests below)
         p = wait_pass(u, "far.tif", ("submitted", "quarantined", "failed"))
         assert wait_job(u, p["ingestJob"])["status"] == "successful", p
         attrs = open_scene(server.data / "scenes" / f"{p['sceneID']}.zarr").attrs
         assert "pixel_spacing_m" not in attrs and "metadata_sidecar" not in attrs, attrs
         (server.inbox / "near.xml").write_text(snap_xml(pols=("VV",), sample_type="DETECTED", az=9.5, rg=8.5))
         (server.inbox / "near.tif").write_bytes(tif_bytes(seed=42))
+        marker(server.inbox / "near.tif").touch()
         p = wait_pass(u, "near.tif", ("submitted", "quarantined", "failed"))
         assert wait_job(u, p["ingestJob"])["status"] == "successful", p
         attrs = open_scene(server.data / "scenes" / f"{p['sceneID']}.zarr").attrs
@@ -312,6 +325,7 @@ def test_a_pass_reads_its_sidecar_from_the_inbox_but_never_from_above_it(server)
         above.unlink()
 
 
+@pytest.mark.slow  # 4 s of appends; test_faults.py::test_a_done_marker_is_consumed_with_its_pass (a file still being written, no fresh marker) and test_settle_rule keep the rule in the default run
 def test_a_file_still_being_written_is_not_taken(server):
     u = server.url
     raw = tif_bytes(seed=12)
@@ -341,6 +355,8 @@ def test_bad_files_are_quarantined_and_the_loop_goes_on(server):
     buf = io.BytesIO()
     np.save(buf, good)
     (server.inbox / "after.npy").write_bytes(buf.getvalue())
+    for name in ("junk.tif", "cut.tif", "after.npy"):  # complete: taken at once (the settle rule: the tests above)
+        marker(server.inbox / name).touch()
     q = server.data / "quarantine"
     for name in ("junk.tif", "cut.tif"):
         p = wait_pass(u, name, ("quarantined", "failed", "submitted"))
@@ -377,7 +393,7 @@ def test_ingest_document_scan_request_and_metrics(server):
     assert set(doc) == {"enabled", "inboxes", "schedule", "leader", "last_scan", "next_scan", "backlog", "counts",
                         "passes"}
     assert doc["enabled"] and doc["inboxes"] == [str(server.inbox.resolve())]
-    assert doc["schedule"] == {"interval_s": 0.5, "cron": None} and doc["leader"] and doc["backlog"] == 0
+    assert doc["schedule"] == {"interval_s": 0.2, "cron": None} and doc["leader"] and doc["backlog"] == 0
     assert doc["counts"]["submitted"] >= 4 and doc["counts"]["quarantined"] >= 2 and doc["counts"]["duplicate"] >= 1
     assert set(doc["passes"][0]) >= {"key", "file", "status", "sceneID", "jobs", "reason", "seen", "updated"}
     seen = [p["seen"] for p in doc["passes"]]
@@ -402,6 +418,18 @@ def test_ingest_document_scan_request_and_metrics(server):
 
 
 # ----------------------------------------------------------------------------- several processes
+
+
+def more_scans(url: str, n: int, timeout: float = 60.0) -> None:
+    """Wait until the inbox loop has finished ``n`` more scans (``last_scan`` of ``/ingest``)."""
+    seen = [httpx.get(url + "/ingest").json()["last_scan"]]
+    t_end = time.time() + timeout
+    while len(seen) <= n:
+        assert time.time() < t_end, f"fewer than {n} scans: {seen}"
+        time.sleep(0.05)
+        last = httpx.get(url + "/ingest").json()["last_scan"]
+        if last != seen[-1]:
+            seen.append(last)
 
 
 def _pid(owner: str) -> int:

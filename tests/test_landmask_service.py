@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 httpx = pytest.importorskip("httpx")
-from svc import Server, blue, check_problem, free_port, png, wait_job  # noqa: E402
+from svc import blue, check_problem, png, shared_server, wait_job  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -20,30 +20,27 @@ def env(tmp_path_factory):
     from sarship.pipeline.simulate import SimConfig, _land_mask, simulate
     from sarship.pipeline.simulate.model import _model
 
-    root = tmp_path_factory.mktemp("landsvc")
-    data = root / "data"
-    (data / "scenes").mkdir(parents=True)
+    root = tmp_path_factory.mktemp("landsvc")  # (outside the server's folders)
+    # the test process's shared server, with this module's scene and mask (names of its own) in its folder
+    srv = shared_server(tmp_path_factory.getbasetemp())
+    data = srv.data
     cfg = SimConfig(shape=(320, 288), ships=3, seed=3, looks=4.0, clutter="k", land=True, scr_db=20.0,
                     length_m=(60.0, 150.0))
     simulate(data / "scenes" / "coast.zarr", cfg, tile=128)
     truth = _land_mask(cfg, _model(cfg).land, 0, 320, 0, 288)
     np.save(data / "scenes" / "land.npy", truth.astype(np.uint8))
     np.save(root / "outside.npy", truth.astype(np.uint8))
-    srv = Server(data, free_port()).start()
-    try:
-        u = srv.url + "/processes/ca_cfar/execution"
-        jobs = {}
-        for name, extra in (("texture", {"land_mask": "texture"}), ("none", {"land_mask": "none"}), ("file", {"land_mask": "land.npy"})):
-            r = httpx.post(u, json={"inputs": {"scene": "coast", "guard": 21, "background": 41, **extra}})
-            assert r.status_code == 201, r.text
-            jobs[name] = r.json()["jobID"]
-        for j in jobs.values():
-            assert wait_job(srv.url, j, timeout=240)["status"] == "successful"
-        stored = {k: np.asarray(zarr.open_group(str(data / "jobs" / j / "land.zarr"), mode="r")["land"][...]) > 0
-                  for k, j in jobs.items() if k != "none"}
-        yield srv, jobs, truth, stored, root
-    finally:
-        srv.stop()
+    u = srv.url + "/processes/ca_cfar/execution"
+    jobs = {}
+    for name, extra in (("texture", {"land_mask": "texture"}), ("none", {"land_mask": "none"}), ("file", {"land_mask": "land.npy"})):
+        r = httpx.post(u, json={"inputs": {"scene": "coast", "guard": 21, "background": 41, **extra}})
+        assert r.status_code == 201, r.text
+        jobs[name] = r.json()["jobID"]
+    for j in jobs.values():
+        assert wait_job(srv.url, j, timeout=240)["status"] == "successful"
+    stored = {k: np.asarray(zarr.open_group(str(data / "jobs" / j / "land.zarr"), mode="r")["land"][...]) > 0
+              for k, j in jobs.items() if k != "none"}
+    return srv, jobs, truth, stored, root
 
 
 def test_schema_offers_land_mask(env):

@@ -15,16 +15,14 @@ import pytest
 
 owslib_processes = pytest.importorskip("owslib.ogcapi.processes")
 from owslib.util import http_get  # noqa: E402
-from svc import Server, data_with_scene, free_port  # noqa: E402
+from svc import shared_server  # noqa: E402
 
 SMALL = {"scene": "s1", "pfa": 1e-4, "guard": 11, "background": 31, "min_area_px": 1}
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    srv = Server(data_with_scene(tmp_path_factory.mktemp("owslib")), free_port()).start()
-    yield srv
-    srv.stop()
+    return shared_server(tmp_path_factory.getbasetemp())  # its scene s1; one server per test process
 
 
 @pytest.fixture(autouse=True)

@@ -11,7 +11,7 @@ import pytest
 
 httpx = pytest.importorskip("httpx")
 from conftest import blobs_scene, cov_scene, write_scene  # noqa: E402
-from svc import Server, check_problem, data_with_scene, free_port, wait_job  # noqa: E402
+from svc import Server, check_problem, data_with_scene, free_port, make_store, wait_job  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -127,17 +127,21 @@ def test_jobs_survive_kill_9(tmp_path):
     (data / "scenes").mkdir(parents=True)
     write_scene(data / "scenes" / "s2.zarr", {"intensity": blobs_scene((256, 256), looks=2.0, seed=5)},
                 tile=64, looks=2.0)
-    srv = Server(data, free_port(), SARSHIP_CONCURRENCY="1").start()
+    # a 2 s lease (the least allowed is above 1 s): the restarted server re-runs the killed job that much sooner
+    srv = Server(data, free_port(), SARSHIP_CONCURRENCY="1", SARSHIP_LEASE_S="2").start()
     try:
-        ids = [httpx.post(srv.url + "/processes/lmm/execution", json={"inputs": {"scene": "s2"}}).json()["jobID"]
-               for _ in range(3)]  # lmm defaults: ~2 s each on 2 workers; one runs, two wait
+        # the first (lmm defaults: ~2 s on 2 workers) runs, the two behind it (short ca_cfar jobs) wait
+        ex = srv.url + "/processes/{}/execution"
+        ids = [httpx.post(ex.format(p), json={"inputs": {"scene": "s2", **extra}}).json()["jobID"]
+               for p, extra in (("lmm", {}), ("ca_cfar", {"guard": 11, "background": 31}),
+                                ("ca_cfar", {"guard": 11, "background": 31}))]
         t_end = time.time() + 60
         while httpx.get(f"{srv.url}/jobs/{ids[0]}").json()["status"] != "running" and time.time() < t_end:
             time.sleep(0.1)
         srv.kill()  # SIGKILL, mid-run
     finally:
         srv.kill()
-    srv2 = Server(data, free_port()).start()
+    srv2 = Server(data, free_port(), SARSHIP_LEASE_S="2").start()
     try:
         for i in ids:
             st = wait_job(srv2.url, i, timeout=180)
@@ -153,14 +157,57 @@ def test_jobs_survive_kill_9(tmp_path):
         srv2.stop()
 
 
+#: a runner of its own: claims jobs of the store at argv[1] until none is left, finishing each (as
+#: service/runner.py does, as its attempt); prints the IDs it ran
+CLAIMER = """
+import sys, time
+from sarship.service.store import JobStore
+store, owner, ran = JobStore(sys.argv[1]), sys.argv[2], []
+while time.time() < float(sys.argv[3]):
+    job = store.claim(owner, 30.0)
+    if job is None:
+        break
+    assert store.finish(job["id"], owner, "successful", "done", attempt=job["attempts"])
+    ran.append(job["id"])
+print(" ".join(ran))
+"""
+
+
+def test_two_processes_on_one_store_never_claim_a_job_twice(tmp_path):
+    """The rule of the two-server test below (slow), on the store alone: two processes claiming
+    from one job store at once each take a job at most once, and every job is run once."""
+    import subprocess
+    import sys
+
+    from sarship.service.store import JobStore
+
+    store = JobStore(tmp_path / "jobs.sqlite")
+    ids = [store.create("os_cfar", {"scene": "s3"})["id"] for _ in range(200)]
+    start = time.time() + 1.0  # both processes start claiming at this moment (once imported)
+    args = [sys.executable, "-c", f"import time; time.sleep(max(0, {start} - time.time()))\n{CLAIMER}",
+            str(tmp_path / "jobs.sqlite")]
+    procs = [subprocess.Popen([*args, f"host-{k}-x", str(start + 60)], stdout=subprocess.PIPE, text=True)
+             for k in range(2)]
+    ran = [p.communicate(timeout=120)[0].split() for p in procs]
+    assert all(p.returncode == 0 for p in procs)
+    assert sorted(ran[0] + ran[1]) == sorted(ids)  # each job once, by one of the two
+    assert all(store.get(i)["attempts"] == 1 and store.get(i)["status"] == "successful" for i in ids)
+
+
+@pytest.mark.slow  # two servers; test_two_processes_on_one_store_never_claim_a_job_twice keeps the rule in the default run
 def test_two_api_processes_share_a_store_without_running_a_job_twice(tmp_path):
     data = tmp_path / "data"
     (data / "scenes").mkdir(parents=True)
     write_scene(data / "scenes" / "s3.zarr", {"intensity": blobs_scene((200, 180), looks=2.0, seed=6)},
                 tile=64, looks=2.0)
-    a = Server(data, free_port(), SARSHIP_WORKERS="1").start()
-    b = Server(data, free_port(), SARSHIP_WORKERS="1").start()
+    make_store(data)  # (before the two start at once)
+    a = Server(data, free_port(), SARSHIP_WORKERS="1")
+    b = Server(data, free_port(), SARSHIP_WORKERS="1")
     try:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(2) as pool:  # start both at once
+            list(pool.map(Server.start, (a, b)))
         ids = []
         for k in range(8):
             srv = a if k % 2 == 0 else b
@@ -199,11 +246,15 @@ def test_metrics_and_readiness(server):
 
 
 def test_tokens(tmp_path):
+    """Tokens (two of them) with protect_reads: POST, DELETE and reads need one; /livez and
+    /metrics stay open. (Reads open without protect_reads: test_fuzz.py's tokens test, whose
+    server has tokens only.)"""
     data = tmp_path / "data"
     (data / "scenes").mkdir(parents=True)
     write_scene(data / "scenes" / "s4.zarr", {"intensity": blobs_scene((100, 90), looks=2.0, seed=7)},
                 tile=64, looks=2.0)
-    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a", "t0ken-b"]').start()
+    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a", "t0ken-b"]',
+                 SARSHIP_PROTECT_READS="true").start()
     try:
         ex = srv.url + "/processes/ca_cfar/execution"
         body = {"inputs": {"scene": "s4", "guard": 5, "background": 15}}
@@ -213,16 +264,11 @@ def test_tokens(tmp_path):
         check_problem(httpx.post(ex, json=body, headers={"Authorization": "Bearer wrong"}), 403)
         ok = httpx.post(ex, json=body, headers={"Authorization": "Bearer t0ken-b"})
         assert ok.status_code == 201
-        assert httpx.get(srv.url + "/jobs").status_code == 200  # reads public by default
         check_problem(httpx.delete(f"{srv.url}/jobs/{ok.json()['jobID']}"), 401)
         assert httpx.get(srv.url + "/metrics").status_code == 200
-    finally:
-        srv.stop()
-    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a"]',
-                 SARSHIP_PROTECT_READS="true").start()
-    try:
         check_problem(httpx.get(srv.url + "/jobs"), 401)
-        assert httpx.get(srv.url + "/jobs", headers={"Authorization": "Bearer t0ken-a"}).status_code == 200
+        for token in ("t0ken-a", "t0ken-b"):
+            assert httpx.get(srv.url + "/jobs", headers={"Authorization": f"Bearer {token}"}).status_code == 200
         assert httpx.get(srv.url + "/livez").status_code == 200
     finally:
         srv.stop()
@@ -298,13 +344,18 @@ def test_preview_png(server):
     check_problem(httpx.get(f"{u}/jobs/{job_id}/preview.png?size=5"), 400, "size")
 
 
-def test_serve_start_problems_are_one_line(tmp_path):
+def test_serve_start_problems_are_one_line(tmp_path, monkeypatch, capsys):
     """What the operator got wrong stops ``sarship serve`` before it starts: exit 2, one line
-    naming the problem, no traceback (service/preflight.py)."""
+    naming the problem, no traceback (service/preflight.py). The unreachable scheduler (a 10 s
+    connection timeout) runs as a process; meanwhile the other cases call the command's ``main``
+    in this process, one after the other (the same code from the arguments on; seven process
+    start-ups at once cost the 2-core CI machine seconds)."""
     import os
     import socket
     import subprocess
     import sys
+
+    from sarship.cli import main
 
     (tmp_path / "afile").write_text("not a folder")
     (tmp_path / "bad").mkdir()
@@ -320,22 +371,30 @@ def test_serve_start_problems_are_one_line(tmp_path):
              (["--data", str(tmp_path / "ok"), "--scheduler", f"tcp://127.0.0.1:{free_port()}"],
               "cannot reach Dask scheduler"),
              (["--data", str(tmp_path / "ok"), "--gpus", "0"], "no GPU is visible")]  # (GPUs hidden below)
-    procs = []
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    for k in list(os.environ):  # (the test process's own settings, if any, are not the operator's)
+        if k.startswith("SARSHIP_"):
+            monkeypatch.delenv(k)
+
+    def check(args, words, rc, err):
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        assert rc == 2 and len(lines) == 1 and words in lines[0], (args, rc, err)
+        assert lines[0].startswith("sarship serve: error: ") and "Traceback" not in err
+
+    remote = next(c for c in cases if "--scheduler" in c[0])
+    proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", *remote[0]], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=dict(os.environ))
     try:
-        for args, _ in cases:  # the cases at once (each is a process start-up; none writes to another's)
-            procs.append(subprocess.Popen([sys.executable, "-m", "sarship", "serve", *args], stdout=subprocess.PIPE,
-                                          stderr=subprocess.PIPE, text=True,
-                                          env={**os.environ, "CUDA_VISIBLE_DEVICES": ""}))
-        for (args, words), p in zip(cases, procs):
-            _, err = p.communicate(timeout=120)
-            lines = [ln for ln in err.splitlines() if ln.strip()]
-            assert p.returncode == 2 and len(lines) == 1 and words in lines[0], (args, p.returncode, err)
-            assert lines[0].startswith("sarship serve: error: ") and "Traceback" not in err
+        for args, words in cases:
+            if (args, words) != remote:
+                rc = main(["serve", *args])
+                check(args, words, rc, capsys.readouterr().err)
+        _, err = proc.communicate(timeout=120)
+        check(remote[0], remote[1], proc.returncode, err)
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
         busy.close()
     assert (tmp_path / "bad" / "jobs.sqlite").read_bytes() == b"garbage " * 64  # a bad store is left as it was
 

@@ -15,7 +15,7 @@ httpx = pytest.importorskip("httpx")
 #: keeps the machine busy
 http = httpx.Client(timeout=60.0)
 from conftest import blobs_scene, write_scene  # noqa: E402
-from svc import Server, check_problem, data_with_scene, free_port, wait_job  # noqa: E402
+from svc import Server, check_problem, data_with_scene, free_port, shared_server, wait_job  # noqa: E402
 
 CFAR = {"guard": 11, "background": 31, "min_area_px": 1}
 
@@ -40,9 +40,7 @@ def wait_status(url: str, job_id: str, status: str, timeout: float = 60.0) -> di
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    srv = Server(data_with_scene(tmp_path_factory.mktemp("life")), free_port()).start()
-    yield srv
-    srv.stop()
+    return shared_server(tmp_path_factory.getbasetemp())  # its scene s1; one server per test process
 
 
 def test_job_on_a_scene_still_ingesting_waits_for_it_and_survives_kill_9(tmp_path):

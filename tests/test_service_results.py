@@ -16,7 +16,7 @@ import pytest
 httpx = pytest.importorskip("httpx")
 tifffile = pytest.importorskip("tifffile")
 from conftest import blobs_scene, write_scene  # noqa: E402
-from svc import Server, check_problem, free_port, wait_job  # noqa: E402
+from svc import check_problem, shared_server, wait_job  # noqa: E402
 
 GEO_ATTRS = {"sensor": "SENTINEL-1A IW", "product": "S1A_IW_GRDH_1SDV_20210601T102030_20210601T102055_000000",
              "polarisations": ["vv"], "acquired": "2021-06-01T10:20:30", "crs": "EPSG:32631",
@@ -27,24 +27,21 @@ GEO_ATTRS = {"sensor": "SENTINEL-1A IW", "product": "S1A_IW_GRDH_1SDV_20210601T1
 def env(tmp_path_factory):
     from sarship.pipeline.simulate import SimConfig, simulate, validate
 
-    data = tmp_path_factory.mktemp("res") / "data"
-    (data / "scenes").mkdir(parents=True)
-    write_scene(data / "scenes" / "geo.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
+    # the test process's shared server, with this module's scenes (names of its own) in its folder
+    srv = shared_server(tmp_path_factory.getbasetemp())
+    data = srv.data
+    write_scene(data / "scenes" / "res_geo.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
                 tile=128, looks=2.0, **GEO_ATTRS)
     cfg = validate(SimConfig(shape=(300, 260), ships=5, seed=1, looks=4, clutter="gamma", scr_db=20,
                              length_m=(60, 150), pixel_spacing_m=(5.0, 5.0)))
     simulate(data / "scenes" / "sim.zarr", cfg, tile=128)  # truth: scenes/sim.zarr.truth.geojson
-    srv = Server(data, free_port()).start()
-    try:
-        u = srv.url + "/processes/ca_cfar/execution"
-        geo = httpx.post(u, json={"inputs": {"scene": "geo", "guard": 11, "background": 31, "min_area_px": 1}})
-        sim = httpx.post(u, json={"inputs": {"scene": "sim", "guard": 21, "background": 41}})
-        jobs = {"geo": geo.json()["jobID"], "sim": sim.json()["jobID"]}
-        for j in jobs.values():
-            assert wait_job(srv.url, j)["status"] == "successful"
-        yield srv, jobs
-    finally:
-        srv.stop()
+    u = srv.url + "/processes/ca_cfar/execution"
+    geo = httpx.post(u, json={"inputs": {"scene": "res_geo", "guard": 11, "background": 31, "min_area_px": 1}})
+    sim = httpx.post(u, json={"inputs": {"scene": "sim", "guard": 21, "background": 41}})
+    jobs = {"geo": geo.json()["jobID"], "sim": sim.json()["jobID"]}
+    for j in jobs.values():
+        assert wait_job(srv.url, j)["status"] == "successful"
+    return srv, jobs
 
 
 def stored_mask(srv, job_id):

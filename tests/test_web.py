@@ -419,14 +419,13 @@ def test_job_view_shows_scores_and_lonlat_of_a_georeferenced_scene(server, page,
     map is in lon/lat: Web Mercator, graticule labelled in degrees around the scene's position,
     quicklook tiles warped into place, detections drawn from their WGS84 outlines and listed by
     lat/lon, the pointer's lon/lat. A scene without georeference keeps its pixel grid."""
-    import subprocess
-    import sys
+    from sarship.cli import main
 
     u, pg = server.url, page.page
     scene = server.data / "scenes" / "truthy.zarr"
-    if not scene.exists():
-        subprocess.run([sys.executable, "-m", "sarship", "simulate", str(scene), "--shape", "512x512", "--ships", "5",
-                        "--seed", "2", "--geo", "10.5,55.2"], check=True, capture_output=True)
+    if not scene.exists():  # `sarship simulate`, in this process (a process start-up costs seconds)
+        assert main(["simulate", str(scene), "--shape", "512x512", "--ships", "5", "--seed", "2",
+                     "--geo", "10.5,55.2"]) == 0
     assert Path(f"{scene}.truth.geojson").is_file()
     r = httpx.post(u + "/processes/os_cfar/execution", json={"inputs": {"scene": "truthy"}}, headers=AUTH)
     assert r.status_code == 201, r.text
