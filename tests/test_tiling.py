@@ -72,10 +72,12 @@ def _run(tmp_path, client, scene, det, tile, settings, tag):
 #: The smallest tile (13 px, narrower than the 15-px halo of the 31-pixel window: a tile's halo
 #: reaches past its neighbours) for ca_cfar in the default run, where every detector's tiling
 #: machinery is the same, on SMALL_SHAPE (10 x 9 tiles of 13 px; the 301 x 257 scene would take
-#: 480, most of the test's time); 29 (also smaller than the window) and 64 for every detector on
-#: the 301 x 257 scene. 13 on that scene for every other detector under ``-m slow``
-#: (test_tiled_equals_untiled_smallest_tile).
+#: 480, most of the test's time); 29 (also smaller than the window) and 64 (ragged at both edges)
+#: for every detector on DEFAULT_SHAPE (6 x 5 and 3 x 3 tiles, 13-36 components, 3 of them across
+#: the 29-px tiles' borders). Every tile on the 301 x 257 scene for every other detector under
+#: ``-m slow`` (test_tiled_equals_untiled_smallest_tile).
 DEFAULT_TILES = (29, 64)
+DEFAULT_SHAPE = (161, 137)  # odd sizes, divided by neither tile
 SMALL_SHAPE = (127, 113)  # odd sizes, not divided by 13
 #: Detectors whose whole run is slow here and whose own module tests tiled == whole in the
 #: default run (test_superpixel_cfar.test_tiled_equals_whole_scene_bit_for_bit).
@@ -85,7 +87,7 @@ SLOW_DETECTORS = {"superpixel_cfar"}
 @pytest.mark.parametrize("det", [pytest.param(d, marks=pytest.mark.slow) if d in SLOW_DETECTORS else d
                                  for d in SETTINGS])
 def test_tiled_equals_untiled(tmp_path, client, det):
-    _tiled_equals_untiled(tmp_path, client, det, DEFAULT_TILES)
+    _tiled_equals_untiled(tmp_path, client, det, DEFAULT_TILES, shape=DEFAULT_SHAPE)
     if det == "ca_cfar":
         _tiled_equals_untiled(tmp_path / "small", client, det, (13,), shape=SMALL_SHAPE)
 
@@ -93,7 +95,7 @@ def test_tiled_equals_untiled(tmp_path, client, det):
 @pytest.mark.slow
 @pytest.mark.parametrize("det", [d for d in SETTINGS if d != "ca_cfar"])
 def test_tiled_equals_untiled_smallest_tile(tmp_path, client, det):
-    _tiled_equals_untiled(tmp_path, client, det, (13,))
+    _tiled_equals_untiled(tmp_path, client, det, (13, *DEFAULT_TILES))
 
 
 def _tiled_equals_untiled(tmp_path, client, det, tiles, shape=(301, 257)):
