@@ -171,6 +171,20 @@ def _detect(client, scene, detector: str, out: Path, **settings):
     return load_detections(out / "detections.geojson"), read_mask(out / "mask.zarr"), run
 
 
+#: Chips run at once on the session's cluster (as the service's runner threads share one client):
+#: one chip's run is mostly round trips and small writes, so a few in flight keep both workers busy.
+CONCURRENT_CHIPS = 4
+
+
+def _detect_all(client, scenes, detector: str, out: Path, **settings) -> list:
+    """:func:`_detect` on each scene path (``out / o{i}``), CONCURRENT_CHIPS at a time, in order."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(CONCURRENT_CHIPS) as ex:
+        return list(ex.map(lambda a: _detect(client, a[1], detector, out / f"o{a[0]}", **settings),
+                           enumerate(scenes)))
+
+
 def _check_held_out(detector: str, dataset: str, per: list) -> None:
     """The scores on the held-out half B (chips the defaults were not tuned on)."""
     from sarship.pipeline.scoring import aggregate
@@ -195,6 +209,20 @@ def centre_hit(ships, shape, radius: float = CENTRE_RADIUS_PX) -> bool:
 
 
 # ----------------------------------------------------------------------------- scenes
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _versions_read_once():
+    """run.json's package versions (workers.jobs._versions: importlib.metadata, 0.1-0.25 s of this
+    process per run, 200+ runs here) read once for the module: they cannot change within a process,
+    and run.json gets the same content."""
+    from sarship.workers import jobs
+
+    real = jobs._versions
+    once = real()
+    jobs._versions = lambda: dict(once)
+    yield
+    jobs._versions = real
 
 
 @pytest.fixture(scope="module")
@@ -264,10 +292,8 @@ def _slow_for(*slow: str) -> list:
 def test_sar_ship_dataset_scores(client, ssdd_scenes, tmp_path, detector):
     from sarship.pipeline.scoring import aggregate, score
 
-    per = []
-    for i, (name, scene, truth) in enumerate(ssdd_scenes):
-        dets, _, _ = _detect(client, scene, detector, tmp_path / f"o{i}")
-        per.append(score(dets, truth))
+    runs = _detect_all(client, [scene for _, scene, _ in ssdd_scenes], detector, tmp_path)
+    per = [score(dets, truth) for (_, _, truth), (dets, _, _) in zip(ssdd_scenes, runs)]
     a = aggregate(per)
     assert a["n_truth"] == 68
     fom, pd = MEASURED[detector]["ssdd"]
@@ -282,8 +308,8 @@ def test_hrsid_scores(client, hrsid_scenes, tmp_path, detector):
     from sarship.pipeline.scoring import aggregate, pixel_counts, score
 
     per = []
-    for i, (name, scene, truth, tmask) in enumerate(hrsid_scenes):
-        dets, dmask, _ = _detect(client, scene, detector, tmp_path / f"o{i}")
+    runs = _detect_all(client, [scene for _, scene, _, _ in hrsid_scenes], detector, tmp_path)
+    for (name, scene, truth, tmask), (dets, dmask, _) in zip(hrsid_scenes, runs):
         s = score(dets, truth)
         s.update(pixel_counts(dmask, tmask))
         per.append(s)
@@ -307,8 +333,8 @@ def test_hrsid_scores(client, hrsid_scenes, tmp_path, detector):
 @pytest.mark.parametrize("detector", DETECTORS)
 def test_opensarship_centre_ship(client, grd_scenes, tmp_path, detector):
     missed = []
-    for i, (name, scene, shape) in enumerate(grd_scenes):
-        dets, _, run = _detect(client, scene, detector, tmp_path / f"o{i}")
+    runs = _detect_all(client, [scene for _, scene, _ in grd_scenes], detector, tmp_path)
+    for (name, scene, shape), (dets, _, run) in zip(grd_scenes, runs):
         assert run["channel"] == "intensity"  # = intensity_vh (band chosen at ingest)
         assert run["size_rule"].startswith("metres"), run["size_rule"]  # 10 m spacing: the metre rule
         if not centre_hit(dets, shape):
