@@ -171,18 +171,23 @@ def _detect(client, scene, detector: str, out: Path, **settings):
     return load_detections(out / "detections.geojson"), read_mask(out / "mask.zarr"), run
 
 
-#: Chips run at once on the session's cluster (as the service's runner threads share one client):
-#: one chip's run is mostly round trips and small writes, so a few in flight keep both workers busy.
+#: Chips ingested / run at once on the session's cluster (as the service's runner threads share one
+#: client): one chip's run is mostly round trips and small writes, so a few in flight keep both
+#: workers busy.
 CONCURRENT_CHIPS = 4
+
+
+def _map(fn, items) -> list:
+    """``fn`` over ``items``, CONCURRENT_CHIPS at a time (each chip its own store), in order."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(CONCURRENT_CHIPS) as ex:
+        return list(ex.map(fn, items))
 
 
 def _detect_all(client, scenes, detector: str, out: Path, **settings) -> list:
     """:func:`_detect` on each scene path (``out / o{i}``), CONCURRENT_CHIPS at a time, in order."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(CONCURRENT_CHIPS) as ex:
-        return list(ex.map(lambda a: _detect(client, a[1], detector, out / f"o{a[0]}", **settings),
-                           enumerate(scenes)))
+    return _map(lambda a: _detect(client, a[1], detector, out / f"o{a[0]}", **settings), list(enumerate(scenes)))
 
 
 def _check_held_out(detector: str, dataset: str, per: list) -> None:
@@ -232,10 +237,12 @@ def ssdd_scenes(tmp_path_factory):
 
     _needs(SSDD)
     d = tmp_path_factory.mktemp("ssdd")
-    out = []
-    for p in sorted(SSDD.glob("*.jpg")):
+
+    def one(p):
         sc = ingest([p], d / f"{p.stem}.zarr", tile=_side(p))  # JPEG = amplitude -> intensity
-        out.append((p.stem, sc.path, load_voc(p.with_suffix(".xml"))))
+        return p.stem, sc.path, load_voc(p.with_suffix(".xml"))
+
+    out = _map(one, sorted(SSDD.glob("*.jpg")))
     assert len(out) == 12
     return out
 
@@ -247,11 +254,13 @@ def hrsid_scenes(tmp_path_factory):
 
     _needs(HRSID)
     d = tmp_path_factory.mktemp("hrsid")
-    out = []
-    for p in sorted((HRSID / "images").glob("*.jpg")):
+
+    def one(p):
         sc = ingest([p], d / f"{p.stem}.zarr", tile=_side(p))
         m = read_mask(HRSID / "masks" / f"{p.stem}.png")
-        out.append((p.stem, sc.path, ships_from_mask(m), m))
+        return p.stem, sc.path, ships_from_mask(m), m
+
+    out = _map(one, sorted((HRSID / "images").glob("*.jpg")))
     assert len(out) == 18
     return out
 
@@ -267,14 +276,16 @@ def grd_scenes(tmp_path_factory):
     if not files:
         pytest.skip(f"no OpenSARShip GRD Patch chips under {OSS}")
     d = tmp_path_factory.mktemp("grd")
-    out = []
-    for i, p in enumerate(files):
+
+    def one(a):
+        i, p = a
         with tifffile.TiffFile(p) as t:
             side = max(t.series[0].shape[:2])
         # the band is the user's choice for dual-pol GRD: VH (cross-pol) has the better contrast
         sc = ingest([p], d / f"g{i:02d}.zarr", tile=side, channels=["vh", "vv"], band="vh")
-        out.append((f"{p.parent.parent.name[17:32]}/{p.stem}", sc.path, sc.shape))
-    return out
+        return f"{p.parent.parent.name[17:32]}/{p.stem}", sc.path, sc.shape
+
+    return _map(one, list(enumerate(files)))
 
 
 # ----------------------------------------------------------------------------- tests
