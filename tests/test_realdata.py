@@ -171,6 +171,25 @@ def _detect(client, scene, detector: str, out: Path, **settings):
     return load_detections(out / "detections.geojson"), read_mask(out / "mask.zarr"), run
 
 
+#: Chips ingested / run at once on the session's cluster (as the service's runner threads share one
+#: client): one chip's run is mostly round trips and small writes, so a few in flight keep both
+#: workers busy.
+CONCURRENT_CHIPS = 4
+
+
+def _map(fn, items) -> list:
+    """``fn`` over ``items``, CONCURRENT_CHIPS at a time (each chip its own store), in order."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(CONCURRENT_CHIPS) as ex:
+        return list(ex.map(fn, items))
+
+
+def _detect_all(client, scenes, detector: str, out: Path, **settings) -> list:
+    """:func:`_detect` on each scene path (``out / o{i}``), CONCURRENT_CHIPS at a time, in order."""
+    return _map(lambda a: _detect(client, a[1], detector, out / f"o{a[0]}", **settings), list(enumerate(scenes)))
+
+
 def _check_held_out(detector: str, dataset: str, per: list) -> None:
     """The scores on the held-out half B (chips the defaults were not tuned on)."""
     from sarship.pipeline.scoring import aggregate
@@ -197,6 +216,20 @@ def centre_hit(ships, shape, radius: float = CENTRE_RADIUS_PX) -> bool:
 # ----------------------------------------------------------------------------- scenes
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _versions_read_once():
+    """run.json's package versions (workers.jobs._versions: importlib.metadata, 0.1-0.25 s of this
+    process per run, 200+ runs here) read once for the module: they cannot change within a process,
+    and run.json gets the same content."""
+    from sarship.workers import jobs
+
+    real = jobs._versions
+    once = real()
+    jobs._versions = lambda: dict(once)
+    yield
+    jobs._versions = real
+
+
 @pytest.fixture(scope="module")
 def ssdd_scenes(tmp_path_factory):
     from sarship.pipeline.readers import ingest
@@ -204,10 +237,12 @@ def ssdd_scenes(tmp_path_factory):
 
     _needs(SSDD)
     d = tmp_path_factory.mktemp("ssdd")
-    out = []
-    for p in sorted(SSDD.glob("*.jpg")):
+
+    def one(p):
         sc = ingest([p], d / f"{p.stem}.zarr", tile=_side(p))  # JPEG = amplitude -> intensity
-        out.append((p.stem, sc.path, load_voc(p.with_suffix(".xml"))))
+        return p.stem, sc.path, load_voc(p.with_suffix(".xml"))
+
+    out = _map(one, sorted(SSDD.glob("*.jpg")))
     assert len(out) == 12
     return out
 
@@ -219,11 +254,13 @@ def hrsid_scenes(tmp_path_factory):
 
     _needs(HRSID)
     d = tmp_path_factory.mktemp("hrsid")
-    out = []
-    for p in sorted((HRSID / "images").glob("*.jpg")):
+
+    def one(p):
         sc = ingest([p], d / f"{p.stem}.zarr", tile=_side(p))
         m = read_mask(HRSID / "masks" / f"{p.stem}.png")
-        out.append((p.stem, sc.path, ships_from_mask(m), m))
+        return p.stem, sc.path, ships_from_mask(m), m
+
+    out = _map(one, sorted((HRSID / "images").glob("*.jpg")))
     assert len(out) == 18
     return out
 
@@ -239,14 +276,16 @@ def grd_scenes(tmp_path_factory):
     if not files:
         pytest.skip(f"no OpenSARShip GRD Patch chips under {OSS}")
     d = tmp_path_factory.mktemp("grd")
-    out = []
-    for i, p in enumerate(files):
+
+    def one(a):
+        i, p = a
         with tifffile.TiffFile(p) as t:
             side = max(t.series[0].shape[:2])
         # the band is the user's choice for dual-pol GRD: VH (cross-pol) has the better contrast
         sc = ingest([p], d / f"g{i:02d}.zarr", tile=side, channels=["vh", "vv"], band="vh")
-        out.append((f"{p.parent.parent.name[17:32]}/{p.stem}", sc.path, sc.shape))
-    return out
+        return f"{p.parent.parent.name[17:32]}/{p.stem}", sc.path, sc.shape
+
+    return _map(one, list(enumerate(files)))
 
 
 # ----------------------------------------------------------------------------- tests
@@ -264,10 +303,8 @@ def _slow_for(*slow: str) -> list:
 def test_sar_ship_dataset_scores(client, ssdd_scenes, tmp_path, detector):
     from sarship.pipeline.scoring import aggregate, score
 
-    per = []
-    for i, (name, scene, truth) in enumerate(ssdd_scenes):
-        dets, _, _ = _detect(client, scene, detector, tmp_path / f"o{i}")
-        per.append(score(dets, truth))
+    runs = _detect_all(client, [scene for _, scene, _ in ssdd_scenes], detector, tmp_path)
+    per = [score(dets, truth) for (_, _, truth), (dets, _, _) in zip(ssdd_scenes, runs)]
     a = aggregate(per)
     assert a["n_truth"] == 68
     fom, pd = MEASURED[detector]["ssdd"]
@@ -282,8 +319,8 @@ def test_hrsid_scores(client, hrsid_scenes, tmp_path, detector):
     from sarship.pipeline.scoring import aggregate, pixel_counts, score
 
     per = []
-    for i, (name, scene, truth, tmask) in enumerate(hrsid_scenes):
-        dets, dmask, _ = _detect(client, scene, detector, tmp_path / f"o{i}")
+    runs = _detect_all(client, [scene for _, scene, _, _ in hrsid_scenes], detector, tmp_path)
+    for (name, scene, truth, tmask), (dets, dmask, _) in zip(hrsid_scenes, runs):
         s = score(dets, truth)
         s.update(pixel_counts(dmask, tmask))
         per.append(s)
@@ -307,8 +344,8 @@ def test_hrsid_scores(client, hrsid_scenes, tmp_path, detector):
 @pytest.mark.parametrize("detector", DETECTORS)
 def test_opensarship_centre_ship(client, grd_scenes, tmp_path, detector):
     missed = []
-    for i, (name, scene, shape) in enumerate(grd_scenes):
-        dets, _, run = _detect(client, scene, detector, tmp_path / f"o{i}")
+    runs = _detect_all(client, [scene for _, scene, _ in grd_scenes], detector, tmp_path)
+    for (name, scene, shape), (dets, _, run) in zip(grd_scenes, runs):
         assert run["channel"] == "intensity"  # = intensity_vh (band chosen at ingest)
         assert run["size_rule"].startswith("metres"), run["size_rule"]  # 10 m spacing: the metre rule
         if not centre_hit(dets, shape):

@@ -579,8 +579,8 @@ def _inbox_server(tmp_path):
     data, inbox = tmp_path / "data", tmp_path / "inbox"
     data.mkdir()
     inbox.mkdir()
-    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.5",
-                 SARSHIP_INBOX_SETTLE_S="1",
+    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.2",
+                 SARSHIP_INBOX_SETTLE_S="0.2",  # the zips arrive by rename: complete at once
                  SARSHIP_MAX_RATIO="1e5").start()  # the constant-pixel samples: ~53000:1 zipped
     return srv, data, inbox
 

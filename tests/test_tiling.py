@@ -69,11 +69,16 @@ def _run(tmp_path, client, scene, det, tile, settings, tag):
     return run, fc["features"], mask
 
 
-#: The smallest tile (13 px: 480 tiles of the 301 x 257 scene, most of the test's time) for
-#: ca_cfar in the default run, where every detector's tiling machinery is the same; 29 (also
-#: smaller than the 31-pixel window) and 64 for every detector. All three for every detector
-#: under ``-m slow`` (test_tiled_equals_untiled_smallest_tile).
+#: The smallest tile (13 px, narrower than the 15-px halo of the 31-pixel window: a tile's halo
+#: reaches past its neighbours) for ca_cfar in the default run, where every detector's tiling
+#: machinery is the same, on SMALL_SHAPE (10 x 9 tiles of 13 px; the 301 x 257 scene would take
+#: 480, most of the test's time); 29 (also smaller than the window) and 64 (ragged at both edges)
+#: for every detector on DEFAULT_SHAPE (6 x 5 and 3 x 3 tiles, 13-36 components, 3 of them across
+#: the 29-px tiles' borders). Every tile on the 301 x 257 scene for every other detector under
+#: ``-m slow`` (test_tiled_equals_untiled_smallest_tile).
 DEFAULT_TILES = (29, 64)
+DEFAULT_SHAPE = (161, 137)  # odd sizes, divided by neither tile
+SMALL_SHAPE = (127, 113)  # odd sizes, not divided by 13
 #: Detectors whose whole run is slow here and whose own module tests tiled == whole in the
 #: default run (test_superpixel_cfar.test_tiled_equals_whole_scene_bit_for_bit).
 SLOW_DETECTORS = {"superpixel_cfar"}
@@ -82,19 +87,22 @@ SLOW_DETECTORS = {"superpixel_cfar"}
 @pytest.mark.parametrize("det", [pytest.param(d, marks=pytest.mark.slow) if d in SLOW_DETECTORS else d
                                  for d in SETTINGS])
 def test_tiled_equals_untiled(tmp_path, client, det):
-    _tiled_equals_untiled(tmp_path, client, det, (13, *DEFAULT_TILES) if det == "ca_cfar" else DEFAULT_TILES)
+    _tiled_equals_untiled(tmp_path, client, det, DEFAULT_TILES, shape=DEFAULT_SHAPE)
+    if det == "ca_cfar":
+        _tiled_equals_untiled(tmp_path / "small", client, det, (13,), shape=SMALL_SHAPE)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("det", [d for d in SETTINGS if d != "ca_cfar"])
 def test_tiled_equals_untiled_smallest_tile(tmp_path, client, det):
-    _tiled_equals_untiled(tmp_path, client, det, (13,))
+    _tiled_equals_untiled(tmp_path, client, det, (13, *DEFAULT_TILES))
 
 
-def _tiled_equals_untiled(tmp_path, client, det, tiles):
+def _tiled_equals_untiled(tmp_path, client, det, tiles, shape=(301, 257)):
     if det not in detectors.names():
         pytest.skip(f"{det} not registered")
-    x = blobs_scene((301, 257), looks=2.0, seed=1)
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    x = blobs_scene(shape, looks=2.0, seed=1)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=2.0)
     settings = {**SETTINGS[det], "min_area_px": "1"}
     spec = detectors.get(det)
@@ -109,12 +117,15 @@ def _tiled_equals_untiled(tmp_path, client, det, tiles):
         run, feats, mask = _run(tmp_path, client, scene, det, tile, settings, f"t{tile}")
         np.testing.assert_array_equal(mask, mask1)
         assert feats == whole, f"tile {tile}: detections differ"
-        assert run["tiles"]["count"] == int(np.ceil(301 / tile) * np.ceil(257 / tile))
+        assert run["tiles"]["count"] == int(np.ceil(shape[0] / tile) * np.ceil(shape[1] / tile))
 
 
-@pytest.mark.parametrize("merge_px", [0, 1, 2, 5])
+# merge_px 1 and 2 join with the same radius (merge_radius: ceil(merge_px / 2) = 1): 2 stands for both
+@pytest.mark.parametrize("merge_px", [0, 2, 5])
 def test_components_equal_global_labelling(tmp_path, client, merge_px):
-    x = blobs_scene((211, 199), looks=1.0, seed=5, n=40, amp=30.0)
+    # 139 x 127 in 7 x 6 tiles of 23 px (the whole detector mask: 6 / 29 / 43 components across
+    # tile borders at merge_px 0 / 2 / 5); was 211 x 199 with 40 blobs, 90 tiles
+    x = blobs_scene((139, 127), looks=1.0, seed=5, n=20, amp=30.0)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=32, looks=1.0)
     # every component kept (no line rule: chance-collinear false alarms at pfa 1e-2 would be joined)
     settings = {"pfa": "1e-2", "guard": "7", "background": "15", "min_area_px": "1", "merge_px": str(merge_px),
