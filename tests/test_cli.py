@@ -191,7 +191,7 @@ def test_simulate_detect_evaluate_end_to_end(tmp_path):
     assert run["tiles"]["count"] == 6 and run["device"] == "cpu"
     assert all(t["worker"] for t in run["tiles"]["per_tile"])
     assert run["parameters"]["looks"] == 4.0 and run["prepared"]["threshold"] > 1
-    res = sarship("evaluate", out / "detections.geojson", "--truth", truth, "--json")
+    res = sarship_here("evaluate", out / "detections.geojson", "--truth", truth, "--json")  # scores, here
     assert res.returncode == 0, res.stderr
     scores = json.loads(res.stdout)
     assert scores["n_truth"] == 6 and scores["fom"] >= 0.8, scores
