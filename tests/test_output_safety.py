@@ -71,7 +71,7 @@ def test_ingest_refuses_existing_and_inside_input(tmp_path):
     res = sarship("ingest", src, "--out", out, "--looks", "3")
     assert_clean_error(res, "x.zarr", "--overwrite")
     assert _tree(out) == before
-    res = sarship("ingest", src, "--out", out, "--looks", "3", "--overwrite")
+    res = sarship_here("ingest", src, "--out", out, "--looks", "3", "--overwrite")
     assert res.returncode == 0, res.stderr
     # never inside (or equal to) an input, even with --overwrite
     for bad in (out, out / "inner.zarr"):
