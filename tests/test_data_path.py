@@ -241,7 +241,8 @@ def test_readers_agree_bit_for_bit(tmp_path, monkeypatch, tile):
     monkeypatch.setenv("SARSHIP_READER", "zarr")
     z_arr = open_array(stores[0] + "/intensity")
     assert type(ts_arr).__name__ == "_TensorStoreArray" and ts_arr.shape == (H, W)
-    for key in ((slice(H - 100, H + 300), slice(-20, None)), (slice(3, 40, 7), slice(90, 1000, 3)), (slice(900, 50), slice(0, 3)),
+    for key in ((slice(H - 100, H + 300), slice(-20, None)), (slice(3, 40, 7), slice(90, 1000, 3)),
+                (slice(900, 50), slice(0, 3)),
                 (slice(None), slice(10, 11))):
         np.testing.assert_array_equal(ts_arr[key], z_arr[key])
 
