@@ -53,7 +53,9 @@ def test_small_scene_runs_on_threads_and_the_setting_switches_to_processes(tmp_p
     cluster forks the worker processes, which then read the tiles with the same library
     (tensorstore's threads do not survive a fork; its state must not hang the children)."""
     scene = _nolooks_scene(tmp_path, (300, 280), 150, 128)
-    threaded = _detect(scene, tmp_path / "a", SARSHIP_THREADS_MAX_PX="")
+    # the threaded cluster in this process (tests/test_cli.py sarship_here), the forked one below as a command
+    threaded = sarship_here("detect", scene, "--detector", "ca_cfar", "--out", tmp_path / "a",
+                            env={"SARSHIP_THREADS_MAX_PX": ""})
     assert threaded.returncode == 0, threaded.stderr
     assert "threads in this process" in _cluster_line(threaded.stderr)
     procs = _detect(scene, tmp_path / "b", SARSHIP_THREADS_MAX_PX="0", SARSHIP_READER="tensorstore")
