@@ -227,15 +227,33 @@ def test_the_client_imports_no_array_library(warm_cpu, tmp_path):
     assert "scene 'missing.zarr' does not exist" in res.stderr
 
 
-def test_start_twice_idle_timeout_and_a_stale_socket(sockdir, tmp_path):
-    sock = sockdir / "warm.sock"
-    _scene(tmp_path)
-    # a socket left by a warm process that was killed: commands run on their own, silently
+def _stale_socket(sock: Path) -> None:
+    """A socket left by a warm process that was killed."""
     stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     stale.bind(str(sock))
     stale.close()
+
+
+@pytest.mark.slow  # a detection on a cluster of its own; the client's rule: test_start_twice_idle_timeout_...
+def test_a_stale_socket_leaves_commands_to_run_on_their_own(sockdir, tmp_path):
+    sock = sockdir / "warm.sock"
+    _scene(tmp_path)
+    _stale_socket(sock)
     res = run(sock, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", cwd=tmp_path)
     assert res.returncode == 0 and "warm" not in res.stderr, res.stderr
+
+
+def test_start_twice_idle_timeout_and_a_stale_socket(sockdir, monkeypatch, capsys):
+    sock = sockdir / "warm.sock"
+    # a socket left by a warm process that was killed: commands run on their own (the client gives them
+    # back to the command line, as for no warm process: the slow test above runs one), silently
+    _stale_socket(sock)
+    monkeypatch.setenv("SARSHIP_WARM_SOCKET", str(sock))
+    monkeypatch.delenv("SARSHIP_WARM", raising=False)
+    monkeypatch.delenv("SARSHIP_SCHEDULER", raising=False)
+    capsys.readouterr()
+    assert warm.run_remote(["detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1"]) is None
+    assert capsys.readouterr() == ("", "")
     assert run(sock, "warm", "status").returncode == 1
     # idle timeout 4 s: long enough for the second start below to find it on a loaded machine
     # (a Python start-up there took over 2 s), short enough to wait for
@@ -324,7 +342,8 @@ def test_code_stamp_is_by_content(tmp_path):
     assert warm._code_stamp([str(pkg)]) != before
 
 
-def test_a_changed_code_is_refused(warm_cpu, tmp_path):
+@pytest.mark.slow  # two detections as commands; the rule on the live warm process: test_a_changed_code_is_refused
+def test_a_changed_code_makes_commands_run_on_their_own(warm_cpu, tmp_path):
     """A module of sarship modified after the warm process started (a source checkout edited, the
     same version reinstalled), even with its old modification time kept (``rsync -a``,
     ``cp -p``): commands run on their own cluster, with the new code."""
@@ -346,6 +365,41 @@ def test_a_changed_code_is_refused(warm_cpu, tmp_path):
     assert "local Dask cluster" in res.stderr
     again = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", cwd=tmp_path)
     assert again.returncode == 0 and "sarship: warm cluster," in again.stderr, again.stderr  # the code restored
+
+
+def test_a_changed_code_is_refused(warm_cpu):
+    """A module of sarship modified after the warm process started (a source checkout edited, the
+    same version reinstalled), even with its old modification time kept (``rsync -a``,
+    ``cp -p``): a command's identity (what it sends with each command) no longer matches the
+    warm process's, which refuses it saying why (the command then runs on its own cluster, as
+    every refused one: test_commands_the_warm_cluster_cannot_take_run_on_their_own; as commands,
+    with the code restored after: the slow test above)."""
+    from sarship.warm_process import _parse_quietly, _refusal
+
+    def command():  # a command's request (its identity and settings), made as the command makes it
+        code = "import json, sarship.warm as w; print(json.dumps({'identity': w._identity(), 'env': w.relevant_env()}))"
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
+                             env=_env(warm_cpu), check=True)  # (the standard library only: tests below)
+        return json.loads(res.stdout)
+
+    state = warm.status(warm_cpu)
+    ns = _parse_quietly(["detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o"])
+    assert _refusal(command(), state, ns) == ""
+    code = "import sarship.warm as w; print(w.__file__)"
+    where = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
+                           env=_env(warm_cpu), check=True)
+    mod = Path(where.stdout.strip())  # the copy the commands import (installed, or this checkout)
+    st, text = mod.stat(), mod.read_bytes()
+    try:  # an edit that keeps the file's modification time
+        mod.write_bytes(text + b"\n# edited\n")
+        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
+        edited = command()
+    finally:
+        mod.write_bytes(text)
+        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert _refusal(edited, state, ns) == ("sarship's code was changed since it started (sarship warm stop, then "
+                                           "sarship warm start, runs the new code)")
+    assert _refusal(command(), state, ns) == ""  # the code restored
 
 
 def test_output_to_a_closed_pipe(warm_cpu, tmp_path):
