@@ -175,8 +175,10 @@ def test_bad_simulate_arguments(tmp_path):
 
 def test_simulate_detect_evaluate_end_to_end(tmp_path):
     scene = tmp_path / "scene.zarr"
-    res = sarship("simulate", scene, "--shape", "512x384", "--ships", "6", "--seed", "4", "--looks", "4",
-                  "--scr-db", "18", "--tile", "256")
+    # simulate and evaluate in this process (as processes: test_output_safety.py's simulate, test_realdata.py's
+    # evaluate); the detections as commands
+    res = sarship_here("simulate", scene, "--shape", "512x384", "--ships", "6", "--seed", "4", "--looks", "4",
+                       "--scr-db", "18", "--tile", "256")
     assert res.returncode == 0, res.stderr
     truth = Path(f"{scene}.truth.geojson")
     assert truth.exists()
@@ -191,7 +193,7 @@ def test_simulate_detect_evaluate_end_to_end(tmp_path):
     assert run["tiles"]["count"] == 6 and run["device"] == "cpu"
     assert all(t["worker"] for t in run["tiles"]["per_tile"])
     assert run["parameters"]["looks"] == 4.0 and run["prepared"]["threshold"] > 1
-    res = sarship_here("evaluate", out / "detections.geojson", "--truth", truth, "--json")  # scores, here
+    res = sarship_here("evaluate", out / "detections.geojson", "--truth", truth, "--json")
     assert res.returncode == 0, res.stderr
     scores = json.loads(res.stdout)
     assert scores["n_truth"] == 6 and scores["fom"] >= 0.8, scores
