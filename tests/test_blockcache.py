@@ -81,34 +81,36 @@ def test_detection_reuses_land_pass_reads(tmp_path, monkeypatch, land):
     assert bool(_same_outputs(tmp_path / "on", tmp_path / "off").any()) is land
 
 
-def test_worker_processes_take_their_reads_and_release_them(tmp_path, monkeypatch):
-    """On worker processes every detection takes its tile's land-pass read (Dask runs it where
-    the read is), the outputs equal the keep-none run's, no read is left on a worker after the
-    job, and a budget for 4 reads keeps the first 4 tiles' reads only."""
-    from distributed import Client, LocalCluster
+def _worker_keys(client) -> set:
+    return {k for keys in client.run(lambda dask_worker: list(dask_worker.data)).values() for k in keys}
 
+
+def test_worker_processes_take_their_reads_and_release_them(tmp_path, monkeypatch, client):
+    """On worker processes (the session's two, tests/conftest.py) every detection takes its
+    tile's land-pass read (Dask runs it where the read is), the outputs equal the keep-none
+    run's, no read is left on a worker after the job, and a budget for 4 reads keeps the first
+    4 tiles' reads only."""
     cfg = SimConfig(shape=(384, 384), ships=5, seed=12, looks=4.0, clutter="k", land=True, scr_db=20.0)
     simulate(tmp_path / "s.zarr", cfg, tile=128)
     settings = {"land_mask": "texture", "pfa": 1e-5, "guard": 15, "background": 31}
     monkeypatch.delenv("SARSHIP_BLOCK_CACHE_MB", raising=False)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
-            Client(cl) as client:
-        on = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "on", client=client,
-                           progress=False)
-        per = on["tiles"]["per_tile"]
-        assert [t["block_from"] for t in per] == ["land pass"] * on["tiles"]["count"] == ["land pass"] * 9
-        assert sum(client.run(lambda dask_worker: len(dask_worker.data)).values()) == 0
-        monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "0")
-        off = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "off", client=client,
-                            progress=False)
-        assert {t["block_from"] for t in off["tiles"]["per_tile"]} == {"scene"}
-        # one read is about 390 px a side at 8 bytes (1.2 MiB): 2 workers x 2.2 MiB keep a few
-        monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "2.2")
-        part = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "part", client=client,
-                             progress=False)
-        got = {tuple(t["index"]): t["block_from"] for t in part["tiles"]["per_tile"]}
-        kept = sorted(k for k, v in got.items() if v == "land pass")
-        assert 0 < len(kept) < 9 and kept == sorted(got)[:len(kept)]  # the first tiles in row order
-        assert sum(client.run(lambda dask_worker: len(dask_worker.data)).values()) == 0
+    held = _worker_keys(client)  # what other tests of this process left there (nothing, normally)
+    on = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "on", client=client,
+                       progress=False)
+    per = on["tiles"]["per_tile"]
+    assert [t["block_from"] for t in per] == ["land pass"] * on["tiles"]["count"] == ["land pass"] * 9
+    assert _worker_keys(client) <= held
+    monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "0")
+    off = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "off", client=client,
+                        progress=False)
+    assert {t["block_from"] for t in off["tiles"]["per_tile"]} == {"scene"}
+    # one read is about 390 px a side at 8 bytes (1.2 MiB): 2 workers x 2.2 MiB keep a few
+    monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "2.2")
+    part = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "part", client=client,
+                         progress=False)
+    got = {tuple(t["index"]): t["block_from"] for t in part["tiles"]["per_tile"]}
+    kept = sorted(k for k, v in got.items() if v == "land pass")
+    assert 0 < len(kept) < 9 and kept == sorted(got)[:len(kept)]  # the first tiles in row order
+    assert _worker_keys(client) <= held
     _same_outputs(tmp_path / "on", tmp_path / "off")
     _same_outputs(tmp_path / "on", tmp_path / "part")

@@ -22,6 +22,41 @@ def sarship(*args, cwd=None, timeout=240, env=None):
                           text=True, cwd=cwd, env={**ENV, **(env or {})}, timeout=timeout)
 
 
+def sarship_here(*args, env=None):
+    """``sarship ARGS`` run by :func:`sarship.cli.main` in this process, returned as :func:`sarship`
+    returns it: without a new interpreter's start-up and imports (seconds a command on the 2-core CI
+    machine). For the many arguments and inputs refused before any work; each test of those keeps a
+    real ``sarship`` process for one of its commands. Warnings reach stderr as in a process of its
+    own (those a process hides by default left out)."""
+    import contextlib
+    import io
+    import warnings
+
+    from sarship.cli import main
+
+    argv = [str(a) for a in args]
+    saved = dict(os.environ)
+    os.environ.pop("SARSHIP_DEBUG", None)
+    os.environ.update(env or {})
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with warnings.catch_warnings(record=True) as seen, contextlib.redirect_stdout(out), \
+                contextlib.redirect_stderr(err):
+            try:
+                code = main(argv)
+            except SystemExit as exc:  # argparse's usage errors and --help
+                if isinstance(exc.code, str):
+                    print(exc.code, file=sys.stderr)
+                code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    for w in seen:
+        if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning)):
+            err.write(warnings.formatwarning(w.message, w.category, w.filename, w.lineno))
+    return subprocess.CompletedProcess(["sarship", *argv], code, out.getvalue(), err.getvalue())
+
+
 def assert_clean_error(res, *words):
     assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
@@ -44,8 +79,10 @@ def small_scene(tmp_path):
 
 
 def test_help_for_every_command():
-    for cmd in ("", "simulate", "ingest", "detect", "evaluate", "detectors", "demo"):
-        res = sarship(*([cmd] if cmd else []), "--help")
+    res = sarship("--help")  # a real process; each command's help in this one
+    assert res.returncode == 0 and "usage" in res.stdout.lower()
+    for cmd in ("simulate", "ingest", "detect", "evaluate", "detectors", "demo"):
+        res = sarship_here(cmd, "--help")
         assert res.returncode == 0 and "usage" in res.stdout.lower(), cmd
 
 
@@ -73,7 +110,8 @@ def test_unknown_detector(small_scene, tmp_path):
 ])
 def test_out_of_range_parameters(small_scene, tmp_path, setting, word):
     out = tmp_path / "o"
-    res = sarship("detect", small_scene, "--detector", "ca_cfar", "--set", setting, "--out", out)
+    # in this process (test_unknown_detector: the same refusal as a real process's one line)
+    res = sarship_here("detect", small_scene, "--detector", "ca_cfar", "--set", setting, "--out", out)
     assert_clean_error(res, word)
     assert not out.exists() or listing(out) == []
 
@@ -83,7 +121,7 @@ def test_missing_and_garbage_scene(tmp_path):
     assert_clean_error(res, "none.zarr")
     junk = tmp_path / "junk.zarr"
     junk.write_bytes(b"\x00garbage" * 100)
-    res = sarship("detect", junk, "--detector", "ca_cfar", "--out", tmp_path / "o")
+    res = sarship_here("detect", junk, "--detector", "ca_cfar", "--out", tmp_path / "o")
     assert_clean_error(res, "junk.zarr")
 
 
@@ -93,14 +131,14 @@ def test_ingest_garbage_and_wrong_dimensions(tmp_path):
     res = sarship("ingest", bad, "--out", tmp_path / "bad.zarr")
     assert_clean_error(res, "bad.tif")
     np.save(tmp_path / "cube.npy", np.zeros((4, 5, 6, 7), np.float32))
-    res = sarship("ingest", tmp_path / "cube.npy", "--out", tmp_path / "cube.zarr")
+    res = sarship_here("ingest", tmp_path / "cube.npy", "--out", tmp_path / "cube.zarr")
     assert_clean_error(res, "cube.npy")
     np.save(tmp_path / "line.npy", np.zeros(10, np.float32))
-    res = sarship("ingest", tmp_path / "line.npy", "--out", tmp_path / "line.zarr")
+    res = sarship_here("ingest", tmp_path / "line.npy", "--out", tmp_path / "line.zarr")
     assert_clean_error(res, "line.npy")
     txt = tmp_path / "notes.txt"
     txt.write_text("hello")
-    res = sarship("ingest", txt, "--out", tmp_path / "notes.zarr")
+    res = sarship_here("ingest", txt, "--out", tmp_path / "notes.zarr")
     assert_clean_error(res, "notes.txt")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.tif", "cube.npy", "line.npy", "notes.txt"]
 
@@ -120,9 +158,9 @@ def test_unwritable_output(small_scene, tmp_path):
     f.write_text("x")
     res = sarship("detect", small_scene, "--detector", "ca_cfar", "--out", f / "o")
     assert_clean_error(res, "file")
-    res = sarship("simulate", f / "s.zarr", "--shape", "64x64", "--ships", "1")
+    res = sarship_here("simulate", f / "s.zarr", "--shape", "64x64", "--ships", "1")
     assert_clean_error(res)
-    res = sarship("detect", small_scene, "--detector", "ca_cfar", "--out", f)
+    res = sarship_here("detect", small_scene, "--detector", "ca_cfar", "--out", f)
     assert_clean_error(res, "file")
     assert f.read_text() == "x"
 
@@ -130,15 +168,17 @@ def test_unwritable_output(small_scene, tmp_path):
 def test_bad_simulate_arguments(tmp_path):
     res = sarship("simulate", tmp_path / "s.zarr", "--shape", "12by12")
     assert_clean_error(res, "shape")
-    res = sarship("simulate", tmp_path / "s.zarr", "--shape", "64x64", "--looks", "-2")
+    res = sarship_here("simulate", tmp_path / "s.zarr", "--shape", "64x64", "--looks", "-2")
     assert_clean_error(res, "looks")
     assert not (tmp_path / "s.zarr").exists()
 
 
 def test_simulate_detect_evaluate_end_to_end(tmp_path):
     scene = tmp_path / "scene.zarr"
-    res = sarship("simulate", scene, "--shape", "512x384", "--ships", "6", "--seed", "4", "--looks", "4",
-                  "--scr-db", "18", "--tile", "256")
+    # simulate and evaluate in this process (as processes: test_output_safety.py's simulate, test_realdata.py's
+    # evaluate); the detections as commands
+    res = sarship_here("simulate", scene, "--shape", "512x384", "--ships", "6", "--seed", "4", "--looks", "4",
+                       "--scr-db", "18", "--tile", "256")
     assert res.returncode == 0, res.stderr
     truth = Path(f"{scene}.truth.geojson")
     assert truth.exists()
@@ -153,13 +193,13 @@ def test_simulate_detect_evaluate_end_to_end(tmp_path):
     assert run["tiles"]["count"] == 6 and run["device"] == "cpu"
     assert all(t["worker"] for t in run["tiles"]["per_tile"])
     assert run["parameters"]["looks"] == 4.0 and run["prepared"]["threshold"] > 1
-    res = sarship("evaluate", out / "detections.geojson", "--truth", truth, "--json")
+    res = sarship_here("evaluate", out / "detections.geojson", "--truth", truth, "--json")
     assert res.returncode == 0, res.stderr
     scores = json.loads(res.stdout)
     assert scores["n_truth"] == 6 and scores["fom"] >= 0.8, scores
     # re-running into the same folder is refused without --overwrite, then replaces the outputs atomically
-    res = sarship("detect", scene, "--detector", "os_cfar", "--out", out, "--tile", "256")
-    assert_clean_error(res, "--overwrite")
+    res = sarship_here("detect", scene, "--detector", "os_cfar", "--out", out, "--tile", "256")
+    assert_clean_error(res, "--overwrite")  # (a process's refusal: tests/test_output_safety.py)
     assert json.loads((out / "run.json").read_text())["detector"] == "ca_cfar"
     res = sarship("detect", scene, "--detector", "os_cfar", "--out", out, "--tile", "256", "--overwrite")
     assert res.returncode == 0, res.stderr

@@ -102,6 +102,19 @@ def test_systemd_units_parse_with_the_cli():
     assert n == 2
 
 
+def _wait_listening(port: int, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    import socket
+
+    t_end = time.time() + timeout
+    while time.time() < t_end:
+        assert proc.poll() is None, "the dask scheduler exited"
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.1)
+    pytest.fail(f"nothing listens on port {port} after {timeout:g} s")
+
+
 def test_compose_topology_as_processes(tmp_path):
     """``dask scheduler``, ``sarship worker --gpus none --cpus 1`` and ``sarship serve
     --scheduler``: the compose services, run as local processes. A job runs on the external
@@ -117,7 +130,7 @@ def test_compose_topology_as_processes(tmp_path):
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
     srv = None
     try:
-        time.sleep(2)
+        _wait_listening(port, procs[0])  # `sarship worker` refuses an address where nothing listens yet
         procs.append(subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler", addr,
                                        "--gpus", "none", "--cpus", "1", "--name", "box"],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))

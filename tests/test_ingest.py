@@ -787,8 +787,8 @@ def test_missing_output_folders_are_created_and_removed_on_failure(tmp_path):
         ingest([tmp_path / "neg.npy"], tmp_path / "d" / "e" / "f.zarr")
     assert not (tmp_path / "d").exists()
     (tmp_path / "file").write_text("not a folder")
-    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out",
-                        str(tmp_path / "file" / "g" / "o.zarr")],
-                       capture_output=True, text=True, cwd=REPO, timeout=120, check=False)
+    from tests.test_cli import sarship_here  # the refusal, in this process (a real process's: above)
+
+    r = sarship_here("ingest", tmp_path / "x.npy", "--out", tmp_path / "file" / "g" / "o.zarr")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "is a file, not a folder" in r.stderr, r.stderr
     assert (tmp_path / "file").read_text() == "not a folder"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import write_scene
-from tests.test_cli import assert_clean_error, sarship
+from tests.test_cli import assert_clean_error, sarship, sarship_here
 
 
 @pytest.fixture()
@@ -34,17 +34,38 @@ def _detect(scene, out, **env):
     return sarship("detect", scene, "--detector", "ca_cfar", "--out", out, env=env)
 
 
-def test_small_scene_runs_on_threads_and_the_setting_switches_to_processes(scene, tmp_path):
-    threaded = _detect(scene, tmp_path / "a", SARSHIP_THREADS_MAX_PX="")
+def _nolooks_scene(tmp_path, shape, ship_row, tile):
+    rng = np.random.default_rng(4)
+    x = rng.gamma(2.0, 0.5, shape).astype(np.float32)
+    x[ship_row:ship_row + 6, 200:230] += 80.0
+    return write_scene(tmp_path / "nolooks.zarr", {"intensity": x}, tile=tile)  # no looks attribute
+
+
+def _has_ship_at(out, row) -> None:
+    run = json.loads((out / "run.json").read_text())
+    assert run["looks_source"].startswith("estimated from the scene")
+    feats = json.loads((out / "detections.geojson").read_text())["features"]
+    assert len(feats) >= 1 and any(f["properties"]["bbox_px"][0] <= row < f["properties"]["bbox_px"][2] for f in feats)
+
+
+def test_small_scene_runs_on_threads_and_the_setting_switches_to_processes(tmp_path):
+    """The scene has no ``looks``: the command samples it through the scene reader before its
+    cluster forks the worker processes, which then read the tiles with the same library
+    (tensorstore's threads do not survive a fork; its state must not hang the children)."""
+    scene = _nolooks_scene(tmp_path, (300, 280), 150, 128)
+    # the threaded cluster in this process (tests/test_cli.py sarship_here), the forked one below as a command
+    threaded = sarship_here("detect", scene, "--detector", "ca_cfar", "--out", tmp_path / "a",
+                            env={"SARSHIP_THREADS_MAX_PX": ""})
     assert threaded.returncode == 0, threaded.stderr
     assert "threads in this process" in _cluster_line(threaded.stderr)
-    procs = _detect(scene, tmp_path / "b", SARSHIP_THREADS_MAX_PX="0")
+    procs = _detect(scene, tmp_path / "b", SARSHIP_THREADS_MAX_PX="0", SARSHIP_READER="tensorstore")
     assert procs.returncode == 0, procs.stderr
     line = _cluster_line(procs.stderr)
     assert "worker processes" in line
     # the command's own cluster forks its workers on Linux (workers/cluster.worker_start_method)
     if sys.platform.startswith("linux"):
         assert "(fork)" in line, line
+    _has_ship_at(tmp_path / "b", 150)
     # the same detections either way
     a = json.loads((tmp_path / "a" / "detections.geojson").read_text())
     b = json.loads((tmp_path / "b" / "detections.geojson").read_text())
@@ -71,7 +92,9 @@ def test_a_bad_setting_is_one_line_and_leaves_nothing(scene, tmp_path):
 
 
 def test_a_bad_start_method_is_one_line_and_leaves_nothing(scene, tmp_path):
-    res = _detect(scene, tmp_path / "c", SARSHIP_THREADS_MAX_PX="0", SARSHIP_WORKER_START="vfork")
+    # in this process (tests/test_cli.py sarship_here); a real process's refusal of a setting: above
+    res = sarship_here("detect", scene, "--detector", "ca_cfar", "--out", tmp_path / "c",
+                       env={"SARSHIP_THREADS_MAX_PX": "0", "SARSHIP_WORKER_START": "vfork"})
     assert_clean_error(res, "SARSHIP_WORKER_START", "vfork")
     assert not (tmp_path / "c").exists()
 
@@ -130,23 +153,18 @@ def test_worker_processes_start_without_dask_malloc_trim(short_lived, monkeypatc
     assert list(env.values()) == [(None, "1")], env
 
 
+@pytest.mark.slow  # its forked run on a smaller scene: test_small_scene_runs_on_threads_and_the_setting_...
 def test_forked_workers_read_after_the_command_itself_read_the_scene(tmp_path):
     """A scene without ``looks`` is sampled by the command (the client) through the scene reader
     before its cluster forks the worker processes, which then read the tiles with the same
     library (tensorstore's threads do not survive a fork; its state must not hang the children).
     That both readers give the same detections is tests/test_data_path.py's (in one process)."""
-    rng = np.random.default_rng(4)
-    x = rng.gamma(2.0, 0.5, (640, 600)).astype(np.float32)
-    x[300:306, 200:230] += 80.0
-    scene = write_scene(tmp_path / "nolooks.zarr", {"intensity": x}, tile=256)  # no looks attribute
+    scene = _nolooks_scene(tmp_path, (640, 600), 300, 256)
     res = _detect(scene, tmp_path / "ts", SARSHIP_THREADS_MAX_PX="0", SARSHIP_READER="tensorstore")
     assert res.returncode == 0, res.stderr
     if sys.platform.startswith("linux"):
         assert "(fork)" in _cluster_line(res.stderr)
-    run = json.loads((tmp_path / "ts" / "run.json").read_text())
-    assert run["looks_source"].startswith("estimated from the scene")
-    feats = json.loads((tmp_path / "ts" / "detections.geojson").read_text())["features"]
-    assert len(feats) >= 1 and any(f["properties"]["bbox_px"][0] <= 300 < f["properties"]["bbox_px"][2] for f in feats)
+    _has_ship_at(tmp_path / "ts", 300)
 
 
 def test_cluster_host_setting(monkeypatch):

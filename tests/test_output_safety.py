@@ -15,7 +15,10 @@ import numpy as np
 import pytest
 
 from tests.conftest import dask_processes, fsize_limit, write_scene
-from tests.test_cli import assert_clean_error, listing, sarship
+from tests.test_cli import assert_clean_error, listing, sarship, sarship_here
+
+# Each test runs one refusal (and each success) as a real ``sarship`` process; its further refusals
+# run in this process (tests/test_cli.py ``sarship_here``: no interpreter start-up per command).
 
 
 
@@ -47,10 +50,10 @@ def test_simulate_refuses_existing_store_and_truth(tmp_path):
     # a truth file alone is protected too
     other = tmp_path / "t.geojson"
     other.write_text("keep")
-    res = sarship("simulate", tmp_path / "new.zarr", "--shape", "64x64", "--ships", "1", "--truth", other)
+    res = sarship_here("simulate", tmp_path / "new.zarr", "--shape", "64x64", "--ships", "1", "--truth", other)
     assert_clean_error(res, "t.geojson", "--overwrite")
     assert other.read_text() == "keep" and not (tmp_path / "new.zarr").exists()
-    res = sarship(*args, "--seed", "7", "--overwrite")
+    res = sarship_here(*args, "--seed", "7", "--overwrite")
     assert res.returncode == 0, res.stderr
     assert truth.read_bytes() != truth_before
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]
@@ -68,13 +71,13 @@ def test_ingest_refuses_existing_and_inside_input(tmp_path):
     res = sarship("ingest", src, "--out", out, "--looks", "3")
     assert_clean_error(res, "x.zarr", "--overwrite")
     assert _tree(out) == before
-    res = sarship("ingest", src, "--out", out, "--looks", "3", "--overwrite")
+    res = sarship_here("ingest", src, "--out", out, "--looks", "3", "--overwrite")
     assert res.returncode == 0, res.stderr
     # never inside (or equal to) an input, even with --overwrite
     for bad in (out, out / "inner.zarr"):
-        res = sarship("ingest", out, "--out", bad, "--overwrite")
+        res = sarship_here("ingest", out, "--out", bad, "--overwrite")
         assert_clean_error(res, "input")
-    res = sarship("ingest", src, "--out", src / "y.zarr", "--overwrite")
+    res = sarship_here("ingest", src, "--out", src / "y.zarr", "--overwrite")
     assert_clean_error(res, "input")
     assert sorted(os.listdir(out)) == sorted(os.listdir(tmp_path / "x.zarr"))
     assert not (out / "inner.zarr").exists()
@@ -90,11 +93,12 @@ def test_ingest_spacing(tmp_path):
     sc = open_scene(tmp_path / "x.zarr")
     assert sc.pixel_spacing_m == (2.5, 10.0) and sc.attrs["pixel_spacing_source"] == "argument"
     # a Zarr input's spacing is overridden as well
-    res = sarship("ingest", tmp_path / "x.zarr", "--out", tmp_path / "y.zarr", "--spacing", "3,4")
+    res = sarship_here("ingest", tmp_path / "x.zarr", "--out", tmp_path / "y.zarr", "--spacing", "3,4")
     assert res.returncode == 0, res.stderr
     assert open_scene(tmp_path / "y.zarr").pixel_spacing_m == (3.0, 4.0)
     for bad in ("1", "1,2,3", "0,2", "-1,2", "a,b", "nan,1"):
-        res = sarship("ingest", src, "--out", tmp_path / "z.zarr", "--spacing", bad)
+        run = sarship if bad == "1" else sarship_here
+        res = run("ingest", src, "--out", tmp_path / "z.zarr", "--spacing", bad)
         assert_clean_error(res, "spacing")
     assert not (tmp_path / "z.zarr").exists()
 
@@ -112,7 +116,7 @@ def test_detect_refuses_nonempty_out_and_inside_scene(scene, tmp_path):
     # never inside the scene store, even with --overwrite
     before = _tree(scene)
     for bad in (scene / "run", scene, scene / "intensity"):
-        res = sarship("detect", scene, "--detector", "ca_cfar", "--out", bad, "--overwrite")
+        res = sarship_here("detect", scene, "--detector", "ca_cfar", "--out", bad, "--overwrite")
         assert_clean_error(res, "small.zarr", "inside")
     assert _tree(scene) == before and not (scene / "run").exists()
     res = sarship("detect", scene, "--detector", "ca_cfar", "--out", out, "--overwrite")
@@ -154,7 +158,8 @@ def test_detect_on_a_file_says_ingest(tmp_path, name, fmt):
         f.write_bytes(b"\xff\xd8\xff\xe0" + b"\x00" * 64)
     else:
         f.write_bytes(b"II*\x00" + b"\x00" * 64)
-    res = sarship("detect", f, "--detector", "ca_cfar", "--out", tmp_path / "o")
+    run = sarship if fmt == "npy" else sarship_here  # one real process
+    res = run("detect", f, "--detector", "ca_cfar", "--out", tmp_path / "o")
     assert_clean_error(res, name, "sarship ingest", "--out")
     assert "GroupNotFound" not in res.stderr and not (tmp_path / "o").exists()
 

@@ -188,13 +188,26 @@ def test_parameters_without_gpu_code_go_to_cpu_workers(tmp_path, blobs_scene, cl
 
 
 def test_worker_cli_errors():
+    out = _cli("worker", "--scheduler", "tcp://127.0.0.1:1", "--gpus", "0", timeout=60)
+    assert out.returncode == 2 and "no GPU is visible" in out.stderr and "Traceback" not in out.stderr
+    out = _cli("worker", "--scheduler", "tcp://127.0.0.1:1", "--gpus", "none", "--cpus", "0", timeout=60)
+    assert out.returncode == 2 and "nothing to start" in out.stderr
+    # no scheduler at the address: the check the command makes before it starts a worker, with a
+    # shorter wait than the command's 10 s (the command itself: the slow test below)
+    import asyncio
+
+    from sarship.workers.worker import _reachable
+
+    addr = f"tcp://127.0.0.1:{_free_port()}"
+    with pytest.raises(InputError, match=f"cannot reach Dask scheduler at '{addr}'"):
+        asyncio.run(_reachable(addr, timeout=1.0))
+
+
+@pytest.mark.slow  # waits out the command's 10 s connection timeout; its check, sooner: test_worker_cli_errors
+def test_worker_cli_without_a_scheduler_is_one_line():
     out = _cli("worker", "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--gpus", "none", "--cpus", "1",
                timeout=60)
     assert out.returncode == 2 and "cannot reach Dask scheduler" in out.stderr and "Traceback" not in out.stderr
-    out = _cli("worker", "--scheduler", "tcp://127.0.0.1:1", "--gpus", "0", timeout=60)
-    assert out.returncode == 2 and "no GPU is visible" in out.stderr
-    out = _cli("worker", "--scheduler", "tcp://127.0.0.1:1", "--gpus", "none", "--cpus", "0", timeout=60)
-    assert out.returncode == 2 and "nothing to start" in out.stderr
 
 
 def test_kept_blocks_never_pull_tiles_onto_workers_the_placement_excludes(tmp_path):

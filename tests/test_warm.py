@@ -58,14 +58,15 @@ def sockdir():
 
 @pytest.fixture(scope="module")
 def warm_cpu():
-    """One warm process of 2 CPU workers for the tests of this module that use it."""
+    """One warm process of 1 CPU worker for the tests of this module that use it (a second worker
+    process costs its start-up, a few seconds of the 2-core test machine, and no test needs it)."""
     sockdir = Path(tempfile.mkdtemp(prefix="sw-"))
     os.chmod(sockdir, 0o700)
     sock = sockdir / "warm.sock"
-    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "2", "--idle-timeout", "300",
+    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "300",
               "--dashboard", "127.0.0.1:0")
     assert res.returncode == 0, res.stderr
-    assert "warm cluster ready" in res.stdout and "2 worker processes" in res.stdout
+    assert "warm cluster ready" in res.stdout and "1 worker processes" in res.stdout
     assert "warm-up (ca_cfar, " in (sockdir / "warm.sock.log").read_text()
     yield sock
     res = run(sock, "warm", "stop")
@@ -97,7 +98,7 @@ def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
     before = warm.status(warm_cpu)["commands"]
     a = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "warm", cwd=tmp_path)
     assert a.returncode == 0, a.stderr
-    assert "sarship: warm cluster, 2 worker processes" in a.stderr
+    assert "sarship: warm cluster, 1 worker processes" in a.stderr
     assert "local Dask cluster" not in a.stderr
     b = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "own", cwd=tmp_path,
             env={"SARSHIP_WARM": "0"})
@@ -121,7 +122,9 @@ def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
     usage = run(warm_cpu, "detect", "scene.zarr", cwd=tmp_path)
     assert usage.returncode == 2 and "--detector" in usage.stderr
     helped = run(warm_cpu, "detect", "--help", env={"COLUMNS": "100"})
-    own_help = run(warm_cpu, "detect", "--help", env={"COLUMNS": "100", "SARSHIP_WARM": "0"})
+    from tests.test_cli import sarship_here
+
+    own_help = sarship_here("detect", "--help", env={"COLUMNS": "100"})  # the command line's own, in this process
     assert helped.returncode == 0 and helped.stdout.startswith("usage: sarship detect")
     assert helped.stdout == own_help.stdout  # the command's terminal width, not the warm process's
     over = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "warm", "--overwrite",
@@ -135,17 +138,26 @@ def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
 def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_path, monkeypatch):
     _scene(tmp_path)
     before = warm.status(warm_cpu)["commands"]
-    # another setting of the cluster's: said, then run on a cluster of its own
+    # another setting of the cluster's: said, then run on a cluster of its own, with the command's setting
     res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", "--device", "cpu",
-              cwd=tmp_path, env={"SARSHIP_THREADS_MAX_PX": "0"})
+              cwd=tmp_path, env={"SARSHIP_BLOCK_CACHE_MB": "0"})
     assert res.returncode == 0, res.stderr
-    assert "not on the warm cluster: it was started with another SARSHIP_THREADS_MAX_PX" in res.stderr
-    assert f"local Dask cluster, {os.cpu_count()} worker processes" in res.stderr  # the command's own setting
-    # a CPU-only warm cluster and --device gpu: the command's own cluster decides
-    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", "--device", "gpu",
-              cwd=tmp_path)
-    assert "not on the warm cluster: it has no GPU worker" in res.stderr
+    assert "not on the warm cluster: it was started with another SARSHIP_BLOCK_CACHE_MB" in res.stderr
+    assert "sarship: local Dask cluster" in res.stderr and "sarship: warm cluster" not in res.stderr
+    tiles = json.loads((tmp_path / "o1" / "run.json").read_text())["tiles"]["per_tile"]
+    assert tiles and {t["block_from"] for t in tiles} == {"scene"}  # the command's own setting: no read kept
     assert warm.status(warm_cpu)["commands"] == before
+    # the warm process's other refusals, by its own rule and state (each run as a command, falling back to
+    # a cluster of its own as above: the slow test below): a CPU-only warm cluster and --device gpu; an
+    # abbreviation of --scheduler, which passes the client's check and is refused after parsing
+    from sarship.warm_process import _parse_quietly, _refusal
+
+    state = warm.status(warm_cpu)
+    req = {"identity": state["identity"], "env": state["env"]}
+    cmd = ["detect", "scene.zarr", "--detector", "ca_cfar"]
+    assert _refusal(req, state, _parse_quietly(cmd)) == ""
+    assert _refusal(req, state, _parse_quietly([*cmd, "--device", "gpu"])).startswith("it has no GPU worker")
+    assert _refusal(req, state, _parse_quietly([*cmd, "--sched", "local"])) == "--scheduler was given"
     # --scheduler (an address or `local`), SARSHIP_SCHEDULER and SARSHIP_WARM=0 never go to it; other commands
     # neither (they run here, as always)
     monkeypatch.delenv("SARSHIP_WARM", raising=False)
@@ -159,6 +171,17 @@ def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_pa
     monkeypatch.delenv("SARSHIP_SCHEDULER")
     monkeypatch.setenv("SARSHIP_WARM", "0")
     assert not warm.eligible(["detect", "s.zarr"])
+    monkeypatch.delenv("SARSHIP_WARM")
+    assert warm.eligible([*cmd, "--sched", "local"])
+
+
+@pytest.mark.slow  # two more detections on clusters of their own; the refusals: test_commands_the_warm_...
+def test_refused_commands_say_why_and_run_on_their_own(warm_cpu, tmp_path):
+    _scene(tmp_path)
+    # a CPU-only warm cluster and --device gpu: the command's own cluster decides
+    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", "--device", "gpu",
+              cwd=tmp_path)
+    assert "not on the warm cluster: it has no GPU worker" in res.stderr
     # an abbreviation of --scheduler passes the client's check: the warm process refuses it after parsing
     res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o3", "--sched", "local",
               cwd=tmp_path)
@@ -204,15 +227,33 @@ def test_the_client_imports_no_array_library(warm_cpu, tmp_path):
     assert "scene 'missing.zarr' does not exist" in res.stderr
 
 
-def test_start_twice_idle_timeout_and_a_stale_socket(sockdir, tmp_path):
-    sock = sockdir / "warm.sock"
-    _scene(tmp_path)
-    # a socket left by a warm process that was killed: commands run on their own, silently
+def _stale_socket(sock: Path) -> None:
+    """A socket left by a warm process that was killed."""
     stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     stale.bind(str(sock))
     stale.close()
+
+
+@pytest.mark.slow  # a detection on a cluster of its own; the client's rule: test_start_twice_idle_timeout_...
+def test_a_stale_socket_leaves_commands_to_run_on_their_own(sockdir, tmp_path):
+    sock = sockdir / "warm.sock"
+    _scene(tmp_path)
+    _stale_socket(sock)
     res = run(sock, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", cwd=tmp_path)
     assert res.returncode == 0 and "warm" not in res.stderr, res.stderr
+
+
+def test_start_twice_idle_timeout_and_a_stale_socket(sockdir, monkeypatch, capsys):
+    sock = sockdir / "warm.sock"
+    # a socket left by a warm process that was killed: commands run on their own (the client gives them
+    # back to the command line, as for no warm process: the slow test above runs one), silently
+    _stale_socket(sock)
+    monkeypatch.setenv("SARSHIP_WARM_SOCKET", str(sock))
+    monkeypatch.delenv("SARSHIP_WARM", raising=False)
+    monkeypatch.delenv("SARSHIP_SCHEDULER", raising=False)
+    capsys.readouterr()
+    assert warm.run_remote(["detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1"]) is None
+    assert capsys.readouterr() == ("", "")
     assert run(sock, "warm", "status").returncode == 1
     # idle timeout 4 s: long enough for the second start below to find it on a loaded machine
     # (a Python start-up there took over 2 s), short enough to wait for
@@ -241,9 +282,12 @@ def test_the_folder_must_be_private(tmp_path):
     assert (made.stat().st_mode & 0o777) == 0o700
     res = run(open_dir / "warm.sock", "warm", "start", "--device", "cpu")
     assert res.returncode == 2 and "must be 0700" in res.stderr and "Traceback" not in res.stderr
-    bad = run(open_dir / "warm.sock", "warm", "start", "--idle-timeout", "-3")
+    from tests.test_cli import sarship_here  # the arguments' checks, in this process
+
+    env = {"SARSHIP_WARM_SOCKET": str(open_dir / "warm.sock")}
+    bad = sarship_here("warm", "start", "--idle-timeout", "-3", env=env)
     assert bad.returncode == 2 and "--idle-timeout" in bad.stderr
-    bad = run(open_dir / "warm.sock", "warm", "start", "--warm-up", "ca_cfar,nope")
+    bad = sarship_here("warm", "start", "--warm-up", "ca_cfar,nope", env=env)
     assert bad.returncode == 2 and "unknown detector 'nope'" in bad.stderr
 
 
@@ -298,7 +342,8 @@ def test_code_stamp_is_by_content(tmp_path):
     assert warm._code_stamp([str(pkg)]) != before
 
 
-def test_a_changed_code_is_refused(warm_cpu, tmp_path):
+@pytest.mark.slow  # two detections as commands; the rule on the live warm process: test_a_changed_code_is_refused
+def test_a_changed_code_makes_commands_run_on_their_own(warm_cpu, tmp_path):
     """A module of sarship modified after the warm process started (a source checkout edited, the
     same version reinstalled), even with its old modification time kept (``rsync -a``,
     ``cp -p``): commands run on their own cluster, with the new code."""
@@ -320,6 +365,41 @@ def test_a_changed_code_is_refused(warm_cpu, tmp_path):
     assert "local Dask cluster" in res.stderr
     again = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", cwd=tmp_path)
     assert again.returncode == 0 and "sarship: warm cluster," in again.stderr, again.stderr  # the code restored
+
+
+def test_a_changed_code_is_refused(warm_cpu):
+    """A module of sarship modified after the warm process started (a source checkout edited, the
+    same version reinstalled), even with its old modification time kept (``rsync -a``,
+    ``cp -p``): a command's identity (what it sends with each command) no longer matches the
+    warm process's, which refuses it saying why (the command then runs on its own cluster, as
+    every refused one: test_commands_the_warm_cluster_cannot_take_run_on_their_own; as commands,
+    with the code restored after: the slow test above)."""
+    from sarship.warm_process import _parse_quietly, _refusal
+
+    def command():  # a command's request (its identity and settings), made as the command makes it
+        code = "import json, sarship.warm as w; print(json.dumps({'identity': w._identity(), 'env': w.relevant_env()}))"
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
+                             env=_env(warm_cpu), check=True)  # (the standard library only: tests below)
+        return json.loads(res.stdout)
+
+    state = warm.status(warm_cpu)
+    ns = _parse_quietly(["detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o"])
+    assert _refusal(command(), state, ns) == ""
+    code = "import sarship.warm as w; print(w.__file__)"
+    where = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
+                           env=_env(warm_cpu), check=True)
+    mod = Path(where.stdout.strip())  # the copy the commands import (installed, or this checkout)
+    st, text = mod.stat(), mod.read_bytes()
+    try:  # an edit that keeps the file's modification time
+        mod.write_bytes(text + b"\n# edited\n")
+        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
+        edited = command()
+    finally:
+        mod.write_bytes(text)
+        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert _refusal(edited, state, ns) == ("sarship's code was changed since it started (sarship warm stop, then "
+                                           "sarship warm start, runs the new code)")
+    assert _refusal(command(), state, ns) == ""  # the code restored
 
 
 def test_output_to_a_closed_pipe(warm_cpu, tmp_path):
