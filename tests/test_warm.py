@@ -255,13 +255,18 @@ def test_start_twice_idle_timeout_and_a_stale_socket(sockdir, monkeypatch, capsy
     assert warm.run_remote(["detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1"]) is None
     assert capsys.readouterr() == ("", "")
     assert run(sock, "warm", "status").returncode == 1
-    # idle timeout 4 s: long enough for the second start below to find it on a loaded machine
-    # (a Python start-up there took over 2 s), short enough to wait for
-    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "4",
+    # a second start while one runs is refused (the first one's idle timeout is long: on a loaded
+    # machine the second start took longer than a short one, and found it gone)
+    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "120",
               "--dashboard", "127.0.0.1:0", "--warm-up", "none")
     assert res.returncode == 0, res.stderr
     again = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--dashboard", "127.0.0.1:0")
     assert again.returncode == 2 and "runs already" in again.stderr and len(again.stderr.splitlines()) == 1
+    assert run(sock, "warm", "stop").returncode == 0
+    # the idle timeout: a warm process without a command for 4 s ends by itself
+    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "4",
+              "--dashboard", "127.0.0.1:0", "--warm-up", "none")
+    assert res.returncode == 0, res.stderr
     for _ in range(300):  # idle for 4 s: it ends by itself
         if warm.status(sock) is None and not sock.exists():
             break
