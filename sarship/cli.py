@@ -435,6 +435,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"sarship {__import__('sarship').__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
+    _parser_simulate(sub)
+    _parser_ingest(sub)
+    _parser_detect(sub)
+    _parser_warm(sub)
+    _parser_export(sub)
+    _parser_enhance(sub)
+    _parser_worker(sub)
+    _parser_serve(sub)
+    _parser_evaluate(sub)
+    _parser_detectors(sub)
+    _parser_demo(sub)
+    return p
+
+
+def _parser_simulate(sub) -> None:
+    """``sarship simulate``'s options."""
     s = sub.add_parser("simulate", help="simulate a scene with ground truth")
     s.add_argument("out", help="output scene store (OUT.zarr)")
     s.add_argument("--kind", choices=["intensity", "slc", "quadpol"], default="intensity")
@@ -468,6 +484,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store and truth file")
     s.set_defaults(func=cmd_simulate)
 
+
+def _parser_ingest(sub) -> None:
+    """``sarship ingest``'s options."""
     s = sub.add_parser("ingest", help="convert GeoTIFF/TIFF, PNG/JPEG, .npy, a Sentinel-1 GRD or IW SLC SAFE "
                                        "(folder or .zip) or Zarr into a scene store")
     s.add_argument("inputs", nargs="+")
@@ -497,6 +516,9 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(default {DEFAULT_MAX_XML_MB:g})")
     s.set_defaults(func=cmd_ingest)
 
+
+def _parser_detect(sub) -> None:
+    """``sarship detect``'s options."""
     s = sub.add_parser("detect", help="run a detector on a scene store")
     s.add_argument("scene")
     s.add_argument("--detector", required=True,
@@ -518,6 +540,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "gpkg/kml need a georeferenced scene and the extra: pip install 'sarship[gis]'")
     s.set_defaults(func=cmd_detect)
 
+
+def _parser_warm(sub) -> None:
+    """``sarship warm``'s options."""
     s = sub.add_parser("warm", help="keep a local cluster running between sarship detect commands (start, status, "
                                      "stop; docs/interfaces/cli.md)")
     s.add_argument("action", choices=["start", "status", "stop", "run"],
@@ -537,12 +562,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "none)")
     s.set_defaults(func=cmd_warm)
 
+
+def _parser_export(sub) -> None:
+    """``sarship export``'s options."""
     s = sub.add_parser("export", help="detections.geojson as a GeoPackage (.gpkg) or KML (.kml) file for a GIS")
     s.add_argument("detections", help="a detections.geojson written by sarship detect or the service")
     s.add_argument("--to", required=True, metavar="FILE", help="FILE.gpkg or FILE.kml (the suffix picks the format)")
     s.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     s.set_defaults(func=cmd_export)
 
+
+def _parser_enhance(sub) -> None:
+    """``sarship enhance``'s options."""
     s = sub.add_parser("enhance", help="image-quality enhancement into a new scene store (--destripe)")
     s.add_argument("scene")
     s.add_argument("--out", required=True, help="output scene store (OUT.zarr); never the input")
@@ -557,6 +588,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
     s.set_defaults(func=cmd_enhance)
 
+
+def _parser_worker(sub) -> None:
+    """``sarship worker``'s options."""
     s = sub.add_parser("worker", help="start this machine's Dask workers for a scheduler: one per GPU, "
                                       "plus CPU workers")
     s.add_argument("--scheduler", required=True, help="scheduler address, e.g. tcp://10.0.0.1:8786")
@@ -574,6 +608,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--memory-limit", help="per-worker memory limit, e.g. 8GiB (default: Dask's auto)")
     s.set_defaults(func=cmd_worker)
 
+
+def _parser_serve(sub) -> None:
+    """``sarship serve``'s options."""
     s = sub.add_parser("serve", help="the job API (OGC API - Processes shape) with a local Dask cluster or "
                                      "--scheduler; settings also from SARSHIP_* environment variables",
                        description="Every setting is a flag below or a SARSHIP_* environment variable "
@@ -610,6 +647,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where files that fail to ingest go, with NAME.reason.txt (default DATA/quarantine)")
     s.set_defaults(func=cmd_serve)
 
+
+def _parser_evaluate(sub) -> None:
+    """``sarship evaluate``'s options."""
     s = sub.add_parser("evaluate", help="score detections against truth")
     s.add_argument("detections")
     s.add_argument("--truth", required=True, help="truth GeoJSON, PASCAL-VOC xml (file or folder) or mask image")
@@ -620,10 +660,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_evaluate)
 
+
+def _parser_detectors(sub) -> None:
+    """``sarship detectors``'s options."""
     s = sub.add_parser("detectors", help="list detectors with their parameters")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_detectors)
 
+
+def _parser_demo(sub) -> None:
+    """``sarship demo``'s options."""
     s = sub.add_parser("demo", help="the main job on an embedded default: simulate, detect on a local Dask cluster, score")
     s.add_argument("--out", default="sarship-demo")
     s.add_argument("--shape", type=_shape, default=(4096, 4096))
@@ -640,7 +686,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="write into an existing non-empty --out folder, "
                                                             "replacing the demo's outputs")
     s.set_defaults(func=cmd_demo)
-    return p
 
 
 #: Commands whose outputs are written aside and renamed into place: SIGTERM unwinds them.

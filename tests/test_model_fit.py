@@ -140,7 +140,7 @@ def test_fit_measured_for_the_cfar_detectors_only():
     """The tiles' fit settings: a probe beyond the asked PFA below 1e-3 (ca_cfar's from its
     statistic, the others' by detecting again), none at 1e-3, no fit for other detectors."""
     from sarship.pipeline import detectors
-    from sarship.workers.jobs import _fit_config
+    from sarship.pipeline.run.plan import fit_config as _fit_config
 
     ca = detectors.get("ca_cfar")
     cfg = _fit_config("ca_cfar", ca, ca.params(looks=4.0), (800, 800))

@@ -1,19 +1,32 @@
-"""``sarship detect``: submit one task per output tile to Dask, merge, write the outputs.
+"""A detection run on a Dask cluster: ``sarship detect``, a service job, ``--detector auto``.
+
+A run is a short sequence of named stages (docs/architecture.md, "A run"); the maths of each is
+in :mod:`sarship.pipeline.run`, this module executes them on the cluster::
+
+    plan = make_plan(request)           # pipeline/run/plan.py: parsed and checked once, nothing written yet
+    tmp = prepare_out(plan.out_dir)     # pipeline/run/outputs.py: a temporary folder inside the output folder
+    jobs = _tile_jobs(plan, tmp)        # the output stores, one TileJob per output tile
+    land = prepare_land(plan, jobs)     # workers/land.py: the land mask's pass over the tiles
+    prep = _scene_pass(plan, jobs)      # the detector's scene-wide statistics (DetectorSpec.scene_pass)
+    results = _execute(jobs)            # the detector on every tile (workers/tasks.py: run_tile)
+    merged = merge_tiles(results)       # components joined across tiles (pipeline/components.py)
+    records = discriminate(plan, merged)       # pipeline/run/merge.py: size, lines, the detector's rules
+    refined = refine(plan, records)            # pipeline/run/refine.py: features, contrast, sidelobes, geolocation, ambiguities
+    kept_px = _write_kept(refined.records)     # mask.zarr/mask: the kept detections' pixels, on the workers
+    run = run_record(plan, outcome)            # pipeline/run/record.py: run.json
+    _write_outputs(...); publish(tmp, plan.out_dir)   # renamed into place only when complete
 
 Outputs (docs/interfaces/files.md) in ``DIR``: ``mask.zarr`` (a Zarr v3 group with the uint8 arrays
 ``mask``, the pixels of the detections kept, and ``detected``, the detector's raw decision, chunked
-like the tiles), ``detections.geojson`` and ``run.json``. They are written
-under a temporary folder inside ``DIR`` and renamed into place only when the run has
-succeeded, so a failed or interrupted run leaves the previous outputs (or nothing) behind.
+like the tiles), ``detections.geojson``, ``run.json`` and, with a land mask, ``land.zarr``. A failed
+or interrupted run leaves the previous outputs (or nothing) behind.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import os
-import platform
 import shutil
 import sys
 import time
@@ -23,25 +36,20 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sarship.pipeline import __version__
-from sarship.pipeline.ambiguity import flag_features
-from sarship.pipeline.components import merge_radius, merge_tiles
-from sarship.pipeline.detectors.base import land_mask_parts, resolve_size
-from sarship.pipeline.lines import discard_lines, near_land
-from sarship.pipeline.ship_features import add_contrast, collection, features, keep_mask, size_prefilter, write_json
-from sarship.pipeline.sidelobes import refine_features
-from sarship.pipeline.errors import InputError
-from sarship.pipeline.inputs import detector_source, make_reader, pixel_power, window_reader
 from sarship.pipeline import model_fit
-from sarship.pipeline.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
-from sarship.pipeline.run.outputs import OPTIONAL_OUTPUTS, OUTPUTS, check_out, check_out_path, prepare_out, publish
-from sarship.pipeline.window_cache import CachedWindows
-from sarship.pipeline.scene import (Scene, claim_output, create_mask_store, finalize_scene,
-                                    open_scene, processing_tile, tile_slices)
-from sarship.workers.land import LAND_STORE, check_land_file, finish_land, prepare_land
+from sarship.pipeline.components import merge_tiles
+from sarship.pipeline.run.fit import fit_record
+from sarship.pipeline.run.merge import discriminate
+from sarship.pipeline.run.outputs import check_out, check_out_path, prepare_out, publish
+from sarship.pipeline.run.plan import Plan, make_plan
+from sarship.pipeline.run.record import Outcome, run_record
+from sarship.pipeline.run.refine import refine
+from sarship.pipeline.scene import claim_output, create_mask_store, finalize_scene, open_scene, tile_slices
+from sarship.pipeline.ship_features import collection, write_json
+from sarship.workers.land import LAND_STORE, finish_land, prepare_land
 from sarship.workers.progress import Progress
 from sarship.workers.request import AUTO, JobRequest
-from sarship.workers.routing import plan
+from sarship.workers.routing import plan as plan_placement
 from sarship.workers.tasks import TileJob, read_land_block, run_tile, run_tile_keep, run_tile_stats
 
 #: ``mask.zarr``'s second array: the detector's raw per-pixel decision, before any detection
@@ -50,29 +58,6 @@ DETECTED_ARRAY = "detected"
 #: The run's scratch store of each tile's component labels (int32, id + 1), in its temporary
 #: folder only: the kept-detection mask is picked from it tile by tile (tasks.run_tile_keep)
 LABEL_STORE = "labels.zarr"
-
-
-def resolve_looks(spec, params, scene: Scene, var: str, transform: str) -> tuple[Any, str]:
-    """Fill ``looks`` from the parameter, else the scene attribute, else an estimate from a
-    sample of the scene (:func:`sarship.pipeline.looks.estimate_scene_looks`)."""
-    if not spec.needs_looks or params.looks is not None:
-        return params, "parameter" if params.looks is not None else "not used"
-    if scene.looks is not None:
-        return params.model_copy(update={"looks": scene.looks}), "scene attribute"
-    from sarship.pipeline.looks import estimate_scene_looks
-
-    L = estimate_scene_looks(make_reader(str(scene.path), var, transform), scene.shape)
-    return params.model_copy(update={"looks": L}), "estimated from the scene (MoLC, median over blocks)"
-
-
-def _versions() -> dict[str, str]:
-    import importlib.metadata as md
-
-    out = {"sarship": __version__, "python": platform.python_version()}
-    for pkg in ("numpy", "scipy", "numba", "dask", "distributed", "zarr", "xarray", "pydantic"):
-        with contextlib.suppress(Exception):
-            out[pkg] = md.version(pkg)
-    return out
 
 
 def run_detection(
@@ -174,329 +159,192 @@ def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, o
                             extra_run={"detector_auto": record})
 
 
-def _fit_config(detector: str, spec, params, shape: tuple[int, int]) -> dict | None:
-    """The tiles' clutter-model-fit settings (:attr:`TileJob.fit`): the scene's grid step and,
-    for each probe PFA beyond the asked one, the detector's ``prepare`` there; None for a
-    detector whose fit is not measured (pipeline/model_fit.py, ``FIT_DETECTORS``)."""
-    if detector not in model_fit.FIT_DETECTORS:
-        return None
-    probes = []
-    for p in model_fit.pfas_of(params.pfa)[1:]:
-        other = model_fit.MODEL_PROBE.get(detector)
-        if other is None:
-            probes.append({"pfa": p, "prep": spec.prepare(params.model_copy(update={"pfa": p})),
-                           "statistic": detector in model_fit.STATISTIC_PROBE})
-            continue
-        from sarship.pipeline import detectors
-
-        ospec = detectors.get(other)  # the same model, windows, looks and absent pixels
-        same = {k: getattr(params, k) for k in ("target", "guard", "background", "looks", "nodata")}
-        oparams = ospec.params(pfa=p, land_mask=None, **same)
-        probes.append({"pfa": p, "prep": ospec.prepare(oparams), "statistic": False, "detector": other,
-                       "params": oparams.model_dump()})
-    return {"stride": model_fit.sample_stride(shape), "probes": probes}
-
-
-def _fit_record(detector: str, params, fit: dict, results: list[dict], records, shape) -> dict:
-    """``run.json``'s ``model_fit`` from the tiles' flags, the kept detections' cells left out."""
-    stride = int(fit["stride"])
-    grid = model_fit.assemble((r["fit"] for r in results), shape, stride)
-    boxes = np.stack([records["r0"], records["c0"], records["r1"], records["c1"]], axis=1) if len(records) else []
-    excluded = model_fit.exclude_targets(grid, stride, boxes)
-    rec = model_fit.record(detector, grid, model_fit.pfas_of(params.pfa), stride, excluded)
-    # whose decision the probe PFA's exceedances are: the detector's, or its model's (MODEL_PROBE)
-    rec["probe_by"] = fit["probes"][0].get("detector") or detector if fit["probes"] else detector
-    return rec
-
-
 def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
                  cluster_note, fit_only: bool = False, extra_run: dict | None = None) -> dict[str, Any]:
-    """One detection run (:func:`run_request`). ``fit_only``: only the clutter-model fit
-    (``--detector auto``'s candidates): no output is written, the ``model_fit`` record is
-    returned. ``extra_run``: entries added to ``run.json``."""
-    t_start = time.perf_counter()
-    spec, detector, device, channel = request.spec, request.detector, request.device, request.channel
-    params = request.detector_params()
-    if device == "gpu" and not spec.gpu:
-        raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation in this version")
-    has_gpu = spec.gpu_for(params)
-    if device == "gpu" and not has_gpu:
-        raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation for these parameters "
-                         f"(docs/algorithms/{detector}.md, 'GPU'); use --device auto or cpu")
-    # absolute paths: the tile tasks run on workers whose working folder may be another one
-    scene = open_scene(request.scene)  # messages name the paths as given
-    check_out(Path(out_dir), Path(request.scene), overwrite)
-    scene = dataclasses.replace(scene, path=Path(request.scene).absolute())
-    out_dir = Path(out_dir).absolute()
-    var, transform = detector_source(spec, scene, channel)  # (the service checks the same at submission)
-    if tile:
-        tile, tile_source = int(tile), "given"
-    else:
-        tile = processing_tile(scene.shape, scene.tile)
-        tile_source = "scene" if tile == scene.tile else f"scene tile x {tile // scene.tile}"
-    if tile < 8:
-        raise InputError(f"--tile must be at least 8 pixels, got {tile}")
-    # a bad land_mask FILE, or coastline without its package or on a scene without georeference,
-    # fails here, before any data is read or output written
-    land_file = check_land_file(params, scene)
-    params, looks_source = resolve_looks(spec, params, scene, var, transform)
-    prep = spec.prepare(params)
-    warnings: list[str] = []
-    spacing = scene.ground_spacing_m  # ground metres (an SLC's slant range converted: pipeline/scene.py)
-    # the size rule: metres when the spacing is known, pixels otherwise; given values win
-    params, size_rule = resolve_size(params, spacing)
-    if params.max_elongation is not None and scene.kind != "intensity":
-        # the default shape filter is for detected (intensity) products, where it was measured; on a
-        # complex scene only when asked for, and then in metres: complex pixels are not square (an
-        # IW SLC's are ~14 m x 2.3 m slant range), so a length / width in pixels is not the ship's
-        if "max_elongation" not in params.model_fields_set:
-            params = params.model_copy(update={"max_elongation": None})
-        elif spacing is None:
-            params = params.model_copy(update={"max_elongation": None})
-            warnings.append(f"max_elongation not applied: the {scene.kind} scene's pixel spacing is unknown (its "
-                            "pixels need not be square; give it with sarship ingest --spacing AZ,RG)")
-    if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
-        warnings.append("min_length_m/max_length_m ignored: the scene's pixel spacing is unknown")
-    if spec.for_scene is not None:  # settings for the scene's shape; a scene too small is refused here
-        params, notes = spec.for_scene(params, scene.shape, spacing)
-        warnings.extend(notes)
-    halo = spec.halo(params)
-    mr = merge_radius(params.merge_px)
-    H, W = scene.shape
-    fit = _fit_config(detector, spec, params, (H, W))
-    if fit_only and fit is None:
-        raise ValueError(f"fit_only: the fit of '{detector}' is not measured")
-    created = not out_dir.exists()
-    tmp = prepare_out(out_dir)
+    """One detection run (:func:`run_request`), the stages of the module docstring in order.
+    ``fit_only``: only the clutter-model fit (``--detector auto``'s candidates): no output is
+    written, the ``model_fit`` record is returned. ``extra_run``: entries added to ``run.json``."""
+    clock = {"start": time.perf_counter()}
+    plan = make_plan(request.spec, request.detector_params(), device=request.device, channel=request.channel,
+                     scene_path=request.scene, out_dir=out_dir, tile=tile, overwrite=overwrite)
+    if fit_only and plan.fit is None:
+        raise ValueError(f"fit_only: the fit of '{plan.detector}' is not measured")
+    created = not plan.out_dir.exists()
+    tmp = prepare_out(plan.out_dir)
     try:
-        geo = {k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs}
-        create_mask_store(tmp / "mask.zarr", (H, W), tile, {"detector": detector, "scene": str(scene.path), **geo},
-                          arrays=("mask", DETECTED_ARRAY))
-        create_mask_store(tmp / LABEL_STORE, (H, W), tile, arrays=("labels",), dtype="int32")
-        jobs = [
-            TileJob(
-                scene_path=str(scene.path), var=var, transform=transform, scene_shape=(H, W),
-                index=(i, j), bounds=(r0, r1, c0, c1), halo=halo, merge_r=mr, detector=detector,
-                params=params.model_dump(), prep=prep,
-                mask_path=None if fit_only else str(tmp / "mask.zarr" / "mask"), spacing=spacing, fit=fit,
-                detected_path=None if fit_only else str(tmp / "mask.zarr" / DETECTED_ARRAY),
-                label_path=None if fit_only else str(tmp / LABEL_STORE / "labels"),
-                line_join=params.line_gap_px is not None,
-            )
-            for i, j, r0, r1, c0, c1 in tile_slices((H, W), tile)
-        ]
-        scene_pass = None
-        land_record = None
-        texture = "texture" in land_mask_parts(params.land_mask)[0]
-        if texture:
-            from sarship.workers import blockcache
-
-            budget = blockcache.limit_bytes()  # a bad SARSHIP_BLOCK_CACHE_MB is refused before the cluster starts
-        t_cluster = time.perf_counter()
-        cluster_start = None  # seconds to start (or reach) the cluster; None: a client was given
-        with contextlib.ExitStack() as stack:
-            if client is None:
-                from sarship.workers.cluster import connect, threads_max_px
-
-                client = stack.enter_context(connect(scheduler, gpus=device != "cpu" and has_gpu,
-                                                     threads=H * W <= threads_max_px(), short_lived=True))
-                cluster_start = time.perf_counter() - t_cluster
-            elif cluster_note:
-                print(cluster_note, file=sys.stderr)
-            cluster_workers = client.scheduler_info(n_workers=-1).get("workers", {})
-            from sarship.workers.cluster import dashboard_url
-
-            dashboard = dashboard_url(client)  # None when the scheduler serves no dashboard (no bokeh)
-            placement = plan(device, detector, has_gpu, cluster_workers)
-            jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
-            # the texture land pass's reads serve the detection: each tile's read is kept as Dask
-            # data on the worker that made it and handed to the tile's texture sample and detection
-            # (Dask runs them where it is, within the placement), within the memory budget
-            blocks: dict = {}
-            stack.callback(blocks.clear)  # the job's kept reads are released however it ends
-            keep = kept_blocks(jobs, params, budget * (len(cluster_workers) or 1)) if texture else 0
-            jobs, land_record = prepare_land(
-                params, scene, land_file, jobs, tmp, tile,
-                lambda fn, js, stage: _execute_land(client, js, detector, progress, fn, stage, placement.submit,
-                                                    keep, blocks),
-                progress=progress)
-            if spec.scene_pass is not None:
-                t_pass = time.perf_counter()
-                scene_values: dict = {}
-                for n_pass in range(1, spec.scene_passes_max + 1):  # reduce may ask for another pass
-                    stats = _execute(client, jobs, detector, progress, None, run_tile_stats, "scene statistics",
-                                     placement.submit)
-                    values = spec.reduce([s["stats"] for s in sorted(stats, key=lambda s: s["index"])],
-                                         params, prep)
-                    again = bool(values.pop("another_pass", False))
-                    warnings.extend(values.pop("warnings", []))  # e.g. gamma_mrf's EM sample made denser
-                    scene_values.update(values)
-                    prep = {**prep, **values}
-                    jobs = [dataclasses.replace(j, prep=prep) for j in jobs]
-                    if not again:
-                        break
-                else:
-                    raise RuntimeError(f"{detector}: more than {spec.scene_passes_max} scene passes asked for")
-                scene_pass = {"tiles": len(stats), "seconds": round(time.perf_counter() - t_pass, 4),
-                              "passes": n_pass, "values": scene_values}
-            t_prep = time.perf_counter()
-            results = _execute(client, jobs, detector, progress, on_tile, submit=placement.submit, extra=blocks)
-            t_tiles = time.perf_counter()
-            # the decision on whole components: on the client, from the tiles' moment tables
-            finish_land(tmp, land_record, results, (H, W))
-            t_land_done = time.perf_counter()
-            comps = {r["index"]: r["components"] for r in results}
-            merged, members = merge_tiles(comps, members=True)
-            records, discarded = _discriminate(merged, params, spacing, sum(r.get("size_dropped", 0) for r in results))
-            if spec.discriminate is not None:  # the detector's own rules on whole components (e.g. peak)
-                n0 = len(records)
-                records = records[spec.discriminate(records, params, prep)]
-                discarded["detector"] = n0 - len(records)
-            if fit_only:  # --detector auto's candidate: the fit of its model, nothing written
-                shutil.rmtree(tmp, ignore_errors=True)
-                return _fit_record(detector, params, fit, results, records, (H, W))
-            land_path = tmp / LAND_STORE / "land" if land_record is not None else None
-            if params.land_gap_px is not None and land_path is not None and len(records):
-                near = near_land(records, CachedWindows(window_reader(land_path), (H, W)), (H, W), params.land_gap_px)
-                records, discarded["land"] = records[~near], int(near.sum())
-            feats = features(records, spacing, geo)
-            feats = add_contrast(feats, (land_record or {}).get("sea_mean"))
-            scene_read = mask_read = None
-            if params.sidelobes or spec.detection_properties is not None or params.min_contrast_db is not None:
-                # the per-detection steps read small windows: through block caches, each chunk once; the
-                # mask they read is the detector's own decision (each detection's component, and the
-                # detections left out of the clutter ring)
-                scene_read = CachedWindows(make_reader(str(scene.path), var, transform), (H, W))
-                mask_read = CachedWindows(window_reader(tmp / "mask.zarr" / DETECTED_ARRAY), (H, W))
-            feats, records, contrast_record = _contrast_step(
-                feats, records, params.min_contrast_db, scene_read, mask_read, land_path, (H, W),
-                getattr(params, "nodata", None))
-            discarded["contrast"] = contrast_record.get("dropped", 0)
-            if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
-                feats = refine_features(feats, records, scene_read, mask_read, (H, W), mr, spacing, geo)
-            if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
-                feats = spec.detection_properties(feats, records, scene_read, mask_read, (H, W), mr, params, prep,
-                                                  spacing=spacing, geo=geo)
-            from sarship.pipeline.ship_features import geolocate  # WGS84 outline + centre of the final geometry
-
-            feats = geolocate(feats, geo)
-            # azimuth-ambiguity flags: ambiguity_of on every detection (pipeline/ambiguity.py)
-            feats, ambiguity_record = flag_features(feats, scene.attrs, params.ambiguities, params.ambiguity_tol_px,
-                                                    params.ambiguity_min_db)
-            fit_record = None
-            if fit is not None:  # does the detector's clutter model fit the scene? (pipeline/model_fit.py)
-                fit_record = _fit_record(detector, params, fit, results, records, (H, W))
-                line = model_fit.advice(fit_record)
-                if line:
-                    warnings.append(line)
-            t_merge = time.perf_counter()
-            # mask.zarr/mask: the pixels of the detections kept, written tile by tile on the workers
-            kept_px = _write_kept(client, jobs, merged, members, records, detector, placement.submit)
-            t_mask = time.perf_counter()
-        t_closed = time.perf_counter()  # a local cluster started here is closed on leaving the block
-        run = {
-            "sarship_version": __version__,
-            "detector": detector,
-            "reference": spec.reference,
-            "parameters": params.model_dump(),
-            "channel": var if isinstance(var, str) else list(var),
-            "looks_source": looks_source,
-            "size_rule": size_rule,
-            "prepared": prep,
-            "scene_pass": scene_pass,
-            "land": land_record,
-            "contrast": contrast_record,
-            "ambiguities": ambiguity_record,
-            "model_fit": fit_record,
-            **(extra_run or {}),
-            "scene": {
-                "path": str(Path(scene.path).resolve()),
-                "shape": [H, W],
-                "kind": scene.kind,
-                "tile": scene.tile,
-                "looks": scene.looks,
-                "pixel_spacing_m": list(scene.pixel_spacing_m) if scene.pixel_spacing_m else None,
-                "ground_spacing_m": list(spacing) if spacing else None,
-                "attrs": {k: v for k, v in scene.attrs.items() if k not in ("simulation",)},
-            },
-            "tiles": {
-                "size": tile,
-                "size_source": tile_source,
-                "grid": [math.ceil(H / tile), math.ceil(W / tile)],
-                "count": len(jobs),
-                "halo_px": halo,
-                "merge_radius_px": mr,
-                "per_tile": [
-                    {"index": list(r["index"]), "worker": r["worker"], "device": r["device"],
-                     "detected_px": r["detected_px"], "block_from": r.get("block_from", "scene"),
-                     **{k: round(r[k], 6) for k in ("read_s", "land_s", "detect_s", "write_s", "label_s", "h2d_s",
-                                                    "d2h_s")}}
-                    for r in sorted(results, key=lambda r: r["index"])
-                ],
-            },
-            "detections": len(feats),
-            "detected_px": int(sum(r["detected_px"] for r in results)),
-            "mask_px": kept_px,
-            "discarded": discarded,
-            "timings": {
-                "prepare_s": round(t_prep - t_start, 4),
-                "tiles_s": round(t_tiles - t_prep, 4),
-                "cluster_start_s": None if cluster_start is None else round(cluster_start, 4),
-                "cluster_close_s": round(t_closed - t_mask, 4),
-                "merge_s": round(t_merge - t_land_done, 4),
-                "mask_s": round(t_mask - t_merge, 4),
-                "detect_cpu_s": round(sum(r["detect_s"] for r in results), 4),
-                "read_cpu_s": round(sum(r["read_s"] for r in results), 4),
-                "mpx_per_s": round(H * W / max(t_tiles - t_prep, 1e-9) / 1e6, 3),
-            },
-            "device": placement.device,
-            "device_requested": device,
-            "placement": {"reason": placement.reason,
-                          "restriction": {k: v for k, v in placement.submit.items() if k != "allow_other_workers"}},
-            "cluster": {"dashboard": dashboard, "workers": sorted({r["worker"] for r in results})},
-            "versions": _versions(),
-            "warnings": warnings,
-            "outputs": {name: str((out_dir / name).resolve()) for name in OUTPUTS
-                        if name not in OPTIONAL_OUTPUTS or (tmp / name).exists()},
-        }
-        t_fin = time.perf_counter()
-        finalize_scene(tmp / "mask.zarr")  # consolidated metadata: xarray.open_zarr reads it
-        t_cons = time.perf_counter()
-        fc = collection(feats, detector=detector, scene=str(scene.path), parameters=params.model_dump())
-        write_json(tmp / "detections.geojson", fc)
-        t_end = time.perf_counter()
-        run["timings"]["consolidate_s"] = round(t_cons - t_fin + t_land_done - t_tiles, 4)
-        run["timings"]["geojson_s"] = round(t_end - t_cons, 4)
-        run["timings"]["total_s"] = round(t_end - t_start, 4)
-        write_json(tmp / "run.json", run)
-        publish(tmp, out_dir)
+        outcome = _execute_plan(plan, tmp, client, scheduler, cluster_note, progress, on_tile, fit_only, clock)
+        if fit_only:  # --detector auto's candidate: the fit of its model, nothing written
+            shutil.rmtree(tmp, ignore_errors=True)
+            return outcome
+        outcome.extra.update(extra_run or {})
+        run = run_record(plan, outcome, tmp)
+        _write_outputs(plan, tmp, run, outcome.refined.features, clock)
+        publish(tmp, plan.out_dir)
         return run
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         if created:  # a failed run leaves no trace, not even the empty folder it made
             with contextlib.suppress(OSError):
-                out_dir.rmdir()
+                plan.out_dir.rmdir()
         raise
 
 
-def _discriminate(records: np.ndarray, params, spacing: tuple[float, float] | None,
-                  tile_size_dropped: int) -> tuple[np.ndarray, dict[str, int]]:
-    """The size, shape and line rules on the merged components: the area rule the tiles applied
-    (:func:`sarship.pipeline.ship_features.size_prefilter`), the line rule
-    (:func:`sarship.pipeline.lines.discard_lines`, on the pieces before the shape test), then the
-    whole size and shape rule (:func:`keep_mask`). Returns the kept records and the count of
-    components dropped by each rule (``tile_size_dropped``: those the tiles dropped already)."""
-    pre = size_prefilter(params, params.line_gap_px is not None)
-    keep = keep_mask(records, pre, spacing) if pre is not params else np.ones(len(records), bool)
-    size = tile_size_dropped + int(len(keep) - keep.sum())
-    records = records[keep]
-    reason = discard_lines(records, params.line_gap_px, params.line_angle_deg, params.line_dominant_db,
-                           params.max_elongation, params.max_length_m, spacing)
-    counts = {"line": int((reason == "line").sum()), "smear": int((reason == "smear").sum())}
-    records = records[reason == ""]
-    keep = keep_mask(records, params, spacing)
-    counts = {"size": size + int(len(keep) - keep.sum()), **counts, "detector": 0, "land": 0, "contrast": 0}
-    return records[keep], counts
+def _execute_plan(plan: Plan, tmp: Path, client, scheduler, cluster_note, progress: bool, on_tile,
+                  fit_only: bool, clock: dict) -> Outcome | dict:
+    """The stages that run on the cluster (module docstring), on ``client`` or a cluster started
+    for the run (``scheduler``, else a local one) and closed at the end. ``fit_only``: the
+    ``model_fit`` record, once the detections are merged."""
+    jobs = _tile_jobs(plan, tmp, fit_only)
+    budget = None
+    if plan.land.texture:
+        from sarship.workers import blockcache
+
+        budget = blockcache.limit_bytes()  # a bad SARSHIP_BLOCK_CACHE_MB is refused before the cluster starts
+    clock["cluster"] = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        client, cluster_start = _cluster(plan, stack, client, scheduler, cluster_note)
+        workers = client.scheduler_info(n_workers=-1).get("workers", {})
+        from sarship.workers.cluster import dashboard_url
+
+        dashboard = dashboard_url(client)  # None when the scheduler serves no dashboard (no bokeh)
+        placement = plan_placement(plan.device, plan.detector, plan.has_gpu, workers)
+        jobs = [dataclasses.replace(j, device=placement.device) for j in jobs]
+        # the texture land pass's reads serve the detection: each tile's read is kept as Dask
+        # data on the worker that made it and handed to the tile's texture sample and detection
+        # (Dask runs them where it is, within the placement), within the memory budget
+        blocks: dict = {}
+        stack.callback(blocks.clear)  # the job's kept reads are released however it ends
+        keep = kept_blocks(jobs, plan.params, budget * (len(workers) or 1)) if budget is not None else 0
+        jobs, land_record = prepare_land(
+            plan, jobs, tmp,
+            lambda fn, js, stage: _execute_land(client, js, plan.detector, progress, fn, stage, placement.submit,
+                                                keep, blocks),
+            progress=progress)
+        jobs, prep, scene_pass, warnings = _scene_pass(plan, client, jobs, placement.submit, progress)
+        clock["prep"] = time.perf_counter()
+        results = _execute(client, jobs, plan.detector, progress, on_tile, submit=placement.submit, extra=blocks)
+        clock["tiles"] = time.perf_counter()
+        finish_land(tmp, land_record, results, plan.shape)  # the decision on whole components: on the client
+        clock["land_done"] = time.perf_counter()
+        merged, members = merge_tiles({r["index"]: r["components"] for r in results}, members=True)
+        records, discarded = discriminate(plan, prep, merged, sum(r.get("size_dropped", 0) for r in results))
+        if fit_only:
+            return fit_record(plan, results, records)
+        land_path = tmp / LAND_STORE / "land" if land_record is not None else None
+        refined = refine(plan, prep, records, land_record, land_path, tmp / "mask.zarr" / DETECTED_ARRAY)
+        if refined.dropped_land is not None:
+            discarded["land"] = refined.dropped_land
+        discarded["contrast"] = refined.dropped_contrast
+        fit = None
+        if plan.fit is not None:  # does the detector's clutter model fit the scene? (pipeline/model_fit.py)
+            fit = fit_record(plan, results, refined.records)
+            line = model_fit.advice(fit)
+            if line:
+                warnings.append(line)
+        clock["merge"] = time.perf_counter()
+        # mask.zarr/mask: the pixels of the detections kept, written tile by tile on the workers
+        kept_px = _write_kept(client, jobs, merged, members, refined.records, plan.detector, placement.submit)
+        clock["mask"] = time.perf_counter()
+    clock["closed"] = time.perf_counter()  # a local cluster started here is closed on leaving the block
+    H, W = plan.shape
+    timings = {
+        "prepare_s": round(clock["prep"] - clock["start"], 4),
+        "tiles_s": round(clock["tiles"] - clock["prep"], 4),
+        "cluster_start_s": None if cluster_start is None else round(cluster_start, 4),
+        "cluster_close_s": round(clock["closed"] - clock["mask"], 4),
+        "merge_s": round(clock["merge"] - clock["land_done"], 4),
+        "mask_s": round(clock["mask"] - clock["merge"], 4),
+        "detect_cpu_s": round(sum(r["detect_s"] for r in results), 4),
+        "read_cpu_s": round(sum(r["read_s"] for r in results), 4),
+        "mpx_per_s": round(H * W / max(clock["tiles"] - clock["prep"], 1e-9) / 1e6, 3),
+    }
+    return Outcome(prep=prep, scene_pass=scene_pass, land=land_record, results=results, refined=refined,
+                   discarded=discarded, model_fit=fit, kept_px=kept_px, tiles=len(jobs), device=placement.device,
+                   placement_reason=placement.reason,
+                   restriction={k: v for k, v in placement.submit.items() if k != "allow_other_workers"},
+                   dashboard=dashboard, warnings=warnings, timings=timings)
+
+
+def _tile_jobs(plan: Plan, tmp: Path, fit_only: bool) -> list[TileJob]:
+    """The run's output stores (``mask.zarr`` with ``mask`` and ``detected``, the scratch label
+    store) and one :class:`TileJob` per output tile (``fit_only``: the tiles write nothing)."""
+    H, W = plan.shape
+    scene = plan.scene
+    create_mask_store(tmp / "mask.zarr", (H, W), plan.tile, {"detector": plan.detector, "scene": str(scene.path),
+                                                             **plan.geo},
+                      arrays=("mask", DETECTED_ARRAY))
+    create_mask_store(tmp / LABEL_STORE, (H, W), plan.tile, arrays=("labels",), dtype="int32")
+    return [
+        TileJob(
+            scene_path=str(scene.path), var=plan.var, transform=plan.transform, scene_shape=(H, W),
+            index=(i, j), bounds=(r0, r1, c0, c1), halo=plan.halo, merge_r=plan.merge_r, detector=plan.detector,
+            params=plan.params.model_dump(), prep=plan.prep,
+            mask_path=None if fit_only else str(tmp / "mask.zarr" / "mask"), spacing=plan.spacing, fit=plan.fit,
+            detected_path=None if fit_only else str(tmp / "mask.zarr" / DETECTED_ARRAY),
+            label_path=None if fit_only else str(tmp / LABEL_STORE / "labels"),
+            line_join=plan.params.line_gap_px is not None,
+        )
+        for i, j, r0, r1, c0, c1 in tile_slices((H, W), plan.tile)
+    ]
+
+
+def _cluster(plan: Plan, stack: contextlib.ExitStack, client, scheduler, cluster_note) -> tuple[Any, float | None]:
+    """The client the run uses, and the seconds it took to start or reach the cluster (None: a
+    client was given; ``cluster_note`` is then printed, as a started cluster prints its own line)."""
+    if client is not None:
+        if cluster_note:
+            print(cluster_note, file=sys.stderr)
+        return client, None
+    from sarship.workers.cluster import connect, threads_max_px
+
+    t0 = time.perf_counter()
+    H, W = plan.shape
+    client = stack.enter_context(connect(scheduler, gpus=plan.device != "cpu" and plan.has_gpu,
+                                         threads=H * W <= threads_max_px(), short_lived=True))
+    return client, time.perf_counter() - t0
+
+
+def _scene_pass(plan: Plan, client, jobs: list[TileJob], submit: dict, progress: bool
+                ) -> tuple[list[TileJob], dict, dict | None, list[str]]:
+    """The detector's scene-wide statistics (``DetectorSpec.scene_pass`` / ``reduce``), pass
+    after pass while ``reduce`` asks for another: the jobs with the merged values in their
+    ``prep``, that ``prep``, the ``run.json`` ``scene_pass`` record (None without one) and the
+    run's warnings (the plan's, then those ``reduce`` returned)."""
+    spec, prep, warnings = plan.spec, plan.prep, list(plan.warnings)
+    if spec.scene_pass is None:
+        return jobs, prep, None, warnings
+    t0 = time.perf_counter()
+    values_all: dict = {}
+    for n_pass in range(1, spec.scene_passes_max + 1):  # reduce may ask for another pass
+        stats = _execute(client, jobs, plan.detector, progress, None, run_tile_stats, "scene statistics", submit)
+        values = spec.reduce([s["stats"] for s in sorted(stats, key=lambda s: s["index"])], plan.params, prep)
+        again = bool(values.pop("another_pass", False))
+        warnings.extend(values.pop("warnings", []))  # e.g. gamma_mrf's EM sample made denser
+        values_all.update(values)
+        prep = {**prep, **values}
+        jobs = [dataclasses.replace(j, prep=prep) for j in jobs]
+        if not again:
+            break
+    else:
+        raise RuntimeError(f"{plan.detector}: more than {spec.scene_passes_max} scene passes asked for")
+    record = {"tiles": len(stats), "seconds": round(time.perf_counter() - t0, 4), "passes": n_pass,
+              "values": values_all}
+    return jobs, prep, record, warnings
+
+
+def _write_outputs(plan: Plan, tmp: Path, run: dict, feats: list[dict], clock: dict) -> None:
+    """``mask.zarr``'s consolidated metadata (xarray.open_zarr reads it), ``detections.geojson``
+    and ``run.json`` (with the time these took) in the run's temporary folder."""
+    t_fin = time.perf_counter()
+    finalize_scene(tmp / "mask.zarr")
+    t_cons = time.perf_counter()
+    fc = collection(feats, detector=plan.detector, scene=str(plan.scene.path), parameters=plan.params.model_dump())
+    write_json(tmp / "detections.geojson", fc)
+    t_end = time.perf_counter()
+    run["timings"]["consolidate_s"] = round(t_cons - t_fin + clock["land_done"] - clock["tiles"], 4)
+    run["timings"]["geojson_s"] = round(t_end - t_cons, 4)
+    run["timings"]["total_s"] = round(t_end - clock["start"], 4)
+    write_json(tmp / "run.json", run)
 
 
 def _write_kept(client, jobs: list[TileJob], merged: np.ndarray, members: dict, kept: np.ndarray, detector: str,
@@ -525,27 +373,6 @@ def _write_kept(client, jobs: list[TileJob], merged: np.ndarray, members: dict, 
     except BaseException:
         client.cancel(futures)
         raise
-
-
-def _contrast_step(feats: list[dict], records, floor: float | None, scene_read, mask_read, land_path: Path | None,
-                   shape: tuple[int, int], nodata: float | None):
-    """The local contrast of every detection and the ``min_contrast_db`` rule
-    (pipeline/local_contrast.py): (kept features, their records, the ``run.json`` record).
-    Measured only when a floor is set (a window read per detection; -30 dB measures every
-    detection and drops practically none); otherwise ``contrast_db`` is null."""
-    if floor is None:
-        for f in feats:
-            f["properties"].update(contrast_db=None, contrast_ring_px=None)
-        return feats, records, {"min_contrast_db": None, "measured": False}
-    land_read = CachedWindows(window_reader(land_path), shape) if land_path is not None else None
-    feats = add_local_contrast(feats, lambda *w: pixel_power(np.asarray(scene_read(*w))), mask_read, shape,
-                               land_read, nodata)
-    keep = keep_contrast(feats, floor)
-    record = {"min_contrast_db": floor, "measured": True, "gap_px": GAP_PX, "ring_px": RING_PX,
-              "min_ring_px": MIN_RING_PX, "land_excluded": land_path is not None,
-              "unmeasured": sum(f["properties"]["contrast_db"] is None for f in feats),
-              "dropped": len(keep) - sum(keep)}
-    return [f for f, k in zip(feats, keep) if k], records[np.asarray(keep, bool)], record
 
 
 def kept_blocks(jobs: list[TileJob], params, budget: int) -> int:

@@ -30,7 +30,8 @@ from typing import Any
 import numpy as np
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.scene import Scene, finalize_scene
+from sarship.pipeline.run.plan import Plan
+from sarship.pipeline.scene import finalize_scene
 
 LAND_STORE = "land.zarr"
 
@@ -53,25 +54,6 @@ def create_land_store(path: Path, shape: tuple[int, int], tile: int, attrs: dict
                          compressors=_zstd(), dimension_names=("y", "x"), fill_value=0)
     g.attrs.update(_jsonable(attrs))
     return arr
-
-
-def check_land_file(params, scene: Scene):
-    """The checked source of ``land_mask`` before any work: the FILE
-    (:class:`~sarship.pipeline.landmask_files.LandFile`), the coastline
-    (:class:`~sarship.pipeline.coastline.Coastline`: package installed, scene georeferenced),
-    or None for none/texture; one-line InputError otherwise."""
-    from sarship.pipeline.detectors.base import land_mask_parts
-
-    keys, path = land_mask_parts(params.land_mask)
-    if "coastline" in keys:
-        from sarship.pipeline.coastline import open_coastline
-
-        return open_coastline(scene.attrs, scene.shape, float(params.land_buffer_m))
-    if path is None:
-        return None
-    from sarship.pipeline.landmask_files import open_land_file
-
-    return open_land_file(path, scene.shape, scene.attrs)
 
 
 def rasterize_coastline(coast, arr, shape: tuple[int, int], rows: int, progress: bool = False) -> int:
@@ -104,85 +86,99 @@ def coastline_record(coast, count: int, seconds: float) -> dict:
             "land": count > 0, "seconds": round(seconds, 4)}
 
 
-def prepare_land(params, scene: Scene, land_file, jobs: list, tmp: Path, tile: int, execute,
-                 progress: bool = False) -> tuple[list, dict | None]:
-    """Set up the job's land mask: returns the tile jobs with their land fields and the record
-    for ``run.json`` (``land``), or ``(jobs, None)`` without a land mask. ``execute(fn, jobs,
-    stage)`` runs a per-tile function on the cluster and returns its results; ``progress``:
-    the coastline's rasterisation reports on stderr."""
-    from sarship.workers.tasks import run_tile_land_stats
-
-    lm = params.land_mask
-    if lm is None:
+def prepare_land(plan: Plan, jobs: list, tmp: Path, execute, progress: bool = False) -> tuple[list, dict | None]:
+    """Set up the run's land mask (``plan.land``, parsed and checked by the plan): returns the tile
+    jobs with their land fields and the record for ``run.json`` (``land``), or ``(jobs, None)``
+    without a land mask. ``execute(fn, jobs, stage)`` runs a per-tile function on the cluster and
+    returns its results; ``progress``: the coastline's rasterisation reports on stderr."""
+    if plan.params.land_mask is None:
         return jobs, None
-    t0 = time.perf_counter()
-    H, W = scene.shape
-    store = tmp / LAND_STORE
-    attrs = {k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs}
-    from sarship.pipeline.detectors.base import land_mask_parts
-
-    keys, _path = land_mask_parts(lm)
-    if "coastline" in keys:
+    land = plan.land
+    if "coastline" in land.kinds:
         from sarship.pipeline.coastline import Coastline
 
-        if not isinstance(land_file, Coastline):
-            raise TypeError("prepare_land: land_mask=coastline needs the Coastline of check_land_file")
-    if keys == {"coastline"}:
-        arr = create_land_store(store, (H, W), tile, {"source": "coastline", **attrs})
-        count = rasterize_coastline(land_file, arr, (H, W), tile, progress)
-        land = {"mode": "file", "store": str(store / "land")}
-        jobs = [dataclasses.replace(j, land=land, land_halo=0, land_path=None) for j in jobs]
-        record = coastline_record(land_file, count, time.perf_counter() - t0)
-    elif "texture" in keys:
-        from sarship.pipeline import landmask
+        if not isinstance(land.source, Coastline):
+            raise TypeError("prepare_land: land_mask=coastline needs the plan's checked Coastline")
+    t0 = time.perf_counter()
+    if land.kinds == {"coastline"}:
+        return _coastline_land(plan, jobs, tmp, progress, t0)
+    if land.texture:
+        return _texture_land(plan, jobs, tmp, execute, progress, t0)
+    return _file_land(plan, jobs, tmp, t0)
 
-        cfg = texture_config(params)
-        stride = landmask.sample_stride((H, W))
-        base = {"mode": "texture", "config": dataclasses.asdict(cfg), "stride": stride}
-        stats = execute(run_tile_land_stats, [dataclasses.replace(j, land=base) for j in jobs], "land texture")
-        t, m = landmask.pool_sample_arrays([s["stats"] for s in sorted(stats, key=lambda s: s["index"])],
-                                           ("t", "m"))
-        decision = landmask.decide(t, cfg)
-        decision["stride"] = stride
-        decision["sea_mean"] = landmask.sea_mean(t, m, decision)
-        create_land_store(store, (H, W), tile, {"source": "+".join(sorted(keys)), **attrs})
-        land = {"mode": "texture", "config": dataclasses.asdict(cfg), "decision": decision}
-        halo = cfg.halo if decision["land"] else 0
-        coast_record = None
-        if "coastline" in keys:  # the union: the tiles add their block of the coastline array
-            import zarr
 
-            t1 = time.perf_counter()
-            g = zarr.open_group(str(store), mode="r+")
-            from sarship.pipeline.scene import _zstd, chunking
+def _coastline_land(plan: Plan, jobs: list, tmp: Path, progress: bool, t0: float) -> tuple[list, dict]:
+    """``land_mask=coastline``: the buffered shoreline rasterised into ``land.zarr`` strip by strip."""
+    store = tmp / LAND_STORE
+    arr = create_land_store(store, plan.shape, plan.tile, {"source": "coastline", **plan.geo})
+    count = rasterize_coastline(plan.land.source, arr, plan.shape, plan.tile, progress)
+    land = {"mode": "file", "store": str(store / "land")}
+    jobs = [dataclasses.replace(j, land=land, land_halo=0, land_path=None) for j in jobs]
+    return jobs, coastline_record(plan.land.source, count, time.perf_counter() - t0)
 
-            carr = g.create_array("coastline", shape=(H, W), dtype="uint8", **chunking(tile), compressors=_zstd(),
-                                  dimension_names=("y", "x"), fill_value=0)
-            count = rasterize_coastline(land_file, carr, (H, W), tile, progress)
-            coast_record = coastline_record(land_file, count, time.perf_counter() - t1)
-            land = {**land, "coastline": str(store / "coastline")}
-        jobs = [dataclasses.replace(j, land=land, land_halo=halo, land_path=str(store / "land")) for j in jobs]
-        record = {"source": "texture", **decision, "seconds": round(time.perf_counter() - t0, 4)}
-        if coast_record is not None:
-            record = {**record, "source": "coastline+texture", "texture_land": decision["land"],
-                      "land": bool(decision["land"] or coast_record["land"]), "coastline": coast_record}
-    else:
-        arr = create_land_store(store, (H, W), tile, {"source": str(Path(land_file.path).resolve()), **attrs})
-        rows = max(tile, 1)
-        count = 0
-        for r0 in range(0, H, rows):
-            r1 = min(r0 + rows, H)
-            try:
-                block = np.asarray(land_file.read(r0, r1, 0, W), bool)
-            except InputError as exc:
-                raise InputError(f"parameter 'land_mask': {exc}") from None
-            arr[r0:r1, :] = block.astype(np.uint8)
-            count += int(block.sum())
-        land = {"mode": "file", "store": str(store / "land")}
-        jobs = [dataclasses.replace(j, land=land, land_halo=0, land_path=None) for j in jobs]
-        record = {"source": "file", "path": str(Path(land_file.path).resolve()), "kind": land_file.kind,
-                  "format": land_file.format, **land_file.info, "land": count > 0,
-                  "seconds": round(time.perf_counter() - t0, 4)}
+
+def _texture_land(plan: Plan, jobs: list, tmp: Path, execute, progress: bool, t0: float) -> tuple[list, dict]:
+    """``land_mask=texture`` (and ``coastline+texture``): the texture sample of every tile, the
+    scene-wide decision (:func:`sarship.pipeline.landmask.decide`), the tiles' land fields; with
+    the coastline, its array beside the texture's, which the tiles add to their block."""
+    from sarship.pipeline import landmask
+    from sarship.workers.tasks import run_tile_land_stats
+
+    store = tmp / LAND_STORE
+    H, W = plan.shape
+    cfg = texture_config(plan.params)
+    stride = landmask.sample_stride((H, W))
+    base = {"mode": "texture", "config": dataclasses.asdict(cfg), "stride": stride}
+    stats = execute(run_tile_land_stats, [dataclasses.replace(j, land=base) for j in jobs], "land texture")
+    t, m = landmask.pool_sample_arrays([s["stats"] for s in sorted(stats, key=lambda s: s["index"])], ("t", "m"))
+    decision = landmask.decide(t, cfg)
+    decision["stride"] = stride
+    decision["sea_mean"] = landmask.sea_mean(t, m, decision)
+    create_land_store(store, (H, W), plan.tile, {"source": "+".join(sorted(plan.land.kinds)), **plan.geo})
+    land = {"mode": "texture", "config": dataclasses.asdict(cfg), "decision": decision}
+    halo = cfg.halo if decision["land"] else 0
+    coast_record = None
+    if "coastline" in plan.land.kinds:  # the union: the tiles add their block of the coastline array
+        import zarr
+
+        from sarship.pipeline.scene import _zstd, chunking
+
+        t1 = time.perf_counter()
+        g = zarr.open_group(str(store), mode="r+")
+        carr = g.create_array("coastline", shape=(H, W), dtype="uint8", **chunking(plan.tile), compressors=_zstd(),
+                              dimension_names=("y", "x"), fill_value=0)
+        count = rasterize_coastline(plan.land.source, carr, (H, W), plan.tile, progress)
+        coast_record = coastline_record(plan.land.source, count, time.perf_counter() - t1)
+        land = {**land, "coastline": str(store / "coastline")}
+    jobs = [dataclasses.replace(j, land=land, land_halo=halo, land_path=str(store / "land")) for j in jobs]
+    record = {"source": "texture", **decision, "seconds": round(time.perf_counter() - t0, 4)}
+    if coast_record is not None:
+        record = {**record, "source": "coastline+texture", "texture_land": decision["land"],
+                  "land": bool(decision["land"] or coast_record["land"]), "coastline": coast_record}
+    return jobs, record
+
+
+def _file_land(plan: Plan, jobs: list, tmp: Path, t0: float) -> tuple[list, dict]:
+    """``land_mask=FILE``: the file's mask copied into ``land.zarr`` row band by row band."""
+    land_file = plan.land.source
+    store = tmp / LAND_STORE
+    H, W = plan.shape
+    arr = create_land_store(store, (H, W), plan.tile, {"source": str(Path(land_file.path).resolve()), **plan.geo})
+    rows = max(plan.tile, 1)
+    count = 0
+    for r0 in range(0, H, rows):
+        r1 = min(r0 + rows, H)
+        try:
+            block = np.asarray(land_file.read(r0, r1, 0, W), bool)
+        except InputError as exc:
+            raise InputError(f"parameter 'land_mask': {exc}") from None
+        arr[r0:r1, :] = block.astype(np.uint8)
+        count += int(block.sum())
+    land = {"mode": "file", "store": str(store / "land")}
+    jobs = [dataclasses.replace(j, land=land, land_halo=0, land_path=None) for j in jobs]
+    record = {"source": "file", "path": str(Path(land_file.path).resolve()), "kind": land_file.kind,
+              "format": land_file.format, **land_file.info, "land": count > 0,
+              "seconds": round(time.perf_counter() - t0, 4)}
     return jobs, record
 
 

@@ -131,22 +131,12 @@ def _interp_record(ds, var: str, at_ns: np.datetime64) -> tuple[np.ndarray, floa
 
 
 def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits, swath: str | None) -> SlcSource:
-    """Open sub-swath ``swath`` of the SLC product ``prod`` (measurements ``slc[swath][pol]``)."""
-    import xarray as xr
-    from xarray_sentinel import esa_safe, sentinel1
+    """Open sub-swath ``swath`` of the SLC product ``prod`` (measurements ``slc[swath][pol]``):
+    its annotation, bursts and deramping checked and computed before any pixel is read."""
+    from sarship.pipeline.readers.safe import POL_ORDER, manifest_attrs
 
-    have = sorted(slc)
-    if swath is None:
-        if len(have) > 1:
-            raise InputError(f"'{p}': an IW SLC product with the sub-swaths {', '.join(have)}: choose one with "
-                             f"--swath {'|'.join(have)} (one scene per sub-swath)")
-        swath = have[0]
-    sw = str(swath).strip().upper()
-    if sw not in slc:
-        raise InputError(f"'{p}': --swath {swath}: the product has no such sub-swath (it has {', '.join(have)})")
+    sw = _choose_swath(p, slc, swath)
     meas = slc[sw]
-    from sarship.pipeline.readers.safe import POL_ORDER, check_image_size, check_lut, check_measurement, manifest_attrs
-
     pols = sorted(meas, key=lambda q: POL_ORDER[q])
     root = manifest_attrs(p, prod)
     if str(root.get("mode", "IW")).upper() != "IW":
@@ -160,6 +150,41 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
         anns[pol] = (base, ann)
     pol0 = pols[0]
     ann0 = anns[pol0][1]
+    info, pinfo, timing, dc, fm, orbit = _annotation(p, prod, ann0)
+    b = _bursts(p, prod, sw, ann0, info, timing, meas, pols, limits)
+    limits.check_pixels(p, b["H"], b["width"])
+    ramps = _ramps(p, sw, ann0, info, pinfo, orbit, fm, dc, b)
+    luts, gcps = _calibration_and_gcps(p, prod, sw, pols, anns, b)
+    meta = _slc_meta(prod, sw, pols, info, root, gcps, luts, b)
+    from sarship.pipeline.readers.safe_geometry import sar_geometry  # azimuth-ambiguity geometry, as for GRD
+
+    geom = sar_geometry(prod, sw, pol0)
+    if "shape" in geom:  # the scene's (debursted) rows, not the measurement's stacked lines
+        geom["shape"] = [b["H"], b["width"]]
+    meta["extra_attrs"]["sar_geometry"] = geom
+    return SlcSource(p, prod, pols, meas, meta, (b["H"], b["width"]), b["segs"], b["lpb"], b["valid_samples"], ramps,
+                     luts)
+
+
+def _choose_swath(p: Path, slc: dict[str, dict[str, str]], swath: str | None) -> str:
+    """The sub-swath asked for (``--swath``), or the product's only one; one line otherwise."""
+    have = sorted(slc)
+    if swath is None:
+        if len(have) > 1:
+            raise InputError(f"'{p}': an IW SLC product with the sub-swaths {', '.join(have)}: choose one with "
+                             f"--swath {'|'.join(have)} (one scene per sub-swath)")
+        swath = have[0]
+    sw = str(swath).strip().upper()
+    if sw not in slc:
+        raise InputError(f"'{p}': --swath {swath}: the product has no such sub-swath (it has {', '.join(have)})")
+    return sw
+
+
+def _annotation(p: Path, prod, ann0: str):
+    """The first polarisation's annotation: image, product and swath-timing information, Doppler
+    centroid and azimuth FM-rate estimates, orbit (xarray-sentinel)."""
+    from xarray_sentinel import esa_safe, sentinel1
+
     try:
         def tag(path):
             with prod.open_member(ann0) as f:
@@ -176,6 +201,15 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
         raise
     except Exception as exc:
         raise InputError(f"'{p}': cannot read the annotation {ann0} ({_one_line(exc)})") from None
+    return info, pinfo, timing, dc, fm, orbit
+
+
+def _bursts(p: Path, prod, sw: str, ann0: str, info, timing, meas: dict[str, str], pols: list[str],
+            limits: InputLimits) -> dict[str, Any]:
+    """The image size and every measurement's header checked against the annotation, then the
+    bursts: lines per burst, azimuth times, valid samples and the debursted segments (tops)."""
+    from sarship.pipeline.readers.safe import check_image_size, check_measurement
+
     try:
         lines_in, width = int(info["numberOfLines"]), int(info["numberOfSamples"])
         check_image_size(p, ann0, (lines_in, width))
@@ -200,32 +234,50 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
         raise
     except Exception as exc:
         raise InputError(f"'{p}': the {sw} burst annotation of {ann0} is not usable ({_one_line(exc)})") from None
-    limits.check_pixels(p, H, width)
-    # deramping parameters per burst (tops module docstring)
+    return {"lines_in": lines_in, "width": width, "lpb": lpb, "n": len(bursts), "dt": dt, "epoch": epoch,
+            "btimes": btimes, "valid_samples": valid_samples, "segs": segs, "H": H, "t_first": t_first}
+
+
+def _ramps(p: Path, sw: str, ann0: str, info, pinfo, orbit, fm, dc, b: dict[str, Any]) -> list:
+    """The deramping function of each burst (tops module docstring)."""
+    dt, epoch, btimes, lpb = b["dt"], b["epoch"], b["btimes"], b["lpb"]
     try:
-        tau = float(info["slantRangeTime"]) + np.arange(width) / float(pinfo["rangeSamplingRate"])
+        tau = float(info["slantRangeTime"]) + np.arange(b["width"]) / float(pinfo["rangeSamplingRate"])
         ramps = []
         ot = (orbit["azimuth_time"].values - epoch) / np.timedelta64(1, "ns") * 1e-9
         vel = orbit["velocity"].values  # (3, n)
-        for b in range(len(bursts)):
-            centre = btimes[b] + lpb / 2.0 * dt
+        for k in range(b["n"]):
+            centre = btimes[k] + lpb / 2.0 * dt
             v = np.array([np.interp(centre, ot, vel[i]) for i in range(3)])
             at = epoch + np.timedelta64(int(round(centre * 1e9)), "ns")
             fmc, fmt0 = _interp_record(fm, "azimuth_fm_rate_polynomial", at)
             dcc, dct0 = _interp_record(dc, "data_dc_polynomial", at)
-            fv, _ = valid_samples[b]
+            fv, _ = b["valid_samples"][k]
             first_col = int(np.median(fv[fv >= 0]))
             ramps.append(tops.burst_ramp(tau, float(np.linalg.norm(v)), float(pinfo["radarFrequency"]),
                                          float(pinfo["azimuthSteeringRate"]), fmc, fmt0, dcc, dct0, first_col, lpb, dt))
     except Exception as exc:
         raise InputError(f"'{p}': cannot compute the {sw} deramping function from {ann0} ({_one_line(exc)})") from None
+    return ramps
+
+
+def _calibration_and_gcps(p: Path, prod, sw: str, pols: list[str], anns: dict, b: dict[str, Any]
+                          ) -> tuple[dict[str, tuple], list | None]:
+    """Each polarisation's size checked, its sigmaNought LUT (where the product has one) and the
+    swath's GCPs on the debursted rows."""
+    import xarray as xr
+    from xarray_sentinel import esa_safe
+
+    from sarship.pipeline.readers.safe import check_lut
+
+    lines_in, width = b["lines_in"], b["width"]
     luts: dict[str, tuple] = {}
     gcps = None
     for pol in pols:
         base, ann = anns[pol]
         group = f"{sw}/{pol.upper()}"
         try:
-            if pol != pol0:
+            if pol != pols[0]:
                 with prod.open_member(ann) as f:
                     other = esa_safe.parse_tag(f, "//imageInformation")
                 if (int(other["numberOfLines"]), int(other["numberOfSamples"])) != (lines_in, width):
@@ -236,7 +288,7 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
                 gl, gp = g["line"].values, g["pixel"].values
                 lat, lon, h, inc = (g[v].values for v in ("latitude", "longitude", "height", "incidenceAngle"))
                 # measurement line -> debursted row, by the line's azimuth time
-                rows = [_row_of_line(int(L), btimes, lpb, dt, t_first) for L in gl]
+                rows = [_row_of_line(int(L), b["btimes"], b["lpb"], b["dt"], b["t_first"]) for L in gl]
                 # + 1/2: the centre of the indexed pixel in pixel-is-area coordinates (safe.py)
                 gcps = [{"row": float(rows[i]) + 0.5, "col": float(gp[j]) + 0.5, "x": float(lon[i, j]),
                          "y": float(lat[i, j]),
@@ -251,6 +303,12 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
             raise
         except Exception as exc:
             raise InputError(f"'{p}': cannot read the {group} annotation ({_one_line(exc)})") from None
+    return luts, gcps
+
+
+def _slc_meta(prod, sw: str, pols: list[str], info, root: dict, gcps, luts: dict, b: dict[str, Any]) -> dict[str, Any]:
+    """The source's metadata and the scene attributes it records (docs/interfaces/files.md)."""
+    dt, epoch, t_first, H, lpb = b["dt"], b["epoch"], b["t_first"], b["H"], b["lpb"]
     spacing = [float(info["azimuthPixelSpacing"]), float(info["rangePixelSpacing"])]
     inc = float(info.get("incidenceAngleMidSwath", "nan"))
     if len(luts) == len(pols):
@@ -287,16 +345,8 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
                       "burst (ESA TOPS SLC deramping function)"),
         "bursts": [{"burst": sg.burst, "rows": [sg.row0, sg.row1],
                     "measurement_lines": [sg.burst * lpb + sg.row0 + sg.offset, sg.burst * lpb + sg.row1 + sg.offset],
-                    "azimuth_time": _iso(epoch, t_first + sg.row0 * dt)} for sg in segs],
+                    "azimuth_time": _iso(epoch, t_first + sg.row0 * dt)} for sg in b["segs"]],
         "incidence_angle_mid_swath_deg": inc,
         "ground_range_spacing_m": spacing[1] / float(np.sin(np.radians(inc))) if np.isfinite(inc) and inc > 0 else None,
     }
-    from sarship.pipeline.readers.safe_geometry import sar_geometry  # azimuth-ambiguity geometry, as for GRD
-
-    geom = sar_geometry(prod, sw, pol0)
-    if "shape" in geom:  # the scene's (debursted) rows, not the measurement's stacked lines
-        geom["shape"] = [H, width]
-    meta["extra_attrs"]["sar_geometry"] = geom
-    return SlcSource(p, prod, pols, meas, meta, (H, width), segs, lpb, valid_samples, ramps, luts)
-
-
+    return meta

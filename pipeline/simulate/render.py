@@ -94,16 +94,45 @@ def _ghost_render(cfg: SimConfig, k: int) -> dict[str, np.ndarray]:
 
 
 def _render_block(m: _Model, bi: int, bj: int) -> dict[str, np.ndarray]:
-    """All pixels of block (bi, bj) of the fixed global grid (clipped at the scene edge)."""
+    """All pixels of block (bi, bj) of the fixed global grid (clipped at the scene edge): the
+    clutter (sea, land), the urban points, the ships and what they bring (ghosts, sidelobes),
+    RFI, then the stripe gain."""
     cfg = m.cfg
     H, W = cfg.shape
     r0, c0 = bi * BLOCK, bj * BLOCK
     r1, c1 = min(r0 + BLOCK, H), min(c0 + BLOCK, W)
-    shape = (r1 - r0, c1 - c0)
+    mu, land, mu_land = _power_fields(m, r0, r1, c0, c1)
+    out = _clutter(m, bi, bj, (r1 - r0, c1 - c0), mu, land, mu_land)
+    if land is not None:  # bright urban point scatterers
+        _urban_points(m, bi, bj, land, out)
+    for item, idx, ir0, ir1, ic0, ic1 in m.buckets.get((bi, bj), ()):
+        a0, a1, b0, b1 = max(ir0, r0), min(ir1, r1), max(ic0, c0), min(ic1, c1)
+        if a0 >= a1 or b0 >= b1:
+            continue
+        dst = (slice(a0 - r0, a1 - r0), slice(b0 - c0, b1 - c0))
+        if item == "ship" or item == "ghost":
+            _add_target(m, item, idx, (a0, a1, b0, b1), dst, out)
+        elif item in ("slr", "slc"):
+            _add_sidelobe(m, item, idx, (a0, a1, b0, b1), dst, out)
+        elif item == "rfi":
+            _add_rfi(m, idx, bi, bj, (a0, a1, b0, b1), dst, out)
+    if m.stripes is not None:
+        g = m.stripes[c0:c1][None, :]
+        if cfg.kind == "intensity":
+            out["intensity"] *= g
+        else:
+            sg = np.sqrt(g)
+            for name in out:
+                out[name] *= sg
+    return out
+
+
+def _power_fields(m: _Model, r0: int, r1: int, c0: int, c1: int) -> tuple[Any, Any, Any]:
+    """The block's mean sea power (a field with texture for ``k`` / ``g0``), its land mask and the
+    land's mean power (None, None where the block has no land)."""
+    cfg = m.cfg
     seed = cfg.seed
     cm = np.float32(cfg.clutter_mean)
-
-    # mean sea power field (texture) and land
     mu: Any = cm
     if cfg.clutter in ("k", "g0"):
         t = sea_texture(cfg, _gauss_field(seed, _S_TEXTURE, cfg.texture_corr_px, r0, r1, c0, c1))
@@ -122,8 +151,13 @@ def _render_block(m: _Model, bi: int, bj: int) -> dict[str, np.ndarray]:
                        ).astype(np.float32)
         else:
             land = None
+    return mu, land, mu_land
 
-    rng = _rng(seed, _S_SPECKLE, bi, bj)
+
+def _clutter(m: _Model, bi: int, bj: int, shape: tuple[int, int], mu, land, mu_land) -> dict[str, np.ndarray]:
+    """The block's speckled clutter of the scene's kind (intensity, SLC ``hh``, quad-pol)."""
+    cfg = m.cfg
+    rng = _rng(cfg.seed, _S_SPECKLE, bi, bj)
     out: dict[str, np.ndarray] = {}
     if cfg.kind == "intensity":
         sp = ggd_speckle(rng, cfg, shape) if cfg.clutter == "ggd" else _speckle(rng, m.looks, shape)
@@ -152,104 +186,110 @@ def _render_block(m: _Model, bi: int, bj: int) -> dict[str, np.ndarray]:
             xs = [np.where(land, a, b) for a, b in zip(xl, xs)]
         for name, x in zip(("hh", "hv", "vv"), xs):
             out[name] = np.ascontiguousarray(x, dtype=np.complex64)
-
-    if land is not None:  # bright urban point scatterers
-        ru = _rng(seed, _S_URBAN, bi, bj)
-        n = int(ru.poisson(shape[0] * shape[1] / URBAN_PX_PER_POINT))
-        rr = ru.integers(0, shape[0], n)
-        cc = ru.integers(0, shape[1], n)
-        pw = cfg.clutter_mean * 10.0 ** (ru.uniform(20.0, 35.0, n) / 10.0)
-        ph = ru.uniform(0.0, 2 * math.pi, n)
-        di = ru.random(n) < 0.5
-        psi = ru.uniform(0.0, math.pi, n)
-        keep = land[rr, cc]
-        rr, cc, pw, ph, di, psi = rr[keep], cc[keep], pw[keep], ph[keep], di[keep], psi[keep]
-        if cfg.kind == "intensity":
-            np.add.at(out["intensity"], (rr, cc), pw.astype(np.float32))
-        else:
-            a = np.sqrt(pw) * np.exp(1j * ph)
-            if cfg.kind == "slc":
-                np.add.at(out["hh"], (rr, cc), a.astype(np.complex64))
-            else:
-                vec = np.where(di[:, None], np.stack([np.cos(2 * psi), np.sin(2 * psi),
-                                                      -np.cos(2 * psi)], axis=1),
-                               np.array([[1.0, 0.0, 1.0]])) / math.sqrt(2.0)
-                for k, name in enumerate(("hh", "hv", "vv")):
-                    np.add.at(out[name], (rr, cc), (a * vec[:, k]).astype(np.complex64))
-
-    for item, idx, ir0, ir1, ic0, ic1 in m.buckets.get((bi, bj), ()):
-        a0, a1, b0, b1 = max(ir0, r0), min(ir1, r1), max(ic0, c0), min(ic1, c1)
-        if a0 >= a1 or b0 >= b1:
-            continue
-        dst = (slice(a0 - r0, a1 - r0), slice(b0 - c0, b1 - c0))
-        if item == "ship" or item == "ghost":
-            if item == "ship":
-                s = m.ships[idx]
-                arrs, or0, oc0 = _ship_render(cfg, idx), s.r0, s.c0
-            else:
-                g = m.ghosts[idx]
-                arrs, or0, oc0 = _ghost_render(cfg, idx), g["r0"], g["c0"]
-            src = (slice(a0 - or0, a1 - or0), slice(b0 - oc0, b1 - oc0))
-            for name, a in arrs.items():
-                out[name][dst] += a[src]
-        elif item in ("slr", "slc"):
-            sl = m.sources[idx]
-            if item == "slr":
-                k = np.arange(b0, b1) - sl["col"]
-                ratio = _sidelobe_ratio(k, sl["dc"])
-            else:
-                k = np.arange(a0, a1) - sl["row"]
-                ratio = _sidelobe_ratio(k, sl["dr"])
-            ratio[k == 0] = 0.0
-            if item == "slr":
-                ratio = ratio[None, :]
-            else:
-                ratio = ratio[:, None]
-            if cfg.kind == "intensity":
-                out["intensity"][dst] += (sl["power"] * ratio * ratio).astype(np.float32)
-            else:
-                d = m.ships[sl["ship"]].dom
-                j = sl["j"]
-                amp = math.sqrt(sl["power"]) * np.exp(1j * d["phase"][j])
-                if cfg.kind == "slc":
-                    out["hh"][dst] += (amp * ratio).astype(np.complex64)
-                else:
-                    for k2, name in enumerate(("hh", "hv", "vv")):
-                        out[name][dst] += (amp * d["vec"][j, k2] * ratio).astype(np.complex64)
-        elif item == "rfi":
-            ev = m.rfi[idx]
-            cols = np.arange(b0, b1) + 0.5
-            p = (cfg.clutter_mean * 10.0 ** (ev["level_db"] / 10.0)
-                 * (1.0 + ev["modulation"] * np.sin(2 * math.pi * cols / ev["period_px"]
-                                                     + ev["phase"])))
-            rn = _rng(seed, _S_RFI_NOISE, idx, bi, bj)
-            sh = (a1 - a0, b1 - b0)
-            if cfg.kind == "intensity":
-                out["intensity"][dst] += rn.standard_exponential(sh, dtype=np.float32) * \
-                    p.astype(np.float32)[None, :]
-            else:  # narrow-band interference: 1-2 tones along range, drawn once per event (any tiling)
-                re = _rng(seed, _S_RFI_NOISE, idx, 1 << 20, 0)
-                nt = 1 + int(re.integers(0, 2))
-                freq = re.uniform(0.02, 0.48, nt)                            # cycles per pixel along range
-                psi = re.uniform(0.0, 2 * math.pi, (nt, ev["rows"][1] - ev["rows"][0]))  # per row
-                rows = np.arange(a0, a1) - ev["rows"][0]
-                tone = np.zeros(sh, np.complex128)
-                for k in range(nt):
-                    tone += np.exp(1j * (2 * math.pi * freq[k] * cols[None, :] + psi[k][rows][:, None]))
-                z = (tone * np.sqrt(p / nt)[None, :]).astype(np.complex64)
-                names = ("hh",) if cfg.kind == "slc" else ("hh", "hv", "vv")
-                for name in names:
-                    out[name][dst] += z
-
-    if m.stripes is not None:
-        g = m.stripes[c0:c1][None, :]
-        if cfg.kind == "intensity":
-            out["intensity"] *= g
-        else:
-            sg = np.sqrt(g)
-            for name in out:
-                out[name] *= sg
     return out
+
+
+def _urban_points(m: _Model, bi: int, bj: int, land: np.ndarray, out: dict[str, np.ndarray]) -> None:
+    """Bright point scatterers on the block's land (20-35 dB over the clutter; single or double
+    bounce in quad-pol), added in place."""
+    cfg = m.cfg
+    shape = land.shape
+    ru = _rng(cfg.seed, _S_URBAN, bi, bj)
+    n = int(ru.poisson(shape[0] * shape[1] / URBAN_PX_PER_POINT))
+    rr = ru.integers(0, shape[0], n)
+    cc = ru.integers(0, shape[1], n)
+    pw = cfg.clutter_mean * 10.0 ** (ru.uniform(20.0, 35.0, n) / 10.0)
+    ph = ru.uniform(0.0, 2 * math.pi, n)
+    di = ru.random(n) < 0.5
+    psi = ru.uniform(0.0, math.pi, n)
+    keep = land[rr, cc]
+    rr, cc, pw, ph, di, psi = rr[keep], cc[keep], pw[keep], ph[keep], di[keep], psi[keep]
+    if cfg.kind == "intensity":
+        np.add.at(out["intensity"], (rr, cc), pw.astype(np.float32))
+        return
+    a = np.sqrt(pw) * np.exp(1j * ph)
+    if cfg.kind == "slc":
+        np.add.at(out["hh"], (rr, cc), a.astype(np.complex64))
+        return
+    vec = np.where(di[:, None], np.stack([np.cos(2 * psi), np.sin(2 * psi),
+                                          -np.cos(2 * psi)], axis=1),
+                   np.array([[1.0, 0.0, 1.0]])) / math.sqrt(2.0)
+    for k, name in enumerate(("hh", "hv", "vv")):
+        np.add.at(out[name], (rr, cc), (a * vec[:, k]).astype(np.complex64))
+
+
+def _add_target(m: _Model, item: str, idx: int, win: tuple[int, int, int, int], dst, out: dict) -> None:
+    """A ship's (or its azimuth ghost's) rendered pixels in the window ``win`` = (a0, a1, b0, b1)."""
+    a0, a1, b0, b1 = win
+    if item == "ship":
+        s = m.ships[idx]
+        arrs, or0, oc0 = _ship_render(m.cfg, idx), s.r0, s.c0
+    else:
+        g = m.ghosts[idx]
+        arrs, or0, oc0 = _ghost_render(m.cfg, idx), g["r0"], g["c0"]
+    src = (slice(a0 - or0, a1 - or0), slice(b0 - oc0, b1 - oc0))
+    for name, a in arrs.items():
+        out[name][dst] += a[src]
+
+
+def _add_sidelobe(m: _Model, item: str, idx: int, win: tuple[int, int, int, int], dst, out: dict) -> None:
+    """A dominant scatterer's range (``slr``) or azimuth (``slc``) sidelobe line in the window."""
+    cfg = m.cfg
+    a0, a1, b0, b1 = win
+    sl = m.sources[idx]
+    if item == "slr":
+        k = np.arange(b0, b1) - sl["col"]
+        ratio = _sidelobe_ratio(k, sl["dc"])
+    else:
+        k = np.arange(a0, a1) - sl["row"]
+        ratio = _sidelobe_ratio(k, sl["dr"])
+    ratio[k == 0] = 0.0
+    if item == "slr":
+        ratio = ratio[None, :]
+    else:
+        ratio = ratio[:, None]
+    if cfg.kind == "intensity":
+        out["intensity"][dst] += (sl["power"] * ratio * ratio).astype(np.float32)
+        return
+    d = m.ships[sl["ship"]].dom
+    j = sl["j"]
+    amp = math.sqrt(sl["power"]) * np.exp(1j * d["phase"][j])
+    if cfg.kind == "slc":
+        out["hh"][dst] += (amp * ratio).astype(np.complex64)
+    else:
+        for k2, name in enumerate(("hh", "hv", "vv")):
+            out[name][dst] += (amp * d["vec"][j, k2] * ratio).astype(np.complex64)
+
+
+def _add_rfi(m: _Model, idx: int, bi: int, bj: int, win: tuple[int, int, int, int], dst, out: dict) -> None:
+    """An RFI event's power in the window: noise-like on intensity, narrow-band tones on complex data."""
+    cfg = m.cfg
+    seed = cfg.seed
+    a0, a1, b0, b1 = win
+    ev = m.rfi[idx]
+    cols = np.arange(b0, b1) + 0.5
+    p = (cfg.clutter_mean * 10.0 ** (ev["level_db"] / 10.0)
+         * (1.0 + ev["modulation"] * np.sin(2 * math.pi * cols / ev["period_px"]
+                                             + ev["phase"])))
+    rn = _rng(seed, _S_RFI_NOISE, idx, bi, bj)
+    sh = (a1 - a0, b1 - b0)
+    if cfg.kind == "intensity":
+        out["intensity"][dst] += rn.standard_exponential(sh, dtype=np.float32) * \
+            p.astype(np.float32)[None, :]
+        return
+    # narrow-band interference: 1-2 tones along range, drawn once per event (any tiling)
+    re = _rng(seed, _S_RFI_NOISE, idx, 1 << 20, 0)
+    nt = 1 + int(re.integers(0, 2))
+    freq = re.uniform(0.02, 0.48, nt)                            # cycles per pixel along range
+    psi = re.uniform(0.0, 2 * math.pi, (nt, ev["rows"][1] - ev["rows"][0]))  # per row
+    rows = np.arange(a0, a1) - ev["rows"][0]
+    tone = np.zeros(sh, np.complex128)
+    for k in range(nt):
+        tone += np.exp(1j * (2 * math.pi * freq[k] * cols[None, :] + psi[k][rows][:, None]))
+    z = (tone * np.sqrt(p / nt)[None, :]).astype(np.complex64)
+    names = ("hh",) if cfg.kind == "slc" else ("hh", "hv", "vv")
+    for name in names:
+        out[name][dst] += z
 
 
 def _check_window(cfg: SimConfig, r0: int, r1: int, c0: int, c1: int) -> tuple[int, int, int, int]:
