@@ -216,20 +216,6 @@ def centre_hit(ships, shape, radius: float = CENTRE_RADIUS_PX) -> bool:
 # ----------------------------------------------------------------------------- scenes
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _versions_read_once():
-    """run.json's package versions (workers.jobs._versions: importlib.metadata, 0.1-0.25 s of this
-    process per run, 200+ runs here) read once for the module: they cannot change within a process,
-    and run.json gets the same content."""
-    from sarship.workers import jobs
-
-    real = jobs._versions
-    once = real()
-    jobs._versions = lambda: dict(once)
-    yield
-    jobs._versions = real
-
-
 @pytest.fixture(scope="module")
 def ssdd_scenes(tmp_path_factory):
     from sarship.pipeline.readers import ingest

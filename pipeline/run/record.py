@@ -9,6 +9,7 @@ outputs, the placement, the timings); :func:`run_record` lays them out as ``run.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import platform
 from dataclasses import dataclass, field
@@ -82,14 +83,20 @@ class Outcome:
 
 def versions() -> dict[str, str]:
     """The versions of sarship, Python and the packages that decide a run's numbers (read from
-    the installed metadata: nothing is imported)."""
+    the installed metadata once per process: the code a process runs does not change with a
+    later install, and the read costs 0.1-0.25 s; nothing is imported)."""
+    return dict(_versions())
+
+
+@functools.lru_cache(maxsize=1)
+def _versions() -> tuple[tuple[str, str], ...]:
     import importlib.metadata as md
 
     out = {"sarship": __version__, "python": platform.python_version()}
     for pkg in ("numpy", "scipy", "numba", "dask", "distributed", "zarr", "xarray", "pydantic"):
         with contextlib.suppress(Exception):
             out[pkg] = md.version(pkg)
-    return out
+    return tuple(out.items())
 
 
 def _scene(plan: Plan) -> dict:
