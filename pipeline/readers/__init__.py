@@ -2,9 +2,14 @@
 
 Modules:
 
-- :mod:`~sarship.pipeline.readers.entry`: :func:`ingest` (argument checks, format sniffing,
-  the tile loop of file inputs, atomic write); its docstring gives the contract and the
-  attributes written.
+- :mod:`~sarship.pipeline.readers.entry`: :func:`ingest` (argument checks, the tile loop of
+  file inputs, atomic write); its docstring gives the contract and the attributes written.
+- :mod:`~sarship.pipeline.readers.protocol`: what a reader is (:class:`Reader`, the
+  :class:`Probe` its ``detect`` sees, the :data:`Source` its ``open`` returns).
+- :mod:`~sarship.pipeline.readers.registry`: :data:`READERS`, the one registry, in the order
+  of dispatch; :func:`choose`, :func:`register` / :func:`unregister` / :func:`registered`.
+- :mod:`~sarship.pipeline.readers.formats`: one reader per format below, wrapping its module.
+  Adding one: ``docs/adding-a-reader.md``.
 - :mod:`~sarship.pipeline.readers.tiff`: TIFF / GeoTIFF / BigTIFF, GeoTIFF georeference,
   SNAP sidecar.
 - :mod:`~sarship.pipeline.readers.image`: PNG / JPEG amplitude.
@@ -25,9 +30,12 @@ from sarship.pipeline.readers.entry import INGEST_KINDS, ROW_BAND_BYTES, ingest
 from sarship.pipeline.readers.image import GREY_TOLERANCE_DN
 from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.readers.polsarpro import C3_BASIS, PAULI_U, t3_to_c3
+from sarship.pipeline.readers.protocol import BaseReader, Probe, Reader, SceneReader, Source
+from sarship.pipeline.readers.registry import READERS, choose, register, registered, unregister
 from sarship.pipeline.readers.writing import LOOKS_SAMPLE_SIDE, LOOKS_SAMPLE_TILES, RANK_ONE_TOL
 
 __all__ = [
+    "BaseReader",
     "C3_BASIS",
     "GREY_TOLERANCE_DN",
     "INGEST_KINDS",
@@ -36,8 +44,17 @@ __all__ = [
     "LOOKS_SAMPLE_TILES",
     "PAULI_U",
     "PROBE_SIDE",
+    "Probe",
+    "READERS",
     "RANK_ONE_TOL",
     "ROW_BAND_BYTES",
+    "Reader",
+    "SceneReader",
+    "Source",
+    "choose",
     "ingest",
+    "register",
+    "registered",
     "t3_to_c3",
+    "unregister",
 ]

@@ -5,8 +5,11 @@ zstd chunks, **tile by tile**, into a temporary sibling that is renamed into pla
 complete (:func:`sarship.pipeline.scene.atomic_store`): a failure leaves nothing behind and an
 existing scene at ``out`` untouched.
 
-Inputs are files recognised by their first bytes, or PolSARpro folders by their file
-names; what each format accepts is in the docstring of its module:
+Inputs are files recognised by their first bytes, or folders (PolSARpro, SAFE, Zarr) by their
+file names: each input is opened by the first reader of the registry
+(:data:`sarship.pipeline.readers.registry.READERS`, :mod:`.formats`; adding one:
+``docs/adding-a-reader.md``) whose ``detect`` takes it. What each format accepts is in the
+docstring of its module:
 :mod:`sarship.pipeline.readers.tiff` (TIFF / GeoTIFF / BigTIFF, GeoTIFF georeference, SNAP
 sidecar), :mod:`sarship.pipeline.readers.image` (PNG / JPEG), :mod:`sarship.pipeline.readers.npy`,
 :mod:`sarship.pipeline.readers.polsarpro` (C3 / T3 / C2 folders; the covariance convention)
@@ -43,17 +46,13 @@ import numpy as np
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.common import _Source, _one_line
-from sarship.pipeline.readers.image import _open_image
+from sarship.pipeline.readers.formats import _open_safe  # noqa: F401 - where tests and tools find it
 from sarship.pipeline.readers.limits import InputLimits
-from sarship.pipeline.readers.npy import _open_npy
 from sarship.pipeline.readers.plan import _plan
-from sarship.pipeline.readers.polsarpro import _open_polsarpro, _polsarpro_folder
-from sarship.pipeline.readers.safe import check_safe_kind, open_grd, product_measurements, safe_layout
-from sarship.pipeline.readers.safe_slc import open_slc
-from sarship.pipeline.readers.tiff import _open_tiff
+from sarship.pipeline.readers.protocol import Reader, SceneReader
+from sarship.pipeline.readers.registry import READERS, choose
 from sarship.pipeline.readers.writing import (_estimate_scene_looks, _rank_one_looks, _write_tiles, choose_codec,
                                               ingest_writers)
-from sarship.pipeline.readers.zarr_input import _ingest_zarr
 from sarship.pipeline.scene import (
     DEFAULT_INGEST_CODEC,
     DEFAULT_TILE,
@@ -78,80 +77,43 @@ INGEST_KINDS = ("auto", "amplitude", "intensity", "slc", "quadpol", "covariance"
 ROW_BAND_BYTES = 256 * 2**20
 
 
-def _open_safe(p: Path, limits: InputLimits, swath: str | None = None) -> _Source:
-    """A Sentinel-1 SAFE product (directory or zip): an SLC's sub-swath or a GRD."""
-    prod, meas, swaths, slc = product_measurements(p, limits, safe_layout(p))
-    if slc:
-        return open_slc(p, prod, slc, limits, swath)
-    return open_grd(p, prod, meas, swaths, limits, swath)
-
-
-def _sniff(p: Path) -> str:
-    if safe_layout(p) is not None:
-        return "safe"
-    if p.is_dir():
-        if (p / "zarr.json").exists() or (p / ".zgroup").exists():
-            return "zarr"
-        if _polsarpro_folder(p) is not None:
-            return "polsarpro"
-        raise InputError(f"'{p}' is a folder but not a Zarr scene (no zarr.json), a PolSARpro "
-                         "C3/T3/C2 folder (no C11.bin or T11.bin) nor a Sentinel-1 SAFE product (no manifest.safe)")
-    if _polsarpro_folder(p) is not None:
-        return "polsarpro"
-    if p.name.lower() == "config.txt":
-        raise InputError(f"'{p}': a config.txt, but its folder holds no PolSARpro C11.bin or T11.bin")
-    if re.fullmatch(r"[ct]\d\d(_real|_imag)?\.bin", p.name.lower()) and _polsarpro_folder(p.parent):
-        raise InputError(f"'{p}' is one element of a PolSARpro folder: pass the folder '{p.parent}' "
-                         "(or its config.txt)")
-    try:
-        with open(p, "rb") as f:
-            head = f.read(16)
-    except OSError as exc:
-        raise InputError(f"'{p}': cannot open ({_one_line(exc)})") from None
-    if not head:
-        raise InputError(f"'{p}' is empty")
-    if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
-        return "tiff"
-    if head[:8] == b"\x89PNG\r\n\x1a\n":
-        return "image"
-    if head[:3] == b"\xff\xd8\xff":
-        return "image"
-    if head[:6] == b"\x93NUMPY":
-        return "npy"
-    if head[:4] == b"PK\x03\x04" and p.suffix.lower() == ".npz":
-        raise InputError(f"'{p}': .npz archives are not supported; save one array with np.save")
-    raise InputError(
-        f"'{p}': unrecognised format (expected TIFF/GeoTIFF, PNG, JPEG, .npy, a Sentinel-1 SAFE folder/zip "
-        "or a Zarr scene)"
-    )
-
-
 def _open_source(p: Path, sidecar_root: Path | bool | None = None, limits: InputLimits | None = None,
                  swath: str | None = None) -> _Source:
-    fmt = _sniff(p)
-    if swath is not None and fmt != "safe":
+    """The input ``p`` opened by the reader :func:`~.registry.choose` picks for it (:func:`_open_with`)."""
+    return _open_with(choose(p), p, sidecar_root, limits, swath)
+
+
+def _open_with(reader: Reader, p: Path, sidecar_root: Path | bool | None = None, limits: InputLimits | None = None,
+               swath: str | None = None) -> _Source:
+    """``p`` opened by ``reader``.
+
+    Raises :class:`InputError` (one line) when ``swath`` is given to a reader without
+    sub-swaths, or the reader fails (a failure other than an InputError named ``cannot read as
+    NAME``).
+    """
+    if swath is not None and not reader.takes_swath:
         raise InputError(f"'{p}': --swath applies to Sentinel-1 SLC products only")
-    limits = limits or InputLimits()
     try:
-        if fmt == "tiff":
-            return _open_tiff(p, sidecar_root, limits)
-        if fmt == "image":
-            return _open_image(p, limits)
-        if fmt == "safe":
-            return _open_safe(p, limits, swath)
-        if fmt in ("npy", "polsarpro"):  # headers only: the pixels are memory-mapped
-            src = _open_npy(p) if fmt == "npy" else _open_polsarpro(_polsarpro_folder(p))
-            try:
-                limits.check_pixels(p, *src.shape)
-            except InputError:
-                src.close()
-                raise
-            return src
+        return reader.open(p, limits or InputLimits(), sidecar_root=sidecar_root, swath=swath)
     except InputError:
         raise
     except Exception as exc:
-        raise InputError(f"'{p}': cannot read as {fmt.upper()} ({_one_line(exc)})") from None
-    raise InputError(f"'{p}': a Zarr scene cannot be combined with other inputs")
+        raise InputError(f"'{p}': cannot read as {reader.name.upper()} ({_one_line(exc)})") from None
+
+
+def _check_readers(paths: list[Path], readers: list[Reader], kind: str, swath: str | None) -> None:
+    """What the chosen readers refuse before anything is opened, in the registry's order: a
+    ``kind`` that does not fit, ``--swath`` where no reader takes it, and an input that must
+    stand alone combined with others."""
+    chosen = [r for r in READERS if r in readers]
+    for r in chosen:
+        r.check(paths[readers.index(r)], kind)
+    if swath is not None and not any(r.takes_swath for r in readers):
+        raise InputError(f"'{paths[0]}': --swath applies to Sentinel-1 SLC products only")
+    if len(paths) > 1:
+        for r in chosen:
+            if r.alone is not None:
+                raise InputError(f"'{paths[readers.index(r)]}': {r.alone}")
 
 
 # --------------------------------------------------------------------------------------
@@ -294,33 +256,17 @@ def _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, s
                 raise _CallbackError(exc) from exc
 
     try:
-        fmts = [_sniff(p) for p in paths]
-        if "safe" in fmts:
-            check_safe_kind(paths[fmts.index("safe")], kind)
-        elif swath is not None:
-            raise InputError(f"'{paths[0]}': --swath applies to Sentinel-1 SLC products only")
-        if "safe" in fmts and len(paths) > 1:
-            raise InputError(f"'{paths[fmts.index('safe')]}': a Sentinel-1 SAFE product cannot be combined "
-                             "with other inputs (its polarisations are its channels)")
-        if "polsarpro" in fmts and len(paths) > 1:
-            raise InputError(f"'{paths[fmts.index('polsarpro')]}': a PolSARpro folder cannot be combined "
-                             "with other inputs")
-        if "zarr" in fmts:
-            if len(paths) > 1:
-                raise InputError(f"'{paths[fmts.index('zarr')]}': a Zarr scene cannot be combined with other inputs")
-            (limits or InputLimits()).check_pixels(paths[0], *open_scene(paths[0]).shape)
-            if spacing is None:
-                _ingest_zarr(paths[0], outp, tile, progress, looks, codec)
-            else:  # written to a temporary sibling, given the spacing, then renamed
-                with atomic_store(outp) as tmp:
-                    _ingest_zarr(paths[0], tmp, tile, progress, looks, codec)
-                    finalize_scene(tmp, {"pixel_spacing_m": spacing, "pixel_spacing_source": "argument"})
+        readers = [choose(p) for p in paths]
+        _check_readers(paths, readers, kind, swath)
+        if isinstance(readers[0], SceneReader):  # alone: the only input
+            readers[0].ingest(paths[0], outp, tile=tile, progress=progress, looks=looks, codec=codec,
+                              spacing=spacing, limits=limits or InputLimits())
             return open_scene(outp)
         srcs: list[_Source] = []
         try:
-            for p in paths:
-                srcs.append(_open_source(p, sidecar_root if isinstance(sidecar_root, bool) or sidecar_root is None
-                                         else Path(sidecar_root), limits, swath))
+            root = sidecar_root if isinstance(sidecar_root, bool) or sidecar_root is None else Path(sidecar_root)
+            for reader, p in zip(readers, paths):
+                srcs.append(_open_with(reader, p, root, limits, swath))
             _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing, codec)
         finally:
             for s in srcs:
