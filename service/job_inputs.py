@@ -1,6 +1,8 @@
 """What a job names, checked before it runs: its request, scene store, land-mask file, the coastline's needs.
 
-:func:`validate_inputs` validates a posted job (``service/processes.py``). The path checks raise
+:func:`validate_inputs` is the one validation of a posted job (``service/processes.py``): it
+returns the normalized request the job store keeps and the runner runs
+(:meth:`~sarship.workers.request.JobRequest.from_stored`), parsed once. The path checks raise
 :class:`~sarship.pipeline.errors.InputError` (a 4xx for the API); they run when a job is posted
 and again when the runner starts it (``service/runner.py``: a file may have gone meanwhile), and
 the scene routes (``service/scenes.py``) use them to find the jobs that name a scene.
@@ -84,9 +86,10 @@ def check_coastline(request, path: Optional[Path]) -> None:
 
 
 def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[JobStore] = None) -> dict:
-    """The job's inputs, validated now (so that bad input is a 400, not a failed job): the
-    execution body's envelope here, the inputs by :class:`~sarship.workers.request.JobRequest`
-    (the same model the command line and the runner use), the scene against the
+    """The job's normalized inputs (:meth:`JobRequest.inputs`: what the job store keeps),
+    validated now, once (so that bad input is a 400, not a failed job): the execution body's
+    envelope here, the inputs by :class:`~sarship.workers.request.JobRequest` (the same model
+    the command line and the runner use; its parameters parsed once), the scene against the
     allowed folders. With ``store``, a scene id that is not in the scene store yet but whose
     ingest job is accepted or running (an upload still being ingested) is valid too: see
     :func:`pending_ingest`. A 400 :class:`~sarship.service.common.Problem` otherwise."""
@@ -119,7 +122,7 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
             if last is not None and last["status"] in ("failed", "dismissed"):
                 detail += f" (its ingest job {last['id']} {last['status']}: {last['message']})"
         raise Problem(400, title, detail) from None
-    return dict(body["inputs"])
+    return request.inputs()
 
 
 def check_scene_input(path: Path, request: JobRequest) -> None:

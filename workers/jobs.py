@@ -118,23 +118,30 @@ def run_request(
     overwrite: bool = False,
     cluster_note: str | None = None,
     claim: bool = False,
+    publish_with: Callable[[Path, Path], None] = publish,
+    land_source: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Run a validated :class:`~sarship.workers.request.JobRequest`; its ``scene`` is the
     path of a scene store. Returns the ``run.json`` content (see :func:`run_detection`).
     ``claim``: hold ``out_dir`` for the run (:func:`sarship.pipeline.scene.claim_output`; the
     output checks run under the claim). The service's runner does not: each attempt writes its
-    own folder and the job store fences publication."""
+    own temporary folder and the job store fences publication: its ``publish_with`` is called
+    with (temporary folder, ``out_dir``) instead of
+    :func:`sarship.pipeline.run.outputs.publish` and keeps the folder for the store's
+    transaction. ``land_source``: entries added to ``run.json``'s ``land`` record (the
+    service's land-mask FILE that the run's raster was made from)."""
     args = (request, out_dir, tile, client, scheduler, progress, on_tile, overwrite, cluster_note)
     run = _run_auto if request.detector == AUTO else _run_request
+    kw = {"publish_with": publish_with, "land_source": land_source}
     if not claim:
-        return run(*args)
+        return run(*args, **kw)
     check_out_path(Path(out_dir), Path(request.scene))  # first: never a claim inside the scene
     with claim_output(out_dir, "--out", create_parents=True):
-        return run(*args)
+        return run(*args, **kw)
 
 
 def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
-              cluster_note) -> dict[str, Any]:
+              cluster_note, **publication) -> dict[str, Any]:
     """``--detector auto``: the clutter-model fit of each candidate (pipeline/model_fit.py,
     ``AUTO_CANDIDATES``) measured on the scene's sample (the candidate run with the request's
     parameters, its own PFA and the probe PFA, its kept detections excluded, no output
@@ -171,7 +178,7 @@ def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, o
             print(f"detector auto: {chosen} ({why})", file=sys.stderr)
         final = request.model_copy(update={"detector": chosen})
         return _run_request(final, out_dir, tile, client, None, progress, on_tile, overwrite, None,
-                            extra_run={"detector_auto": record})
+                            extra_run={"detector_auto": record}, **publication)
 
 
 def _fit_config(detector: str, spec, params, shape: tuple[int, int]) -> dict | None:
@@ -210,10 +217,13 @@ def _fit_record(detector: str, params, fit: dict, results: list[dict], records, 
 
 
 def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
-                 cluster_note, fit_only: bool = False, extra_run: dict | None = None) -> dict[str, Any]:
+                 cluster_note, fit_only: bool = False, extra_run: dict | None = None,
+                 publish_with: Callable[[Path, Path], None] = publish,
+                 land_source: dict | None = None) -> dict[str, Any]:
     """One detection run (:func:`run_request`). ``fit_only``: only the clutter-model fit
     (``--detector auto``'s candidates): no output is written, the ``model_fit`` record is
-    returned. ``extra_run``: entries added to ``run.json``."""
+    returned. ``extra_run``: entries added to ``run.json``; ``publish_with``, ``land_source``:
+    see :func:`run_request`."""
     t_start = time.perf_counter()
     spec, detector, device, channel = request.spec, request.detector, request.device, request.channel
     params = request.detector_params()
@@ -404,7 +414,7 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
             "size_rule": size_rule,
             "prepared": prep,
             "scene_pass": scene_pass,
-            "land": land_record,
+            "land": {**land_record, **land_source} if land_source and land_record is not None else land_record,
             "contrast": contrast_record,
             "ambiguities": ambiguity_record,
             "model_fit": fit_record,
@@ -469,7 +479,7 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
         run["timings"]["geojson_s"] = round(t_end - t_cons, 4)
         run["timings"]["total_s"] = round(t_end - t_start, 4)
         write_json(tmp / "run.json", run)
-        publish(tmp, out_dir)
+        publish_with(tmp, out_dir)
         return run
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
