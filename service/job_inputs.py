@@ -1,17 +1,23 @@
-"""What a job names, checked before it runs: its scene store, its land-mask file, the coastline's needs.
+"""What a job names, checked before it runs: its request, scene store, land-mask file, the coastline's needs.
 
-Each raises :class:`~sarship.pipeline.errors.InputError` (a 4xx for the API). Used when a job is
-posted (``service/app.py``) and again when the runner starts it (``service/runner.py``), and by the
-scene routes (``service/scenes.py``) to find the jobs that name a scene.
+:func:`validate_inputs` is the one validation of a posted job (``service/processes.py``): it
+returns the normalized request the job store keeps and the runner runs
+(:meth:`~sarship.workers.request.JobRequest.from_stored`), parsed once. The path checks raise
+:class:`~sarship.pipeline.errors.InputError` (a 4xx for the API); they run when a job is posted
+and again when the runner starts it (``service/runner.py``: a file may have gone meanwhile), and
+the scene routes (``service/scenes.py``) use them to find the jobs that name a scene.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 from sarship.pipeline.errors import InputError
+from sarship.service.common import Problem, check_text
 from sarship.service.settings import Settings
+from sarship.service.store import JobStore
+from sarship.workers.request import JobRequest
 
 
 def scene_path(settings: Settings, scene: str) -> Path:
@@ -77,3 +83,81 @@ def check_coastline(request, path: Optional[Path]) -> None:
     from sarship.pipeline.scene import open_scene
 
     check_scene(open_scene(path).attrs if path is not None else None)
+
+
+def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[JobStore] = None) -> dict:
+    """The job's normalized inputs (:meth:`JobRequest.inputs`: what the job store keeps),
+    validated now, once (so that bad input is a 400, not a failed job): the execution body's
+    envelope here, the inputs by :class:`~sarship.workers.request.JobRequest` (the same model
+    the command line and the runner use; its parameters parsed once), the scene against the
+    allowed folders. With ``store``, a scene id that is not in the scene store yet but whose
+    ingest job is accepted or running (an upload still being ingested) is valid too: see
+    :func:`pending_ingest`. A 400 :class:`~sarship.service.common.Problem` otherwise."""
+    if not isinstance(body, dict) or not isinstance(body.get("inputs"), dict):
+        raise Problem(400, "bad request", "the body must be a JSON object {\"inputs\": {\"scene\": ..., ...}}")
+    if body.get("response", "document") not in ("document", "raw"):
+        raise Problem(400, "bad request", f"'response' must be 'document' or 'raw', got {body['response']!r}")
+    if not isinstance(body.get("outputs", {}), dict):
+        raise Problem(400, "bad request", "'outputs' must be an object (output name -> options)")
+    scene = body["inputs"].get("scene")
+    if isinstance(scene, str):  # a NUL or a lone surrogate: no file, no store key can have it
+        check_text(scene, "input 'scene'")
+    try:
+        request = JobRequest.from_inputs(name, body["inputs"])
+        land_file_path(settings, request)
+        try:
+            path: Optional[Path] = scene_path(settings, request.scene)
+        except InputError:
+            path = None
+            if store is None or pending_ingest(settings, store, request.scene) is None:
+                scene_path(settings, request.scene)  # raises again, unless an ingest finished meanwhile
+        if path is not None:  # the detector against the scene (csk on amplitude, vb_polsar on a covariance
+            check_scene_input(path, request)  # scene, a channel the scene lacks): a 400, not a failed job
+        check_coastline(request, path)  # land_mask=coastline: its package, a georeferenced scene
+    except InputError as exc:
+        title = "missing input" if "is required" in str(exc) else "invalid input"
+        detail = str(exc)
+        if store is not None and "no scene" in detail and scene_id_like(request_scene(body)):
+            last = store.ingest_job_for_scene(request_scene(body).strip())
+            if last is not None and last["status"] in ("failed", "dismissed"):
+                detail += f" (its ingest job {last['id']} {last['status']}: {last['message']})"
+        raise Problem(400, title, detail) from None
+    return request.inputs()
+
+
+def check_scene_input(path: Path, request: JobRequest) -> None:
+    """:class:`InputError` when the request's detector cannot read the scene at ``path`` (its
+    ``channel`` a variable the scene lacks or of the wrong kind, a complex-SLC detector on
+    amplitude data, a complex-channel detector on a covariance scene): the check the job
+    itself makes (:func:`sarship.pipeline.inputs.detector_source`). A store that cannot be
+    opened is left to the job, as for every detector."""
+    from sarship.pipeline.inputs import detector_source
+    from sarship.pipeline.scene import open_scene
+
+    try:
+        scene = open_scene(path)
+    except Exception:
+        return
+    detector_source(request.spec, scene, request.channel)
+    if request.spec.for_scene is not None:  # a scene too small for the method (gamma_mrf): a 400
+        request.spec.for_scene(request.detector_params(), scene.shape, scene.ground_spacing_m)
+
+
+def request_scene(body: dict) -> str:
+    """The execution body's ``scene`` input when it is a string, else ``""``."""
+    s = body["inputs"].get("scene")
+    return s if isinstance(s, str) else ""
+
+
+def scene_id_like(s: str) -> bool:
+    """A scene id (``DATA/scenes/ID.zarr``) rather than a path."""
+    s = s.strip()
+    return bool(s) and s.replace("_", "").replace("-", "").isalnum()
+
+
+def pending_ingest(settings: Settings, store: JobStore, scene: str) -> Optional[dict]:
+    """The accepted or running ingest job of scene id ``scene`` (an upload being ingested,
+    ``POST /scenes``, or an inbox pass), if the scene is not in the scene store yet."""
+    if not scene_id_like(scene):
+        return None
+    return store.active_ingest(scene.strip())

@@ -9,10 +9,12 @@ lease lapsed and another runner took it, the next tile callback raises :class:`D
 Publication is fenced. A runner stopped longer than its lease (``SIGSTOP``, a VM paused:
 every thread of the process stops, the heartbeat too) loses the job to another runner, which
 runs it again (``attempts`` 2): a job runs *at least* once. Its results are published once:
-an attempt writes its outputs aside (``DATA/jobs/ID/.attempt-N-*``; an ingest
-``DATA/scenes/.ID.zarr.attempt-N-*``) and moves them into place inside the store transaction
+an attempt writes its outputs aside, once (``DATA/jobs/ID/.sarship-partial-*``, handed back by
+``run_request``'s ``publish_with``; an ingest ``DATA/scenes/.ID.zarr.attempt-N-*``), and
+:func:`sarship.pipeline.run.outputs.publish` moves them into place inside the store transaction
 that finishes the job, which checks that the job is still running under this owner *and this
-attempt*; a stale attempt's outputs are discarded.
+attempt*; a stale attempt's outputs are discarded. A job's request is the normalized one the API
+validated and stored (:meth:`~sarship.workers.request.JobRequest.from_stored`): not validated again.
 
 A failure that is a fault of the service, not of the job's input (:func:`transient_reason`:
 the data folder full, the job store busy, the Dask scheduler unreachable), puts the job back
@@ -216,7 +218,7 @@ class Runner:
             log.exception("job %s: could not record the retry", job["id"])
 
     def _run(self, job: dict) -> None:
-        from sarship.pipeline.run.outputs import OUTPUTS, publish as publish_outputs
+        from sarship.pipeline.run.outputs import publish
         from sarship.workers.jobs import run_request
         from sarship.workers.request import JobRequest
 
@@ -253,33 +255,31 @@ class Runner:
         # elsewhere: they cannot publish) goes; this attempt writes aside and publishes when it finishes
         for stale in [*out_dir.glob(".sarship-partial-*"), *out_dir.glob(".attempt-*")] if out_dir.is_dir() else ():
             _remove(stale)
-        stage = out_dir / f".attempt-{attempt}-{uuid.uuid4().hex[:6]}"
+        land_raster = out_dir / f".attempt-{attempt}-{uuid.uuid4().hex[:6]}-land.zarr"
+        staged: list[Path] = []  # the run's temporary folder, published in the store's transaction
         try:
-            request = JobRequest.from_inputs(job["process"], inputs)
+            # the request validated when the job was posted, as stored: not validated again (its
+            # parameters are parsed once, here, and the run reads those)
+            request = JobRequest.from_stored(job["process"], inputs)
             scene = scene_path(self.settings, request.scene)
             land = land_file_path(self.settings, request)
-            land_src = None
+            land_source = None
             if land is not None:  # parsed and rasterised in a memory-capped child: the job reads that raster
-                land_src = self._land_file(land, scene, Path(f"{stage}-land.zarr"), still_ours)
-                request = request.model_copy(update={"params": {**request.params,
-                                                                "land_mask": str(land_src["raster"])}})
-            run = run_request(request.model_copy(update={"scene": str(scene)}), out_dir=stage,
-                              client=self.client, progress=False, on_tile=on_tile, overwrite=True)
-            final = {name: str((out_dir / name).resolve()) for name in OUTPUTS if name in run.get("outputs", {})}
-            if land_src is not None and isinstance(run.get("land"), dict):  # the file the job named, not the raster
-                info = land_src["answer"]
-                run["land"].update({"path": str(land), "kind": info["kind"], "format": info["format"],
-                                    **info["info"]})
-            if land_src is not None or run.get("outputs") != final:  # run.json names where the outputs will be
-                from sarship.pipeline.ship_features import write_json
-
-                run["outputs"] = final
-                write_json(stage / "run.json", run)
+                land_src = self._land_file(land, scene, land_raster, still_ours)
+                request = request.with_param("land_mask", str(land_src["raster"]))
+                info = land_src["answer"]  # run.json names the file the job named, not the raster
+                land_source = {"path": str(land), "kind": info["kind"], "format": info["format"], **info["info"]}
+            # staged once: the run writes its outputs (run.json naming DATA/jobs/ID) in its temporary
+            # folder, which is published by the transaction that finishes the job (fenced: a stale
+            # attempt publishes nothing)
+            run = run_request(request.model_copy(update={"scene": str(scene)}), out_dir=out_dir,
+                              client=self.client, progress=False, on_tile=on_tile, overwrite=True,
+                              publish_with=lambda tmp, _out: staged.append(tmp), land_source=land_source)
             summary: dict[str, Any] = {"detections": run["detections"], "detected_px": run["detected_px"],
                                        "outputs": run["outputs"], "timings": run["timings"]}
             if not self.store.finish(job_id, self.owner, "successful",
                                      f"{run['detections']} detections in {run['timings']['total_s']:.1f} s",
-                                     summary, attempt=attempt, publish=lambda: publish_outputs(stage, out_dir)):
+                                     summary, attempt=attempt, publish=lambda: publish(staged[0], out_dir)):
                 log.warning("job %s (attempt %d) finished, but the job is no longer ours (dismissed, or re-run "
                             "after its lease lapsed): its results are discarded", job_id, attempt)
                 return
@@ -305,8 +305,9 @@ class Runner:
                                      self._public(f"internal error: {type(exc).__name__}: {exc}"), attempt=attempt):
                     self._observe_failure(job)
         finally:
-            _remove(stage)
-            _remove(Path(f"{stage}-land.zarr"))
+            for p in staged:  # (gone once published)
+                _remove(p)
+            _remove(land_raster)
 
     def _land_file(self, land: Path, scene: Path, out: Path, progress) -> dict:
         """The ``land_mask`` FILE ``land`` checked and rasterised onto the scene's grid into the

@@ -332,7 +332,7 @@ def test_detections_carry_complex_properties(tmp_path, client):
 def test_service_refuses_amplitude_scene_with_400(tmp_path):
     """The job API validates a csk job's scene at submission: an amplitude-only scene or a real
     ``channel`` is a 400 problem naming the missing phase, an SLC scene passes."""
-    from sarship.service.app import validate_inputs
+    from sarship.service.job_inputs import validate_inputs
     from sarship.service.common import Problem
     from sarship.service.settings import Settings
 

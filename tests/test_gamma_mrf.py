@@ -471,7 +471,7 @@ def test_real_opensarship_small_chips(tmp_path, client):
 
 def test_service_submission_refuses_too_small_scene(tmp_path):
     """The service's submission check (a 400 before a job is queued) runs the same rule."""
-    from sarship.service.app import check_scene_input
+    from sarship.service.job_inputs import check_scene_input
     from sarship.workers.request import JobRequest
 
     rng = np.random.default_rng(0)

@@ -103,23 +103,30 @@ def run_request(
     overwrite: bool = False,
     cluster_note: str | None = None,
     claim: bool = False,
+    publish_with: Callable[[Path, Path], None] = publish,
+    land_source: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Run a validated :class:`~sarship.workers.request.JobRequest`; its ``scene`` is the
     path of a scene store. Returns the ``run.json`` content (see :func:`run_detection`).
     ``claim``: hold ``out_dir`` for the run (:func:`sarship.pipeline.scene.claim_output`; the
     output checks run under the claim). The service's runner does not: each attempt writes its
-    own folder and the job store fences publication."""
+    own temporary folder and the job store fences publication: its ``publish_with`` is called
+    with (temporary folder, ``out_dir``) instead of
+    :func:`sarship.pipeline.run.outputs.publish` and keeps the folder for the store's
+    transaction. ``land_source``: entries added to ``run.json``'s ``land`` record (the
+    service's land-mask FILE that the run's raster was made from)."""
     args = (request, out_dir, tile, client, scheduler, progress, on_tile, overwrite, cluster_note)
     run = _run_auto if request.detector == AUTO else _run_request
+    kw = {"publish_with": publish_with, "land_source": land_source}
     if not claim:
-        return run(*args)
+        return run(*args, **kw)
     check_out_path(Path(out_dir), Path(request.scene))  # first: never a claim inside the scene
     with claim_output(out_dir, "--out", create_parents=True):
-        return run(*args)
+        return run(*args, **kw)
 
 
 def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
-              cluster_note) -> dict[str, Any]:
+              cluster_note, **publication) -> dict[str, Any]:
     """``--detector auto``: the clutter-model fit of each candidate (pipeline/model_fit.py,
     ``AUTO_CANDIDATES``) measured on the scene's sample (the candidate run with the request's
     parameters, its own PFA and the probe PFA, its kept detections excluded, no output
@@ -156,14 +163,17 @@ def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, o
             print(f"detector auto: {chosen} ({why})", file=sys.stderr)
         final = request.model_copy(update={"detector": chosen})
         return _run_request(final, out_dir, tile, client, None, progress, on_tile, overwrite, None,
-                            extra_run={"detector_auto": record})
+                            extra_run={"detector_auto": record}, **publication)
 
 
 def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
-                 cluster_note, fit_only: bool = False, extra_run: dict | None = None) -> dict[str, Any]:
+                 cluster_note, fit_only: bool = False, extra_run: dict | None = None,
+                 publish_with: Callable[[Path, Path], None] = publish,
+                 land_source: dict | None = None) -> dict[str, Any]:
     """One detection run (:func:`run_request`), the stages of the module docstring in order.
     ``fit_only``: only the clutter-model fit (``--detector auto``'s candidates): no output is
-    written, the ``model_fit`` record is returned. ``extra_run``: entries added to ``run.json``."""
+    written, the ``model_fit`` record is returned. ``extra_run``: entries added to ``run.json``;
+    ``publish_with``, ``land_source``: see :func:`run_request`."""
     clock = {"start": time.perf_counter()}
     plan = make_plan(request.spec, request.detector_params(), device=request.device, channel=request.channel,
                      scene_path=request.scene, out_dir=out_dir, tile=tile, overwrite=overwrite)
@@ -177,9 +187,11 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
             shutil.rmtree(tmp, ignore_errors=True)
             return outcome
         outcome.extra.update(extra_run or {})
+        if land_source and outcome.land is not None:  # the service's FILE behind the run's raster
+            outcome.land = {**outcome.land, **land_source}
         run = run_record(plan, outcome, tmp)
         _write_outputs(plan, tmp, run, outcome.refined.features, clock)
-        publish(tmp, plan.out_dir)
+        publish_with(tmp, plan.out_dir)
         return run
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

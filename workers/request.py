@@ -17,7 +17,7 @@ from __future__ import annotations
 import re
 from typing import Any, Literal, Mapping, Optional, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
 
 from sarship.pipeline import detectors
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec
@@ -87,7 +87,10 @@ class JobRequest(BaseModel):
     """A detection job: scene, detector, device, channel and the detector's parameters.
 
     Build it with :meth:`from_inputs` (one-line :class:`InputError` on any problem); the
-    parsed detector parameters are :meth:`detector_params`. ``scene`` is kept as given: the
+    parsed detector parameters are :meth:`detector_params`, parsed once per request and kept
+    (a copy that changes ``detector`` or ``params`` parses again, see :meth:`model_copy`).
+    :meth:`from_stored` rebuilds a request the service validated when the job was posted and
+    stored as :meth:`inputs`, without validating it again. ``scene`` is kept as given: the
     command line opens it as a path, the service resolves it within its allowed folders.
     """
 
@@ -98,6 +101,8 @@ class JobRequest(BaseModel):
     device: Device = Field("auto", description="where tiles run: auto, gpu or cpu")
     channel: Optional[str] = Field(None, min_length=1, description="scene variable the detector reads")
     params: dict[str, Any] = Field(default_factory=dict, description="the detector's parameters")
+    #: the parsed detector parameters (:meth:`detector_params`), once parsed
+    _parsed: Optional[DetectorParams] = PrivateAttr(default=None)
 
     @classmethod
     def from_inputs(cls, detector: str, inputs: Mapping[str, Any]) -> "JobRequest":
@@ -132,13 +137,46 @@ class JobRequest(BaseModel):
         req.detector_params()  # every parameter checked now, not when a tile runs
         return req
 
+    @classmethod
+    def from_stored(cls, detector: str, inputs: Mapping[str, Any]) -> "JobRequest":
+        """The request a job store keeps (the flat :meth:`inputs` of a request that
+        :meth:`from_inputs` validated when the job was submitted), rebuilt without validating
+        it again: its parameters are parsed once, when the run first asks for them
+        (:meth:`detector_params`)."""
+        return cls.model_construct(scene=inputs.get("scene", ""), detector=detector,
+                                   device=inputs.get("device", "auto"), channel=inputs.get("channel"),
+                                   params={k: v for k, v in inputs.items() if k not in RESERVED})
+
+    def model_copy(self, *, update: Optional[Mapping[str, Any]] = None, deep: bool = False) -> "JobRequest":
+        """A copy with ``update``; the parsed parameters are kept unless ``detector`` or
+        ``params`` change (then the copy parses its own)."""
+        copy = super().model_copy(update=update, deep=deep)
+        if update and ("detector" in update or "params" in update):
+            copy._parsed = None
+        return copy
+
+    def with_param(self, name: str, value: Any) -> "JobRequest":
+        """A copy with detector parameter ``name`` set to ``value`` (already valid for it, e.g.
+        the service's rasterised ``land_mask`` FILE): the parsed parameters are updated
+        rather than parsed again."""
+        copy = self.model_copy(update={"params": {**self.params, name: value}})
+        if self._parsed is not None:
+            copy._parsed = self._parsed.model_copy(update={name: value})
+        return copy
+
     @property
     def spec(self) -> DetectorSpec:
         return detectors.get(self.detector)
 
     def detector_params(self) -> DetectorParams:
-        """The detector's parameters, parsed by its model (:func:`parse_params`); for ``auto``,
-        checked against every candidate's model and those of the first returned."""
+        """The detector's parameters, parsed by its model (:func:`parse_params`) the first time
+        they are asked for and kept; for ``auto``, checked against every candidate's model and
+        those of the first returned."""
+        if self._parsed is None:
+            self._parsed = self._parse_params()
+        return self._parsed
+
+    def _parse_params(self) -> DetectorParams:
         if self.detector == AUTO:
             parsed = []
             for spec in _specs(AUTO):
