@@ -150,14 +150,15 @@ def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_pa
     # the warm process's other refusals, by its own rule and state (each run as a command, falling back to
     # a cluster of its own as above: the slow test below): a CPU-only warm cluster and --device gpu; an
     # abbreviation of --scheduler, which passes the client's check and is refused after parsing
+    from sarship.cli import build_parser  # the warm process is handed the command line's parser
     from sarship.warm_process import _parse_quietly, _refusal
 
     state = warm.status(warm_cpu)
     req = {"identity": state["identity"], "env": state["env"]}
     cmd = ["detect", "scene.zarr", "--detector", "ca_cfar"]
-    assert _refusal(req, state, _parse_quietly(cmd)) == ""
-    assert _refusal(req, state, _parse_quietly([*cmd, "--device", "gpu"])).startswith("it has no GPU worker")
-    assert _refusal(req, state, _parse_quietly([*cmd, "--sched", "local"])) == "--scheduler was given"
+    assert _refusal(req, state, _parse_quietly(cmd, build_parser)) == ""
+    assert _refusal(req, state, _parse_quietly([*cmd, "--device", "gpu"], build_parser)).startswith("it has no GPU worker")
+    assert _refusal(req, state, _parse_quietly([*cmd, "--sched", "local"], build_parser)) == "--scheduler was given"
     # --scheduler (an address or `local`), SARSHIP_SCHEDULER and SARSHIP_WARM=0 never go to it; other commands
     # neither (they run here, as always)
     monkeypatch.delenv("SARSHIP_WARM", raising=False)
@@ -379,6 +380,7 @@ def test_a_changed_code_is_refused(warm_cpu):
     warm process's, which refuses it saying why (the command then runs on its own cluster, as
     every refused one: test_commands_the_warm_cluster_cannot_take_run_on_their_own; as commands,
     with the code restored after: the slow test above)."""
+    from sarship.cli import build_parser  # the warm process is handed the command line's parser
     from sarship.warm_process import _parse_quietly, _refusal
 
     def command():  # a command's request (its identity and settings), made as the command makes it
@@ -388,7 +390,7 @@ def test_a_changed_code_is_refused(warm_cpu):
         return json.loads(res.stdout)
 
     state = warm.status(warm_cpu)
-    ns = _parse_quietly(["detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o"])
+    ns = _parse_quietly(["detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o"], build_parser)
     assert _refusal(command(), state, ns) == ""
     code = "import sarship.warm as w; print(w.__file__)"
     where = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),

@@ -25,13 +25,15 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.run.plan import Plan
 from sarship.pipeline.scene import finalize_scene
+
+if TYPE_CHECKING:  # the service's capped land child imports this module: no detector stack at import
+    from sarship.pipeline.run.plan import Plan
 
 LAND_STORE = "land.zarr"
 
