@@ -120,6 +120,10 @@ def serve(commands: CommandLine, device: str = "auto", workers: int | None = Non
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, on_term)
+        # a command is interrupted by the SIGINT this process sends its own main thread
+        # (_run_command's watcher): a warm process started from a background job or a service
+        # manager inherits SIGINT ignored, which would make every interrupt a no-op
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     from sarship.workers.cluster import connect, gpu_procs
     from sarship.workers.gpus import visible_gpus
 

@@ -190,6 +190,11 @@ def test_refused_commands_say_why_and_run_on_their_own(warm_cpu, tmp_path):
 
 
 def test_interrupted_commands_leave_nothing_and_the_cluster_goes_on(warm_cpu, tmp_path):
+    # the warm process catches SIGINT (its watcher interrupts a command with it) even when it was
+    # started, like this module's from a CI job in the background, with SIGINT ignored
+    pid = warm.status(warm_cpu)["pid"]
+    caught = next(int(line.split()[1], 16) for line in open(f"/proc/{pid}/status") if line.startswith("SigCgt"))
+    assert caught & (1 << (signal.SIGINT - 1)), "the warm process does not catch SIGINT"
     _scene(tmp_path, shape=(3072, 3072), tile=256)
     for sig, code in ((signal.SIGINT, 130), (signal.SIGTERM, 143)):
         out = tmp_path / f"out-{code}"
