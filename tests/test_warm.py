@@ -37,6 +37,13 @@ def run(sock, *args, cwd=None, env=None, timeout=240):
                           cwd=cwd or tempfile.gettempdir(), env={**_env(sock), **(env or {})}, timeout=timeout)
 
 
+#: ``python -m sarship`` with SIGINT handled as in a terminal's foreground command: a test run from a
+#: background job (a CI script, ``cmd &``) passes SIGINT ignored to its children, and Python keeps
+#: an inherited "ignore", so a Ctrl-C test would send a signal the command never sees
+AS_IN_A_TERMINAL = [sys.executable, "-c", "import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+                    "runpy.run_module('sarship', run_name='__main__', alter_sys=True)"]
+
+
 @pytest.fixture()
 def sockdir():
     d = Path(tempfile.mkdtemp(prefix="sw-"))  # short: a Unix socket path has at most 107 bytes
@@ -198,7 +205,7 @@ def test_interrupted_commands_leave_nothing_and_the_cluster_goes_on(warm_cpu, tm
     _scene(tmp_path, shape=(3072, 3072), tile=256)
     for sig, code in ((signal.SIGINT, 130), (signal.SIGTERM, 143)):
         out = tmp_path / f"out-{code}"
-        p = subprocess.Popen([sys.executable, "-m", "sarship", "detect", "scene.zarr", "--detector", "os_cfar",
+        p = subprocess.Popen([*AS_IN_A_TERMINAL, "detect", "scene.zarr", "--detector", "os_cfar",
                               "--out", out.name], cwd=tmp_path, env=_env(warm_cpu), stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
         seen = []
