@@ -67,7 +67,9 @@ def test_rest_job_is_validated_parsed_staged_and_published_once(tmp_path, client
                       json={"inputs": {"scene": "s1", "pfa": "1e-6", "land_mask": "none"}})
         assert r.status_code == 201, r.text
         job_id = r.json()["jobID"]
-        assert counted == {("api", "validate"): 1, ("api", "parse"): 1}, counted
+        # the API's part, once the POST has answered (the runner may have started the job already)
+        assert {k: n for k, n in counted.items() if k[0] == "api"} == {("api", "validate"): 1, ("api", "parse"): 1}, \
+            counted
         stored = http.app.state.store.get(job_id)["inputs"]
         assert stored == {"scene": "s1", "device": "auto", "pfa": "1e-6", "land_mask": "none"}  # normalized
         t_end = time.monotonic() + 60
