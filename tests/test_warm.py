@@ -5,6 +5,7 @@ own cluster and say why."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -360,24 +361,32 @@ def test_code_stamp_is_by_content(tmp_path):
     assert warm._code_stamp([str(pkg)]) != before
 
 
+@contextlib.contextmanager
+def _edited_keeping_mtime(sock):
+    """sarship.warm, the copy the commands import (installed, or this checkout), edited with its old
+    modification time kept (``rsync -a``, ``cp -p``), and restored after."""
+    code = "import sarship.warm as w; print(w.__file__)"
+    where = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
+                           env=_env(sock), check=True)
+    mod = Path(where.stdout.strip())
+    st, text = mod.stat(), mod.read_bytes()
+    try:
+        mod.write_bytes(text + b"\n# edited\n")
+        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
+        yield
+    finally:
+        mod.write_bytes(text)
+        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
+
+
 @pytest.mark.slow  # two detections as commands; the rule on the live warm process: test_a_changed_code_is_refused
 def test_a_changed_code_makes_commands_run_on_their_own(warm_cpu, tmp_path):
     """A module of sarship modified after the warm process started (a source checkout edited, the
     same version reinstalled), even with its old modification time kept (``rsync -a``,
     ``cp -p``): commands run on their own cluster, with the new code."""
     _scene(tmp_path)
-    code = "import sarship.warm as w; print(w.__file__)"
-    where = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
-                           env=_env(warm_cpu), check=True)
-    mod = Path(where.stdout.strip())  # the copy the commands import (installed, or this checkout)
-    st, text = mod.stat(), mod.read_bytes()
-    try:  # an edit that keeps the file's modification time
-        mod.write_bytes(text + b"\n# edited\n")
-        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
+    with _edited_keeping_mtime(warm_cpu):
         res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o", cwd=tmp_path)
-    finally:
-        mod.write_bytes(text)
-        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
     assert res.returncode == 0, res.stderr
     assert "not on the warm cluster: sarship's code was changed since it started" in res.stderr
     assert "local Dask cluster" in res.stderr
@@ -404,18 +413,8 @@ def test_a_changed_code_is_refused(warm_cpu):
     state = warm.status(warm_cpu)
     ns = _parse_quietly(["detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o"], build_parser)
     assert _refusal(command(), state, ns) == ""
-    code = "import sarship.warm as w; print(w.__file__)"
-    where = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
-                           env=_env(warm_cpu), check=True)
-    mod = Path(where.stdout.strip())  # the copy the commands import (installed, or this checkout)
-    st, text = mod.stat(), mod.read_bytes()
-    try:  # an edit that keeps the file's modification time
-        mod.write_bytes(text + b"\n# edited\n")
-        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
+    with _edited_keeping_mtime(warm_cpu):
         edited = command()
-    finally:
-        mod.write_bytes(text)
-        os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns))
     assert _refusal(edited, state, ns) == ("sarship's code was changed since it started (sarship warm stop, then "
                                            "sarship warm start, runs the new code)")
     assert _refusal(command(), state, ns) == ""  # the code restored
