@@ -6,7 +6,7 @@ at random each time; MSE of the estimated beta (fig 12) and the mean time of one
 (fig 13: Novey 8.3e-2 s vs CSK 1.5e-3 s at N = 500, 55x; 6.3 s vs 4.5e-3 s at N = 50 000,
 1400x; MATLAB, machine not given). Here, in one run on this machine, for each N:
 
-- bias and RMSE of beta for Novey's ML (:func:`sarship.pipeline.cggd.beta_novey`), the CSK route
+- bias and RMSE of beta for Novey's ML (:func:`sarship.pipeline.stats.cggd.beta_novey`), the CSK route
   with the paper's 1e-3 table (``method="table"``), with the exact inversion (``"exact"``), and
   the exact inversion after whitening (``whiten_first=True``);
 - two settings of C: circular (tau = 0, s2 = 10^U(-1, 1): eq 39's assumption) and non-circular
@@ -31,7 +31,7 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from common import machine  # noqa: E402
-from sarship.pipeline import cggd  # noqa: E402
+from sarship.pipeline.stats import cggd  # noqa: E402
 
 PAPER_S = {500: (8.3e-2, 1.5e-3), 50_000: (6.3, 4.5e-3)}
 METHODS = ("novey", "csk_table", "csk_exact", "csk_white")

@@ -1,4 +1,4 @@
-"""Cost of the coastline land mask (``land_mask=coastline``, pipeline/coastline.py).
+"""Cost of the coastline land mask (``land_mask=coastline``, pipeline/land/coastline.py).
 
 A north-up scene of ``--shape`` pixels of ``--spacing`` metres centred on ``--at LON,LAT`` (default:
 the Oslofjord at 10 m, a long, fractal, island-strewn coast: a hard case), rasterised strip by
@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from sarship.pipeline import coastline as co
+from sarship.pipeline.land import coastline as co
 
 
 def scene_attrs(lon: float, lat: float, shape: tuple[int, int], sp: float) -> dict:

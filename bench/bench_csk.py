@@ -20,7 +20,7 @@ from scipy import ndimage  # noqa: E402
 
 from common import best_of, machine  # noqa: E402
 from sarship.pipeline.detectors import csk  # noqa: E402
-from sarship.pipeline.windows import mirror_pad  # noqa: E402
+from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
 
 
 def scipy_csk(z: np.ndarray, w: int) -> np.ndarray:
@@ -50,11 +50,11 @@ def main() -> None:
     t_det = best_of(lambda: csk.detect(block, h, (-h, -h), p, prep), repeat=2)
     t_ref = best_of(lambda: scipy_csk(z, a.window), repeat=2)
     k_ref = scipy_csk(z, a.window)
-    k_det = csk.csk_window(block, h, (-h, -h), a.window, None, __import__("sarship.pipeline.boxsum", fromlist=["x"]).centered_box_sum, np)[0]
+    k_det = csk.csk_window(block, h, (-h, -h), a.window, None, __import__("sarship.pipeline.tiling.boxsum", fromlist=["x"]).centered_box_sum, np)[0]
     mpx = n * n / 1e6
     print(f"Machine: {machine()}; {time.strftime('%Y-%m-%d')}; {n}x{n} complex64, window {a.window}, one core")
     print(f"| what | seconds | Mpx/s |\n|---|---|---|")
-    print(f"| csk detect (box sums of pipeline/boxsum.py, decision, float32 stat) | {t_det:.2f} | {mpx / t_det:.1f} |")
+    print(f"| csk detect (box sums of pipeline/tiling/boxsum.py, decision, float32 stat) | {t_det:.2f} | {mpx / t_det:.1f} |")
     print(f"| SciPy uniform_filter CSK (statistic only) | {t_ref:.2f} | {mpx / t_ref:.1f} |")
     print(f"| ratio SciPy / csk | {t_ref / t_det:.2f}x | |")
     print(f"| prepare (null law, n = {a.window ** 2}, {prep['distribution'].split('(')[1].split(',')[0]}) | {t_prep:.2f} | |")

@@ -27,7 +27,7 @@ from scipy import ndimage
 from common import best_of, machine  # noqa: E402
 
 from sarship.pipeline import detectors  # noqa: E402
-from sarship.pipeline.windows import padded_block  # noqa: E402
+from sarship.pipeline.tiling.windows import padded_block  # noqa: E402
 
 
 def ref_ca(x, p, prep):

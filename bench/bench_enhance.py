@@ -34,11 +34,11 @@ import numpy as np  # noqa: E402
 
 from common import best_of, machine  # noqa: E402
 
-from sarship.pipeline import destripe as D  # noqa: E402
+from sarship.pipeline.image import destripe as D  # noqa: E402
 from sarship.pipeline import detectors  # noqa: E402
-from sarship.pipeline import sidelobes as S  # noqa: E402
-from sarship.pipeline.components import tile_components  # noqa: E402
-from sarship.pipeline.ship_features import features  # noqa: E402
+from sarship.pipeline.targets import sidelobes as S  # noqa: E402
+from sarship.pipeline.targets.components import tile_components  # noqa: E402
+from sarship.pipeline.targets.ship_features import features  # noqa: E402
 from sarship.pipeline.simulate import SimConfig, simulate_array  # noqa: E402
 
 

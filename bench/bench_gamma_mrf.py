@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 from common import machine  # noqa: E402
 from sarship.pipeline import detectors  # noqa: E402
 from sarship.pipeline.detectors import gamma_mrf as gm  # noqa: E402
-from sarship.pipeline.windows import mirror_pad  # noqa: E402
+from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
 
 PAPER = {"mixture_s": 3.0, "icm_s": 14.0, "px": 1500 * 1500}
 

@@ -32,7 +32,7 @@ import numpy as np
 from common import best_of, machine  # noqa: E402
 
 from sarship.pipeline import detectors  # noqa: E402
-from sarship.pipeline.windows import mirror_pad  # noqa: E402
+from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
 
 CASES = [
     ("ca_cfar", {"looks": 1.0}, "default (guard 41, background 81)", "intensity"),

@@ -33,9 +33,10 @@ import numpy as np  # noqa: E402
 
 from common import machine  # noqa: E402
 
-from sarship.pipeline import detectors, molc  # noqa: E402
+from sarship.pipeline import detectors  # noqa: E402
+from sarship.pipeline.stats import molc  # noqa: E402
 from sarship.pipeline.gpu import available  # noqa: E402
-from sarship.pipeline.windows import mirror_pad  # noqa: E402
+from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
 
 L = 2.0
 PAPER_MPX_S = 1500 * 1500 / 1.0 / 1e6  # ~1 s per ~1500^2 image (MATLAB, Core i5 3.3 GHz)

@@ -25,7 +25,7 @@ from common import best_of, machine  # noqa: E402
 
 from sarship.pipeline import detectors  # noqa: E402
 from sarship.pipeline.simulate import SimConfig, simulate_array  # noqa: E402
-from sarship.pipeline.windows import mirror_pad  # noqa: E402
+from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
 
 CASES = [
     ("apwf", {"estimator": "window", "guard": 1, "background": 31, "pfa": 1e-6}, "thesis 31x31 window",

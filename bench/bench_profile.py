@@ -102,9 +102,9 @@ def reference_kernel(scene_path: str, detector: str, settings: dict) -> dict:
     """The detector's kernel alone on the whole scene array (read into memory first, padded with
     the halo by mirror as the tiles are), land mask off; best of 2 after a warm-up on a crop."""
     from sarship.pipeline.detectors.base import resolve_size
-    from sarship.pipeline.inputs import intensity_source, make_reader
+    from sarship.pipeline.tiling.inputs import intensity_source, make_reader
     from sarship.pipeline.scene import open_scene
-    from sarship.pipeline.windows import padded_block
+    from sarship.pipeline.tiling.windows import padded_block
     from sarship.workers.request import JobRequest
 
     scene = open_scene(scene_path)

@@ -10,7 +10,7 @@ Zhang et al. 2023 (docs/references.md, ``zhang2023``); docs/algorithms/superpixe
    the calibration mode (every superpixel tested against its neighbours, eq 15, pixel
    decision) with M_a = 1 and M_a = 3, pixel false alarms against M pfa; the defaults (final
    superpixel mask); the paper's plain K-means (``min_separation_db=0``).
-3. Extended ships (tests/test_superpixel_cfar.py: ``hires_scene``, 60-400 px, scatterers and
+3. Extended ships (tests/pipeline/test_superpixel_cfar.py: ``hires_scene``, 60-400 px, scatterers and
    dark gaps, K sea, SCR 13 dB): components per ship (fragments within each detector's
    ``merge_px`` joined, components under 10 px dropped, as a job does), FoM, pixel TPR/FPR,
    for superpixel_cfar, two_parameter and ca_cfar at their defaults.
@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 from common import best_of, machine  # noqa: E402
 from sarship.pipeline import detectors  # noqa: E402
 from sarship.pipeline.detectors import superpixel_cfar as D  # noqa: E402
-from sarship.pipeline.windows import mirror_pad  # noqa: E402
+from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
 from tests.test_superpixel_cfar import CAL, hires_scene, k_sea, objects  # noqa: E402
 
 

@@ -323,7 +323,7 @@ def verify(ds: Dataset, raw: Path, use_manifest: bool = True, manifest: Path | N
 
 def _truth_geojson(ann: Path) -> dict:
     from sarship.pipeline.errors import InputError
-    from sarship.pipeline.truth import load_voc
+    from sarship.pipeline.products.truth import load_voc
 
     try:
         ships = load_voc(ann)

@@ -3,7 +3,7 @@
 Every chip of ``bench/realdata_eval.py`` (SSDD-like, HRSID, OpenSARShip GRD VH) is run through
 :func:`sarship.workers.jobs.run_detection` at the shipped defaults with ``ca_cfar``, ``k_cfar``,
 ``g0_cfar`` (the ``auto`` candidates) and ``os_cfar``; each run's ``model_fit`` record is kept.
-``auto``'s choice on a chip is :func:`sarship.pipeline.model_fit.choose` of the three candidates'
+``auto``'s choice on a chip is :func:`sarship.pipeline.stats.model_fit.choose` of the three candidates'
 records (what ``--detector auto`` computes: its candidates run with the request's parameters,
 here the defaults), its detections those of the chosen detector. Scores per half
 (:func:`realdata_eval.split_halves`): SSDD / HRSID object FoM (pd / precision / false), GRD VH
@@ -36,7 +36,7 @@ DETECTORS = ("ca_cfar", "k_cfar", "g0_cfar")
 
 def run_chip(client, chip, detector: str, work: Path) -> dict:
     """One run at the defaults: its detections as truth.Ship and its model_fit record."""
-    from sarship.pipeline.truth import Ship
+    from sarship.pipeline.products.truth import Ship
     from sarship.workers.jobs import run_detection
 
     out = Path(tempfile.mkdtemp(prefix="mf-", dir=work))
@@ -56,7 +56,7 @@ def run_chip(client, chip, detector: str, work: Path) -> dict:
 
 
 def chip_score(chip, ships) -> dict:
-    from sarship.pipeline.scoring import score
+    from sarship.pipeline.products.scoring import score
 
     if chip.dataset == "grd":
         hit, extra = rd.centre_hit(ships, chip.shape)
@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     global DETECTORS
     from distributed import Client, LocalCluster
 
-    from sarship.pipeline import model_fit
+    from sarship.pipeline.stats import model_fit
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=rd.DATA)

@@ -4,14 +4,14 @@ Every detector named runs once per chip at its shipped defaults with ``min_contr
 measures every detection's contrast and, as the script checks, drops none)
 (and, optionally, a small grid of its own settings: ``--grid``) through
 :func:`sarship.workers.jobs.run_detection` on one shared two-process Dask ``LocalCluster``; each
-detection keeps its ``contrast_db`` (pipeline/local_contrast.py) and whether it is a true ship.
+detection keeps its ``contrast_db`` (pipeline/targets/local_contrast.py) and whether it is a true ship.
 A floor only drops detections, so every floor of ``--floors`` is applied afterwards to the same
 runs, exactly as the pipeline applies it (a detection whose contrast was not measured is kept).
 
 Data, halves and scores are those of ``bench/realdata_eval.py`` (its module docstring): object
 FoM summed over the chips for SAR-Ship-Dataset and HRSID, and for the OpenSARShip GRD chips (VH)
 the centre ship found or not and the FoM proxy that counts every other detection as false.
-A detection is a true ship when :func:`sarship.pipeline.scoring.match` pairs it with a truth
+A detection is a true ship when :func:`sarship.pipeline.products.scoring.match` pairs it with a truth
 box (SSDD, HRSID), or, on a GRD chip, when its box lies within ``CENTRE_RADIUS_PX`` of the chip
 centre.
 
@@ -53,8 +53,8 @@ FLOORS = (None, 0.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0)
 
 def run_all(client, chips: list, detector: str, settings: dict, work: Path) -> list[dict]:
     """One run per chip; a row per detection: dataset, chip, half, ship (bool), contrast_db."""
-    from sarship.pipeline.scoring import match
-    from sarship.pipeline.truth import Ship
+    from sarship.pipeline.products.scoring import match
+    from sarship.pipeline.products.truth import Ship
     from sarship.workers.jobs import run_detection
 
     rows = []

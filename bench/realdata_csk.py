@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from sarship.pipeline import boxsum
-from sarship.pipeline.components import merge_radius
+from sarship.pipeline.tiling import boxsum
+from sarship.pipeline.targets.components import merge_radius
 from sarship.pipeline.detectors import csk
-from sarship.pipeline.windows import mirror_pad
+from sarship.pipeline.tiling.windows import mirror_pad
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "opensarship"
 

@@ -4,7 +4,7 @@ Datasets (see ``shared/data/README.md``; cite the originals when quoting numbers
 
 - ``sar-ship-dataset`` (SSDD-like; Wang et al., Remote Sensing 11(7):765, 2019): 12 JPEG chips
   256x256 (8-bit contrast-stretched amplitude, Gaofen-3 and Sentinel-1), 68 VOC ship boxes.
-  Object-level scores (``pipeline.scoring.score`` / ``aggregate``). No pixel spacing.
+  Object-level scores (``pipeline.products.scoring.score`` / ``aggregate``). No pixel spacing.
 - ``hrsid`` (Wei et al., IEEE Access 8:120234, 2020): 18 JPEG chips 800x800; truth = the
   8-connected components of ``masks/<name>.png``. Object scores and pixel TPR/FPR of the
   detector's ``mask.zarr``. No pixel spacing.
@@ -27,8 +27,8 @@ Sweep. The detection mask depends only on (pfa, guard, background, looks, domain
 rule (``min_area_px``, ``min_length_m``) and ``merge_px`` act afterwards on the mask's
 connected components. So each mask setting is run once through ``run_detection`` and its
 ``mask.zarr`` is post-processed for every size rule and ``merge_px`` with the pipeline's own
-component code (:func:`sarship.pipeline.components.tile_components` + ``merge_tiles`` +
-:func:`sarship.pipeline.ship_features.keep_mask`, bbox/centroid as ``features`` writes them) --
+component code (:func:`sarship.pipeline.targets.components.tile_components` + ``merge_tiles`` +
+:func:`sarship.pipeline.targets.ship_features.keep_mask`, bbox/centroid as ``features`` writes them) --
 identical to what ``run_detection`` returns for a one-tile scene; a self-check at start-up
 asserts that on a few chips, with the code's defaults (the metre rule on GRD) among others.
 
@@ -114,7 +114,7 @@ MIN_LENGTH_DEFAULT = 15.0
 MAX_LENGTH_DEFAULT = 25.0
 AREAS_M2 = (100.0, 200.0, 300.0)
 #: The default area in m^2 is chosen among those <= this: 300 m^2 (34 px at 3 m) loses the small
-#: ships of the README's simulated demo (3 m pixels; tests/test_cli.py::test_demo_main_job).
+#: ships of the README's simulated demo (3 m pixels; tests/cli/test_cli.py::test_demo_main_job).
 MAX_AREA_M2_DEFAULT = 200.0
 MERGES = (0, 2, 4)
 BANDS = ("vh",)
@@ -127,7 +127,7 @@ MASK_ONLY_MIN_AREA = 10**9
 
 #: A detection is the centre ship of an OpenSARShip chip when its bbox is this close (pixels).
 CENTRE_RADIUS_PX = 3.0
-#: The one GRD chip whose centre holds no ship (its ship is 13 px off-centre: tests/test_realdata.py).
+#: The one GRD chip whose centre holds no ship (its ship is 13 px off-centre: tests/pipeline/test_realdata.py).
 NO_SHIP_AT_CENTRE = {"Tanker_x15542_y12596"}
 #: Eligible on a half: SSDD / HRSID pd within this of the best pd any candidate reaches on that
 #: half (a fixed floor cannot be met on a half holding the harbour chip), GRD-VH pd >= MIN_GRD_PD
@@ -161,7 +161,7 @@ class Chip:
     scene: Path
     shape: tuple[int, int]
     looks: float | None
-    truth: list = field(default_factory=list)      # list[pipeline.truth.Ship] (ssdd, hrsid)
+    truth: list = field(default_factory=list)      # list[pipeline.products.truth.Ship] (ssdd, hrsid)
     truth_mask: np.ndarray | None = None           # hrsid
     spacing: tuple[float, float] | None = None
     half: str = ""                                 # A | B (split_halves)
@@ -174,7 +174,7 @@ def _safe(name: str) -> str:
 def ingest_all(data: Path, work: Path, limit: int | None = None) -> list[Chip]:
     """Ingest every chip of the three datasets into ``work``; attach the truth."""
     from sarship.pipeline.readers import ingest
-    from sarship.pipeline.truth import load_voc, read_mask, ships_from_mask
+    from sarship.pipeline.products.truth import load_voc, read_mask, ships_from_mask
 
     chips: list[Chip] = []
     work.mkdir(parents=True, exist_ok=True)
@@ -317,7 +317,7 @@ def size_filter(key: str, spacing=None) -> _Filter:
 
 def components(mask: np.ndarray, merge_px: int) -> np.ndarray:
     """Component moment records of a one-tile scene mask, as ``run_detection`` builds them."""
-    from sarship.pipeline.components import merge_radius, merge_tiles, tile_components
+    from sarship.pipeline.targets.components import merge_radius, merge_tiles, tile_components
 
     r = merge_radius(merge_px)
     h, w = mask.shape
@@ -329,11 +329,11 @@ def components(mask: np.ndarray, merge_px: int) -> np.ndarray:
 
 
 def detections(records: np.ndarray, flt: _Filter, spacing=None) -> list:
-    """Kept records as :class:`sarship.pipeline.truth.Ship`: the ``bbox_px`` / ``centroid_px`` /
-    ``area_px`` that :func:`sarship.pipeline.ship_features.features` writes, computed vectorised
+    """Kept records as :class:`sarship.pipeline.products.truth.Ship`: the ``bbox_px`` / ``centroid_px`` /
+    ``area_px`` that :func:`sarship.pipeline.targets.ship_features.features` writes, computed vectorised
     (features() is per-record Python; the self-check compares both)."""
-    from sarship.pipeline.ship_features import keep_mask
-    from sarship.pipeline.truth import Ship
+    from sarship.pipeline.targets.ship_features import keep_mask
+    from sarship.pipeline.products.truth import Ship
 
     kept = records[keep_mask(records, flt, spacing)]
     n = kept["n"].astype(np.float64)
@@ -364,7 +364,7 @@ def centre_hit(ships: list, shape: tuple[int, int], radius: float = CENTRE_RADIU
 
 def chip_scores(chip: Chip, mask: np.ndarray, grid: dict) -> dict:
     """Scores of one chip's mask for every (size rule, merge_px)."""
-    from sarship.pipeline.scoring import pixel_counts, score
+    from sarship.pipeline.products.scoring import pixel_counts, score
 
     out = {}
     px = pixel_counts(mask, chip.truth_mask) if chip.truth_mask is not None else None
@@ -386,7 +386,7 @@ def chip_scores(chip: Chip, mask: np.ndarray, grid: dict) -> dict:
 
 def summarise(dataset: str, per_chip: list[dict], names: list[str] | None = None) -> dict:
     """Aggregate one dataset's per-chip scores of one setting."""
-    from sarship.pipeline.scoring import aggregate
+    from sarship.pipeline.products.scoring import aggregate
 
     if dataset == "grd":
         n = len(per_chip)
@@ -530,7 +530,7 @@ def self_check(client, chips: list[Chip], detectors_: list[str], work: Path) -> 
                 cases.append(({"min_length_m": 30.0, "merge_px": 2}, size_filter("m30a" + f"{d.auto_min_area_m2:g}",
                                                                                  c.spacing), 2))
             for st, flt, mg in cases:
-                # the line rule (pipeline/lines.py) is not part of this sweep: off for the comparison
+                # the line rule (pipeline/targets/lines.py) is not part of this sweep: off for the comparison
                 mask, out = run_mask(client, c, det, {"line_gap_px": None, **st}, runs_root)
                 direct = sorted(tuple(f["properties"]["bbox_px"]) + (f["properties"]["area_px"],)
                                 + tuple(round(v, 6) for v in f["properties"]["centroid_px"])
@@ -604,7 +604,7 @@ def previous(rows: list[dict], detector: str) -> Candidate | None:
     return None
 
 
-#: The README's main job (``sarship demo``, tests/test_cli.py::test_demo_main_job): os_cfar on a
+#: The README's main job (``sarship demo``, tests/cli/test_cli.py::test_demo_main_job): os_cfar on a
 #: simulated K-distributed sea (4 looks, 3 m pixels, 8 ships of 40-350 m, SCR 15 dB, seed 1,
 #: 1536 x 1536) must keep FoM >= 0.8 with the defaults. The real chips have no textured sea at
 #: 3 m; a candidate of DEMO["detector"] that fails it is passed over (the next best is taken).
@@ -632,7 +632,7 @@ class DemoCheck:
 
     def __call__(self, rows: list[dict], c: Candidate) -> float:
         from sarship.pipeline.detectors.base import area_px
-        from sarship.pipeline.scoring import evaluate
+        from sarship.pipeline.products.scoring import evaluate
         from sarship.workers.jobs import run_detection
 
         key = (c.row, c.grd)  # the demo scene has spacing: the pixel default plays no part

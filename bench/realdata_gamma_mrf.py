@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import realdata_eval as rd
-from sarship.pipeline.gamma_mixture import mixture_isf
+from sarship.pipeline.stats.gamma_mixture import mixture_isf
 
 MASKS = [{"pfa": pfa, "beta": beta} for pfa in (1e-3, 1e-5) for beta in (0.5, 1.0)]
 PEAKS = (None, 1e-5, 1e-7, 1e-9)
@@ -34,7 +34,7 @@ SETS = ("ssdd", "hrsid")
 
 def records_with_values(mask: np.ndarray, x: np.ndarray, merge_px: int) -> np.ndarray:
     """Component records of a one-tile mask with the intensities (for the peak), as run_request."""
-    from sarship.pipeline.components import merge_radius, merge_tiles, tile_components
+    from sarship.pipeline.targets.components import merge_radius, merge_tiles, tile_components
 
     r = merge_radius(merge_px)
     h, w = mask.shape
@@ -67,7 +67,7 @@ def grd_small_chips(client, chips, work: Path) -> dict:
     of the two sets), reported on half B. HRSID's 800 px chips keep stride 8 under every value."""
     from sarship.pipeline.detectors import gamma_mrf as gm
     from sarship.pipeline.errors import InputError
-    from sarship.pipeline.scoring import score
+    from sarship.pipeline.products.scoring import score
 
     spec_params = gm.SPEC.params
     cache: dict = {}
@@ -128,7 +128,7 @@ def main() -> None:
     import xarray as xr
     from distributed import Client, LocalCluster
 
-    from sarship.pipeline.scoring import score
+    from sarship.pipeline.products.scoring import score
 
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix="gm-real-"))

@@ -6,9 +6,9 @@ VV re, VV im]) and each channel, two set-ups, lengths in metres (azimuth 13.93 m
 Ship.xml (chips matched to Ship.xml entries by their Center_x/Center_y in the file name):
 
 * **whole chip** (the paper's fig 17 set-up): t* of
-  :func:`sarship.pipeline.kurtosis_seg.kurtosis_threshold` and Otsu's threshold on the 8-bit
+  :func:`sarship.pipeline.targets.kurtosis_seg.kurtosis_threshold` and Otsu's threshold on the 8-bit
   stretch of the whole OpenSARShip chip; the ship = the component above the threshold nearest the
-  chip centre, measured by :func:`sarship.pipeline.kurtosis_seg.ship_geometry` (the product's
+  chip centre, measured by :func:`sarship.pipeline.targets.kurtosis_seg.ship_geometry` (the product's
   moment length);
 * **product** (what ``sarship detect --detector csk`` reports): ``csk`` at its defaults on the
   chip, the detections merged and measured as ``run_request`` does (size rule, sidelobe step),
@@ -39,13 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
-from sarship.pipeline import kurtosis_seg as ks
-from sarship.pipeline.components import merge_radius, merge_tiles, tile_components
+from sarship.pipeline.targets import kurtosis_seg as ks
+from sarship.pipeline.targets.components import merge_radius, merge_tiles, tile_components
 from sarship.pipeline.detectors import csk
 from sarship.pipeline.detectors.base import resolve_size
-from sarship.pipeline.ship_features import features, keep_mask
-from sarship.pipeline.sidelobes import refine_features
-from sarship.pipeline.windows import mirror_pad
+from sarship.pipeline.targets.ship_features import features, keep_mask
+from sarship.pipeline.targets.sidelobes import refine_features
+from sarship.pipeline.tiling.windows import mirror_pad
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "opensarship"
 AZ_M, RG_SLANT_M = 13.927533333333335, 2.3295619999999997   # the product XML's azimuth_spacing, range_spacing

@@ -3,7 +3,7 @@
 For every chip of ``../shared/data/real`` (SSDD-like, HRSID, OpenSARShip GRD VH; ingested and split
 into the fixed halves A and B exactly as :mod:`realdata_eval` does) and every detector asked for, at
 the detector's defaults, three land masks: ``none``, ``shipped``
-(:func:`sarship.pipeline.landmask.decide` at the shipped defaults: a 2-class mixture, land only where
+(:func:`sarship.pipeline.land.landmask.decide` at the shipped defaults: a 2-class mixture, land only where
 Ashman's D >= 2, threshold ``t*``) and ``sea_ref`` (the candidate of issue 31, :func:`sea_ref_decision`:
 3 classes, no D gate, threshold ``max(t*, sea mean + 3 sea sd)``, land when >= 2 % of the sample is
 above it and the scene is at least ``land_open_px`` on both sides; chosen on half A, worse on half B,
@@ -53,7 +53,7 @@ SEA_Z = 3.0
 def sea_ref_decision(t: np.ndarray, cfg, shape: tuple[int, int]) -> dict:
     """The candidate rule (module doc): no Ashman's D gate; the threshold is referred to the sea's
     own component (the lowest of ``cfg.classes``)."""
-    from sarship.pipeline import landmask as lm
+    from sarship.pipeline.land import landmask as lm
 
     t = t[np.isfinite(t)]
     fit = lm.fit_mixture(t, cfg.classes)
@@ -66,8 +66,8 @@ def sea_ref_decision(t: np.ndarray, cfg, shape: tuple[int, int]) -> dict:
 
 def land_mask(I: np.ndarray, kind: str) -> np.ndarray:
     """The whole chip's land mask: ``none``, ``shipped`` or ``sea_ref`` (module doc)."""
-    from sarship.pipeline import landmask as lm
-    from sarship.pipeline.windows import mirror_pad
+    from sarship.pipeline.land import landmask as lm
+    from sarship.pipeline.tiling.windows import mirror_pad
 
     if kind == "none":
         return np.zeros(I.shape, bool)
@@ -94,7 +94,7 @@ def ships_under(chip: ev.Chip, L: np.ndarray) -> tuple[int, int]:
 
 def detect(detector: str, chip: ev.Chip, I: np.ndarray, L: np.ndarray) -> list:
     from sarship.pipeline import detectors
-    from sarship.pipeline.windows import mirror_pad
+    from sarship.pipeline.tiling.windows import mirror_pad
 
     spec = detectors.get(detector)
     p = spec.params(looks=chip.looks)
@@ -113,7 +113,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--halves", default="AB", help="the halves run: A, B or AB")
     a = ap.parse_args(argv)
-    from sarship.pipeline.scoring import score
+    from sarship.pipeline.products.scoring import score
 
     if not a.data.is_dir():
         print(f"realdata_landmask: no data at {a.data}", file=sys.stderr)

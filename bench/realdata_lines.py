@@ -1,14 +1,14 @@
 """Issue 31: kept-detection masks and line discrimination on the shared real chips.
 
 The line rule's settings (``line_gap_px``, ``line_angle_deg``, ``line_dominant_db``:
-pipeline/lines.py) are chosen on half A of the shared chips (``split_halves`` of
+pipeline/targets/lines.py) are chosen on half A of the shared chips (``split_halves`` of
 bench/realdata_eval.py, every set together) and reported on half B, A beside it (in-sample).
 
 Each chip runs once per detector through :func:`sarship.workers.jobs.run_detection` at the
 detector's shipped defaults with the line rule off (``line_gap_px`` None); its raw decision
 (``mask.zarr/detected``) is then decided for every line setting with the pipeline's own code,
 in the order ``run_detection`` applies it (:func:`sarship.workers.jobs._discriminate`: the merge,
-the area rule, :func:`sarship.pipeline.lines.discard_lines`, the size and shape rule), the
+the area rule, :func:`sarship.pipeline.targets.lines.discard_lines`, the size and shape rule), the
 component values being the chip's pixel power (the peaks the dominance rule compares). A
 self-check runs ``run_detection`` with the chosen setting on two chips of each set and asserts
 the same detections and the same ``mask.zarr/mask``.
@@ -89,10 +89,10 @@ def decide(raw: dict, det: str, spacing, gap, angle, dom):
     from scipy import ndimage
 
     from sarship.pipeline import detectors
-    from sarship.pipeline.components import merge_radius, merge_tiles, tile_components
+    from sarship.pipeline.targets.components import merge_radius, merge_tiles, tile_components
     from sarship.pipeline.detectors.base import resolve_size
-    from sarship.pipeline.lines import discard_lines
-    from sarship.pipeline.ship_features import keep_mask, size_prefilter
+    from sarship.pipeline.targets.lines import discard_lines
+    from sarship.pipeline.targets.ship_features import keep_mask, size_prefilter
 
     p = detectors.get(det).params(**{k: v for k, v in raw["run"]["parameters"].items()
                                      if k not in ("line_gap_px", "line_angle_deg", "line_dominant_db")},
@@ -119,7 +119,7 @@ def decide(raw: dict, det: str, spacing, gap, angle, dom):
 
 
 def ships(rec):
-    from sarship.pipeline.truth import Ship
+    from sarship.pipeline.products.truth import Ship
 
     n = rec["n"].astype(np.float64)
     return [Ship((float(a), float(b), float(c), float(d)), (float(y), float(x)), False, {"area_px": int(k)})
@@ -128,7 +128,7 @@ def ships(rec):
 
 
 def chip_score(chip, rec, kept, raw):
-    from sarship.pipeline.scoring import pixel_counts, score
+    from sarship.pipeline.products.scoring import pixel_counts, score
 
     sh = ships(rec)
     if chip.dataset == "grd":
@@ -142,7 +142,7 @@ def chip_score(chip, rec, kept, raw):
 
 
 def summary(chips, per: list[dict], half: str) -> dict:
-    from sarship.pipeline.scoring import aggregate
+    from sarship.pipeline.products.scoring import aggregate
 
     out = {}
     for ds in ("ssdd", "hrsid", "grd"):
@@ -162,8 +162,8 @@ def at_defaults(client, chips, det: str, root: Path) -> dict:
     decision (``detected``) and of the kept detections (``mask``)."""
     import zarr
 
-    from sarship.pipeline.scoring import aggregate, pixel_counts, score
-    from sarship.pipeline.truth import Ship
+    from sarship.pipeline.products.scoring import aggregate, pixel_counts, score
+    from sarship.pipeline.products.truth import Ship
     from sarship.workers.jobs import run_detection
 
     per: dict = {"off": [], "on": [], "raw_px": [], "kept_px": []}

@@ -13,7 +13,7 @@ Two matchers, each one-to-one:
   score with. A CFAR detection has no confidence to rank by, so pairs are taken by IoU,
   highest first (ties: detection index, then truth index). A detection matched to no ship is
   a false alarm, a ship matched by none is missed.
-- **The project's object matcher** (:func:`sarship.pipeline.scoring.score`: centroid in the box
+- **The project's object matcher** (:func:`sarship.pipeline.products.scoring.score`: centroid in the box
   or IoU >= 0.1), as in ``bench/REALDATA.md``'s other tables, with its FoM
   = hits / (false alarms + ships).
 
@@ -146,7 +146,7 @@ def iou_counts(dboxes, tboxes, thr: float = IOU_HIT) -> dict:
 
 def ratios(c: dict) -> dict:
     """Precision, recall, F1 (and false alarms) of summed counts; 0/0 takes the perfect value
-    as in ``pipeline/scoring.py`` (no ship: recall 1; no detection: precision 1)."""
+    as in ``pipeline/products/scoring.py`` (no ship: recall 1; no detection: precision 1)."""
     h, nd, nt = c["n_hit"], c["n_detections"], c["n_truth"]
     return {
         "precision": h / nd if nd else 1.0,
@@ -157,8 +157,8 @@ def ratios(c: dict) -> dict:
 
 
 def image_scores(dets: list, truth: list) -> dict:
-    """Both matchers' counts for one image (lists of :class:`sarship.pipeline.truth.Ship`)."""
-    from sarship.pipeline.scoring import score
+    """Both matchers' counts for one image (lists of :class:`sarship.pipeline.products.truth.Ship`)."""
+    from sarship.pipeline.products.scoring import score
 
     box = lambda ships: np.array([s.bbox for s in ships], float).reshape(-1, 4)  # noqa: E731
     ours = score(dets, truth)
@@ -184,7 +184,7 @@ def summarise(per_image: dict[str, dict], ids: list[str]) -> dict:
 
 
 def _ships(features: list[dict]) -> list:
-    from sarship.pipeline.truth import Ship
+    from sarship.pipeline.products.truth import Ship
 
     out = []
     for f in features:
@@ -200,7 +200,7 @@ def run(folder: Path, detectors: list[str], subsets: dict[str, list[str]], clien
     """Per detector, per image: both matchers' counts (``{det: {id: scores}}``)."""
     from PIL import Image
     from sarship.pipeline.readers import ingest
-    from sarship.pipeline.truth import load_geojson
+    from sarship.pipeline.products.truth import load_geojson
 
     ids = sorted({i for v in subsets.values() for i in v})
     chips: dict[str, rde.Chip] = {}

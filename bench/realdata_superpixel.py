@@ -55,7 +55,7 @@ def issue31_sweep(client, chips, work: Path, sets) -> dict:
     per set and half (min_area_px 10 where the spacing is unknown, the metre rule on GRD). The
     values are chosen on half A (mean over the sets of FoM, GRD: centre-ship FoM), reported on B."""
     from sarship.pipeline.detectors.base import area_px, resolve_size
-    from sarship.pipeline.scoring import aggregate, score
+    from sarship.pipeline.products.scoring import aggregate, score
     from sarship.pipeline.detectors import get
 
     per: dict = {}
@@ -86,7 +86,7 @@ def issue31_sweep(client, chips, work: Path, sets) -> dict:
     px_caps = MAX_SHIP_PX if any(ds != "grd" for ds in sets) else (None,)
     m2_caps = MAX_SHIP_M2 if "grd" in sets else (None,)
     best = max(((pp, cp, cm) for pp in POINT_PFAS for cp in px_caps for cm in m2_caps),
-               # ties on half A: the point rule on (issue 31's small ships, tests/test_superpixel_cfar.py),
+               # ties on half A: the point rule on (issue 31's small ships, tests/pipeline/test_superpixel_cfar.py),
                # then the tightest largest ship (a merged land-and-ships detection dropped sooner)
                key=lambda t: (mean_fom(*t, "A"), t[0] is not None, -(t[1] or 10**12), -(t[2] or 10**12)))
     print(f"chosen on half A (mean FoM of {', '.join(sets)}): point_pfa {best[0]}, max_ship_px {best[1]}, "

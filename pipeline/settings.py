@@ -3,7 +3,7 @@
 Each variable is one :class:`Var`: its type, default, bounds, one-line meaning, the modules that
 read it, how its text is parsed and the one line a bad value gets. Code reads a variable with
 :func:`read` at the moment it needs it (the environment of that moment: tests and the command
-line set variables per process), never with ``os.environ`` (``tests/test_settings_vars.py``
+line set variables per process), never with ``os.environ`` (``tests/project/test_settings_vars.py``
 parses every module to hold that).
 
 The same definitions make the typed pydantic-settings model :func:`model` (``SARSHIP_``
@@ -169,7 +169,7 @@ def _not_blank(text: str) -> bool:
 _CLUSTER = "sarship.workers.cluster"
 VARIABLES: dict[str, Var] = {v.name: v for v in (
     Var("reader", Optional[Literal[READERS]], None,  # type: ignore[valid-type]
-        "library that reads scene arrays: tensorstore or zarr (zarr-python)", ("sarship.pipeline.inputs",),
+        "library that reads scene arrays: tensorstore or zarr (zarr-python)", ("sarship.pipeline.tiling.inputs",),
         _one_of(READERS), f"SARSHIP_READER must be one of {', '.join(READERS)}, got '{{value}}'", text="lower",
         default_text="tensorstore when installed, else zarr"),
     Var("ingest_writers", Optional[int], None, "tile writes an ingest keeps going at once",
@@ -178,7 +178,7 @@ VARIABLES: dict[str, Var] = {v.name: v for v in (
         default_text="the cores, at most 8 (1 in the service's ingest process)"),
     Var("land_max_mb", float, 64.0,
         "largest GeoJSON land_mask FILE, MiB (the command line reads the same SARSHIP_LAND_MAX_MB); a larger one "
-        "is refused when the job is submitted", ("sarship.pipeline.landmask_files", "sarship.service.settings"),
+        "is refused when the job is submitted", ("sarship.pipeline.land.landmask_files", "sarship.service.settings"),
         _positive_finite, "SARSHIP_LAND_MAX_MB must be a positive number of MiB, got '{value}'",
         bounds={"gt": 0.0, "allow_inf_nan": False}, typed_by_model=True),
     Var("gpu_hsum", Literal[HSUM_METHODS], "transpose",  # type: ignore[valid-type]

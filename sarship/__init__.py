@@ -7,7 +7,7 @@ One import root for the whole product:
 - :mod:`sarship.service`: the HTTP job API, job store, scheduled ingest and web page;
 - :mod:`sarship.cli`: the ``sarship`` command line (``python -m sarship``).
 
-Layers import downward only: ``service`` -> ``workers`` -> ``pipeline`` (``tests/test_layers.py``).
+Layers import downward only: ``service`` -> ``workers`` -> ``pipeline`` (``tests/project/test_layers.py``).
 The repository keeps the folders ``pipeline/``, ``workers/`` and ``service/`` at its top level;
 ``pyproject.toml`` installs them under this package (setuptools ``package-dir``). Every process
 of a Dask cluster must run the same sarship version (docs/architecture.md).

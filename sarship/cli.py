@@ -179,8 +179,8 @@ def cmd_detect(a) -> int:
     _print_warnings("detect", run)
     o = run["outputs"]
     print(f"detections: {o['detections.geojson']} ({run['detections']} ships)")
-    for fmt in extra:  # converted from detections.geojson (pipeline/export.py)
-        from sarship.pipeline.export import export
+    for fmt in extra:  # converted from detections.geojson (pipeline/products/export.py)
+        from sarship.pipeline.products.export import export
 
         dst = Path(o["detections.geojson"]).with_suffix(f".{fmt}")
         export(o["detections.geojson"], dst, overwrite=True)  # the run's own folder, just written
@@ -199,7 +199,7 @@ def _formats(text: str | None, scene: str) -> list[str]:
         raise InputError(f"--formats: unknown format {bad[0]!r} (geojson, gpkg, kml)")
     extra = list(dict.fromkeys(n for n in names if n != "geojson"))
     if extra:
-        from sarship.pipeline.export import require_pyogrio
+        from sarship.pipeline.products.export import require_pyogrio
         from sarship.pipeline.scene import open_scene
 
         require_pyogrio()
@@ -211,7 +211,7 @@ def _formats(text: str | None, scene: str) -> list[str]:
 
 
 def cmd_export(a) -> int:
-    from sarship.pipeline.export import export
+    from sarship.pipeline.products.export import export
 
     n = export(a.detections, a.to, overwrite=a.overwrite)
     print(f"{a.to}: {n} ships")
@@ -219,7 +219,7 @@ def cmd_export(a) -> int:
 
 
 def cmd_enhance(a) -> int:
-    from sarship.pipeline.destripe import DestripeParams
+    from sarship.pipeline.image.destripe import DestripeParams
     from sarship.workers.enhance import run_enhance
 
     if not a.destripe:
@@ -333,7 +333,7 @@ def cmd_serve(a) -> int:
 
 
 def cmd_evaluate(a) -> int:
-    from sarship.pipeline.scoring import evaluate, format_scores
+    from sarship.pipeline.products.scoring import evaluate, format_scores
 
     det = Path(a.detections)
     mask = a.mask
@@ -365,7 +365,7 @@ def cmd_detectors(a) -> int:
 
 def cmd_demo(a) -> int:
     """Simulate a scene with ships, detect them on a local Dask cluster, score them."""
-    from sarship.pipeline.scoring import evaluate, format_scores
+    from sarship.pipeline.products.scoring import evaluate, format_scores
     from sarship.pipeline.simulate import SimConfig, simulate, validate
     from sarship.workers.jobs import run_detection
 
@@ -392,7 +392,7 @@ def cmd_demo(a) -> int:
     _print_warnings("demo", run)
     det = out / "detect" / "detections.geojson"
     scores = evaluate(det, truth)
-    from sarship.pipeline.ship_features import write_json
+    from sarship.pipeline.targets.ship_features import write_json
 
     write_json(out / "scores.json", scores)
     print(format_scores(scores))

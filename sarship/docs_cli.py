@@ -8,7 +8,7 @@ prose around the blocks is hand-written and left alone. Regenerate after changin
     python -m sarship.docs_cli            # rewrites docs/interfaces/cli.md in place
     python -m sarship.docs_cli --check    # exit 1 when the page differs from the parser
 
-``tests/test_docs.py`` runs the check. A command with no block yet gets a new section at the end
+``tests/project/test_docs.py`` runs the check. A command with no block yet gets a new section at the end
 of the page (move it where it belongs; the generator keeps the block wherever it is).
 """
 

@@ -10,7 +10,7 @@ around it hand-written. Regenerate after changing a variable::
     python -m sarship.docs_settings            # rewrites docs/interfaces/settings.md in place
     python -m sarship.docs_settings --check    # exit 1 when the page differs from the models
 
-``tests/test_settings_vars.py`` runs the check.
+``tests/project/test_settings_vars.py`` runs the check.
 """
 
 from __future__ import annotations

@@ -191,7 +191,7 @@ def _land_child(conn, src: str, out: str, shape: tuple, attrs: dict, tile: int, 
     try:
         import numpy as np
 
-        from sarship.pipeline.landmask_files import open_land_file
+        from sarship.pipeline.land.landmask_files import open_land_file
         from sarship.pipeline.scene import finalize_scene
         from sarship.workers.land import create_land_store
 
@@ -231,7 +231,7 @@ def land_in_child(src: Path, out: Path, *, shape: tuple[int, int], attrs: dict, 
     file (a GeoJSON of any size up to ``max_bytes``, a hostile TIFF) is parsed there, never in
     the API process. The child writes the mask to the Zarr group ``out`` (array ``land``, 1 =
     land; what the job then reads as its land_mask) and answers the file's ``kind``, ``format``
-    and ``info`` (:class:`~sarship.pipeline.landmask_files.LandFile`). A bad file (the
+    and ``info`` (:class:`~sarship.pipeline.land.landmask_files.LandFile`). A bad file (the
     reader's one line, or beyond the memory cap) raises
     :class:`~sarship.pipeline.errors.InputError`; the data folder full,
     :class:`IngestTransient`; anything else, :class:`IngestCrashed`."""

@@ -63,7 +63,7 @@ def land_file_path(settings: Settings, request) -> Optional[Path]:
                          "or relative to the scene folder)") from None
     if not any(real == r or r in real.parents for r in settings.roots()):
         raise InputError(f"parameter 'land_mask': '{s}' is outside the allowed scene folders")
-    from sarship.pipeline.landmask_files import check_land_path
+    from sarship.pipeline.land.landmask_files import check_land_path
 
     # from its stat alone (the API process opens no user file): a regular file or a Zarr folder,
     # a GeoJSON within land_max_mb; the job's capped child parses it (Runner._land_file)
@@ -79,7 +79,7 @@ def check_coastline(request, path: Optional[Path]) -> None:
 
     if "coastline" not in land_mask_parts(request.detector_params().land_mask)[0]:
         return
-    from sarship.pipeline.coastline import check_scene
+    from sarship.pipeline.land.coastline import check_scene
     from sarship.pipeline.scene import open_scene
 
     check_scene(open_scene(path).attrs if path is not None else None)
@@ -129,9 +129,9 @@ def check_scene_input(path: Path, request: JobRequest) -> None:
     """:class:`InputError` when the request's detector cannot read the scene at ``path`` (its
     ``channel`` a variable the scene lacks or of the wrong kind, a complex-SLC detector on
     amplitude data, a complex-channel detector on a covariance scene): the check the job
-    itself makes (:func:`sarship.pipeline.inputs.detector_source`). A store that cannot be
+    itself makes (:func:`sarship.pipeline.tiling.inputs.detector_source`). A store that cannot be
     opened is left to the job, as for every detector."""
-    from sarship.pipeline.inputs import detector_source
+    from sarship.pipeline.tiling.inputs import detector_source
     from sarship.pipeline.scene import open_scene
 
     try:

@@ -7,7 +7,7 @@ and partly wrong: the execution route reads its JSON body itself (so that a bad 
 problem document, not a framework error) and would declare no body; every route would
 declare FastAPI's ``422`` validation error, which the service answers as a ``400`` problem
 document instead; and no route would declare its problem (``application/problem+json``)
-responses. Clients (and the schemathesis fuzzing in ``tests/test_fuzz.py``) read this schema,
+responses. Clients (and the schemathesis fuzzing in ``tests/service/test_fuzz.py``) read this schema,
 so it has to be right. The models here are used only to *document* responses
 (``responses=``): routes return plain dicts, so status polling pays no validation cost.
 The API as users see it is described in ``docs/interfaces/rest.md``.

@@ -17,7 +17,7 @@ neighbouring tiles and the preview match. The stretch depends on what the scene'
 Zero (no signal, no data) is black in all three; percentiles are taken over the other pixels.
 
 The band is the one the job's detector read when that was a single channel (``run.json`` ``channel``), else
-:func:`sarship.pipeline.inputs.intensity_source`'s choice (``intensity``, else ``|hh|^2`` ... for complex
+:func:`sarship.pipeline.tiling.inputs.intensity_source`'s choice (``intensity``, else ``|hh|^2`` ... for complex
 and quad-pol scenes, else ``c11`` for covariance scenes).
 
 Reads are strided (``zarr`` slicing with a step), so a decimated picture of a 25000-pixel scene
@@ -93,7 +93,7 @@ def job_run(job_dir: Path) -> dict:
 
 def scene_source(job_dir: Path) -> Source:
     """The scene band a job's quicklooks show (see the module doc)."""
-    from sarship.pipeline.inputs import intensity_source
+    from sarship.pipeline.tiling.inputs import intensity_source
     from sarship.pipeline.scene import open_scene
 
     run = job_run(job_dir)

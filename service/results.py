@@ -106,7 +106,7 @@ _DETECTIONS_DOC = {200: {"description": "detected ships: a GeoJSON FeatureCollec
 @router.get("/jobs/{job_id}/results/detections", responses=_DETECTIONS_DOC)
 def detections_out(request: Request, job_id: str, f: str = "geojson"):
     """The detections as GeoJSON (default), or with ``f=gpkg`` / ``f=kml`` as a GeoPackage / KML
-    (:mod:`sarship.pipeline.export`, built once and cached in the job folder) when the scene was
+    (:mod:`sarship.pipeline.products.export`, built once and cached in the job folder) when the scene was
     georeferenced and the ``gis`` extra is installed."""
     from sarship.pipeline.errors import InputError
     from sarship.service.cache import build_once
@@ -119,7 +119,7 @@ def detections_out(request: Request, job_id: str, f: str = "geojson"):
     if fmt == "geojson":
         return FileResponse(d / "detections.geojson", media_type="application/geo+json",
                             filename=f"{job_id}-detections.geojson")
-    from sarship.pipeline import export
+    from sarship.pipeline.products import export
 
     try:
         export.require_pyogrio()

@@ -3,7 +3,7 @@
 The truth convention is ``sarship simulate``'s: a GeoJSON beside the store named
 ``<scene path>.truth.geojson`` (the simulator also records that file's name in the scene's
 ``truth`` attribute, which is honoured when it names a file beside the store). The scores are
-:func:`sarship.pipeline.scoring.evaluate`'s, exactly what ``sarship evaluate DETECTIONS --truth TRUTH``
+:func:`sarship.pipeline.products.scoring.evaluate`'s, exactly what ``sarship evaluate DETECTIONS --truth TRUTH``
 prints with ``--json`` (n_truth, n_hit, pd, precision, fom, f1, ...), computed once and cached in
 the job folder (``scores.json``, written atomically).
 """
@@ -41,7 +41,7 @@ def job_scores(job_dir: Path, run: dict) -> Optional[dict]:
 
     def build(tmp: Path) -> None:
         from sarship.pipeline.errors import InputError
-        from sarship.pipeline.scoring import evaluate
+        from sarship.pipeline.products.scoring import evaluate
 
         try:
             scores = evaluate(job_dir / "detections.geojson", truth, mask_path=job_dir / "mask.zarr")

@@ -2,7 +2,7 @@
 
 - ``id`` is the job ID; ``geometry`` and ``bbox`` are the scene footprint in WGS84 lon/lat
   (its border, sampled along each edge, through the scene's ``transform`` + ``crs`` or ``gcps``
-  with :class:`sarship.pipeline.ship_features.Georeference`, pyproj for projected CRSs); a scene without
+  with :class:`sarship.pipeline.targets.ship_features.Georeference`, pyproj for projected CRSs); a scene without
   georeference has a null geometry and no bbox, as the Item spec allows.
 - ``properties.datetime`` is the scene's ``acquired`` time when the scene knows it (RFC 3339,
   UTC when the attribute has no zone), else the job's finished time; ``created`` is always the
@@ -83,7 +83,7 @@ def rfc3339(value: Any) -> Optional[str]:
 
 def footprint(attrs: dict, shape: tuple[int, int], n: int = 16) -> tuple[Optional[dict], Optional[list]]:
     """``(geometry, bbox)`` of the scene border in WGS84, or ``(None, None)`` without georeference."""
-    from sarship.pipeline.ship_features import Georeference
+    from sarship.pipeline.targets.ship_features import Georeference
 
     geo = {k: attrs[k] for k in ("crs", "transform", "gcps") if k in attrs}
     if not geo:

@@ -196,7 +196,7 @@ def lonlat_grid(attrs: dict, shape: tuple[int, int], n: int = GRID_CELLS) -> Opt
     ----------
     attrs : dict
         The scene's attributes: ``crs`` + ``transform`` or ``gcps``
-        (:class:`sarship.pipeline.ship_features.Georeference`).
+        (:class:`sarship.pipeline.targets.ship_features.Georeference`).
     shape : tuple of int
         The scene's (rows, columns).
     n : int
@@ -211,7 +211,7 @@ def lonlat_grid(attrs: dict, shape: tuple[int, int], n: int = GRID_CELLS) -> Opt
         continuous across the antimeridian, possibly past +-180); None when the scene is not georeferenced or
         its georeference gives no finite WGS84 position.
     """
-    from sarship.pipeline.ship_features import Georeference
+    from sarship.pipeline.targets.ship_features import Georeference
 
     geo = {k: attrs[k] for k in ("crs", "transform", "gcps") if k in attrs}
     if not geo:

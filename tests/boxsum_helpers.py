@@ -1,6 +1,6 @@
-"""Shared by the bit-for-bit tests of the window sums (tests/test_boxsum.py) and of the fused
-two-parameter kernel (tests/test_two_parameter_kernel.py): the van Herk summation order of
-:mod:`sarship.pipeline.boxsum` stated in numpy, a bit-for-bit comparison, random inputs and
+"""Shared by the bit-for-bit tests of the window sums (tests/pipeline/test_boxsum.py) and of the fused
+two-parameter kernel (tests/pipeline/test_two_parameter_kernel.py): the van Herk summation order of
+:mod:`sarship.pipeline.tiling.boxsum` stated in numpy, a bit-for-bit comparison, random inputs and
 CFAR cases, and the tiles of a scene.
 """
 
@@ -44,7 +44,7 @@ def vh_ref(a: np.ndarray, m: int, g0: int, zero_start: bool) -> np.ndarray:
 
 
 def box_sum_ref(block, m, halo, origin):
-    """:func:`sarship.pipeline.boxsum.centered_box_sum` in numpy: rows, then columns."""
+    """:func:`sarship.pipeline.tiling.boxsum.centered_box_sum` in numpy: rows, then columns."""
     r = m // 2
     off = halo - r
     h = block.shape[0] - 2 * halo

@@ -48,7 +48,7 @@ REAL = SHARED / "data" / "real"
 
 # A warm cluster the developer keeps running (sarship warm start) must not take the tests'
 # commands: they look for one at a socket path of their own, where none runs unless a test
-# starts it (tests/test_warm.py).
+# starts it (tests/cli/test_warm.py).
 os.environ["SARSHIP_WARM_SOCKET"] = f"/tmp/sarship-tests-{os.getuid()}-{os.getpid()}/none/warm.sock"
 
 

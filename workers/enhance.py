@@ -3,9 +3,9 @@
 Destriping (docs/algorithms/destripe.md) runs as detection does, one task per tile:
 
 1. scene pass: each tile task reads its tile (no halo) straight from the store and returns
-   its exact segment sums of ``ln P`` (:func:`sarship.pipeline.destripe.segment_sums`);
+   its exact segment sums of ``ln P`` (:func:`sarship.pipeline.image.destripe.segment_sums`);
 2. the client assembles them (integer sums: the same for every tiling), finds the stripe
-   bins (Otsu + Hough) and the stripe profile (:func:`sarship.pipeline.destripe.estimate`);
+   bins (Otsu + Hough) and the stripe profile (:func:`sarship.pipeline.image.destripe.estimate`);
 3. each tile task reads every variable of its tile, multiplies it by the stripe gain of its
    columns (rows) and writes exactly its chunk of the output store.
 
@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 
 from sarship.pipeline import __version__
-from sarship.pipeline.destripe import DestripeParams, apply_gain, assemble, estimate, segment_sums
+from sarship.pipeline.image.destripe import DestripeParams, apply_gain, assemble, estimate, segment_sums
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.inputs import intensity_source, make_reader
+from sarship.pipeline.tiling.inputs import intensity_source, make_reader
 from sarship.pipeline.scene import atomic_store, create_scene, finalize_scene, open_scene, tile_slices
 
 

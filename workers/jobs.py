@@ -9,7 +9,7 @@ in :mod:`sarship.pipeline.run`, this module executes them on the cluster::
     land = prepare_land(plan, jobs)     # workers/land.py: the land mask's pass over the tiles
     prep = _scene_pass(plan, jobs)      # the detector's scene-wide statistics (DetectorSpec.scene_pass)
     results = _execute(jobs)            # the detector on every tile (workers/tasks.py: run_tile)
-    merged = merge_tiles(results)       # components joined across tiles (pipeline/components.py)
+    merged = merge_tiles(results)       # components joined across tiles (pipeline/targets/components.py)
     records = discriminate(plan, merged)       # pipeline/run/merge.py: size, lines, the detector's rules
     refined = refine(plan, records)            # pipeline/run/refine.py: features, contrast, sidelobes, geolocation, ambiguities
     kept_px = _write_kept(refined.records)     # mask.zarr/mask: the kept detections' pixels, on the workers
@@ -36,8 +36,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sarship.pipeline import model_fit
-from sarship.pipeline.components import merge_tiles
+from sarship.pipeline.stats import model_fit
+from sarship.pipeline.targets.components import merge_tiles
 from sarship.pipeline.run.fit import fit_record
 from sarship.pipeline.run.merge import discriminate
 from sarship.pipeline.run.outputs import check_out, check_out_path, prepare_out, publish
@@ -45,7 +45,7 @@ from sarship.pipeline.run.plan import Plan, make_plan
 from sarship.pipeline.run.record import Outcome, run_record
 from sarship.pipeline.run.refine import refine
 from sarship.pipeline.scene import claim_output, create_mask_store, finalize_scene, open_scene, tile_slices
-from sarship.pipeline.ship_features import collection, write_json
+from sarship.pipeline.targets.ship_features import collection, write_json
 from sarship.workers.land import LAND_STORE, finish_land, prepare_land
 from sarship.workers.progress import Progress
 from sarship.workers.request import AUTO, JobRequest
@@ -127,10 +127,10 @@ def run_request(
 
 def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
               cluster_note, **publication) -> dict[str, Any]:
-    """``--detector auto``: the clutter-model fit of each candidate (pipeline/model_fit.py,
+    """``--detector auto``: the clutter-model fit of each candidate (pipeline/stats/model_fit.py,
     ``AUTO_CANDIDATES``) measured on the scene's sample (the candidate run with the request's
     parameters, its own PFA and the probe PFA, its kept detections excluded, no output
-    written), then the chosen one (:func:`~sarship.pipeline.model_fit.choose`) run again to
+    written), then the chosen one (:func:`~sarship.pipeline.stats.model_fit.choose`) run again to
     write the outputs; its ``run.json`` records the choice as ``detector_auto``. (A candidate
     run at the probe PFA itself would merge the clutter's exceedances of a model that does not
     fit into detections, and exclude them from its own sample.)"""
@@ -248,7 +248,7 @@ def _execute_plan(plan: Plan, tmp: Path, client, scheduler, cluster_note, progre
             discarded["land"] = refined.dropped_land
         discarded["contrast"] = refined.dropped_contrast
         fit = None
-        if plan.fit is not None:  # does the detector's clutter model fit the scene? (pipeline/model_fit.py)
+        if plan.fit is not None:  # does the detector's clutter model fit the scene? (pipeline/stats/model_fit.py)
             fit = fit_record(plan, results, refined.records)
             line = model_fit.advice(fit)
             if line:

@@ -3,21 +3,21 @@ coastline+texture | FILE), client side.
 
 ``texture``: a land pass over the tiles (:func:`sarship.workers.tasks.run_tile_land_stats`: the
 texture on a scene-wide grid, pooled in (row, col) order), the Gaussian mixture fitted and the
-sea/land decision made here (:func:`sarship.pipeline.landmask.decide`); each detection tile
+sea/land decision made here (:func:`sarship.pipeline.land.landmask.decide`); each detection tile
 then computes its land mask from its own block read with ``land_halo`` more context, writes
 its core into ``DIR/land.zarr`` and sets land to NaN before the detector runs.
 
-``FILE``: the file is checked (:func:`sarship.pipeline.landmask_files.open_land_file`) and
+``FILE``: the file is checked (:func:`sarship.pipeline.land.landmask_files.open_land_file`) and
 rasterised into ``DIR/land.zarr`` here, strip by strip, before any tile runs; each tile reads
 its block of it (mirror-extended like the scene) and sets land to NaN.
 
-``coastline``: the GSHHG shoreline (:mod:`sarship.pipeline.coastline`) widened by
+``coastline``: the GSHHG shoreline (:mod:`sarship.pipeline.land.coastline`) widened by
 ``land_buffer_m`` is rasterised into ``DIR/land.zarr`` here, strip by strip, as a FILE is, and
 the tiles read it the same way. ``coastline+texture``: the coastline goes to the array
 ``coastline`` of ``DIR/land.zarr``; each texture tile reads its block of it and writes the union
 into ``land``.
 
-Maths in :mod:`sarship.pipeline.landmask`; docs/algorithms/landmask.md.
+Maths in :mod:`sarship.pipeline.land.landmask`; docs/algorithms/landmask.md.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ LAND_STORE = "land.zarr"
 
 
 def texture_config(params) -> "Any":
-    from sarship.pipeline.landmask import TextureConfig
+    from sarship.pipeline.land.landmask import TextureConfig
 
     return TextureConfig(window=int(params.land_window), classes=int(params.land_classes),
                          open_px=int(params.land_open_px), close_px=int(params.land_close_px))
@@ -78,7 +78,7 @@ def rasterize_coastline(coast, arr, shape: tuple[int, int], rows: int, progress:
 
 def coastline_record(coast, count: int, seconds: float) -> dict:
     """``run.json``'s description of the coastline mask."""
-    from sarship.pipeline.coastline import shoreline_version
+    from sarship.pipeline.land.coastline import shoreline_version
 
     st = coast.stats
     return {"source": "coastline", "shoreline": f"GSHHG full resolution, level 1 ({shoreline_version()})",
@@ -97,7 +97,7 @@ def prepare_land(plan: Plan, jobs: list, tmp: Path, execute, progress: bool = Fa
         return jobs, None
     land = plan.land
     if "coastline" in land.kinds:
-        from sarship.pipeline.coastline import Coastline
+        from sarship.pipeline.land.coastline import Coastline
 
         if not isinstance(land.source, Coastline):
             raise TypeError("prepare_land: land_mask=coastline needs the plan's checked Coastline")
@@ -121,9 +121,9 @@ def _coastline_land(plan: Plan, jobs: list, tmp: Path, progress: bool, t0: float
 
 def _texture_land(plan: Plan, jobs: list, tmp: Path, execute, progress: bool, t0: float) -> tuple[list, dict]:
     """``land_mask=texture`` (and ``coastline+texture``): the texture sample of every tile, the
-    scene-wide decision (:func:`sarship.pipeline.landmask.decide`), the tiles' land fields; with
+    scene-wide decision (:func:`sarship.pipeline.land.landmask.decide`), the tiles' land fields; with
     the coastline, its array beside the texture's, which the tiles add to their block."""
-    from sarship.pipeline import landmask
+    from sarship.pipeline.land import landmask
     from sarship.workers.tasks import run_tile_land_stats
 
     store = tmp / LAND_STORE

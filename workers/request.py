@@ -33,7 +33,7 @@ CHANNEL = re.compile(r"\s*[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\s*(,\s*[A-Za-z0-9_][A
 #: Inputs of a job that are not detector parameters.
 RESERVED = ("scene", "device", "channel")
 #: The detector name that has the clutter-model fit choose among ``AUTO_CANDIDATES``
-#: (pipeline/model_fit.py; workers/jobs.py runs it); its parameters must suit every candidate.
+#: (pipeline/stats/model_fit.py; workers/jobs.py runs it); its parameters must suit every candidate.
 AUTO = "auto"
 
 
@@ -75,9 +75,9 @@ def parse_params(spec: DetectorSpec, settings: Mapping[str, Any]) -> DetectorPar
 
 
 def _specs(detector: str) -> list[DetectorSpec]:
-    """The detector's spec; for ``auto``, the candidates' (pipeline/model_fit.py)."""
+    """The detector's spec; for ``auto``, the candidates' (pipeline/stats/model_fit.py)."""
     if detector == AUTO:
-        from sarship.pipeline.model_fit import AUTO_CANDIDATES
+        from sarship.pipeline.stats.model_fit import AUTO_CANDIDATES
 
         return [detectors.get(n) for n in AUTO_CANDIDATES]
     return [detectors.get(detector)]

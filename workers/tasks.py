@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 
 from sarship.pipeline import detectors
-from sarship.pipeline.components import mask_points, point_labels, points_components
-from sarship.pipeline.ship_features import keep_mask, size_prefilter
-from sarship.pipeline.inputs import make_reader, open_array, pixel_power
-from sarship.pipeline.windows import padded_block
+from sarship.pipeline.targets.components import mask_points, point_labels, points_components
+from sarship.pipeline.targets.ship_features import keep_mask, size_prefilter
+from sarship.pipeline.tiling.inputs import make_reader, open_array, pixel_power
+from sarship.pipeline.tiling.windows import padded_block
 
 
 def _chunk_box(chunks: tuple[int, int], r0: int, c0: int, shape: tuple[int, int],
@@ -81,7 +81,7 @@ def write_points(path: str, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray
 
 
 def points_power(values) -> np.ndarray:
-    """:func:`~sarship.pipeline.inputs.pixel_power` of the values of some pixels, ``values[k]``
+    """:func:`~sarship.pipeline.tiling.inputs.pixel_power` of the values of some pixels, ``values[k]``
     being pixel k's (a number, stacked channels or a covariance matrix): a 1-D array."""
     return np.asarray(pixel_power(np.asarray(values)[:, None]))[:, 0]
 
@@ -108,7 +108,7 @@ class TileJob:
     land_halo: int = 0  # extra context the texture land mask needs beyond ``halo``
     line_join: bool = False  # lines are joined on the client: the tile keeps elongated components
     land_path: str | None = None  # land.zarr array this tile writes its core into (texture mode)
-    #: clutter-model fit (pipeline/model_fit.py): None, or {"stride", "probes": [{"pfa", "prep",
+    #: clutter-model fit (pipeline/stats/model_fit.py): None, or {"stride", "probes": [{"pfa", "prep",
     #: "statistic"}]}: the tile's cells of the scene's sample grid, flagged at the job's PFA and
     #: at each probe PFA (``statistic``: the statistic against the probe's ``prep["threshold"]``;
     #: ``detector``, ``params``: another detector of the same model decides, model_fit.MODEL_PROBE)
@@ -155,7 +155,7 @@ def _land_block(job: TileJob, block, r0: int, r1: int, c0: int, c1: int):
     """The land mask of the padded block (halo ``job.halo``) and the block with land set to NaN:
     computed from the texture (the block was read with ``land_halo`` more context, trimmed
     here) or read from the job's land store (mirror-extended like the scene)."""
-    from sarship.pipeline import landmask
+    from sarship.pipeline.land import landmask
 
     h, lh = job.halo, job.land_halo
     if job.land["mode"] == "texture" and not job.land["decision"].get("land") and not job.land.get("coastline"):
@@ -237,7 +237,7 @@ def _land_pass_block(job: TileJob, window: tuple[int, int, int, int], full):
     ``job.halo + job.land_halo``); None when there is none for this job and window."""
     if full is None or job.land is None or job.land.get("mode") != "texture" or window != _extended(job):
         return None
-    from sarship.pipeline import landmask
+    from sarship.pipeline.land import landmask
 
     extra = landmask.TextureConfig(**job.land["config"]).halo - job.land_halo  # read with the full land halo
     if extra < 0:
@@ -252,7 +252,7 @@ def read_land_block(job: TileJob) -> np.ndarray:
     The job keeps the result as Dask data on the worker that read it and hands it to the tile's
     texture sample and to its detection (workers/jobs.py), so the scene is decoded once; Dask
     places both where the block is and moves it only when another worker must run them."""
-    from sarship.pipeline import landmask
+    from sarship.pipeline.land import landmask
 
     cfg = landmask.TextureConfig(**job.land["config"])
     er0, er1, ec0, ec1 = _extended(job)
@@ -265,7 +265,7 @@ def run_tile_land_stats(job: TileJob, full: np.ndarray | None = None) -> dict[st
     (``job.land["stride"]``), for the mixture fitted on the client (workers/land.py); taken from
     the middle of ``full`` (:func:`read_land_block`) when the job keeps the tile's read, else
     from a read of the tile with the texture window's context."""
-    from sarship.pipeline import landmask
+    from sarship.pipeline.land import landmask
 
     t0 = time.perf_counter()
     r0, r1, c0, c1 = job.bounds
@@ -290,14 +290,15 @@ def _host(a) -> np.ndarray:
 
 
 def _fit_flags(job: TileJob, spec, params, host_block, block, origin, mask, stat) -> dict | None:
-    """The tile's cells of the scene's clutter-model-fit sample (pipeline/model_fit.py): present
+    """The tile's cells of the scene's clutter-model-fit sample (pipeline/stats/model_fit.py): present
     pixels of the core, whether the detection (``mask``, ``stat`` of the extended window) marks
     them, and whether the decision at each probe PFA does (``block``: the detector's input, on
     the device for a GPU tile; ``host_block``: the same on the host). None without ``job.fit``."""
     if job.fit is None:
         return None
-    from sarship.pipeline import intensity_absent, model_fit
+    from sarship.pipeline.tiling import intensity_absent
 
+    from sarship.pipeline.stats import model_fit
     r0, r1, c0, c1 = job.bounds
     er0, _er1, ec0, _ec1 = _extended(job)
     a, b, hb = r0 - er0, c0 - ec0, job.halo
@@ -401,7 +402,7 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
 
 def run_tile_keep(job: TileJob, ids: np.ndarray) -> dict[str, Any]:
     """Write the tile's part of ``mask.zarr/mask``: the pixels of its components ``ids`` (the
-    tile's own component ids, :func:`sarship.pipeline.components.merge_tiles` ``members``,
+    tile's own component ids, :func:`sarship.pipeline.targets.components.merge_tiles` ``members``,
     of the detections kept), read from the tile's label store; nothing else. Returns the tile's
     index and its count of kept pixels."""
     r0, r1, c0, c1 = job.bounds

@@ -4,7 +4,7 @@ Source: chapter 2 of Sun Tianyu's Tsinghua thesis (2020); docs/algorithms/apwf.m
 in docs/references.md.
 
 Model. The scattering vector of a pixel, X = [S_hh, S_hv, S_vv]^T (quad-pol, p = 3) or
-two channels (dual-pol, p = 2, e.g. [S_vh, S_vv]; order: :func:`sarship.pipeline.inputs.polarimetric_source`),
+two channels (dual-pol, p = 2, e.g. [S_vh, S_vv]; order: :func:`sarship.pipeline.tiling.inputs.polarimetric_source`),
 is zero-mean circular complex Gaussian over sea clutter with covariance Sigma = E[X X^H]
 (eq 2-1 to 2-3). The polarimetric whitening filter (PWF) is the quadratic form
 
@@ -24,7 +24,7 @@ of X X^H over N clutter cells of a sliding window centred on the cell under test
 
 Window sums of the p^2 real numbers of X X^H (the p powers |X_i|^2 and the real and
 imaginary parts of the p(p-1)/2 upper-triangle products X_i X_j^*) are box sums
-(:func:`sarship.pipeline.boxsum.centered_box_sum`: O(1) per pixel whatever the window, and
+(:func:`sarship.pipeline.tiling.boxsum.centered_box_sum`: O(1) per pixel whatever the window, and
 bit-identical for any tiling), the speed-up the thesis missed (it forms the 3 x N by N x 3
 product per pixel). Then, per pixel in Numba, y = N X^H S^-1 X with S the window sum
 (S / N the covariance estimate), from the closed-form adjugate of the Hermitian 2x2 / 3x3
@@ -49,7 +49,7 @@ Threshold (exact for N independent clutter samples; mask = y > T, stat = y):
 Absent pixels (no data; not in the thesis, which assumes complete data). A pixel whose
 data is not finite (NaN) or has no signal (all channels, or the covariance diagonal, exactly
 0: a zero-filled border or a declared no-data value of 0) is absent
-(:mod:`sarship.pipeline.polsar_absent`): its products are zeroed before the window sums and
+(:mod:`sarship.pipeline.tiling.polsar_absent`): its products are zeroed before the window sums and
 it is not counted, so each pixel's estimate uses its K <= N valid cells (K from the same
 tiling-invariant box sums, of the validity plane): y = K X^H S^-1 X with S the sum over the
 K valid cells, compared with the exact threshold T(K) of the formulas below (N replaced by
@@ -79,10 +79,10 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy import special
 
-from sarship.pipeline.boxsum import centered_box_sum
+from sarship.pipeline.tiling.boxsum import centered_box_sum
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 from sarship.pipeline.gpu import is_device_array, to_host
-from sarship.pipeline.polsar_absent import present, zero_absent
+from sarship.pipeline.tiling.polsar_absent import present, zero_absent
 
 #: Fewest valid cells in a pixel's estimate, as a fraction of N (see the module docstring).
 MIN_VALID_FRACTION = 0.5
@@ -394,7 +394,7 @@ def window_sums(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWF
 def window_sums_counts(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParams):
     """``(S, K, ok)``: :func:`window_sums` (absent cells left out), the number K of valid
     cells in each core pixel's estimate (float64, exact integers) and the core's
-    :func:`~sarship.pipeline.polsar_absent.present` mask."""
+    :func:`~sarship.pipeline.tiling.polsar_absent.present` mask."""
     b, g = int(prm.background), int(prm.guard)
     r = b // 2
     off = halo - r

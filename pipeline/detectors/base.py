@@ -17,7 +17,7 @@ A detector is a :class:`DetectorSpec`. Its maths is two pure functions:
 
 Results must not depend on where the tile starts: the whole scene processed as one block
 and the same scene processed in tiles give bit-identical masks (tests check it). Window
-sums therefore use :mod:`sarship.pipeline.boxsum`, whose association order is fixed by global
+sums therefore use :mod:`sarship.pipeline.tiling.boxsum`, whose association order is fixed by global
 pixel coordinates.
 
 How to add a detector (module, registry entry, scene pass, GPU twin, tests):
@@ -41,7 +41,7 @@ LENGTH_HELP = ("shortest ship kept, in metres (needs the scene's pixel spacing);
                "0 turns it off")
 
 
-#: Defaults of the line rule (pipeline/lines.py): the gap chosen on half A of the shared chips
+#: Defaults of the line rule (pipeline/targets/lines.py): the gap chosen on half A of the shared chips
 #: (bench/REALDATA.md, "Issue 31: kept-detection masks and line discrimination"; the angle and
 #: the dominance setting made no difference there and keep their prior values).
 LINE_GAP_PX = 16
@@ -49,7 +49,7 @@ LINE_ANGLE_DEG = 10.0
 LINE_DOMINANT_DB = 10.0
 
 #: Smallest ``pfa`` accepted: every detector's threshold is a finite float64 down to it (checked
-#: by tests/test_pfa_bounds.py); below it a request is refused (a pfa of 1e-320 is not a
+#: by tests/service/test_pfa_bounds.py); below it a request is refused (a pfa of 1e-320 is not a
 #: probability any threshold can honour: subnormal, its quantiles overflow).
 PFA_MIN = 1e-15
 
@@ -96,11 +96,11 @@ class DetectorParams(BaseModel):
     min_contrast_db: Optional[float] = Field(
         None, ge=-30.0, le=60.0,
         description="drop detections whose local contrast contrast_db (mean power over the mean power of the clutter "
-                    "ring around them, land and detections left out; pipeline/local_contrast.py) is below this many "
+                    "ring around them, land and detections left out; pipeline/targets/local_contrast.py) is below this many "
                     "dB, measured only when set (-30 measures every detection, dropping practically none); None keeps "
                     "every detection (default: the detector's; 7 for superpixel_cfar)")
     merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
-    # discrimination of lines, smear and land edges (pipeline/lines.py, docs/algorithms/discrimination.md)
+    # discrimination of lines, smear and land edges (pipeline/targets/lines.py, docs/algorithms/discrimination.md)
     line_gap_px: Optional[int] = Field(
         LINE_GAP_PX, ge=0, le=256,
         description="lines: collinear detections (same orientation within line_angle_deg, one's end within this many "
@@ -119,7 +119,7 @@ class DetectorParams(BaseModel):
                     "touching it), where a land mask is in use; None (default) keeps them (ships moored at quays)")
     sidelobes: bool = Field(True, description="cross-sidelobe suppression: length, width and heading measured on the "
                                               "ship core where a sidelobe cross is found (docs/algorithms/sidelobes.md)")
-    # azimuth-ambiguity flags (pipeline/ambiguity.py, docs/algorithms/ambiguity.md; defaults = its DEFAULT_*)
+    # azimuth-ambiguity flags (pipeline/targets/ambiguity.py, docs/algorithms/ambiguity.md; defaults = its DEFAULT_*)
     ambiguities: bool = Field(True, description="flag detections that are azimuth ambiguities (ghosts) of a brighter "
                                                 "detection: property ambiguity_of (docs/algorithms/ambiguity.md)")
     ambiguity_tol_px: float = Field(8.0, ge=0.0, le=1000.0,
@@ -128,7 +128,7 @@ class DetectorParams(BaseModel):
     ambiguity_min_db: float = Field(10.0, ge=0.0, le=60.0,
                                     description="ambiguities: a ghost's peak is at least this many dB below its "
                                                 "parent's")
-    # sea-land segmentation (pipeline/landmask.py, docs/algorithms/landmask.md): land pixels are
+    # sea-land segmentation (pipeline/land/landmask.py, docs/algorithms/landmask.md): land pixels are
     # absent (NaN) for the detector: never tested, in no clutter ring, in no scene-wide statistic
     land_mask: Optional[str] = Field(
         None, min_length=1, max_length=4096,
@@ -362,7 +362,7 @@ class DetectorSpec:
     detect: Callable[..., tuple[np.ndarray, np.ndarray]]
     input: str = "intensity"  # the scene quantity the detector reads (see pipeline.inputs)
     #: with ``input == "polarimetric"``: whether it also reads a covariance (C3/C2) scene
-    #: (:func:`sarship.pipeline.inputs.detector_source` refuses the scene otherwise)
+    #: (:func:`sarship.pipeline.tiling.inputs.detector_source` refuses the scene otherwise)
     covariance: bool = True
     needs_looks: bool = False
     #: Scene-wide statistics before detection (two passes): ``scene_pass(block, halo,
@@ -377,7 +377,7 @@ class DetectorSpec:
     scene_passes_max: int = 1
     #: ``discriminate(records, params, prep) -> bool array``: the detector's own rules on whole
     #: components (after the tiles are merged and the size rule applied; the records of
-    #: :mod:`sarship.pipeline.components`: ``n``, ``peak``, ``sumv``, ...), e.g. a peak rule.
+    #: :mod:`sarship.pipeline.targets.components`: ``n``, ``peak``, ``sumv``, ...), e.g. a peak rule.
     discriminate: Optional[Callable[..., np.ndarray]] = None
     #: ``detection_properties(feats, records, read, read_mask, shape, merge_r, params, prep) ->
     #: feats``: properties computed from the scene's pixels under each whole detection, added

@@ -11,12 +11,12 @@ Threshold. The ratio of two independent scaled chi-square means is Fisher-Snedec
     x_t / m  ~  F(2 n L, 2 N L)                                    (exact, any N)
 
 so the detection rule x_t > T * m has PFA = P(F > T), and T = F.isf(PFA; 2nL, 2NL)
-(:func:`sarship.pipeline.tails.f_isf`), exact for every N and every L, and independent of mu (CFAR).
+(:func:`sarship.pipeline.stats.tails.f_isf`), exact for every N and every L, and independent of mu (CFAR).
 For n = 1 this is the classical result that the CUT over the ring mean is F(2L, 2LN).
 Its large-N limit is the gamma quantile T -> Q^{-1}(L, PFA)/L used by tools that ignore
 the estimation noise of m (they overshoot the PFA by a factor of 2-10 for N ~ 100-500).
 
-Window sums use :mod:`sarship.pipeline.boxsum` (O(1) per pixel, tiling-invariant), streamed row by
+Window sums use :mod:`sarship.pipeline.tiling.boxsum` (O(1) per pixel, tiling-invariant), streamed row by
 row for the guard and background windows together and fused with the decision.
 """
 
@@ -29,11 +29,11 @@ from typing import Optional
 import numpy as np
 from numba import njit
 from pydantic import Field
-from sarship.pipeline import boxsum, intensity_absent
-from sarship.pipeline.boxsum import box_stream, box_stream_row
+from sarship.pipeline.tiling import boxsum, intensity_absent
+from sarship.pipeline.tiling.boxsum import box_stream, box_stream_row
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 from sarship.pipeline.gpu import is_device_array
-from sarship.pipeline.tails import f_isf
+from sarship.pipeline.stats.tails import f_isf
 
 
 class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-5, guard=41, background=81, merge_px=4,
@@ -89,7 +89,7 @@ def _decide_row(xt, bg, gd, inv, thr, mask, stat):
 
 
 def _make_detect_strip(boxsum_stamp: str):
-    """The fused kernel. Its machine code includes that of the :mod:`sarship.pipeline.boxsum`
+    """The fused kernel. Its machine code includes that of the :mod:`sarship.pipeline.tiling.boxsum`
     streams, but numba's on-disk cache only watches this file: ``boxsum_stamp`` (a hash of
     ``boxsum.py``) is a closure variable, and closure variables are part of numba's cache
     key, so an edited ``boxsum.py`` gets a fresh compilation instead of stale cached code.
@@ -100,7 +100,7 @@ def _make_detect_strip(boxsum_stamp: str):
                      mask, stat):
         """Columns [c0, c1) of the core: window sums streamed row by row, then the decision.
 
-        One :mod:`sarship.pipeline.boxsum` stream per window (the additions of ``centered_box_sum``),
+        One :mod:`sarship.pipeline.tiling.boxsum` stream per window (the additions of ``centered_box_sum``),
         all in lockstep, so no full-size float64 intermediate is ever written.
         """
         boxsum_stamp  # noqa: B018 (keeps the stamp in the closure, hence in the cache key)

@@ -7,7 +7,7 @@ global CSK threshold finds ships over a whole swath. docs/algorithms/complex_sta
 
 Statistic. For each pixel, over the ``window`` x ``window`` cells (n = window^2) centred on it,
 the sample CSK of eq 37 with zero mean (SLC data, the paper's assumption), from four window sums
-(:mod:`sarship.pipeline.boxsum`, tiling-invariant):
+(:mod:`sarship.pipeline.tiling.boxsum`, tiling-invariant):
 
     CSK = n S22 / S11^2 - 2 - (SR^2 + SI^2) / S11^2,
     S11 = sum |z|^2, S22 = sum |z|^4, SR + j SI = sum z^2.
@@ -15,7 +15,7 @@ the sample CSK of eq 37 with zero mean (SLC data, the paper's assumption), from 
 Threshold (what ``pfa`` means). Under circular complex Gaussian sea (i.i.d. CN(0, s2): fully
 developed speckle, eq 39 with beta = 1) CSK's law depends on n only; the threshold T with
 P(false alarm) = ``pfa`` per pixel comes from that law, simulated by importance sampling with a
-fixed seed (:mod:`sarship.pipeline.csk_null`: exact mean -4/(n+1), asymptotic N(-4/(n+1), 4/n),
+fixed seed (:mod:`sarship.pipeline.stats.csk_null`: exact mean -4/(n+1), asymptotic N(-4/(n+1), 4/n),
 why the asymptotic law is not used). A pixel is detected when
 
 * ``cells="bright"`` (default): CSK > T and its own power exceeds the window's mean power
@@ -27,11 +27,11 @@ why the asymptotic law is not used). A pixel is detected when
 Absent pixels (NaN, or ``nodata``) are never tested and a pixel is tested only when its whole
 window is present (the null law is that of n cells; no per-count tables). Texture: on
 K-compound sea the texture is nearly constant within a small window, so CSK stays near its
-Gaussian law there; tests/test_csk.py measures how far the false-alarm rate moves.
+Gaussian law there; tests/pipeline/test_csk.py measures how far the false-alarm rate moves.
 
 Ship geometry (``ship_segmentation``, default ``kurtosis``): each detection's chip of the SLC is
 segmented by the iterative kurtosis segmentation of section 5.2 (or Otsu) and the segmented
-ship's geometry replaces the mask's (:func:`segment_geometry`, pipeline/kurtosis_seg.py).
+ship's geometry replaces the mask's (:func:`segment_geometry`, pipeline/targets/kurtosis_seg.py).
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ from typing import Literal, Optional
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from sarship.pipeline import boxsum, csk_null
+from sarship.pipeline.tiling import boxsum
+from sarship.pipeline.stats import csk_null
 from sarship.pipeline.detectors.base import (DetectorParams, DetectorSpec, check_windows, land_mask_parts,
                                              with_defaults)
 from sarship.pipeline.gpu import is_device_array
@@ -105,14 +106,14 @@ def prepare(p: CSKParams) -> dict:
         "null_mean": -4.0 / (n + 1),
         "statistic": "zero-mean sample CSK of the window, eq 37: n S22/S11^2 - 2 - |S20|^2/S11^2",
         "distribution": (f"circular complex Gaussian sea, n = {n}: importance-sampled "
-                         f"({samples} windows, seed {csk_null.SEED}; pipeline/csk_null.py)"),
+                         f"({samples} windows, seed {csk_null.SEED}; pipeline/stats/csk_null.py)"),
     }
 
 
 def csk_window(block, halo: int, origin: tuple[int, int], window: int, nodata: float | None, box, xp):
     """``(csk, tested, power, s11)`` of the core: the window CSK (float64), whether the pixel is
     tested (whole window present, non-zero power), the pixel's power and the window's power sum.
-    ``box`` is :func:`sarship.pipeline.boxsum.centered_box_sum` or its GPU twin, ``xp`` numpy or
+    ``box`` is :func:`sarship.pipeline.tiling.boxsum.centered_box_sum` or its GPU twin, ``xp`` numpy or
     cupy; the same IEEE operations in the same order on both."""
     zr = block.real.astype(xp.float64)
     zi = block.imag.astype(xp.float64)
@@ -205,8 +206,8 @@ def detection_properties(feats: list, records, read, read_mask, shape, merge_r: 
     and mean resultant length of NPDD_st, eq 19-21 and 5, 8) and ``rfi`` (:func:`rfi_flag`); then,
     unless ``ship_segmentation`` is ``none``, the segmented geometry (:func:`segment_geometry`).
     ``spacing`` and ``geo`` (the scene's pixel spacing and georeference attributes) measure it."""
-    from sarship.pipeline import circular
-    from sarship.pipeline.sidelobes import component_in_window
+    from sarship.pipeline.stats import circular
+    from sarship.pipeline.targets.sidelobes import component_in_window
 
     H, W = shape
     m = max(int(p.npdd_s), int(p.npdd_t)) // 2 + 1
@@ -243,14 +244,14 @@ SEGMENTATION_MAX_SIDE = 256
 def segment_geometry(feats: list, records, read, read_mask, shape, merge_r: int, p: CSKParams,
                      spacing: tuple[float, float] | None, geo: dict | None) -> list:
     """Each detection's ship geometry from a segmentation of its chip (seed 004 section 5.2,
-    fig 17; :mod:`sarship.pipeline.kurtosis_seg`).
+    fig 17; :mod:`sarship.pipeline.targets.kurtosis_seg`).
 
     The chip is the detection's bounding box plus ``segmentation_margin_px``, read from the
     scene (never the tile: the result does not depend on tiling), absent pixels (NaN, or
     ``nodata``) left out. It is segmented by ``ship_segmentation`` (the amplitude threshold of
     the iterative kurtosis segmentation, or Otsu's); the ship is the 8-connected segmented
     component holding the brightest segmented pixel of the detection (its mask component,
-    :func:`sarship.pipeline.sidelobes.component_in_window`, inside its bounding box). Where the
+    :func:`sarship.pipeline.targets.sidelobes.component_in_window`, inside its bounding box). Where the
     ship reaches a side of the chip (inside the scene), the detection covered only part of it
     (``csk`` finds the ends of a ship whose middle is homogeneous speckle, whose windows are
     Gaussian): the chip is widened to the ship's box plus the margin and segmented again, at
@@ -263,9 +264,9 @@ def segment_geometry(feats: list, records, read, read_mask, shape, merge_r: int,
     ``segmentation`` (the method), ``segmentation_threshold`` (the amplitude threshold, null
     when none was found), ``segmented_area_px`` (0: nothing segmented at the detection, the
     geometry left as it was)."""
-    from sarship.pipeline import kurtosis_seg
-    from sarship.pipeline.ship_features import features
-    from sarship.pipeline.sidelobes import GEOMETRY_KEYS, component_in_window
+    from sarship.pipeline.targets import kurtosis_seg
+    from sarship.pipeline.targets.ship_features import features
+    from sarship.pipeline.targets.sidelobes import GEOMETRY_KEYS, component_in_window
 
     H, W = shape
     m = int(p.segmentation_margin_px)

@@ -4,7 +4,7 @@ the ring, closed-form threshold (docs/algorithms/g0_k_ggd.md).
 Baseline of Liu et al. 2017 (docs/references.md#liu2017, seed 003: G0-CFAR at PFA 1e-3 with a
 land mask and bright-pixel censoring). Model: Frery et al. 1997 (G0 intensity, x = (gamma / L)
 S / G); MoLC: Nicolas 2002, Tison et al. 2004. Per pixel, the ring's log-cumulants k1, k2
-(eq 1 of :mod:`sarship.pipeline.molc`) give u = k2 - psi_1(L) = psi_1(a) and
+(eq 1 of :mod:`sarship.pipeline.stats.molc`) give u = k2 - psi_1(L) = psi_1(a) and
 gamma (eq 2); the threshold t solves P(x > t) = pfa in closed form through the Beta quantile
 (eq 3), tabulated as ln t - k1 = H(u). Statistic: x / t (> 1 is a detection).
 """
@@ -15,7 +15,8 @@ from typing import Optional
 
 from pydantic import Field, model_validator
 
-from sarship.pipeline import molc, molc_cfar
+from sarship.pipeline.stats import molc
+from sarship.pipeline.detectors import molc_cfar
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 
 CENSOR_HELP = ("bright-pixel censoring of the ring: a ring sample brighter than CENSOR x the mean of its own "

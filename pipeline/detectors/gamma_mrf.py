@@ -4,7 +4,7 @@ Liu et al. 2017 (docs/references.md), section 3 "pixel classification for target
 the page docs/algorithms/gamma_mrf.md states every choice. Equation numbers are the paper's.
 
 1. **Mixture** (eq (1)-(2)): a K = 4 class gamma mixture of the intensities with L looks (calm
-   sea, rough sea, flat land, man-made), fitted by EM (:mod:`sarship.pipeline.gamma_mixture`) on a
+   sea, rough sea, flat land, man-made), fitted by EM (:mod:`sarship.pipeline.stats.gamma_mixture`) on a
    scene-wide sample (the pixels of the global grid ``row % sample_stride == 0 and col %
    sample_stride == 0``, sorted by position: independent of the tiling). Classes are ordered by
    mean; the brightest (K-1) is the ship class.
@@ -72,7 +72,7 @@ from pydantic import Field, model_validator
 
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.gamma_mixture import (MEAN_FLOOR, class_energy_terms, fit_gamma_mixture, mixture_isf)
+from sarship.pipeline.stats.gamma_mixture import (MEAN_FLOOR, class_energy_terms, fit_gamma_mixture, mixture_isf)
 from sarship.pipeline.gpu import is_device_array
 
 #: Bins of the exact class sums: float32 binary exponents, offset so that every finite value fits.

@@ -3,7 +3,7 @@ log-cumulants on the ring, closed-form incomplete-gamma threshold (docs/algorith
 
 Baseline of Liu et al. 2017 (docs/references.md#liu2017, seed 003: GGD-CFAR at PFA 1e-3). Model:
 Stacy 1962, Li et al. 2011 ((x / sigma)^v kappa ~ Gamma(kappa)); MoLC: Li et al. 2011. Per
-pixel, the ring's k1, k2, k3 (eq 1 of :mod:`sarship.pipeline.molc`) give the skewness of ln x,
+pixel, the ring's k1, k2, k3 (eq 1 of :mod:`sarship.pipeline.stats.molc`) give the skewness of ln x,
 g1 = k3 / k2^{3/2}, which fixes kappa and sign(v) (eq 7); the threshold is
 ln t = k1 + sqrt(k2) D(g1) (eq 8), D from the incomplete-gamma inverses, tabulated per pfa.
 The number of looks is not used (the GGD's own shape absorbs it). Statistic: x / t.
@@ -11,7 +11,8 @@ The number of looks is not used (the GGD's own shape absorbs it). Statistic: x /
 
 from __future__ import annotations
 
-from sarship.pipeline import molc, molc_cfar
+from sarship.pipeline.stats import molc
+from sarship.pipeline.detectors import molc_cfar
 from sarship.pipeline.detectors.base import DetectorSpec, check_windows
 from sarship.pipeline.detectors.g0_cfar import MolcParams, halo_of
 

@@ -5,14 +5,15 @@ ring, threshold by numerical inversion of the K tail on a proven bracket
 Baseline of Liu et al. 2017 (docs/references.md#liu2017, seed 003). Model: Jakeman & Pusey 1976,
 Oliver & Quegan 1998 (x = mu (G / nu)(S / L), gamma texture times L-look speckle); MoLC:
 Nicolas 2002, Tison et al. 2004. Per pixel, u = k2 - psi_1(L) = psi_1(nu) and mu (eq 4 of
-:mod:`sarship.pipeline.molc`); the tail P(x > mu tau) (eq 5, an integral over the texture) is
+:mod:`sarship.pipeline.stats.molc`); the tail P(x > mu tau) (eq 5, an integral over the texture) is
 inverted for tau on the bracket of eq 6, and ln t - k1 = H(u) is tabulated per (pfa, L).
 Statistic: x / t.
 """
 
 from __future__ import annotations
 
-from sarship.pipeline import molc, molc_cfar
+from sarship.pipeline.stats import molc
+from sarship.pipeline.detectors import molc_cfar
 from sarship.pipeline.detectors.base import DetectorSpec, check_windows
 from sarship.pipeline.detectors.g0_cfar import MolcParams, halo_of
 

@@ -36,10 +36,10 @@ interpolates ln T bilinearly in between and gives the pixels within ``grid_refin
 of it their own fast fit. Everything is per pixel (and per global node), independent of the
 tile origin: bit-identical for any tiling.
 
-The per-ring maths is :mod:`sarship.pipeline.lmm_fit` (re-exported here); this module holds
+The per-ring maths is :mod:`sarship.pipeline.stats.lmm_fit` (re-exported here); this module holds
 the parameters, the per-tile kernels (Numba, single-threaded, no fastmath) and the
 dispatch: a CuPy block runs :mod:`sarship.pipeline.gpu.lmm`, looked up when needed, which
-depends on :mod:`sarship.pipeline.lmm_fit` and never on this module.
+depends on :mod:`sarship.pipeline.stats.lmm_fit` and never on this module.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ from scipy import special
 
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, float_block, with_defaults
 from sarship.pipeline.gpu import is_device_array
-from sarship.pipeline.lmm_fit import (em_fit_points, fit_threshold, init_z_table, mixture_grad_hess, mixture_loglik,
+from sarship.pipeline.stats.lmm_fit import (em_fit_points, fit_threshold, init_z_table, mixture_grad_hess, mixture_loglik,
                                       mixture_sf_log, mixture_threshold_log, ml_newton, predictive_shift)
 
 __all__ = ["LMMParams", "SPEC", "prepare", "detect", "em_fit_points", "mixture_threshold_log",
@@ -170,7 +170,7 @@ def prepare(p: LMMParams) -> dict:
 # kernels: per tile, one fit per pixel (exact, fast) or per global node and candidate (grid).
 # ``fit`` = (K, init_zs, max_iter, tol, select, predictive, z, log_pfa, censor, censor_level, censor_low,
 # refuse_weight): the settings of
-# :func:`sarship.pipeline.lmm_fit.fit_threshold`, the same for every ring of a tile.
+# :func:`sarship.pipeline.stats.lmm_fit.fit_threshold`, the same for every ring of a tile.
 
 
 @njit(nogil=True, cache=True)
@@ -467,7 +467,7 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
         mask, stat = detect(cp.asnumpy(block), halo, origin, params, prep)
         return cp.asarray(mask), cp.asarray(stat)
     if gpu and params.nodata is not None:  # a declared no-data value: absent, as NaN (as on the CPU)
-        from sarship.pipeline.intensity_absent import fill, present
+        from sarship.pipeline.tiling.intensity_absent import fill, present
 
         block = fill(block, present(block, params.nodata), np.nan)
     if gpu:  # CuPy block: the GPU twin (pipeline.gpu.lmm), one thread per ring fit
@@ -484,7 +484,7 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
                float(prep.get("censor_low", params.censor_low)),
                float(prep.get("refuse_weight", params.refuse_weight)))
         if params.nodata is not None:  # a declared no-data value: absent, as NaN
-            from sarship.pipeline.intensity_absent import fill, present
+            from sarship.pipeline.tiling.intensity_absent import fill, present
 
             ok = present(block, params.nodata)
             if not ok.all():

@@ -130,7 +130,7 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy import special
 
-from sarship.pipeline import boxsum, intensity_absent
+from sarship.pipeline.tiling import boxsum, intensity_absent
 from sarship.pipeline.gpu import is_device_array
 
 from .base import DetectorParams, DetectorSpec, float_block, with_defaults

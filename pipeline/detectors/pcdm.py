@@ -41,7 +41,7 @@ neighbours of the boxcar-averaged C); the scene border is mirror-extended.
 
 Absent pixels (no data; not in the thesis, which assumes complete data). A pixel whose data
 is not finite (NaN) or has no signal (all channels, or the covariance diagonal, exactly 0) is
-absent (:mod:`sarship.pipeline.polsar_absent`): it is zeroed before the boxcar (so NaN does
+absent (:mod:`sarship.pipeline.tiling.polsar_absent`): it is zeroed before the boxcar (so NaN does
 not spread through the block sums) and the valid cells of each pixel's
 ``(looks_window + 2)^2`` neighbourhood (its boxcar and those of its 8 neighbours) are counted
 with the same tiling-invariant box sums. The minimum is all of them: a pixel is tested only
@@ -63,10 +63,10 @@ import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 
-from sarship.pipeline.boxsum import centered_box_sum
+from sarship.pipeline.tiling.boxsum import centered_box_sum
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
 from sarship.pipeline.gpu import is_device_array, to_host
-from sarship.pipeline.polsar_absent import present, zero_absent
+from sarship.pipeline.tiling.polsar_absent import present, zero_absent
 
 #: Fixed bins of ln SPAN_P for the scene-wide histogram (``span_rule="pfa"``).
 LN_BINS = np.linspace(-60.0, 60.0, 12001)
@@ -83,7 +83,7 @@ class PCDMParams(with_defaults(DetectorParams, "PCDMDefaults", pfa=1e-6, min_are
       the whole sea is detected (FoM 0); the lognormal rule gives FoM 1.0.
     - ``looks_window=3``: single-look C makes SPAN_P heavy-tailed (the lognormal rule then
       over-alarms 14-180x); with a 3x3 boxcar the measured false-alarm rate on Gaussian
-      clutter is within 1.2-1.4x of the PFA (tests/test_pcdm.py).
+      clutter is within 1.2-1.4x of the PFA (tests/pipeline/test_pcdm.py).
     - ``psh_threshold=0`` (PSH neutral): on our simulated ships, bright point scatterers
       make P nearly rank one, so their PSH is *lower* than the sea's (median 0.002-0.01 vs
       0.009): the thesis' "ships have higher PSH" did not hold there. ``combine=and`` is

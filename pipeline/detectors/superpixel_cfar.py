@@ -5,7 +5,7 @@ image ship target detection", Journal of Radars 12(1) (docs/references.md, ``zha
 Equation numbers are the paper's; docs/algorithms/superpixel_cfar.md states every choice.
 
 1. Superpixels (section 3.1, eq 7-10): bounded DBSCAN-style growth from a global seed grid and
-   the merge of small superpixels (:mod:`sarship.pipeline.superpixels`).
+   the merge of small superpixels (:mod:`sarship.pipeline.image.superpixels`).
 2. Shadow removal (section 3.2): superpixels whose mean intensity is below ``shadow_ratio``
    times the scene's median superpixel mean are shadow: neither tested nor clutter.
 3. K-means (k = 2) on the superpixel means in dB (section 3.3, Table 1 step 1), scene-wide:
@@ -20,7 +20,7 @@ Equation numbers are the paper's; docs/algorithms/superpixel_cfar.md states ever
 4. Clutter superpixels per target superpixel (Table 1): :func:`superpixels.select_clutter`.
 5. Rayleigh mixture (M_a = ``components``, eq 3-6) fitted by EM on the clutter pixels' amplitudes
    and ``T_cfar`` from ``1 - F(T_cfar) = pfa`` (eq 14) on a proven bracket
-   (:mod:`sarship.pipeline.rayleigh_mixture`): one threshold per target superpixel.
+   (:mod:`sarship.pipeline.stats.rayleigh_mixture`): one threshold per target superpixel.
 6. Local contrast (eq 11-13): ``C_local(x) = exp(-CoV(x) / kappa) * sum_{SP_n in S_clutter}
    Omega(SP_m, SP_n)``, CoV of the amplitudes over ``cov_window`` x ``cov_window``; decision
    (eq 16) ``A(x) C_local(x) > T_cfar`` with ``A = sqrt(I)`` the amplitude, the variable the
@@ -62,10 +62,10 @@ import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 
-from sarship.pipeline import superpixels as spx
+from sarship.pipeline.image import superpixels as spx
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, area_px, float_block, with_defaults
 from sarship.pipeline.gpu import is_device_array, to_host
-from sarship.pipeline.rayleigh_mixture import BIN_WIDTH, fit_binned, threshold_intensity
+from sarship.pipeline.stats.rayleigh_mixture import BIN_WIDTH, fit_binned, threshold_intensity
 
 #: Fixed histogram of log10(superpixel mean) for the scene-wide K-means and shadow rule.
 HIST_LO = -40.0
@@ -292,7 +292,7 @@ def reduce(parts: list[dict], p: SuperpixelCFARParams, prep: dict) -> dict:
 def scene_prep(x: np.ndarray, p: SuperpixelCFARParams, prep: dict | None = None, tile: int | None = None) -> dict:
     """``prep`` with the scene pass run on a whole scene ``x`` (tiles of ``tile`` px, default one):
     the tests' and benches' stand-in for the job's scene pass."""
-    from sarship.pipeline.windows import mirror_pad
+    from sarship.pipeline.tiling.windows import mirror_pad
 
     prep = dict(prepare(p) if prep is None else prep)
     h = halo(p)

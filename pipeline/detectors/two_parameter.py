@@ -32,12 +32,13 @@ import numpy as np
 from numba import njit, objmode, uint64
 from pydantic import Field
 
-from sarship.pipeline import boxsum, intensity_absent, simd
-from sarship.pipeline.boxsum import hsum_row, ring_slot, stream_state, vertical_row, vertical_steady
+from sarship.pipeline.tiling import boxsum, intensity_absent
+from sarship.pipeline.detectors import simd
+from sarship.pipeline.tiling.boxsum import hsum_row, ring_slot, stream_state, vertical_row, vertical_steady
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 from sarship.pipeline.gpu import is_device_array
-from sarship.pipeline.tails import norm_isf, t_isf
-from sarship.pipeline.simd import (prefetch, vadd, vcol, vcols, vdiv, vdivn, vload, vmul, vscatter,
+from sarship.pipeline.stats.tails import norm_isf, t_isf
+from sarship.pipeline.detectors.simd import (prefetch, vadd, vcol, vcols, vdiv, vdivn, vload, vmul, vscatter,
                                    vscatter4, vsel_gt, vsplat, vsqrt, vstep, vstore, vstore_stat, vsub)
 
 
@@ -86,7 +87,7 @@ def prepare(p: TwoParameterParams) -> dict:
 # ---------------------------------------------------------------------------------------
 #
 # Bit for bit the former implementation (transform to float64 y, y * y, four or five calls
-# of ``boxsum.centered_box_sum``, then the decision; ``tests/test_two_parameter_kernel.py``
+# of ``boxsum.centered_box_sum``, then the decision; ``tests/pipeline/test_two_parameter_kernel.py``
 # states it in numpy): the same float64 values enter the same additions in the same order
 # (``boxsum`` docstring), streamed like ``ca_cfar``: output rows are produced one at a time
 # and the horizontal sums of the input rows just ahead, into small rings that stay in L2,
@@ -106,7 +107,7 @@ def prepare(p: TwoParameterParams) -> dict:
 #   divisions by the integers N, N - 1 and target**2 use ``vdivn`` (exact, without the
 #   divider).
 #
-# The vector operations are LLVM IR vectors (:mod:`sarship.pipeline.simd`): IEEE fadd, fmul,
+# The vector operations are LLVM IR vectors (:mod:`sarship.pipeline.detectors.simd`): IEEE fadd, fmul,
 # fdiv and sqrt, no fast-math flags, no contraction, so each lane rounds as scalar code
 # would. The hot functions take whole arrays and flat indices and are compiled without the
 # NRT (``_nrt=False``): array views and reference counting (atomic operations) in the
@@ -347,8 +348,8 @@ def _decide_row(w, steady_b, steady_g, Hb1, Hb2, ab, bb, Hg1, Hg2, ag, bg, P, D,
 
 
 def _make_detect_strip(stamp: str):
-    """The fused kernel. Its machine code includes code of :mod:`sarship.pipeline.simd` and
-    :mod:`sarship.pipeline.boxsum`, but numba's on-disk cache only watches this file:
+    """The fused kernel. Its machine code includes code of :mod:`sarship.pipeline.detectors.simd` and
+    :mod:`sarship.pipeline.tiling.boxsum`, but numba's on-disk cache only watches this file:
     ``stamp`` (a hash of both files) is a closure variable, part of numba's cache key, so an
     edit there gets a fresh compilation instead of stale cached code. The callees above that
     use either module are not cached themselves (a cached one would be linked in stale):
@@ -478,11 +479,11 @@ def _decide_reference(xt, s1b, s1g, s2b, s2g, n_ring, thr, mask, stat):
 
 
 def detect_reference(block: np.ndarray, halo: int, origin: tuple[int, int], p: TwoParameterParams, prep: dict):
-    """The same detector written plainly with :func:`sarship.pipeline.boxsum.centered_box_sum`
+    """The same detector written plainly with :func:`sarship.pipeline.tiling.boxsum.centered_box_sum`
     (bit-identical to :func:`detect`, ~6x slower). :func:`detect` falls back to it when the
     fused kernel cannot be used: window sizes beyond its exact-division range, or a Numba /
     LLVM release on which the kernel's vector intrinsics fail to compile."""
-    from sarship.pipeline.boxsum import centered_box_sum
+    from sarship.pipeline.tiling.boxsum import centered_box_sum
 
     x = _transform_reference(block, p.domain)
     x2 = x * x

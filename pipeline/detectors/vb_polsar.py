@@ -219,7 +219,7 @@ where detected; ``threshold`` and ``calibration`` are in the run's scene-pass va
 
 Absent pixels (no data; the appendix assumes a complete image). A pixel whose channels are
 not all finite (NaN) or are all exactly 0 (no signal: a zero-filled border, a declared
-no-data value of 0) is absent (:mod:`sarship.pipeline.polsar_absent`). It is left out of both
+no-data value of 0) is absent (:mod:`sarship.pipeline.tiling.polsar_absent`). It is left out of both
 scene-wide samples (so ``t_init``, the mixture and the calibration tail are those of the
 pixels with data: a zero border would otherwise add a cluster of vectors at the origin to the
 clutter mixture, and one NaN makes every quantile NaN) and gets decision 0 and stat -inf in
@@ -240,7 +240,7 @@ from scipy import special
 
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
 from sarship.pipeline.gpu import is_device_array
-from sarship.pipeline.polsar_absent import present, zero_absent
+from sarship.pipeline.tiling.polsar_absent import present, zero_absent
 
 LN2PI = math.log(2.0 * math.pi)
 
@@ -724,7 +724,7 @@ def scene_pass(block, halo_px, origin, p: VBPolSARParams, prep: dict) -> dict:
     """The tile's share of the scene-wide samples (global grids): the VB sample (d, on the
     ``sample_stride`` grid) and the calibration sample (the channels, on the
     ``calibration_stride`` grid; only with the tail calibration). Absent pixels
-    (:func:`~sarship.pipeline.polsar_absent.present`) are in neither sample."""
+    (:func:`~sarship.pipeline.tiling.polsar_absent.present`) are in neither sample."""
     x = np.asarray(block)
     if x.ndim != 3 or x.shape[2] not in (2, 3):
         raise ValueError("vb_polsar needs a (rows, cols, 2 or 3) block of complex channels")
@@ -789,7 +789,7 @@ def detect(block, halo_px, origin, p: VBPolSARParams, prep: dict):
 
     A CuPy ``block`` runs the same updates on its GPU (:func:`sarship.pipeline.gpu.polsar.vb_pixels`;
     the scene pass, a grid sample, stays on the host) and returns CuPy arrays. Absent pixels
-    (:func:`~sarship.pipeline.polsar_absent.present`) are zeroed for the kernels and then
+    (:func:`~sarship.pipeline.tiling.polsar_absent.present`) are zeroed for the kernels and then
     set to mask 0, stat -inf, on both paths.
     """
     if "mixture" not in prep:

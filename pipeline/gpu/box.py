@@ -1,7 +1,7 @@
-"""Window sums on the GPU, bit-identical to :func:`sarship.pipeline.boxsum.centered_box_sum`.
+"""Window sums on the GPU, bit-identical to :func:`sarship.pipeline.tiling.boxsum.centered_box_sum`.
 
 The same van Herk / Gil-Werman decomposition on the same global block grid (see
-:mod:`sarship.pipeline.boxsum`), in double precision, one thread per (row, column block) for the
+:mod:`sarship.pipeline.tiling.boxsum`), in double precision, one thread per (row, column block) for the
 horizontal pass and per (column, row block) for the vertical pass. Every window sum is
 formed by the same additions in the same order as on the CPU, so GPU and CPU sums are
 equal bit for bit, and GPU results do not depend on the tiling either.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from sarship.pipeline import settings
-from sarship.pipeline.boxsum import window_input
+from sarship.pipeline.tiling.boxsum import window_input
 from sarship.pipeline.gpu import kernels
 
 _I32 = np.int32
@@ -77,6 +77,6 @@ def box_sum(x, m: int, g0r: int, g0c: int):
 
 
 def centered_box_sum(block, m: int, halo: int, origin: tuple[int, int]):
-    """GPU twin of :func:`sarship.pipeline.boxsum.centered_box_sum` (same arguments, same bits)."""
+    """GPU twin of :func:`sarship.pipeline.tiling.boxsum.centered_box_sum` (same arguments, same bits)."""
     sub, off = window_input(block, m, halo)
     return box_sum(sub, m, int(origin[0]) + off, int(origin[1]) + off)

@@ -1,6 +1,6 @@
 """GPU twins of the single-channel CFAR detectors (``ca_cfar``, ``two_parameter``, ``os_cfar``).
 
-Absent pixels (NaN, or the ``nodata`` value): as on the CPU (:mod:`sarship.pipeline.intensity_absent`):
+Absent pixels (NaN, or the ``nodata`` value): as on the CPU (:mod:`sarship.pipeline.tiling.intensity_absent`):
 the complete-data kernel runs on the block with absent cells zeroed (NaN for ``os_cfar``), then
 the pixels whose background window meets an absent cell are recomputed with K present ring
 cells by the same CuPy/NumPy code as the CPU (``ca_redo``, ``tp_redo``); for ``os_cfar`` those
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarship.pipeline import intensity_absent
+from sarship.pipeline.tiling import intensity_absent
 from sarship.pipeline.gpu import kernels
 from sarship.pipeline.gpu.box import centered_box_sum
 

@@ -19,7 +19,7 @@ __device__ __forceinline__ long long floordiv_ll(long long a, long long b) {
 }
 
 /* ---------------------------------------------------------------------------------
- * Window sums with the van Herk / Gil-Werman order of pipeline/boxsum.py, bit for bit:
+ * Window sums with the van Herk / Gil-Werman order of pipeline/tiling/boxsum.py, bit for bit:
  * blocks of m samples aligned on global coordinates; suffix sums inside a block, prefix
  * sums over the next one; window = suffix[i] (+ prefix[i + m - 1]).
  * Horizontal pass: one thread per (row, column block); vertical pass on its float64

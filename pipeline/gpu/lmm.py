@@ -1,10 +1,10 @@
 """GPU twin of ``lmm`` (:mod:`sarship.pipeline.detectors.lmm`): exact, fast and grid forms.
 
 The CPU detector calls :func:`detect` for a CuPy block, with everything it needs as
-arguments; this module depends on the pure per-ring maths (:mod:`sarship.pipeline.lmm_fit`)
+arguments; this module depends on the pure per-ring maths (:mod:`sarship.pipeline.stats.lmm_fit`)
 and never imports the detector module. One CUDA thread fits one ring (a pixel's, or a grid
 node's): the same EM for K' = 1..K, BIC order, damped-Newton ML polish, predictive tail
-shift and safeguarded Newton threshold as :func:`sarship.pipeline.lmm_fit.fit_threshold`,
+shift and safeguarded Newton threshold as :func:`sarship.pipeline.stats.lmm_fit.fit_threshold`,
 transcribed operation for operation (double precision, no FMA contraction). The ring's
 points are read in the CPU's order: raw ring samples in row-major order (exact form), or the
 ring histogram's non-empty bins in ascending order (fast and grid forms; the histogram of
@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from sarship.pipeline.gpu import kernels
-from sarship.pipeline.lmm_fit import init_z_table
+from sarship.pipeline.stats.lmm_fit import init_z_table
 
 SOURCE = r"""
 #define KMAX 6
@@ -551,7 +551,7 @@ SCRATCH_BYTES = 256 * 2**20
 
 
 def _init_zs(K: int) -> "np.ndarray":
-    """:func:`~sarship.pipeline.lmm_fit.init_z_table` in rows of KMAX = 6 (the kernels' layout)."""
+    """:func:`~sarship.pipeline.stats.lmm_fit.init_z_table` in rows of KMAX = 6 (the kernels' layout)."""
     t = np.zeros((K, 6))
     t[:, :K] = init_z_table(K)
     return t

@@ -42,7 +42,7 @@ def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float,
          pfa: float | None = None, kmin: int | None = None):
     """Adaptive PWF (see :mod:`sarship.pipeline.detectors.apwf`): y = K X^H S^-1 X > T(K).
 
-    Absent pixels (:func:`sarship.pipeline.polsar_absent.present`) are zeroed before the
+    Absent pixels (:func:`sarship.pipeline.tiling.polsar_absent.present`) are zeroed before the
     products and counted out with the same box sums as the CPU (K, exact integers); the
     per-pixel thresholds come from :func:`sarship.pipeline.detectors.apwf.threshold_map`
     (host SciPy for the tile's distinct partial counts, as on the CPU). ``pfa`` and ``kmin``
@@ -50,7 +50,7 @@ def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float,
     import cupy as cp
 
     from sarship.pipeline.detectors.apwf import min_valid, threshold_map
-    from sarship.pipeline.polsar_absent import present, zero_absent
+    from sarship.pipeline.tiling.polsar_absent import present, zero_absent
 
     block = _complex_block(cp, block)
     cov = block.ndim == 4
@@ -103,7 +103,7 @@ def pcdm_span_psh(block, halo_px: int, origin, looks_window: int):
     import cupy as cp
 
     from sarship.pipeline.detectors.pcdm import tested_count
-    from sarship.pipeline.polsar_absent import present, zero_absent
+    from sarship.pipeline.tiling.polsar_absent import present, zero_absent
 
     block = _complex_block(cp, block)
     ok = present(block)

@@ -5,8 +5,8 @@ become channels (``vv``, ``vh``, ...); the annotation gives the acquisition mode
 type, start/stop times, pixel spacing (``imageInformation/azimuthPixelSpacing`` and
 ``rangePixelSpacing``) and the geolocation grid, kept as the scene's ``gcps`` attribute
 (``{row, col, x: longitude, y: latitude, z: height, incidence}``, the form the GeoTIFF reader
-gives plus the incidence angle in degrees for :func:`sarship.pipeline.georef.sea_level`, so
-:mod:`sarship.pipeline.ship_features` and :mod:`sarship.pipeline.landmask_files` use it as
+gives plus the incidence angle in degrees for :func:`sarship.pipeline.targets.georef.sea_level`, so
+:mod:`sarship.pipeline.targets.ship_features` and :mod:`sarship.pipeline.land.landmask_files` use it as
 they are). The annotation is parsed by ``xarray-sentinel`` (its XML schemas), never by hand;
 pixels are read with ``rasterio`` windowed reads (``/vsizip/`` inside a zip), one tile at a
 time, so memory stays bounded at full product size.

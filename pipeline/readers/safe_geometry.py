@@ -1,6 +1,6 @@
 """The acquisition geometry of a Sentinel-1 SAFE product, as the scene attribute ``sar_geometry``.
 
-What :mod:`sarship.pipeline.ambiguity` needs to place azimuth ambiguities (its eqs. 1-3), read
+What :mod:`sarship.pipeline.targets.ambiguity` needs to place azimuth ambiguities (its eqs. 1-3), read
 from the product annotation of one swath/polarisation. The orbit, azimuth FM rate, Doppler
 centroid and geolocation grid come from xarray-sentinel's groups (typed, schema-checked); the
 plain values it does not expose (the PRF of ``downlinkInformation``, the swath bounds of
@@ -24,7 +24,7 @@ key                             from the annotation (xarray-sentinel group, else
 ``range_table.doppler_``        the data Doppler centroid polynomials (group ``dc_estimate``) at the
 ``centroid_hz``                 column's ``tau``, median over azimuth, wrapped into +-PRF/2
 ``doppler_centroid_spread_hz``  TOPS (``azimuthSteeringRate`` > 0): half the centroid's span over a
-                                burst (:func:`~sarship.pipeline.ambiguity.tops_doppler_spread_hz`);
+                                burst (:func:`~sarship.pipeline.targets.ambiguity.tops_doppler_spread_hz`);
                                 burst = ``linesPerBurst x azimuthTimeInterval`` (SLC) or the
                                 ``dcEstimate`` fine-DCE window (GRD); 0 for stripmap
 =============================== =====================================================================
@@ -42,7 +42,7 @@ from xml.etree import ElementTree
 
 import numpy as np
 
-from sarship.pipeline.ambiguity import C_LIGHT, effective_velocity_from_fm_rate, tops_doppler_spread_hz
+from sarship.pipeline.targets.ambiguity import C_LIGHT, effective_velocity_from_fm_rate, tops_doppler_spread_hz
 
 
 def _poly(coeffs: np.ndarray, t0: np.ndarray, tau: np.ndarray) -> np.ndarray:

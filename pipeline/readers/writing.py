@@ -7,7 +7,7 @@ Looks
 ``enl`` metadata item, the SNAP sidecar, or a Zarr scene's attribute:
 ``"attribute"``, with ``looks_note`` saying where); else 1 for SLC/quad-pol
 (``"single-look complex"``); else estimated after writing with
-:func:`sarship.pipeline.looks.estimate_looks` (MoLC) on at most ``LOOKS_SAMPLE_TILES`` tiles spread
+:func:`sarship.pipeline.stats.looks.estimate_looks` (MoLC) on at most ``LOOKS_SAMPLE_TILES`` tiles spread
 over the scene, each cut to at most ``LOOKS_SAMPLE_SIDE`` square (``intensity``, or ``c11``
 for covariance): ``"estimated: MoLC ..."``. Covariance scenes are first tested for rank one
 on the same sample (median of the largest ``1 - |c_ij|^2 / (c_ii c_jj)`` below
@@ -73,10 +73,10 @@ def _write_tiles(g, shape, tile, variables, read_tile, progress, store: str | os
     """Write the scene tile by tile: ``read_tile(r0, r1, c0, c1)`` -> {variable: array} in the
     calling thread, in order (the sources need not be thread-safe), each tile's encoding and
     file writes in :func:`ingest_writers` threads at once through tensorstore when ``store`` (the
-    group's folder) is given and tensorstore is the reader (:func:`sarship.pipeline.inputs.reader_backend`),
+    group's folder) is given and tensorstore is the reader (:func:`sarship.pipeline.tiling.inputs.reader_backend`),
     else in this thread through zarr-python (``g``). At most that many tiles wait to be written, so
     memory stays bounded; ``progress(done, total)`` in order, as tiles are written."""
-    from sarship.pipeline.inputs import open_array, reader_backend
+    from sarship.pipeline.tiling.inputs import open_array, reader_backend
 
     grid = list(tile_slices(shape, tile))
     total = len(grid)
@@ -208,7 +208,7 @@ def _estimate_scene_looks(store: Path, var: str, shape, tile) -> dict[str, Any]:
     """Looks by MoLC on a bounded sample of tiles re-read from the store."""
     import zarr
 
-    from sarship.pipeline.looks import estimate_looks
+    from sarship.pipeline.stats.looks import estimate_looks
 
     arr = zarr.open_array(str(store / var), mode="r")
     picks = _sample_windows(shape, tile)

@@ -1,4 +1,4 @@
-"""``run.json``'s ``model_fit``: does the detector's clutter model fit the scene (pipeline/model_fit.py)?
+"""``run.json``'s ``model_fit``: does the detector's clutter model fit the scene (pipeline/stats/model_fit.py)?
 
 From the tiles' exceedance flags on the scene's sample grid (the plan's ``fit`` settings), the
 cells of the kept detections left out.
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarship.pipeline import model_fit
+from sarship.pipeline.stats import model_fit
 from sarship.pipeline.run.plan import Plan
 
 

@@ -1,10 +1,10 @@
 """The merge stage's rules on whole detections: after the tiles' components are joined across tiles.
 
 :func:`discriminate` applies, in order, the area rule the tiles applied to their pieces
-(:func:`~sarship.pipeline.ship_features.size_prefilter`), the line rule on the pieces before the
-shape test (:func:`sarship.pipeline.lines.discard_lines`: collinear pieces of long bright lines
+(:func:`~sarship.pipeline.targets.ship_features.size_prefilter`), the line rule on the pieces before the
+shape test (:func:`sarship.pipeline.targets.lines.discard_lines`: collinear pieces of long bright lines
 and azimuth smear), the whole size and shape rule
-(:func:`~sarship.pipeline.ship_features.keep_mask`), then the detector's own rules on whole
+(:func:`~sarship.pipeline.targets.ship_features.keep_mask`), then the detector's own rules on whole
 components (``DetectorSpec.discriminate``, e.g. ``gamma_mrf``'s peak rule). It returns the kept
 records and what each rule dropped (``run.json`` ``discarded``).
 """
@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarship.pipeline.lines import discard_lines
+from sarship.pipeline.targets.lines import discard_lines
 from sarship.pipeline.run.plan import Plan
-from sarship.pipeline.ship_features import keep_mask, size_prefilter
+from sarship.pipeline.targets.ship_features import keep_mask, size_prefilter
 
 
 def size_and_lines(records: np.ndarray, params, spacing: tuple[float, float] | None,

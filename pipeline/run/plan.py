@@ -16,11 +16,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
-from sarship.pipeline import model_fit
-from sarship.pipeline.components import merge_radius
+from sarship.pipeline.stats import model_fit
+from sarship.pipeline.targets.components import merge_radius
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, land_mask_parts, resolve_size
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.inputs import detector_source, make_reader
+from sarship.pipeline.tiling.inputs import detector_source, make_reader
 from sarship.pipeline.run.outputs import check_out
 from sarship.pipeline.scene import Scene, open_scene, processing_tile
 
@@ -58,7 +58,7 @@ class Plan:
     has_gpu: bool                    # GPU code for these parameters
     scene: Scene                     # with its absolute path (tile tasks run elsewhere)
     out_dir: Path                    # absolute
-    var: Any                         # what the detector reads (pipeline/inputs.py)
+    var: Any                         # what the detector reads (pipeline/tiling/inputs.py)
     transform: str
     tile: int
     tile_source: str
@@ -103,20 +103,20 @@ def choose_tile(scene: Scene, tile: Optional[int]) -> tuple[int, str]:
 
 def land_options(params: DetectorParams, scene: Optional[Scene] = None) -> LandOptions:
     """``land_mask`` parsed (:func:`~sarship.pipeline.detectors.base.land_mask_parts`) and, with a
-    scene, its source checked: the FILE (:class:`~sarship.pipeline.landmask_files.LandFile`), the
-    coastline (:class:`~sarship.pipeline.coastline.Coastline`: package installed, scene
+    scene, its source checked: the FILE (:class:`~sarship.pipeline.land.landmask_files.LandFile`), the
+    coastline (:class:`~sarship.pipeline.land.coastline.Coastline`: package installed, scene
     georeferenced); a one-line InputError otherwise."""
     keys, path = land_mask_parts(params.land_mask)
     kinds = frozenset(keys)
     if scene is None:
         return LandOptions(kinds, path)
     if "coastline" in kinds:
-        from sarship.pipeline.coastline import open_coastline
+        from sarship.pipeline.land.coastline import open_coastline
 
         return LandOptions(kinds, path, open_coastline(scene.attrs, scene.shape, float(params.land_buffer_m)))
     if path is None:
         return LandOptions(kinds, path)
-    from sarship.pipeline.landmask_files import open_land_file
+    from sarship.pipeline.land.landmask_files import open_land_file
 
     return LandOptions(kinds, path, open_land_file(path, scene.shape, scene.attrs))
 
@@ -124,12 +124,12 @@ def land_options(params: DetectorParams, scene: Optional[Scene] = None) -> LandO
 def resolve_looks(spec: DetectorSpec, params: DetectorParams, scene: Scene, var: Any, transform: str
                   ) -> tuple[DetectorParams, str]:
     """Fill ``looks`` from the parameter, else the scene attribute, else an estimate from a
-    sample of the scene (:func:`sarship.pipeline.looks.estimate_scene_looks`)."""
+    sample of the scene (:func:`sarship.pipeline.stats.looks.estimate_scene_looks`)."""
     if not spec.needs_looks or params.looks is not None:
         return params, "parameter" if params.looks is not None else "not used"
     if scene.looks is not None:
         return params.model_copy(update={"looks": scene.looks}), "scene attribute"
-    from sarship.pipeline.looks import estimate_scene_looks
+    from sarship.pipeline.stats.looks import estimate_scene_looks
 
     L = estimate_scene_looks(make_reader(str(scene.path), var, transform), scene.shape)
     return params.model_copy(update={"looks": L}), "estimated from the scene (MoLC, median over blocks)"
@@ -156,7 +156,7 @@ def shape_rules(params: DetectorParams, scene: Scene, spacing) -> tuple[Detector
 def fit_config(detector: str, spec: DetectorSpec, params: DetectorParams, shape: tuple[int, int]) -> dict | None:
     """The tiles' clutter-model-fit settings: the scene's grid step and, for each probe PFA
     beyond the asked one, the detector's ``prepare`` there; None for a detector whose fit is not
-    measured (pipeline/model_fit.py, ``FIT_DETECTORS``)."""
+    measured (pipeline/stats/model_fit.py, ``FIT_DETECTORS``)."""
     if detector not in model_fit.FIT_DETECTORS:
         return None
     probes = []

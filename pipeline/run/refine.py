@@ -1,14 +1,14 @@
 """The refine stage: from the merged, discriminated detections to the features a run writes.
 
 In order (each step as docs/interfaces/files.md describes its properties): detections within
-``land_gap_px`` of the land mask dropped (:func:`sarship.pipeline.lines.near_land`); the
-features of each detection (:func:`~sarship.pipeline.ship_features.features`) and its
+``land_gap_px`` of the land mask dropped (:func:`sarship.pipeline.targets.lines.near_land`); the
+features of each detection (:func:`~sarship.pipeline.targets.ship_features.features`) and its
 target-to-clutter ratio against the sea mean; its local contrast and the ``min_contrast_db``
-rule (:mod:`sarship.pipeline.local_contrast`); cross-sidelobe suppression
-(:mod:`sarship.pipeline.sidelobes`); the detector's own per-detection properties
+rule (:mod:`sarship.pipeline.targets.local_contrast`); cross-sidelobe suppression
+(:mod:`sarship.pipeline.targets.sidelobes`); the detector's own per-detection properties
 (``DetectorSpec.detection_properties``); the WGS84 outline and centre
-(:func:`~sarship.pipeline.ship_features.geolocate`); the azimuth-ambiguity flags
-(:mod:`sarship.pipeline.ambiguity`). The per-detection steps read small windows of the scene
+(:func:`~sarship.pipeline.targets.ship_features.geolocate`); the azimuth-ambiguity flags
+(:mod:`sarship.pipeline.targets.ambiguity`). The per-detection steps read small windows of the scene
 and of the detector's decision through block caches, each chunk once.
 """
 
@@ -20,14 +20,14 @@ from typing import Any, Optional
 
 import numpy as np
 
-from sarship.pipeline.ambiguity import flag_features
-from sarship.pipeline.inputs import make_reader, pixel_power, window_reader
-from sarship.pipeline.lines import near_land
-from sarship.pipeline.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
+from sarship.pipeline.targets.ambiguity import flag_features
+from sarship.pipeline.tiling.inputs import make_reader, pixel_power, window_reader
+from sarship.pipeline.targets.lines import near_land
+from sarship.pipeline.targets.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
 from sarship.pipeline.run.plan import Plan
-from sarship.pipeline.ship_features import add_contrast, features, geolocate
-from sarship.pipeline.sidelobes import refine_features
-from sarship.pipeline.window_cache import CachedWindows
+from sarship.pipeline.targets.ship_features import add_contrast, features, geolocate
+from sarship.pipeline.targets.sidelobes import refine_features
+from sarship.pipeline.tiling.window_cache import CachedWindows
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class Refined:
 def contrast_step(feats: list[dict], records, floor: float | None, scene_read, mask_read, land_path: Path | None,
                   shape: tuple[int, int], nodata: float | None) -> tuple[list[dict], Any, dict]:
     """The local contrast of every detection and the ``min_contrast_db`` rule
-    (pipeline/local_contrast.py): (kept features, their records, the ``run.json`` record).
+    (pipeline/targets/local_contrast.py): (kept features, their records, the ``run.json`` record).
     Measured only when a floor is set (a window read per detection; -30 dB measures every
     detection and drops practically none); otherwise ``contrast_db`` is null."""
     if floor is None:
@@ -84,7 +84,7 @@ def refine(plan: Plan, prep: dict, records: np.ndarray, land_record: Optional[di
         mask_read = CachedWindows(window_reader(detected_path), shape)
     feats, records, contrast = contrast_step(feats, records, params.min_contrast_db, scene_read, mask_read,
                                              land_path, shape, getattr(params, "nodata", None))
-    if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/sidelobes.py)
+    if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/targets/sidelobes.py)
         feats = refine_features(feats, records, scene_read, mask_read, shape, plan.merge_r, spacing, geo)
     if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
         feats = spec.detection_properties(feats, records, scene_read, mask_read, shape, plan.merge_r, params,

@@ -9,7 +9,7 @@ Artefacts (none is in the truth features)
       envelope is 5 % of the sea power; coherent (sinc amplitude with the scatterer's phase) for
       complex data.
     * ``ambiguities``: azimuth ambiguities (ghosts, orders k = -1 and +1) of every ship, where
-      :mod:`sarship.pipeline.ambiguity` expects them (eq. 1: ``dt_k = -k lambda R PRF / (2
+      :mod:`sarship.pipeline.targets.ambiguity` expects them (eq. 1: ``dt_k = -k lambda R PRF / (2
       Vr^2)`` along azimuth, ~5 km; eq. 3: the range shift ``lambda^2 R ((f_dc + k PRF)^2 -
       f_dc^2) / (8 Vr^2)``, 3-4 columns at 10 m) for the simulated sensor of
       :mod:`~sarship.pipeline.simulate.geometry` (written to the scene as ``sar_geometry``),

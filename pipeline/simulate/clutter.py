@@ -32,7 +32,7 @@ Clutter (sea)
     * ``slc``: circular complex Gaussian hh with E|hh|^2 = clutter_mean (times T for ``k``):
       the single-look complex form of the same models; ``looks`` is 1.
     * ``cggd`` (``slc`` only): circular complex generalized Gaussian hh of shape ``shape_beta``
-      (Novey et al. 2010; seed 004 eq 25-31, :func:`sarship.pipeline.cggd.sample`), i.i.d.,
+      (Novey et al. 2010; seed 004 eq 25-31, :func:`sarship.pipeline.stats.cggd.sample`), i.i.d.,
       E|hh|^2 = clutter_mean; beta = 1 is the complex Gaussian.
     * ``quadpol``: X = [HH, HV, VV] zero-mean circular complex Gaussian (thesis
       Sun 2020, docs/references.md#sun2020, eq 2-1, 2-2) with the reflection-symmetric covariance of eq 2-3,

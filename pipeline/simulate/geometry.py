@@ -2,11 +2,11 @@
 
 A C-band stripmap sensor on a Sentinel-1-like orbit, so that the simulator's azimuth
 ambiguities (``--ambiguities``, :mod:`~sarship.pipeline.simulate.artefacts`) fall where
-:mod:`sarship.pipeline.ambiguity` (eqs. 1-3) expects them from the same attributes:
+:mod:`sarship.pipeline.targets.ambiguity` (eqs. 1-3) expects them from the same attributes:
 
 * radar frequency 5.405 GHz (lambda = 5.547 cm), PRF 1717 Hz, platform velocity 7590 m/s,
   effective velocity 7180 m/s (the Sentinel-1 IW1 values of the annotation in
-  ``tests/test_ambiguity.py``, rounded);
+  ``tests/pipeline/test_ambiguity.py``, rounded);
 * range axis: columns in ground range at the scene's range spacing, slant range
   ``R(col) = 800 km + col * d_rg * sin(35 deg)`` (incidence 35 deg, flat Earth locally);
 * azimuth axis: rows at the scene's azimuth spacing, i.e. ``dt_line = d_az / Vg`` with
@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from sarship.pipeline.ambiguity import Geometry, geometry_from_attrs
+from sarship.pipeline.targets.ambiguity import Geometry, geometry_from_attrs
 
 RADAR_FREQUENCY_HZ = 5.405e9
 PRF_HZ = 1717.0
@@ -57,7 +57,7 @@ def sar_geometry(shape: tuple[int, int], pixel_spacing_m: tuple[float, float]) -
 
 
 def geometry(shape: tuple[int, int], pixel_spacing_m: tuple[float, float]) -> Geometry:
-    """:class:`~sarship.pipeline.ambiguity.Geometry` of :func:`sar_geometry`."""
+    """:class:`~sarship.pipeline.targets.ambiguity.Geometry` of :func:`sar_geometry`."""
     return geometry_from_attrs({"sar_geometry": sar_geometry(shape, pixel_spacing_m)})
 
 

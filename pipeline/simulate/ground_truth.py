@@ -1,6 +1,6 @@
 """Ground truth of a simulated scene: the ship catalogue and the truth GeoJSON collection.
 
-(Not to be confused with :mod:`sarship.pipeline.truth`.)
+(Not to be confused with :mod:`sarship.pipeline.products.truth`.)
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ Georeferenced scenes (``geo``: the scene centre's lon/lat)
     affine ``transform``, or the same mapping as a 6 x 6 grid of ``gcps`` with ``geo_gcps``),
     ``pixel_spacing_m`` metres a pixel (111 320 m a degree of latitude, times cos(lat) of
     longitude). With ``land`` the coast is not drawn from the seed: a pixel is land when its
-    centre is inside the GSHHG shoreline (:meth:`sarship.pipeline.coastline.Coastline.land`,
+    centre is inside the GSHHG shoreline (:meth:`sarship.pipeline.land.coastline.Coastline.land`,
     no buffer; extra ``coastline``), so the simulated land is the land ``land_mask=coastline``
     knows. The land's backscatter is the same as above.
 """
@@ -104,12 +104,12 @@ def geo_attrs(cfg: SimConfig) -> dict:
 class _GeoLand:
     """Land of a georeferenced scene: the GSHHG shoreline through the scene's georeference."""
 
-    coast: Any  # sarship.pipeline.coastline.Coastline (buffer 0)
+    coast: Any  # sarship.pipeline.land.coastline.Coastline (buffer 0)
     side: str = "gshhg"
 
 
 def _geo_land_model(cfg: SimConfig) -> _GeoLand:
-    from sarship.pipeline.coastline import open_coastline
+    from sarship.pipeline.land.coastline import open_coastline
 
     return _GeoLand(coast=open_coastline({**geo_attrs(cfg), "pixel_spacing_m": list(cfg.pixel_spacing_m)},
                                          cfg.shape, buffer_m=0.0))

@@ -64,7 +64,7 @@ def _build_model(cfg: SimConfig) -> _Model:
                                 "col": int(d["col"][j]), "dr": float(d["dr"][j]),
                                 "dc": float(d["dc"][j]), "power": p, "n": n})
     ghosts: list[dict[str, Any]] = []
-    if cfg.ambiguities:  # eqs. 1-3 of pipeline/ambiguity.py with the simulated sensor (simulate/geometry.py)
+    if cfg.ambiguities:  # eqs. 1-3 of pipeline/targets/ambiguity.py with the simulated sensor (simulate/geometry.py)
         for s in ships:
             rr, cc = np.nonzero(s.mask)
             cr, ccol = s.r0 + rr.mean() + 0.5, s.c0 + cc.mean() + 0.5

@@ -166,8 +166,8 @@ def _clutter(m: _Model, bi: int, bj: int, shape: tuple[int, int], mu, land, mu_l
         sp *= mu
         out["intensity"] = sp
     elif cfg.kind == "slc":
-        if cfg.clutter == "cggd":  # circular CGGD of unit variance (pipeline/cggd.py, seed 004 eq 27-31), as _cn's E|z|^2 = 2
-            from sarship.pipeline.cggd import sample as cggd_sample
+        if cfg.clutter == "cggd":  # circular CGGD of unit variance (pipeline/stats/cggd.py, seed 004 eq 27-31), as _cn's E|z|^2 = 2
+            from sarship.pipeline.stats.cggd import sample as cggd_sample
 
             z = cggd_sample(cfg.shape_beta, None, shape, rng, np.complex64) * np.float32(math.sqrt(2.0))
         else:

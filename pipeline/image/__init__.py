@@ -1,0 +1,1 @@
+"""Whole-image operations before detection: stripe-noise removal and superpixel segmentation."""
