@@ -29,8 +29,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-
 from common import machine  # noqa: E402
+
 from sarship.pipeline.stats import cggd  # noqa: E402
 
 PAPER_S = {500: (8.3e-2, 1.5e-3), 50_000: (6.3, 4.5e-3)}
@@ -70,35 +70,55 @@ def run(sizes: list[int], reps: int, betas: np.ndarray, seed: int) -> dict:
                         cpu[m] += time.thread_time() - t
                         err[m].append((float(b), e - float(b)))
                     count += 1
-            out[(circular, n)] = {"err": {m: np.array(v) for m, v in err.items()},
-                                  "sec": {m: cpu[m] / count for m in METHODS}}
+            out[(circular, n)] = {
+                "err": {m: np.array(v) for m, v in err.items()},
+                "sec": {m: cpu[m] / count for m in METHODS},
+            }
     return out
 
 
 def report(res: dict, sizes: list[int], reps: int, betas: np.ndarray) -> str:
-    lines = [f"Machine: {machine()}; {time.strftime('%Y-%m-%d')}; beta {betas[0]:.1f}..{betas[-1]:.1f} "
-             f"step 0.1, {reps} samples per beta and N (the paper: 100).", ""]
+    lines = [
+        f"Machine: {machine()}; {time.strftime('%Y-%m-%d')}; beta {betas[0]:.1f}..{betas[-1]:.1f} "
+        f"step 0.1, {reps} samples per beta and N (the paper: 100).",
+        "",
+    ]
     for circular in (True, False):
-        lines += [f"**C {'circular (tau = 0)' if circular else 'non-circular (|tau|/s2 ~ U(0, 0.9))'}**: "
-                  "bias / RMSE of beta over all beta (and RMSE for beta <= 2.5 | > 2.5)", "",
-                  "| N | " + " | ".join(METHODS) + " |", "|---|" + "---|" * len(METHODS)]
+        lines += [
+            f"**C {'circular (tau = 0)' if circular else 'non-circular (|tau|/s2 ~ U(0, 0.9))'}**: "
+            "bias / RMSE of beta over all beta (and RMSE for beta <= 2.5 | > 2.5)",
+            "",
+            "| N | " + " | ".join(METHODS) + " |",
+            "|---|" + "---|" * len(METHODS),
+        ]
         for n in sizes:
             cells = []
             for m in METHODS:
                 a = res[(circular, n)]["err"][m]
                 lo, hi = a[a[:, 0] <= 2.5, 1], a[a[:, 0] > 2.5, 1]
-                cells.append(f"{a[:, 1].mean():+.3f} / {np.sqrt(np.mean(a[:, 1] ** 2)):.3f} "
-                             f"({np.sqrt(np.mean(lo ** 2)):.3f} \\| {np.sqrt(np.mean(hi ** 2)):.3f})")
+                cells.append(
+                    f"{a[:, 1].mean():+.3f} / {np.sqrt(np.mean(a[:, 1] ** 2)):.3f} "
+                    f"({np.sqrt(np.mean(lo**2)):.3f} \\| {np.sqrt(np.mean(hi**2)):.3f})"
+                )
             lines.append(f"| {n} | " + " | ".join(cells) + " |")
         lines.append("")
-    lines += ["CPU time of one estimate (mean over both settings; one core) and the speed ratio:", "",
-              "| N | Novey (s) | CSK table (s) | CSK exact (s) | CSK whitened (s) | Novey / CSK table | paper |",
-              "|---|---|---|---|---|---|---|"]
+    lines += [
+        "CPU time of one estimate (mean over both settings; one core) and the speed ratio:",
+        "",
+        "| N | Novey (s) | CSK table (s) | CSK exact (s) | CSK whitened (s) | Novey / CSK table | paper |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for n in sizes:
         s = {m: 0.5 * (res[(True, n)]["sec"][m] + res[(False, n)]["sec"][m]) for m in METHODS}
-        paper = f"{PAPER_S[n][0]:.2g} s / {PAPER_S[n][1]:.2g} s = {PAPER_S[n][0] / PAPER_S[n][1]:.0f}x" if n in PAPER_S else ""
-        lines.append(f"| {n} | {s['novey']:.3g} | {s['csk_table']:.3g} | {s['csk_exact']:.3g} | {s['csk_white']:.3g} "
-                     f"| {s['novey'] / s['csk_table']:.0f}x | {paper} |")
+        paper = (
+            f"{PAPER_S[n][0]:.2g} s / {PAPER_S[n][1]:.2g} s = {PAPER_S[n][0] / PAPER_S[n][1]:.0f}x"
+            if n in PAPER_S
+            else ""
+        )
+        lines.append(
+            f"| {n} | {s['novey']:.3g} | {s['csk_table']:.3g} | {s['csk_exact']:.3g} | {s['csk_white']:.3g} "
+            f"| {s['novey'] / s['csk_table']:.0f}x | {paper} |"
+        )
     return "\n".join(lines)
 
 

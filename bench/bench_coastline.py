@@ -28,8 +28,11 @@ def scene_attrs(lon: float, lat: float, shape: tuple[int, int], sp: float) -> di
     dlat = sp / 111_320.0
     dlon = sp / (111_320.0 * math.cos(math.radians(lat)))
     H, W = shape
-    return {"crs": "EPSG:4326", "transform": [lon - W / 2 * dlon, dlon, 0.0, lat + H / 2 * dlat, 0.0, -dlat],
-            "pixel_spacing_m": [sp, sp]}
+    return {
+        "crs": "EPSG:4326",
+        "transform": [lon - W / 2 * dlon, dlon, 0.0, lat + H / 2 * dlat, 0.0, -dlat],
+        "pixel_spacing_m": [sp, sp],
+    }
 
 
 def run_strips(cl: co.Coastline, shape: tuple[int, int], strip: int) -> tuple[float, int]:
@@ -62,9 +65,11 @@ def main() -> None:
         cl = co.open_coastline(attrs, (H, W), buf)
         dt, n = run_strips(cl, (H, W), a.strip)
         st = cl.stats
-        print(f"coastline buffer {buf:g} m: {H}x{W} in {dt:.2f} s = {npx / dt / 1e6:.1f} Mpx/s; land {n / npx:.3f}; "
-              f"step {cl.step} px, lattice points {st['lattice_points']}, refined {st['refined_px'] / st['pixels']:.3%} "
-              f"of evaluated pixels")
+        print(
+            f"coastline buffer {buf:g} m: {H}x{W} in {dt:.2f} s = {npx / dt / 1e6:.1f} Mpx/s; land {n / npx:.3f}; "
+            f"step {cl.step} px, lattice points {st['lattice_points']}, refined {st['refined_px'] / st['pixels']:.3%} "
+            f"of evaluated pixels"
+        )
         if buf == 0.0:
             lattice_rate = npx / dt
     cl = co.open_coastline(attrs, (H, W), 0.0)
@@ -75,8 +80,10 @@ def main() -> None:
     t = time.perf_counter()
     land_px = int(cl._test(R, C).sum())  # one batch: multi-threaded like the refinement's
     rate = k * W / (time.perf_counter() - t)
-    print(f"reference, the exact test on every pixel (timed on {k} evenly spaced full rows): "
-          f"{rate / 1e6:.2f} Mpx/s (land {land_px / (k * W):.3f})")
+    print(
+        f"reference, the exact test on every pixel (timed on {k} evenly spaced full rows): "
+        f"{rate / 1e6:.2f} Mpx/s (land {land_px / (k * W):.3f})"
+    )
     print(f"lattice / reference: {lattice_rate / rate:.1f}x (no buffer)")
     # the lattice equals the exact test on the most coastal of 16 crops
     best = None
@@ -90,8 +97,11 @@ def main() -> None:
     _, r0, c0 = best
     ref = co.brute_force(cl, r0, r0 + a.ref, c0, c0 + a.ref)
     got = cl.land(r0, r0 + a.ref, c0, c0 + a.ref)
-    print(f"lattice == exact test on every pixel of the {a.ref}x{a.ref} crop at ({r0}, {c0}) "
-          f"(land {ref.mean():.3f}): {bool(np.array_equal(got, ref))}")
+    print(
+        f"lattice == exact test on every pixel of the {a.ref}x{a.ref} crop at ({r0}, {c0}) "
+        f"(land {ref.mean():.3f}): {bool(np.array_equal(got, ref))}"
+    )
+
 
 if __name__ == "__main__":
     main()

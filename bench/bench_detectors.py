@@ -22,9 +22,8 @@ import tempfile
 import time
 
 import numpy as np
-from scipy import ndimage
-
 from common import best_of, machine  # noqa: E402
+from scipy import ndimage
 
 from sarship.pipeline import detectors  # noqa: E402
 from sarship.pipeline.tiling.windows import padded_block  # noqa: E402
@@ -41,7 +40,10 @@ def ref_two(x, p, prep):
     b, g = p.background, p.guard
     x = x.astype(np.float64)
     s1 = ndimage.uniform_filter(x, b, mode="mirror") * b * b - ndimage.uniform_filter(x, g, mode="mirror") * g * g
-    s2 = ndimage.uniform_filter(x * x, b, mode="mirror") * b * b - ndimage.uniform_filter(x * x, g, mode="mirror") * g * g
+    s2 = (
+        ndimage.uniform_filter(x * x, b, mode="mirror") * b * b
+        - ndimage.uniform_filter(x * x, g, mode="mirror") * g * g
+    )
     mu = s1 / p.n_ring
     sd = np.sqrt(np.maximum((s2 - s1 * mu) / (p.n_ring - 1), 0))
     return x > mu + prep["threshold"] * sd
@@ -50,7 +52,7 @@ def ref_two(x, p, prep):
 def ref_os(x, p, prep):
     fp = np.ones((p.background, p.background), bool)
     o = (p.background - p.guard) // 2
-    fp[o:o + p.guard, o:o + p.guard] = False
+    fp[o : o + p.guard, o : o + p.guard] = False
     return x > prep["alpha"] * ndimage.rank_filter(x, int(prep["k"]) - 1, footprint=fp, mode="mirror")
 
 
@@ -64,8 +66,9 @@ def kernel_one_core(spec, p, prep, x, tile=2048):
     def go():
         for r0 in range(0, H, tile):
             for c0 in range(0, W, tile):
-                blk = padded_block(lambda a, b, c, d: x[a:b, c:d], x.shape, r0, min(r0 + tile, H), c0,
-                                   min(c0 + tile, W), h)
+                blk = padded_block(
+                    lambda a, b, c, d: x[a:b, c:d], x.shape, r0, min(r0 + tile, H), c0, min(c0 + tile, W), h
+                )
                 spec.detect(blk, h, (r0 - h, c0 - h), p, prep)
 
     return go
@@ -92,15 +95,19 @@ def main() -> None:
 
         from sarship.pipeline.scene import create_scene, finalize_scene
 
-        cluster = LocalCluster(n_workers=os.cpu_count(), threads_per_worker=1, dashboard_address=":0",
-                               silence_logs=logging.ERROR)
+        cluster = LocalCluster(
+            n_workers=os.cpu_count(), threads_per_worker=1, dashboard_address=":0", silence_logs=logging.ERROR
+        )
         client = Client(cluster)
-        g = create_scene(f"{tmp}/s.zarr", x.shape, {"intensity": "float32"}, tile=2048,
-                         attrs={"kind": "intensity", "looks": 4.0})
+        g = create_scene(
+            f"{tmp}/s.zarr", x.shape, {"intensity": "float32"}, tile=2048, attrs={"kind": "intensity", "looks": 4.0}
+        )
         g["intensity"][:] = x
         finalize_scene(f"{tmp}/s.zarr")
-    print(f"{'detector':<14} {'kernel 1 core':>14} {'dask run':>10} {'reference':>10} {'x ref':>6} "
-          f"{'copyto/kernel':>13} {'copyto/dask':>11}")
+    print(
+        f"{'detector':<14} {'kernel 1 core':>14} {'dask run':>10} {'reference':>10} {'x ref':>6} "
+        f"{'copyto/kernel':>13} {'copyto/dask':>11}"
+    )
     for name in a.detectors.split(","):
         spec = detectors.get(name)
         p = spec.params(looks=4.0)
@@ -119,8 +126,10 @@ def main() -> None:
             run_detection(f"{tmp}/s.zarr", name, {}, out_dir=f"{tmp}/o", client=client, progress=False, overwrite=True)
             d_mpx = npx / (time.perf_counter() - t0)
         k_mpx = npx / t_k
-        print(f"{name:<14} {k_mpx:14.1f} {d_mpx:10.1f} {r_mpx:10.2f} {k_mpx / r_mpx:6.1f} "
-              f"{(npx / t_copy) / k_mpx:13.1f} {(npx / t_copy) / d_mpx:11.1f}")
+        print(
+            f"{name:<14} {k_mpx:14.1f} {d_mpx:10.1f} {r_mpx:10.2f} {k_mpx / r_mpx:6.1f} "
+            f"{(npx / t_copy) / k_mpx:13.1f} {(npx / t_copy) / d_mpx:11.1f}"
+        )
     if client is not None:
         client.close()
         cluster.close()

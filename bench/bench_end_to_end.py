@@ -20,7 +20,6 @@ import tempfile
 import time
 
 import numpy as np
-
 from common import TreeMemory, machine  # noqa: E402
 
 
@@ -33,8 +32,8 @@ def make_npy(path: str, side: int, looks: float = 4.0, seed: int = 0) -> None:
         for _ in range(4):  # a few bright extended targets per strip
             rr = int(rng.integers(0, max(blk.shape[0] - 8, 1)))
             cc = int(rng.integers(0, max(side - 40, 1)))
-            blk[rr:rr + 6, cc:cc + 30] += 50.0
-        arr[r:r + blk.shape[0]] = blk
+            blk[rr : rr + 6, cc : cc + 30] += 50.0
+        arr[r : r + blk.shape[0]] = blk
     arr.flush()
     del arr
 
@@ -59,8 +58,10 @@ def main() -> None:
         t_make = time.perf_counter() - t
         npx = a.side * a.side / 1e6
         print(f"# {datetime.date.today()} {machine()}")
-        print(f"# scene {a.side}x{a.side} float32 ({a.side * a.side * 4 / 2**30:.2f} GiB), tile {a.tile}, "
-              f"detector {a.detector} (default parameters); input written in {t_make:.1f} s")
+        print(
+            f"# scene {a.side}x{a.side} float32 ({a.side * a.side * 4 / 2**30:.2f} GiB), tile {a.tile}, "
+            f"detector {a.detector} (default parameters); input written in {t_make:.1f} s"
+        )
         mem = TreeMemory()
         with mem.watch():
             t = time.perf_counter()
@@ -69,21 +70,31 @@ def main() -> None:
         peak_ing = mem.peak
         with mem.watch():
             t = time.perf_counter()
-            cluster = LocalCluster(n_workers=os.cpu_count(), threads_per_worker=1, dashboard_address=":0",
-                                   silence_logs=logging.ERROR)
+            cluster = LocalCluster(
+                n_workers=os.cpu_count(), threads_per_worker=1, dashboard_address=":0", silence_logs=logging.ERROR
+            )
             client = Client(cluster)
             t_cluster = time.perf_counter() - t
             t = time.perf_counter()
-            run = run_detection(os.path.join(work, "scene.zarr"), a.detector, {}, out_dir=os.path.join(work, "out"),
-                                client=client, progress=False, overwrite=True)
+            run = run_detection(
+                os.path.join(work, "scene.zarr"),
+                a.detector,
+                {},
+                out_dir=os.path.join(work, "out"),
+                client=client,
+                progress=False,
+                overwrite=True,
+            )
             t_det = time.perf_counter() - t
             client.close()
             cluster.close()
         peak_det = mem.peak
         print(f"ingest  {t_ing:7.1f} s  {npx / t_ing:7.1f} Mpx/s  peak RSS {peak_ing / 2**30:.2f} GiB")
         print(f"cluster {t_cluster:7.1f} s  (start-up, not in the rates)")
-        print(f"detect  {t_det:7.1f} s  {npx / t_det:7.1f} Mpx/s  peak RSS {peak_det / 2**30:.2f} GiB "
-              f"(scheduler + {os.cpu_count()} workers + client), {run['detections']} detections")
+        print(
+            f"detect  {t_det:7.1f} s  {npx / t_det:7.1f} Mpx/s  peak RSS {peak_det / 2**30:.2f} GiB "
+            f"(scheduler + {os.cpu_count()} workers + client), {run['detections']} detections"
+        )
         total = t_ing + t_det
         print(f"total   {total:7.1f} s  {npx / total:7.1f} Mpx/s end to end (ingest + detect + write)")
     finally:

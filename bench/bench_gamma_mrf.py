@@ -26,8 +26,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-
 from common import machine  # noqa: E402
+
 from sarship.pipeline import detectors  # noqa: E402
 from sarship.pipeline.detectors import gamma_mrf as gm  # noqa: E402
 from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
@@ -47,7 +47,7 @@ def scene(side: int, L: float, seed: int = 0) -> np.ndarray:
     x = np.where(z, rng.gamma(L, 1 / L, (side, side)), rng.gamma(L, 3 / L, (side, side))).astype(np.float32)
     for _ in range(side // 64):
         r, c = rng.integers(0, side - 12, 2)
-        x[r:r + 12, c:c + 4] = rng.gamma(L, 40 / L, (12, 4))
+        x[r : r + 12, c : c + 4] = rng.gamma(L, 40 / L, (12, 4))
     return x
 
 
@@ -77,8 +77,9 @@ def numpy_sweep(y: np.ndarray, lab: np.ndarray, a: np.ndarray, b: np.ndarray, be
                 if di == 0 and dj == 0:
                     continue
                 sh = np.full((H, W), -1, np.int8)
-                sh[max(-di, 0):H + min(-di, 0), max(-dj, 0):W + min(-dj, 0)] = \
-                    lab[max(di, 0):H + min(di, 0), max(dj, 0):W + min(dj, 0)]
+                sh[max(-di, 0) : H + min(-di, 0), max(-dj, 0) : W + min(-dj, 0)] = lab[
+                    max(di, 0) : H + min(di, 0), max(dj, 0) : W + min(dj, 0)
+                ]
                 for k in range(K):
                     cnt[..., k] += sh == k
         n = cnt.sum(-1, keepdims=True)
@@ -101,8 +102,10 @@ def main() -> None:
     h = spec.halo(p)
     P = mirror_pad(x, h)
     print(f"# gamma_mrf bench, {a.side}^2 = {Mpx:.1f} Mpx, L = {a.looks:g}; {machine()}")
-    print(f"# defaults: K {p.classes}, beta {p.beta:g}, {p.neighbourhood}-neighbourhood, {p.sweeps} sweeps, "
-          f"sample_stride {p.sample_stride}, reestimate {p.reestimate}")
+    print(
+        f"# defaults: K {p.classes}, beta {p.beta:g}, {p.neighbourhood}-neighbourhood, {p.sweeps} sweeps, "
+        f"sample_stride {p.sample_stride}, reestimate {p.reestimate}"
+    )
     small = spec.params(looks=a.looks, sweeps=2)  # compile every kernel on a small block first
     hs = spec.halo(small)
     spx = mirror_pad(x[:256, :256], hs)
@@ -121,14 +124,18 @@ def main() -> None:
     vals.pop(gm.ANOTHER_PASS, None)
     mix = vals["mixture"]
     n = part["y"].size
-    print(f"mixture: sample {n} px {tw_s:.2f} s wall; EM {mix['iterations']} iterations {tw_em:.2f} s wall "
-          f"{tc_em:.2f} s CPU ({tc_em / mix['iterations'] * 1e3:.1f} ms/iteration); "
-          f"{Mpx / (tc_s + tc_em):.2f} Mpx/s of scene (CPU); paper: {PAPER['mixture_s']} s on 2.25 Mpx = "
-          f"{PAPER['px'] / 1e6 / PAPER['mixture_s']:.2f} Mpx/s")
+    print(
+        f"mixture: sample {n} px {tw_s:.2f} s wall; EM {mix['iterations']} iterations {tw_em:.2f} s wall "
+        f"{tc_em:.2f} s CPU ({tc_em / mix['iterations'] * 1e3:.1f} ms/iteration); "
+        f"{Mpx / (tc_s + tc_em):.2f} Mpx/s of scene (CPU); paper: {PAPER['mixture_s']} s on 2.25 Mpx = "
+        f"{PAPER['px'] / 1e6 / PAPER['mixture_s']:.2f} Mpx/s"
+    )
     w0, mu0 = np.asarray(mix["weights"]), np.asarray(mix["means"])
     _, _, tc_ref = timed(lambda: numpy_em(part["y"], a.looks, w0, mu0, 10))
-    print(f"  reference NumPy EM: {tc_ref / 10 * 1e3:.1f} ms/iteration CPU "
-          f"(Numba {tc_em / mix['iterations'] * 1e3:.1f} ms: x{tc_ref / 10 / (tc_em / mix['iterations']):.1f})")
+    print(
+        f"  reference NumPy EM: {tc_ref / 10 * 1e3:.1f} ms/iteration CPU "
+        f"(Numba {tc_em / mix['iterations'] * 1e3:.1f} ms: x{tc_ref / 10 / (tc_em / mix['iterations']):.1f})"
+    )
 
     # the whole classification: every re-estimation pass on the whole scene, then detect
     prep = {**prep0, **vals}
@@ -146,27 +153,37 @@ def main() -> None:
     t_all = time.perf_counter() - t_all + tw_em
     c_all = time.thread_time() - c_all
     sweeps = len(prep["sweep_means"])
-    print(f"ICM: detect ({sweeps} sweeps + initial labels) {tw_icm:.2f} s wall {tc_icm:.2f} s CPU = "
-          f"{Mpx / tc_icm:.2f} Mpx/s (CPU; {Mpx * sweeps / tc_icm:.1f} Mpx-sweeps/s); paper: {PAPER['icm_s']} s on "
-          f"2.25 Mpx = {PAPER['px'] / 1e6 / PAPER['icm_s']:.2f} Mpx/s")
-    print(f"  whole classification (EM, {len(passes)} re-estimation passes of 0..{sweeps - 1} sweeps, detect): "
-          f"{t_all:.2f} s wall {c_all:.2f} s CPU = {Mpx / c_all:.2f} Mpx/s (CPU); without the re-estimation "
-          f"(reestimate=false): EM + one detect, {tc_em + tc_icm:.2f} s CPU = {Mpx / (tc_em + tc_icm):.2f} Mpx/s")
+    print(
+        f"ICM: detect ({sweeps} sweeps + initial labels) {tw_icm:.2f} s wall {tc_icm:.2f} s CPU = "
+        f"{Mpx / tc_icm:.2f} Mpx/s (CPU; {Mpx * sweeps / tc_icm:.1f} Mpx-sweeps/s); paper: {PAPER['icm_s']} s on "
+        f"2.25 Mpx = {PAPER['px'] / 1e6 / PAPER['icm_s']:.2f} Mpx/s"
+    )
+    print(
+        f"  whole classification (EM, {len(passes)} re-estimation passes of 0..{sweeps - 1} sweeps, detect): "
+        f"{t_all:.2f} s wall {c_all:.2f} s CPU = {Mpx / c_all:.2f} Mpx/s (CPU); without the re-estimation "
+        f"(reestimate=false): EM + one detect, {tc_em + tc_icm:.2f} s CPU = {Mpx / (tc_em + tc_icm):.2f} Mpx/s"
+    )
     print(f"  detected {int(mask.sum())} px")
     r = min(a.ref_side, a.side)
     xs = x[:r, :r].astype(np.float64)
     A, B = gm.energies(prep, p)[2:]
-    lab0 = np.where(np.isfinite(xs), np.argmin(gm.energies(prep, p)[0][None, None]
-                                                + gm.energies(prep, p)[1][None, None] * xs[..., None], -1), -1)
+    lab0 = np.where(
+        np.isfinite(xs),
+        np.argmin(gm.energies(prep, p)[0][None, None] + gm.energies(prep, p)[1][None, None] * xs[..., None], -1),
+        -1,
+    )
     lab0 = lab0.astype(np.int8)
     _, _, tw_np = timed(lambda: numpy_sweep(xs, lab0.copy(), A[0], B[0], p.beta))
     one = tc_icm / (sweeps + 1) / Mpx  # CPU s per Mpx-sweep, Numba (initial labels counted as a sweep)
-    print(f"  reference NumPy sweep on {r}^2: {r * r / 1e6 / tw_np:.2f} Mpx/s CPU (Numba ~{1 / one:.1f} Mpx/s a "
-          f"sweep: x{tw_np / (r * r / 1e6) / one:.1f})")
+    print(
+        f"  reference NumPy sweep on {r}^2: {r * r / 1e6 / tw_np:.2f} Mpx/s CPU (Numba ~{1 / one:.1f} Mpx/s a "
+        f"sweep: x{tw_np / (r * r / 1e6) / one:.1f})"
+    )
     try:
         import cupy as cp
 
         from sarship.pipeline.gpu import available
+
         if not available():
             raise ImportError
         Pd = cp.asarray(P)
@@ -176,8 +193,10 @@ def main() -> None:
         mg, _ = spec.detect(Pd, h, (-h, -h), p, prep)
         cp.cuda.Device().synchronize()
         tg = time.perf_counter() - t
-        print(f"GPU ICM (detect on a device block): {tg:.3f} s = {Mpx / tg:.0f} Mpx/s; mask equal to the CPU's: "
-              f"{bool((mg.get() == mask).all())}")
+        print(
+            f"GPU ICM (detect on a device block): {tg:.3f} s = {Mpx / tg:.0f} Mpx/s; mask equal to the CPU's: "
+            f"{bool((mg.get() == mask).all())}"
+        )
     except ImportError:
         print("GPU: skipped (no CuPy / CUDA device)")
 

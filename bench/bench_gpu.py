@@ -28,7 +28,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from common import best_of, machine  # noqa: E402
 
 from sarship.pipeline import detectors  # noqa: E402
@@ -38,8 +37,7 @@ CASES = [
     ("ca_cfar", {"looks": 1.0}, "default (guard 41, background 81)", "intensity"),
     ("two_parameter", {}, "default (guard 21, background 41)", "intensity"),
     ("os_cfar", {"looks": 1.0}, "default (guard 21, background 41, k = 3N/4)", "intensity"),
-    ("apwf", {"estimator": "window", "guard": 1, "background": 31, "pfa": 1e-6}, "thesis 31x31 window",
-     "quadpol"),
+    ("apwf", {"estimator": "window", "guard": 1, "background": 31, "pfa": 1e-6}, "thesis 31x31 window", "quadpol"),
     ("apwf", {}, "ring guard 41 / background 61", "quadpol"),
     ("pcdm", {"looks_window": 1, "span_rule": "fraction"}, "thesis: single-look C", "quadpol"),
     ("pcdm", {}, "default: 3x3 boxcar", "quadpol"),
@@ -90,9 +88,11 @@ def box_passes(cp, n: int = 4096, m: int = 81) -> list[str]:
     x = cp.asarray(np.random.default_rng(0).random((n + m - 1, n + m - 1), dtype=np.float32))
     H = box._hsum(cp, x, m, 0, n)
     rows = []
-    for label, fn in [("horizontal, direct", lambda: box._hsum(cp, x, m, 0, n)),
-                      ("horizontal, transposed", lambda: box._hsum_transposed(cp, x, m, 0, n)),
-                      ("vertical", lambda: box._vsum(cp, H, m, 0, n))]:
+    for label, fn in [
+        ("horizontal, direct", lambda: box._hsum(cp, x, m, 0, n)),
+        ("horizontal, transposed", lambda: box._hsum_transposed(cp, x, m, 0, n)),
+        ("vertical", lambda: box._vsum(cp, H, m, 0, n)),
+    ]:
         t = gpu_time(cp, fn)
         rows.append(f"# box-sum pass {label}, {n}x{n}, m={m}: {t * 1e3:.2f} ms")
         print(rows[-1], flush=True)
@@ -124,8 +124,10 @@ def transfers(cp) -> list[str]:
 
     for label, fn in [("pageable", pageable), ("pinned", from_pinned), ("pinned incl. host copy", via_pinned)]:
         t = best_of(lambda: (fn(), cp.cuda.Device().synchronize()), repeat=5)
-        rows.append(f"# h2d of a {n}x{n} float32 tile ({x.nbytes / 1e6:.0f} MB), {label}: {t * 1e3:.1f} ms "
-                    f"({x.nbytes / t / 1e9:.1f} GB/s)")
+        rows.append(
+            f"# h2d of a {n}x{n} float32 tile ({x.nbytes / 1e6:.0f} MB), {label}: {t * 1e3:.1f} ms "
+            f"({x.nbytes / t / 1e9:.1f} GB/s)"
+        )
         print(rows[-1], flush=True)
     return rows
 
@@ -161,16 +163,19 @@ def kernels(sizes: list[int], bw: float, cp, only: set[str] | None = None) -> li
             if spec.scene_pass is not None:
                 prep = {**prep, **spec.reduce([spec.scene_pass(blk, h, origin, p, prep)], p, prep)}
             dblk = cp.asarray(blk)
-            tg = gpu_time(cp, lambda: spec.detect(dblk, h, origin, p, prep), reps)
+            tg = gpu_time(cp, lambda d=dblk: spec.detect(d, h, origin, p, prep), reps)
             if n <= cpu_max:
-                tc = best_of(lambda: spec.detect(blk, h, origin, p, prep),
-                             repeat=1 if (n > 2000 or name == "lmm") else 3)
+                tc = best_of(
+                    lambda: spec.detect(blk, h, origin, p, prep), repeat=1 if (n > 2000 or name == "lmm") else 3
+                )
                 cpu = f"{tc:.3f} | {tc / tg:,.0f}x"
             else:
                 cpu = "- | -"
             mbytes = x.nbytes + n * n * 5  # input once, mask (1 B) + stat (4 B)
-            rows.append(f"| {name} | {label} | {n}x{n} | {tg * 1e3:.2f} | {n * n / tg / 1e6:,.2f} | "
-                        f"{cpu} | {mbytes / 1e6:.0f} MB | {100 * mbytes / tg / bw:.0f}% |")
+            rows.append(
+                f"| {name} | {label} | {n}x{n} | {tg * 1e3:.2f} | {n * n / tg / 1e6:,.2f} | "
+                f"{cpu} | {mbytes / 1e6:.0f} MB | {100 * mbytes / tg / bw:.0f}% |"
+            )
             print(rows[-1], flush=True)
             del dblk
             cp.get_default_memory_pool().free_all_blocks()
@@ -183,8 +188,9 @@ def write_band(path: Path, shape: tuple[int, int], tile: int) -> None:
 
     from sarship.pipeline.scene import create_scene, finalize_scene, tile_slices
 
-    g = create_scene(path, shape, {"intensity": np.dtype(np.float32)}, tile=tile,
-                     attrs={"kind": "intensity", "looks": 1.0})
+    g = create_scene(
+        path, shape, {"intensity": np.dtype(np.float32)}, tile=tile, attrs={"kind": "intensity", "looks": 1.0}
+    )
     arr = g["intensity"]
 
     def one(t):
@@ -193,7 +199,7 @@ def write_band(path: Path, shape: tuple[int, int], tile: int) -> None:
         x = rng.standard_exponential((r1 - r0, c1 - c0), dtype=np.float32)
         for _ in range(3):
             a, b = rng.integers(0, max(r1 - r0 - 20, 1)), rng.integers(0, max(c1 - c0 - 60, 1))
-            x[a: a + 12, b: b + 50] += 200.0
+            x[a : a + 12, b : b + 50] += 200.0
         arr[r0:r1, c0:c1] = x
 
     with ThreadPoolExecutor(16) as ex:
@@ -201,8 +207,9 @@ def write_band(path: Path, shape: tuple[int, int], tile: int) -> None:
     finalize_scene(path)
 
 
-def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int, threads: list[int],
-               dets: tuple[str, ...] = ("ca_cfar",)) -> list[str]:
+def end_to_end(
+    band: tuple[int, int], n_gpus: list[int], tile: int, threads: list[int], dets: tuple[str, ...] = ("ca_cfar",)
+) -> list[str]:
     from sarship.workers.cluster import connect
     from sarship.workers.gpus import visible_gpus
     from sarship.workers.jobs import run_detection
@@ -219,19 +226,29 @@ def end_to_end(band: tuple[int, int], n_gpus: list[int], tile: int, threads: lis
                 continue
             os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(vis[:k])
             with connect(gpus=True, echo=False, dashboard_address=":0", gpu_threads=nt) as client:
-                for rep in range(2):  # first: compile + warm caches; second: measured
+                for _rep in range(2):  # first: compile + warm caches; second: measured
                     t = time.perf_counter()
-                    run = run_detection(scene, det, {}, out_dir=Path(td) / f"out{k}", client=client,
-                                        device="gpu", progress=False, overwrite=True)
+                    run = run_detection(
+                        scene,
+                        det,
+                        {},
+                        out_dir=Path(td) / f"out{k}",
+                        client=client,
+                        device="gpu",
+                        progress=False,
+                        overwrite=True,
+                    )
                     el = time.perf_counter() - t
                 per = run["tiles"]["per_tile"]
                 ker = sum(p["detect_s"] - p["h2d_s"] - p["d2h_s"] for p in per)
-                rows.append(f"| {det} e2e | {k} GPU, {nt} thread(s) each | {band[0]}x{band[1]} | {el:.2f} s | "
-                            f"{band[0] * band[1] / el / 1e6:,.0f} Mpx/s | read {sum(p['read_s'] for p in per):.1f} s, "
-                            f"h2d {sum(p['h2d_s'] for p in per):.2f} s, kernel {ker:.2f} s, "
-                            f"d2h {sum(p['d2h_s'] for p in per):.2f} s, write {sum(p['write_s'] for p in per):.1f} s, "
-                            f"label {sum(p['label_s'] for p in per):.1f} s (task sums); "
-                            f"{run['detections']} detections |")
+                rows.append(
+                    f"| {det} e2e | {k} GPU, {nt} thread(s) each | {band[0]}x{band[1]} | {el:.2f} s | "
+                    f"{band[0] * band[1] / el / 1e6:,.0f} Mpx/s | read {sum(p['read_s'] for p in per):.1f} s, "
+                    f"h2d {sum(p['h2d_s'] for p in per):.2f} s, kernel {ker:.2f} s, "
+                    f"d2h {sum(p['d2h_s'] for p in per):.2f} s, write {sum(p['write_s'] for p in per):.1f} s, "
+                    f"label {sum(p['label_s'] for p in per):.1f} s (task sums); "
+                    f"{run['detections']} detections |"
+                )
                 print(rows[-1], flush=True)
             os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(vis)
     return rows
@@ -250,23 +267,39 @@ def thesis_scenes(cases=None, devices=("gpu", "cpu")) -> list[str]:
     with tempfile.TemporaryDirectory(dir=os.environ.get("SARSHIP_BENCH_TMP")) as td:
         scenes = {}
         for kind in ("intensity", "quadpol"):
-            cfg = SimConfig(kind=kind, shape=(1000, 1000), ships=10, seed=3,
-                            clutter="gamma" if kind == "intensity" else "rayleigh", scr_db=10.0)
+            cfg = SimConfig(
+                kind=kind,
+                shape=(1000, 1000),
+                ships=10,
+                seed=3,
+                clutter="gamma" if kind == "intensity" else "rayleigh",
+                scr_db=10.0,
+            )
             scenes[kind] = Path(td) / f"{kind}.zarr"
             simulate(scenes[kind], cfg, tile=512)
         for dev in devices:
             os.environ["CUDA_VISIBLE_DEVICES"] = vis[0] if dev == "gpu" else ""
             with connect(gpus=dev == "gpu", echo=False, dashboard_address=":0") as client:
-                for name, kw, label, kind in (cases or [c for c in CASES if c[1].get("method") not in ("fast", "exact")]):
+                for name, kw, label, kind in cases or [c for c in CASES if c[1].get("method") not in ("fast", "exact")]:
                     settings = {k: v for k, v in kw.items()}
                     best = float("inf")
                     for _ in range(3):
                         t = time.perf_counter()
-                        run = run_detection(scenes[kind], name, settings, out_dir=Path(td) / "o", client=client,
-                                            device=dev, progress=False, overwrite=True)
+                        run = run_detection(
+                            scenes[kind],
+                            name,
+                            settings,
+                            out_dir=Path(td) / "o",
+                            client=client,
+                            device=dev,
+                            progress=False,
+                            overwrite=True,
+                        )
                         best = min(best, time.perf_counter() - t)
-                    rows.append(f"| {name} | {label} | 1000x1000 e2e | {dev} | {best:.3f} s | {run['device']} | "
-                                f"{run['detections']} detections |")
+                    rows.append(
+                        f"| {name} | {label} | 1000x1000 e2e | {dev} | {best:.3f} s | {run['device']} | "
+                        f"{run['detections']} detections |"
+                    )
                     print(rows[-1], flush=True)
         os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(vis)
     return rows
@@ -285,8 +318,9 @@ def main() -> None:
     ap.add_argument("--skip-thesis-e2e", action="store_true")
     ap.add_argument("--only", default="", help="comma list of detectors for the kernel rows (default: all)")
     ap.add_argument("--band-detectors", default="ca_cfar", help="comma list of detectors for the band rows")
-    ap.add_argument("--skip-slow", action="store_true",
-                    help="skip the lmm fast/exact rows and lmm's CPU reference (minutes each)")
+    ap.add_argument(
+        "--skip-slow", action="store_true", help="skip the lmm fast/exact rows and lmm's CPU reference (minutes each)"
+    )
     a = ap.parse_args()
     props = cp.cuda.runtime.getDeviceProperties(0)
     print(f"# {datetime.date.today()} {props['name'].decode()} x{cp.cuda.runtime.getDeviceCount()}; host {machine()}")
@@ -304,12 +338,18 @@ def main() -> None:
     if not a.skip_thesis_e2e:
         print("| detector | setting | scene | device asked | best of 3 (wall, with scene pass) | ran on | detections |")
         print("|---|---|---|---|---|---|---|")
-        thesis_scenes([c for c in CASES if c[1].get("method") not in ("fast", "exact")
-                       and (only is None or c[0] in only)])
+        thesis_scenes(
+            [c for c in CASES if c[1].get("method") not in ("fast", "exact") and (only is None or c[0] in only)]
+        )
     if a.band != "none":
         r, c = (int(v) for v in a.band.lower().split("x"))
-        end_to_end((r, c), [int(k) for k in a.gpus.split(",")], a.tile,
-                   [int(t) for t in a.gpu_threads.split(",")], tuple(a.band_detectors.split(",")))
+        end_to_end(
+            (r, c),
+            [int(k) for k in a.gpus.split(",")],
+            a.tile,
+            [int(t) for t in a.gpu_threads.split(",")],
+            tuple(a.band_detectors.split(",")),
+        )
 
 
 if __name__ == "__main__":

@@ -30,12 +30,11 @@ import datetime  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 from common import machine  # noqa: E402
 
 from sarship.pipeline import detectors  # noqa: E402
-from sarship.pipeline.stats import molc  # noqa: E402
 from sarship.pipeline.gpu import available  # noqa: E402
+from sarship.pipeline.stats import molc  # noqa: E402
 from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
 
 L = 2.0
@@ -70,8 +69,10 @@ def main() -> None:
         cases += [(d, {"censor": a.censor}) for d in ("g0_cfar", "k_cfar", "ggd_cfar")]
     gpu = available()
     ref = None
-    print(f"{'detector':<22}{'table s':>9}{'wall s':>9}{'CPU s':>9}{'Mpx/s':>9}{'x ca_cfar':>11}{'x paper':>9}{'alarms':>9}"
-          + (f"{'GPU ms':>9}{'GPU Mpx/s':>11}{'GPU alarms':>12}" if gpu else ""))
+    print(
+        f"{'detector':<22}{'table s':>9}{'wall s':>9}{'CPU s':>9}{'Mpx/s':>9}{'x ca_cfar':>11}{'x paper':>9}{'alarms':>9}"
+        + (f"{'GPU ms':>9}{'GPU Mpx/s':>11}{'GPU alarms':>12}" if gpu else "")
+    )
     for det, extra in cases:
         spec = detectors.get(det)
         p = spec.params(looks=L, pfa=1e-3, **extra)
@@ -101,8 +102,10 @@ def main() -> None:
         if det == "ca_cfar":
             ref = mpx
         name = det + (f" censor={extra['censor']:g}" if extra else "")
-        line = (f"{name:<22}{t_tab:>9.2f}{wall:>9.2f}{t:>9.2f}{mpx:>9.2f}{mpx / ref:>11.2f}{mpx / PAPER_MPX_S:>9.2f}"
-                f"{int(out['m'].sum()):>9d}")
+        line = (
+            f"{name:<22}{t_tab:>9.2f}{wall:>9.2f}{t:>9.2f}{mpx:>9.2f}{mpx / ref:>11.2f}{mpx / PAPER_MPX_S:>9.2f}"
+            f"{int(out['m'].sum()):>9d}"
+        )
         if gpu:
             import cupy
 

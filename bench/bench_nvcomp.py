@@ -42,18 +42,24 @@ def main() -> None:
     comp = [z.encode(c) for c in chunks]
     raw = sum(c.nbytes for c in chunks)
     mpx = a.chunks * 512 * 512 / 1e6
-    print(f"# nvCOMP {nvcomp.__version__} (CUDA {nvcomp.__cuda_version__}), CuPy {cp.__version__}, "
-          f"{cp.cuda.runtime.getDeviceProperties(0)['name'].decode()}")
-    print(f"# {a.chunks} chunks of 512 x 512 float32 1-look speckle: {raw / 1e6:.1f} MB, compressed "
-          f"{sum(len(c) for c in comp) / 1e6:.1f} MB")
+    print(
+        f"# nvCOMP {nvcomp.__version__} (CUDA {nvcomp.__cuda_version__}), CuPy {cp.__version__}, "
+        f"{cp.cuda.runtime.getDeviceProperties(0)['name'].decode()}"
+    )
+    print(
+        f"# {a.chunks} chunks of 512 x 512 float32 1-look speckle: {raw / 1e6:.1f} MB, compressed "
+        f"{sum(len(c) for c in comp) / 1e6:.1f} MB"
+    )
     cpu = float("inf")
     for _ in range(a.repeat):
         t = time.perf_counter()
         for c in comp:
             z.decode(c)
         cpu = min(cpu, time.perf_counter() - t)
-    print(f"numcodecs Zstd, one CPU core (reference): {cpu * 1e3:.1f} ms, {raw / cpu / 1e9:.2f} GB/s, "
-          f"{mpx / cpu:.0f} Mpx/s")
+    print(
+        f"numcodecs Zstd, one CPU core (reference): {cpu * 1e3:.1f} ms, {raw / cpu / 1e9:.2f} GB/s, "
+        f"{mpx / cpu:.0f} Mpx/s"
+    )
     codec = nvcomp.Codec(algorithm="Zstd", bitstream_kind=nvcomp.BitstreamKind.RAW)
     host = np.frombuffer(b"".join(comp), np.uint8)
     offs = np.cumsum([0] + [len(c) for c in comp])
@@ -62,14 +68,17 @@ def main() -> None:
         cp.cuda.Device().synchronize()
         t = time.perf_counter()
         dev = cp.asarray(host)
-        out = codec.decode(nvcomp.as_arrays([dev[offs[i]:offs[i + 1]] for i in range(a.chunks)]))
+        out = codec.decode(nvcomp.as_arrays([dev[offs[i] : offs[i + 1]] for i in range(a.chunks)]))
         cp.cuda.Device().synchronize()
         gpu = min(gpu, time.perf_counter() - t)
-    same = all(cp.array_equal(cp.asarray(o).view(cp.float32).reshape(512, 512), cp.asarray(c))
-               for o, c in zip(out, chunks))
-    print(f"nvCOMP Zstd batch on the GPU (with the copy of the compressed bytes): {gpu * 1e3:.1f} ms, "
-          f"{raw / gpu / 1e9:.2f} GB/s, {mpx / gpu:.0f} Mpx/s, {cpu / gpu:.1f}x one CPU core; "
-          f"bit-identical to the CPU's: {same}")
+    same = all(
+        cp.array_equal(cp.asarray(o).view(cp.float32).reshape(512, 512), cp.asarray(c)) for o, c in zip(out, chunks)
+    )
+    print(
+        f"nvCOMP Zstd batch on the GPU (with the copy of the compressed bytes): {gpu * 1e3:.1f} ms, "
+        f"{raw / gpu / 1e9:.2f} GB/s, {mpx / gpu:.0f} Mpx/s, {cpu / gpu:.1f}x one CPU core; "
+        f"bit-identical to the CPU's: {same}"
+    )
 
 
 if __name__ == "__main__":

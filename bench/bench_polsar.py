@@ -20,7 +20,6 @@ import datetime
 import time
 
 import numpy as np
-
 from common import best_of, machine  # noqa: E402
 
 from sarship.pipeline import detectors  # noqa: E402
@@ -28,11 +27,19 @@ from sarship.pipeline.simulate import SimConfig, simulate_array  # noqa: E402
 from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
 
 CASES = [
-    ("apwf", {"estimator": "window", "guard": 1, "background": 31, "pfa": 1e-6}, "thesis 31x31 window",
-     "CPU 67.4 s / Titan V 2.1 s"),
+    (
+        "apwf",
+        {"estimator": "window", "guard": 1, "background": 31, "pfa": 1e-6},
+        "thesis 31x31 window",
+        "CPU 67.4 s / Titan V 2.1 s",
+    ),
     ("apwf", {}, "ring guard 41 / background 61 (default)", "CPU 67.4 s / Titan V 2.1 s"),
-    ("pcdm", {"looks_window": 1, "span_rule": "fraction"}, "thesis: single-look C, fraction rule",
-     "MATLAB 11.4 s / Titan V 0.67 s"),
+    (
+        "pcdm",
+        {"looks_window": 1, "span_rule": "fraction"},
+        "thesis: single-look C, fraction rule",
+        "MATLAB 11.4 s / Titan V 0.67 s",
+    ),
     ("pcdm", {}, "default: 3x3 boxcar, lognormal rule", "MATLAB 11.4 s / Titan V 0.67 s"),
     ("vb_polsar", {}, "defaults (scene pass included)", "(not timed in the thesis)"),
     ("lmm", {}, "defaults (grid, BIC K' <= 3, predictive tail), |HH|^2", "MATLAB 37.5 s / Titan V 1.73 s"),
@@ -59,12 +66,15 @@ def main() -> None:
             data = X if spec.input == "polarimetric" else (np.abs(X[..., 0]) ** 2).astype(np.float32)
             blk = mirror_pad(data, h)
             if spec.scene_pass is not None:
+
                 def run_all():
                     pr = {**prep, **spec.reduce([spec.scene_pass(blk, h, (-h, -h), p, prep)], p, prep)}
                     return spec.detect(blk, h, (-h, -h), p, pr)
             else:
+
                 def run_all():
                     return spec.detect(blk, h, (-h, -h), p, prep)
+
             if name == "lmm" and n > 2000:  # one timed call (compiled on the smaller size)
                 t0 = time.perf_counter()
                 run_all()

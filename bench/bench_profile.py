@@ -102,8 +102,8 @@ def reference_kernel(scene_path: str, detector: str, settings: dict) -> dict:
     """The detector's kernel alone on the whole scene array (read into memory first, padded with
     the halo by mirror as the tiles are), land mask off; best of 2 after a warm-up on a crop."""
     from sarship.pipeline.detectors.base import resolve_size
-    from sarship.pipeline.tiling.inputs import intensity_source, make_reader
     from sarship.pipeline.scene import open_scene
+    from sarship.pipeline.tiling.inputs import intensity_source, make_reader
     from sarship.pipeline.tiling.windows import padded_block
     from sarship.workers.request import JobRequest
 
@@ -130,8 +130,12 @@ def reference_kernel(scene_path: str, detector: str, settings: dict) -> dict:
         t = time.perf_counter()
         spec.detect(block, halo, (-halo, -halo), params, prep)
         best = min(best, time.perf_counter() - t)
-    return {"what": f"{detector} kernel alone (spec.detect, this process, land_mask none) on the whole "
-                    f"{H}x{W} array, best of 2", "seconds": best, "read_whole_s": t_read}
+    return {
+        "what": f"{detector} kernel alone (spec.detect, this process, land_mask none) on the whole "
+        f"{H}x{W} array, best of 2",
+        "seconds": best,
+        "read_whole_s": t_read,
+    }
 
 
 def main() -> None:
@@ -150,11 +154,17 @@ def main() -> None:
     ap.add_argument("--json", help="write the record here")
     ap.add_argument("--label", default="", help="a label for this configuration in the record")
     ap.add_argument("--workdir", help="folder for the temporary scene and outputs")
-    ap.add_argument("--scheduler", help="run the commands on this Dask scheduler (`sarship detect --scheduler`) "
-                                        "instead of the local cluster each command starts")
-    ap.add_argument("--warm", choices=("auto", "gpu", "cpu"),
-                    help="run the commands on a warm cluster (`sarship warm start --device WARM` first, "
-                         "`sarship warm stop` after; sarship/warm.py) instead of a cluster per command")
+    ap.add_argument(
+        "--scheduler",
+        help="run the commands on this Dask scheduler (`sarship detect --scheduler`) "
+        "instead of the local cluster each command starts",
+    )
+    ap.add_argument(
+        "--warm",
+        choices=("auto", "gpu", "cpu"),
+        help="run the commands on a warm cluster (`sarship warm start --device WARM` first, "
+        "`sarship warm stop` after; sarship/warm.py) instead of a cluster per command",
+    )
     ap.add_argument("--warm-workers", type=int, help="`sarship warm start --workers N` (CPU workers)")
     a = ap.parse_args()
 
@@ -163,9 +173,18 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="sarship-profile-", dir=a.workdir))
     os.chmod(work, 0o700)
     env["SARSHIP_WARM_SOCKET"] = str(work / "warm.sock")  # this run's own (none unless --warm)
-    record: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                    "machine": machine(), "label": a.label, "detector": a.detector, "device": a.device,
-                    "set": a.set, "env": a.env, "tile": a.tile, "scheduler": a.scheduler, "runs": []}
+    record: dict = {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "machine": machine(),
+        "label": a.label,
+        "detector": a.detector,
+        "device": a.device,
+        "set": a.set,
+        "env": a.env,
+        "tile": a.tile,
+        "scheduler": a.scheduler,
+        "runs": [],
+    }
     try:
         if a.scene:
             scene = a.scene
@@ -176,15 +195,35 @@ def main() -> None:
             t_make = time.perf_counter() - t
             scene = str(work / "scene.zarr")
             t = time.perf_counter()
-            p = subprocess.run([exe, "ingest", str(npy), "--out", scene, "--kind", "intensity",
-                                "--tile", str(a.ingest_tile), "--looks", str(a.looks)],
-                               env=env, capture_output=True, text=True)
+            p = subprocess.run(
+                [
+                    exe,
+                    "ingest",
+                    str(npy),
+                    "--out",
+                    scene,
+                    "--kind",
+                    "intensity",
+                    "--tile",
+                    str(a.ingest_tile),
+                    "--looks",
+                    str(a.looks),
+                ],
+                env=env,
+                capture_output=True,
+                text=True,
+            )
             if p.returncode != 0:
                 raise SystemExit(f"ingest failed: {p.stderr[-2000:]}")
             t_ing = time.perf_counter() - t
             npy.unlink()
-            record["scene_made"] = {"side": a.side, "looks": a.looks, "make_npy_s": round(t_make, 3),
-                                    "ingest_s": round(t_ing, 3), "ingest_tile": a.ingest_tile}
+            record["scene_made"] = {
+                "side": a.side,
+                "looks": a.looks,
+                "make_npy_s": round(t_make, 3),
+                "ingest_s": round(t_ing, 3),
+                "ingest_tile": a.ingest_tile,
+            }
         from sarship.pipeline.scene import open_scene
 
         sc = open_scene(scene)
@@ -192,13 +231,17 @@ def main() -> None:
         mpx = H * W / 1e6
         record["scene"] = {"path": scene if a.scene else "(made here)", "shape": [H, W], "tile": sc.tile}
         print(f"# {record['date']}  {record['machine']}")
-        print(f"# sarship detect {a.detector} --device {a.device} {' '.join('--set ' + s for s in a.set)}"
-              f"{' --tile ' + str(a.tile) if a.tile else ''}  on {H}x{W} ({mpx:.1f} Mpx, scene tile {sc.tile})"
-              f"{'  env ' + ' '.join(a.env) if a.env else ''}")
+        print(
+            f"# sarship detect {a.detector} --device {a.device} {' '.join('--set ' + s for s in a.set)}"
+            f"{' --tile ' + str(a.tile) if a.tile else ''}  on {H}x{W} ({mpx:.1f} Mpx, scene tile {sc.tile})"
+            f"{'  env ' + ' '.join(a.env) if a.env else ''}"
+        )
         if "scene_made" in record:
             m = record["scene_made"]
-            print(f"# scene made: {a.looks:g}-look gamma + ships, .npy in {m['make_npy_s']:.1f} s, "
-                  f"`sarship ingest` {m['ingest_s']:.1f} s ({mpx / m['ingest_s']:.1f} Mpx/s)")
+            print(
+                f"# scene made: {a.looks:g}-look gamma + ships, .npy in {m['make_npy_s']:.1f} s, "
+                f"`sarship ingest` {m['ingest_s']:.1f} s ({mpx / m['ingest_s']:.1f} Mpx/s)"
+            )
         if a.warm:
             wcmd = [exe, "warm", "start", "--device", a.warm, "--dashboard", "127.0.0.1:0"]
             if a.warm_workers is not None:
@@ -210,8 +253,7 @@ def main() -> None:
             record["warm_start"] = {"s": round(time.perf_counter() - t, 3), "line": p.stdout.strip()}
             print(f"# `sarship warm start --device {a.warm}`: {record['warm_start']['s']:.2f} s: {p.stdout.strip()}")
         out = work / "out"
-        cmd = [exe, "detect", scene, "--detector", a.detector, "--device", a.device, "--out", str(out),
-               "--overwrite"]
+        cmd = [exe, "detect", scene, "--detector", a.detector, "--device", a.device, "--out", str(out), "--overwrite"]
         for s in a.set:
             cmd += ["--set", s]
         if a.tile:
@@ -227,9 +269,11 @@ def main() -> None:
             sums = tile_sums(run)
             nw = max(len(run["cluster"]["workers"]), 1)
             tiles_s = run["timings"]["tiles_s"]
-            print(f"\n## run {i + 1} ({label}: {'first' if i == 0 else 'a further'} `sarship detect` process)  "
-                  f"wall {wall:.2f} s  {mpx / wall:.1f} Mpx/s  device {run['device']}  "
-                  f"{run['tiles']['count']} tiles on {nw} worker(s)  {run['detections']} detections")
+            print(
+                f"\n## run {i + 1} ({label}: {'first' if i == 0 else 'a further'} `sarship detect` process)  "
+                f"wall {wall:.2f} s  {mpx / wall:.1f} Mpx/s  device {run['device']}  "
+                f"{run['tiles']['count']} tiles on {nw} worker(s)  {run['detections']} detections"
+            )
             print(f"{'stage':24s} {'s':>8s} {'share':>7s}")
             for name, s in rows:
                 print(f"{name:24s} {s:8.3f} {100 * s / wall:6.1f}%")
@@ -237,21 +281,32 @@ def main() -> None:
             for k in TILE_KEYS:
                 if sums[k] or k in ("read_s", "detect_s", "write_s", "label_s"):
                     print(f"  {k:22s} {sums[k]:8.3f} {100 * sums[k] / max(tiles_s * nw, 1e-9):6.1f}%")
-            record["runs"].append({
-                "run": i + 1, "label": label, "wall_s": round(wall, 4), "mpx_per_s": round(mpx / wall, 3),
-                "stages": {n: {"s": round(s, 4), "share": round(s / wall, 4)} for n, s in rows},
-                "per_tile_sums": {k: round(v, 4) for k, v in sums.items()},
-                "workers": nw, "tiles": run["tiles"]["count"], "detections": run["detections"],
-                "device": run["device"], "timings": run["timings"], "land": run.get("land"),
-                "scene_pass_s": (run.get("scene_pass") or {}).get("seconds"),
-                "mask_bytes": sum(f.stat().st_size for f in (out / "mask.zarr").rglob("*") if f.is_file()),
-            })
+            record["runs"].append(
+                {
+                    "run": i + 1,
+                    "label": label,
+                    "wall_s": round(wall, 4),
+                    "mpx_per_s": round(mpx / wall, 3),
+                    "stages": {n: {"s": round(s, 4), "share": round(s / wall, 4)} for n, s in rows},
+                    "per_tile_sums": {k: round(v, 4) for k, v in sums.items()},
+                    "workers": nw,
+                    "tiles": run["tiles"]["count"],
+                    "detections": run["detections"],
+                    "device": run["device"],
+                    "timings": run["timings"],
+                    "land": run.get("land"),
+                    "scene_pass_s": (run.get("scene_pass") or {}).get("seconds"),
+                    "mask_bytes": sum(f.stat().st_size for f in (out / "mask.zarr").rglob("*") if f.is_file()),
+                }
+            )
         if not a.no_reference:
             ref = reference_kernel(scene, a.detector, key_values(a.set))
             record["reference"] = ref
             if ref["seconds"]:
-                print(f"\n# reference: {ref['what']}: {ref['seconds']:.2f} s ({mpx / ref['seconds']:.1f} Mpx/s); "
-                      f"reading the whole array {ref['read_whole_s']:.2f} s")
+                print(
+                    f"\n# reference: {ref['what']}: {ref['seconds']:.2f} s ({mpx / ref['seconds']:.1f} Mpx/s); "
+                    f"reading the whole array {ref['read_whole_s']:.2f} s"
+                )
                 for r in record["runs"]:
                     r["ratio_to_kernel"] = round(r["wall_s"] / ref["seconds"], 3)
                     print(f"#   run {r['run']} ({r['label']}): wall = {r['ratio_to_kernel']:.2f} x the kernel alone")

@@ -48,8 +48,16 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import machine  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
-STAGES = ("outside run_detection", "cluster start", "land pass", "prepare, rest", "tiles", "cluster close",
-          "merge", "geojson")
+STAGES = (
+    "outside run_detection",
+    "cluster start",
+    "land pass",
+    "prepare, rest",
+    "tiles",
+    "cluster close",
+    "merge",
+    "geojson",
+)
 
 
 def visible_gpus() -> int:
@@ -60,10 +68,32 @@ def visible_gpus() -> int:
     return sum(1 for line in out.splitlines() if line.startswith("GPU "))
 
 
-def profile(scene: str, runs: int, sets: list[str], env: dict, json_out: Path, scheduler: str | None = None,
-            detector: str = "ca_cfar", extra: list[str] | None = None) -> dict:
-    cmd = [sys.executable, str(HERE / "bench_profile.py"), "--scene", scene, "--detector", detector,
-           "--device", "gpu", "--runs", str(runs), "--no-reference", "--json", str(json_out), *(extra or [])]
+def profile(
+    scene: str,
+    runs: int,
+    sets: list[str],
+    env: dict,
+    json_out: Path,
+    scheduler: str | None = None,
+    detector: str = "ca_cfar",
+    extra: list[str] | None = None,
+) -> dict:
+    cmd = [
+        sys.executable,
+        str(HERE / "bench_profile.py"),
+        "--scene",
+        scene,
+        "--detector",
+        detector,
+        "--device",
+        "gpu",
+        "--runs",
+        str(runs),
+        "--no-reference",
+        "--json",
+        str(json_out),
+        *(extra or []),
+    ]
     for s in sets:
         cmd += ["--set", s]
     if scheduler:
@@ -78,11 +108,16 @@ def profile(scene: str, runs: int, sets: list[str], env: dict, json_out: Path, s
 def summary(rec: dict) -> dict:
     warm = [r for r in rec["runs"] if r["label"] == "warm"] or rec["runs"]
     best = min(warm, key=lambda r: r["wall_s"])
-    return {"warm_best_s": best["wall_s"], "warm_median_s": statistics.median(r["wall_s"] for r in warm),
-            "cold_s": rec["runs"][0]["wall_s"], "workers": best["workers"], "tiles": best["tiles"],
-            "detections": best["detections"],
-            "shares": {k: best["stages"][k]["share"] for k in STAGES if k in best["stages"]},
-            "seconds": {k: best["stages"][k]["s"] for k in STAGES if k in best["stages"]}}
+    return {
+        "warm_best_s": best["wall_s"],
+        "warm_median_s": statistics.median(r["wall_s"] for r in warm),
+        "cold_s": rec["runs"][0]["wall_s"],
+        "workers": best["workers"],
+        "tiles": best["tiles"],
+        "detections": best["detections"],
+        "shares": {k: best["stages"][k]["share"] for k in STAGES if k in best["stages"]},
+        "seconds": {k: best["stages"][k]["s"] for k in STAGES if k in best["stages"]},
+    }
 
 
 def free_port() -> int:
@@ -120,20 +155,33 @@ def external(scene: str, runs: int, sets: list[str], n: int, have: int, work: Pa
     sarship_exe = shutil.which("sarship") or str(Path(sys.executable).with_name("sarship"))
     commands = [",".join(str(i) for i in range(n))] if n <= have else ["0"] * n
     logs = [open(work / f"{name}.log", "w") for name in ["scheduler"] + [f"worker{k}" for k in range(len(commands))]]
-    procs = [subprocess.Popen([dask_exe, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--dashboard-address", ":0"], env=env, stdout=logs[0], stderr=subprocess.STDOUT)]
+    procs = [
+        subprocess.Popen(
+            [dask_exe, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address", ":0"],
+            env=env,
+            stdout=logs[0],
+            stderr=subprocess.STDOUT,
+        )
+    ]
     try:
         time.sleep(2.0)
         for k, gids in enumerate(commands):
-            procs.append(subprocess.Popen([sarship_exe, "worker", "--scheduler", address, "--gpus", gids, "--cpus", "0",
-                                           "--name", f"gw{k}"], env=env, stdout=logs[k + 1],
-                                          stderr=subprocess.STDOUT))
+            procs.append(
+                subprocess.Popen(
+                    [sarship_exe, "worker", "--scheduler", address, "--gpus", gids, "--cpus", "0", "--name", f"gw{k}"],
+                    env=env,
+                    stdout=logs[k + 1],
+                    stderr=subprocess.STDOUT,
+                )
+            )
         per = gpu_procs(n) if n <= have else gpu_procs(1)  # each command's --gpu-procs default
         registered = wait_workers(address, n * per)
         rec = profile(scene, runs, sets, env, work / f"external{n}.json", scheduler=address, detector=detector)
-        rec["external"] = {"commands": [f"sarship worker --gpus {g} --cpus 0" for g in commands],
-                           "registered_workers": registered,
-                           "what": "dask scheduler + sarship worker command(s), warm across runs"}
+        rec["external"] = {
+            "commands": [f"sarship worker --gpus {g} --cpus 0" for g in commands],
+            "registered_workers": registered,
+            "what": "dask scheduler + sarship worker command(s), warm across runs",
+        }
         return rec
     finally:
         for p in reversed(procs):
@@ -150,14 +198,21 @@ def external(scene: str, runs: int, sets: list[str], n: int, have: int, work: Pa
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", required=True, help="the scene store (e.g. the band ingested by sarship ingest)")
-    ap.add_argument("--local", default="1,2,4", help="GPU counts of the local-cluster runs (those above the "
-                                                      "host's are skipped; 1 always runs: the reference)")
+    ap.add_argument(
+        "--local",
+        default="1,2,4",
+        help="GPU counts of the local-cluster runs (those above the host's are skipped; 1 always runs: the reference)",
+    )
     ap.add_argument("--external", default="", help="GPU counts of the external-scheduler runs, e.g. 1,2,4")
     ap.add_argument("--runs", type=int, default=3, help="commands per configuration (1 cold, then warm)")
     ap.add_argument("--detector", default="ca_cfar")
     ap.add_argument("--set", action="append", default=["looks=1"], metavar="K=V")
-    ap.add_argument("--warm", default="", help="GPU counts of the warm-cluster runs (`sarship warm start --device "
-                                                "gpu` with CUDA_VISIBLE_DEVICES = the first N GPUs), e.g. 1,2,4")
+    ap.add_argument(
+        "--warm",
+        default="",
+        help="GPU counts of the warm-cluster runs (`sarship warm start --device "
+        "gpu` with CUDA_VISIBLE_DEVICES = the first N GPUs), e.g. 1,2,4",
+    )
     ap.add_argument("--json", help="write the record here")
     a = ap.parse_args()
     have = visible_gpus()
@@ -166,9 +221,16 @@ def main() -> None:
     counts = [n for n in (int(x) for x in a.local.split(",") if x) if 1 <= n <= have]
     if counts and 1 not in counts:
         counts = [1] + counts  # the reference
-    record = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "machine": machine(), "gpus_visible": have, "cores": os.cpu_count(), "scene": a.scene,
-              "detector": a.detector, "set": a.set, "configs": {}}
+    record = {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "machine": machine(),
+        "gpus_visible": have,
+        "cores": os.cpu_count(),
+        "scene": a.scene,
+        "detector": a.detector,
+        "set": a.set,
+        "configs": {},
+    }
     work = Path(tempfile.mkdtemp(prefix="sarship-scaling-"))
     try:
         for n in counts:
@@ -185,10 +247,13 @@ def main() -> None:
             warm_counts = [1] + warm_counts
         for n in warm_counts:
             env = {**os.environ, "CUDA_VISIBLE_DEVICES": ",".join(str(i) for i in range(n))}
-            print(f"\n# warm-{n}: sarship warm start --device gpu, CUDA_VISIBLE_DEVICES={env['CUDA_VISIBLE_DEVICES']}",
-                  flush=True)
-            rec = profile(a.scene, a.runs, a.set, env, work / f"warm{n}.json", detector=a.detector,
-                          extra=["--warm", "gpu"])
+            print(
+                f"\n# warm-{n}: sarship warm start --device gpu, CUDA_VISIBLE_DEVICES={env['CUDA_VISIBLE_DEVICES']}",
+                flush=True,
+            )
+            rec = profile(
+                a.scene, a.runs, a.set, env, work / f"warm{n}.json", detector=a.detector, extra=["--warm", "gpu"]
+            )
             record["configs"][f"warm-{n}"] = {"gpus": n, **summary(rec), "record": rec}
         first = next(iter(record["configs"].values()))
 
@@ -197,16 +262,21 @@ def main() -> None:
             return record["configs"].get(f"{fam}-1", record["configs"].get("local-1", first))["warm_best_s"]
 
         print(f"\n# {record['date']}  {record['machine']}  {have} GPU(s), {record['cores']} cores")
-        print("| config | GPUs | workers | warm best s | warm median s | cold s | speed-up vs its 1-GPU run | "
-              + " | ".join(STAGES) + " |")
+        print(
+            "| config | GPUs | workers | warm best s | warm median s | cold s | speed-up vs its 1-GPU run | "
+            + " | ".join(STAGES)
+            + " |"
+        )
         print("|---" * (7 + len(STAGES)) + "|")
         for name, c in record["configs"].items():
             c["speedup"] = round(base(name) / c["warm_best_s"], 3)
             if "local-1" in record["configs"]:
                 c["speedup_vs_local_1"] = round(record["configs"]["local-1"]["warm_best_s"] / c["warm_best_s"], 3)
             shares = " | ".join(f"{100 * c['shares'].get(k, 0):.0f}%" for k in STAGES)
-            print(f"| {name} | {c['gpus']} | {c['workers']} | {c['warm_best_s']:.2f} | {c['warm_median_s']:.2f} | "
-                  f"{c['cold_s']:.2f} | {c['speedup']:.2f}x | {shares} |")
+            print(
+                f"| {name} | {c['gpus']} | {c['workers']} | {c['warm_best_s']:.2f} | {c['warm_median_s']:.2f} | "
+                f"{c['cold_s']:.2f} | {c['speedup']:.2f}x | {shares} |"
+            )
         if a.json:
             Path(a.json).write_text(json.dumps(record, indent=1))
             print(f"# record: {a.json}")

@@ -66,9 +66,13 @@ def one_job(url: str, detector: str, inputs: dict, poll: float, timeout: float =
     latency = time.perf_counter() - t0
     if st["status"] != "successful":
         raise RuntimeError(f"job {job} {st['status']}: {st.get('message')}")
-    return {"job": job, "latency_s": latency, "post_s": t_post,
-            "queued_s": _iso(st["started"]) - _iso(st["created"]),
-            "server_run_s": _iso(st["finished"]) - _iso(st["started"])}
+    return {
+        "job": job,
+        "latency_s": latency,
+        "post_s": t_post,
+        "queued_s": _iso(st["started"]) - _iso(st["created"]),
+        "server_run_s": _iso(st["finished"]) - _iso(st["started"]),
+    }
 
 
 def main() -> None:
@@ -87,15 +91,23 @@ def main() -> None:
     ap.add_argument("--workdir")
     a = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="sarship-latency-", dir=a.workdir))
-    record: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                    "machine": machine(), "detector": a.detector, "set": a.set, "device": a.device,
-                    "workers": a.workers, "scheduler": a.scheduler, "jobs": []}
+    record: dict = {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "machine": machine(),
+        "detector": a.detector,
+        "set": a.set,
+        "device": a.device,
+        "workers": a.workers,
+        "scheduler": a.scheduler,
+        "jobs": [],
+    }
     proc = None
     try:
         data = work / "data"
         (data / "scenes").mkdir(parents=True)
         scene = data / "scenes" / "s1.zarr"
         if a.scene:  # hard links (a copy across file systems): the service refuses a symlink out of its folders
+
             def link(src, dst):
                 try:
                     os.link(src, dst)
@@ -106,8 +118,11 @@ def main() -> None:
         else:
             npy = work / "s.npy"
             make_npy(str(npy), a.side, 1.0)
-            p = subprocess.run([sarship_exe(), "ingest", str(npy), "--out", str(scene), "--kind", "intensity",
-                                "--looks", "1"], capture_output=True, text=True)
+            p = subprocess.run(
+                [sarship_exe(), "ingest", str(npy), "--out", str(scene), "--kind", "intensity", "--looks", "1"],
+                capture_output=True,
+                text=True,
+            )
             if p.returncode != 0:
                 raise SystemExit(f"ingest failed: {p.stderr[-2000:]}")
             npy.unlink()
@@ -129,27 +144,46 @@ def main() -> None:
         warm = one_job(url, a.detector, inputs, a.poll)
         record["warmup"] = warm
         print(f"# {record['date']}  {record['machine']}")
-        print(f"# service: {a.detector} {inputs} on {H}x{W} ({H * W / 1e6:.1f} Mpx); server start "
-              f"{record['server_start_s']:.1f} s; warm-up job {warm['latency_s']:.2f} s")
+        print(
+            f"# service: {a.detector} {inputs} on {H}x{W} ({H * W / 1e6:.1f} Mpx); server start "
+            f"{record['server_start_s']:.1f} s; warm-up job {warm['latency_s']:.2f} s"
+        )
         for i in range(a.jobs):
             j = one_job(url, a.detector, inputs, a.poll)
             run = json.loads((data / "jobs" / j["job"] / "run.json").read_text())
-            j["stages"] = {n: round(s, 4) for n, s in stages(run, run["timings"]["total_s"])
-                           if n not in ("outside run_detection", "unaccounted")}
+            j["stages"] = {
+                n: round(s, 4)
+                for n, s in stages(run, run["timings"]["total_s"])
+                if n not in ("outside run_detection", "unaccounted")
+            }
             record["jobs"].append(j)
             top = sorted(j["stages"].items(), key=lambda kv: -kv[1])[:4]
-            print(f"job {i + 1}: POST -> successful {j['latency_s']:.2f} s (queued {j['queued_s']:.2f}, server run "
-                  f"{j['server_run_s']:.2f}); " + ", ".join(f"{n} {s:.2f}" for n, s in top))
+            print(
+                f"job {i + 1}: POST -> successful {j['latency_s']:.2f} s (queued {j['queued_s']:.2f}, server run "
+                f"{j['server_run_s']:.2f}); " + ", ".join(f"{n} {s:.2f}" for n, s in top)
+            )
         lat = [j["latency_s"] for j in record["jobs"]]
         record["latency_best_s"], record["latency_median_s"] = min(lat), statistics.median(lat)
-        print(f"latency best {min(lat):.2f} s, median {statistics.median(lat):.2f} s "
-              f"({H * W / 1e6 / statistics.median(lat):.1f} Mpx/s)")
+        print(
+            f"latency best {min(lat):.2f} s, median {statistics.median(lat):.2f} s "
+            f"({H * W / 1e6 / statistics.median(lat):.1f} Mpx/s)"
+        )
         stop_server(proc)
         proc = None
         if not a.no_reference:
             out = work / "ref"
-            cmd = [sarship_exe(), "detect", str(scene), "--detector", a.detector, "--device", a.device,
-                   "--out", str(out), "--overwrite"] + sum((["--set", s] for s in a.set), [])
+            cmd = [
+                sarship_exe(),
+                "detect",
+                str(scene),
+                "--detector",
+                a.detector,
+                "--device",
+                a.device,
+                "--out",
+                str(out),
+                "--overwrite",
+            ] + sum((["--set", s] for s in a.set), [])
             walls = []
             for _ in range(2):
                 t = time.perf_counter()
@@ -157,10 +191,15 @@ def main() -> None:
                 walls.append(time.perf_counter() - t)
                 if p.returncode != 0:
                     raise SystemExit(f"sarship detect failed: {p.stderr[-2000:]}")
-            record["reference"] = {"what": "sarship detect as a user types it (own local cluster), second run",
-                                   "seconds": walls[-1], "first_s": walls[0]}
-            print(f"reference: sarship detect {walls[-1]:.2f} s (first {walls[0]:.2f}); service median latency is "
-                  f"{walls[-1] / statistics.median(lat):.2f}x faster")
+            record["reference"] = {
+                "what": "sarship detect as a user types it (own local cluster), second run",
+                "seconds": walls[-1],
+                "first_s": walls[0],
+            }
+            print(
+                f"reference: sarship detect {walls[-1]:.2f} s (first {walls[0]:.2f}); service median latency is "
+                f"{walls[-1] / statistics.median(lat):.2f}x faster"
+            )
         if a.json:
             Path(a.json).write_text(json.dumps(record, indent=1))
             print(f"# record: {a.json}")

@@ -57,7 +57,7 @@ def make_scene(path: Path, side: int, tile: int, seed: int = 1) -> None:
     x = rng.gamma(2.0, 0.5, (side, side)).astype(np.float32)
     for _ in range(max(side // 32, 2)):
         r, c = int(rng.integers(0, side - 6)), int(rng.integers(0, side - 12))
-        x[r:r + 4, c:c + 10] += 30.0
+        x[r : r + 4, c : c + 10] += 30.0
     g = create_scene(path, (side, side), {"intensity": x.dtype}, tile=tile, attrs={"kind": "intensity", "looks": 2.0})
     g["intensity"][:] = x
     finalize_scene(path)
@@ -78,12 +78,32 @@ def start_cluster(workers: int, log: Path) -> tuple[subprocess.Popen, str]:
     addr = f"tcp://127.0.0.1:{port}"
     env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
     out = open(log, "w")
-    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                              "--port", str(port), "--dashboard-address", ":0"], stdout=out,
-                             stderr=subprocess.STDOUT, env=env, cwd=REPO, start_new_session=True)
-    wk = subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler", addr, "--gpus", "none",
-                           "--cpus", str(workers)], stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO,
-                          start_new_session=True)
+    sched = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "distributed.cli.dask_scheduler",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--dashboard-address",
+            ":0",
+        ],
+        stdout=out,
+        stderr=subprocess.STDOUT,
+        env=env,
+        cwd=REPO,
+        start_new_session=True,
+    )
+    wk = subprocess.Popen(
+        [sys.executable, "-m", "sarship", "worker", "--scheduler", addr, "--gpus", "none", "--cpus", str(workers)],
+        stdout=out,
+        stderr=subprocess.STDOUT,
+        env=env,
+        cwd=REPO,
+        start_new_session=True,
+    )
     t_end = time.time() + 120
     while time.time() < t_end:
         try:
@@ -96,8 +116,9 @@ def start_cluster(workers: int, log: Path) -> tuple[subprocess.Popen, str]:
     raise RuntimeError(f"the Dask cluster did not start: {log.read_text()[-2000:]}")
 
 
-def start_server(data: Path, port: int, workers: int, concurrency: int, log: Path,
-                 scheduler: str | None = None, gpus: bool = False) -> subprocess.Popen:
+def start_server(
+    data: Path, port: int, workers: int, concurrency: int, log: Path, scheduler: str | None = None, gpus: bool = False
+) -> subprocess.Popen:
     """``sarship serve`` on ``data``; its local cluster has ``workers`` CPU worker processes and,
     with ``gpus``, its GPU workers (hidden otherwise)."""
     import httpx
@@ -107,8 +128,14 @@ def start_server(data: Path, port: int, workers: int, concurrency: int, log: Pat
         env["CUDA_VISIBLE_DEVICES"] = ""
     if scheduler:
         env["SARSHIP_SCHEDULER"] = scheduler
-    proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(data), "--port", str(port)],
-                            stdout=open(log, "w"), stderr=subprocess.STDOUT, env=env, cwd=REPO, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sarship", "serve", "--data", str(data), "--port", str(port)],
+        stdout=open(log, "w"),
+        stderr=subprocess.STDOUT,
+        env=env,
+        cwd=REPO,
+        start_new_session=True,
+    )
     t_end = time.time() + 180
     while time.time() < t_end:
         if proc.poll() is not None:
@@ -197,6 +224,7 @@ async def submit_all(url: str, n: int, concurrency: int, on_ids) -> tuple[list[s
     sem = asyncio.Semaphore(concurrency)
     body = {"inputs": {"scene": "s1", **PARAMS}}
     async with httpx.AsyncClient(timeout=60, limits=httpx.Limits(max_connections=concurrency)) as c:
+
         async def one(k: int) -> None:
             async with sem:
                 t = time.perf_counter()
@@ -223,8 +251,10 @@ def load(url: str, a) -> dict:
     deadline = time.time() + a.timeout
     queues = [ctx.Queue() for _ in range(a.pollers)]
     out_q = ctx.Queue()
-    procs = [ctx.Process(target=poller, args=(url, q, out_q, a.max_polls, deadline, i), daemon=True)
-             for i, q in enumerate(queues)]
+    procs = [
+        ctx.Process(target=poller, args=(url, q, out_q, a.max_polls, deadline, i), daemon=True)
+        for i, q in enumerate(queues)
+    ]
     for p in procs:
         p.start()
     time.sleep(2.0)  # the pollers' interpreters start (spawn) before the clock does
@@ -254,8 +284,15 @@ def load(url: str, a) -> dict:
         errors += errs
     for p in procs:
         p.join(timeout=30)
-    return {"ids": ids, "post_lat": post_lat, "poll_lat": poll_lat, "errors": errors,
-            "t0": t0, "t_submitted": t_submitted, "t_end": t_end}
+    return {
+        "ids": ids,
+        "post_lat": post_lat,
+        "poll_lat": poll_lat,
+        "errors": errors,
+        "t0": t0,
+        "t_submitted": t_submitted,
+        "t_end": t_end,
+    }
 
 
 def check(url: str, ids: list[str], n_expected: int) -> tuple[list[str], list[dict]]:
@@ -292,13 +329,31 @@ def reference(scene: Path, work: Path, n: int, workers: int, concurrency: int) -
 
     from sarship.workers.jobs import run_detection
 
-    with LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=":0",
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
-        run_detection(scene, "ca_cfar", dict(PARAMS), out_dir=work / "warm", client=client, progress=False, overwrite=True)
+    with (
+        LocalCluster(
+            n_workers=workers, threads_per_worker=1, dashboard_address=":0", silence_logs=logging.ERROR
+        ) as cluster,
+        Client(cluster) as client,
+    ):
+        run_detection(
+            scene, "ca_cfar", dict(PARAMS), out_dir=work / "warm", client=client, progress=False, overwrite=True
+        )
         t = time.perf_counter()
         with ThreadPoolExecutor(concurrency) as pool:
-            list(pool.map(lambda k: run_detection(scene, "ca_cfar", dict(PARAMS), out_dir=work / f"ref{k}",
-                                                  client=client, progress=False, overwrite=True), range(n)))
+            list(
+                pool.map(
+                    lambda k: run_detection(
+                        scene,
+                        "ca_cfar",
+                        dict(PARAMS),
+                        out_dir=work / f"ref{k}",
+                        client=client,
+                        progress=False,
+                        overwrite=True,
+                    ),
+                    range(n),
+                )
+            )
         return time.perf_counter() - t
 
 
@@ -313,9 +368,12 @@ def main() -> int:
     ap.add_argument("--tile", type=int, default=128)
     ap.add_argument("--max-polls", type=int, default=200_000, help="most requests per poller")
     ap.add_argument("--timeout", type=float, default=900.0, help="longest run (seconds)")
-    ap.add_argument("--external-cluster", action="store_true",
-                    help="run the Dask scheduler and workers as their own processes (SARSHIP_SCHEDULER) instead of "
-                         "the server's local cluster, whose scheduler shares the API process")
+    ap.add_argument(
+        "--external-cluster",
+        action="store_true",
+        help="run the Dask scheduler and workers as their own processes (SARSHIP_SCHEDULER) instead of "
+        "the server's local cluster, whose scheduler shares the API process",
+    )
     ap.add_argument("--no-reference", action="store_true")
     ap.add_argument("--out", type=Path, help="write the results here (JSON)")
     ap.add_argument("--workdir", default=None)
@@ -339,8 +397,12 @@ def main() -> int:
         import httpx
 
         # warm-up: one job (first Numba compile in the workers is not part of the load)
-        r = httpx.post(f"{url}/processes/ca_cfar/execution", headers={"Prefer": "respond-sync"},
-                       json={"inputs": {"scene": "s1", **PARAMS}}, timeout=300)
+        r = httpx.post(
+            f"{url}/processes/ca_cfar/execution",
+            headers={"Prefer": "respond-sync"},
+            json={"inputs": {"scene": "s1", **PARAMS}},
+            timeout=300,
+        )
         assert r.status_code == 200, r.text
         warm_id = r.headers["location"].rsplit("/", 1)[-1]
         res = load(url, a)
@@ -362,40 +424,67 @@ def main() -> int:
         queue_s = [ts(j["started"]) - ts(j["created"]) for j in final if j["started"]]
         run_s = [ts(j["finished"]) - ts(j["started"]) for j in final if j["finished"]]
         out = {
-            "date": str(datetime.date.today()), "machine": machine(),
-            "jobs": a.jobs, "pollers": a.pollers, "submitters": a.submitters, "concurrency": a.concurrency,
-            "workers": a.workers, "external_cluster": a.external_cluster, "scene": [a.side, a.side], "tile": a.tile,
+            "date": str(datetime.date.today()),
+            "machine": machine(),
+            "jobs": a.jobs,
+            "pollers": a.pollers,
+            "submitters": a.submitters,
+            "concurrency": a.concurrency,
+            "workers": a.workers,
+            "external_cluster": a.external_cluster,
+            "scene": [a.side, a.side],
+            "tile": a.tile,
             "params": PARAMS,
             "server_start_s": t_start,
-            "submit_s": res["t_submitted"] - res["t0"], "submit_rate": len(ids) / (res["t_submitted"] - res["t0"]),
-            "wall_s": wall, "jobs_per_s": n_ok / wall, "mpx_per_s": mpx / wall,
-            "polls": len(res["poll_lat"]), "polls_per_s": len(res["poll_lat"]) / (res["t_end"] - res["t0"]),
-            "poll_p50_ms": 1e3 * pct(res["poll_lat"], 50), "poll_p99_ms": 1e3 * pct(res["poll_lat"], 99),
+            "submit_s": res["t_submitted"] - res["t0"],
+            "submit_rate": len(ids) / (res["t_submitted"] - res["t0"]),
+            "wall_s": wall,
+            "jobs_per_s": n_ok / wall,
+            "mpx_per_s": mpx / wall,
+            "polls": len(res["poll_lat"]),
+            "polls_per_s": len(res["poll_lat"]) / (res["t_end"] - res["t0"]),
+            "poll_p50_ms": 1e3 * pct(res["poll_lat"], 50),
+            "poll_p99_ms": 1e3 * pct(res["poll_lat"], 99),
             "poll_max_ms": 1e3 * max(res["poll_lat"], default=float("nan")),
-            "post_p50_ms": 1e3 * pct(res["post_lat"], 50), "post_p99_ms": 1e3 * pct(res["post_lat"], 99),
+            "post_p50_ms": 1e3 * pct(res["post_lat"], 50),
+            "post_p99_ms": 1e3 * pct(res["post_lat"], 99),
             "post_max_ms": 1e3 * max(res["post_lat"], default=float("nan")),
-            "max_in_flight": in_flight, "max_running": running,
-            "queue_p50_s": pct(queue_s, 50), "run_p50_s": pct(run_s, 50), "run_p99_s": pct(run_s, 99),
-            "request_errors": res["errors"][:20], "n_request_errors": len(res["errors"]),
+            "max_in_flight": in_flight,
+            "max_running": running,
+            "queue_p50_s": pct(queue_s, 50),
+            "run_p50_s": pct(run_s, 50),
+            "run_p99_s": pct(run_s, 99),
+            "request_errors": res["errors"][:20],
+            "n_request_errors": len(res["errors"]),
             "lost": problems,
         }
         print(f"# {out['date']} {out['machine']}")
-        print(f"# {a.jobs} ca_cfar jobs on a {a.side}x{a.side} scene (tile {a.tile}), server: {a.workers} Dask "
-              f"workers, concurrency {a.concurrency}; {a.submitters} POSTs in flight, {a.pollers} poller processes")
-        print(f"submit     {out['submit_s']:6.2f} s  {out['submit_rate']:7.1f} jobs/s   POST p50 "
-              f"{out['post_p50_ms']:.1f} ms  p99 {out['post_p99_ms']:.1f} ms  max {out['post_max_ms']:.1f} ms")
-        print(f"complete   {wall:6.2f} s  {out['jobs_per_s']:7.2f} jobs/s  {out['mpx_per_s']:.3f} Mpx/s   "
-              f"run p50 {out['run_p50_s'] * 1e3:.0f} ms  p99 {out['run_p99_s'] * 1e3:.0f} ms")
-        print(f"status     {out['polls']} polls  {out['polls_per_s']:7.0f} /s   GET p50 {out['poll_p50_ms']:.1f} ms  "
-              f"p99 {out['poll_p99_ms']:.1f} ms  max {out['poll_max_ms']:.1f} ms")
+        print(
+            f"# {a.jobs} ca_cfar jobs on a {a.side}x{a.side} scene (tile {a.tile}), server: {a.workers} Dask "
+            f"workers, concurrency {a.concurrency}; {a.submitters} POSTs in flight, {a.pollers} poller processes"
+        )
+        print(
+            f"submit     {out['submit_s']:6.2f} s  {out['submit_rate']:7.1f} jobs/s   POST p50 "
+            f"{out['post_p50_ms']:.1f} ms  p99 {out['post_p99_ms']:.1f} ms  max {out['post_max_ms']:.1f} ms"
+        )
+        print(
+            f"complete   {wall:6.2f} s  {out['jobs_per_s']:7.2f} jobs/s  {out['mpx_per_s']:.3f} Mpx/s   "
+            f"run p50 {out['run_p50_s'] * 1e3:.0f} ms  p99 {out['run_p99_s'] * 1e3:.0f} ms"
+        )
+        print(
+            f"status     {out['polls']} polls  {out['polls_per_s']:7.0f} /s   GET p50 {out['poll_p50_ms']:.1f} ms  "
+            f"p99 {out['poll_p99_ms']:.1f} ms  max {out['poll_max_ms']:.1f} ms"
+        )
         print(f"in flight  max {in_flight} accepted-not-finished, max {running} running at once")
         if not a.no_reference:
             ref = reference(data / "scenes" / "s1.zarr", work, a.jobs, a.workers, a.concurrency)
             out["reference_s"] = ref
             out["reference_mpx_per_s"] = a.side * a.side * a.jobs / 1e6 / ref
             out["ratio"] = out["mpx_per_s"] / out["reference_mpx_per_s"]
-            print(f"reference  {ref:6.2f} s  {a.jobs / ref:7.2f} jobs/s  {out['reference_mpx_per_s']:.3f} Mpx/s  "
-                  f"(run_detection on a LocalCluster, {a.concurrency} at a time, no service)")
+            print(
+                f"reference  {ref:6.2f} s  {a.jobs / ref:7.2f} jobs/s  {out['reference_mpx_per_s']:.3f} Mpx/s  "
+                f"(run_detection on a LocalCluster, {a.concurrency} at a time, no service)"
+            )
             print(f"ratio      {out['ratio']:.2f} (service / reference Mpx/s)")
         if res["errors"]:
             print(f"request errors: {len(res['errors'])}, first: {res['errors'][0]}")

@@ -32,12 +32,12 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
-
 from common import best_of, machine  # noqa: E402
+from tests.test_superpixel_cfar import CAL, hires_scene, k_sea, objects  # noqa: E402
+
 from sarship.pipeline import detectors  # noqa: E402
 from sarship.pipeline.detectors import superpixel_cfar as D  # noqa: E402
 from sarship.pipeline.tiling.windows import mirror_pad  # noqa: E402
-from tests.test_superpixel_cfar import CAL, hires_scene, k_sea, objects  # noqa: E402
 
 
 def run_whole(name: str, x: np.ndarray, **kw):
@@ -67,10 +67,14 @@ def speed(side: int) -> None:
     mpx = side * side / 1e6
     tot = t_pass + t_det
     print(f"speed {side}x{side} (block with halo {h}: {P.shape[0]}x{P.shape[1]}), one core:")
-    print(f"  scene pass {t_pass:.3f} s, detect {t_det:.3f} s, total {tot:.3f} s = {mpx / tot:.2f} Mpx/s "
-          f"({prep['target_count']} target superpixels of {prep['superpixels']})")
-    print(f"  two_parameter (defaults, 81x81 ring) {t_tp:.3f} s = {mpx / t_tp:.1f} Mpx/s; "
-          f"superpixel_cfar / two_parameter time ratio {tot / t_tp:.2f}")
+    print(
+        f"  scene pass {t_pass:.3f} s, detect {t_det:.3f} s, total {tot:.3f} s = {mpx / tot:.2f} Mpx/s "
+        f"({prep['target_count']} target superpixels of {prep['superpixels']})"
+    )
+    print(
+        f"  two_parameter (defaults, 81x81 ring) {t_tp:.3f} s = {mpx / t_tp:.1f} Mpx/s; "
+        f"superpixel_cfar / two_parameter time ratio {tot / t_tp:.2f}"
+    )
 
 
 def clutter(side: int) -> None:
@@ -81,11 +85,17 @@ def clutter(side: int) -> None:
         for comps in (1, 3):
             p = D.SuperpixelCFARParams(pfa=1e-3, **{**CAL, "components": comps})
             t = time.perf_counter()
-            m, _ = run_whole("superpixel_cfar", x, pfa=1e-3,
-                             **{**{k: v for k, v in CAL.items() if k != "looks"}, "components": comps})
+            m, _ = run_whole(
+                "superpixel_cfar",
+                x,
+                pfa=1e-3,
+                **{**{k: v for k, v in CAL.items() if k != "looks"}, "components": comps},
+            )
             K = int(m.sum())
-            print(f"clutter {name} {side}^2, calibration mode M_a={comps}: {K} pixel false alarms, expected "
-                  f"{M * p.pfa:.0f} (ratio {K / (M * p.pfa):.3f}); {time.perf_counter() - t:.1f} s")
+            print(
+                f"clutter {name} {side}^2, calibration mode M_a={comps}: {K} pixel false alarms, expected "
+                f"{M * p.pfa:.0f} (ratio {K / (M * p.pfa):.3f}); {time.perf_counter() - t:.1f} s"
+            )
         for label, kw in (("defaults", {}), ("paper K-means (min_separation_db=0)", {"min_separation_db": 0.0})):
             m, p = run_whole("superpixel_cfar", x, **kw)
             print(f"clutter {name}: {label}, pfa {p.pfa:g}: final mask {int(m.sum())} px, rate {m.mean():.3e}")
@@ -109,13 +119,24 @@ def ships(n_scenes: int) -> None:
             cl += int((truth == 0).sum())
         per = np.array(per)
         hits = int((per >= 1).sum())
-        rows[name] = (len(per), (per == 1).mean(), per[per > 0].mean(), per.max(), hits / (false + len(per)),
-                      false, tp / tr, fp / cl, t / n_scenes)
+        rows[name] = (
+            len(per),
+            (per == 1).mean(),
+            per[per > 0].mean(),
+            per.max(),
+            hits / (false + len(per)),
+            false,
+            tp / tr,
+            fp / cl,
+            t / n_scenes,
+        )
     print(f"ships: {n_scenes} scenes 600x600, K sea, 5 ships each (60-400 px, scatterers, dark gaps), defaults")
     print("  detector          ships  one-piece  mean pieces (found)  max  FoM    false  TPR    FPR       s/scene")
     for k, r in rows.items():
-        print(f"  {k:16s} {r[0]:5d}  {r[1]:9.3f}  {r[2]:19.2f}  {r[3]:3d}  {r[4]:.3f}  {r[5]:5d}  {r[6]:.3f}  "
-              f"{r[7]:.2e}  {r[8]:.2f}")
+        print(
+            f"  {k:16s} {r[0]:5d}  {r[1]:9.3f}  {r[2]:19.2f}  {r[3]:3d}  {r[4]:.3f}  {r[5]:5d}  {r[6]:.3f}  "
+            f"{r[7]:.2e}  {r[8]:.2f}"
+        )
 
 
 def main() -> None:

@@ -24,7 +24,6 @@ import tempfile
 import time
 
 import numpy as np
-
 from common import TreeMemory, machine  # noqa: E402
 
 
@@ -33,7 +32,7 @@ def _mask_block(block, halo, p, prep):
 
     mask, _ = ca_cfar.detect(block, halo, (0, 0), p, prep)  # origin only fixes rounding order
     out = np.zeros(block.shape, np.uint8)
-    out[halo:block.shape[0] - halo, halo:block.shape[1] - halo] = mask
+    out[halo : block.shape[0] - halo, halo : block.shape[1] - halo] = mask
     return out
 
 
@@ -51,11 +50,16 @@ def main() -> None:
 
     work = tempfile.mkdtemp(prefix="sarship-tiling-")
     try:
-        g = create_scene(f"{work}/s.zarr", (a.side, a.side), {"intensity": "float32"}, tile=a.tile,
-                         attrs={"kind": "intensity", "looks": 4.0})
+        g = create_scene(
+            f"{work}/s.zarr",
+            (a.side, a.side),
+            {"intensity": "float32"},
+            tile=a.tile,
+            attrs={"kind": "intensity", "looks": 4.0},
+        )
         rng = np.random.default_rng(0)
         for r in range(0, a.side, a.tile):
-            g["intensity"][r:r + a.tile] = rng.gamma(4.0, 0.25, (min(a.tile, a.side - r), a.side)).astype(np.float32)
+            g["intensity"][r : r + a.tile] = rng.gamma(4.0, 0.25, (min(a.tile, a.side - r), a.side)).astype(np.float32)
         finalize_scene(f"{work}/s.zarr")
         p = ca_cfar.CAParams(looks=4.0)
         prep = ca_cfar.prepare(p)
@@ -63,21 +67,41 @@ def main() -> None:
         npx = a.side * a.side / 1e6
         print(f"# {datetime.date.today()} {machine()}")
         print(f"# scene {a.side}x{a.side} float32, tile {a.tile}, ca_cfar defaults (halo {halo})")
-        with LocalCluster(n_workers=os.cpu_count(), threads_per_worker=1, dashboard_address=":0",
-                          silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        with (
+            LocalCluster(
+                n_workers=os.cpu_count(), threads_per_worker=1, dashboard_address=":0", silence_logs=logging.ERROR
+            ) as cluster,
+            Client(cluster) as client,
+        ):
             results = {}
             for rep in range(2):  # second round is warm (Numba compiled in the workers)
                 mem = TreeMemory()
                 with mem.watch():
                     t = time.perf_counter()
-                    run_detection(f"{work}/s.zarr", "ca_cfar", {}, out_dir=f"{work}/o", client=client, progress=False, overwrite=True)
+                    run_detection(
+                        f"{work}/s.zarr",
+                        "ca_cfar",
+                        {},
+                        out_dir=f"{work}/o",
+                        client=client,
+                        progress=False,
+                        overwrite=True,
+                    )
                     results["sarship (tile tasks, + labelling)"] = (time.perf_counter() - t, mem.peak)
                 mem = TreeMemory()
                 with mem.watch():
                     t = time.perf_counter()
                     x = da.from_zarr(f"{work}/s.zarr/intensity", chunks=(a.tile, a.tile))
-                    m = x.map_overlap(_mask_block, depth=halo, boundary="reflect", dtype=np.uint8, trim=True,
-                                      halo=halo, p=p, prep=prep)
+                    m = x.map_overlap(
+                        _mask_block,
+                        depth=halo,
+                        boundary="reflect",
+                        dtype=np.uint8,
+                        trim=True,
+                        halo=halo,
+                        p=p,
+                        prep=prep,
+                    )
                     m.to_zarr(f"{work}/m_{rep}.zarr", overwrite=True)  # chunks = tiles: one writer each
                     results["dask map_overlap + to_zarr (mask only)"] = (time.perf_counter() - t, mem.peak)
             for k, (dt, peak) in results.items():

@@ -50,9 +50,9 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
 MANIFESTS = Path(__file__).resolve().parent / "datasets"
@@ -139,8 +139,7 @@ def ssdd_official_layout(root: Path) -> dict[str, dict[str, Item]]:
     base = next((c / "BBox_SSDD" / "voc_style" for c in cands if (c / "BBox_SSDD" / "voc_style").is_dir()), None)
     if base is None:
         raise DatasetError(f"'{root}': no BBox_SSDD/voc_style folder (the layout of the official SSDD release)")
-    return {s: _pairs(base / f"JPEGImages_{s}", base / f"Annotations_{s}", (".jpg", ".jpeg", ".png"))
-            for s in SPLITS}
+    return {s: _pairs(base / f"JPEGImages_{s}", base / f"Annotations_{s}", (".jpg", ".jpeg", ".png")) for s in SPLITS}
 
 
 def ssdd_rules(parsed: dict[str, dict[str, Item]]) -> list[str]:
@@ -167,8 +166,10 @@ def dssdd_layout(root: Path) -> dict[str, dict[str, Item]]:
     dual-polarisation originals) with ``annotations/HorizontalBox/{train,test}/<id>.xml``."""
     if not root.is_dir():
         raise DatasetError(f"'{root}': not a folder")
-    return {s: _pairs(root / "originalTIF" / s, root / "annotations" / "HorizontalBox" / s, (".tif", ".tiff"))
-            for s in ("train", "test")}
+    return {
+        s: _pairs(root / "originalTIF" / s, root / "annotations" / "HorizontalBox" / s, (".tif", ".tiff"))
+        for s in ("train", "test")
+    }
 
 
 DATASETS: dict[str, Dataset] = {
@@ -176,14 +177,17 @@ DATASETS: dict[str, Dataset] = {
         name="ssdd_official",
         title="SSDD, official release (BBox-SSDD): RADARSAT-2, TerraSAR-X, Sentinel-1 chips, 1-15 m",
         citation="zhang2021ssdd",
-        licence=("no licence is stated: the release page asks users to cite the paper; redistribution "
-                 "terms are not given, so the recipe only points to the official download"),
+        licence=(
+            "no licence is stated: the release page asks users to cite the paper; redistribution "
+            "terms are not given, so the recipe only points to the official download"
+        ),
         source="https://github.com/TianwenZhang0825/Official-SSDD",
         commit="e29d3b7ec481cc457c49d51e575451f11f6f489c",  # the README that gives the download links
         kind="archive",
-        download=("https://drive.google.com/file/d/1glNJUGotrbEyk43twwB9556AdngJsynZ/view "
-                  "(Official-SSDD-OPEN.rar)",
-                  "https://pan.baidu.com/s/1Lpg28ZvMSgNXq00abHMZ5Q (password 2021)"),
+        download=(
+            "https://drive.google.com/file/d/1glNJUGotrbEyk43twwB9556AdngJsynZ/view (Official-SSDD-OPEN.rar)",
+            "https://pan.baidu.com/s/1Lpg28ZvMSgNXq00abHMZ5Q (password 2021)",
+        ),
         layout=ssdd_official_layout,
         # 928 / 232 follow from the division rule over ids 1..1160; 46 / 186 inshore / offshore
         # as a third-party copy of the release describes it (not checked against the paper here).
@@ -196,8 +200,10 @@ DATASETS: dict[str, Dataset] = {
         name="dssdd",
         title="DSSDD: Sentinel-1 IW dual-polarisation (VV/VH) slices 256 x 256, 16-bit originals",
         citation="hu2021dssdd",
-        licence=("no licence is stated in the repository (its README is a title); the recipe clones it "
-                 "from its authors and never re-hosts a file"),
+        licence=(
+            "no licence is stated in the repository (its README is a title); the recipe clones it "
+            "from its authors and never re-hosts a file"
+        ),
         source="https://github.com/liyiniiecas/A_Dual-polarimetric_SAR_Ship_Detection_Dataset",
         commit="b93c0ae86dbfcb7548cc3113a54cf11736c3ed77",
         kind="git",
@@ -296,8 +302,9 @@ def manifest_path(ds: Dataset) -> Path:
     return MANIFESTS / f"{ds.name}.sha256"
 
 
-def verify(ds: Dataset, raw: Path, use_manifest: bool = True, manifest: Path | None = None
-           ) -> tuple[dict[str, dict[str, Item]], Path]:
+def verify(
+    ds: Dataset, raw: Path, use_manifest: bool = True, manifest: Path | None = None
+) -> tuple[dict[str, dict[str, Item]], Path]:
     """Parse the raw release at ``raw`` and check it; return (parsed splits, release root).
 
     Raises :class:`DatasetError` with every problem found in one line."""
@@ -310,7 +317,8 @@ def verify(ds: Dataset, raw: Path, use_manifest: bool = True, manifest: Path | N
         if not mpath.is_file():
             raise DatasetError(
                 f"no manifest committed for '{ds.name}' ({mpath.relative_to(REPO) if mpath.is_relative_to(REPO) else mpath}):"
-                f" check a copy with --no-manifest, then write one with 'manifest'")
+                f" check a copy with --no-manifest, then write one with 'manifest'"
+            )
         bad += check_manifest(root, files, read_manifest(mpath))
     if bad:
         raise DatasetError(f"'{raw}' is not the {ds.name} release: " + "; ".join(bad))
@@ -365,9 +373,15 @@ def convert(ds: Dataset, parsed: dict[str, dict[str, Item]], to: Path) -> Path:
                 (tmp / "splits" / f"{split}.txt").write_text("".join(f"{i}\n" for i in ids))
                 counts[split] = {"images": len(ids), "ships": sum(ships[i] for i in ids)}
         meta = {
-            "name": ds.name, "title": ds.title, "source": ds.source, "commit": ds.commit,
-            "download": list(ds.download), "licence": ds.licence, "citation": ds.citation,
-            "notes": list(ds.notes), "splits": counts,
+            "name": ds.name,
+            "title": ds.title,
+            "source": ds.source,
+            "commit": ds.commit,
+            "download": list(ds.download),
+            "licence": ds.licence,
+            "citation": ds.citation,
+            "notes": list(ds.notes),
+            "splits": counts,
         }
         (tmp / "dataset.json").write_text(json.dumps(meta, indent=1) + "\n")
         os.replace(tmp, final)
@@ -404,8 +418,9 @@ def fetch_git(ds: Dataset, dest: Path) -> Path:
     try:
         _run(["git", "clone", "--quiet", "--no-checkout", ds.source, str(tmp / "repo")])
         _run(["git", "-C", str(tmp / "repo"), "checkout", "--quiet", "--detach", str(ds.commit)])
-        head = subprocess.run(["git", "-C", str(tmp / "repo"), "rev-parse", "HEAD"], capture_output=True,
-                              text=True).stdout.strip()
+        head = subprocess.run(
+            ["git", "-C", str(tmp / "repo"), "rev-parse", "HEAD"], capture_output=True, text=True
+        ).stdout.strip()
         if head != ds.commit:
             raise DatasetError(f"checked out {head or 'nothing'}, not the pinned commit {ds.commit}")
         os.replace(tmp / "repo", dest)
@@ -428,13 +443,16 @@ def unpack(src: Path, dest: Path) -> Path:
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.partial-", dir=dest.parent))
     try:
         if src.suffix.lower() == ".rar":
-            tools = {"unrar": ["unrar", "x", "-idq", str(src), str(tmp) + os.sep],
-                     "7z": ["7z", "x", "-y", f"-o{tmp}", str(src)],
-                     "bsdtar": ["bsdtar", "-xf", str(src), "-C", str(tmp)]}
+            tools = {
+                "unrar": ["unrar", "x", "-idq", str(src), str(tmp) + os.sep],
+                "7z": ["7z", "x", "-y", f"-o{tmp}", str(src)],
+                "bsdtar": ["bsdtar", "-xf", str(src), "-C", str(tmp)],
+            }
             tool = next((t for t in tools if shutil.which(t)), None)
             if tool is None:
-                raise DatasetError(f"'{src}': a .rar archive needs unrar, 7z or bsdtar; "
-                                   "or unpack it yourself and pass the folder")
+                raise DatasetError(
+                    f"'{src}': a .rar archive needs unrar, 7z or bsdtar; or unpack it yourself and pass the folder"
+                )
             _run(tools[tool])
         else:
             try:
@@ -461,7 +479,8 @@ def fetch(ds: Dataset, to: Path, source: Path | None = None, use_manifest: bool 
     else:
         raise DatasetError(
             f"'{ds.name}' is published as an archive on a file host that needs a browser: download it from "
-            f"{ds.download[0] if ds.download else ds.source} and pass it with --from")
+            f"{ds.download[0] if ds.download else ds.source} and pass it with --from"
+        )
     parsed, _ = verify(ds, raw, use_manifest)
     return convert(ds, parsed, to)
 
@@ -496,11 +515,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if a.cmd == "list":
             for ds in DATASETS.values():
-                print(f"{ds.name}: {ds.title}\n  source: {ds.source}"
-                      + (f" @ {ds.commit}" if ds.commit else "")
-                      + "".join(f"\n  download: {d}" for d in ds.download)
-                      + f"\n  licence: {ds.licence}\n  manifest: "
-                      + ("committed" if manifest_path(ds).is_file() else "none committed"))
+                print(
+                    f"{ds.name}: {ds.title}\n  source: {ds.source}"
+                    + (f" @ {ds.commit}" if ds.commit else "")
+                    + "".join(f"\n  download: {d}" for d in ds.download)
+                    + f"\n  licence: {ds.licence}\n  manifest: "
+                    + ("committed" if manifest_path(ds).is_file() else "none committed")
+                )
             return 0
         ds = get(a.name)
         if a.cmd == "fetch":

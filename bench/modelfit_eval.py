@@ -42,16 +42,23 @@ def run_chip(client, chip, detector: str, work: Path) -> dict:
     out = Path(tempfile.mkdtemp(prefix="mf-", dir=work))
     settings = {"channel": "intensity_vh"} if chip.dataset == "grd" else {}
     try:
-        run = run_detection(chip.scene, detector, settings, out_dir=out, tile=max(chip.shape), client=client,
-                            progress=False)
+        run = run_detection(
+            chip.scene, detector, settings, out_dir=out, tile=max(chip.shape), client=client, progress=False
+        )
         feats = json.loads((out / "detections.geojson").read_text())["features"]
     finally:
         shutil.rmtree(out, ignore_errors=True)
     ships = []
     for f in feats:
         p = f["properties"]
-        ships.append(Ship(tuple(float(v) for v in p["bbox_px"]), tuple(float(v) for v in p["centroid_px"]), False,
-                          {"area_px": p["area_px"]}))
+        ships.append(
+            Ship(
+                tuple(float(v) for v in p["bbox_px"]),
+                tuple(float(v) for v in p["centroid_px"]),
+                False,
+                {"area_px": p["area_px"]},
+            )
+        )
     return {"ships": ships, "fit": run["model_fit"]}
 
 
@@ -86,18 +93,28 @@ def main(argv=None) -> int:
     try:
         chips = rd.ingest_all(a.data, work)
         rd.split_halves(chips)
+
         def one(chip) -> dict:
             res = {d: run_chip(client, chip, d, work) for d in DETECTORS}
             fits = {d: res[d]["fit"] for d in model_fit.AUTO_CANDIDATES}
             chosen, _why = model_fit.choose(fits)
-            row = {"dataset": chip.dataset, "name": chip.name, "half": chip.half, "auto": chosen,
-                   "fit": {d: {k: res[d]["fit"][k] for k in ("verdict", "ratio", "sample", "exceedances")}
-                           for d in DETECTORS},
-                   "scores": {d: chip_score(chip, res[d]["ships"]) for d in DETECTORS}}
+            row = {
+                "dataset": chip.dataset,
+                "name": chip.name,
+                "half": chip.half,
+                "auto": chosen,
+                "fit": {
+                    d: {k: res[d]["fit"][k] for k in ("verdict", "ratio", "sample", "exceedances")} for d in DETECTORS
+                },
+                "scores": {d: chip_score(chip, res[d]["ships"]) for d in DETECTORS},
+            }
             row["scores"]["auto"] = row["scores"][chosen]
-            print(f"{chip.dataset} {chip.half} {chip.name}: auto={chosen} "
-                  + " ".join(f"{d}={res[d]['fit']['verdict']}({res[d]['fit']['ratio'] or 0:.2g}x)"
-                             for d in DETECTORS), file=sys.stderr, flush=True)
+            print(
+                f"{chip.dataset} {chip.half} {chip.name}: auto={chosen} "
+                + " ".join(f"{d}={res[d]['fit']['verdict']}({res[d]['fit']['ratio'] or 0:.2g}x)" for d in DETECTORS),
+                file=sys.stderr,
+                flush=True,
+            )
             return row
 
         from concurrent.futures import ThreadPoolExecutor
@@ -146,17 +163,25 @@ def _fmt(ds: str, s: dict) -> str:
 def markdown(rep: dict) -> str:
     lines = []
     for half, label in (("A", "half A (in-sample: looked at while fixing the rule)"), ("B", "half B (held out)")):
-        lines += [f"**{label}**", "",
-                  "| set | chips | " + " | ".join(DETECTORS) + " | auto | auto chose | verdicts at 1e-3 (fits / too many / too few / undetermined) |",
-                  "|---|---|" + "---|" * (len(DETECTORS) + 3)]
+        lines += [
+            f"**{label}**",
+            "",
+            "| set | chips | "
+            + " | ".join(DETECTORS)
+            + " | auto | auto chose | verdicts at 1e-3 (fits / too many / too few / undetermined) |",
+            "|---|---|" + "---|" * (len(DETECTORS) + 3),
+        ]
         for ds in rd.DATASETS:
             r = rep.get(f"{half}/{ds}")
             if r is None:
                 continue
             sc = " | ".join(_fmt(ds, r["scores"][d]) for d in (*DETECTORS, "auto"))
             chose = ", ".join(f"{k} {v}" for k, v in sorted(r["auto_chose"].items()))
-            ver = "; ".join(f"{d} {v.get('fits', 0)}/{v.get('too many false alarms', 0)}/{v.get('too few', 0)}/"
-                            f"{v.get('undetermined', 0)}" for d, v in r["verdicts"].items())
+            ver = "; ".join(
+                f"{d} {v.get('fits', 0)}/{v.get('too many false alarms', 0)}/{v.get('too few', 0)}/"
+                f"{v.get('undetermined', 0)}"
+                for d, v in r["verdicts"].items()
+            )
             lines.append(f"| {ds} | {r['chips']} | {sc} | {chose} | {ver} |")
         lines.append("")
     return "\n".join(lines)

@@ -63,13 +63,15 @@ def run_all(client, chips: list, detector: str, settings: dict, work: Path) -> l
         if c.dataset == "grd":
             st["channel"] = "intensity_vh"
         out = Path(tempfile.mkdtemp(prefix="contrast-", dir=work))
-        run = run_detection(c.scene, detector, st, out_dir=out, tile=max(c.shape), client=client, progress=False,
-                            overwrite=True)
+        run = run_detection(
+            c.scene, detector, st, out_dir=out, tile=max(c.shape), client=client, progress=False, overwrite=True
+        )
         assert run["contrast"]["dropped"] == 0, (c.name, run["contrast"])  # -30 dB drops nothing here
         feats = json.loads((out / "detections.geojson").read_text())["features"]
         shutil.rmtree(out, ignore_errors=True)
-        ships = [Ship(bbox=tuple(f["properties"]["bbox_px"]), centroid=tuple(f["properties"]["centroid_px"]))
-                 for f in feats]
+        ships = [
+            Ship(bbox=tuple(f["properties"]["bbox_px"]), centroid=tuple(f["properties"]["centroid_px"])) for f in feats
+        ]
         if c.dataset == "grd":
             centre = c.name.split("/")[-1] not in R.NO_SHIP_AT_CENTRE
             true = [centre and R.centre_hit([s], c.shape)[0] for s in ships]
@@ -77,8 +79,15 @@ def run_all(client, chips: list, detector: str, settings: dict, work: Path) -> l
             paired = {d for d, _ in match(ships, c.truth)}
             true = [i in paired for i in range(len(ships))]
         for f, t in zip(feats, true):
-            rows.append({"dataset": c.dataset, "chip": c.name, "half": c.half, "ship": bool(t),
-                         "contrast_db": f["properties"]["contrast_db"]})
+            rows.append(
+                {
+                    "dataset": c.dataset,
+                    "chip": c.name,
+                    "half": c.half,
+                    "ship": bool(t),
+                    "contrast_db": f["properties"]["contrast_db"],
+                }
+            )
     return rows
 
 
@@ -86,7 +95,7 @@ def truth_counts(chips: list) -> dict:
     """(dataset, half) -> number of true ships (GRD: chips with a centre ship)."""
     out: dict = {}
     for c in chips:
-        n = (int(c.name.split("/")[-1] not in R.NO_SHIP_AT_CENTRE) if c.dataset == "grd" else len(c.truth))
+        n = int(c.name.split("/")[-1] not in R.NO_SHIP_AT_CENTRE) if c.dataset == "grd" else len(c.truth)
         for h in (c.half, "all"):
             out[(c.dataset, h)] = out.get((c.dataset, h), 0) + n
     return out
@@ -95,8 +104,13 @@ def truth_counts(chips: list) -> dict:
 def scores(rows: list[dict], floor: float | None, half: str, counts: dict) -> dict:
     out = {}
     for ds in ("ssdd", "hrsid", "grd"):
-        kept = [r for r in rows if r["dataset"] == ds and (half == "all" or r["half"] == half)
-                and (floor is None or r["contrast_db"] is None or r["contrast_db"] >= floor)]
+        kept = [
+            r
+            for r in rows
+            if r["dataset"] == ds
+            and (half == "all" or r["half"] == half)
+            and (floor is None or r["contrast_db"] is None or r["contrast_db"] >= floor)
+        ]
         hit = sum(r["ship"] for r in kept)
         fa = len(kept) - hit
         n = counts.get((ds, half), 0)
@@ -109,17 +123,30 @@ def choose(runs: dict, floors, half: str, counts: dict):
     cands = [(tag, f) for tag in runs for f in floors]
     sc = {c: scores(runs[c[0]], c[1], half, counts) for c in cands}
     best = {d: max(s[d]["pd"] for s in sc.values()) for d in ("ssdd", "hrsid")}
-    ok = [c for c in cands if all(sc[c][d]["pd"] >= best[d] - R.PD_SLACK - 1e-12 for d in best)
-          and sc[c]["grd"]["pd"] >= R.MIN_GRD_PD]
+    ok = [
+        c
+        for c in cands
+        if all(sc[c][d]["pd"] >= best[d] - R.PD_SLACK - 1e-12 for d in best) and sc[c]["grd"]["pd"] >= R.MIN_GRD_PD
+    ]
     pool = ok or cands
-    pool.sort(key=lambda c: (-round(sc[c]["mean"], 6), sc[c]["ssdd"]["false"] + sc[c]["hrsid"]["false"],
-                             -1e9 if c[1] is None else c[1]))
+    pool.sort(
+        key=lambda c: (
+            -round(sc[c]["mean"], 6),
+            sc[c]["ssdd"]["false"] + sc[c]["hrsid"]["false"],
+            -1e9 if c[1] is None else c[1],
+        )
+    )
     return pool[0], bool(ok)
 
 
 def fmt(s: dict) -> str:
-    return " | ".join(f"{s[d]['hit']}/{s[d]['truth']}, {s[d]['false']} false, FoM {s[d]['fom']:.3f}"
-                      for d in ("ssdd", "hrsid", "grd")) + f" | {s['mean']:.3f}"
+    return (
+        " | ".join(
+            f"{s[d]['hit']}/{s[d]['truth']}, {s[d]['false']} false, FoM {s[d]['fom']:.3f}"
+            for d in ("ssdd", "hrsid", "grd")
+        )
+        + f" | {s['mean']:.3f}"
+    )
 
 
 def report(results: dict, floors, log=print) -> dict:
@@ -127,29 +154,45 @@ def report(results: dict, floors, log=print) -> dict:
     for det, res in results.items():
         runs, counts = res["runs"], {tuple(k.split("|")): v for k, v in res["counts"].items()}
         log(f"\n## {det}")
-        log("| tuned on | choice | reported on | SSDD hit/truth, false, FoM | HRSID | GRD-VH centre/chips, other, FoM proxy | mean |")
+        log(
+            "| tuned on | choice | reported on | SSDD hit/truth, false, FoM | HRSID | GRD-VH centre/chips, other, FoM proxy | mean |"
+        )
         log("|---|---|---|---|---|---|---|")
         rep[det] = {}
         for tune, held in (("A", "B"), ("B", "A")):
             (tag, floor), eligible = choose(runs, floors, tune, counts)
             for where in (tune, held, "all"):
                 s = scores(runs[tag], floor, where, counts)
-                log(f"| {tune} | {tag} min_contrast_db={floor} | {where}{' (held out)' if where == held else ''} | "
-                    + fmt(s) + " |")
+                log(
+                    f"| {tune} | {tag} min_contrast_db={floor} | {where}{' (held out)' if where == held else ''} | "
+                    + fmt(s)
+                    + " |"
+                )
             log(f"| - | {DEFAULTS} no floor | {held} | " + fmt(scores(runs[DEFAULTS], None, held, counts)) + " |")
-            rep[det][tune] = {"setting": tag, "floor": floor, "eligible": eligible,
-                              "held_out": scores(runs[tag], floor, held, counts),
-                              "all": scores(runs[tag], floor, "all", counts)}
+            rep[det][tune] = {
+                "setting": tag,
+                "floor": floor,
+                "eligible": eligible,
+                "held_out": scores(runs[tag], floor, held, counts),
+                "all": scores(runs[tag], floor, "all", counts),
+            }
         lows = {}
         for ds in ("ssdd", "hrsid", "grd"):
             base = runs[DEFAULTS]
-            vals = sorted(r["contrast_db"] for r in base if r["dataset"] == ds and r["ship"]
-                          and r["contrast_db"] is not None)
-            fals = sorted(r["contrast_db"] for r in base if r["dataset"] == ds and not r["ship"]
-                          and r["contrast_db"] is not None)
-            lows[ds] = {"ships_lowest": [round(v, 2) for v in vals[:4]], "false_lowest": [round(v, 2) for v in fals[:8]]}
-            log(f"- {ds}: the dimmest true ships {lows[ds]['ships_lowest']} dB; the dimmest other detections "
-                f"{lows[ds]['false_lowest']} dB")
+            vals = sorted(
+                r["contrast_db"] for r in base if r["dataset"] == ds and r["ship"] and r["contrast_db"] is not None
+            )
+            fals = sorted(
+                r["contrast_db"] for r in base if r["dataset"] == ds and not r["ship"] and r["contrast_db"] is not None
+            )
+            lows[ds] = {
+                "ships_lowest": [round(v, 2) for v in vals[:4]],
+                "false_lowest": [round(v, 2) for v in fals[:8]],
+            }
+            log(
+                f"- {ds}: the dimmest true ships {lows[ds]['ships_lowest']} dB; the dimmest other detections "
+                f"{lows[ds]['false_lowest']} dB"
+            )
         rep[det]["lowest"] = lows
     return rep
 
@@ -159,7 +202,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, default=HERE.parent.parent / "shared" / "data" / "real")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a temporary one)")
     ap.add_argument("--detectors", default="superpixel_cfar")
-    ap.add_argument("--grid", default="{}", help='JSON {detector: {param: [values]}} of settings to sweep too')
+    ap.add_argument("--grid", default="{}", help="JSON {detector: {param: [values]}} of settings to sweep too")
     ap.add_argument("--floors", default=",".join("none" if f is None else str(f) for f in FLOORS))
     ap.add_argument("--json", type=Path, help="write the runs and the report here")
     ap.add_argument("--from-json", type=Path, help="re-report an earlier --json without running")
@@ -183,8 +226,12 @@ def main(argv=None) -> int:
     counts = {f"{k[0]}|{k[1]}": v for k, v in truth_counts(chips).items()}
     grid = json.loads(a.grid)
     results = {}
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
-                      silence_logs=logging.ERROR) as cl, Client(cl) as client:
+    with (
+        LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR
+        ) as cl,
+        Client(cl) as client,
+    ):
         for det in a.detectors.split(","):
             detectors.get(det)  # an unknown name fails here, before any run
             g = grid.get(det, {})

@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from sarship.pipeline.tiling import boxsum
-from sarship.pipeline.targets.components import merge_radius
 from sarship.pipeline.detectors import csk
+from sarship.pipeline.targets.components import merge_radius
+from sarship.pipeline.tiling import boxsum
 from sarship.pipeline.tiling.windows import mirror_pad
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "opensarship"
@@ -56,8 +56,9 @@ def run(pfa: float, window: int, border: float) -> str:
     for name, ch, z in chips():
         mask, stat = csk.detect(mirror_pad(z, h), h, (-h, -h), p, prep)
         r = merge_radius(p.merge_px)
-        lab, n = ndimage.label(ndimage.binary_dilation(mask, np.ones((2 * r + 1,) * 2)) if r else mask,
-                               structure=np.ones((3, 3)))
+        lab, n = ndimage.label(
+            ndimage.binary_dilation(mask, np.ones((2 * r + 1,) * 2)) if r else mask, structure=np.ones((3, 3))
+        )
         lab = np.where(mask, lab, 0)
         H, W = z.shape
         cy, cx = (H - 1) / 2, (W - 1) / 2
@@ -70,7 +71,7 @@ def run(pfa: float, window: int, border: float) -> str:
         others.append(n_other)
         b = max(3, int(round(border * min(H, W))))
         frame = np.ones(z.shape, bool)
-        frame[b:H - b, b:W - b] = False
+        frame[b : H - b, b : W - b] = False
         kb, _ = csk.complex_stats(z[frame])
         sea_csk.append(kb)
         k, tested, pw, s11 = csk.csk_window(mirror_pad(z, h), h, (-h, -h), window, None, boxsum.centered_box_sum, np)
@@ -82,17 +83,26 @@ def run(pfa: float, window: int, border: float) -> str:
         else:
             kc = nc = float("nan")
             rfi = False
-        rows.append(f"| {name} | {ch} | {H}x{W} | {'yes' if hit else 'no'} | {n_other} | {kc:.2f} | {nc:.2f} | "
-                    f"{'yes' if rfi else 'no'} | {kb:.2f} | {sea_win[-1]:.2f} |")
+        rows.append(
+            f"| {name} | {ch} | {H}x{W} | {'yes' if hit else 'no'} | {n_other} | {kc:.2f} | {nc:.2f} | "
+            f"{'yes' if rfi else 'no'} | {kb:.2f} | {sea_win[-1]:.2f} |"
+        )
     n = len(rows)
-    head = [f"`csk` pfa {pfa:g}, window {window} (threshold {prep['threshold']:.3f}, cells {p.cells}); centre ship "
-            f"= a detection pixel in the chip's central quarter; sea = the outer {border:.0%} frame.", "",
-            "| chip | channel | size | centre ship found | other detections | centre CSK | centre non-circ. | rfi | "
-            "sea frame CSK | sea mean window CSK |", "|---|---|---|---|---|---|---|---|---|---|"]
-    tail = ["", f"Centre ship found on {found} of {n} channel-chips ({found / n:.0%}); other detections per chip: "
-                f"mean {np.mean(others):.2f}, max {max(others)}; sea frame CSK: median {np.median(sea_csk):.2f} "
-                f"(range {min(sea_csk):.2f} .. {max(sea_csk):.2f}); mean window CSK on the frame: median "
-                f"{np.median(sea_win):.2f} (circular Gaussian: {-4 / (window * window + 1):.2f})."]
+    head = [
+        f"`csk` pfa {pfa:g}, window {window} (threshold {prep['threshold']:.3f}, cells {p.cells}); centre ship "
+        f"= a detection pixel in the chip's central quarter; sea = the outer {border:.0%} frame.",
+        "",
+        "| chip | channel | size | centre ship found | other detections | centre CSK | centre non-circ. | rfi | "
+        "sea frame CSK | sea mean window CSK |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    tail = [
+        "",
+        f"Centre ship found on {found} of {n} channel-chips ({found / n:.0%}); other detections per chip: "
+        f"mean {np.mean(others):.2f}, max {max(others)}; sea frame CSK: median {np.median(sea_csk):.2f} "
+        f"(range {min(sea_csk):.2f} .. {max(sea_csk):.2f}); mean window CSK on the frame: median "
+        f"{np.median(sea_win):.2f} (circular Gaussian: {-4 / (window * window + 1):.2f}).",
+    ]
     return "\n".join(head + rows + tail)
 
 

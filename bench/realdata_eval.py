@@ -141,12 +141,33 @@ HALVES = ("A", "B")
 DATASETS = ("ssdd", "hrsid", "grd")
 #: The code's defaults before this study (pixel rule everywhere, also on GRD).
 PREVIOUS = {
-    "ca_cfar": {"pfa": 1e-4, "guard": 41, "background": 81, "looks": "scene", "merge_px": 2, "min_area_px": 20,
-                "extra": {}},
-    "os_cfar": {"pfa": 1e-6, "guard": 21, "background": 41, "looks": "scene", "merge_px": 4, "min_area_px": 20,
-                "extra": {}},
-    "two_parameter": {"pfa": 1e-3, "guard": 21, "background": 41, "looks": "scene", "merge_px": 0,
-                      "min_area_px": 15, "extra": {"domain": "intensity"}},
+    "ca_cfar": {
+        "pfa": 1e-4,
+        "guard": 41,
+        "background": 81,
+        "looks": "scene",
+        "merge_px": 2,
+        "min_area_px": 20,
+        "extra": {},
+    },
+    "os_cfar": {
+        "pfa": 1e-6,
+        "guard": 21,
+        "background": 41,
+        "looks": "scene",
+        "merge_px": 4,
+        "min_area_px": 20,
+        "extra": {},
+    },
+    "two_parameter": {
+        "pfa": 1e-3,
+        "guard": 21,
+        "background": 41,
+        "looks": "scene",
+        "merge_px": 0,
+        "min_area_px": 15,
+        "extra": {"domain": "intensity"},
+    },
 }
 
 
@@ -156,15 +177,15 @@ PREVIOUS = {
 
 @dataclass
 class Chip:
-    dataset: str          # ssdd | hrsid | grd
+    dataset: str  # ssdd | hrsid | grd
     name: str
     scene: Path
     shape: tuple[int, int]
     looks: float | None
-    truth: list = field(default_factory=list)      # list[pipeline.products.truth.Ship] (ssdd, hrsid)
-    truth_mask: np.ndarray | None = None           # hrsid
+    truth: list = field(default_factory=list)  # list[pipeline.products.truth.Ship] (ssdd, hrsid)
+    truth_mask: np.ndarray | None = None  # hrsid
     spacing: tuple[float, float] | None = None
-    half: str = ""                                 # A | B (split_halves)
+    half: str = ""  # A | B (split_halves)
 
 
 def _safe(name: str) -> str:
@@ -173,8 +194,8 @@ def _safe(name: str) -> str:
 
 def ingest_all(data: Path, work: Path, limit: int | None = None) -> list[Chip]:
     """Ingest every chip of the three datasets into ``work``; attach the truth."""
-    from sarship.pipeline.readers import ingest
     from sarship.pipeline.products.truth import load_voc, read_mask, ships_from_mask
+    from sarship.pipeline.readers import ingest
 
     chips: list[Chip] = []
     work.mkdir(parents=True, exist_ok=True)
@@ -188,14 +209,12 @@ def ingest_all(data: Path, work: Path, limit: int | None = None) -> list[Chip]:
     ssdd = sorted((data / "sar-ship-dataset").glob("*.jpg"))[:limit]
     for p in ssdd:
         sc = ingest([p], work / f"ssdd_{_safe(p.stem)}.zarr", tile=side_of(p))
-        chips.append(Chip("ssdd", p.stem, sc.path, sc.shape, sc.looks,
-                          truth=load_voc(p.with_suffix(".xml"))))
+        chips.append(Chip("ssdd", p.stem, sc.path, sc.shape, sc.looks, truth=load_voc(p.with_suffix(".xml"))))
     hr = sorted((data / "hrsid" / "images").glob("*.jpg"))[:limit]
     for p in hr:
         sc = ingest([p], work / f"hrsid_{_safe(p.stem)}.zarr", tile=side_of(p))
         m = read_mask(data / "hrsid" / "masks" / f"{p.stem}.png")
-        chips.append(Chip("hrsid", p.stem, sc.path, sc.shape, sc.looks,
-                          truth=ships_from_mask(m), truth_mask=m))
+        chips.append(Chip("hrsid", p.stem, sc.path, sc.shape, sc.looks, truth=ships_from_mask(m), truth_mask=m))
     grd = sorted(Path(f) for f in glob.glob(str(data / "opensarship" / "S1A_IW_GRDH_*" / "Patch" / "*.tif")))
     grd = grd[:limit] if limit else grd
     import tifffile
@@ -203,10 +222,22 @@ def ingest_all(data: Path, work: Path, limit: int | None = None) -> list[Chip]:
     for p in grd:
         with tifffile.TiffFile(p) as t:
             h, w = t.series[0].shape[:2]
-        sc = ingest([p], work / f"grd_{_safe(p.parent.parent.name[17:32])}_{_safe(p.stem)}.zarr",
-                    tile=max(h, w), channels=["vh", "vv"])
-        chips.append(Chip("grd", f"{p.parent.parent.name[17:32]}/{p.stem}", sc.path, sc.shape,
-                          sc.looks, spacing=sc.pixel_spacing_m))
+        sc = ingest(
+            [p],
+            work / f"grd_{_safe(p.parent.parent.name[17:32])}_{_safe(p.stem)}.zarr",
+            tile=max(h, w),
+            channels=["vh", "vv"],
+        )
+        chips.append(
+            Chip(
+                "grd",
+                f"{p.parent.parent.name[17:32]}/{p.stem}",
+                sc.path,
+                sc.shape,
+                sc.looks,
+                spacing=sc.pixel_spacing_m,
+            )
+        )
     return chips
 
 
@@ -274,12 +305,14 @@ def run_mask(client, chip: Chip, detector: str, settings: dict, out_root: Path) 
     the size rules and ``merge_px`` are swept on it afterwards; ``mask`` holds only the detections
     the run kept) and run.json."""
     import zarr
+
     from sarship.workers.jobs import run_detection
 
     out = Path(tempfile.mkdtemp(prefix="run-", dir=out_root))
     try:
-        run = run_detection(chip.scene, detector, dict(settings), out_dir=out, tile=max(chip.shape),
-                            client=client, progress=False)
+        run = run_detection(
+            chip.scene, detector, dict(settings), out_dir=out, tile=max(chip.shape), client=client, progress=False
+        )
         mask = np.asarray(zarr.open_array(str(out / "mask.zarr" / "detected"), mode="r")[...]) != 0
         dets = json.loads((out / "detections.geojson").read_text())["features"]
     finally:
@@ -322,7 +355,7 @@ def components(mask: np.ndarray, merge_px: int) -> np.ndarray:
     r = merge_radius(merge_px)
     h, w = mask.shape
     ext = np.zeros((h + 2 * r, w + 2 * r), bool)
-    ext[r:r + h, r:r + w] = mask
+    ext[r : r + h, r : r + w] = mask
     z = np.zeros(mask.shape, np.float32)
     comps = tile_components(ext, z, z, r, (0, 0), (0, 0))
     return merge_tiles({(0, 0): comps})
@@ -332,16 +365,17 @@ def detections(records: np.ndarray, flt: _Filter, spacing=None) -> list:
     """Kept records as :class:`sarship.pipeline.products.truth.Ship`: the ``bbox_px`` / ``centroid_px`` /
     ``area_px`` that :func:`sarship.pipeline.targets.ship_features.features` writes, computed vectorised
     (features() is per-record Python; the self-check compares both)."""
-    from sarship.pipeline.targets.ship_features import keep_mask
     from sarship.pipeline.products.truth import Ship
+    from sarship.pipeline.targets.ship_features import keep_mask
 
     kept = records[keep_mask(records, flt, spacing)]
     n = kept["n"].astype(np.float64)
     cr = kept["sr"] / n + 0.5
     cc = kept["sc"] / n + 0.5
-    return [Ship((float(r0), float(c0), float(r1), float(c1)), (float(a), float(b)), False, {"area_px": int(k)})
-            for r0, c0, r1, c1, a, b, k in zip(kept["r0"], kept["c0"], kept["r1"], kept["c1"], cr, cc,
-                                               kept["n"])]
+    return [
+        Ship((float(r0), float(c0), float(r1), float(c1)), (float(a), float(b)), False, {"area_px": int(k)})
+        for r0, c0, r1, c1, a, b, k in zip(kept["r0"], kept["c0"], kept["r1"], kept["c1"], cr, cc, kept["n"])
+    ]
 
 
 def centre_hit(ships: list, shape: tuple[int, int], radius: float = CENTRE_RADIUS_PX) -> tuple[bool, int]:
@@ -374,8 +408,11 @@ def chip_scores(chip: Chip, mask: np.ndarray, grid: dict) -> dict:
             ships = detections(rec, size_filter(key, chip.spacing), chip.spacing)
             if chip.dataset == "grd":
                 hit, extra = centre_hit(ships, chip.shape)
-                out[(key, mg)] = {"hit": int(hit), "extra": extra,
-                                  "ship": int(chip.name.split("/")[-1] not in NO_SHIP_AT_CENTRE)}
+                out[(key, mg)] = {
+                    "hit": int(hit),
+                    "extra": extra,
+                    "ship": int(chip.name.split("/")[-1] not in NO_SHIP_AT_CENTRE),
+                }
             else:
                 s = score(ships, chip.truth)
                 if px is not None:
@@ -393,12 +430,21 @@ def summarise(dataset: str, per_chip: list[dict], names: list[str] | None = None
         n_ship = sum(s["ship"] for s in per_chip)
         hits = sum(s["hit"] for s in per_chip if s["ship"])
         extra = sum(s["extra"] + (s["hit"] if not s["ship"] else 0) for s in per_chip)
-        return {"n": n, "n_ship": n_ship, "hits": hits, "pd": hits / max(n_ship, 1),
-                "extra": extra / max(n, 1), "fom": hits / max(n_ship + extra, 1),
-                "missed": [nm for nm, s in zip(names or [], per_chip) if s["ship"] and not s["hit"]]}
+        return {
+            "n": n,
+            "n_ship": n_ship,
+            "hits": hits,
+            "pd": hits / max(n_ship, 1),
+            "extra": extra / max(n, 1),
+            "fom": hits / max(n_ship + extra, 1),
+            "missed": [nm for nm, s in zip(names or [], per_chip) if s["ship"] and not s["hit"]],
+        }
     a = aggregate(per_chip)
-    return {k: a[k] for k in ("n_truth", "n_detections", "n_hit", "n_false", "pd", "precision", "fom",
-                              "tpr", "fpr") if k in a}
+    return {
+        k: a[k]
+        for k in ("n_truth", "n_detections", "n_hit", "n_false", "pd", "precision", "fom", "tpr", "fpr")
+        if k in a
+    }
 
 
 # --------------------------------------------------------------------------------------
@@ -431,12 +477,12 @@ def mask_settings(detector: str, pfas, windows, looks, extra=EXTRA, lands=({},))
     from sarship.pipeline import detectors
 
     needs_looks = detectors.get(detector).needs_looks
-    for pfa, (g, b), L, ex, land in itertools.product(pfas, windows, looks if needs_looks else ("scene",),
-                                                      extra.get(detector, ({},)), lands):
+    for pfa, (g, b), L, ex, land in itertools.product(
+        pfas, windows, looks if needs_looks else ("scene",), extra.get(detector, ({},)), lands
+    ):
         # min_area_px huge: run_detection writes no features (the mask is all we use; it
         # does not depend on the size rule / merge_px), which keeps the client side cheap
-        s = {"pfa": pfa, "guard": g, "background": b, "min_area_px": MASK_ONLY_MIN_AREA, "merge_px": 0, **ex,
-             **land}
+        s = {"pfa": pfa, "guard": g, "background": b, "min_area_px": MASK_ONLY_MIN_AREA, "merge_px": 0, **ex, **land}
         if L != "scene":
             s["looks"] = float(L)
         out.append(s)
@@ -448,12 +494,20 @@ SETTING_KEYS = ("pfa", "guard", "background", "looks", "min_area_px", "merge_px"
 
 def key_of(detector: str, s: dict, mg: int) -> dict:
     ex = {k: v for k, v in s.items() if k not in SETTING_KEYS}
-    return {"detector": detector, "pfa": s["pfa"], "guard": s["guard"], "background": s["background"],
-            "looks": s.get("looks", "scene"), "merge_px": mg, "extra": ex}
+    return {
+        "detector": detector,
+        "pfa": s["pfa"],
+        "guard": s["guard"],
+        "background": s["background"],
+        "looks": s.get("looks", "scene"),
+        "merge_px": mg,
+        "extra": ex,
+    }
 
 
-def sweep(client, chips: list[Chip], detectors_: list[str], grid: dict, work: Path, threads: int,
-          log=print) -> list[dict]:
+def sweep(
+    client, chips: list[Chip], detectors_: list[str], grid: dict, work: Path, threads: int, log=print
+) -> list[dict]:
     """Every mask setting x chip through run_detection; one row per (mask setting, merge_px) with,
     per dataset (``ssdd``, ``hrsid``, ``grd_<band>``), size rule and half (A, B, all), the
     aggregated scores."""
@@ -479,8 +533,7 @@ def sweep(client, chips: list[Chip], detectors_: list[str], grid: dict, work: Pa
 
     with cf.ThreadPoolExecutor(threads) as pool:
         for det in detectors_:
-            settings = mask_settings(det, grid["pfas"], grid["windows"], grid["looks"],
-                                     lands=grid.get("lands", ({},)))
+            settings = mask_settings(det, grid["pfas"], grid["windows"], grid["looks"], lands=grid.get("lands", ({},)))
             for i, s in enumerate(settings):
                 t0 = time.perf_counter()
                 futs = [pool.submit(one, det, s, c, b) for c, b in jobs]
@@ -490,22 +543,27 @@ def sweep(client, chips: list[Chip], detectors_: list[str], grid: dict, work: Pa
                     for ds in ("ssdd", "hrsid"):
                         sel = [(c, r) for (c, b), r in zip(jobs, res) if c.dataset == ds]
                         if sel:
-                            row[ds] = {key: {h: summarise(ds, [r[(key, mg)] for _, r in xs])
-                                             for h, xs in parts(sel).items()}
-                                       for key in size_options(ds, grid["min_areas"])}
+                            row[ds] = {
+                                key: {h: summarise(ds, [r[(key, mg)] for _, r in xs]) for h, xs in parts(sel).items()}
+                                for key in size_options(ds, grid["min_areas"])
+                            }
                     for band in grid["bands"]:
                         sel = [(c, r) for (c, b), r in zip(jobs, res) if c.dataset == "grd" and b == band]
                         if sel:
                             row[f"grd_{band}"] = {
-                                key: {h: summarise("grd", [r[(key, mg)] for _, r in xs], [c.name for c, _ in xs])
-                                      for h, xs in parts(sel).items()}
-                                for key in size_options("grd", grid["min_areas"], grid["min_lengths"],
-                                                        grid["areas_m2"])}
+                                key: {
+                                    h: summarise("grd", [r[(key, mg)] for _, r in xs], [c.name for c, _ in xs])
+                                    for h, xs in parts(sel).items()
+                                }
+                                for key in size_options("grd", grid["min_areas"], grid["min_lengths"], grid["areas_m2"])
+                            }
                     rows.append(row)
-                log(f"  {det} {i + 1}/{len(settings)} pfa={s['pfa']:g} g/b={s['guard']}/{s['background']} "
+                log(
+                    f"  {det} {i + 1}/{len(settings)} pfa={s['pfa']:g} g/b={s['guard']}/{s['background']} "
                     f"looks={s.get('looks', 'scene')}"
                     f"{''.join(f' {k}={v}' for k, v in s.items() if k == 'domain' or k.startswith('land'))}: "
-                    f"{time.perf_counter() - t0:.1f} s")
+                    f"{time.perf_counter() - t0:.1f} s"
+                )
     return rows
 
 
@@ -524,20 +582,32 @@ def self_check(client, chips: list[Chip], detectors_: list[str], work: Path) -> 
         d = detectors.get(det).params()
         for c in picks:
             eff, _ = resolve_size(d, c.spacing)
-            cases = [({}, _Filter(eff.min_area_px, eff.min_length_m), eff.merge_px),
-                     ({"min_area_px": 5, "merge_px": 4}, _Filter(5), 4), ({"min_area_px": 1, "merge_px": 0}, _Filter(1), 0)]
+            cases = [
+                ({}, _Filter(eff.min_area_px, eff.min_length_m), eff.merge_px),
+                ({"min_area_px": 5, "merge_px": 4}, _Filter(5), 4),
+                ({"min_area_px": 1, "merge_px": 0}, _Filter(1), 0),
+            ]
             if c.spacing is not None:
-                cases.append(({"min_length_m": 30.0, "merge_px": 2}, size_filter("m30a" + f"{d.auto_min_area_m2:g}",
-                                                                                 c.spacing), 2))
+                cases.append(
+                    (
+                        {"min_length_m": 30.0, "merge_px": 2},
+                        size_filter("m30a" + f"{d.auto_min_area_m2:g}", c.spacing),
+                        2,
+                    )
+                )
             for st, flt, mg in cases:
                 # the line rule (pipeline/targets/lines.py) is not part of this sweep: off for the comparison
                 mask, out = run_mask(client, c, det, {"line_gap_px": None, **st}, runs_root)
-                direct = sorted(tuple(f["properties"]["bbox_px"]) + (f["properties"]["area_px"],)
-                                + tuple(round(v, 6) for v in f["properties"]["centroid_px"])
-                                for f in out["features"])
-                local = sorted(tuple(int(v) for v in s.bbox) + (s.properties["area_px"],)
-                               + tuple(round(v, 6) for v in s.centroid)
-                               for s in detections(components(mask, mg), flt, c.spacing))
+                direct = sorted(
+                    tuple(f["properties"]["bbox_px"])
+                    + (f["properties"]["area_px"],)
+                    + tuple(round(v, 6) for v in f["properties"]["centroid_px"])
+                    for f in out["features"]
+                )
+                local = sorted(
+                    tuple(int(v) for v in s.bbox) + (s.properties["area_px"],) + tuple(round(v, 6) for v in s.centroid)
+                    for s in detections(components(mask, mg), flt, c.spacing)
+                )
                 assert direct == local, f"self-check failed: {det} {c.name} {st}"
 
 
@@ -584,9 +654,13 @@ def candidates(rows: list[dict], detector: str, band: str = "vh", land: str | No
         if r["detector"] != detector or r["looks"] != "scene" or (land is not None and land_kind(r) != land):
             continue
         pxs = [k for k in (r.get("ssdd") or r.get("hrsid") or {"px1": None}) if int(k[2:]) <= MAX_PX_DEFAULT]
-        grds = [k for k in r.get(f"grd_{band}", {"m0a1": None})
-                if k.startswith("m") and MIN_LENGTH_DEFAULT <= _length(k)[0] <= MAX_LENGTH_DEFAULT
-                and _length(k)[1] <= MAX_AREA_M2_DEFAULT]
+        grds = [
+            k
+            for k in r.get(f"grd_{band}", {"m0a1": None})
+            if k.startswith("m")
+            and MIN_LENGTH_DEFAULT <= _length(k)[0] <= MAX_LENGTH_DEFAULT
+            and _length(k)[1] <= MAX_AREA_M2_DEFAULT
+        ]
         out += [Candidate(i, p, g) for p in pxs for g in grds]
     return out
 
@@ -597,9 +671,11 @@ def previous(rows: list[dict], detector: str) -> Candidate | None:
     if st is None:
         return None
     for i, r in enumerate(rows):
-        if (r["detector"] == detector and all(r[k] == st[k] for k in ("pfa", "guard", "background", "looks",
-                                                                        "merge_px"))
-                and r.get("extra", {}) == st["extra"]):
+        if (
+            r["detector"] == detector
+            and all(r[k] == st[k] for k in ("pfa", "guard", "background", "looks", "merge_px"))
+            and r.get("extra", {}) == st["extra"]
+        ):
             return Candidate(i, f"px{st['min_area_px']}", f"px{st['min_area_px']}")
     return None
 
@@ -608,8 +684,17 @@ def previous(rows: list[dict], detector: str) -> Candidate | None:
 #: simulated K-distributed sea (4 looks, 3 m pixels, 8 ships of 40-350 m, SCR 15 dB, seed 1,
 #: 1536 x 1536) must keep FoM >= 0.8 with the defaults. The real chips have no textured sea at
 #: 3 m; a candidate of DEMO["detector"] that fails it is passed over (the next best is taken).
-DEMO = {"detector": "os_cfar", "shape": (1536, 1536), "ships": 8, "seed": 1, "looks": 4.0, "scr_db": 15.0,
-        "spacing": 3.0, "tile": 512, "min_fom": 0.8}
+DEMO = {
+    "detector": "os_cfar",
+    "shape": (1536, 1536),
+    "ships": 8,
+    "seed": 1,
+    "looks": 4.0,
+    "scr_db": 15.0,
+    "spacing": 3.0,
+    "tile": 512,
+    "min_fom": 0.8,
+}
 
 
 class DemoCheck:
@@ -624,9 +709,19 @@ class DemoCheck:
 
         scene, truth = self.work / "demo.zarr", self.work / "demo.truth.geojson"
         if not scene.exists():
-            cfg = validate(SimConfig(kind="intensity", shape=DEMO["shape"], ships=DEMO["ships"], seed=DEMO["seed"],
-                                     looks=DEMO["looks"], clutter="k", scr_db=DEMO["scr_db"],
-                                     pixel_spacing_m=(DEMO["spacing"], DEMO["spacing"]), length_m=(40.0, 350.0)))
+            cfg = validate(
+                SimConfig(
+                    kind="intensity",
+                    shape=DEMO["shape"],
+                    ships=DEMO["ships"],
+                    seed=DEMO["seed"],
+                    looks=DEMO["looks"],
+                    clutter="k",
+                    scr_db=DEMO["scr_db"],
+                    pixel_spacing_m=(DEMO["spacing"], DEMO["spacing"]),
+                    length_m=(40.0, 350.0),
+                )
+            )
             simulate(scene, cfg, tile=DEMO["tile"], truth_path=truth)
         return scene, truth
 
@@ -641,8 +736,9 @@ class DemoCheck:
         if self.client is None:
             from distributed import Client, LocalCluster
 
-            self._cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                         dashboard_address=":0", silence_logs=logging.ERROR)
+            self._cluster = LocalCluster(
+                n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR
+            )
             self.client = Client(self._cluster)
         scene, truth = self._scene()
         r = rows[c.row]
@@ -653,8 +749,9 @@ class DemoCheck:
         L, A = _length(c.grd)
         st.update(min_length_m=L, min_area_px=area_px(A, (DEMO["spacing"], DEMO["spacing"])))
         out = Path(tempfile.mkdtemp(prefix="demo-", dir=self.work))
-        run_detection(scene, r["detector"], st, out_dir=out, tile=DEMO["tile"], client=self.client, progress=False,
-                      overwrite=True)
+        run_detection(
+            scene, r["detector"], st, out_dir=out, tile=DEMO["tile"], client=self.client, progress=False, overwrite=True
+        )
         fom = float(evaluate(out / "detections.geojson", truth)["fom"])
         shutil.rmtree(out, ignore_errors=True)
         self.cache[key] = fom
@@ -666,19 +763,22 @@ class DemoCheck:
             self._cluster.close()
 
 
-def choose(rows: list[dict], cands: list[Candidate], half: str, band: str = "vh",
-           demo: DemoCheck | None = None) -> tuple[Candidate, bool, list]:
+def choose(
+    rows: list[dict], cands: list[Candidate], half: str, band: str = "vh", demo: DemoCheck | None = None
+) -> tuple[Candidate, bool, list]:
     """The best candidate on ``half`` (see the module docstring); (candidate, eligible, the
     better-ranked candidates passed over by the demo check with their demo FoM)."""
     sc = [scores(rows, c, half, band) for c in cands]
     best_pd = {ds: max(s[ds]["pd"] for s in sc) for ds in ("ssdd", "hrsid") if ds in sc[0]}
 
     def ok(s):
-        return (all(s[ds]["pd"] >= best_pd[ds] - PD_SLACK - 1e-12 for ds in best_pd)
-                and ("grd" not in s or s["grd"]["pd"] >= MIN_GRD_PD))
+        return all(s[ds]["pd"] >= best_pd[ds] - PD_SLACK - 1e-12 for ds in best_pd) and (
+            "grd" not in s or s["grd"]["pd"] >= MIN_GRD_PD
+        )
 
     elig = [(c, s) for c, s in zip(cands, sc) if ok(s)]
     pool = elig or list(zip(cands, sc))
+
     # ties (equal objective; common: the GRD chips rarely tell 0-25 m apart): fewer false alarms
     # on SSDD + HRSID, then the longer min_length_m and the larger area (discrimination in
     # metres at no measured cost), then the smaller pixel default (keeps more small ships)
@@ -721,8 +821,10 @@ def fmt_setting(rows: list[dict], c: Candidate) -> str:
         g = f"spacing: min_length_m={Lm:g} area={A:g} m2"
     else:
         g = f"GRD min_area={c.grd[2:]}"
-    return f"pfa={r['pfa']:.0e} g/b={r['guard']}/{r['background']} L={L} merge={r['merge_px']}{ex}; " \
-           f"no spacing: min_area={c.px[2:]}; {g}"
+    return (
+        f"pfa={r['pfa']:.0e} g/b={r['guard']}/{r['background']} L={L} merge={r['merge_px']}{ex}; "
+        f"no spacing: min_area={c.px[2:]}; {g}"
+    )
 
 
 def fmt_scores(sc: dict) -> str:
@@ -738,14 +840,22 @@ def fmt_scores(sc: dict) -> str:
     return " | ".join(cells)
 
 
-def report(rows: list[dict], detectors_: list[str], band: str = "vh", log=print, demo: DemoCheck | None = None,
-           land: str | None = None) -> dict:
+def report(
+    rows: list[dict],
+    detectors_: list[str],
+    band: str = "vh",
+    log=print,
+    demo: DemoCheck | None = None,
+    land: str | None = None,
+) -> dict:
     """Both folds per detector; returns {detector: {fold: {...}}} and the markdown tables.
     ``land``: only the candidates of that land-mask kind (``none`` or ``texture``)."""
     out = {}
-    log("\nColumns: SSDD / HRSID = FoM / pd / precision (object level, aggregated over the half's chips); "
+    log(
+        "\nColumns: SSDD / HRSID = FoM / pd / precision (object level, aggregated over the half's chips); "
         "HRSID px = pixel TPR / FPR; GRD = centre ships found / chips with a centre ship, other "
-        "detections per chip, FoM proxy; mean = mean(SSDD FoM, HRSID FoM, GRD FoM proxy).")
+        "detections per chip, FoM proxy; mean = mean(SSDD FoM, HRSID FoM, GRD FoM proxy)."
+    )
     for det in detectors_:
         cands = candidates(rows, det, band, land)
         if not cands:
@@ -754,21 +864,31 @@ def report(rows: list[dict], detectors_: list[str], band: str = "vh", log=print,
         for tune in HALVES:
             held = "B" if tune == "A" else "A"
             c, elig, skipped = choose(rows, cands, tune, band, demo)
-            res["folds"][tune] = {"candidate": c, "eligible": elig, "setting": describe(rows, c),
-                                  "demo_skipped": [(fmt_setting(rows, k), f) for k, f in skipped],
-                                  "tuned": scores(rows, c, tune, band), "held_out": scores(rows, c, held, band),
-                                  "all": scores(rows, c, "all", band)}
+            res["folds"][tune] = {
+                "candidate": c,
+                "eligible": elig,
+                "setting": describe(rows, c),
+                "demo_skipped": [(fmt_setting(rows, k), f) for k, f in skipped],
+                "tuned": scores(rows, c, tune, band),
+                "held_out": scores(rows, c, held, band),
+                "all": scores(rows, c, "all", band),
+            }
         pc = previous(rows, det) if land in (None, "none") else None
         if pc is not None:
-            res["previous"] = {"candidate": pc, "setting": describe(rows, pc),
-                               **{h: scores(rows, pc, h, band) for h in ("A", "B", "all")}}
+            res["previous"] = {
+                "candidate": pc,
+                "setting": describe(rows, pc),
+                **{h: scores(rows, pc, h, band) for h in ("A", "B", "all")},
+            }
         out[det] = res
         log(f"\n=== {det}{'' if land is None else f' (land_mask={land})'} ===")
         for tune in HALVES:
             f = res["folds"][tune]
             held = "B" if tune == "A" else "A"
-            log(f"tuned on {tune}{'' if f['eligible'] else ' (no candidate met the pd floors: best mean)'}: "
-                f"{fmt_setting(rows, f['candidate'])}")
+            log(
+                f"tuned on {tune}{'' if f['eligible'] else ' (no candidate met the pd floors: best mean)'}: "
+                f"{fmt_setting(rows, f['candidate'])}"
+            )
             log(f"  on {tune} (tuned):    {fmt_scores(f['tuned'])}")
             log(f"  on {held} (held out): {fmt_scores(f['held_out'])}")
             log(f"  on all chips:        {fmt_scores(f['all'])}")
@@ -783,8 +903,13 @@ def report(rows: list[dict], detectors_: list[str], band: str = "vh", log=print,
 
 
 def markdown(rows: list[dict], rep: dict) -> str:
-    lines = [("| detector | defaults | scored on | SSDD FoM / pd / prec | HRSID FoM / pd / prec | HRSID px TPR / FPR "
-              "| GRD-VH centre / extra / FoM proxy | mean |"), "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        (
+            "| detector | defaults | scored on | SSDD FoM / pd / prec | HRSID FoM / pd / prec | HRSID px TPR / FPR "
+            "| GRD-VH centre / extra / FoM proxy | mean |"
+        ),
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for det, res in rep.items():
         name = det if res.get("land") is None else f"{det} land_mask={res['land']}"
         for tune in HALVES:
@@ -828,6 +953,7 @@ def _jsonable(rep: dict) -> dict:
         if isinstance(o, (list, tuple)):
             return [conv(v) for v in o]
         return o
+
     return conv(rep)
 
 
@@ -847,8 +973,11 @@ def main(argv=None) -> int:
     ap.add_argument("--md", type=Path, help="write the summary table (markdown) here")
     ap.add_argument("--from-json", type=Path, help="only re-report the rows saved by an earlier --json")
     ap.add_argument("--no-check", action="store_true", help="skip the post-processing self-check")
-    ap.add_argument("--land", default="none",
-                    help="comma list of land_mask settings swept: none, texture[:window=W][:open=O][:close=C]")
+    ap.add_argument(
+        "--land",
+        default="none",
+        help="comma list of land_mask settings swept: none, texture[:window=W][:open=O][:close=C]",
+    )
     ap.add_argument("--pfas", help="comma list of pfa values (default: the full grid)")
     ap.add_argument("--windows", help="comma list of guard/background pairs, e.g. 21/41,41/81")
     ap.add_argument("--datasets", default=",".join(DATASETS), help="comma list of ssdd, hrsid, grd")
@@ -875,8 +1004,16 @@ def main(argv=None) -> int:
         print(f"real data not found at {a.data}", file=sys.stderr)
         return 2
     dets = [d for d in a.detectors.split(",") if d]
-    grid = {"pfas": PFAS, "windows": WINDOWS, "looks": LOOKS, "min_areas": MIN_AREAS, "min_lengths": MIN_LENGTHS,
-            "areas_m2": AREAS_M2, "merges": MERGES, "bands": BANDS}
+    grid = {
+        "pfas": PFAS,
+        "windows": WINDOWS,
+        "looks": LOOKS,
+        "min_areas": MIN_AREAS,
+        "min_lengths": MIN_LENGTHS,
+        "areas_m2": AREAS_M2,
+        "merges": MERGES,
+        "bands": BANDS,
+    }
     if a.quick:
         grid.update(pfas=(1e-4, 1e-6), windows=((21, 41), (41, 81)), looks=("scene",))
     grid["lands"] = tuple(land_option(t) for t in a.land.split(",") if t.strip())
@@ -909,8 +1046,10 @@ def main(argv=None) -> int:
         for ds in ("ssdd", "hrsid"):
             Ls = [c.looks for c in chips if c.dataset == ds]
             if Ls:
-                print(f"  {ds}: scene looks (MoLC estimate) {min(Ls):.2f} .. {max(Ls):.2f}, "
-                      f"median {float(np.median(Ls)):.2f}")
+                print(
+                    f"  {ds}: scene looks (MoLC estimate) {min(Ls):.2f} .. {max(Ls):.2f}, "
+                    f"median {float(np.median(Ls)):.2f}"
+                )
         Lg = sorted({c.looks for c in chips if c.dataset == "grd"})
         if Lg:
             print(f"  grd: scene looks {Lg} (SNAP sidecar, nominal)")
@@ -920,15 +1059,18 @@ def main(argv=None) -> int:
         if a.scheduler:
             client, cluster = Client(a.scheduler), None
         else:
-            cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
-                                   silence_logs=logging.ERROR)
+            cluster = LocalCluster(
+                n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR
+            )
             client = Client(cluster)
         try:
             if not a.no_check:
                 t0 = time.perf_counter()
                 self_check(client, chips, dets, work)
-                print(f"self-check (local size rule/merge == run_detection) passed in "
-                      f"{time.perf_counter() - t0:.1f} s", flush=True)
+                print(
+                    f"self-check (local size rule/merge == run_detection) passed in {time.perf_counter() - t0:.1f} s",
+                    flush=True,
+                )
             t0 = time.perf_counter()
             rows = sweep(client, chips, dets, grid, work, a.threads, log=lambda m: print(m, flush=True))
             print(f"sweep: {len(rows)} rows in {time.perf_counter() - t0:.1f} s", flush=True)
@@ -940,8 +1082,9 @@ def main(argv=None) -> int:
         print("\n" + md)
         if a.json:
             halves = {c.name: c.half for c in chips}
-            a.json.write_text(json.dumps({"rows": rows, "report": _jsonable(rep), "halves": halves}, indent=1,
-                                         default=str))
+            a.json.write_text(
+                json.dumps({"rows": rows, "report": _jsonable(rep), "halves": halves}, indent=1, default=str)
+            )
         if a.md:
             a.md.write_text(md)
         print(f"total {time.perf_counter() - t_all:.1f} s")

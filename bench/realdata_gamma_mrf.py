@@ -21,8 +21,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 import realdata_eval as rd
+
 from sarship.pipeline.stats.gamma_mixture import mixture_isf
 
 MASKS = [{"pfa": pfa, "beta": beta} for pfa in (1e-3, 1e-5) for beta in (0.5, 1.0)]
@@ -39,7 +39,7 @@ def records_with_values(mask: np.ndarray, x: np.ndarray, merge_px: int) -> np.nd
     r = merge_radius(merge_px)
     h, w = mask.shape
     ext = np.zeros((h + 2 * r, w + 2 * r), bool)
-    ext[r:r + h, r:r + w] = mask
+    ext[r : r + h, r : r + w] = mask
     z = np.zeros(mask.shape, np.float32)
     comps = tile_components(ext, np.nan_to_num(x).astype(np.float32), z, r, (0, 0), (0, 0))
     return merge_tiles({(0, 0): comps})
@@ -75,14 +75,22 @@ def grd_small_chips(client, chips, work: Path) -> dict:
     for sm in SAMPLE_MINS:
         settings = {"sample_stride": "8"} if sm == "8" else {"sample_min": str(sm)}
         for c in chips:
-            stride = gm.sample_plan(c.shape, spec_params(looks=1.0, **({"sample_stride": 8} if sm == "8" else
-                                                                       {"sample_min": int(sm)})))[0]
+            stride = gm.sample_plan(
+                c.shape, spec_params(looks=1.0, **({"sample_stride": 8} if sm == "8" else {"sample_min": int(sm)}))
+            )[0]
             if (c.name, stride) not in cache:
                 try:
                     mask, info = rd.run_mask(client, c, "gamma_mrf", {**settings, "min_area_px": 1}, work)
                     if c.dataset == "grd":
-                        sc = next(iter(rd.chip_scores(c, mask, {"merges": [4], "min_areas": [], "min_lengths": [20.0],
-                                                                "areas_m2": [200.0]}).values()))
+                        sc = next(
+                            iter(
+                                rd.chip_scores(
+                                    c,
+                                    mask,
+                                    {"merges": [4], "min_areas": [], "min_lengths": [20.0], "areas_m2": [200.0]},
+                                ).values()
+                            )
+                        )
                     else:
                         sc = score(rd.detections(rd.components(mask, 4), rd._Filter(10)), c.truth)
                     err = None
@@ -102,14 +110,19 @@ def grd_small_chips(client, chips, work: Path) -> dict:
         return float(np.mean([table[(sm, ds, half)]["fom"] for ds in sets]))
 
     best = max((str(sm) for sm in SAMPLE_MINS), key=lambda sm: (fom(sm, "A"), sm == "400"))
-    print(f"sample_min chosen on half A (mean FoM of {', '.join(sets)}): {best}; "
-          f"A {fom(best, 'A'):.3f} (in-sample), B {fom(best, 'B'):.3f}")
+    print(
+        f"sample_min chosen on half A (mean FoM of {', '.join(sets)}): {best}; "
+        f"A {fom(best, 'A'):.3f} (in-sample), B {fom(best, 'B'):.3f}"
+    )
     print("| sample_min | set | half | score | FoM | failed |")
     print("|---|---|---|---|---|---|")
     for (sm, ds, half), v in sorted(table.items()):
         tag = " (in-sample)" if half == "A" else ""
-        what = (f"centre {v['hits']}/{v['n_ship']}, extra/chip {v['extra']:.2f}" if ds == "grd" else
-                f"P {v['precision']:.3f} R {v['pd']:.3f} ({v['n_false']} false)")
+        what = (
+            f"centre {v['hits']}/{v['n_ship']}, extra/chip {v['extra']:.2f}"
+            if ds == "grd"
+            else f"P {v['precision']:.3f} R {v['pd']:.3f} ({v['n_false']} false)"
+        )
         print(f"| {sm} | {ds} | {half}{tag} | {what} | {v['fom']:.3f} | {v['errors']} |")
     return {" | ".join(k): v for k, v in table.items()}
 
@@ -119,10 +132,16 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--json", default=None)
     ap.add_argument("--land", default="none", help="land_mask of every run: none or texture")
-    ap.add_argument("--defaults-only", action="store_true",
-                    help="only the shipped mask setting (pfa 1e-3, beta 0.5): score the defaults, no sweep")
-    ap.add_argument("--grd-small", action="store_true",
-                    help="issue 31: the GRD and SSDD chips with each sample_min (SAMPLE_MINS), chosen on half A")
+    ap.add_argument(
+        "--defaults-only",
+        action="store_true",
+        help="only the shipped mask setting (pfa 1e-3, beta 0.5): score the defaults, no sweep",
+    )
+    ap.add_argument(
+        "--grd-small",
+        action="store_true",
+        help="issue 31: the GRD and SSDD chips with each sample_min (SAMPLE_MINS), chosen on half A",
+    )
     a = ap.parse_args()
     masks = [m for m in MASKS if not a.defaults_only or m == {"pfa": 1e-3, "beta": 0.5}]
     import xarray as xr
@@ -132,8 +151,9 @@ def main() -> None:
 
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix="gm-real-"))
-    chips = [c for c in rd.ingest_all(rd.DATA, work, a.limit)
-             if c.dataset in (("grd", "ssdd") if a.grd_small else SETS)]
+    chips = [
+        c for c in rd.ingest_all(rd.DATA, work, a.limit) if c.dataset in (("grd", "ssdd") if a.grd_small else SETS)
+    ]
     rd.split_halves(chips)
     if a.grd_small:
         with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as lc, Client(lc) as client:
@@ -146,8 +166,9 @@ def main() -> None:
         for c in chips:
             x = xr.open_zarr(c.scene)["intensity"].values
             for ms in masks:
-                mask, info = rd.run_mask(client, c, "gamma_mrf", {**ms, "peak_pfa": "none", "min_area_px": 1,
-                                                                  "land_mask": a.land}, work)
+                mask, info = rd.run_mask(
+                    client, c, "gamma_mrf", {**ms, "peak_pfa": "none", "min_area_px": 1, "land_mask": a.land}, work
+                )
                 run = info["run"]
                 for pk, mg in itertools.product(PEAKS, MERGES):
                     rec = records_with_values(mask, x, mg)
@@ -157,9 +178,18 @@ def main() -> None:
                     for ar in AREAS:
                         ships = rd.detections(rec, rd._Filter(ar), None)
                         s = score(ships, c.truth)
-                        rows.append({"dataset": c.dataset, "chip": c.name, "half": c.half, "mask": ms,
-                                     "peak_pfa": pk, "merge_px": mg, "min_area_px": ar,
-                                     **{k: s[k] for k in ("n_truth", "n_detections", "n_hit", "n_false")}})
+                        rows.append(
+                            {
+                                "dataset": c.dataset,
+                                "chip": c.name,
+                                "half": c.half,
+                                "mask": ms,
+                                "peak_pfa": pk,
+                                "merge_px": mg,
+                                "min_area_px": ar,
+                                **{k: s[k] for k in ("n_truth", "n_detections", "n_hit", "n_false")},
+                            }
+                        )
     print(f"# {len(chips)} chips, {len(rows)} scored settings, {time.perf_counter() - t0:.0f} s")
 
     def key(r):
@@ -170,8 +200,9 @@ def main() -> None:
         for r in rows:
             if r["half"] != half:
                 continue
-            d = out.setdefault(key(r), {}).setdefault(r["dataset"], {"n_truth": 0, "n_detections": 0, "n_hit": 0,
-                                                                        "n_false": 0})
+            d = out.setdefault(key(r), {}).setdefault(
+                r["dataset"], {"n_truth": 0, "n_detections": 0, "n_hit": 0, "n_false": 0}
+            )
             for k in d:
                 d[k] += r[k]
         for sets in out.values():
@@ -195,14 +226,21 @@ def main() -> None:
             for s in SETS:
                 d = sets.get(s)
                 if d:
-                    print(f"  half {half} {s}: precision {d['precision']:.3f} recall {d['pd']:.3f} FoM {d['fom']:.3f} "
-                          f"({d['n_hit']}/{d['n_truth']} ships, {d['n_false']} false)")
+                    print(
+                        f"  half {half} {s}: precision {d['precision']:.3f} recall {d['pd']:.3f} FoM {d['fom']:.3f} "
+                        f"({d['n_hit']}/{d['n_truth']} ships, {d['n_false']} false)"
+                    )
     dflt = json.dumps([{"pfa": 1e-3, "beta": 0.5}, 1e-9, 4, 10])  # the shipped defaults (tuned on A)
     for h in ("A", "B"):
         if dflt in S[h]:
-            print(f"shipped defaults {dflt}, half {h}: " + ", ".join(
-                f"{s} FoM {S[h][dflt][s]['fom']:.3f} (P {S[h][dflt][s]['precision']:.3f} R {S[h][dflt][s]['pd']:.3f})"
-                for s in SETS if s in S[h][dflt]))
+            print(
+                f"shipped defaults {dflt}, half {h}: "
+                + ", ".join(
+                    f"{s} FoM {S[h][dflt][s]['fom']:.3f} (P {S[h][dflt][s]['precision']:.3f} R {S[h][dflt][s]['pd']:.3f})"
+                    for s in SETS
+                    if s in S[h][dflt]
+                )
+            )
     if a.json:
         Path(a.json).write_text(json.dumps({"report": report, "rows": rows}, indent=1))
 

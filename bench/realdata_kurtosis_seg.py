@@ -39,16 +39,16 @@ from pathlib import Path
 
 import numpy as np
 
-from sarship.pipeline.targets import kurtosis_seg as ks
-from sarship.pipeline.targets.components import merge_radius, merge_tiles, tile_components
 from sarship.pipeline.detectors import csk
 from sarship.pipeline.detectors.base import resolve_size
+from sarship.pipeline.targets import kurtosis_seg as ks
+from sarship.pipeline.targets.components import merge_radius, merge_tiles, tile_components
 from sarship.pipeline.targets.ship_features import features, keep_mask
 from sarship.pipeline.targets.sidelobes import refine_features
 from sarship.pipeline.tiling.windows import mirror_pad
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "opensarship"
-AZ_M, RG_SLANT_M = 13.927533333333335, 2.3295619999999997   # the product XML's azimuth_spacing, range_spacing
+AZ_M, RG_SLANT_M = 13.927533333333335, 2.3295619999999997  # the product XML's azimuth_spacing, range_spacing
 
 
 def ships(folder: Path) -> dict[tuple[int, int], dict]:
@@ -71,7 +71,7 @@ def product_lengths(z: np.ndarray, spacing: tuple[float, float], margin: int) ->
         mask, stat = csk.detect(mirror_pad(z, h), h, (-h, -h), p, prep)
         r = merge_radius(p.merge_px)
         H, W = z.shape
-        power = (z.real.astype(np.float64) ** 2 + z.imag.astype(np.float64) ** 2)
+        power = z.real.astype(np.float64) ** 2 + z.imag.astype(np.float64) ** 2
         tc = tile_components(np.pad(mask, r), power, stat, r, (0, 0), (H, W))
         records = merge_tiles({(0, 0): tc})
         params, _ = resolve_size(p, spacing)
@@ -104,11 +104,13 @@ def product_lengths(z: np.ndarray, spacing: tuple[float, float], margin: int) ->
 def irf_kernel(osr_az: float = 1.45, osr_rg: float = 1.2, alpha: float = 0.75, half: int = 12) -> np.ndarray:
     """Separable SLC impulse response (peak 1): the inverse transform of a Hamming-weighted
     (``alpha``) band occupying 1 / ``osr`` of the sampled band, on +-``half`` samples."""
+
     def one(osr: float) -> np.ndarray:
         f = np.linspace(-0.5 / osr, 0.5 / osr, 257)
         win = alpha + (1 - alpha) * np.cos(2 * np.pi * f * osr)
         h = np.array([np.trapezoid(win * np.exp(2j * np.pi * f * t), f) for t in range(-half, half + 1)])
         return h / np.abs(h).max()
+
     return np.outer(one(osr_az), one(osr_rg))
 
 
@@ -118,8 +120,11 @@ def simulated(n_chips: int, seed: int = 7) -> str:
     rng = np.random.default_rng(seed)
     K = irf_kernel()
     N, L = 56, 14
-    lines = ["| ship model | sea | ship / sea (dB) | kurtosis: median length (px) | kurtosis MAE (px) | "
-             "Otsu: median length (px) | Otsu MAE (px) |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| ship model | sea | ship / sea (dB) | kurtosis: median length (px) | kurtosis MAE (px) | "
+        "Otsu: median length (px) | Otsu MAE (px) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for irf in (False, True):
         for nu in (None, 5.0):
             for db in (25.0, 35.0, 45.0):
@@ -129,7 +134,7 @@ def simulated(n_chips: int, seed: int = 7) -> str:
                     if nu:
                         sea *= np.sqrt(rng.gamma(nu, 1 / nu, (N, N)))
                     ship = np.zeros((N, N), bool)
-                    ship[N // 2 - L // 2:N // 2 + L // 2, N // 2 - 2:N // 2 + 2] = True
+                    ship[N // 2 - L // 2 : N // 2 + L // 2, N // 2 - 2 : N // 2 + 2] = True
                     refl = np.zeros((N, N), complex)
                     refl[ship] = (rng.standard_normal(ship.sum()) + 1j * rng.standard_normal(ship.sum())) / math.sqrt(2)
                     if irf:
@@ -140,9 +145,11 @@ def simulated(n_chips: int, seed: int = 7) -> str:
                         g = ks.ship_geometry(np.abs(z) > fn(z), (1.0, 1.0))
                         out.append(g.length_m if g else 0.0)
                 lk, lo = np.asarray(lk), np.asarray(lo)
-                lines.append(f"| {'SLC impulse response' if irf else 'independent pixels'} | "
-                             f"{'K, nu = 5' if nu else 'Gaussian'} | {db:.0f} | {np.median(lk):.1f} | "
-                             f"{np.mean(np.abs(lk - L)):.1f} | {np.median(lo):.1f} | {np.mean(np.abs(lo - L)):.1f} |")
+                lines.append(
+                    f"| {'SLC impulse response' if irf else 'independent pixels'} | "
+                    f"{'K, nu = 5' if nu else 'Gaussian'} | {db:.0f} | {np.median(lk):.1f} | "
+                    f"{np.mean(np.abs(lk - L)):.1f} | {np.median(lo):.1f} | {np.mean(np.abs(lo - L)):.1f} |"
+                )
     return "\n".join([f"Simulated chips ({n_chips} per row, true length {L} px along the rows):", ""] + lines)
 
 
@@ -175,15 +182,24 @@ def main() -> None:
                 L = meta["length"]
                 for key, v in (("whole_k", lk), ("whole_o", lo), *prod.items()):
                     err[key].append(v - L)
-                rows.append(f"| {os.path.basename(f)} | {ch} | {z.shape[0]}x{z.shape[1]} | {L:.0f} | "
-                            f"{lk:.0f} ({gk.pixels if gk else 0} px) | {lo:.0f} ({go.pixels if go else 0} px) | "
-                            f"{prod['none']:.0f} | {prod['kurtosis']:.0f} | {prod['otsu']:.0f} |")
+                rows.append(
+                    f"| {os.path.basename(f)} | {ch} | {z.shape[0]}x{z.shape[1]} | {L:.0f} | "
+                    f"{lk:.0f} ({gk.pixels if gk else 0} px) | {lo:.0f} ({go.pixels if go else 0} px) | "
+                    f"{prod['none']:.0f} | {prod['kurtosis']:.0f} | {prod['otsu']:.0f} |"
+                )
     print(f"Product: `csk` defaults, chip = bounding box + {a.margin} px.\n")
-    print("| chip | channel | size | AIS length (m) | whole chip: kurtosis (m) | whole chip: Otsu (m) | "
-          "csk, none (m) | csk, kurtosis (m) | csk, Otsu (m) |\n|---|---|---|---|---|---|---|---|---|")
+    print(
+        "| chip | channel | size | AIS length (m) | whole chip: kurtosis (m) | whole chip: Otsu (m) | "
+        "csk, none (m) | csk, kurtosis (m) | csk, Otsu (m) |\n|---|---|---|---|---|---|---|---|---|"
+    )
     print("\n".join(rows))
-    names = {"whole_k": "whole chip, kurtosis", "whole_o": "whole chip, Otsu", "none": "csk detection, none",
-             "kurtosis": "csk detection, kurtosis", "otsu": "csk detection, Otsu"}
+    names = {
+        "whole_k": "whole chip, kurtosis",
+        "whole_o": "whole chip, Otsu",
+        "none": "csk detection, none",
+        "kurtosis": "csk detection, kurtosis",
+        "otsu": "csk detection, Otsu",
+    }
     print(f"\nLength error over {len(rows)} chip-channels (estimate - AIS):\n")
     print("| set-up | MAE (m) | median abs. error (m) | mean error (m) |\n|---|---|---|---|")
     for key, e in err.items():

@@ -138,37 +138,62 @@ def main(argv=None) -> int:
                     ships = detect(det, chip, I, L)
                     if chip.dataset == "grd":
                         hit, extra = ev.centre_hit(ships, chip.shape)
-                        s = {"hit": int(hit), "extra": extra,
-                             "ship": int(chip.name.split("/")[-1] not in ev.NO_SHIP_AT_CENTRE)}
+                        s = {
+                            "hit": int(hit),
+                            "extra": extra,
+                            "ship": int(chip.name.split("/")[-1] not in ev.NO_SHIP_AT_CENTRE),
+                        }
                     else:
                         s = score(ships, chip.truth)
                     per.setdefault((det, kind, chip.dataset, chip.half), ([], []))
                     per[(det, kind, chip.dataset, chip.half)][0].append(s)
                     per[(det, kind, chip.dataset, chip.half)][1].append(chip.name)
     rows = []
-    print("| detector | mask | half | SSDD FoM (pd / prec / false) | HRSID FoM (pd / prec / false) | GRD VH pd / FoM | mean FoM |")
+    print(
+        "| detector | mask | half | SSDD FoM (pd / prec / false) | HRSID FoM (pd / prec / false) | GRD VH pd / FoM | mean FoM |"
+    )
     print("|---|---|---|---|---|---|---|")
     for det in dets:
         for half in a.halves:
             for kind in kinds:
                 sm = {ds: ev.summarise(ds, *per[(det, kind, ds, half)]) for ds in ev.DATASETS}
                 mean = float(np.mean([sm[ds]["fom"] for ds in ev.DATASETS]))
-                rows.append({"detector": det, "mask": kind, "half": half, "mean_fom": mean,
-                             **{ds: sm[ds] for ds in ev.DATASETS}})
-                f = {ds: f"{sm[ds]['fom']:.3f} ({sm[ds]['pd']:.3f} / {sm[ds]['precision']:.3f} / {sm[ds]['n_false']})"
-                     for ds in ("ssdd", "hrsid")}
-                print(f"| {det} | {kind} | {half} | {f['ssdd']} | {f['hrsid']} | {sm['grd']['pd']:.3f} / "
-                      f"{sm['grd']['fom']:.3f} | {mean:.3f} |")
-    print("\n| mask | half | ships under the mask SSDD | HRSID | GRD centre ships | chips with land (SSDD, HRSID, GRD) |")
+                rows.append(
+                    {
+                        "detector": det,
+                        "mask": kind,
+                        "half": half,
+                        "mean_fom": mean,
+                        **{ds: sm[ds] for ds in ev.DATASETS},
+                    }
+                )
+                f = {
+                    ds: f"{sm[ds]['fom']:.3f} ({sm[ds]['pd']:.3f} / {sm[ds]['precision']:.3f} / {sm[ds]['n_false']})"
+                    for ds in ("ssdd", "hrsid")
+                }
+                print(
+                    f"| {det} | {kind} | {half} | {f['ssdd']} | {f['hrsid']} | {sm['grd']['pd']:.3f} / "
+                    f"{sm['grd']['fom']:.3f} | {mean:.3f} |"
+                )
+    print(
+        "\n| mask | half | ships under the mask SSDD | HRSID | GRD centre ships | chips with land (SSDD, HRSID, GRD) |"
+    )
     print("|---|---|---|---|---|---|")
     for half in a.halves:
         for kind in kinds:
             v = {ds: lost[(kind, ds, half)] for ds in ev.DATASETS}
-            print(f"| {kind} | {half} | {v['ssdd'][0]}/{v['ssdd'][1]} | {v['hrsid'][0]}/{v['hrsid'][1]} | "
-                  f"{v['grd'][0]}/{v['grd'][1]} | {v['ssdd'][2]}, {v['hrsid'][2]}, {v['grd'][2]} |")
+            print(
+                f"| {kind} | {half} | {v['ssdd'][0]}/{v['ssdd'][1]} | {v['hrsid'][0]}/{v['hrsid'][1]} | "
+                f"{v['grd'][0]}/{v['grd'][1]} | {v['ssdd'][2]}, {v['hrsid'][2]}, {v['grd'][2]} |"
+            )
     if a.json:
-        a.json.write_text(json.dumps({"rows": rows, "lost": {"/".join(k): v for k, v in lost.items()}}, indent=1,
-                                     default=lambda o: None if isinstance(o, float) and math.isnan(o) else str(o)))
+        a.json.write_text(
+            json.dumps(
+                {"rows": rows, "lost": {"/".join(k): v for k, v in lost.items()}},
+                indent=1,
+                default=lambda o: None if isinstance(o, float) and math.isnan(o) else str(o),
+            )
+        )
     return 0
 
 

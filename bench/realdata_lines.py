@@ -89,20 +89,27 @@ def decide(raw: dict, det: str, spacing, gap, angle, dom):
     from scipy import ndimage
 
     from sarship.pipeline import detectors
-    from sarship.pipeline.targets.components import merge_radius, merge_tiles, tile_components
     from sarship.pipeline.detectors.base import resolve_size
+    from sarship.pipeline.targets.components import merge_radius, merge_tiles, tile_components
     from sarship.pipeline.targets.lines import discard_lines
     from sarship.pipeline.targets.ship_features import keep_mask, size_prefilter
 
-    p = detectors.get(det).params(**{k: v for k, v in raw["run"]["parameters"].items()
-                                     if k not in ("line_gap_px", "line_angle_deg", "line_dominant_db")},
-                                  line_gap_px=gap, line_angle_deg=angle, line_dominant_db=dom)
+    p = detectors.get(det).params(
+        **{
+            k: v
+            for k, v in raw["run"]["parameters"].items()
+            if k not in ("line_gap_px", "line_angle_deg", "line_dominant_db")
+        },
+        line_gap_px=gap,
+        line_angle_deg=angle,
+        line_dominant_db=dom,
+    )
     p, _ = resolve_size(p, spacing)
     det_mask = raw["detected"]
     r = merge_radius(p.merge_px)
     h, w = det_mask.shape
     ext = np.zeros((h + 2 * r, w + 2 * r), bool)
-    ext[r:r + h, r:r + w] = det_mask
+    ext[r : r + h, r : r + w] = det_mask
     v = raw["power"].astype(np.float32)
     rec = merge_tiles({(0, 0): tile_components(ext, v, v, r, (0, 0), (0, 0))})
     pre = size_prefilter(p, gap is not None)
@@ -111,8 +118,9 @@ def decide(raw: dict, det: str, spacing, gap, angle, dom):
     why = discard_lines(rec, gap, angle, dom, p.max_elongation, p.max_length_m, spacing)
     rec = rec[why == ""]
     rec = rec[keep_mask(rec, p, spacing)]
-    lab, _ = ndimage.label(ndimage.binary_dilation(det_mask, np.ones((2 * r + 1,) * 2, bool)) if r else det_mask,
-                           np.ones((3, 3)))
+    lab, _ = ndimage.label(
+        ndimage.binary_dilation(det_mask, np.ones((2 * r + 1,) * 2, bool)) if r else det_mask, np.ones((3, 3))
+    )
     lab = np.where(det_mask, lab, 0)
     kept = np.isin(lab, lab[rec["peak_r"], rec["peak_c"]]) & det_mask if len(rec) else np.zeros_like(det_mask)
     return rec, kept, {"line": int((why == "line").sum()), "smear": int((why == "smear").sum())}
@@ -122,9 +130,12 @@ def ships(rec):
     from sarship.pipeline.products.truth import Ship
 
     n = rec["n"].astype(np.float64)
-    return [Ship((float(a), float(b), float(c), float(d)), (float(y), float(x)), False, {"area_px": int(k)})
-            for a, b, c, d, y, x, k in zip(rec["r0"], rec["c0"], rec["r1"], rec["c1"], rec["sr"] / n + 0.5,
-                                            rec["sc"] / n + 0.5, rec["n"])]
+    return [
+        Ship((float(a), float(b), float(c), float(d)), (float(y), float(x)), False, {"area_px": int(k)})
+        for a, b, c, d, y, x, k in zip(
+            rec["r0"], rec["c0"], rec["r1"], rec["c1"], rec["sr"] / n + 0.5, rec["sc"] / n + 0.5, rec["n"]
+        )
+    ]
 
 
 def chip_score(chip, rec, kept, raw):
@@ -176,12 +187,20 @@ def at_defaults(client, chips, det: str, root: Path) -> dict:
             try:
                 run_detection(c.scene, det, st, out_dir=out, tile=max(c.shape), client=client, progress=False)
                 feats = json.loads((out / "detections.geojson").read_text())["features"]
-                sh = [Ship(tuple(float(v) for v in f["properties"]["bbox_px"]),
-                           tuple(f["properties"]["centroid_px"]), False, {}) for f in feats]
+                sh = [
+                    Ship(
+                        tuple(float(v) for v in f["properties"]["bbox_px"]),
+                        tuple(f["properties"]["centroid_px"]),
+                        False,
+                        {},
+                    )
+                    for f in feats
+                ]
                 if c.dataset == "grd":
                     hit, extra = E.centre_hit(sh, c.shape)
-                    per[mode].append({"hit": int(hit), "extra": extra,
-                                      "ship": int(c.name.split("/")[-1] not in E.NO_SHIP_AT_CENTRE)})
+                    per[mode].append(
+                        {"hit": int(hit), "extra": extra, "ship": int(c.name.split("/")[-1] not in E.NO_SHIP_AT_CENTRE)}
+                    )
                 else:
                     per[mode].append(score(sh, c.truth))
                 if mode == "on" and c.truth_mask is not None:
@@ -192,10 +211,15 @@ def at_defaults(client, chips, det: str, root: Path) -> dict:
                 shutil.rmtree(out, ignore_errors=True)
     res = {}
     for mode in ("off", "on"):
-        res[mode] = {h: {ds: E.summarise(ds, [s for c, s in zip(chips, per[mode])
-                                              if c.dataset == ds and (h == "all" or c.half == h)])
-                         for ds in ("ssdd", "hrsid", "grd")}
-                     for h in ("A", "B", "all")}
+        res[mode] = {
+            h: {
+                ds: E.summarise(
+                    ds, [s for c, s in zip(chips, per[mode]) if c.dataset == ds and (h == "all" or c.half == h)]
+                )
+                for ds in ("ssdd", "hrsid", "grd")
+            }
+            for h in ("A", "B", "all")
+        }
     for k in ("raw_px", "kept_px"):
         res[k] = {}
         for h in ("A", "B", "all"):
@@ -212,9 +236,13 @@ def main(argv=None) -> int:
     ap.add_argument("--md", type=Path)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--detectors", default=",".join(DETS), help="comma list (the choice averages over them)")
-    ap.add_argument("--defaults", default="", help="comma list of detectors: only their scores at the shipped "
-                                                    "defaults, line rule off and on, and HRSID pixel TPR / FPR of "
-                                                    "the raw decision and the kept detections")
+    ap.add_argument(
+        "--defaults",
+        default="",
+        help="comma list of detectors: only their scores at the shipped "
+        "defaults, line rule off and on, and HRSID pixel TPR / FPR of "
+        "the raw decision and the kept detections",
+    )
     a = ap.parse_args(argv)
     dets = tuple(a.detectors.split(","))
     from distributed import Client, LocalCluster
@@ -225,8 +253,16 @@ def main(argv=None) -> int:
     E.split_halves(chips)
     print(f"{len(chips)} chips ingested ({time.perf_counter() - t0:.0f} s)", flush=True)
     if a.defaults:
-        with LocalCluster(n_workers=a.workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                          silence_logs=logging.ERROR) as cl, Client(cl) as client:
+        with (
+            LocalCluster(
+                n_workers=a.workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=":0",
+                silence_logs=logging.ERROR,
+            ) as cl,
+            Client(cl) as client,
+        ):
             (work / "runs").mkdir(exist_ok=True)
             for det in a.defaults.split(","):
                 t1 = time.perf_counter()
@@ -235,8 +271,16 @@ def main(argv=None) -> int:
         return 0
     cands = candidates()
     res: dict = {}
-    with LocalCluster(n_workers=a.workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                      silence_logs=logging.ERROR) as cl, Client(cl) as client:
+    with (
+        LocalCluster(
+            n_workers=a.workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=":0",
+            silence_logs=logging.ERROR,
+        ) as cl,
+        Client(cl) as client,
+    ):
         root = work / "runs"
         root.mkdir(exist_ok=True)
         for det in dets:
@@ -259,11 +303,15 @@ def main(argv=None) -> int:
         # choice on half A: the mean over the detectors of mean(SSDD, HRSID, GRD-VH FoM)
         obj = {cand: float(np.mean([E.objective(res[d][cand]["A"]) for d in dets])) for cand in cands}
         best = max(cands, key=lambda c: (round(obj[c], 9), -prior_distance(c), -cands.index(c)))
-        print(f"chosen on half A: gap {best[0]} angle {best[1]} dominant {best[2]} (objective {obj[best]:.4f}; "
-              f"off {obj[cands[-1]]:.4f})", flush=True)
+        print(
+            f"chosen on half A: gap {best[0]} angle {best[1]} dominant {best[2]} (objective {obj[best]:.4f}; "
+            f"off {obj[cands[-1]]:.4f})",
+            flush=True,
+        )
         # self-check: run_detection with the chosen setting == the post-processing
-        from sarship.workers.jobs import run_detection
         import zarr
+
+        from sarship.workers.jobs import run_detection
 
         for ds in ("ssdd", "hrsid", "grd"):
             for c in [c for c in chips if c.dataset == ds][:2]:
@@ -277,7 +325,8 @@ def main(argv=None) -> int:
                 raw = raw_run(client, c, "ca_cfar", root)
                 rec, kept, _ = decide(raw, "ca_cfar", c.spacing, *best)
                 assert sorted(tuple(f["properties"]["bbox_px"]) for f in feats) == sorted(
-                    (int(a), int(b), int(x), int(y)) for a, b, x, y in zip(rec["r0"], rec["c0"], rec["r1"], rec["c1"]))
+                    (int(a), int(b), int(x), int(y)) for a, b, x, y in zip(rec["r0"], rec["c0"], rec["r1"], rec["c1"])
+                )
                 assert np.array_equal(mask, kept), c.name
                 shutil.rmtree(out, ignore_errors=True)
     rows = []
@@ -285,35 +334,48 @@ def main(argv=None) -> int:
         for cand in (cands[-1], best):
             for h in ("B", "A", "all"):
                 sc = res[det][cand][h]
-                rows.append({"detector": det, "line": "off" if cand[0] is None else
-                             f"gap {cand[0]}, angle {cand[1]:g}, dominant {cand[2]}", "half": h,
-                             **{f"{ds}_fom": round(sc[ds]["fom"], 3) for ds in sc},
-                             **{f"{ds}_pd": round(sc[ds]["pd"], 3) for ds in sc},
-                             "hrsid_false": sc["hrsid"].get("n_false"), "ssdd_false": sc["ssdd"].get("n_false"),
-                             "grd_extra": round(sc["grd"]["extra"], 3),
-                             "hrsid_tpr_raw": round(sc["hrsid"]["raw_tpr"], 3),
-                             "hrsid_fpr_raw": float(f"{sc['hrsid']['raw_fpr']:.3g}"),
-                             "hrsid_tpr_kept": round(sc["hrsid"]["tpr"], 3),
-                             "hrsid_fpr_kept": float(f"{sc['hrsid']['fpr']:.3g}"),
-                             "dropped_all_chips": res[det][cand]["dropped"] if h == "all" else None})
+                rows.append(
+                    {
+                        "detector": det,
+                        "line": "off" if cand[0] is None else f"gap {cand[0]}, angle {cand[1]:g}, dominant {cand[2]}",
+                        "half": h,
+                        **{f"{ds}_fom": round(sc[ds]["fom"], 3) for ds in sc},
+                        **{f"{ds}_pd": round(sc[ds]["pd"], 3) for ds in sc},
+                        "hrsid_false": sc["hrsid"].get("n_false"),
+                        "ssdd_false": sc["ssdd"].get("n_false"),
+                        "grd_extra": round(sc["grd"]["extra"], 3),
+                        "hrsid_tpr_raw": round(sc["hrsid"]["raw_tpr"], 3),
+                        "hrsid_fpr_raw": float(f"{sc['hrsid']['raw_fpr']:.3g}"),
+                        "hrsid_tpr_kept": round(sc["hrsid"]["tpr"], 3),
+                        "hrsid_fpr_kept": float(f"{sc['hrsid']['fpr']:.3g}"),
+                        "dropped_all_chips": res[det][cand]["dropped"] if h == "all" else None,
+                    }
+                )
     for r in rows:
         print(json.dumps(r), flush=True)
     if a.json:
-        a.json.write_text(json.dumps({"chosen": list(best), "objective_A": {str(k): v for k, v in obj.items()},
-                                      "rows": rows}, indent=1))
+        a.json.write_text(
+            json.dumps(
+                {"chosen": list(best), "objective_A": {str(k): v for k, v in obj.items()}, "rows": rows}, indent=1
+            )
+        )
     if a.md:
-        head = ("| detector | line rule | half | SSDD FoM (pd, false) | HRSID FoM (pd, false) | GRD-VH FoM (pd, extra) "
-                "| HRSID px TPR / FPR raw | kept |")
+        head = (
+            "| detector | line rule | half | SSDD FoM (pd, false) | HRSID FoM (pd, false) | GRD-VH FoM (pd, extra) "
+            "| HRSID px TPR / FPR raw | kept |"
+        )
         lines = [head, "|" + "---|" * 8]
         for r in rows:
             if r["half"] == "all":
                 continue
-            lines.append(f"| {r['detector']} | {r['line']} | {r['half'] + (' (in-sample)' if r['half'] == 'A' else '')} "
-                         f"| {r['ssdd_fom']} ({r['ssdd_pd']}, {r['ssdd_false']}) "
-                         f"| {r['hrsid_fom']} ({r['hrsid_pd']}, {r['hrsid_false']}) "
-                         f"| {r['grd_fom']} ({r['grd_pd']}, {r['grd_extra']}) "
-                         f"| {r['hrsid_tpr_raw']} / {r['hrsid_fpr_raw']:.2e} | {r['hrsid_tpr_kept']} / "
-                         f"{r['hrsid_fpr_kept']:.2e} |")
+            lines.append(
+                f"| {r['detector']} | {r['line']} | {r['half'] + (' (in-sample)' if r['half'] == 'A' else '')} "
+                f"| {r['ssdd_fom']} ({r['ssdd_pd']}, {r['ssdd_false']}) "
+                f"| {r['hrsid_fom']} ({r['hrsid_pd']}, {r['hrsid_false']}) "
+                f"| {r['grd_fom']} ({r['grd_pd']}, {r['grd_extra']}) "
+                f"| {r['hrsid_tpr_raw']} / {r['hrsid_fpr_raw']:.2e} | {r['hrsid_tpr_kept']} / "
+                f"{r['hrsid_fpr_kept']:.2e} |"
+            )
         a.md.write_text("\n".join(lines) + "\n")
     print(f"total {time.perf_counter() - t0:.0f} s")
     return 0

@@ -57,8 +57,14 @@ def sweep(client, chips, settings, out_json: Path | None, log=print) -> list[dic
     root = Path(tempfile.mkdtemp(prefix="lmm-runs-"))
     for pfa, g, b, cl in settings:
         t0 = time.time()
-        st = {"pfa": pfa, "guard": g, "background": b, "censor_low": cl, "min_area_px": rd.MASK_ONLY_MIN_AREA,
-              "merge_px": 0}
+        st = {
+            "pfa": pfa,
+            "guard": g,
+            "background": b,
+            "censor_low": cl,
+            "min_area_px": rd.MASK_ONLY_MIN_AREA,
+            "merge_px": 0,
+        }
 
         def one(chip):
             s = dict(st)
@@ -77,8 +83,7 @@ def sweep(client, chips, settings, out_json: Path | None, log=print) -> list[dic
                 row[ds][half] = rd.summarise(ds, [p for _, p in sel], [c.name for c, _ in sel])
         row["seconds"] = time.time() - t0
         rows.append(row)
-        log(f"{setting_str(row)}: {time.time() - t0:.0f} s; " + "; ".join(
-            f"{h}: {fmt(row, h)}" for h in ("A", "B")))
+        log(f"{setting_str(row)}: {time.time() - t0:.0f} s; " + "; ".join(f"{h}: {fmt(row, h)}" for h in ("A", "B")))
         if out_json is not None:
             out_json.write_text(json.dumps(rows, indent=1))
     return rows
@@ -95,20 +100,23 @@ def objective(r: dict, half: str) -> float:
 def choose(rows: list[dict], half: str) -> dict:
     best_pd = {ds: max(r[ds][half]["pd"] for r in rows) for ds in ("ssdd", "hrsid")}
     ok = [r for r in rows if all(r[ds][half]["pd"] >= best_pd[ds] - PD_SLACK for ds in ("ssdd", "hrsid"))]
-    return max(ok, key=lambda r: (objective(r, half),
-                                  -(r["ssdd"][half]["n_false"] + r["hrsid"][half]["n_false"])))
+    return max(ok, key=lambda r: (objective(r, half), -(r["ssdd"][half]["n_false"] + r["hrsid"][half]["n_false"])))
 
 
 def fmt(r: dict, half: str) -> str:
     s, h, g = r["ssdd"][half], r["hrsid"][half], r["grd"][half]
-    return (f"{s['fom']:.3f} / {s['pd']:.3f} / {s['precision']:.3f} | {h['fom']:.3f} / {h['pd']:.3f} / "
-            f"{h['precision']:.3f} | {h.get('tpr', float('nan')):.3f} / {h.get('fpr', float('nan')):.1e} | "
-            f"{g['hits']}/{g['n_ship']} / {g['extra']:.2f} / {g['fom']:.3f} | {objective(r, half):.3f}")
+    return (
+        f"{s['fom']:.3f} / {s['pd']:.3f} / {s['precision']:.3f} | {h['fom']:.3f} / {h['pd']:.3f} / "
+        f"{h['precision']:.3f} | {h.get('tpr', float('nan')):.3f} / {h.get('fpr', float('nan')):.1e} | "
+        f"{g['hits']}/{g['n_ship']} / {g['extra']:.2f} / {g['fom']:.3f} | {objective(r, half):.3f}"
+    )
 
 
 def markdown(rows: list[dict]) -> str:
-    head = ("| setting | scored on | SSDD FoM / pd / prec | HRSID FoM / pd / prec | HRSID px TPR / FPR | "
-            "GRD-VH centre / extra / FoM proxy | mean |\n|---|---|---|---|---|---|---|")
+    head = (
+        "| setting | scored on | SSDD FoM / pd / prec | HRSID FoM / pd / prec | HRSID px TPR / FPR | "
+        "GRD-VH centre / extra / FoM proxy | mean |\n|---|---|---|---|---|---|---|"
+    )
     out = [head]
     for tune, held in (("A", "B"), ("B", "A")):
         c = choose(rows, tune)
@@ -138,8 +146,12 @@ def main(argv=None) -> int:
     chips = rd.ingest_all(a.data, work)
     rd.split_halves(chips)
     settings = SETTINGS if not a.only else [SETTINGS[int(i)] for i in a.only.split(",")]
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    with (
+        LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         rows = sweep(client, chips, settings, a.json)
     print(markdown(rows))
     return 0

@@ -162,8 +162,10 @@ def image_scores(dets: list, truth: list) -> dict:
 
     box = lambda ships: np.array([s.bbox for s in ships], float).reshape(-1, 4)  # noqa: E731
     ours = score(dets, truth)
-    return {"iou50": iou_counts(box(dets), box(truth)),
-            "ours": {k: ours[k] for k in ("n_truth", "n_detections", "n_hit")}}
+    return {
+        "iou50": iou_counts(box(dets), box(truth)),
+        "ours": {k: ours[k] for k in ("n_truth", "n_detections", "n_hit")},
+    }
 
 
 def summarise(per_image: dict[str, dict], ids: list[str]) -> dict:
@@ -195,12 +197,14 @@ def _ships(features: list[dict]) -> list:
     return out
 
 
-def run(folder: Path, detectors: list[str], subsets: dict[str, list[str]], client, work: Path,
-        threads: int = 2, log=print) -> dict:
+def run(
+    folder: Path, detectors: list[str], subsets: dict[str, list[str]], client, work: Path, threads: int = 2, log=print
+) -> dict:
     """Per detector, per image: both matchers' counts (``{det: {id: scores}}``)."""
     from PIL import Image
-    from sarship.pipeline.readers import ingest
+
     from sarship.pipeline.products.truth import load_geojson
+    from sarship.pipeline.readers import ingest
 
     ids = sorted({i for v in subsets.values() for i in v})
     chips: dict[str, rde.Chip] = {}
@@ -236,8 +240,10 @@ def report(rows: dict, subsets: dict[str, list[str]]) -> dict:
 
 def markdown(rep: dict, subsets: dict[str, list[str]], every: int = 1) -> str:
     """The REALDATA.md table: per detector and subset, IoU >= 0.5 and the project's matcher."""
-    head = ("| detector | subset | images / ships | IoU >= 0.5: precision / recall / F1 (false) "
-            "| project matcher: precision / recall / F1 (false), FoM |\n|---|---|---|---|---|\n")
+    head = (
+        "| detector | subset | images / ships | IoU >= 0.5: precision / recall / F1 (false) "
+        "| project matcher: precision / recall / F1 (false), FoM |\n|---|---|---|---|---|\n"
+    )
     lines = []
     for d, per in rep.items():
         for s in subsets:
@@ -246,8 +252,13 @@ def markdown(rep: dict, subsets: dict[str, list[str]], every: int = 1) -> str:
             lines.append(
                 f"| {d} | {s.replace('test_', '')} | {r['images']} / {a['n_truth']} "
                 f"| {a['precision']:.3f} / {a['recall']:.3f} / {a['f1']:.3f} ({a['n_false']}) "
-                f"| {o['precision']:.3f} / {o['recall']:.3f} / {o['f1']:.3f} ({o['n_false']}), {o['fom']:.3f} |")
-    note = "" if every == 1 else f"\nOne image in {every} of each subset (every {every}-th of the sorted ids), not the whole split.\n"
+                f"| {o['precision']:.3f} / {o['recall']:.3f} / {o['f1']:.3f} ({o['n_false']}), {o['fom']:.3f} |"
+            )
+    note = (
+        ""
+        if every == 1
+        else f"\nOne image in {every} of each subset (every {every}-th of the sorted ids), not the whole split.\n"
+    )
     return head + "\n".join(lines) + "\n" + note
 
 
@@ -287,8 +298,9 @@ def main(argv: list[str] | None = None) -> int:
         if a.scheduler:
             client = Client(a.scheduler)
         else:
-            cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
-                                   silence_logs=logging.ERROR)
+            cluster = LocalCluster(
+                n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR
+            )
             client = Client(cluster)
         try:
             print("images: " + ", ".join(f"{s} {len(v)}" for s, v in subsets.items()), flush=True)
@@ -303,8 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.md:
             a.md.write_text(md)
         if a.json:
-            a.json.write_text(json.dumps({"subsets": subsets, "every": a.every, "rows": rows, "report": rep},
-                                         indent=1))
+            a.json.write_text(json.dumps({"subsets": subsets, "every": a.every, "rows": rows, "report": rep}, indent=1))
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

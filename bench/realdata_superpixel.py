@@ -54,15 +54,16 @@ def issue31_sweep(client, chips, work: Path, sets) -> dict:
     and the largest ship kept (applied to the job's mask components, as ``max_area_px``), scored
     per set and half (min_area_px 10 where the spacing is unknown, the metre rule on GRD). The
     values are chosen on half A (mean over the sets of FoM, GRD: centre-ship FoM), reported on B."""
-    from sarship.pipeline.detectors.base import area_px, resolve_size
-    from sarship.pipeline.products.scoring import aggregate, score
     from sarship.pipeline.detectors import get
+    from sarship.pipeline.detectors.base import area_px, resolve_size
+    from sarship.pipeline.products.scoring import score
 
     per: dict = {}
     for pp in POINT_PFAS:
         for c in chips:
-            mask, _ = rd.run_mask(client, c, "superpixel_cfar",
-                                  {"point_pfa": "none" if pp is None else str(pp), "min_area_px": "1"}, work)
+            mask, _ = rd.run_mask(
+                client, c, "superpixel_cfar", {"point_pfa": "none" if pp is None else str(pp), "min_area_px": "1"}, work
+            )
             rec = rd.components(mask, 4)
             caps = MAX_SHIP_M2 if c.spacing else MAX_SHIP_PX
             for cap in caps:
@@ -74,7 +75,11 @@ def issue31_sweep(client, chips, work: Path, sets) -> dict:
                 ships = rd.detections(rec, flt, c.spacing)
                 if c.dataset == "grd":
                     hit, extra = rd.centre_hit(ships, c.shape)
-                    sc = {"hit": int(hit), "extra": extra, "ship": int(c.name.split("/")[-1] not in rd.NO_SHIP_AT_CENTRE)}
+                    sc = {
+                        "hit": int(hit),
+                        "extra": extra,
+                        "ship": int(c.name.split("/")[-1] not in rd.NO_SHIP_AT_CENTRE),
+                    }
                 else:
                     sc = score(ships, c.truth)
                 per.setdefault((pp, cap, c.dataset, c.half), []).append(sc)
@@ -85,23 +90,33 @@ def issue31_sweep(client, chips, work: Path, sets) -> dict:
 
     px_caps = MAX_SHIP_PX if any(ds != "grd" for ds in sets) else (None,)
     m2_caps = MAX_SHIP_M2 if "grd" in sets else (None,)
-    best = max(((pp, cp, cm) for pp in POINT_PFAS for cp in px_caps for cm in m2_caps),
-               # ties on half A: the point rule on (issue 31's small ships, tests/pipeline/test_superpixel_cfar.py),
-               # then the tightest largest ship (a merged land-and-ships detection dropped sooner)
-               key=lambda t: (mean_fom(*t, "A"), t[0] is not None, -(t[1] or 10**12), -(t[2] or 10**12)))
-    print(f"chosen on half A (mean FoM of {', '.join(sets)}): point_pfa {best[0]}, max_ship_px {best[1]}, "
-          f"max_ship_m2 {best[2]}; half A {mean_fom(*best, 'A'):.3f} (in-sample), half B {mean_fom(*best, 'B'):.3f}")
+    best = max(
+        ((pp, cp, cm) for pp in POINT_PFAS for cp in px_caps for cm in m2_caps),
+        # ties on half A: the point rule on (issue 31's small ships, tests/pipeline/test_superpixel_cfar.py),
+        # then the tightest largest ship (a merged land-and-ships detection dropped sooner)
+        key=lambda t: (mean_fom(*t, "A"), t[0] is not None, -(t[1] or 10**12), -(t[2] or 10**12)),
+    )
+    print(
+        f"chosen on half A (mean FoM of {', '.join(sets)}): point_pfa {best[0]}, max_ship_px {best[1]}, "
+        f"max_ship_m2 {best[2]}; half A {mean_fom(*best, 'A'):.3f} (in-sample), half B {mean_fom(*best, 'B'):.3f}"
+    )
     print("| point_pfa | largest ship | set | half | precision / recall / FoM (false) |")
     print("|---|---|---|---|---|")
-    for (pp, cap, ds, half), v in sorted(table.items(), key=lambda kv: (str(kv[0][0]), str(kv[0][1]), kv[0][2], kv[0][3])):
+    for (pp, cap, ds, half), v in sorted(
+        table.items(), key=lambda kv: (str(kv[0][0]), str(kv[0][1]), kv[0][2], kv[0][3])
+    ):
         tag = " (in-sample)" if half == "A" else ""
         unit = " m^2" if ds == "grd" and cap is not None else (" px" if cap is not None else "")
         if ds == "grd":
-            print(f"| {pp} | {cap}{unit} | {ds} | {half}{tag} | centre {v['hits']}/{v['n_ship']}, extra/chip "
-                  f"{v['extra']:.2f}, FoM {v['fom']:.3f} |")
+            print(
+                f"| {pp} | {cap}{unit} | {ds} | {half}{tag} | centre {v['hits']}/{v['n_ship']}, extra/chip "
+                f"{v['extra']:.2f}, FoM {v['fom']:.3f} |"
+            )
         else:
-            print(f"| {pp} | {cap}{unit} | {ds} | {half}{tag} | {v['precision']:.3f} / {v['pd']:.3f} / "
-                  f"{v['fom']:.3f} ({v['n_false']}) |")
+            print(
+                f"| {pp} | {cap}{unit} | {ds} | {half}{tag} | {v['precision']:.3f} / {v['pd']:.3f} / "
+                f"{v['fom']:.3f} ({v['n_false']}) |"
+            )
     return {"chosen": best, "table": {" | ".join(map(str, k)): v for k, v in table.items()}}
 
 
@@ -111,8 +126,11 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     ap.add_argument("--only", default=None, help="comma list of SETTINGS indices to run (default: all)")
     ap.add_argument("--sets", default=",".join(SETS), help="comma list of data sets (default: ssdd,hrsid)")
-    ap.add_argument("--issue31", action="store_true",
-                    help="issue 31: choose point_pfa, max_ship_px, max_ship_m2 on half A, report half B")
+    ap.add_argument(
+        "--issue31",
+        action="store_true",
+        help="issue 31: choose point_pfa, max_ship_px, max_ship_m2 on half A, report half B",
+    )
     a = ap.parse_args()
     sets = tuple(a.sets.split(","))
     todo = [SETTINGS[int(i)] for i in a.only.split(",")] if a.only else SETTINGS
@@ -137,8 +155,7 @@ def main() -> None:
             per = {}
             t = time.perf_counter()
             for c in chips:
-                mask, _ = rd.run_mask(client, c, det, {**{k: str(v) for k, v in kw.items()}, "min_area_px": 1},
-                                      work)
+                mask, _ = rd.run_mask(client, c, det, {**{k: str(v) for k, v in kw.items()}, "min_area_px": 1}, work)
                 s = rd.chip_scores(c, mask, grid)[("px10", p.merge_px)]
                 per.setdefault((c.dataset, c.half), []).append(s)
                 per.setdefault((c.dataset, "all"), []).append(s)

@@ -39,11 +39,20 @@ SCENES = {
 }
 #: detector -> (scene, extra settings) runs; every registered detector appears at least once
 RUNS = [
-    ("ca_cfar", "k_land", {}), ("ca_cfar", "gamma", {"land_mask": "none", "sidelobes": True}),
-    ("os_cfar", "k_land", {}), ("two_parameter", "gamma", {}), ("g0_cfar", "k_land", {}),
-    ("k_cfar", "k_land", {}), ("ggd_cfar", "gamma", {}), ("gamma_mrf", "gamma", {}),
-    ("superpixel_cfar", "k_land", {}), ("lmm", "gamma", {}), ("apwf", "quadpol", {}),
-    ("pcdm", "quadpol", {}), ("vb_polsar", "quadpol", {}), ("csk", "slc", {}),
+    ("ca_cfar", "k_land", {}),
+    ("ca_cfar", "gamma", {"land_mask": "none", "sidelobes": True}),
+    ("os_cfar", "k_land", {}),
+    ("two_parameter", "gamma", {}),
+    ("g0_cfar", "k_land", {}),
+    ("k_cfar", "k_land", {}),
+    ("ggd_cfar", "gamma", {}),
+    ("gamma_mrf", "gamma", {}),
+    ("superpixel_cfar", "k_land", {}),
+    ("lmm", "gamma", {}),
+    ("apwf", "quadpol", {}),
+    ("pcdm", "quadpol", {}),
+    ("vb_polsar", "quadpol", {}),
+    ("csk", "slc", {}),
     ("ca_cfar", "k_land", {"min_contrast_db": 3.0, "line_gap_px": 16, "land_gap_px": 2}),
     ("auto", "k_land", {}),
 ]
@@ -67,8 +76,9 @@ def _arrays(store: Path) -> dict[str, str]:
 def _stable_run(run: dict) -> dict:
     r = {k: v for k, v in run.items() if k not in VOLATILE}
     tiles = dict(r.get("tiles") or {})
-    tiles["per_tile"] = [{k: v for k, v in t.items() if k in ("index", "detected_px", "block_from")}
-                         for t in tiles.get("per_tile", [])]
+    tiles["per_tile"] = [
+        {k: v for k, v in t.items() if k in ("index", "detected_px", "block_from")} for t in tiles.get("per_tile", [])
+    ]
     r["tiles"] = tiles
     land = r.get("land")
     if isinstance(land, dict):
@@ -91,15 +101,18 @@ def digest(work: Path) -> dict:
         if not (scenes / f"{name}.zarr").exists():
             simulate(scenes / f"{name}.zarr", SimConfig(**kw), tile=tile)
     out: dict = {}
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
-            Client(cl) as client:
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl,
+        Client(cl) as client,
+    ):
         for det, scene, settings in RUNS:
             key = f"{det}@{scene}" + (f"+{','.join(sorted(settings))}" if settings else "")
             run_dir = work / "runs" / key.replace("@", "_").replace("+", "_").replace(",", "_")
             shutil.rmtree(run_dir, ignore_errors=True)
             try:
-                run = run_detection(scenes / f"{scene}.zarr", det, settings, out_dir=run_dir, client=client,
-                                    progress=False)
+                run = run_detection(
+                    scenes / f"{scene}.zarr", det, settings, out_dir=run_dir, client=client, progress=False
+                )
             except Exception as exc:  # a refusal is an output too
                 out[key] = {"error": f"{type(exc).__name__}: {exc}"}
                 continue

@@ -28,9 +28,10 @@ import os
 import shutil
 import uuid
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -171,8 +172,9 @@ def open_scene(path: str | os.PathLike) -> Scene:
     if p.is_file():
         if p.suffix.lower() == ".zarr":
             raise InputError(f"'{p}' is a file, not a Zarr scene store (a folder with zarr.json)")
-        raise InputError(f"'{p}' is a file, not a scene store: make one with "
-                         f"`sarship ingest {p} --out {p.with_suffix('.zarr')}`")
+        raise InputError(
+            f"'{p}' is a file, not a scene store: make one with `sarship ingest {p} --out {p.with_suffix('.zarr')}`"
+        )
     try:
         g = zarr.open_group(str(p), mode="r")
     except Exception as exc:  # zarr raises several types for non-stores
@@ -241,9 +243,14 @@ def finalize_scene(path: str | os.PathLike, attrs: dict[str, Any] | None = None)
         zarr.consolidate_metadata(str(path))
 
 
-def create_mask_store(path: str | os.PathLike, shape: tuple[int, int], tile: int,
-                      attrs: dict[str, Any] | None = None, arrays: tuple[str, ...] = ("mask",),
-                      dtype: str = "uint8"):
+def create_mask_store(
+    path: str | os.PathLike,
+    shape: tuple[int, int],
+    tile: int,
+    attrs: dict[str, Any] | None = None,
+    arrays: tuple[str, ...] = ("mask",),
+    dtype: str = "uint8",
+):
     """Create the detection mask store at ``path``: a group with one ``uint8`` array per name in
     ``arrays`` (default ``mask``: 1 = detected), chunked like a scene of tile side ``tile`` (one
     shard per tile, so one tile task writes exactly one chunk or shard), zstd compressed, fill
@@ -251,8 +258,18 @@ def create_mask_store(path: str | os.PathLike, shape: tuple[int, int], tile: int
     import zarr
 
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
-    out = [g.create_array(name, shape=tuple(int(s) for s in shape), dtype=dtype, **chunking(tile),
-                          compressors=_zstd(), dimension_names=("y", "x"), fill_value=0) for name in arrays]
+    out = [
+        g.create_array(
+            name,
+            shape=tuple(int(s) for s in shape),
+            dtype=dtype,
+            **chunking(tile),
+            compressors=_zstd(),
+            dimension_names=("y", "x"),
+            fill_value=0,
+        )
+        for name in arrays
+    ]
     if attrs:
         g.attrs.update(_jsonable(attrs))
     return out[0]
@@ -391,7 +408,7 @@ def claim_output(final: str | os.PathLike, what: str = "--out", create_parents: 
     made: list[Path] = []
     if create_parents:
         missing = [d for d in (parent, *parent.parents) if not d.exists()]
-        above = (missing[-1].parent if missing else parent)
+        above = missing[-1].parent if missing else parent
         if above.exists() and not above.is_dir():
             raise InputError(f"{what} '{final}': '{above}' is a file, not a folder")
         for d in reversed(missing):
@@ -411,12 +428,15 @@ def claim_output(final: str | os.PathLike, what: str = "--out", create_parents: 
         fd = _lock_or_none(lock)
     except OSError as exc:
         _rm_empty(made)
-        raise InputError(f"cannot claim {what} '{final}': cannot write '{lock.name}' in '{lock.parent}' "
-                         f"({exc.strerror})") from None
+        raise InputError(
+            f"cannot claim {what} '{final}': cannot write '{lock.name}' in '{lock.parent}' ({exc.strerror})"
+        ) from None
     if fd is None:
         _rm_empty(made)
-        raise InputError(f"{what} '{final}' is being written by another sarship command ({_holder(lock)}): "
-                         "wait for it to finish, or choose another output")
+        raise InputError(
+            f"{what} '{final}' is being written by another sarship command ({_holder(lock)}): "
+            "wait for it to finish, or choose another output"
+        )
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)

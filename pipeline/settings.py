@@ -21,8 +21,9 @@ from __future__ import annotations
 import functools
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, Literal, NamedTuple, Optional
+from typing import Any, Literal, NamedTuple
 
 from sarship.pipeline.errors import InputError
 
@@ -81,8 +82,8 @@ class Var(NamedTuple):
     bad: str
     text: Literal["strip", "lower", "raw"] = "strip"
     blank_is_unset: bool = True
-    bounds: Optional[dict[str, Any]] = None
-    default_text: Optional[str] = None
+    bounds: dict[str, Any] | None = None
+    default_text: str | None = None
     typed_by_model: bool = False
 
     @property
@@ -99,6 +100,7 @@ def _one_of(choices: tuple[str, ...]) -> Callable[[str], str]:
         if text not in choices:
             raise ValueError(text)
         return text
+
     return parse
 
 
@@ -167,69 +169,205 @@ def _not_blank(text: str) -> bool:
 # ----------------------------------------------------------------------------- the variables
 
 _CLUSTER = "sarship.workers.cluster"
-VARIABLES: dict[str, Var] = {v.name: v for v in (
-    Var("reader", Optional[Literal[READERS]], None,  # type: ignore[valid-type]
-        "library that reads scene arrays: tensorstore or zarr (zarr-python)", ("sarship.pipeline.tiling.inputs",),
-        _one_of(READERS), f"SARSHIP_READER must be one of {', '.join(READERS)}, got '{{value}}'", text="lower",
-        default_text="tensorstore when installed, else zarr"),
-    Var("ingest_writers", Optional[int], None, "tile writes an ingest keeps going at once",
-        ("sarship.pipeline.readers.writing",), _whole_at_least_one,
-        "SARSHIP_INGEST_WRITERS must be a whole number >= 1, got '{value}'", bounds={"ge": 1},
-        default_text="the cores, at most 8 (1 in the service's ingest process)"),
-    Var("land_max_mb", float, 64.0,
-        "largest GeoJSON land_mask FILE, MiB (the command line reads the same SARSHIP_LAND_MAX_MB); a larger one "
-        "is refused when the job is submitted", ("sarship.pipeline.land.landmask_files", "sarship.service.settings"),
-        _positive_finite, "SARSHIP_LAND_MAX_MB must be a positive number of MiB, got '{value}'",
-        bounds={"gt": 0.0, "allow_inf_nan": False}, typed_by_model=True),
-    Var("gpu_hsum", Literal[HSUM_METHODS], "transpose",  # type: ignore[valid-type]
-        "horizontal pass of the GPU box sums: direct or transpose (read when the module is imported)",
-        ("sarship.pipeline.gpu.box",), _one_of(HSUM_METHODS),
-        f"SARSHIP_GPU_HSUM must be one of {', '.join(HSUM_METHODS)}, got '{{value}}'", text="raw"),
-    Var("gpu_pool_fraction", float, 0.8, "fraction of the device memory the CuPy pool may hold (kept in 0.05-1)",
-        ("sarship.pipeline.gpu",), float, "SARSHIP_GPU_POOL_FRACTION must be a number, got '{value}'",
-        text="raw", blank_is_unset=False),
-    Var("threads_max_px", int, 8192 * 8192,
-        "sarship detect without --scheduler runs scenes up to this many pixels on in-process threads "
-        "(0: always worker processes)", (_CLUSTER,), _pixels,
-        "SARSHIP_THREADS_MAX_PX must be a whole number of pixels >= 0, got '{value}'", bounds={"ge": 0}),
-    Var("cluster_host", str, "127.0.0.1",
-        "interface a local cluster's scheduler, nannies and workers listen on (an IP address or host name of "
-        "this machine)", (_CLUSTER,), _host,
-        "SARSHIP_CLUSTER_HOST must be an IP address or host name of this machine, got '{value}'"),
-    Var("worker_start", Optional[Literal[START_METHODS]], None,  # type: ignore[valid-type]
-        "how a local cluster starts its worker processes: fork, forkserver or spawn", (_CLUSTER,),
-        _one_of(START_METHODS), f"SARSHIP_WORKER_START must be one of {', '.join(START_METHODS)}, got {{value!r}}",
-        text="lower", default_text="fork for one command on Linux without CUDA, else spawn"),
-    Var("gpu_procs", Optional[int], None, "worker processes per GPU of a local cluster (at least 1)",
-        (_CLUSTER, "sarship.workers.worker"), _at_least_one, "SARSHIP_GPU_PROCS must be a whole number, got {value!r}",
-        text="raw", blank_is_unset=False, default_text="a quarter of the cores per GPU, at most 4 in all"),
-    Var("gpu_threads", int, 2, "threads of each GPU worker process of a local cluster", (_CLUSTER,), int,
-        "SARSHIP_GPU_THREADS must be a whole number, got {value!r}", text="raw", blank_is_unset=False),
-    Var("block_cache_mb", Optional[float], None, "decoded-block cache of each worker, MiB (0: keep none)",
-        ("sarship.workers.blockcache",), _non_negative_finite,
-        "SARSHIP_BLOCK_CACHE_MB must be a number of MiB >= 0, got '{value}'",
-        bounds={"ge": 0.0, "allow_inf_nan": False}, default_text="memory / (4 x cores), at most 2 GiB"),
-    Var("device", Optional[str], None, "set by a local cluster in each worker process it starts: gpu or cpu",
-        ("sarship.workers.gpus",), _text, "SARSHIP_DEVICE: bad value {value!r}", text="raw"),
-    Var("cuda_warmup", bool, True, "GPU workers make their CUDA context while the land pass runs (0: off)",
-        ("sarship.workers.gpus",), _not_zero, "SARSHIP_CUDA_WARMUP: bad value {value!r}", text="raw"),
-    Var("scheduler", Optional[str], None, "Dask scheduler address (default: a local cluster)",
-        ("sarship.cli", "sarship.warm", "sarship.service.settings"), _text, "SARSHIP_SCHEDULER: bad value {value!r}",
-        typed_by_model=True),
-    Var("fast_exit", bool, True, "batch commands end with os._exit once their outputs are in place (0: normal exit)",
-        ("sarship.cli",), _not_zero, "SARSHIP_FAST_EXIT: bad value {value!r}", text="raw"),
-    Var("debug", bool, False, "print the traceback of an unexpected error (any non-empty value)",
-        ("sarship.cli", "sarship.warm", "sarship.warm_process"), _not_blank, "SARSHIP_DEBUG: bad value {value!r}",
-        text="raw"),
-    Var("warm", bool, True, "sarship detect uses a running warm cluster (0, false, no, off: never)",
-        ("sarship.warm",), _not_off, "SARSHIP_WARM: bad value {value!r}", text="lower"),
-    Var("warm_socket", Optional[Path], None, "socket path of the warm cluster",
-        ("sarship.warm",), Path, "SARSHIP_WARM_SOCKET: bad value {value!r}",
-        default_text="$XDG_RUNTIME_DIR/sarship/warm.sock, else /tmp/sarship-UID/warm.sock"),
-)}
+VARIABLES: dict[str, Var] = {
+    v.name: v
+    for v in (
+        Var(
+            "reader",
+            Literal[READERS] | None,
+            None,  # type: ignore[valid-type]
+            "library that reads scene arrays: tensorstore or zarr (zarr-python)",
+            ("sarship.pipeline.tiling.inputs",),
+            _one_of(READERS),
+            f"SARSHIP_READER must be one of {', '.join(READERS)}, got '{{value}}'",
+            text="lower",
+            default_text="tensorstore when installed, else zarr",
+        ),
+        Var(
+            "ingest_writers",
+            int | None,
+            None,
+            "tile writes an ingest keeps going at once",
+            ("sarship.pipeline.readers.writing",),
+            _whole_at_least_one,
+            "SARSHIP_INGEST_WRITERS must be a whole number >= 1, got '{value}'",
+            bounds={"ge": 1},
+            default_text="the cores, at most 8 (1 in the service's ingest process)",
+        ),
+        Var(
+            "land_max_mb",
+            float,
+            64.0,
+            "largest GeoJSON land_mask FILE, MiB (the command line reads the same SARSHIP_LAND_MAX_MB); a larger one "
+            "is refused when the job is submitted",
+            ("sarship.pipeline.land.landmask_files", "sarship.service.settings"),
+            _positive_finite,
+            "SARSHIP_LAND_MAX_MB must be a positive number of MiB, got '{value}'",
+            bounds={"gt": 0.0, "allow_inf_nan": False},
+            typed_by_model=True,
+        ),
+        Var(
+            "gpu_hsum",
+            Literal[HSUM_METHODS],
+            "transpose",  # type: ignore[valid-type]
+            "horizontal pass of the GPU box sums: direct or transpose (read when the module is imported)",
+            ("sarship.pipeline.gpu.box",),
+            _one_of(HSUM_METHODS),
+            f"SARSHIP_GPU_HSUM must be one of {', '.join(HSUM_METHODS)}, got '{{value}}'",
+            text="raw",
+        ),
+        Var(
+            "gpu_pool_fraction",
+            float,
+            0.8,
+            "fraction of the device memory the CuPy pool may hold (kept in 0.05-1)",
+            ("sarship.pipeline.gpu",),
+            float,
+            "SARSHIP_GPU_POOL_FRACTION must be a number, got '{value}'",
+            text="raw",
+            blank_is_unset=False,
+        ),
+        Var(
+            "threads_max_px",
+            int,
+            8192 * 8192,
+            "sarship detect without --scheduler runs scenes up to this many pixels on in-process threads "
+            "(0: always worker processes)",
+            (_CLUSTER,),
+            _pixels,
+            "SARSHIP_THREADS_MAX_PX must be a whole number of pixels >= 0, got '{value}'",
+            bounds={"ge": 0},
+        ),
+        Var(
+            "cluster_host",
+            str,
+            "127.0.0.1",
+            "interface a local cluster's scheduler, nannies and workers listen on (an IP address or host name of "
+            "this machine)",
+            (_CLUSTER,),
+            _host,
+            "SARSHIP_CLUSTER_HOST must be an IP address or host name of this machine, got '{value}'",
+        ),
+        Var(
+            "worker_start",
+            Literal[START_METHODS] | None,
+            None,  # type: ignore[valid-type]
+            "how a local cluster starts its worker processes: fork, forkserver or spawn",
+            (_CLUSTER,),
+            _one_of(START_METHODS),
+            f"SARSHIP_WORKER_START must be one of {', '.join(START_METHODS)}, got {{value!r}}",
+            text="lower",
+            default_text="fork for one command on Linux without CUDA, else spawn",
+        ),
+        Var(
+            "gpu_procs",
+            int | None,
+            None,
+            "worker processes per GPU of a local cluster (at least 1)",
+            (_CLUSTER, "sarship.workers.worker"),
+            _at_least_one,
+            "SARSHIP_GPU_PROCS must be a whole number, got {value!r}",
+            text="raw",
+            blank_is_unset=False,
+            default_text="a quarter of the cores per GPU, at most 4 in all",
+        ),
+        Var(
+            "gpu_threads",
+            int,
+            2,
+            "threads of each GPU worker process of a local cluster",
+            (_CLUSTER,),
+            int,
+            "SARSHIP_GPU_THREADS must be a whole number, got {value!r}",
+            text="raw",
+            blank_is_unset=False,
+        ),
+        Var(
+            "block_cache_mb",
+            float | None,
+            None,
+            "decoded-block cache of each worker, MiB (0: keep none)",
+            ("sarship.workers.blockcache",),
+            _non_negative_finite,
+            "SARSHIP_BLOCK_CACHE_MB must be a number of MiB >= 0, got '{value}'",
+            bounds={"ge": 0.0, "allow_inf_nan": False},
+            default_text="memory / (4 x cores), at most 2 GiB",
+        ),
+        Var(
+            "device",
+            str | None,
+            None,
+            "set by a local cluster in each worker process it starts: gpu or cpu",
+            ("sarship.workers.gpus",),
+            _text,
+            "SARSHIP_DEVICE: bad value {value!r}",
+            text="raw",
+        ),
+        Var(
+            "cuda_warmup",
+            bool,
+            True,
+            "GPU workers make their CUDA context while the land pass runs (0: off)",
+            ("sarship.workers.gpus",),
+            _not_zero,
+            "SARSHIP_CUDA_WARMUP: bad value {value!r}",
+            text="raw",
+        ),
+        Var(
+            "scheduler",
+            str | None,
+            None,
+            "Dask scheduler address (default: a local cluster)",
+            ("sarship.cli", "sarship.warm", "sarship.service.settings"),
+            _text,
+            "SARSHIP_SCHEDULER: bad value {value!r}",
+            typed_by_model=True,
+        ),
+        Var(
+            "fast_exit",
+            bool,
+            True,
+            "batch commands end with os._exit once their outputs are in place (0: normal exit)",
+            ("sarship.cli",),
+            _not_zero,
+            "SARSHIP_FAST_EXIT: bad value {value!r}",
+            text="raw",
+        ),
+        Var(
+            "debug",
+            bool,
+            False,
+            "print the traceback of an unexpected error (any non-empty value)",
+            ("sarship.cli", "sarship.warm", "sarship.warm_process"),
+            _not_blank,
+            "SARSHIP_DEBUG: bad value {value!r}",
+            text="raw",
+        ),
+        Var(
+            "warm",
+            bool,
+            True,
+            "sarship detect uses a running warm cluster (0, false, no, off: never)",
+            ("sarship.warm",),
+            _not_off,
+            "SARSHIP_WARM: bad value {value!r}",
+            text="lower",
+        ),
+        Var(
+            "warm_socket",
+            Path | None,
+            None,
+            "socket path of the warm cluster",
+            ("sarship.warm",),
+            Path,
+            "SARSHIP_WARM_SOCKET: bad value {value!r}",
+            default_text="$XDG_RUNTIME_DIR/sarship/warm.sock, else /tmp/sarship-UID/warm.sock",
+        ),
+    )
+}
 
 
-def raw(name: str) -> Optional[str]:
+def raw(name: str) -> str | None:
     """The text of ``SARSHIP_<NAME>`` as set now, or None (for code that hands it on as it is).
 
     Parameters
@@ -266,7 +404,7 @@ def read(name: str) -> Any:
     return parse_text(VARIABLES[name], os.environ.get(VARIABLES[name].env))
 
 
-def parse_text(var: Var, text: Optional[str]) -> Any:
+def parse_text(var: Var, text: str | None) -> Any:
     """The value of ``var`` set to ``text`` (None: unset); see :func:`read`.
 
     Parameters
@@ -325,6 +463,7 @@ def model() -> type:
                 return parse_text(var, value)
             except InputError as exc:
                 raise ValueError(str(exc)) from None
+
         return check
 
     fields = {}

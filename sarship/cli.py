@@ -22,8 +22,12 @@ from typing import Any
 
 from sarship.pipeline import settings as env_settings
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers.limits import (DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO,
-                                             DEFAULT_MAX_XML_MB)
+from sarship.pipeline.readers.limits import (
+    DEFAULT_MAX_CHUNK_MB,
+    DEFAULT_MAX_PIXELS,
+    DEFAULT_MAX_RATIO,
+    DEFAULT_MAX_XML_MB,
+)
 from sarship.pipeline.scene import DEFAULT_INGEST_CODEC, INGEST_CODECS
 from sarship.temporaries import present, remove_new, temporaries
 from sarship.workers.request import DEVICES
@@ -79,8 +83,9 @@ def _spacing(text: str) -> tuple[float, float]:
     try:
         az, rg = (float(x) for x in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected AZ,RG (two positive numbers of metres, e.g. 2.3,13.9), "
-                                         f"got '{text}'") from None
+        raise argparse.ArgumentTypeError(
+            f"expected AZ,RG (two positive numbers of metres, e.g. 2.3,13.9), got '{text}'"
+        ) from None
     if not (math.isfinite(az) and math.isfinite(rg) and az > 0 and rg > 0):
         raise argparse.ArgumentTypeError(f"expected two positive numbers of metres, got '{text}'")
     return az, rg
@@ -93,8 +98,9 @@ def _lonlat(text: str) -> tuple[float, float]:
     try:
         lon, lat = (float(x) for x in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected LON,LAT (two numbers of degrees, e.g. 10.6,59.8), "
-                                         f"got '{text}'") from None
+        raise argparse.ArgumentTypeError(
+            f"expected LON,LAT (two numbers of degrees, e.g. 10.6,59.8), got '{text}'"
+        ) from None
     if not (math.isfinite(lon) and math.isfinite(lat) and -180 <= lon <= 180 and -80 <= lat <= 80):
         raise argparse.ArgumentTypeError(f"expected lon in [-180, 180] and lat in [-80, 80], got '{text}'")
     return lon, lat
@@ -118,13 +124,29 @@ def _progress(label: str):
 def cmd_simulate(a) -> int:
     from sarship.pipeline.simulate import SimConfig, simulate, validate
 
-    cfg = validate(SimConfig(
-        kind=a.kind, shape=a.shape, ships=a.ships, seed=a.seed, looks=a.looks, clutter=a.clutter,
-        land=a.land, sidelobes=a.sidelobes, ambiguities=a.ambiguities, stripes=a.stripes, rfi=a.rfi,
-        scr_db=a.scr_db, pixel_spacing_m=(a.spacing, a.spacing),
-        texture_shape=a.texture_shape, ggd_power=a.ggd_power, ggd_shape=a.ggd_shape, shape_beta=a.shape_beta,
-        geo=a.geo, geo_gcps=a.geo_gcps,
-    ))
+    cfg = validate(
+        SimConfig(
+            kind=a.kind,
+            shape=a.shape,
+            ships=a.ships,
+            seed=a.seed,
+            looks=a.looks,
+            clutter=a.clutter,
+            land=a.land,
+            sidelobes=a.sidelobes,
+            ambiguities=a.ambiguities,
+            stripes=a.stripes,
+            rfi=a.rfi,
+            scr_db=a.scr_db,
+            pixel_spacing_m=(a.spacing, a.spacing),
+            texture_shape=a.texture_shape,
+            ggd_power=a.ggd_power,
+            ggd_shape=a.ggd_shape,
+            shape_beta=a.shape_beta,
+            geo=a.geo,
+            geo_gcps=a.geo_gcps,
+        )
+    )
     out = Path(a.out)
     truth = a.truth or f"{out}.truth.geojson"
     simulate(out, cfg, tile=a.tile, truth_path=truth, progress=_progress("simulate"), overwrite=a.overwrite)
@@ -140,16 +162,31 @@ def cmd_ingest(a) -> int:
     band: Any = a.band
     if band is not None and band.isdigit():
         band = int(band)
-    limits = InputLimits(max_pixels=a.max_pixels, max_chunk_mb=a.max_chunk_mb, max_ratio=a.max_ratio,
-                         max_xml_mb=a.max_xml_mb)
-    scene = ingest(a.inputs, a.out, kind=a.kind, tile=a.tile, progress=_progress("ingest"),
-                   band=band, channels=channels, looks=a.looks, overwrite=a.overwrite, spacing=a.spacing,
-                   limits=limits, swath=a.swath, codec=a.codec)
+    limits = InputLimits(
+        max_pixels=a.max_pixels, max_chunk_mb=a.max_chunk_mb, max_ratio=a.max_ratio, max_xml_mb=a.max_xml_mb
+    )
+    scene = ingest(
+        a.inputs,
+        a.out,
+        kind=a.kind,
+        tile=a.tile,
+        progress=_progress("ingest"),
+        band=band,
+        channels=channels,
+        looks=a.looks,
+        overwrite=a.overwrite,
+        spacing=a.spacing,
+        limits=limits,
+        swath=a.swath,
+        codec=a.codec,
+    )
     cal = str(scene.attrs.get("calibration", ""))
     if cal.startswith("none"):  # a SAFE product without calibration annotation: DN^2, not sigma0
         print(f"warning: calibration {cal}: samples are DN^2", file=sys.stderr)
-    print(f"scene: {scene.path} {scene.shape[0]}x{scene.shape[1]} kind={scene.kind} "
-          f"looks={scene.looks} variables={','.join(scene.variables)}")
+    print(
+        f"scene: {scene.path} {scene.shape[0]}x{scene.shape[1]} kind={scene.kind} "
+        f"looks={scene.looks} variables={','.join(scene.variables)}"
+    )
     return 0
 
 
@@ -173,9 +210,19 @@ def cmd_detect(a) -> int:
         from sarship.workers.cluster import dashboard_note
 
         note = f"sarship: warm cluster, {warm_process.active_description()}, {dashboard_note(client)}"
-    run = run_detection(a.scene, a.detector, _settings(a.set), out_dir=a.out, tile=a.tile, client=client,
-                        scheduler=scheduler, device=a.device, progress=True, overwrite=a.overwrite,
-                        cluster_note=note)
+    run = run_detection(
+        a.scene,
+        a.detector,
+        _settings(a.set),
+        out_dir=a.out,
+        tile=a.tile,
+        client=client,
+        scheduler=scheduler,
+        device=a.device,
+        progress=True,
+        overwrite=a.overwrite,
+        cluster_note=note,
+    )
     _print_warnings("detect", run)
     o = run["outputs"]
     print(f"detections: {o['detections.geojson']} ({run['detections']} ships)")
@@ -205,8 +252,10 @@ def _formats(text: str | None, scene: str) -> list[str]:
         require_pyogrio()
         attrs = open_scene(scene).attrs
         if not (attrs.get("gcps") or (attrs.get("crs") and attrs.get("transform") is not None)):
-            raise InputError(f"--formats {','.join(extra)}: '{scene}' is not georeferenced (no crs + transform "
-                             "or GCPs): its detections have no WGS84 outlines to map")
+            raise InputError(
+                f"--formats {','.join(extra)}: '{scene}' is not georeferenced (no crs + transform "
+                "or GCPs): its detections have no WGS84 outlines to map"
+            )
     return extra
 
 
@@ -225,20 +274,28 @@ def cmd_enhance(a) -> int:
     if not a.destripe:
         raise InputError("nothing to do: pass --destripe (the only enhancement of this version)")
     params = DestripeParams(stripes_along=a.stripes_along, segment=a.segment, z_min=a.z_min)
-    rec = run_enhance(a.scene, a.out, params, scheduler=_scheduler(a.scheduler), progress=True,
-                      overwrite=a.overwrite)
+    rec = run_enhance(a.scene, a.out, params, scheduler=_scheduler(a.scheduler), progress=True, overwrite=a.overwrite)
     d = rec["destripe"]
     print(f"scene: {a.out}")
-    print(f"destripe: {len(d['stop_bins'])} stopped bins, {len(d['lines'])} Hough lines, "
-          f"stripe rms {d['stripe_rms_db']:.3f} dB")
+    print(
+        f"destripe: {len(d['stop_bins'])} stopped bins, {len(d['lines'])} Hough lines, "
+        f"stripe rms {d['stripe_rms_db']:.3f} dB"
+    )
     return 0
 
 
 def cmd_worker(a) -> int:
     from sarship.workers.worker import serve
 
-    return serve(a.scheduler, gpus=a.gpus, cpus=a.cpus, name=a.name, memory_limit=a.memory_limit,
-                 gpu_threads=a.gpu_threads, gpu_procs=a.gpu_procs)
+    return serve(
+        a.scheduler,
+        gpus=a.gpus,
+        cpus=a.cpus,
+        name=a.name,
+        memory_limit=a.memory_limit,
+        gpu_threads=a.gpu_threads,
+        gpu_procs=a.gpu_procs,
+    )
 
 
 def cmd_warm(a) -> int:
@@ -250,23 +307,41 @@ def cmd_warm(a) -> int:
         if a.action == "run":
             from sarship.warm_process import CommandLine, serve
 
-            return serve(CommandLine(parser=build_parser, main=main), device=a.device, workers=a.workers,
-                         idle_timeout=a.idle_timeout, dashboard=a.dashboard, warm_up=a.warm_up)
+            return serve(
+                CommandLine(parser=build_parser, main=main),
+                device=a.device,
+                workers=a.workers,
+                idle_timeout=a.idle_timeout,
+                dashboard=a.dashboard,
+                warm_up=a.warm_up,
+            )
         if a.action == "start":
-            state = warm.start(device=a.device, workers=a.workers, idle_timeout=a.idle_timeout,
-                               dashboard=a.dashboard, warm_up=a.warm_up)
-            print(f"sarship: warm cluster ready (pid {state['pid']}): {state['what']}, dashboard "
-                  f"{state['dashboard']}, ends after {a.idle_timeout:g} s without a command; socket {state['socket']}")
+            state = warm.start(
+                device=a.device,
+                workers=a.workers,
+                idle_timeout=a.idle_timeout,
+                dashboard=a.dashboard,
+                warm_up=a.warm_up,
+            )
+            print(
+                f"sarship: warm cluster ready (pid {state['pid']}): {state['what']}, dashboard "
+                f"{state['dashboard']}, ends after {a.idle_timeout:g} s without a command; socket {state['socket']}"
+            )
             return 0
         if a.action == "status":
             state = warm.status()
             if state is None:
                 print(f"no warm cluster (socket {warm.socket_path()})")
                 return 1
-            idle = "never ends by itself" if not state["idle_timeout_s"] else \
-                f"ends after {state['idle_timeout_s']:g} s without a command"
-            print(f"warm cluster (pid {state['pid']}): {state['what']}, dashboard {state['dashboard']}, "
-                  f"{state['commands']} commands run, {idle}; socket {state['socket']}")
+            idle = (
+                "never ends by itself"
+                if not state["idle_timeout_s"]
+                else f"ends after {state['idle_timeout_s']:g} s without a command"
+            )
+            print(
+                f"warm cluster (pid {state['pid']}): {state['what']}, dashboard {state['dashboard']}, "
+                f"{state['commands']} commands run, {idle}; socket {state['socket']}"
+            )
             return 0
         state = warm.stop()
         print("no warm cluster was running" if state is None else f"warm cluster (pid {state['pid']}) stopped")
@@ -302,13 +377,27 @@ def cmd_serve(a) -> int:
 
     from sarship.service.settings import Settings
 
-    over = {k: v for k, v in {"host": a.host, "port": a.port, "scheduler": a.scheduler, "data": a.data,
-                               "workers": a.workers, "worker_threads": a.worker_threads or None, "gpus": a.gpus,
-                               "concurrency": a.concurrency, "inbox": a.inbox,
-                               "inbox_interval_s": a.inbox_interval, "inbox_cron": a.inbox_cron,
-                               "inbox_detectors": a.inbox_detectors, "inbox_settle_s": a.inbox_settle,
-                               "inbox_quarantine": a.inbox_quarantine,
-                               "allow_unauthenticated": a.allow_unauthenticated or None}.items() if v is not None}
+    over = {
+        k: v
+        for k, v in {
+            "host": a.host,
+            "port": a.port,
+            "scheduler": a.scheduler,
+            "data": a.data,
+            "workers": a.workers,
+            "worker_threads": a.worker_threads or None,
+            "gpus": a.gpus,
+            "concurrency": a.concurrency,
+            "inbox": a.inbox,
+            "inbox_interval_s": a.inbox_interval,
+            "inbox_cron": a.inbox_cron,
+            "inbox_detectors": a.inbox_detectors,
+            "inbox_settle_s": a.inbox_settle,
+            "inbox_quarantine": a.inbox_quarantine,
+            "allow_unauthenticated": a.allow_unauthenticated or None,
+        }.items()
+        if v is not None
+    }
     try:
         settings = Settings(**over)
     except ValidationError as exc:
@@ -325,8 +414,9 @@ def cmd_serve(a) -> int:
     app = create_app(settings)
     # requests still open at SIGTERM get 10 s to finish (a 'Prefer: respond-sync' wait ends at
     # once: it answers 201 with the job's status, the job stays in the store)
-    server = uvicorn.Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="warning",
-                                           timeout_graceful_shutdown=10))
+    server = uvicorn.Server(
+        uvicorn.Config(app, host=settings.host, port=settings.port, log_level="warning", timeout_graceful_shutdown=10)
+    )
     app.state.should_exit = lambda: server.should_exit
     server.run()
     return 0 if server.started else 3  # (uvicorn.run's exit status when the app could not start)
@@ -373,22 +463,45 @@ def cmd_demo(a) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(f"--out '{out}' exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not a.overwrite:
-        raise InputError(f"output folder '{out}' exists and is not empty: pass --overwrite to replace "
-                         "the demo's outputs in it, or choose another folder")
+        raise InputError(
+            f"output folder '{out}' exists and is not empty: pass --overwrite to replace "
+            "the demo's outputs in it, or choose another folder"
+        )
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"cannot create output folder '{out}': {exc.strerror}") from None
     scene = out / "scene.zarr"
     truth = out / "scene.truth.geojson"
-    cfg = validate(SimConfig(kind="intensity", shape=a.shape, ships=a.ships, seed=a.seed, looks=a.looks,
-                             clutter="k", scr_db=a.scr_db, pixel_spacing_m=(a.spacing, a.spacing),
-                             length_m=(40.0, 350.0)))
-    print(f"sarship demo: simulating a {a.shape[0]}x{a.shape[1]} K-distributed sea ({a.looks:g} looks, "
-          f"{a.spacing:g} m pixels) with {a.ships} ships of 40-350 m at SCR {a.scr_db:g} dB", file=sys.stderr)
+    cfg = validate(
+        SimConfig(
+            kind="intensity",
+            shape=a.shape,
+            ships=a.ships,
+            seed=a.seed,
+            looks=a.looks,
+            clutter="k",
+            scr_db=a.scr_db,
+            pixel_spacing_m=(a.spacing, a.spacing),
+            length_m=(40.0, 350.0),
+        )
+    )
+    print(
+        f"sarship demo: simulating a {a.shape[0]}x{a.shape[1]} K-distributed sea ({a.looks:g} looks, "
+        f"{a.spacing:g} m pixels) with {a.ships} ships of 40-350 m at SCR {a.scr_db:g} dB",
+        file=sys.stderr,
+    )
     simulate(scene, cfg, tile=a.tile, truth_path=truth, progress=_progress("simulate"))
-    run = run_detection(scene, a.detector, _settings(a.set), out_dir=out / "detect", tile=a.tile,
-                        scheduler=a.scheduler, progress=True, overwrite=a.overwrite)
+    run = run_detection(
+        scene,
+        a.detector,
+        _settings(a.set),
+        out_dir=out / "detect",
+        tile=a.tile,
+        scheduler=a.scheduler,
+        progress=True,
+        overwrite=a.overwrite,
+    )
     _print_warnings("demo", run)
     det = out / "detect" / "detections.geojson"
     scores = evaluate(det, truth)
@@ -459,26 +572,56 @@ def _parser_simulate(sub) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--looks", type=float, default=1.0)
     s.add_argument("--clutter", choices=["rayleigh", "gamma", "k", "g0", "ggd", "cggd"], default="gamma")
-    s.add_argument("--texture-shape", dest="texture_shape", type=float, default=4.0,
-                   help="k: gamma texture shape nu; g0: inverse-gamma texture shape a = -alpha > 1 (default 4)")
-    s.add_argument("--ggd-power", dest="ggd_power", type=float, default=0.7,
-                   help="ggd: power v of the generalized gamma (default 0.7)")
-    s.add_argument("--ggd-shape", dest="ggd_shape", type=float, default=3.0,
-                   help="ggd: shape kappa of the generalized gamma (default 3)")
-    s.add_argument("--shape-beta", dest="shape_beta", type=float, default=1.0,
-                   help="cggd (--kind slc): complex generalized Gaussian shape beta, 1 = complex Gaussian, "
-                        "< 1 super-Gaussian, > 1 sub-Gaussian (default 1)")
+    s.add_argument(
+        "--texture-shape",
+        dest="texture_shape",
+        type=float,
+        default=4.0,
+        help="k: gamma texture shape nu; g0: inverse-gamma texture shape a = -alpha > 1 (default 4)",
+    )
+    s.add_argument(
+        "--ggd-power",
+        dest="ggd_power",
+        type=float,
+        default=0.7,
+        help="ggd: power v of the generalized gamma (default 0.7)",
+    )
+    s.add_argument(
+        "--ggd-shape",
+        dest="ggd_shape",
+        type=float,
+        default=3.0,
+        help="ggd: shape kappa of the generalized gamma (default 3)",
+    )
+    s.add_argument(
+        "--shape-beta",
+        dest="shape_beta",
+        type=float,
+        default=1.0,
+        help="cggd (--kind slc): complex generalized Gaussian shape beta, 1 = complex Gaussian, "
+        "< 1 super-Gaussian, > 1 sub-Gaussian (default 1)",
+    )
     s.add_argument("--scr-db", dest="scr_db", type=float, default=15.0, help="ship-to-clutter ratio (dB)")
     s.add_argument("--spacing", type=float, default=10.0, help="pixel spacing in metres (default 10)")
-    flag_help = {"ambiguities": "azimuth ghosts (k = +-1, -20 dB) of every ship where the scene's sar_geometry puts "
-                                "them (docs/algorithms/ambiguity.md)"}
+    flag_help = {
+        "ambiguities": "azimuth ghosts (k = +-1, -20 dB) of every ship where the scene's sar_geometry puts "
+        "them (docs/algorithms/ambiguity.md)"
+    }
     for flag in ("land", "sidelobes", "ambiguities", "stripes", "rfi"):
         s.add_argument(f"--{flag}", action="store_true", help=flag_help.get(flag))
-    s.add_argument("--geo", type=_lonlat, metavar="LON,LAT",
-                   help="georeference the scene (WGS84, north-up, centred on LON,LAT, --spacing metres a pixel); "
-                        "with --land the land is the GSHHG shoreline's (needs pip install 'sarship[coastline]')")
-    s.add_argument("--geo-gcps", dest="geo_gcps", action="store_true",
-                   help="with --geo: store the georeference as a 6 x 6 grid of GCPs instead of an affine transform")
+    s.add_argument(
+        "--geo",
+        type=_lonlat,
+        metavar="LON,LAT",
+        help="georeference the scene (WGS84, north-up, centred on LON,LAT, --spacing metres a pixel); "
+        "with --land the land is the GSHHG shoreline's (needs pip install 'sarship[coastline]')",
+    )
+    s.add_argument(
+        "--geo-gcps",
+        dest="geo_gcps",
+        action="store_true",
+        help="with --geo: store the georeference as a 6 x 6 grid of GCPs instead of an affine transform",
+    )
     s.add_argument("--truth", help="truth GeoJSON path (default OUT.zarr.truth.geojson)")
     s.add_argument("--tile", type=_positive_int, default=2048)
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store and truth file")
@@ -487,8 +630,11 @@ def _parser_simulate(sub) -> None:
 
 def _parser_ingest(sub) -> None:
     """``sarship ingest``'s options."""
-    s = sub.add_parser("ingest", help="convert GeoTIFF/TIFF, PNG/JPEG, .npy, a Sentinel-1 GRD or IW SLC SAFE "
-                                       "(folder or .zip) or Zarr into a scene store")
+    s = sub.add_parser(
+        "ingest",
+        help="convert GeoTIFF/TIFF, PNG/JPEG, .npy, a Sentinel-1 GRD or IW SLC SAFE "
+        "(folder or .zip) or Zarr into a scene store",
+    )
     s.add_argument("inputs", nargs="+")
     s.add_argument("--out", required=True, help="output scene store (SCENE.zarr)")
     s.add_argument("--kind", choices=["auto", "amplitude", "intensity", "slc", "quadpol", "covariance"], default="auto")
@@ -496,24 +642,51 @@ def _parser_ingest(sub) -> None:
     s.add_argument("--channels", help="comma-separated channel names of the bands/files (e.g. vh,vv)")
     s.add_argument("--band", help="band (name or index) used as 'intensity' for multi-band real inputs")
     s.add_argument("--looks", type=float, help="equivalent number of looks (default: from the product or estimated)")
-    s.add_argument("--spacing", type=_spacing, metavar="AZ,RG",
-                   help="pixel spacing in metres, azimuth,range (overrides the product's)")
+    s.add_argument(
+        "--spacing",
+        type=_spacing,
+        metavar="AZ,RG",
+        help="pixel spacing in metres, azimuth,range (overrides the product's)",
+    )
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
-    s.add_argument("--codec", choices=list(INGEST_CODECS), default=DEFAULT_INGEST_CODEC,
-                   help="compressor of the store: auto (default: zstd when it stores a sample of the pixels in "
-                        "at most 1/1.2 of their bytes, else none), zstd, lz4 (Blosc LZ4 + byte shuffle), none")
-    s.add_argument("--swath", metavar="IW1|IW2|IW3",
-                   help="sub-swath of a Sentinel-1 IW SLC product (one scene per sub-swath; required when it has several)")
-    s.add_argument("--max-pixels", type=float, default=DEFAULT_MAX_PIXELS,
-                   help=f"refuse an input declaring more rows x columns (default {DEFAULT_MAX_PIXELS:.3g})")
-    s.add_argument("--max-chunk-mb", type=float, default=DEFAULT_MAX_CHUNK_MB,
-                   help=f"refuse a compressed TIFF strip/tile decoding to more MiB (default {DEFAULT_MAX_CHUNK_MB:g})")
-    s.add_argument("--max-ratio", type=float, default=DEFAULT_MAX_RATIO,
-                   help="refuse a compressed/sparse TIFF declaring more decoded bytes per file byte "
-                        f"(default {DEFAULT_MAX_RATIO:g})")
-    s.add_argument("--max-xml-mb", type=float, default=DEFAULT_MAX_XML_MB,
-                   help="refuse a Sentinel-1 SAFE product with an XML member (annotation, manifest...) of more MiB "
-                        f"(default {DEFAULT_MAX_XML_MB:g})")
+    s.add_argument(
+        "--codec",
+        choices=list(INGEST_CODECS),
+        default=DEFAULT_INGEST_CODEC,
+        help="compressor of the store: auto (default: zstd when it stores a sample of the pixels in "
+        "at most 1/1.2 of their bytes, else none), zstd, lz4 (Blosc LZ4 + byte shuffle), none",
+    )
+    s.add_argument(
+        "--swath",
+        metavar="IW1|IW2|IW3",
+        help="sub-swath of a Sentinel-1 IW SLC product (one scene per sub-swath; required when it has several)",
+    )
+    s.add_argument(
+        "--max-pixels",
+        type=float,
+        default=DEFAULT_MAX_PIXELS,
+        help=f"refuse an input declaring more rows x columns (default {DEFAULT_MAX_PIXELS:.3g})",
+    )
+    s.add_argument(
+        "--max-chunk-mb",
+        type=float,
+        default=DEFAULT_MAX_CHUNK_MB,
+        help=f"refuse a compressed TIFF strip/tile decoding to more MiB (default {DEFAULT_MAX_CHUNK_MB:g})",
+    )
+    s.add_argument(
+        "--max-ratio",
+        type=float,
+        default=DEFAULT_MAX_RATIO,
+        help="refuse a compressed/sparse TIFF declaring more decoded bytes per file byte "
+        f"(default {DEFAULT_MAX_RATIO:g})",
+    )
+    s.add_argument(
+        "--max-xml-mb",
+        type=float,
+        default=DEFAULT_MAX_XML_MB,
+        help="refuse a Sentinel-1 SAFE product with an XML member (annotation, manifest...) of more MiB "
+        f"(default {DEFAULT_MAX_XML_MB:g})",
+    )
     s.set_defaults(func=cmd_ingest)
 
 
@@ -521,45 +694,90 @@ def _parser_detect(sub) -> None:
     """``sarship detect``'s options."""
     s = sub.add_parser("detect", help="run a detector on a scene store")
     s.add_argument("scene")
-    s.add_argument("--detector", required=True,
-                   help="detector name (sarship detectors), or auto: the simplest of ca_cfar, k_cfar, g0_cfar "
-                        "whose clutter model fits the scene (measured first; run.json detector_auto)")
+    s.add_argument(
+        "--detector",
+        required=True,
+        help="detector name (sarship detectors), or auto: the simplest of ca_cfar, k_cfar, g0_cfar "
+        "whose clutter model fits the scene (measured first; run.json detector_auto)",
+    )
     s.add_argument("--set", action="append", metavar="KEY=VALUE", help="detector parameter (repeatable)")
     s.add_argument("--out", default="sarship-out", help="output folder (default ./sarship-out)")
-    s.add_argument("--tile", type=_positive_int, help="processing tile side (default: the scene's tile, doubled up to 4096 "
-                   "while the scene keeps at least 32 tiles)")
-    s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: $SARSHIP_SCHEDULER if set, "
-                                       "else the warm cluster if one runs (sarship warm), else start a local "
-                                       "cluster; 'local': a local cluster of this command's own)")
+    s.add_argument(
+        "--tile",
+        type=_positive_int,
+        help="processing tile side (default: the scene's tile, doubled up to 4096 "
+        "while the scene keeps at least 32 tiles)",
+    )
+    s.add_argument(
+        "--scheduler",
+        help="address of an existing Dask scheduler (default: $SARSHIP_SCHEDULER if set, "
+        "else the warm cluster if one runs (sarship warm), else start a local "
+        "cluster; 'local': a local cluster of this command's own)",
+    )
     s.add_argument("--device", choices=list(DEVICES), default="auto")
-    s.add_argument("--overwrite", action="store_true",
-                   help="write into an existing non-empty --out folder, replacing its detections.geojson, "
-                        "mask.zarr and run.json")
-    s.add_argument("--formats", metavar="LIST", default="geojson",
-                   help="detection files to write, comma-separated: geojson (always), gpkg (GeoPackage), kml; "
-                        "gpkg/kml need a georeferenced scene and the extra: pip install 'sarship[gis]'")
+    s.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into an existing non-empty --out folder, replacing its detections.geojson, mask.zarr and run.json",
+    )
+    s.add_argument(
+        "--formats",
+        metavar="LIST",
+        default="geojson",
+        help="detection files to write, comma-separated: geojson (always), gpkg (GeoPackage), kml; "
+        "gpkg/kml need a georeferenced scene and the extra: pip install 'sarship[gis]'",
+    )
     s.set_defaults(func=cmd_detect)
 
 
 def _parser_warm(sub) -> None:
     """``sarship warm``'s options."""
-    s = sub.add_parser("warm", help="keep a local cluster running between sarship detect commands (start, status, "
-                                     "stop; docs/interfaces/cli.md)")
-    s.add_argument("action", choices=["start", "status", "stop", "run"],
-                   help="start: in the background; status; stop (after the command it runs); run: in the foreground")
-    s.add_argument("--device", choices=list(DEVICES), default="auto",
-                   help="auto (default): the GPUs' worker processes when there are GPUs, plus CPU workers on the "
-                        "other cores; gpu: refuse to start without a GPU; cpu: CPU workers only")
-    s.add_argument("--workers", type=int, metavar="N",
-                   help="CPU worker processes (default: one per core, less the GPU worker processes)")
-    s.add_argument("--idle-timeout", dest="idle_timeout", type=_idle, default=900.0, metavar="S",
-                   help="end after S seconds without a command (default 900; 0: never)")
-    s.add_argument("--dashboard", default="127.0.0.1:8787",
-                   help="the Dask dashboard's address (default 127.0.0.1:8787; another free port if taken)")
-    s.add_argument("--warm-up", dest="warm_up", type=_warm_up_list, default=("ca_cfar",), metavar="LIST",
-                   help="detectors run once on a small simulated scene at the start, so that the first command "
-                        "finds their compiled kernels loaded in every worker (comma-separated; default ca_cfar; "
-                        "none)")
+    s = sub.add_parser(
+        "warm",
+        help="keep a local cluster running between sarship detect commands (start, status, "
+        "stop; docs/interfaces/cli.md)",
+    )
+    s.add_argument(
+        "action",
+        choices=["start", "status", "stop", "run"],
+        help="start: in the background; status; stop (after the command it runs); run: in the foreground",
+    )
+    s.add_argument(
+        "--device",
+        choices=list(DEVICES),
+        default="auto",
+        help="auto (default): the GPUs' worker processes when there are GPUs, plus CPU workers on the "
+        "other cores; gpu: refuse to start without a GPU; cpu: CPU workers only",
+    )
+    s.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="CPU worker processes (default: one per core, less the GPU worker processes)",
+    )
+    s.add_argument(
+        "--idle-timeout",
+        dest="idle_timeout",
+        type=_idle,
+        default=900.0,
+        metavar="S",
+        help="end after S seconds without a command (default 900; 0: never)",
+    )
+    s.add_argument(
+        "--dashboard",
+        default="127.0.0.1:8787",
+        help="the Dask dashboard's address (default 127.0.0.1:8787; another free port if taken)",
+    )
+    s.add_argument(
+        "--warm-up",
+        dest="warm_up",
+        type=_warm_up_list,
+        default=("ca_cfar",),
+        metavar="LIST",
+        help="detectors run once on a small simulated scene at the start, so that the first command "
+        "finds their compiled kernels loaded in every worker (comma-separated; default ca_cfar; "
+        "none)",
+    )
     s.set_defaults(func=cmd_warm)
 
 
@@ -578,32 +796,54 @@ def _parser_enhance(sub) -> None:
     s.add_argument("scene")
     s.add_argument("--out", required=True, help="output scene store (OUT.zarr); never the input")
     s.add_argument("--destripe", action="store_true", help="remove stripe noise (docs/algorithms/destripe.md)")
-    s.add_argument("--stripes-along", dest="stripes_along", choices=["azimuth", "range"], default="azimuth",
-                   help="the axis along which the stripe gain is constant (default azimuth)")
+    s.add_argument(
+        "--stripes-along",
+        dest="stripes_along",
+        choices=["azimuth", "range"],
+        default="azimuth",
+        help="the axis along which the stripe gain is constant (default azimuth)",
+    )
     s.add_argument("--segment", type=_positive_int, default=32, help="lines per segment of the stripe spectrum")
-    s.add_argument("--z-min", dest="z_min", type=float, default=4.0,
-                   help="noise floor of the stripe coherence ratio (default 4)")
-    s.add_argument("--scheduler", help="address of an existing Dask scheduler (default: $SARSHIP_SCHEDULER if set, "
-                                       "else start a local cluster; 'local': a local cluster)")
+    s.add_argument(
+        "--z-min", dest="z_min", type=float, default=4.0, help="noise floor of the stripe coherence ratio (default 4)"
+    )
+    s.add_argument(
+        "--scheduler",
+        help="address of an existing Dask scheduler (default: $SARSHIP_SCHEDULER if set, "
+        "else start a local cluster; 'local': a local cluster)",
+    )
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene store at --out")
     s.set_defaults(func=cmd_enhance)
 
 
 def _parser_worker(sub) -> None:
     """``sarship worker``'s options."""
-    s = sub.add_parser("worker", help="start this machine's Dask workers for a scheduler: one per GPU, "
-                                      "plus CPU workers")
+    s = sub.add_parser(
+        "worker", help="start this machine's Dask workers for a scheduler: one per GPU, plus CPU workers"
+    )
     s.add_argument("--scheduler", required=True, help="scheduler address, e.g. tcp://10.0.0.1:8786")
     s.add_argument("--gpus", default="all", help="all (default), none, or a comma list of GPU IDs (0,1)")
-    s.add_argument("--cpus", type=int, default=None,
-                   help="single-threaded CPU worker processes (default: all cores without GPUs, else 0)")
-    s.add_argument("--gpu-threads", type=int, default=2,
-                   help="tiles a GPU worker runs at once (default 2: one tile's Zarr I/O overlaps the "
-                        "other's GPU work; 1: strictly one)")
-    s.add_argument("--gpu-procs", type=int, default=None,
-                   help="worker processes per GPU (default: SARSHIP_GPU_PROCS, else a quarter of the cores "
-                        "per GPU, at most 4 per GPU and 4 in all, as sarship detect's local cluster): each runs the Python parts "
-                        "of its tiles (Zarr read/write, labelling) on its own core")
+    s.add_argument(
+        "--cpus",
+        type=int,
+        default=None,
+        help="single-threaded CPU worker processes (default: all cores without GPUs, else 0)",
+    )
+    s.add_argument(
+        "--gpu-threads",
+        type=int,
+        default=2,
+        help="tiles a GPU worker runs at once (default 2: one tile's Zarr I/O overlaps the "
+        "other's GPU work; 1: strictly one)",
+    )
+    s.add_argument(
+        "--gpu-procs",
+        type=int,
+        default=None,
+        help="worker processes per GPU (default: SARSHIP_GPU_PROCS, else a quarter of the cores "
+        "per GPU, at most 4 per GPU and 4 in all, as sarship detect's local cluster): each runs the Python parts "
+        "of its tiles (Zarr read/write, labelling) on its own core",
+    )
     s.add_argument("--name", help="worker name prefix (default: the host name)")
     s.add_argument("--memory-limit", help="per-worker memory limit, e.g. 8GiB (default: Dask's auto)")
     s.set_defaults(func=cmd_worker)
@@ -611,40 +851,76 @@ def _parser_worker(sub) -> None:
 
 def _parser_serve(sub) -> None:
     """``sarship serve``'s options."""
-    s = sub.add_parser("serve", help="the job API (OGC API - Processes shape) with a local Dask cluster or "
-                                     "--scheduler; settings also from SARSHIP_* environment variables",
-                       description="Every setting is a flag below or a SARSHIP_* environment variable "
-                                   "(flags win); the full list follows.",
-                       epilog_fn=_settings_help, formatter_class=argparse.RawDescriptionHelpFormatter)
-    s.add_argument("--host", help="address to listen on (default 127.0.0.1); an address other machines reach "
-                                  "needs tokens (SARSHIP_TOKENS) or --allow-unauthenticated")
+    s = sub.add_parser(
+        "serve",
+        help="the job API (OGC API - Processes shape) with a local Dask cluster or "
+        "--scheduler; settings also from SARSHIP_* environment variables",
+        description="Every setting is a flag below or a SARSHIP_* environment variable "
+        "(flags win); the full list follows.",
+        epilog_fn=_settings_help,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    s.add_argument(
+        "--host",
+        help="address to listen on (default 127.0.0.1); an address other machines reach "
+        "needs tokens (SARSHIP_TOKENS) or --allow-unauthenticated",
+    )
     s.add_argument("--port", type=int)
-    s.add_argument("--allow-unauthenticated", action="store_true",
-                   help="serve without tokens on an address other machines reach (refused otherwise)")
+    s.add_argument(
+        "--allow-unauthenticated",
+        action="store_true",
+        help="serve without tokens on an address other machines reach (refused otherwise)",
+    )
     s.add_argument("--scheduler", help="Dask scheduler address (default: start a local cluster)")
     s.add_argument("--data", help="data folder (default ./sarship-data)")
-    s.add_argument("--workers", type=_positive_int, help="local cluster CPU worker processes (default: all cores; "
-                                                         "with GPU workers, all cores less two per GPU)")
-    s.add_argument("--worker-threads", action="store_true",
-                   help="local cluster CPU workers as threads of this process instead of worker processes "
-                        "(starts in about a second; for small deployments and tests)")
-    s.add_argument("--gpus", help="local cluster GPUs: all (default: one pinned worker per visible GPU), none, "
-                                  "or a comma list of GPU IDs (0,1)")
+    s.add_argument(
+        "--workers",
+        type=_positive_int,
+        help="local cluster CPU worker processes (default: all cores; with GPU workers, all cores less two per GPU)",
+    )
+    s.add_argument(
+        "--worker-threads",
+        action="store_true",
+        help="local cluster CPU workers as threads of this process instead of worker processes "
+        "(starts in about a second; for small deployments and tests)",
+    )
+    s.add_argument(
+        "--gpus",
+        help="local cluster GPUs: all (default: one pinned worker per visible GPU), none, "
+        "or a comma list of GPU IDs (0,1)",
+    )
     s.add_argument("--concurrency", type=_positive_int, help="jobs run at once by this API process (default 2)")
-    s.add_argument("--inbox", action="append", metavar="FOLDER",
-                   help="inbox folder watched for new passes (repeat for several); new files are ingested once "
-                        "(scene id = content hash) and the --inbox-detectors jobs submitted for them")
+    s.add_argument(
+        "--inbox",
+        action="append",
+        metavar="FOLDER",
+        help="inbox folder watched for new passes (repeat for several); new files are ingested once "
+        "(scene id = content hash) and the --inbox-detectors jobs submitted for them",
+    )
     s.add_argument("--inbox-interval", type=float, metavar="SECONDS", help="seconds between inbox scans (default 30)")
-    s.add_argument("--inbox-cron", metavar="EXPR", help="cron expression of the inbox scans, in UTC (instead of an "
-                                                        "interval), e.g. '*/10 * * * *'")
-    s.add_argument("--inbox-detectors", metavar="SPEC",
-                   help="detector jobs for each new pass: a JSON list like '[{\"detector\": \"os_cfar\", "
-                        "\"pfa\": 1e-6}]' or a comma list of names (default: none, ingest only)")
-    s.add_argument("--inbox-settle", type=float, metavar="SECONDS",
-                   help="take a file once its size and mtime are unchanged this long (default 5), or at once "
-                        "when FILE.done exists and is not older than the file (the marker is removed then)")
-    s.add_argument("--inbox-quarantine", metavar="FOLDER",
-                   help="where files that fail to ingest go, with NAME.reason.txt (default DATA/quarantine)")
+    s.add_argument(
+        "--inbox-cron",
+        metavar="EXPR",
+        help="cron expression of the inbox scans, in UTC (instead of an interval), e.g. '*/10 * * * *'",
+    )
+    s.add_argument(
+        "--inbox-detectors",
+        metavar="SPEC",
+        help='detector jobs for each new pass: a JSON list like \'[{"detector": "os_cfar", '
+        '"pfa": 1e-6}]\' or a comma list of names (default: none, ingest only)',
+    )
+    s.add_argument(
+        "--inbox-settle",
+        type=float,
+        metavar="SECONDS",
+        help="take a file once its size and mtime are unchanged this long (default 5), or at once "
+        "when FILE.done exists and is not older than the file (the marker is removed then)",
+    )
+    s.add_argument(
+        "--inbox-quarantine",
+        metavar="FOLDER",
+        help="where files that fail to ingest go, with NAME.reason.txt (default DATA/quarantine)",
+    )
     s.set_defaults(func=cmd_serve)
 
 
@@ -654,9 +930,13 @@ def _parser_evaluate(sub) -> None:
     s.add_argument("detections")
     s.add_argument("--truth", required=True, help="truth GeoJSON, PASCAL-VOC xml (file or folder) or mask image")
     s.add_argument("--mask", help="detection mask (default: mask.zarr beside the detections)")
-    s.add_argument("--ignore-flagged", dest="ignore_flagged", action="store_true",
-                   help="leave out detections flagged as azimuth ambiguities (ambiguity_of) that match no "
-                        "truth ship, as detections on difficult ships are (n_flagged_ignored)")
+    s.add_argument(
+        "--ignore-flagged",
+        dest="ignore_flagged",
+        action="store_true",
+        help="leave out detections flagged as azimuth ambiguities (ambiguity_of) that match no "
+        "truth ship, as detections on difficult ships are (n_flagged_ignored)",
+    )
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_evaluate)
 
@@ -670,7 +950,9 @@ def _parser_detectors(sub) -> None:
 
 def _parser_demo(sub) -> None:
     """``sarship demo``'s options."""
-    s = sub.add_parser("demo", help="the main job on an embedded default: simulate, detect on a local Dask cluster, score")
+    s = sub.add_parser(
+        "demo", help="the main job on an embedded default: simulate, detect on a local Dask cluster, score"
+    )
     s.add_argument("--out", default="sarship-demo")
     s.add_argument("--shape", type=_shape, default=(4096, 4096))
     s.add_argument("--ships", type=int, default=40)
@@ -678,13 +960,19 @@ def _parser_demo(sub) -> None:
     s.add_argument("--looks", type=float, default=4.0)
     s.add_argument("--scr-db", dest="scr_db", type=float, default=15.0)
     s.add_argument("--spacing", type=float, default=3.0, help="pixel spacing in metres (default 3)")
-    s.add_argument("--detector", default="os_cfar",
-                   help="default os_cfar: robust to the K-distributed sea (ca_cfar over-alarms there)")
+    s.add_argument(
+        "--detector",
+        default="os_cfar",
+        help="default os_cfar: robust to the K-distributed sea (ca_cfar over-alarms there)",
+    )
     s.add_argument("--set", action="append", metavar="KEY=VALUE")
     s.add_argument("--tile", type=_positive_int, default=1024)
     s.add_argument("--scheduler")
-    s.add_argument("--overwrite", action="store_true", help="write into an existing non-empty --out folder, "
-                                                            "replacing the demo's outputs")
+    s.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into an existing non-empty --out folder, replacing the demo's outputs",
+    )
     s.set_defaults(func=cmd_demo)
 
 
@@ -799,8 +1087,11 @@ def _main(a) -> int:
     except OSError as exc:
         if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
             return _internal(a, exc)
-        print(f"sarship {a.command}: error: no space to write ({_storage_text(exc)}); nothing was left "
-              "behind: free space and run it again", file=sys.stderr)
+        print(
+            f"sarship {a.command}: error: no space to write ({_storage_text(exc)}); nothing was left "
+            "behind: free space and run it again",
+            file=sys.stderr,
+        )
         return 3
     except Exception as exc:  # unexpected: one line unless debugging
         return _internal(a, exc)
@@ -810,8 +1101,10 @@ def _internal(a, exc: BaseException) -> int:
     if env_settings.read("debug"):
         raise exc
     msg = str(exc).splitlines()[0] if str(exc) else ""
-    print(f"sarship {a.command}: internal error: {type(exc).__name__}: {msg} "
-          f"(set SARSHIP_DEBUG=1 for the traceback)", file=sys.stderr)
+    print(
+        f"sarship {a.command}: internal error: {type(exc).__name__}: {msg} (set SARSHIP_DEBUG=1 for the traceback)",
+        file=sys.stderr,
+    )
     return 1
 
 

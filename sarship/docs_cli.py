@@ -28,8 +28,7 @@ PAGE = Path("docs") / "interfaces" / "cli.md"
 #: The command that regenerates the page, quoted by the check's message.
 REGENERATE = "python -m sarship.docs_cli"
 
-_BLOCK = re.compile(
-    r"<!-- BEGIN GENERATED: (?P<cmd>sarship(?: [a-z_-]+)?) --help -->\n.*?<!-- END GENERATED -->", re.S)
+_BLOCK = re.compile(r"<!-- BEGIN GENERATED: (?P<cmd>sarship(?: [a-z_-]+)?) --help -->\n.*?<!-- END GENERATED -->", re.S)
 
 
 def _fixed_width(parser: argparse.ArgumentParser) -> None:
@@ -135,8 +134,11 @@ def main(argv: list[str] | None = None) -> int:
     if want == page:
         return 0
     if a.check:
-        print(f"{a.page} differs from the sarship parser's help: run `{REGENERATE}` in the repository "
-              "and commit the page", file=sys.stderr)
+        print(
+            f"{a.page} differs from the sarship parser's help: run `{REGENERATE}` in the repository "
+            "and commit the page",
+            file=sys.stderr,
+        )
         return 1
     tmp = a.page.with_name(f".{a.page.name}.partial")
     tmp.write_text(want, encoding="utf-8")

@@ -122,8 +122,7 @@ def rows() -> list[tuple[str, str, str, str, str]]:
         out.append((var.env, _typed(f), var.default_text or _default(f), var.meaning, ", ".join(var.readers)))
     for name, f in Settings.model_fields.items():
         if name not in settings.VARIABLES:
-            out.append((settings.PREFIX + name.upper(), _typed(f), _default(f),
-                        f.description or "", SERVICE))
+            out.append((settings.PREFIX + name.upper(), _typed(f), _default(f), f.description or "", SERVICE))
     return sorted(out)
 
 

@@ -62,7 +62,6 @@ DEFAULT_WARM_UP = ("ca_cfar",)
 START_TIMEOUT_S = 300.0
 
 
-
 class WarmError(Exception):
     """A warm-cluster operation that cannot be done (one line, for the command line)."""
 
@@ -99,8 +98,12 @@ def _identity() -> dict[str, str]:
     old modification time: ``rsync -a``, ``cp -p``)."""
     import sarship
 
-    return {"version": sarship.__version__, "package": str(Path(sarship.__file__).resolve().parent),
-            "prefix": sys.prefix, "code": _code_stamp(sarship.__path__)}
+    return {
+        "version": sarship.__version__,
+        "package": str(Path(sarship.__file__).resolve().parent),
+        "prefix": sys.prefix,
+        "code": _code_stamp(sarship.__path__),
+    }
 
 
 def _code_stamp(paths) -> str:
@@ -122,8 +125,11 @@ def _code_stamp(paths) -> str:
     for k, root in enumerate(roots):
         for folder, dirs, names in os.walk(root):
             dirs[:] = [x for x in dirs if x != "__pycache__"]
-            files += [(f"{k}:{os.path.relpath(os.path.join(folder, f), root)}", os.path.join(folder, f))
-                      for f in names if f.endswith(".py")]
+            files += [
+                (f"{k}:{os.path.relpath(os.path.join(folder, f), root)}", os.path.join(folder, f))
+                for f in names
+                if f.endswith(".py")
+            ]
     h = hashlib.blake2b(digest_size=16)
     for rel, path in sorted(files):
         try:
@@ -212,10 +218,17 @@ def run_remote(argv: list[str]) -> int | None:
         return None
     umask = os.umask(0)
     os.umask(umask)
-    request = {"op": "detect", "argv": list(argv), "cwd": cwd, "umask": umask, "env": relevant_env(),
-               "identity": _identity(), "debug": settings.raw("debug") or "",
-               "columns": _columns(),
-               "tty": {"stdout": _isatty(sys.stdout), "stderr": _isatty(sys.stderr)}}
+    request = {
+        "op": "detect",
+        "argv": list(argv),
+        "cwd": cwd,
+        "umask": umask,
+        "env": relevant_env(),
+        "identity": _identity(),
+        "debug": settings.raw("debug") or "",
+        "columns": _columns(),
+        "tty": {"stdout": _isatty(sys.stdout), "stderr": _isatty(sys.stderr)},
+    }
     import signal
     import threading
 
@@ -269,16 +282,23 @@ def _relay(s: socket.socket) -> int | None:
                 line = reader.readline()
             except TimeoutError:
                 if not waiting_said:
-                    print("sarship: the warm cluster is busy with another command; waiting for it "
-                          "(SARSHIP_WARM=0: a cluster of this command's own)", file=sys.stderr, flush=True)
+                    print(
+                        "sarship: the warm cluster is busy with another command; waiting for it "
+                        "(SARSHIP_WARM=0: a cluster of this command's own)",
+                        file=sys.stderr,
+                        flush=True,
+                    )
                     waiting_said = True
                 reader = s.makefile("rb")  # a timed-out file object cannot be read again
                 continue
             except OSError:
                 line = b""
             if not line:
-                print("sarship detect: error: the warm cluster ended during the command (sarship warm status; "
-                      "its log is beside its socket)", file=sys.stderr)
+                print(
+                    "sarship detect: error: the warm cluster ended during the command (sarship warm status; "
+                    "its log is beside its socket)",
+                    file=sys.stderr,
+                )
                 return 1
             s.settimeout(None)
             msg = json.loads(line)
@@ -291,8 +311,11 @@ def _relay(s: socket.socket) -> int | None:
                     with contextlib.suppress(OSError):
                         os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
             elif "refuse" in msg:
-                print(f"sarship: not on the warm cluster: {msg['refuse']}; starting a cluster of this command's "
-                      "own", file=sys.stderr, flush=True)
+                print(
+                    f"sarship: not on the warm cluster: {msg['refuse']}; starting a cluster of this command's own",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 return None
             elif "exit" in msg:
                 return 143 if terminated else int(msg["exit"])
@@ -328,9 +351,15 @@ def stop(path: Path | None = None, timeout: float = 120.0) -> dict | None:
     raise WarmError(f"the warm cluster (pid {state.get('pid')}) did not end within {timeout:.0f} s")
 
 
-def start(device: str = "auto", workers: int | None = None, idle_timeout: float = DEFAULT_IDLE_S,
-          dashboard: str = "127.0.0.1:8787", path: Path | None = None,
-          timeout: float = START_TIMEOUT_S, warm_up: tuple[str, ...] = DEFAULT_WARM_UP) -> dict:
+def start(
+    device: str = "auto",
+    workers: int | None = None,
+    idle_timeout: float = DEFAULT_IDLE_S,
+    dashboard: str = "127.0.0.1:8787",
+    path: Path | None = None,
+    timeout: float = START_TIMEOUT_S,
+    warm_up: tuple[str, ...] = DEFAULT_WARM_UP,
+) -> dict:
     """Start the warm process in the background (its own session, output in ``warm.log`` beside
     the socket) and wait until it answers; its state. :class:`WarmError` if one runs already or
     it could not start (with the end of its log)."""
@@ -341,12 +370,24 @@ def start(device: str = "auto", workers: int | None = None, idle_timeout: float 
     path = path or socket_path()
     state = status(path)
     if state is not None:
-        raise WarmError(f"a warm cluster runs already (pid {state['pid']}, {state['what']}); "
-                        "sarship warm stop ends it")
+        raise WarmError(f"a warm cluster runs already (pid {state['pid']}, {state['what']}); sarship warm stop ends it")
     folder = private_folder(path.parent)
     log = folder / f"{path.name}.log"
-    cmd = [sys.executable, "-m", "sarship", "warm", "run", "--device", device, "--idle-timeout", f"{idle_timeout:g}",
-           "--dashboard", dashboard, "--warm-up", ",".join(warm_up) or "none"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "sarship",
+        "warm",
+        "run",
+        "--device",
+        device,
+        "--idle-timeout",
+        f"{idle_timeout:g}",
+        "--dashboard",
+        dashboard,
+        "--warm-up",
+        ",".join(warm_up) or "none",
+    ]
     if workers is not None:
         cmd += ["--workers", str(workers)]
     env = {**os.environ, "SARSHIP_WARM_SOCKET": str(path)}
@@ -357,8 +398,16 @@ def start(device: str = "auto", workers: int | None = None, idle_timeout: float 
     # command was typed in
     home = Path(sarship.__file__).resolve().parent.parent
     with open(log, "ab") as out:
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=out, env=env, cwd=home,
-                                start_new_session=True, close_fds=True)
+        proc = subprocess.Popen(
+            cmd,
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=out,
+            env=env,
+            cwd=home,
+            start_new_session=True,
+            close_fds=True,
+        )
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:
         state = status(path)
@@ -392,8 +441,10 @@ def private_folder(folder: Path) -> Path:
     if st.st_uid != os.getuid():
         raise WarmError(f"{folder} belongs to another user: set SARSHIP_WARM_SOCKET to a path in a folder of yours")
     if st.st_mode & 0o077:
-        raise WarmError(f"{folder} may be entered by other users (mode {stat.S_IMODE(st.st_mode):o}): "
-                        "the warm cluster's folder must be 0700")
+        raise WarmError(
+            f"{folder} may be entered by other users (mode {stat.S_IMODE(st.st_mode):o}): "
+            "the warm cluster's folder must be 0700"
+        )
     return folder
 
 

@@ -15,8 +15,9 @@ import socket
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 from sarship.pipeline import settings
 from sarship.temporaries import present, remove_new, temporaries
@@ -35,6 +36,7 @@ from sarship.warm import (
 )
 
 _ACTIVE: dict[str, Any] = {}  # during a command: {"client": ..., "what": ...}
+
 
 def active_client():
     """In the warm process, during a command: the warm cluster's client (else None)."""
@@ -90,9 +92,15 @@ class CommandLine(NamedTuple):
     main: Callable[[list[str]], int]
 
 
-def serve(commands: CommandLine, device: str = "auto", workers: int | None = None, idle_timeout: float = DEFAULT_IDLE_S,
-          dashboard: str = "127.0.0.1:8787", path: Path | None = None,
-          warm_up: tuple[str, ...] = DEFAULT_WARM_UP) -> int:
+def serve(
+    commands: CommandLine,
+    device: str = "auto",
+    workers: int | None = None,
+    idle_timeout: float = DEFAULT_IDLE_S,
+    dashboard: str = "127.0.0.1:8787",
+    path: Path | None = None,
+    warm_up: tuple[str, ...] = DEFAULT_WARM_UP,
+) -> int:
     """Run the warm process in the foreground (``sarship warm run``): start the cluster, then
     run the commands that arrive on the socket until ``idle_timeout`` seconds pass without one
     (0: never), ``sarship warm stop``, SIGTERM or Ctrl-C."""
@@ -136,8 +144,16 @@ def serve(commands: CommandLine, device: str = "auto", workers: int | None = Non
     n_cpu = workers if workers is not None else (max(0, cores - n_gpu_procs) if gpus else cores)
     if not gpus and n_cpu < 1:
         raise WarmError("--workers must be at least 1 without GPUs")
-    with connect(None, n_workers=n_cpu if not gpus else None, gpus=bool(gpus), cpu_workers=n_cpu if gpus else 0,
-                 dashboard_address=dashboard, echo=False, short_lived=False, procs_per_gpu=per_gpu or None) as client:
+    with connect(
+        None,
+        n_workers=n_cpu if not gpus else None,
+        gpus=bool(gpus),
+        cpu_workers=n_cpu if gpus else 0,
+        dashboard_address=dashboard,
+        echo=False,
+        short_lived=False,
+        procs_per_gpu=per_gpu or None,
+    ) as client:
         import importlib
 
         for name in ("sarship.cli", "sarship.workers.jobs"):  # the commands' imports, done once
@@ -146,18 +162,34 @@ def serve(commands: CommandLine, device: str = "auto", workers: int | None = Non
 
         info = client.scheduler_info(n_workers=-1).get("workers", {})
         n_gpu = sum(1 for w in info.values() if float((w.get("resources") or {}).get("GPU", 0)) > 0)
-        what = (f"{n_gpu} GPU worker processes" + (f" and {len(info) - n_gpu} CPU" if len(info) > n_gpu else "")
-                if n_gpu else f"{len(info)} worker processes")
+        what = (
+            f"{n_gpu} GPU worker processes" + (f" and {len(info) - n_gpu} CPU" if len(info) > n_gpu else "")
+            if n_gpu
+            else f"{len(info)} worker processes"
+        )
         from sarship.workers.cluster import DASHBOARD_HINT, dashboard_url
 
-        state = {"pid": os.getpid(), "what": what, "device": "gpu" if n_gpu else "cpu", "gpu_workers": n_gpu,
-                 "cpu_workers": len(info) - n_gpu, "dashboard": dashboard_url(client), "socket": str(path),
-                 "idle_timeout_s": idle_timeout, "started": time.time(), "commands": 0,
-                 "identity": _identity(), "env": env}
+        state = {
+            "pid": os.getpid(),
+            "what": what,
+            "device": "gpu" if n_gpu else "cpu",
+            "gpu_workers": n_gpu,
+            "cpu_workers": len(info) - n_gpu,
+            "dashboard": dashboard_url(client),
+            "socket": str(path),
+            "idle_timeout_s": idle_timeout,
+            "started": time.time(),
+            "commands": 0,
+            "identity": _identity(),
+            "env": env,
+        }
         srv = _listen(path)
         dash = f"dashboard {state['dashboard']}" if state["dashboard"] else f"no dashboard ({DASHBOARD_HINT})"
-        print(f"sarship: warm cluster ready (pid {os.getpid()}), {what}, {dash}, "
-              f"socket {path}", file=sys.stderr, flush=True)
+        print(
+            f"sarship: warm cluster ready (pid {os.getpid()}), {what}, {dash}, socket {path}",
+            file=sys.stderr,
+            flush=True,
+        )
         last = time.monotonic()
         try:
             while True:
@@ -249,14 +281,18 @@ def _refusal(req: dict, state: dict, ns) -> str:
         got, have = req.get("identity") or {}, state["identity"]
         key = next((k for k in have if got.get(k) != have[k]), "version")
         if key == "code":
-            return ("sarship's code was changed since it started (sarship warm stop, then sarship warm start, "
-                    "runs the new code)")
+            return (
+                "sarship's code was changed since it started (sarship warm stop, then sarship warm start, "
+                "runs the new code)"
+            )
         return f"it runs another sarship ({key} {have[key]}, this command's {got.get(key)})"
     env = req.get("env") or {}
     diff = sorted(k for k in set(env) | set(state["env"]) if env.get(k) != state["env"].get(k))
     if diff:
-        return (f"it was started with another {diff[0]} ({state['env'].get(diff[0], 'unset')!s}, this command's "
-                f"{env.get(diff[0], 'unset')!s})")
+        return (
+            f"it was started with another {diff[0]} ({state['env'].get(diff[0], 'unset')!s}, this command's "
+            f"{env.get(diff[0], 'unset')!s})"
+        )
     if ns is not None:
         if getattr(ns, "scheduler", None):
             return "--scheduler was given"
@@ -415,17 +451,36 @@ def _warm_up(client, folder: Path, detectors: tuple[str, ...]) -> None:
     work = Path(tempfile.mkdtemp(prefix=".warm-up-", dir=folder))
     t0 = time.perf_counter()
     try:
-        scene = simulate(work / "scene.zarr", SimConfig(shape=(side, side), ships=8, seed=1), tile=128,
-                         truth_path=work / "truth.geojson")
+        scene = simulate(
+            work / "scene.zarr",
+            SimConfig(shape=(side, side), ships=8, seed=1),
+            tile=128,
+            truth_path=work / "truth.geojson",
+        )
         for name in detectors:
             for device in (["gpu"] if gpu else []) + (["cpu"] if cpu else []):
                 try:
-                    run_detection(scene, name, {}, out_dir=work / f"{name}-{device}", tile=128, client=client,
-                                  device=device if device == "cpu" else "auto", progress=False)
+                    run_detection(
+                        scene,
+                        name,
+                        {},
+                        out_dir=work / f"{name}-{device}",
+                        tile=128,
+                        client=client,
+                        device=device if device == "cpu" else "auto",
+                        progress=False,
+                    )
                 except Exception as exc:  # noqa: BLE001  (the warm-up is a courtesy; the command reports)
-                    print(f"sarship: warm-up of {name} on {device} skipped: {type(exc).__name__}: {exc}",
-                          file=sys.stderr, flush=True)
+                    print(
+                        f"sarship: warm-up of {name} on {device} skipped: {type(exc).__name__}: {exc}",
+                        file=sys.stderr,
+                        flush=True,
+                    )
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    print(f"sarship: warm-up ({', '.join(detectors)}, {side} x {side} px in 128 px tiles) "
-          f"{time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    print(
+        f"sarship: warm-up ({', '.join(detectors)}, {side} x {side} px in 128 px tiles) "
+        f"{time.perf_counter() - t0:.1f} s",
+        file=sys.stderr,
+        flush=True,
+    )

@@ -11,13 +11,12 @@ for the application's lifetime. How to add a route: docs/adding-an-endpoint.md.
 from __future__ import annotations
 
 import contextlib
-from typing import AsyncIterator, Callable, Optional
+from collections.abc import AsyncIterator, Callable
 
 from fastapi import FastAPI
 
 from sarship.pipeline import __version__
-from sarship.service import (health, ingest_routes, jobs, landing, problem_handlers, processes, results, scenes,
-                             web)
+from sarship.service import health, ingest_routes, jobs, landing, problem_handlers, processes, results, scenes, web
 from sarship.service.auth import BearerAuth
 from sarship.service.limits import RequestLimits
 from sarship.service.metrics import Metrics
@@ -27,8 +26,16 @@ from sarship.service.settings import Settings
 from sarship.service.store import JobStore
 
 #: The routers, in the order their routes are matched and listed in the OpenAPI document.
-ROUTERS = (landing.router, processes.router, jobs.router, health.router, results.router, scenes.router,
-           ingest_routes.router, web.router)
+ROUTERS = (
+    landing.router,
+    processes.router,
+    jobs.router,
+    health.router,
+    results.router,
+    scenes.router,
+    ingest_routes.router,
+    web.router,
+)
 
 
 def connect_cluster(settings: Settings, stack: contextlib.ExitStack):
@@ -47,8 +54,17 @@ def connect_cluster(settings: Settings, stack: contextlib.ExitStack):
     # on any free port; GET /dashboard redirects to it
     dash = dashboard_address_on(settings.host)
     gpu_ids, n_cpu = settings.local_workers()
-    return stack.enter_context(connect(None, n_workers=n_cpu, dashboard_address=dash, echo=True, gpus=gpu_ids,
-                                       cpu_workers=n_cpu, threads=settings.worker_threads))
+    return stack.enter_context(
+        connect(
+            None,
+            n_workers=n_cpu,
+            dashboard_address=dash,
+            echo=True,
+            gpus=gpu_ids,
+            cpu_workers=n_cpu,
+            threads=settings.worker_threads,
+        )
+    )
 
 
 def lifespan_of(settings: Settings, client=None) -> Callable[[FastAPI], contextlib.AbstractAsyncContextManager]:
@@ -83,13 +99,18 @@ def lifespan_of(settings: Settings, client=None) -> Callable[[FastAPI], contextl
     return lifespan
 
 
-def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
+def create_app(settings: Settings | None = None, client=None) -> FastAPI:
     """The service's application for ``settings`` (default: from the environment); ``client``:
     a connected Dask client to use instead of the one the lifespan makes."""
     settings = settings or Settings()
-    app = FastAPI(title="sarship", version=__version__, lifespan=lifespan_of(settings, client),
-                  description="Ship detection in SAR scenes: OGC API - Processes shaped job API",
-                  docs_url=None, redoc_url=None)  # /docs: web.py, Swagger UI served from here (no CDN)
+    app = FastAPI(
+        title="sarship",
+        version=__version__,
+        lifespan=lifespan_of(settings, client),
+        description="Ship detection in SAR scenes: OGC API - Processes shaped job API",
+        docs_url=None,
+        redoc_url=None,
+    )  # /docs: web.py, Swagger UI served from here (no CDN)
     app.state.settings = settings
     app.state.sync_waits = 0  # 'Prefer: respond-sync' executions waiting now
     # set by `sarship serve` (uvicorn's Server.should_exit): sync waits end at SIGTERM
@@ -98,11 +119,13 @@ def create_app(settings: Optional[Settings] = None, client=None) -> FastAPI:
     app.add_middleware(RequestLimits, max_body=int(settings.max_body_kb * 1024))
     # bearer tokens (settings.tokens) for POST/DELETE, and for reads with protect_reads (service/auth.py);
     # added last, so it runs first: a request without a token is refused before its body is read
-    app.add_middleware(BearerAuth, tokens=settings.tokens, protect_reads=settings.protect_reads,
-                       open_paths=health.OPEN_PATHS)
+    app.add_middleware(
+        BearerAuth, tokens=settings.tokens, protect_reads=settings.protect_reads, open_paths=health.OPEN_PATHS
+    )
     problem_handlers.install(app)
-    install_openapi(app, tokens=bool(settings.tokens), protect_reads=settings.protect_reads,
-                    open_paths=health.OPEN_PATHS)
+    install_openapi(
+        app, tokens=bool(settings.tokens), protect_reads=settings.protect_reads, open_paths=health.OPEN_PATHS
+    )
     for router in ROUTERS:
         app.include_router(router)
     return app

@@ -13,7 +13,8 @@ about a third of the server's CPU time per request (measured with bench/bench_se
 from __future__ import annotations
 
 import hmac
-from typing import Any, Awaitable, Callable
+from collections.abc import Awaitable, Callable
+from typing import Any
 
 from sarship.service.common import problem
 
@@ -22,16 +23,19 @@ ASGIApp = Callable[[Scope, Callable, Callable], Awaitable[None]]
 
 
 class BearerAuth:
-    def __init__(self, app: ASGIApp, tokens: list[str], protect_reads: bool = False,
-                 open_paths: tuple[str, ...] = ()):
+    def __init__(self, app: ASGIApp, tokens: list[str], protect_reads: bool = False, open_paths: tuple[str, ...] = ()):
         self.app = app
         self.tokens = [t.encode() for t in tokens]
         self.protect_reads = protect_reads
         self.open_paths = open_paths
 
     def _needs_token(self, scope: Scope) -> bool:
-        return (scope["type"] == "http" and bool(self.tokens) and scope["path"] not in self.open_paths
-                and (self.protect_reads or scope["method"] not in ("GET", "HEAD", "OPTIONS")))
+        return (
+            scope["type"] == "http"
+            and bool(self.tokens)
+            and scope["path"] not in self.open_paths
+            and (self.protect_reads or scope["method"] not in ("GET", "HEAD", "OPTIONS"))
+        )
 
     async def __call__(self, scope: Scope, receive: Callable, send: Callable) -> None:
         if not self._needs_token(scope):

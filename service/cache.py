@@ -16,8 +16,8 @@ import fcntl
 import os
 import threading
 import uuid
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Callable, Iterable
 
 _locks: dict[str, threading.Lock] = {}
 _locks_guard = threading.Lock()

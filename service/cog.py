@@ -46,7 +46,7 @@ import zlib
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO, Optional
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -59,8 +59,10 @@ TILE = 256
 DEFLATE_LEVEL = 6
 COG_MEDIA_TYPE = "image/tiff; application=geotiff; profile=cloud-optimized"
 
-_GHOST_BODY = ("LAYOUT=IFDS_BEFORE_DATA\nBLOCK_ORDER=ROW_MAJOR\nBLOCK_LEADER=SIZE_AS_UINT4\n"
-               "BLOCK_TRAILER=LAST_4_BYTES_REPEATED\nKNOWN_INCOMPATIBLE_EDITION=NO\n")
+_GHOST_BODY = (
+    "LAYOUT=IFDS_BEFORE_DATA\nBLOCK_ORDER=ROW_MAJOR\nBLOCK_LEADER=SIZE_AS_UINT4\n"
+    "BLOCK_TRAILER=LAST_4_BYTES_REPEATED\nKNOWN_INCOMPATIBLE_EDITION=NO\n"
+)
 GHOST = (f"GDAL_STRUCTURAL_METADATA_SIZE={len(_GHOST_BODY):06d} bytes\n" + _GHOST_BODY).encode("ascii")
 
 # TIFF field types
@@ -77,8 +79,7 @@ def maxpool(a: np.ndarray, f: int) -> np.ndarray:
     H, W = a.shape
     h, w = -(-H // f), -(-W // f)
     if H != h * f or W != w * f:
-        fill = np.iinfo(a.dtype).min if np.issubdtype(a.dtype, np.integer) else (
-            False if a.dtype == bool else -np.inf)
+        fill = np.iinfo(a.dtype).min if np.issubdtype(a.dtype, np.integer) else (False if a.dtype == bool else -np.inf)
         p = np.full((h * f, w * f), fill, a.dtype)
         p[:H, :W] = a
         a = p
@@ -122,7 +123,7 @@ def geotiff_tags(attrs: dict) -> list[tuple[int, int, list]]:
     return tags
 
 
-def geokeys(crs: Any) -> Optional[list[int]]:
+def geokeys(crs: Any) -> list[int] | None:
     """GeoKeyDirectory (GeoTIFF 1.0 key revision 1.0) for an EPSG CRS: model type (projected or
     geographic), PixelIsArea, and the ProjectedCSType or GeographicType key; None when the crs
     is not an EPSG code pyproj knows (the transform tags are then written alone)."""
@@ -159,7 +160,7 @@ class _Level:
     pending: list = field(default_factory=list)
     npending: int = 0
     rows_done: int = 0
-    carry: Optional[np.ndarray] = None
+    carry: np.ndarray | None = None
     counts: list = field(default_factory=list)
     nbytes: int = 0
 
@@ -170,8 +171,9 @@ class _Pyramid:
 
     def __init__(self, shape: tuple[int, int], spool_dir: Path, tile: int):
         self.tile = tile
-        self.levels = [_Level(s, open(spool_dir / f"level-{k}", "w+b"))
-                       for k, s in enumerate(level_shapes(shape, tile))]
+        self.levels = [
+            _Level(s, open(spool_dir / f"level-{k}", "w+b")) for k, s in enumerate(level_shapes(shape, tile))
+        ]
 
     def feed(self, k: int, rows: np.ndarray, final: bool) -> None:
         lv = self.levels[k]
@@ -198,9 +200,9 @@ class _Pyramid:
         h, w = lv.shape
         nx = -(-w // t)
         block = np.zeros((t, nx * t), np.uint8)
-        block[:rows.shape[0], :w] = rows
+        block[: rows.shape[0], :w] = rows
         for j in range(nx):
-            data = zlib.compress(np.ascontiguousarray(block[:, j * t:(j + 1) * t]).tobytes(), DEFLATE_LEVEL)
+            data = zlib.compress(np.ascontiguousarray(block[:, j * t : (j + 1) * t]).tobytes(), DEFLATE_LEVEL)
             n = len(data)
             lv.spool.write(struct.pack("<I", n) + data + data[-4:])  # leader, tile, trailer
             lv.counts.append(n)
@@ -239,22 +241,41 @@ def _ifd_size(entries: list[tuple[int, int, list]], bigtiff: bool) -> int:
     return len(_ifd(entries, 0, bigtiff))
 
 
-def _entries(k: int, lv: _Level, offsets: list[int], tile: int, bigtiff: bool,
-             geotags: list[tuple[int, int, list]]) -> list[tuple[int, int, list]]:
+def _entries(
+    k: int, lv: _Level, offsets: list[int], tile: int, bigtiff: bool, geotags: list[tuple[int, int, list]]
+) -> list[tuple[int, int, list]]:
     h, w = lv.shape
     off_t = _LONG8 if bigtiff else _LONG
-    e = [(254, _LONG, [0 if k == 0 else 1]), (256, _LONG, [w]), (257, _LONG, [h]), (258, _SHORT, [8]),
-         (259, _SHORT, [8]), (262, _SHORT, [1]), (277, _SHORT, [1]), (284, _SHORT, [1]),
-         (322, _SHORT, [tile]), (323, _SHORT, [tile]), (324, off_t, offsets), (325, off_t, lv.counts),
-         (339, _SHORT, [1])]
+    e = [
+        (254, _LONG, [0 if k == 0 else 1]),
+        (256, _LONG, [w]),
+        (257, _LONG, [h]),
+        (258, _SHORT, [8]),
+        (259, _SHORT, [8]),
+        (262, _SHORT, [1]),
+        (277, _SHORT, [1]),
+        (284, _SHORT, [1]),
+        (322, _SHORT, [tile]),
+        (323, _SHORT, [tile]),
+        (324, off_t, offsets),
+        (325, off_t, lv.counts),
+        (339, _SHORT, [1]),
+    ]
     if k == 0:
         e.append((305, _ASCII, f"sarship {__version__}"))
         e += geotags
     return sorted(e, key=lambda x: x[0])
 
 
-def write_cog(read_rows, shape: tuple[int, int], out: Path, attrs: Optional[dict] = None, tile: int = TILE,
-              strip: int = TILE, bigtiff: Optional[bool] = None) -> Path:
+def write_cog(
+    read_rows,
+    shape: tuple[int, int],
+    out: Path,
+    attrs: dict | None = None,
+    tile: int = TILE,
+    strip: int = TILE,
+    bigtiff: bool | None = None,
+) -> Path:
     """Write a uint8 2-D raster as a COG at ``out`` (see the module doc for the layout).
 
     ``read_rows(r0, r1)`` returns rows ``r0:r1`` (all columns) as uint8; it is called for
@@ -278,13 +299,14 @@ def write_cog(read_rows, shape: tuple[int, int], out: Path, attrs: Optional[dict
             for lv in pyr.levels:
                 assert lv.rows_done == lv.shape[0] and not lv.npending, (lv.shape, lv.rows_done)
             data_total = sum(lv.nbytes for lv in pyr.levels)
-            for big in ((False, True) if bigtiff is None else (bool(bigtiff),)):
+            for big in (False, True) if bigtiff is None else (bool(bigtiff),):
                 head = 16 if big else 8
                 first_ifd = head + len(GHOST)
                 first_ifd += first_ifd % 2
                 dummy = [[0] * len(lv.counts) for lv in pyr.levels]
-                sizes = [_ifd_size(_entries(k, lv, dummy[k], tile, big, geotags), big)
-                         for k, lv in enumerate(pyr.levels)]
+                sizes = [
+                    _ifd_size(_entries(k, lv, dummy[k], tile, big, geotags), big) for k, lv in enumerate(pyr.levels)
+                ]
                 data_start = first_ifd + sum(sizes)
                 if big or data_start + data_total < 2**32:
                     break
@@ -329,6 +351,7 @@ def mask_cog(job_dir: Path) -> Path:
     Read in strips of whole tile rows aligned on the mask's chunks (each chunk decompressed
     once), so a 25000 x 16700 mask is never in memory: a strip plus a tile row per level.
     """
+
     def build(tmp: Path) -> None:
         import zarr
 
@@ -345,7 +368,7 @@ def mask_cog(job_dir: Path) -> Path:
 
 
 _index_lock = threading.Lock()
-_index: "OrderedDict[tuple, list]" = OrderedDict()
+_index: OrderedDict[tuple, list] = OrderedDict()
 
 
 def _levels_index(path: Path) -> list[tuple[tuple[int, int], np.ndarray, np.ndarray]]:
@@ -362,8 +385,13 @@ def _levels_index(path: Path) -> list[tuple[tuple[int, int], np.ndarray, np.ndar
     out = []
     with tifffile.TiffFile(path) as tif:
         for page in tif.pages:
-            out.append(((int(page.imagelength), int(page.imagewidth)), np.asarray(page.dataoffsets, np.int64),
-                        np.asarray(page.databytecounts, np.int64)))
+            out.append(
+                (
+                    (int(page.imagelength), int(page.imagewidth)),
+                    np.asarray(page.dataoffsets, np.int64),
+                    np.asarray(page.databytecounts, np.int64),
+                )
+            )
     with _index_lock:
         _index[key] = out
         while len(_index) > 64:

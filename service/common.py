@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import errno
 import json
-from typing import Optional
 
 from fastapi import Request
 from fastapi.responses import JSONResponse
@@ -15,16 +14,20 @@ from sarship.service.store import JobStore, iso
 
 
 class Problem(Exception):
-    def __init__(self, status: int, title: str, detail: str, headers: Optional[dict] = None):
+    def __init__(self, status: int, title: str, detail: str, headers: dict | None = None):
         self.status, self.title, self.detail = status, title, detail
         self.headers = headers
 
 
-def problem(status: int, title: str, detail: str, headers: Optional[dict] = None) -> JSONResponse:
+def problem(status: int, title: str, detail: str, headers: dict | None = None) -> JSONResponse:
     # a detail may quote the request (a lone surrogate in a JSON string): always encodable as UTF-8
     detail = str(detail).encode("utf-8", "backslashreplace").decode("utf-8")
-    return JSONResponse({"type": "about:blank", "title": title, "detail": detail, "status": status},
-                        status_code=status, media_type="application/problem+json", headers=headers)
+    return JSONResponse(
+        {"type": "about:blank", "title": title, "detail": detail, "status": status},
+        status_code=status,
+        media_type="application/problem+json",
+        headers=headers,
+    )
 
 
 #: Deepest nesting of arrays and objects accepted in a JSON body (an execution body is 2-3 deep).
@@ -97,7 +100,7 @@ def _check_strings(doc, where: str) -> None:
 _NO_SPACE = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT}
 
 
-def storage_problem(exc: BaseException) -> Optional[Problem]:
+def storage_problem(exc: BaseException) -> Problem | None:
     """The problem for a failure of the data folder's storage: ``507 insufficient storage`` for a
     disk (or quota, or file-size limit) that is full, from a file write (``OSError``) or from the
     SQLite job store (``database or disk is full``, or a write I/O error); ``503`` with
@@ -110,8 +113,12 @@ def storage_problem(exc: BaseException) -> Optional[Problem]:
         code = getattr(exc, "sqlite_errorcode", None)
         name = getattr(exc, "sqlite_errorname", "") or ""
         text = str(exc)
-        if code == sqlite3.SQLITE_FULL or "disk is full" in text or name.startswith("SQLITE_IOERR_WRITE") \
-                or name in ("SQLITE_IOERR_FSYNC", "SQLITE_IOERR_TRUNCATE"):
+        if (
+            code == sqlite3.SQLITE_FULL
+            or "disk is full" in text
+            or name.startswith("SQLITE_IOERR_WRITE")
+            or name in ("SQLITE_IOERR_FSYNC", "SQLITE_IOERR_TRUNCATE")
+        ):
             return Problem(507, "insufficient storage", f"the job store cannot be written: {text}")
         if code in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED) or "locked" in text or "busy" in text:
             return Problem(503, "store busy", f"the job store is busy: {text}; try again", {"Retry-After": "1"})
@@ -125,24 +132,47 @@ def base_url(request: Request) -> str:
 def status_doc(job: dict, base: str) -> dict:
     links = [{"href": f"{base}/jobs/{job['id']}", "rel": "self", "type": "application/json", "title": "status"}]
     if job["status"] == "accepted" and job.get("waits_for"):
-        links.append({"href": f"{base}/jobs/{job['waits_for']}", "rel": "related", "type": "application/json",
-                      "title": "the ingest job of the job's scene: the job runs when it has succeeded"})
+        links.append(
+            {
+                "href": f"{base}/jobs/{job['waits_for']}",
+                "rel": "related",
+                "type": "application/json",
+                "title": "the ingest job of the job's scene: the job runs when it has succeeded",
+            }
+        )
     if job["status"] == "successful":
-        links.append({"href": f"{base}/jobs/{job['id']}/results", "rel": "http://www.opengis.net/def/rel/ogc/1.0/results",
-                      "type": "application/json", "title": "results"})
-    return {"jobID": job["id"], "processID": job["process"], "type": "process", "status": job["status"],
-            "message": job["message"], "progress": int(job["progress"]), "created": iso(job["created"]),
-            "started": iso(job["started"]), "finished": iso(job["finished"]), "updated": iso(job["updated"]),
-            "attempts": int(job["attempts"]), "links": links}
+        links.append(
+            {
+                "href": f"{base}/jobs/{job['id']}/results",
+                "rel": "http://www.opengis.net/def/rel/ogc/1.0/results",
+                "type": "application/json",
+                "title": "results",
+            }
+        )
+    return {
+        "jobID": job["id"],
+        "processID": job["process"],
+        "type": "process",
+        "status": job["status"],
+        "message": job["message"],
+        "progress": int(job["progress"]),
+        "created": iso(job["created"]),
+        "started": iso(job["started"]),
+        "finished": iso(job["finished"]),
+        "updated": iso(job["updated"]),
+        "attempts": int(job["attempts"]),
+        "links": links,
+    }
 
 
 def results_doc(job: dict, base: str) -> dict:
     u = f"{base}/jobs/{job['id']}/results"
-    return {"detections": {"href": f"{u}/detections", "type": "application/geo+json"},
-            "mask": {"href": f"{u}/mask", "type": "image/tiff; application=geotiff"},
-            "metrics": {"href": f"{u}/metrics", "type": "application/json"},
-            "stac": {"href": f"{u}/stac", "type": "application/geo+json"}}
-
+    return {
+        "detections": {"href": f"{u}/detections", "type": "application/geo+json"},
+        "mask": {"href": f"{u}/mask", "type": "image/tiff; application=geotiff"},
+        "metrics": {"href": f"{u}/metrics", "type": "application/json"},
+        "stac": {"href": f"{u}/stac", "type": "application/geo+json"},
+    }
 
 
 def settings_of(request: Request) -> Settings:
@@ -165,11 +195,16 @@ def finished(request: Request, job_id: str, ingest_ok: bool = False) -> dict:
     An ``ingest`` job's only result is its scene: without ``ingest_ok`` it is a 404 too."""
     job = job_or_404(request, job_id)
     if job["status"] != "successful":
-        detail = {"failed": f"job failed: {job['message']}", "dismissed": "job was dismissed (its results, if any, are removed)"}.get(
-            job["status"], f"result not ready (job is {job['status']})")
-        raise Problem(404, "result not ready" if job["status"] not in ("failed", "dismissed") else "no result",
-                      detail)
+        detail = {
+            "failed": f"job failed: {job['message']}",
+            "dismissed": "job was dismissed (its results, if any, are removed)",
+        }.get(job["status"], f"result not ready (job is {job['status']})")
+        raise Problem(404, "result not ready" if job["status"] not in ("failed", "dismissed") else "no result", detail)
     if job["process"] == "ingest" and not ingest_ok:
-        raise Problem(404, "no such result", f"job '{job_id}' ingested a scene; it has no detection products "
-                                             f"(the scene is /scenes/{job['inputs'].get('scene_id', '')})")
+        raise Problem(
+            404,
+            "no such result",
+            f"job '{job_id}' ingested a scene; it has no detection products "
+            f"(the scene is /scenes/{job['inputs'].get('scene_id', '')})",
+        )
     return job

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import shutil
-from typing import Optional
 
 import anyio
 from fastapi import APIRouter, Request
@@ -19,7 +18,7 @@ router = APIRouter()
 OPEN_PATHS = ("/livez", "/readyz", "/metrics")
 
 
-def dashboard_link(request: Request) -> Optional[str]:
+def dashboard_link(request: Request) -> str | None:
     """Where GET /dashboard sends a browser (SARSHIP_DASHBOARD_URL, else the cluster's own link),
     or None when the scheduler serves no dashboard (``workers.cluster.dashboard_url``)."""
     from sarship.workers.cluster import dashboard_url
@@ -69,7 +68,7 @@ def ready_check(request: Request) -> JSONResponse:
 
 
 def disk_check(settings: Settings) -> str:
-    """"ok", or why the data folder cannot take more work: less free space than
+    """ "ok", or why the data folder cannot take more work: less free space than
     ``min_free_mb`` (a full disk fails every ingest and job output)."""
     if not settings.min_free_mb:
         return "ok"
@@ -78,8 +77,10 @@ def disk_check(settings: Settings) -> str:
     except OSError as exc:
         return f"error: data folder {settings.data}: {exc.strerror or exc}"
     if free < settings.min_free_mb * 2**20:
-        return (f"data folder {settings.data} has {free / 2**20:.0f} MiB free, less than min_free_mb "
-                f"({settings.min_free_mb:g} MiB)")
+        return (
+            f"data folder {settings.data} has {free / 2**20:.0f} MiB free, less than min_free_mb "
+            f"({settings.min_free_mb:g} MiB)"
+        )
     return "ok"
 
 

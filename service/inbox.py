@@ -35,12 +35,24 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from datetime import datetime, timezone
+from collections.abc import Callable
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any
 
-from sarship.service.inbox_files import (Signature, list_passes, marked_done, marker, move_into, quarantine_target,
-                                         scene_key, settled, sha256_of, signature, write_reason)
+from sarship.service.inbox_files import (
+    Signature,
+    list_passes,
+    marked_done,
+    marker,
+    move_into,
+    quarantine_target,
+    scene_key,
+    settled,
+    sha256_of,
+    signature,
+    write_reason,
+)
 from sarship.service.inbox_store import InboxStore
 from sarship.service.settings import DEFAULT_INBOX_INTERVAL_S, Settings
 from sarship.service.store import INGEST, JobStore, iso
@@ -56,7 +68,7 @@ class Schedule:
     """When the inbox is scanned: every ``interval_s`` seconds, or at the times of a cron
     expression (evaluated in UTC: pass schedules are in UTC)."""
 
-    def __init__(self, interval_s: Optional[float] = None, cron: Optional[str] = None):
+    def __init__(self, interval_s: float | None = None, cron: str | None = None):
         self.cron = cron
         self.interval_s = None if cron else (interval_s or DEFAULT_INBOX_INTERVAL_S)
 
@@ -64,15 +76,14 @@ class Schedule:
         if self.cron:
             from croniter import croniter
 
-            return float(croniter(self.cron, datetime.fromtimestamp(t, timezone.utc)).get_next(float))
+            return float(croniter(self.cron, datetime.fromtimestamp(t, UTC)).get_next(float))
         return t + self.interval_s
 
 
 class Inbox:
     """The inbox loop of one API process (see the module docstring)."""
 
-    def __init__(self, settings: Settings, store: JobStore, owner: str,
-                 wake_runner: Optional[Callable[[], None]] = None):
+    def __init__(self, settings: Settings, store: JobStore, owner: str, wake_runner: Callable[[], None] | None = None):
         self.settings = settings
         self.store = store
         self.db = InboxStore(store)
@@ -86,7 +97,7 @@ class Inbox:
         self.tick_s = min(1.0, max(0.1, base / 2))
         self._stop = threading.Event()
         self._wake = threading.Event()
-        self._thread: Optional[threading.Thread] = None
+        self._thread: threading.Thread | None = None
         self._leading = False
         self._renewed = 0.0
         self._missing: set[Path] = set()
@@ -99,8 +110,11 @@ class Inbox:
         self.settings.quarantine_dir.mkdir(parents=True, exist_ok=True)
         self._thread = threading.Thread(target=self._loop, name="sarship-inbox", daemon=True)
         self._thread.start()
-        log.info("inbox: watching %s (%s)", ", ".join(map(str, self.settings.inbox)),
-                 f"cron {self.schedule.cron} UTC" if self.schedule.cron else f"every {self.schedule.interval_s:g} s")
+        log.info(
+            "inbox: watching %s (%s)",
+            ", ".join(map(str, self.settings.inbox)),
+            f"cron {self.schedule.cron} UTC" if self.schedule.cron else f"every {self.schedule.interval_s:g} s",
+        )
 
     def stop(self) -> None:
         self._stop.set()
@@ -185,8 +199,12 @@ class Inbox:
                 sig = signature(p)
                 if sig is None:
                     continue
-                if row is not None and row["status"] != "quarantined" and _sig(row) == sig and not (
-                        retry_failed and row["status"] == "failed" and "dismissed" not in row["reason"]):
+                if (
+                    row is not None
+                    and row["status"] != "quarantined"
+                    and _sig(row) == sig
+                    and not (retry_failed and row["status"] == "failed" and "dismissed" not in row["reason"])
+                ):
                     continue  # this version was handled; a quarantined file put back is tried again
                 self.db.add_waiting(str(p), sig, now)
                 added += 1
@@ -228,8 +246,14 @@ class Inbox:
             return
         key = scene_key(sha)
         ready = (self.settings.scenes_dir / f"{key}.zarr").is_dir()
-        inputs = {"path": str(p), "scene_id": key, "filename": p.name, "sha256": sha, "bytes": sig.size,
-                  "origin": "inbox"}
+        inputs = {
+            "path": str(p),
+            "scene_id": key,
+            "filename": p.name,
+            "sha256": sha,
+            "bytes": sig.size,
+            "origin": "inbox",
+        }
         status = self.db.take(row["id"], sig, sha, key, ready, self.settings.inbox_detectors, inputs)
         if status is not None:
             log.info("inbox: %s -> %s (scene %s)", p, status, key)
@@ -277,16 +301,28 @@ class Inbox:
         beside it; then record the pass ``quarantined``. Each step can be redone after a crash:
         the destination is recorded before the move, and the move is skipped once done."""
         src = Path(row["path"])
-        dest = Path(row["quarantine"]) if row["quarantine"] else quarantine_target(
-            self.settings.quarantine_dir, src, row["key"])
+        dest = (
+            Path(row["quarantine"])
+            if row["quarantine"]
+            else quarantine_target(self.settings.quarantine_dir, src, row["key"])
+        )
         if not row["quarantine"] and not self.db.set_quarantine(row["id"], str(dest)):
             return
         try:
             if src.exists() or src.is_symlink():
                 move_into(src, dest)
             note = "" if dest.exists() else " (the file was gone before it could be moved)"
-            write_reason(dest, {"reason": reason + note, "file": str(src), "sha256": row["sha256"],
-                                "scene": row["key"], "ingest_job": row["ingest_job"], "time": iso(time.time())})
+            write_reason(
+                dest,
+                {
+                    "reason": reason + note,
+                    "file": str(src),
+                    "sha256": row["sha256"],
+                    "scene": row["key"],
+                    "ingest_job": row["ingest_job"],
+                    "time": iso(time.time()),
+                },
+            )
             marker(src).unlink(missing_ok=True)
         except OSError as exc:
             self.db.mark(row["id"], "ingesting", "failed", f"{reason}; it could not be quarantined: {exc}")
@@ -304,11 +340,17 @@ class Inbox:
         st = self.db.state()
         counts = self.db.counts()
         leader = st["owner"] if st["owner"] and (st["lease_until"] or 0) > time.time() else None
-        return {"enabled": self.enabled, "inboxes": [str(p) for p in self.settings.inbox],
-                "schedule": self.settings.inbox_schedule, "leader": leader,
-                "last_scan": iso(st["last_scan"]), "next_scan": iso(st["next_scan"]) if self.enabled else None,
-                "backlog": self.db.backlog(counts), "counts": counts,
-                "passes": [pass_doc(r) for r in self.db.list(limit)]}
+        return {
+            "enabled": self.enabled,
+            "inboxes": [str(p) for p in self.settings.inbox],
+            "schedule": self.settings.inbox_schedule,
+            "leader": leader,
+            "last_scan": iso(st["last_scan"]),
+            "next_scan": iso(st["next_scan"]) if self.enabled else None,
+            "backlog": self.db.backlog(counts),
+            "counts": counts,
+            "passes": [pass_doc(r) for r in self.db.list(limit)],
+        }
 
 
 def _sig(row: dict) -> Signature:

@@ -20,8 +20,9 @@ import hashlib
 import os
 import shutil
 import uuid
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Callable, Iterator, NamedTuple, Optional
+from typing import NamedTuple
 
 #: File suffixes of passes (lower case); ``.zarr`` folders besides.
 FILE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg", ".npy", ".zip")
@@ -89,7 +90,7 @@ def list_passes(root: Path, skip: tuple[Path, ...] = ()) -> Iterator[Path]:
                 yield p
 
 
-def signature(p: Path) -> Optional[Signature]:
+def signature(p: Path) -> Signature | None:
     """The file's (or Zarr folder's) :class:`Signature`; None if it is gone."""
     try:
         if p.is_dir():
@@ -111,7 +112,7 @@ def marker(p: Path) -> Path:
     return p.with_name(p.name + MARKER)
 
 
-def marked_done(p: Path, sig: Optional[Signature] = None) -> bool:
+def marked_done(p: Path, sig: Signature | None = None) -> bool:
     """Whether ``p``'s ``.done`` marker says it is complete: the marker exists and is not older
     than the file's last modification (``sig.mtime_ns``; for a Zarr folder its newest file). A
     marker older than its file was left by an earlier file of that name (or the file was
@@ -130,7 +131,7 @@ def settled(stable_since: float, now: float, settle_s: float, has_marker: bool) 
     return has_marker or now - stable_since >= settle_s
 
 
-def sha256_of(p: Path, on_chunk: Optional[Callable[[], None]] = None, chunk: int = CHUNK) -> str:
+def sha256_of(p: Path, on_chunk: Callable[[], None] | None = None, chunk: int = CHUNK) -> str:
     """SHA-256 (hex) of a file, read in ``chunk``-byte pieces (never the whole file in memory;
     hashlib releases the GIL on large updates, so the API keeps answering), or of a Zarr
     folder: every file in sorted relative-path order, each as ``path NUL size`` then its
@@ -162,7 +163,7 @@ def _tree(d: Path) -> Iterator[Path]:
             yield Path(dirpath) / n
 
 
-def quarantine_target(folder: Path, p: Path, key: Optional[str]) -> Path:
+def quarantine_target(folder: Path, p: Path, key: str | None) -> Path:
     """Where a bad file goes: ``folder/NAME``, or ``folder/STEM-KEY.SUFFIX`` when a different
     file of that name is already there."""
     dest = folder / p.name

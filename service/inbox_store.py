@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Any, Callable, Optional
+from collections.abc import Callable
+from typing import Any
 
 from sarship.service.inbox_files import Signature
 from sarship.service.store import INGEST, JobStore, active_ingest, insert_job, iso
@@ -79,7 +80,7 @@ class InboxStore:
 
     # ------------------------------------------------------------------ leader lease
 
-    def lead(self, owner: str, lease_s: float, now: Optional[float] = None) -> bool:
+    def lead(self, owner: str, lease_s: float, now: float | None = None) -> bool:
         """Whether ``owner`` leads the inbox loop now: it holds the lease (renewed when a third
         of it is used up) or takes it because it is free or expired. Reads first, so that
         followers do not write on every tick."""
@@ -91,16 +92,17 @@ class InboxStore:
         if not mine and st["owner"] not in (None, owner) and (st["lease_until"] or 0) > now:
             return False
         with self.jobs._tx() as c:
-            cur = c.execute("UPDATE inbox_state SET owner = ?, lease_until = ? WHERE id = 1 AND "
-                            "(owner IS NULL OR owner = ? OR lease_until IS NULL OR lease_until <= ?)",
-                            (owner, now + lease_s, owner, now))
+            cur = c.execute(
+                "UPDATE inbox_state SET owner = ?, lease_until = ? WHERE id = 1 AND "
+                "(owner IS NULL OR owner = ? OR lease_until IS NULL OR lease_until <= ?)",
+                (owner, now + lease_s, owner, now),
+            )
             return cur.rowcount == 1
 
     def release(self, owner: str) -> None:
         """Give the lease up (a clean stop), so that another process takes over at once."""
         with self.jobs._tx() as c:
-            c.execute("UPDATE inbox_state SET owner = NULL, lease_until = NULL WHERE id = 1 AND owner = ?",
-                      (owner,))
+            c.execute("UPDATE inbox_state SET owner = NULL, lease_until = NULL WHERE id = 1 AND owner = ?", (owner,))
 
     def state(self) -> dict[str, Any]:
         return dict(self.jobs._conn().execute("SELECT * FROM inbox_state WHERE id = 1").fetchone())
@@ -122,22 +124,30 @@ class InboxStore:
 
     def latest_by_path(self) -> dict[str, dict]:
         """The newest record of every path."""
-        rows = self.jobs._conn().execute(
-            "SELECT * FROM inbox_passes WHERE id IN (SELECT MAX(id) FROM inbox_passes GROUP BY path)").fetchall()
+        rows = (
+            self.jobs._conn()
+            .execute("SELECT * FROM inbox_passes WHERE id IN (SELECT MAX(id) FROM inbox_passes GROUP BY path)")
+            .fetchall()
+        )
         return {r["path"]: dict(r) for r in rows}
 
     def add_waiting(self, path: str, sig: Signature, now: float) -> None:
         """A new file (or a new version of a file already handled): ``waiting``."""
         with self.jobs._tx() as c:
-            c.execute("INSERT OR IGNORE INTO inbox_passes (path, size, mtime_ns, nfiles, stable_since, status, "
-                      "seen, updated) VALUES (?, ?, ?, ?, ?, 'waiting', ?, ?)",
-                      (path, sig.size, sig.mtime_ns, sig.files, now, now, now))
+            c.execute(
+                "INSERT OR IGNORE INTO inbox_passes (path, size, mtime_ns, nfiles, stable_since, status, "
+                "seen, updated) VALUES (?, ?, ?, ?, ?, 'waiting', ?, ?)",
+                (path, sig.size, sig.mtime_ns, sig.files, now, now, now),
+            )
 
     def changed(self, pass_id: int, sig: Signature, now: float) -> None:
         """A waiting file changed (still being written): its settle time starts again."""
         with self.jobs._tx() as c:
-            c.execute("UPDATE inbox_passes SET size = ?, mtime_ns = ?, nfiles = ?, stable_since = ?, updated = ? "
-                      "WHERE id = ? AND status = 'waiting'", (sig.size, sig.mtime_ns, sig.files, now, now, pass_id))
+            c.execute(
+                "UPDATE inbox_passes SET size = ?, mtime_ns = ?, nfiles = ?, stable_since = ?, updated = ? "
+                "WHERE id = ? AND status = 'waiting'",
+                (sig.size, sig.mtime_ns, sig.files, now, now, pass_id),
+            )
 
     def forget(self, pass_id: int) -> None:
         """A waiting file vanished before it was complete (renamed or deleted by its writer):
@@ -146,14 +156,25 @@ class InboxStore:
             c.execute("DELETE FROM inbox_passes WHERE id = ? AND status = 'waiting'", (pass_id,))
 
     def rows(self, status: str, limit: int = 1000) -> list[dict]:
-        rows = self.jobs._conn().execute("SELECT * FROM inbox_passes WHERE status = ? ORDER BY id LIMIT ?",
-                                         (status, limit)).fetchall()
+        rows = (
+            self.jobs._conn()
+            .execute("SELECT * FROM inbox_passes WHERE status = ? ORDER BY id LIMIT ?", (status, limit))
+            .fetchall()
+        )
         return [dict(r) for r in rows]
 
     # ------------------------------------------------------------------ transitions
 
-    def take(self, pass_id: int, sig: Signature, sha256: str, key: str, scene_ready: bool,
-             plan: list[dict[str, Any]], ingest_inputs: dict[str, Any]) -> Optional[str]:
+    def take(
+        self,
+        pass_id: int,
+        sig: Signature,
+        sha256: str,
+        key: str,
+        scene_ready: bool,
+        plan: list[dict[str, Any]],
+        ingest_inputs: dict[str, Any],
+    ) -> str | None:
         """A complete, hashed file becomes a pass, in one transaction: ``duplicate`` when an
         active pass holds its key; else ``ingested`` when the scene is already in the store
         (uploaded before), else ``ingesting`` with its ingest job (an accepted or running
@@ -162,46 +183,72 @@ class InboxStore:
         longer this waiting version of the file."""
         now = time.time()
         with self.jobs._tx() as c:
-            row = c.execute("SELECT * FROM inbox_passes WHERE id = ? AND status = 'waiting' AND size = ? AND "
-                            "mtime_ns = ? AND nfiles = ?", (pass_id, sig.size, sig.mtime_ns, sig.files)).fetchone()
+            row = c.execute(
+                "SELECT * FROM inbox_passes WHERE id = ? AND status = 'waiting' AND size = ? AND "
+                "mtime_ns = ? AND nfiles = ?",
+                (pass_id, sig.size, sig.mtime_ns, sig.files),
+            ).fetchone()
             if row is None:
                 return None
-            holder = c.execute("SELECT path, status FROM inbox_passes WHERE key = ? AND status IN "
-                               "('ingesting', 'ingested', 'submitted')", (key,)).fetchone()
+            holder = c.execute(
+                "SELECT path, status FROM inbox_passes WHERE key = ? AND status IN "
+                "('ingesting', 'ingested', 'submitted')",
+                (key,),
+            ).fetchone()
             if holder is not None:
-                c.execute("UPDATE inbox_passes SET status = 'duplicate', key = ?, sha256 = ?, scene_id = ?, "
-                          "reason = ?, updated = ? WHERE id = ?",
-                          (key, sha256, key, f"same content as {holder['path']} (not ingested again)", now, pass_id))
+                c.execute(
+                    "UPDATE inbox_passes SET status = 'duplicate', key = ?, sha256 = ?, scene_id = ?, "
+                    "reason = ?, updated = ? WHERE id = ?",
+                    (key, sha256, key, f"same content as {holder['path']} (not ingested again)", now, pass_id),
+                )
                 return "duplicate"
             job_id = None
             if not scene_ready:
                 job_id = active_ingest(c, key) or insert_job(c, INGEST, ingest_inputs)
             status = "ingested" if scene_ready else "ingesting"
-            c.execute("UPDATE inbox_passes SET status = ?, key = ?, sha256 = ?, scene_id = ?, ingest_job = ?, "
-                      "plan = ?, reason = ?, updated = ? WHERE id = ?",
-                      (status, key, sha256, key, job_id, json.dumps(plan),
-                       "scene already in the store" if scene_ready else "", now, pass_id))
+            c.execute(
+                "UPDATE inbox_passes SET status = ?, key = ?, sha256 = ?, scene_id = ?, ingest_job = ?, "
+                "plan = ?, reason = ?, updated = ? WHERE id = ?",
+                (
+                    status,
+                    key,
+                    sha256,
+                    key,
+                    job_id,
+                    json.dumps(plan),
+                    "scene already in the store" if scene_ready else "",
+                    now,
+                    pass_id,
+                ),
+            )
             return status
 
-    def mark(self, pass_id: int, from_status: str, to_status: str, reason: Optional[str] = None) -> bool:
+    def mark(self, pass_id: int, from_status: str, to_status: str, reason: str | None = None) -> bool:
         """``from_status`` -> ``to_status`` (with a reason); False if the row was not in
         ``from_status`` any more."""
         now = time.time()
         with self.jobs._tx() as c:
             if reason is None:
-                cur = c.execute("UPDATE inbox_passes SET status = ?, updated = ? WHERE id = ? AND status = ?",
-                                (to_status, now, pass_id, from_status))
+                cur = c.execute(
+                    "UPDATE inbox_passes SET status = ?, updated = ? WHERE id = ? AND status = ?",
+                    (to_status, now, pass_id, from_status),
+                )
             else:
-                cur = c.execute("UPDATE inbox_passes SET status = ?, reason = ?, updated = ? WHERE id = ? AND "
-                                "status = ?", (to_status, reason, now, pass_id, from_status))
+                cur = c.execute(
+                    "UPDATE inbox_passes SET status = ?, reason = ?, updated = ? WHERE id = ? AND status = ?",
+                    (to_status, reason, now, pass_id, from_status),
+                )
             return cur.rowcount == 1
 
     def set_quarantine(self, pass_id: int, dest: str) -> bool:
         """Record where an ``ingesting`` pass's file is about to be moved (before moving it,
         so that a crash mid-way finds the same destination)."""
         with self.jobs._tx() as c:
-            cur = c.execute("UPDATE inbox_passes SET quarantine = ?, updated = ? WHERE id = ? AND "
-                            "status = 'ingesting' AND quarantine IS NULL", (dest, time.time(), pass_id))
+            cur = c.execute(
+                "UPDATE inbox_passes SET quarantine = ?, updated = ? WHERE id = ? AND "
+                "status = 'ingesting' AND quarantine IS NULL",
+                (dest, time.time(), pass_id),
+            )
             return cur.rowcount == 1
 
     def submit(self, pass_id: int, inputs_of: Callable[[dict[str, Any]], tuple[str, dict[str, Any]]]) -> list[str]:
@@ -210,19 +257,25 @@ class InboxStore:
         ``inputs_of(entry) -> (process, inputs)``. The job IDs ([] if already submitted)."""
         now = time.time()
         with self.jobs._tx() as c:
-            row = c.execute("SELECT plan FROM inbox_passes WHERE id = ? AND status = 'ingested'",
-                            (pass_id,)).fetchone()
+            row = c.execute("SELECT plan FROM inbox_passes WHERE id = ? AND status = 'ingested'", (pass_id,)).fetchone()
             if row is None:
                 return []
             ids = [insert_job(c, *inputs_of(entry)) for entry in json.loads(row["plan"])]
-            c.execute("UPDATE inbox_passes SET status = 'submitted', jobs = ?, updated = ? WHERE id = ?",
-                      (json.dumps(ids), now, pass_id))
+            c.execute(
+                "UPDATE inbox_passes SET status = 'submitted', jobs = ?, updated = ? WHERE id = ?",
+                (json.dumps(ids), now, pass_id),
+            )
             return ids
 
     def to_submit(self, limit: int = 100) -> list[dict]:
         """Ingested passes with detector jobs planned and not yet created."""
-        rows = self.jobs._conn().execute("SELECT * FROM inbox_passes WHERE status = 'ingested' AND plan != '[]' "
-                                         "ORDER BY id LIMIT ?", (limit,)).fetchall()
+        rows = (
+            self.jobs._conn()
+            .execute(
+                "SELECT * FROM inbox_passes WHERE status = 'ingested' AND plan != '[]' ORDER BY id LIMIT ?", (limit,)
+            )
+            .fetchall()
+        )
         return [dict(r) for r in rows]
 
     # ------------------------------------------------------------------ reading
@@ -233,7 +286,7 @@ class InboxStore:
             out[r["status"]] = r["n"]
         return out
 
-    def backlog(self, counts: Optional[dict[str, int]] = None) -> int:
+    def backlog(self, counts: dict[str, int] | None = None) -> int:
         counts = counts if counts is not None else self.counts()
         return sum(counts.get(s, 0) for s in BACKLOG)
 
@@ -245,6 +298,14 @@ class InboxStore:
 
 def pass_doc(row: dict) -> dict[str, Any]:
     """A pass as ``GET /ingest`` lists it."""
-    return {"key": row["key"], "file": row["path"], "status": row["status"], "sceneID": row["scene_id"],
-            "jobs": json.loads(row["jobs"]), "ingestJob": row["ingest_job"], "reason": row["reason"] or None,
-            "seen": iso(row["seen"]), "updated": iso(row["updated"])}
+    return {
+        "key": row["key"],
+        "file": row["path"],
+        "status": row["status"],
+        "sceneID": row["scene_id"],
+        "jobs": json.loads(row["jobs"]),
+        "ingestJob": row["ingest_job"],
+        "reason": row["reason"] or None,
+        "seen": iso(row["seen"]),
+        "updated": iso(row["updated"]),
+    }

@@ -29,22 +29,30 @@ from __future__ import annotations
 import errno
 import multiprocessing as mp
 import signal
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any
 
-__all__ = ["IngestCrashed", "IngestRefused", "IngestTransient", "NO_SPACE", "ingest_in_child", "land_in_child",
-           "transient_fault"]
+__all__ = [
+    "IngestCrashed",
+    "IngestRefused",
+    "IngestTransient",
+    "NO_SPACE",
+    "ingest_in_child",
+    "land_in_child",
+    "transient_fault",
+]
 
 #: errno values of a write that failed for want of space (EFBIG: a file-size limit, RLIMIT_FSIZE).
 NO_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
 
 
-def transient_fault(exc: BaseException) -> Optional[OSError]:
+def transient_fault(exc: BaseException) -> OSError | None:
     """The ``OSError`` for want of space (:data:`NO_SPACE`) behind ``exc``, if any: ``exc``
     itself or an exception it was raised from or while handling (the readers turn every
     failure into :class:`InputError` but keep the original in ``__cause__``/``__context__``)."""
     seen: set[int] = set()
-    todo: list[Optional[BaseException]] = [exc]
+    todo: list[BaseException | None] = [exc]
     while todo:
         e = todo.pop()
         if e is None or id(e) in seen:
@@ -69,7 +77,7 @@ class IngestCrashed(Exception):
     """The child ended without an answer (killed, crashed) or failed unexpectedly."""
 
 
-def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb: Optional[float]) -> None:
+def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb: float | None) -> None:
     import resource
 
     if memory_mb:
@@ -91,8 +99,13 @@ def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb:
         def progress(done: int, total: int) -> None:
             conn.send(("progress", done, total))
 
-        ingest([Path(src)], Path(out), progress=progress, sidecar_root=sidecar_root,
-               limits=InputLimits(**limits, option="service"))
+        ingest(
+            [Path(src)],
+            Path(out),
+            progress=progress,
+            sidecar_root=sidecar_root,
+            limits=InputLimits(**limits, option="service"),
+        )
         conn.send(("ok",))
     except SystemExit:
         raise
@@ -100,11 +113,20 @@ def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb:
         fault = transient_fault(exc)
         if fault is not None:  # (checked first: the readers report a failed write as an InputError)
             why = str(fault.strerror or fault)
-            conn.send(("transient", f"[Errno {fault.errno}] " +
-                       (why if why.startswith("cannot write") else f"cannot write the scene: {why}")))
+            conn.send(
+                (
+                    "transient",
+                    f"[Errno {fault.errno}] "
+                    + (why if why.startswith("cannot write") else f"cannot write the scene: {why}"),
+                )
+            )
         elif isinstance(exc, MemoryError):
-            conn.send(("refused", f"'{src}': ingest needs more memory than its cap of {memory_mb:g} MiB "
-                                  "(SARSHIP_INGEST_MEMORY_MB)"))
+            conn.send(
+                (
+                    "refused",
+                    f"'{src}': ingest needs more memory than its cap of {memory_mb:g} MiB (SARSHIP_INGEST_MEMORY_MB)",
+                )
+            )
         elif isinstance(exc, _input_error()):
             msg = str(exc)
             if memory_mb and "ran out of memory" in msg:
@@ -124,8 +146,15 @@ def _input_error() -> type:
     return InputError
 
 
-def ingest_in_child(src: Path, out: Path, *, sidecar_root: Any, limits: dict, memory_mb: Optional[float],
-                    progress: Callable[[int, int], None]) -> None:
+def ingest_in_child(
+    src: Path,
+    out: Path,
+    *,
+    sidecar_root: Any,
+    limits: dict,
+    memory_mb: float | None,
+    progress: Callable[[int, int], None],
+) -> None:
     """Run the ingest of ``src`` to ``out`` in a child process (see the module docstring).
 
     ``progress(done, total)`` is called in this process for every tile the child reports; an
@@ -176,8 +205,9 @@ def _run_child(target: Callable, args: tuple, progress: Callable[[int, int], Non
     return answer
 
 
-def _land_child(conn, src: str, out: str, shape: tuple, attrs: dict, tile: int, max_bytes: int,
-                memory_mb: Optional[float]) -> None:
+def _land_child(
+    conn, src: str, out: str, shape: tuple, attrs: dict, tile: int, max_bytes: int, memory_mb: float | None
+) -> None:
     import resource
 
     if memory_mb:
@@ -208,8 +238,13 @@ def _land_child(conn, src: str, out: str, shape: tuple, attrs: dict, tile: int, 
     except SystemExit:
         raise
     except MemoryError:
-        conn.send(("refused", f"parameter 'land_mask': '{src}' needs more memory than the cap of {memory_mb:g} MiB "
-                              "(SARSHIP_INGEST_MEMORY_MB)"))
+        conn.send(
+            (
+                "refused",
+                f"parameter 'land_mask': '{src}' needs more memory than the cap of {memory_mb:g} MiB "
+                "(SARSHIP_INGEST_MEMORY_MB)",
+            )
+        )
     except Exception as exc:
         if isinstance(exc, _input_error()):
             conn.send(("refused", str(exc)))
@@ -224,8 +259,17 @@ def _land_child(conn, src: str, out: str, shape: tuple, attrs: dict, tile: int, 
         conn.close()
 
 
-def land_in_child(src: Path, out: Path, *, shape: tuple[int, int], attrs: dict, tile: int, max_bytes: int,
-                  memory_mb: Optional[float], progress: Callable[[int, int], None]) -> dict:
+def land_in_child(
+    src: Path,
+    out: Path,
+    *,
+    shape: tuple[int, int],
+    attrs: dict,
+    tile: int,
+    max_bytes: int,
+    memory_mb: float | None,
+    progress: Callable[[int, int], None],
+) -> dict:
     """Check and rasterise the ``land_mask`` FILE ``src`` onto a scene grid of ``shape`` (its
     georeference ``attrs``) in a child process under the same memory cap as an ingest: the
     file (a GeoJSON of any size up to ``max_bytes``, a hostile TIFF) is parsed there, never in
@@ -235,8 +279,12 @@ def land_in_child(src: Path, out: Path, *, shape: tuple[int, int], attrs: dict, 
     reader's one line, or beyond the memory cap) raises
     :class:`~sarship.pipeline.errors.InputError`; the data folder full,
     :class:`IngestTransient`; anything else, :class:`IngestCrashed`."""
-    answer = _run_child(_land_child, (str(src), str(out), tuple(shape), dict(attrs), int(tile), int(max_bytes),
-                                      memory_mb), progress, "sarship-land")
+    answer = _run_child(
+        _land_child,
+        (str(src), str(out), tuple(shape), dict(attrs), int(tile), int(max_bytes), memory_mb),
+        progress,
+        "sarship-land",
+    )
     if answer[0] == "ok":
         return answer[1]
     if answer[0] == "refused":

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Literal
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse
@@ -19,20 +19,20 @@ PassStatus = Literal[STATUSES]  # type: ignore[valid-type]
 
 
 class IngestSchedule(BaseModel):
-    interval_s: Optional[float] = Field(description="seconds between scans (null with a cron schedule)")
-    cron: Optional[str] = Field(description="cron expression of the scans, UTC (null with an interval)")
+    interval_s: float | None = Field(description="seconds between scans (null with a cron schedule)")
+    cron: str | None = Field(description="cron expression of the scans, UTC (null with an interval)")
 
 
 class IngestPass(BaseModel):
-    key: Optional[str] = Field(description="scene key: the first 16 hex digits of the content's SHA-256 "
-                                           "(null while waiting)")
+    key: str | None = Field(
+        description="scene key: the first 16 hex digits of the content's SHA-256 (null while waiting)"
+    )
     file: str = Field(description="the file's path in its inbox")
-    status: PassStatus = Field(description="waiting, ingesting, ingested, submitted, duplicate, quarantined "
-                                           "or failed")
-    sceneID: Optional[str] = Field(description="the scene (GET /scenes/{id}) once hashed")
+    status: PassStatus = Field(description="waiting, ingesting, ingested, submitted, duplicate, quarantined or failed")
+    sceneID: str | None = Field(description="the scene (GET /scenes/{id}) once hashed")
     jobs: list[str] = Field(description="IDs of the detector jobs submitted for this pass")
-    ingestJob: Optional[str] = Field(description="ID of the ingest job")
-    reason: Optional[str] = Field(description="why it was quarantined, failed or is a duplicate")
+    ingestJob: str | None = Field(description="ID of the ingest job")
+    reason: str | None = Field(description="why it was quarantined, failed or is a duplicate")
     seen: str = Field(description="when the file was first seen (RFC 3339)")
     updated: str = Field(description="when the record last changed (RFC 3339)")
 
@@ -41,9 +41,9 @@ class IngestState(BaseModel):
     enabled: bool = Field(description="whether this API process has inbox folders configured")
     inboxes: list[str]
     schedule: IngestSchedule
-    leader: Optional[str] = Field(description="the API process running the loop now (null: none)")
-    last_scan: Optional[str]
-    next_scan: Optional[str]
+    leader: str | None = Field(description="the API process running the loop now (null: none)")
+    last_scan: str | None
+    next_scan: str | None
     backlog: int = Field(description="files seen but not yet ingested")
     counts: dict[str, int] = Field(description="passes by status")
     passes: list[IngestPass] = Field(description="newest first")
@@ -80,5 +80,6 @@ def ingest_scan(request: Request):
     if not inbox.enabled:
         raise Problem(409, "inbox off", "no inbox folders are configured (SARSHIP_INBOX or sarship serve --inbox)")
     inbox.request_scan()
-    return JSONResponse({"status": "scan requested", "inboxes": [str(p) for p in inbox.settings.inbox]},
-                        status_code=202)
+    return JSONResponse(
+        {"status": "scan requested", "inboxes": [str(p) for p in inbox.settings.inbox]}, status_code=202
+    )

@@ -11,7 +11,7 @@ the scene routes (``service/scenes.py``) use them to find the jobs that name a s
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 from sarship.pipeline.errors import InputError
 from sarship.service.common import Problem, check_text
@@ -41,7 +41,7 @@ def scene_path(settings: Settings, scene: str) -> Path:
     return real
 
 
-def land_file_path(settings: Settings, request) -> Optional[Path]:
+def land_file_path(settings: Settings, request) -> Path | None:
     """The ``land_mask`` FILE a job names, resolved and required to lie inside an allowed scene
     folder (the service reads no other file of its host); None for none/texture. InputError
     (a 4xx for the API) otherwise."""
@@ -59,8 +59,10 @@ def land_file_path(settings: Settings, request) -> Optional[Path]:
     try:
         real = cand.resolve(strict=True)
     except (OSError, RuntimeError):
-        raise InputError(f"parameter 'land_mask': no file '{s}' (a path inside the allowed scene folders, "
-                         "or relative to the scene folder)") from None
+        raise InputError(
+            f"parameter 'land_mask': no file '{s}' (a path inside the allowed scene folders, "
+            "or relative to the scene folder)"
+        ) from None
     if not any(real == r or r in real.parents for r in settings.roots()):
         raise InputError(f"parameter 'land_mask': '{s}' is outside the allowed scene folders")
     from sarship.pipeline.land.landmask_files import check_land_path
@@ -71,7 +73,7 @@ def land_file_path(settings: Settings, request) -> Optional[Path]:
     return real
 
 
-def check_coastline(request, path: Optional[Path]) -> None:
+def check_coastline(request, path: Path | None) -> None:
     """``land_mask=coastline`` needs its package and a georeferenced scene: an InputError (a 400)
     when the job is posted rather than a failed job (``path``: the scene, None while it is still
     being ingested: then only the package is checked)."""
@@ -85,7 +87,7 @@ def check_coastline(request, path: Optional[Path]) -> None:
     check_scene(open_scene(path).attrs if path is not None else None)
 
 
-def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[JobStore] = None) -> dict:
+def validate_inputs(settings: Settings, name: str, body: Any, store: JobStore | None = None) -> dict:
     """The job's normalized inputs (:meth:`JobRequest.inputs`: what the job store keeps),
     validated now, once (so that bad input is a 400, not a failed job): the execution body's
     envelope here, the inputs by :class:`~sarship.workers.request.JobRequest` (the same model
@@ -94,7 +96,7 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
     ingest job is accepted or running (an upload still being ingested) is valid too: see
     :func:`pending_ingest`. A 400 :class:`~sarship.service.common.Problem` otherwise."""
     if not isinstance(body, dict) or not isinstance(body.get("inputs"), dict):
-        raise Problem(400, "bad request", "the body must be a JSON object {\"inputs\": {\"scene\": ..., ...}}")
+        raise Problem(400, "bad request", 'the body must be a JSON object {"inputs": {"scene": ..., ...}}')
     if body.get("response", "document") not in ("document", "raw"):
         raise Problem(400, "bad request", f"'response' must be 'document' or 'raw', got {body['response']!r}")
     if not isinstance(body.get("outputs", {}), dict):
@@ -106,7 +108,7 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: Optional[Jo
         request = JobRequest.from_inputs(name, body["inputs"])
         land_file_path(settings, request)
         try:
-            path: Optional[Path] = scene_path(settings, request.scene)
+            path: Path | None = scene_path(settings, request.scene)
         except InputError:
             path = None
             if store is None or pending_ingest(settings, store, request.scene) is None:
@@ -131,8 +133,8 @@ def check_scene_input(path: Path, request: JobRequest) -> None:
     amplitude data, a complex-channel detector on a covariance scene): the check the job
     itself makes (:func:`sarship.pipeline.tiling.inputs.detector_source`). A store that cannot be
     opened is left to the job, as for every detector."""
-    from sarship.pipeline.tiling.inputs import detector_source
     from sarship.pipeline.scene import open_scene
+    from sarship.pipeline.tiling.inputs import detector_source
 
     try:
         scene = open_scene(path)
@@ -155,7 +157,7 @@ def scene_id_like(s: str) -> bool:
     return bool(s) and s.replace("_", "").replace("-", "").isalnum()
 
 
-def pending_ingest(settings: Settings, store: JobStore, scene: str) -> Optional[dict]:
+def pending_ingest(settings: Settings, store: JobStore, scene: str) -> dict | None:
     """The accepted or running ingest job of scene id ``scene`` (an upload being ingested,
     ``POST /scenes``, or an inbox pass), if the scene is not in the scene store yet."""
     if not scene_id_like(scene):

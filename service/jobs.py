@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import shutil
 import uuid
-from typing import Literal, Optional
+from typing import Literal
 
 from fastapi import APIRouter, Query, Request
 
@@ -17,11 +17,16 @@ router = APIRouter()
 
 
 @router.get("/jobs", responses={200: {"model": JobList}})
-def jobs(request: Request, limit: int = Query(1000, ge=1, le=10000, description="most jobs listed, newest first"),
-         status: Optional[Literal[JOB_STATUSES]] = Query(None, description="only jobs in this status")):
+def jobs(
+    request: Request,
+    limit: int = Query(1000, ge=1, le=10000, description="most jobs listed, newest first"),
+    status: Literal[JOB_STATUSES] | None = Query(None, description="only jobs in this status"),
+):
     b = base_url(request)
-    return {"jobs": [status_doc(j, b) for j in store_of(request).list(limit=limit, status=status)],
-            "links": [{"href": f"{b}/jobs", "rel": "self", "type": "application/json"}]}
+    return {
+        "jobs": [status_doc(j, b) for j in store_of(request).list(limit=limit, status=status)],
+        "links": [{"href": f"{b}/jobs", "rel": "self", "type": "application/json"}],
+    }
 
 
 @router.get("/jobs/{job_id}", responses={200: {"model": StatusInfo}})
@@ -31,10 +36,20 @@ async def job(request: Request, job_id: str):
     return status_doc(job_or_404(request, job_id), base_url(request))
 
 
-@router.delete("/jobs/{job_id}", responses={200: {"model": StatusInfo, "description": (
-    "the job, dismissed: an accepted or running job is cancelled; a finished (successful or "
-    "failed) job's results are removed (its results then answer 404); a job already dismissed is "
-    "returned unchanged. The job stays in the job list with status 'dismissed'.")}, **problems(404)})
+@router.delete(
+    "/jobs/{job_id}",
+    responses={
+        200: {
+            "model": StatusInfo,
+            "description": (
+                "the job, dismissed: an accepted or running job is cancelled; a finished (successful or "
+                "failed) job's results are removed (its results then answer 404); a job already dismissed is "
+                "returned unchanged. The job stays in the job list with status 'dismissed'."
+            ),
+        },
+        **problems(404),
+    },
+)
 def dismiss(request: Request, job_id: str):
     job, before = store_of(request).dismiss(job_id)
     if job is None:

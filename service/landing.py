@@ -22,20 +22,37 @@ def landing(request: Request):
     b = base_url(request)
     if "text/html" in request.headers.get("accept", "") and request.query_params.get("f") != "json":
         return RedirectResponse(f"{b}/ui/", status_code=303)  # a browser: the web page (?f=json: this)
-    return {"title": "sarship", "description": "Ship detection in SAR scenes", "version": __version__,
-            "links": [{"href": f"{b}/", "rel": "self", "type": "application/json"},
-                      {"href": f"{b}/openapi.json", "rel": "service-desc",
-                       "type": "application/vnd.oai.openapi+json;version=3.0"},
-                      {"href": f"{b}/conformance", "rel": "http://www.opengis.net/def/rel/ogc/1.0/conformance",
-                       "type": "application/json"},
-                      {"href": f"{b}/processes", "rel": "http://www.opengis.net/def/rel/ogc/1.0/processes",
-                       "type": "application/json"},
-                      {"href": f"{b}/jobs", "rel": "http://www.opengis.net/def/rel/ogc/1.0/job-list",
-                       "type": "application/json"},
-                      # the dashboard only where the scheduler serves one (bokeh installed)
-                      *([{"href": f"{b}/dashboard", "rel": "related", "title": "Dask dashboard"}]
-                        if dashboard_link(request) else []),
-                      {"href": f"{b}/ui/", "rel": "alternate", "type": "text/html", "title": "web page"}]}
+    return {
+        "title": "sarship",
+        "description": "Ship detection in SAR scenes",
+        "version": __version__,
+        "links": [
+            {"href": f"{b}/", "rel": "self", "type": "application/json"},
+            {
+                "href": f"{b}/openapi.json",
+                "rel": "service-desc",
+                "type": "application/vnd.oai.openapi+json;version=3.0",
+            },
+            {
+                "href": f"{b}/conformance",
+                "rel": "http://www.opengis.net/def/rel/ogc/1.0/conformance",
+                "type": "application/json",
+            },
+            {
+                "href": f"{b}/processes",
+                "rel": "http://www.opengis.net/def/rel/ogc/1.0/processes",
+                "type": "application/json",
+            },
+            {"href": f"{b}/jobs", "rel": "http://www.opengis.net/def/rel/ogc/1.0/job-list", "type": "application/json"},
+            # the dashboard only where the scheduler serves one (bokeh installed)
+            *(
+                [{"href": f"{b}/dashboard", "rel": "related", "title": "Dask dashboard"}]
+                if dashboard_link(request)
+                else []
+            ),
+            {"href": f"{b}/ui/", "rel": "alternate", "type": "text/html", "title": "web page"},
+        ],
+    }
 
 
 @router.get("/conformance", responses={200: {"model": Conformance}})

@@ -11,7 +11,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Awaitable, Callable
+from collections.abc import Awaitable, Callable
+from typing import Any
 
 from sarship.service.common import problem
 
@@ -29,8 +30,9 @@ class RequestLimits:
 
     def _too_large(self, n: int | None = None):
         said = f"of {n} bytes " if n is not None else ""
-        return problem(413, "too large", f"the request body {said}exceeds the limit of {self.max_body} bytes "
-                                         f"(setting max_body_kb)")
+        return problem(
+            413, "too large", f"the request body {said}exceeds the limit of {self.max_body} bytes (setting max_body_kb)"
+        )
 
     async def __call__(self, scope: Scope, receive: Callable, send: Callable) -> None:
         if scope["type"] != "http":

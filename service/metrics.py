@@ -32,18 +32,30 @@ class _InboxFigures:
     def collect(self):
         counts = self.db.counts()
         st = self.db.state()
-        yield GaugeMetricFamily("sarship_ingest_backlog", "inbox files seen but not yet ingested (waiting for "
-                                "their writer to finish, or ingesting)", value=self.db.backlog(counts))
+        yield GaugeMetricFamily(
+            "sarship_ingest_backlog",
+            "inbox files seen but not yet ingested (waiting for their writer to finish, or ingesting)",
+            value=self.db.backlog(counts),
+        )
         g = GaugeMetricFamily("sarship_inbox_passes", "inbox passes by status", labels=["status"])
         for status, n in counts.items():
             g.add_metric([status], n)
         yield g
-        yield CounterMetricFamily("sarship_inbox_quarantined", "inbox files moved to the quarantine folder",
-                                  value=counts.get("quarantined", 0))
-        yield GaugeMetricFamily("sarship_inbox_last_scan_timestamp_seconds", "when the inbox was last scanned "
-                                "(0: never)", value=st["last_scan"] or 0.0)
-        yield GaugeMetricFamily("sarship_inbox_next_scan_timestamp_seconds", "when the next inbox scan is due "
-                                "(0: none planned)", value=st["next_scan"] or 0.0)
+        yield CounterMetricFamily(
+            "sarship_inbox_quarantined",
+            "inbox files moved to the quarantine folder",
+            value=counts.get("quarantined", 0),
+        )
+        yield GaugeMetricFamily(
+            "sarship_inbox_last_scan_timestamp_seconds",
+            "when the inbox was last scanned (0: never)",
+            value=st["last_scan"] or 0.0,
+        )
+        yield GaugeMetricFamily(
+            "sarship_inbox_next_scan_timestamp_seconds",
+            "when the next inbox scan is due (0: none planned)",
+            value=st["next_scan"] or 0.0,
+        )
 
 
 class Metrics:
@@ -52,13 +64,16 @@ class Metrics:
         r = self.registry
         self.build = Gauge("sarship_build_info", "build information", ["version"], registry=r)
         self.build.labels(__version__).set(1)
-        self.duration = Histogram("sarship_job_duration_seconds", "wall time of finished jobs",
-                                  ["process", "status"], registry=r,
-                                  buckets=(0.5, 1, 2, 5, 10, 30, 60, 120, 300, 600, 1800, 3600))
+        self.duration = Histogram(
+            "sarship_job_duration_seconds",
+            "wall time of finished jobs",
+            ["process", "status"],
+            registry=r,
+            buckets=(0.5, 1, 2, 5, 10, 30, 60, 120, 300, 600, 1800, 3600),
+        )
         self.tiles = Counter("sarship_tiles_processed", "tiles processed by this API process's jobs", registry=r)
         self.pixels = Counter("sarship_pixels_processed", "scene pixels processed by successful jobs", registry=r)
-        self.requests = Counter("sarship_jobs_submitted", "jobs accepted by this API process", ["process"],
-                                registry=r)
+        self.requests = Counter("sarship_jobs_submitted", "jobs accepted by this API process", ["process"], registry=r)
 
     def watch_store(self, store) -> None:
         """Report the job counts and the inbox figures of the shared store."""

@@ -16,7 +16,7 @@ The API as users see it is described in ``docs/interfaces/rest.md``.
 from __future__ import annotations
 
 import json
-from typing import Any, Literal, Optional
+from typing import Any, Literal
 
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
@@ -42,9 +42,9 @@ class Problem(BaseModel):
 class Link(BaseModel):
     model_config = ConfigDict(extra="allow")
     href: str
-    rel: Optional[str] = None
-    type: Optional[str] = None
-    title: Optional[str] = None
+    rel: str | None = None
+    type: str | None = None
+    title: str | None = None
 
 
 class Landing(BaseModel):
@@ -76,8 +76,9 @@ class ProcessList(BaseModel):
 
 
 class ProcessDescription(ProcessSummary):
-    inputs: dict[str, dict[str, Any]] = Field(description="input name -> title, description, JSON schema, "
-                                                          "minOccurs, maxOccurs")
+    inputs: dict[str, dict[str, Any]] = Field(
+        description="input name -> title, description, JSON schema, minOccurs, maxOccurs"
+    )
     outputs: dict[str, dict[str, Any]]
 
 
@@ -89,12 +90,14 @@ class StatusInfo(BaseModel):
     processID: str
     type: Literal["process"]
     status: Literal[JOB_STATUSES]  # type: ignore[valid-type]
-    message: str = Field(description="the failure reason or other news, one line; an accepted job whose scene "
-                                     "is still being ingested says 'waiting for scene ID (ingest job JOBID)'")
+    message: str = Field(
+        description="the failure reason or other news, one line; an accepted job whose scene "
+        "is still being ingested says 'waiting for scene ID (ingest job JOBID)'"
+    )
     progress: int = Field(ge=0, le=100)
     created: str
-    started: Optional[str]
-    finished: Optional[str]
+    started: str | None
+    finished: str | None
     updated: str
     attempts: int = Field(ge=0, description="times the job was started (a job whose runner died is re-run)")
     links: list[Link]
@@ -118,59 +121,80 @@ Results = dict[str, ResultLink]
 #: in ``inputs``; results are always passed by reference in a results document.
 EXECUTE_BODY: dict[str, Any] = {
     "required": True,
-    "content": {"application/json": {"schema": {
-        "type": "object",
-        "required": ["inputs"],
-        "properties": {
-            "inputs": {
+    "content": {
+        "application/json": {
+            "schema": {
                 "type": "object",
-                "required": ["scene"],
-                "description": "'scene' (a scene id or a path inside an allowed folder), optional 'device' and "
-                               "'channel', and the detector's parameters (GET /processes/{processId} lists them "
-                               "with their schemas; docs/interfaces/rest.md and docs/algorithms/ in the sarship "
-                               "repository describe them)",
+                "required": ["inputs"],
                 "properties": {
-                    "scene": {"type": "string", "minLength": 1},
-                    "device": {"type": "string", "enum": list(DEVICES), "default": "auto"},
-                    "channel": {"type": ["string", "null"]},
+                    "inputs": {
+                        "type": "object",
+                        "required": ["scene"],
+                        "description": "'scene' (a scene id or a path inside an allowed folder), optional 'device' and "
+                        "'channel', and the detector's parameters (GET /processes/{processId} lists them "
+                        "with their schemas; docs/interfaces/rest.md and docs/algorithms/ in the sarship "
+                        "repository describe them)",
+                        "properties": {
+                            "scene": {"type": "string", "minLength": 1},
+                            "device": {"type": "string", "enum": list(DEVICES), "default": "auto"},
+                            "channel": {"type": ["string", "null"]},
+                        },
+                        "additionalProperties": {"type": ["number", "string", "null"]},
+                    },
+                    "outputs": {
+                        "type": "object",
+                        "description": "accepted and ignored: every output is returned "
+                        "by reference in the results document",
+                    },
+                    "response": {
+                        "type": "string",
+                        "enum": ["document", "raw"],
+                        "default": "document",
+                        "description": "accepted; the results are always a document of links",
+                    },
                 },
-                "additionalProperties": {"type": ["number", "string", "null"]},
-            },
-            "outputs": {"type": "object", "description": "accepted and ignored: every output is returned "
-                                                        "by reference in the results document"},
-            "response": {"type": "string", "enum": ["document", "raw"], "default": "document",
-                         "description": "accepted; the results are always a document of links"},
-        },
-    }}},
+            }
+        }
+    },
 }
 
-PREFER_DOC = ("'respond-async' (default: 201 and the job status) or 'respond-sync' (wait for the job and answer "
-              "200 with the results document)")
+PREFER_DOC = (
+    "'respond-async' (default: 201 and the job status) or 'respond-sync' (wait for the job and answer "
+    "200 with the results document)"
+)
 
 
 def problems(*codes: int) -> dict[int | str, dict[str, Any]]:
     """``responses=`` entries: the given statuses answer a problem document."""
-    text = {400: "invalid request (the detail names the input)", 401: "a bearer token is needed",
-            403: "the token is not valid", 404: "no such resource", 413: "the request body is too large",
-            422: "the job did not succeed",
-            503: "too many synchronous executions waiting, or the job store is busy (see Retry-After)",
-            507: "the server's data folder is full"}
+    text = {
+        400: "invalid request (the detail names the input)",
+        401: "a bearer token is needed",
+        403: "the token is not valid",
+        404: "no such resource",
+        413: "the request body is too large",
+        422: "the job did not succeed",
+        503: "too many synchronous executions waiting, or the job store is busy (see Retry-After)",
+        507: "the server's data folder is full",
+    }
     return {c: _problem_response(text.get(c, "problem")) for c in codes}
 
 
-def media(media_type: str, description: str, status: int = 200, schema: Optional[dict] = None) -> dict[int, Any]:
+def media(media_type: str, description: str, status: int = 200, schema: dict | None = None) -> dict[int, Any]:
     """``responses=`` entry of a route that answers something other than JSON (a file, an
     image, Prometheus text): its media type replaces FastAPI's default ``application/json``."""
-    return {status: {"description": description,
-                     "content": {media_type: {"schema": schema or {"type": "string", "format": "binary"}}}}}
+    return {
+        status: {
+            "description": description,
+            "content": {media_type: {"schema": schema or {"type": "string", "format": "binary"}}},
+        }
+    }
 
 
 def _problem_response(description: str) -> dict[str, Any]:
     return {"description": description, "content": {PROBLEM_MEDIA: {"schema": {"$ref": PROBLEM_REF}}}}
 
 
-def install(app: FastAPI, tokens: bool = False, protect_reads: bool = False,
-            open_paths: tuple[str, ...] = ()) -> None:
+def install(app: FastAPI, tokens: bool = False, protect_reads: bool = False, open_paths: tuple[str, ...] = ()) -> None:
     """Replace ``app.openapi`` by the generated schema corrected for this service, built once:
 
     - FastAPI's ``422`` ``HTTPValidationError`` becomes the ``400`` problem document the
@@ -191,8 +215,12 @@ def install(app: FastAPI, tokens: bool = False, protect_reads: bool = False,
             for method, op in item.items():
                 if not isinstance(op, dict) or "responses" not in op:
                     continue
-                _fix_operation(path, method, op, tokens and path not in open_paths
-                               and (protect_reads or method not in ("get", "head", "options")))
+                _fix_operation(
+                    path,
+                    method,
+                    op,
+                    tokens and path not in open_paths and (protect_reads or method not in ("get", "head", "options")),
+                )
         if "#/components/schemas/HTTPValidationError" not in json.dumps(schema.get("paths", {})):
             schemas.pop("HTTPValidationError", None)
             schemas.pop("ValidationError", None)

@@ -16,7 +16,6 @@ import socket
 import sqlite3
 import tempfile
 from pathlib import Path
-from typing import Optional
 
 from sarship.pipeline.errors import InputError
 from sarship.service.settings import Settings
@@ -59,11 +58,12 @@ def check_listen(host: str, port: int) -> None:
         try:
             s.bind(addr)
         except OSError as exc:
-            raise InputError(f"cannot listen on {host}:{port}: {exc.strerror or exc} "
-                             "(setting 'host' / 'port')") from None
+            raise InputError(
+                f"cannot listen on {host}:{port}: {exc.strerror or exc} (setting 'host' / 'port')"
+            ) from None
 
 
-def is_loopback(host: str) -> Optional[bool]:
+def is_loopback(host: str) -> bool | None:
     """Whether every address ``host`` resolves to is a loopback address (127.0.0.0/8, ``::1``);
     ``0.0.0.0``, ``::`` and an empty host are every interface: False. None when ``host`` does
     not resolve (:func:`check_listen` names it)."""
@@ -85,9 +85,11 @@ def check_exposure(settings: Settings) -> None:
     and dismiss jobs and upload scenes."""
     if settings.tokens or settings.allow_unauthenticated or is_loopback(settings.host) is not False:
         return  # (a host that does not resolve: check_listen says so)
-    raise InputError(f"refusing to serve on '{settings.host}' (reachable from other machines) without tokens: "
-                     "set SARSHIP_TOKENS, listen on 127.0.0.1, or pass --allow-unauthenticated "
-                     "(SARSHIP_ALLOW_UNAUTHENTICATED=1) to serve without them")
+    raise InputError(
+        f"refusing to serve on '{settings.host}' (reachable from other machines) without tokens: "
+        "set SARSHIP_TOKENS, listen on 127.0.0.1, or pass --allow-unauthenticated "
+        "(SARSHIP_ALLOW_UNAUTHENTICATED=1) to serve without them"
+    )
 
 
 def check_scheduler(address: str) -> None:

@@ -11,18 +11,24 @@ from __future__ import annotations
 
 import asyncio
 import time
-from typing import Any, Optional
+from typing import Any
 
 import anyio
 from fastapi import APIRouter, Header, Path, Request
 from fastapi.responses import JSONResponse
 
 from sarship.pipeline import __version__, detectors
-from sarship.service.common import (Problem, base_url, parse_json_body, results_doc, settings_of, status_doc,
-                                    store_of)
+from sarship.service.common import Problem, base_url, parse_json_body, results_doc, settings_of, status_doc, store_of
 from sarship.service.job_inputs import pending_ingest, validate_inputs
-from sarship.service.openapi import EXECUTE_BODY, PREFER_DOC, ProcessDescription, ProcessList, Results, StatusInfo
-from sarship.service.openapi import problems
+from sarship.service.openapi import (
+    EXECUTE_BODY,
+    PREFER_DOC,
+    ProcessDescription,
+    ProcessList,
+    Results,
+    StatusInfo,
+    problems,
+)
 from sarship.service.store import FINAL, JobStore
 from sarship.workers.request import DEVICES
 
@@ -30,11 +36,20 @@ router = APIRouter()
 
 #: Inputs every process takes besides its detector parameters.
 COMMON_INPUTS = {
-    "scene": {"title": "scene", "description": "scene id (uploaded) or path of a scene store inside an allowed folder",
-              "schema": {"type": "string"}, "minOccurs": 1, "maxOccurs": 1},
-    "device": {"title": "device", "description": "where tiles run: auto (GPU workers if any), gpu or cpu",
-               "schema": {"type": "string", "enum": list(DEVICES), "default": "auto"},
-               "minOccurs": 0, "maxOccurs": 1},
+    "scene": {
+        "title": "scene",
+        "description": "scene id (uploaded) or path of a scene store inside an allowed folder",
+        "schema": {"type": "string"},
+        "minOccurs": 1,
+        "maxOccurs": 1,
+    },
+    "device": {
+        "title": "device",
+        "description": "where tiles run: auto (GPU workers if any), gpu or cpu",
+        "schema": {"type": "string", "enum": list(DEVICES), "default": "auto"},
+        "minOccurs": 0,
+        "maxOccurs": 1,
+    },
 }
 PROCESS_PARAM = Path(description="the process (detector) id", json_schema_extra={"enum": detectors.names()})
 LOCATION_HEADER = {"description": "the job's status URL", "schema": {"type": "string"}}
@@ -43,10 +58,15 @@ LOCATION_HEADER = {"description": "the job's status URL", "schema": {"type": "st
 def process_summary(name: str, base: str) -> dict:
     """The process list's entry of detector ``name``."""
     spec = detectors.get(name)
-    return {"id": name, "title": name, "description": spec.summary, "version": __version__,
-            "jobControlOptions": ["async-execute", "sync-execute", "dismiss"],
-            "outputTransmission": ["reference"],
-            "links": [{"href": f"{base}/processes/{name}", "rel": "self", "type": "application/json"}]}
+    return {
+        "id": name,
+        "title": name,
+        "description": spec.summary,
+        "version": __version__,
+        "jobControlOptions": ["async-execute", "sync-execute", "dismiss"],
+        "outputTransmission": ["reference"],
+        "links": [{"href": f"{base}/processes/{name}", "rel": "self", "type": "application/json"}],
+    }
 
 
 def process_description(name: str, base: str) -> dict:
@@ -60,11 +80,22 @@ def process_description(name: str, base: str) -> dict:
         prop = dict(prop)
         if defs:
             prop["$defs"] = defs
-        inputs[key] = {"title": prop.get("title", key), "description": prop.get("description", ""),
-                       "schema": prop, "minOccurs": 0, "maxOccurs": 1}
-    return {**process_summary(name, base), "reference": spec.reference, "inputs": inputs,
-            "outputs": {k: {"title": k, "schema": {"type": "string", "contentMediaType": v["type"]}}
-                        for k, v in results_doc({"id": "ID"}, base).items()}}
+        inputs[key] = {
+            "title": prop.get("title", key),
+            "description": prop.get("description", ""),
+            "schema": prop,
+            "minOccurs": 0,
+            "maxOccurs": 1,
+        }
+    return {
+        **process_summary(name, base),
+        "reference": spec.reference,
+        "inputs": inputs,
+        "outputs": {
+            k: {"title": k, "schema": {"type": "string", "contentMediaType": v["type"]}}
+            for k, v in results_doc({"id": "ID"}, base).items()
+        },
+    }
 
 
 def known_process(name: str) -> None:
@@ -76,8 +107,10 @@ def known_process(name: str) -> None:
 @router.get("/processes", responses={200: {"model": ProcessList}})
 def processes(request: Request):
     b = base_url(request)
-    return {"processes": [process_summary(n, b) for n in detectors.names()],
-            "links": [{"href": f"{b}/processes", "rel": "self", "type": "application/json"}]}
+    return {
+        "processes": [process_summary(n, b) for n in detectors.names()],
+        "links": [{"href": f"{b}/processes", "rel": "self", "type": "application/json"}],
+    }
 
 
 @router.get("/processes/{process_id}", responses={200: {"model": ProcessDescription}, **problems(404)})
@@ -86,18 +119,33 @@ def process(request: Request, process_id: str = PROCESS_PARAM):
     return process_description(process_id, base_url(request))
 
 
-@router.post("/processes/{process_id}/execution", status_code=201,
-             responses={201: {"model": StatusInfo, "description": "job accepted (asynchronous execution); a job "
-                                                               "for a scene id whose upload is still being "
-                                                               "ingested waits for that ingest job",
-                              "headers": {"Location": LOCATION_HEADER}},
-                        200: {"model": Results, "description": "the results document (Prefer: respond-sync)",
-                              "headers": {"Location": LOCATION_HEADER}},
-                        **problems(400, 404, 413, 422, 503, 507)},
-             openapi_extra={"requestBody": EXECUTE_BODY})
-async def execute(request: Request, process_id: str = PROCESS_PARAM,
-                  prefer: Optional[str] = Header(None, alias="Prefer", description=PREFER_DOC,
-                                                 examples=["respond-async", "respond-sync"])):
+@router.post(
+    "/processes/{process_id}/execution",
+    status_code=201,
+    responses={
+        201: {
+            "model": StatusInfo,
+            "description": "job accepted (asynchronous execution); a job "
+            "for a scene id whose upload is still being "
+            "ingested waits for that ingest job",
+            "headers": {"Location": LOCATION_HEADER},
+        },
+        200: {
+            "model": Results,
+            "description": "the results document (Prefer: respond-sync)",
+            "headers": {"Location": LOCATION_HEADER},
+        },
+        **problems(400, 404, 413, 422, 503, 507),
+    },
+    openapi_extra={"requestBody": EXECUTE_BODY},
+)
+async def execute(
+    request: Request,
+    process_id: str = PROCESS_PARAM,
+    prefer: str | None = Header(
+        None, alias="Prefer", description=PREFER_DOC, examples=["respond-async", "respond-sync"]
+    ),
+):
     known_process(process_id)
     settings = settings_of(request)
     # (the body is at most max_body_kb here: service/limits.py); nesting depth checked before parsing
@@ -110,10 +158,14 @@ async def execute(request: Request, process_id: str = PROCESS_PARAM,
     state = request.app.state
     if state.sync_waits >= settings.max_sync_waits:
         # each waiting request holds a connection: beyond the cap, before any job is created
-        raise Problem(503, "too many synchronous executions",
-                      f"{state.sync_waits} 'Prefer: respond-sync' executions are waiting "
-                      f"(at most {settings.max_sync_waits}, setting max_sync_waits): try again later, "
-                      "or execute asynchronously and poll the job", {"Retry-After": "10"})
+        raise Problem(
+            503,
+            "too many synchronous executions",
+            f"{state.sync_waits} 'Prefer: respond-sync' executions are waiting "
+            f"(at most {settings.max_sync_waits}, setting max_sync_waits): try again later, "
+            "or execute asynchronously and poll the job",
+            {"Retry-After": "10"},
+        )
     state.sync_waits += 1  # (taken before the job is created: the cap holds under a burst)
     try:
         job = await create_job(request, st, process_id, inputs)
@@ -122,8 +174,9 @@ async def execute(request: Request, process_id: str = PROCESS_PARAM,
         state.sync_waits -= 1
     b = base_url(request)
     if job["status"] == "successful":
-        return JSONResponse(results_doc(job, b), headers={"Preference-Applied": "respond-sync",
-                                                          "Location": f"{b}/jobs/{job['id']}"})
+        return JSONResponse(
+            results_doc(job, b), headers={"Preference-Applied": "respond-sync", "Location": f"{b}/jobs/{job['id']}"}
+        )
     if job["status"] in FINAL:
         raise Problem(422, f"job {job['status']}", job["message"] or job["status"])
     return JSONResponse(status_doc(job, b), status_code=201, headers={"Location": f"{b}/jobs/{job['id']}"})

@@ -30,9 +30,9 @@ from __future__ import annotations
 import json
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -81,7 +81,8 @@ def display_scale(attrs: dict) -> str:
     if isinstance(sources, str):
         sources = [sources]
     eight_bit = str(attrs.get("sample_dtype", "")) in ("uint8", "int8") or any(
-        str(f).lower().endswith(EIGHT_BIT_FILES) for f in sources)
+        str(f).lower().endswith(EIGHT_BIT_FILES) for f in sources
+    )
     if not eight_bit:
         return "db"
     return "amplitude" if str(attrs.get("quantity", "")).lower().startswith("amplitude") else "linear"
@@ -93,8 +94,8 @@ def job_run(job_dir: Path) -> dict:
 
 def scene_source(job_dir: Path) -> Source:
     """The scene band a job's quicklooks show (see the module doc)."""
-    from sarship.pipeline.tiling.inputs import intensity_source
     from sarship.pipeline.scene import open_scene
+    from sarship.pipeline.tiling.inputs import intensity_source
 
     run = job_run(job_dir)
     scene = open_scene(run["scene"]["path"])
@@ -173,7 +174,7 @@ def _decimate(read, shape: tuple[int, int], step: int) -> np.ndarray:
 
 
 _mem_lock = threading.Lock()
-_mem: "OrderedDict[tuple, object]" = OrderedDict()
+_mem: OrderedDict[tuple, object] = OrderedDict()
 
 
 def _memo(key: tuple, make: Callable[[], object], size: int = 32):
@@ -210,16 +211,33 @@ def job_stretch(job_dir: Path) -> dict:
         pct = PERCENTILES[src.scale]
         lo, hi = percentile_range(lev, *pct)
         build_once(_base_path(job_dir, BASE_MAX), lambda t: _save_npy(t, stretch(lev, lo, hi)))
-        tmp.write_text(json.dumps({"lo": lo, "hi": hi, "scale": src.scale, "percentiles": list(pct), "step": step,
-                                   "path": src.path, "var": src.var, "transform": src.transform,
-                                   "shape": list(src.shape)}))
+        tmp.write_text(
+            json.dumps(
+                {
+                    "lo": lo,
+                    "hi": hi,
+                    "scale": src.scale,
+                    "percentiles": list(pct),
+                    "step": step,
+                    "path": src.path,
+                    "var": src.var,
+                    "transform": src.transform,
+                    "shape": list(src.shape),
+                }
+            )
+        )
 
     return _memo(("stretch", str(out)), lambda: json.loads(build_once(out, build).read_text()))
 
 
 def source_of(meta: dict) -> Source:
-    return Source(meta["path"], meta["var"], meta["transform"], (int(meta["shape"][0]), int(meta["shape"][1])),
-                  meta.get("scale", "db"))
+    return Source(
+        meta["path"],
+        meta["var"],
+        meta["transform"],
+        (int(meta["shape"][0]), int(meta["shape"][1])),
+        meta.get("scale", "db"),
+    )
 
 
 def grey(src: Source, x: np.ndarray, meta: dict) -> np.ndarray:

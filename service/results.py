@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import contextlib
 import json
-from typing import Any, Callable, Iterator, Optional
+from collections.abc import Callable, Iterator
+from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
@@ -22,12 +23,20 @@ from sarship.service.store import iso
 router = APIRouter()
 
 COG = "image/tiff; application=geotiff; profile=cloud-optimized"
-_IMMUTABLE = {"Cache-Control": {"description": "immutable: job outputs never change", "schema": {"type": "string"}},
-              "ETag": {"description": "job and product", "schema": {"type": "string"}}}
-_MASK_DOC = {200: {"description": "the mask: a Cloud-Optimized GeoTIFF (f=tif, default) or a zipped Zarr v3 store "
-                                  "(f=zarr)", "headers": _IMMUTABLE,
-                   "content": {COG: {"schema": {"type": "string", "format": "binary"}},
-                               "application/zip": {"schema": {"type": "string", "format": "binary"}}}}}
+_IMMUTABLE = {
+    "Cache-Control": {"description": "immutable: job outputs never change", "schema": {"type": "string"}},
+    "ETag": {"description": "job and product", "schema": {"type": "string"}},
+}
+_MASK_DOC = {
+    200: {
+        "description": "the mask: a Cloud-Optimized GeoTIFF (f=tif, default) or a zipped Zarr v3 store (f=zarr)",
+        "headers": _IMMUTABLE,
+        "content": {
+            COG: {"schema": {"type": "string", "format": "binary"}},
+            "application/zip": {"schema": {"type": "string", "format": "binary"}},
+        },
+    }
+}
 _PNG_DOC = {200: {**media("image/png", "PNG image")[200], "headers": _IMMUTABLE}}
 
 #: ``f`` values of GET /jobs/{id}/results/mask (the OGC API convention for a format choice:
@@ -41,11 +50,13 @@ def _job_dir(request: Request, job_id: str):
 
 def _cache_headers(request: Request, job: dict, tag: str) -> dict:
     scope = "private" if settings_of(request).protect_reads else "public"
-    return {"Cache-Control": f"{scope}, max-age=31536000, immutable",
-            "ETag": f'"{job["id"]}-{int((job["finished"] or 0) * 1000)}-{tag}"'}
+    return {
+        "Cache-Control": f"{scope}, max-age=31536000, immutable",
+        "ETag": f'"{job["id"]}-{int((job["finished"] or 0) * 1000)}-{tag}"',
+    }
 
 
-def _not_modified(request: Request, headers: dict) -> Optional[Response]:
+def _not_modified(request: Request, headers: dict) -> Response | None:
     inm = request.headers.get("if-none-match")
     if inm and (inm.strip() == "*" or headers["ETag"] in [t.strip().removeprefix("W/") for t in inm.split(",")]):
         return Response(status_code=304, headers=headers)
@@ -72,14 +83,18 @@ def results(request: Request, job_id: str):
     doc = results_doc(job, b)
     if _map_formats(request, job_id):  # GeoPackage / KML of the detections (georeferenced scene, gis extra)
         u = f"{b}/jobs/{job_id}/results/detections"
-        doc.update({f"detections-{f}": {"href": f"{u}?f={f}", "type": t} for f, t in DETECTION_MEDIA.items()
-                    if f != "geojson"})
+        doc.update(
+            {f"detections-{f}": {"href": f"{u}?f={f}", "type": t} for f, t in DETECTION_MEDIA.items() if f != "geojson"}
+        )
     return doc
 
 
 #: ``f`` values of GET /jobs/{id}/results/detections and their media types
-DETECTION_MEDIA = {"geojson": "application/geo+json", "gpkg": "application/geopackage+sqlite3",
-                   "kml": "application/vnd.google-earth.kml+xml"}
+DETECTION_MEDIA = {
+    "geojson": "application/geo+json",
+    "gpkg": "application/geopackage+sqlite3",
+    "kml": "application/vnd.google-earth.kml+xml",
+}
 
 
 def _map_formats(request: Request, job_id: str) -> bool:
@@ -96,11 +111,17 @@ def _map_formats(request: Request, job_id: str) -> bool:
     return bool(attrs.get("gcps") or (attrs.get("crs") and attrs.get("transform") is not None))
 
 
-_DETECTIONS_DOC = {200: {"description": "detected ships: a GeoJSON FeatureCollection (f=geojson, default), a "
-                                        "GeoPackage (f=gpkg) or KML (f=kml) of their WGS84 outlines",
-                         "content": {"application/geo+json": {"schema": {"type": "object"}},
-                                     "application/geopackage+sqlite3": {"schema": {"type": "string", "format": "binary"}},
-                                     "application/vnd.google-earth.kml+xml": {"schema": {"type": "string"}}}}}
+_DETECTIONS_DOC = {
+    200: {
+        "description": "detected ships: a GeoJSON FeatureCollection (f=geojson, default), a "
+        "GeoPackage (f=gpkg) or KML (f=kml) of their WGS84 outlines",
+        "content": {
+            "application/geo+json": {"schema": {"type": "object"}},
+            "application/geopackage+sqlite3": {"schema": {"type": "string", "format": "binary"}},
+            "application/vnd.google-earth.kml+xml": {"schema": {"type": "string"}},
+        },
+    }
+}
 
 
 @router.get("/jobs/{job_id}/results/detections", responses=_DETECTIONS_DOC)
@@ -117,8 +138,9 @@ def detections_out(request: Request, job_id: str, f: str = "geojson"):
     job = finished(request, job_id)
     d = _job_dir(request, job_id)
     if fmt == "geojson":
-        return FileResponse(d / "detections.geojson", media_type="application/geo+json",
-                            filename=f"{job_id}-detections.geojson")
+        return FileResponse(
+            d / "detections.geojson", media_type="application/geo+json", filename=f"{job_id}-detections.geojson"
+        )
     from sarship.pipeline.products import export
 
     try:
@@ -130,8 +152,12 @@ def detections_out(request: Request, job_id: str, f: str = "geojson"):
     if nm is not None:
         return nm
     try:
-        out = build_once(d / f"detections.{fmt}", lambda tmp: export.write(
-            export.read_detections(d / "detections.geojson"), tmp, source=f"job {job_id}", fmt=fmt))
+        out = build_once(
+            d / f"detections.{fmt}",
+            lambda tmp: export.write(
+                export.read_detections(d / "detections.geojson"), tmp, source=f"job {job_id}", fmt=fmt
+            ),
+        )
     except InputError as exc:  # the scene had no georeference: no outlines to map
         raise Problem(404, "no such result", str(exc)) from None
     return FileResponse(out, media_type=DETECTION_MEDIA[fmt], filename=f"{job_id}-detections.{fmt}", headers=headers)
@@ -180,13 +206,16 @@ def mask_out(request: Request, job_id: str, f: str = "tif"):
         return nm
     d = _job_dir(request, job_id)
     if fmt == "zarr":
-        return FileResponse(mask_zarr_zip(d), media_type="application/zip", filename=f"{job_id}-mask.zarr.zip",
-                            headers=headers)
+        return FileResponse(
+            mask_zarr_zip(d), media_type="application/zip", filename=f"{job_id}-mask.zarr.zip", headers=headers
+        )
     return FileResponse(mask_cog(d), media_type=COG, filename=f"{job_id}-mask.tif", headers=headers)
 
 
-@router.get("/jobs/{job_id}/results/stac",
-            responses=media("application/geo+json", "the job's STAC 1.0.0 Item", schema={"type": "object"}))
+@router.get(
+    "/jobs/{job_id}/results/stac",
+    responses=media("application/geo+json", "the job's STAC 1.0.0 Item", schema={"type": "object"}),
+)
 def stac_out(request: Request, job_id: str):
     """The job's STAC Item (application/geo+json), see :mod:`sarship.service.stac`."""
     from sarship.service.stac import stac_item
@@ -259,7 +288,7 @@ def tiles_json(request: Request, job_id: str):
 
 
 @router.get("/jobs/{job_id}/tiles/{z}/{x}/{y}.png", responses=_PNG_DOC)
-def tile(request: Request, job_id: str, z: int, x: int, y: int, layers: Optional[str] = None):
+def tile(request: Request, job_id: str, z: int, x: int, y: int, layers: str | None = None):
     """XYZ tile (z, x, y) of the job's quicklook: 256 x 256 RGBA PNG, ``layers`` a comma list of
     ``scene``, ``mask`` (default both)."""
     from sarship.service.tiles import cached_tile, max_zoom, parse_layers, tile_counts

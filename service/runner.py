@@ -40,7 +40,7 @@ import traceback
 import uuid
 from asyncio import CancelledError
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 from sarship.pipeline.errors import InputError
 from sarship.service.job_inputs import land_file_path, scene_path
@@ -60,7 +60,7 @@ class Dismissed(Exception):
     """The job was dismissed (or re-claimed elsewhere) while it ran."""
 
 
-def transient_reason(exc: BaseException, client=None) -> Optional[str]:
+def transient_reason(exc: BaseException, client=None) -> str | None:
     """Why ``exc`` is a fault of the service rather than of the job's input, or None: a write
     that failed for want of space (``ENOSPC``, ``EDQUOT``, ``EFBIG``, also behind an
     :class:`InputError`), a busy, locked or full job store, or a Dask scheduler that cannot
@@ -82,8 +82,9 @@ def transient_reason(exc: BaseException, client=None) -> Optional[str]:
         CommClosedError = ConnectionError  # noqa: N806
     from concurrent.futures import CancelledError as FuturesCancelled  # (distributed's FutureCancelledError)
 
-    if isinstance(exc, (CommClosedError, ConnectionError, FuturesCancelled, CancelledError)) or \
-            (client is not None and getattr(client, "status", "running") not in ("running", None)):
+    if isinstance(exc, (CommClosedError, ConnectionError, FuturesCancelled, CancelledError)) or (
+        client is not None and getattr(client, "status", "running") not in ("running", None)
+    ):
         return f"the Dask scheduler is unreachable: {type(exc).__name__}: {exc}"
     return None
 
@@ -140,8 +141,12 @@ class Runner:
             for job_id, attempt in ids.items():
                 try:
                     if not self.store.renew(job_id, self.owner, self.settings.lease_s, attempt=attempt):
-                        log.info("job %s (attempt %d): no longer held by this runner (finished, dismissed, or "
-                                 "taken over after its lease lapsed: then it publishes nothing)", job_id, attempt)
+                        log.info(
+                            "job %s (attempt %d): no longer held by this runner (finished, dismissed, or "
+                            "taken over after its lease lapsed: then it publishes nothing)",
+                            job_id,
+                            attempt,
+                        )
                 except Exception:  # a busy store: the next beat tries again
                     log.exception("renewing the lease of job %s failed", job_id)
             if time.time() - last_sweep >= self.settings.lease_s:
@@ -151,7 +156,7 @@ class Runner:
                 except Exception:
                     log.exception("sweeping temporary scene stores failed")
 
-    def sweep_partials(self, scene_id: Optional[str] = None) -> list[str]:
+    def sweep_partials(self, scene_id: str | None = None) -> list[str]:
         """Remove the temporary stores in ``DATA/scenes`` (of ``scene_id``, or of every scene)
         of scenes the service ingests (an ingest job names them) that no runner writes now: no
         ingest job of the scene is running under a live lease. Listed before the store is
@@ -212,8 +217,9 @@ class Runner:
         delay = min(self.settings.retry_s * 2 ** min(n - 1, 30), self.settings.retry_max_s)
         log.warning("job %s (attempt %d): %s; retrying in %g s", job["id"], n, why, delay)
         try:
-            self.store.retry_later(job["id"], self.owner, n, delay,
-                                   self._public(f"{why}; retrying in {delay:g} s (attempt {n})"))
+            self.store.retry_later(
+                job["id"], self.owner, n, delay, self._public(f"{why}; retrying in {delay:g} s (attempt {n})")
+            )
         except Exception:  # the store itself is unavailable: the lease lapses and the job runs again
             log.exception("job %s: could not record the retry", job["id"])
 
@@ -272,16 +278,37 @@ class Runner:
             # staged once: the run writes its outputs (run.json naming DATA/jobs/ID) in its temporary
             # folder, which is published by the transaction that finishes the job (fenced: a stale
             # attempt publishes nothing)
-            run = run_request(request.model_copy(update={"scene": str(scene)}), out_dir=out_dir,
-                              client=self.client, progress=False, on_tile=on_tile, overwrite=True,
-                              publish_with=lambda tmp, _out: staged.append(tmp), land_source=land_source)
-            summary: dict[str, Any] = {"detections": run["detections"], "detected_px": run["detected_px"],
-                                       "outputs": run["outputs"], "timings": run["timings"]}
-            if not self.store.finish(job_id, self.owner, "successful",
-                                     f"{run['detections']} detections in {run['timings']['total_s']:.1f} s",
-                                     summary, attempt=attempt, publish=lambda: publish(staged[0], out_dir)):
-                log.warning("job %s (attempt %d) finished, but the job is no longer ours (dismissed, or re-run "
-                            "after its lease lapsed): its results are discarded", job_id, attempt)
+            run = run_request(
+                request.model_copy(update={"scene": str(scene)}),
+                out_dir=out_dir,
+                client=self.client,
+                progress=False,
+                on_tile=on_tile,
+                overwrite=True,
+                publish_with=lambda tmp, _out: staged.append(tmp),
+                land_source=land_source,
+            )
+            summary: dict[str, Any] = {
+                "detections": run["detections"],
+                "detected_px": run["detected_px"],
+                "outputs": run["outputs"],
+                "timings": run["timings"],
+            }
+            if not self.store.finish(
+                job_id,
+                self.owner,
+                "successful",
+                f"{run['detections']} detections in {run['timings']['total_s']:.1f} s",
+                summary,
+                attempt=attempt,
+                publish=lambda: publish(staged[0], out_dir),
+            ):
+                log.warning(
+                    "job %s (attempt %d) finished, but the job is no longer ours (dismissed, or re-run "
+                    "after its lease lapsed): its results are discarded",
+                    job_id,
+                    attempt,
+                )
                 return
             if self.metrics is not None:
                 H, W = run["scene"]["shape"]
@@ -292,8 +319,13 @@ class Runner:
         except (Exception, CancelledError) as exc:  # (Dask's futures cancelled: the scheduler went away)
             why = transient_reason(exc, self.client)
             if not self._holds(job_id, attempt):  # (e.g. its outputs removed by the attempt that took over)
-                log.info("job %s (attempt %d) ended (%s: %s) after it was dismissed or taken over: discarded",
-                         job_id, attempt, type(exc).__name__, exc)
+                log.info(
+                    "job %s (attempt %d) ended (%s: %s) after it was dismissed or taken over: discarded",
+                    job_id,
+                    attempt,
+                    type(exc).__name__,
+                    exc,
+                )
             elif why is not None:
                 self._retry(job, why)
             elif isinstance(exc, InputError):
@@ -301,8 +333,13 @@ class Runner:
                     self._observe_failure(job)
             else:  # never lose the job: record why it failed
                 log.error("job %s failed: %s", job_id, traceback.format_exc())
-                if self.store.finish(job_id, self.owner, "failed",
-                                     self._public(f"internal error: {type(exc).__name__}: {exc}"), attempt=attempt):
+                if self.store.finish(
+                    job_id,
+                    self.owner,
+                    "failed",
+                    self._public(f"internal error: {type(exc).__name__}: {exc}"),
+                    attempt=attempt,
+                ):
                     self._observe_failure(job)
         finally:
             for p in staged:  # (gone once published)
@@ -325,9 +362,16 @@ class Runner:
         attrs = {k: sc.attrs[k] for k in ("crs", "transform", "gcps") if k in sc.attrs}
         st = self.settings
         try:
-            answer = land_in_child(land, out, shape=sc.shape, attrs=attrs, tile=sc.tile,
-                                   max_bytes=int(st.land_max_mb * 2**20), memory_mb=st.ingest_memory_mb or None,
-                                   progress=progress)
+            answer = land_in_child(
+                land,
+                out,
+                shape=sc.shape,
+                attrs=attrs,
+                tile=sc.tile,
+                max_bytes=int(st.land_max_mb * 2**20),
+                memory_mb=st.ingest_memory_mb or None,
+                progress=progress,
+            )
         except IngestTransient as exc:
             raise OSError(errno.ENOSPC, str(exc)) from None
         return {"raster": out, "answer": answer}
@@ -385,8 +429,9 @@ class Runner:
         job_id, inputs, attempt = job["id"], job["inputs"], int(job["attempts"])
 
         def progress(done: int, total: int) -> None:
-            if not self.store.renew(job_id, self.owner, self.settings.lease_s, int(99 * done / max(total, 1)),
-                                    attempt=attempt):
+            if not self.store.renew(
+                job_id, self.owner, self.settings.lease_s, int(99 * done / max(total, 1)), attempt=attempt
+            ):
                 raise Dismissed(job_id)
 
         sid = inputs["scene_id"]
@@ -407,27 +452,45 @@ class Runner:
             if not out.exists():
                 if inputs.get("path"):  # an inbox pass: its product sidecar lies within the inbox
                     src = Path(inputs["path"])
-                    root = next((d for d in self.settings.inbox
-                                 if Path(os.path.abspath(d)) in Path(os.path.abspath(src)).parents), False)
+                    root = next(
+                        (
+                            d
+                            for d in self.settings.inbox
+                            if Path(os.path.abspath(d)) in Path(os.path.abspath(src)).parents
+                        ),
+                        False,
+                    )
                 else:  # an upload is one file: nothing beside it in the uploads folder is its
                     src, root = Path(inputs["upload"]), False
                 st = self.settings
-                ingest_in_child(src, stage, sidecar_root=root, progress=progress,
-                                memory_mb=st.ingest_memory_mb or None,
-                                limits={"max_pixels": st.max_pixels, "max_chunk_mb": st.max_chunk_mb,
-                                        "max_ratio": st.max_ratio, "max_xml_mb": st.max_xml_mb})
+                ingest_in_child(
+                    src,
+                    stage,
+                    sidecar_root=root,
+                    progress=progress,
+                    memory_mb=st.ingest_memory_mb or None,
+                    limits={
+                        "max_pixels": st.max_pixels,
+                        "max_chunk_mb": st.max_chunk_mb,
+                        "max_ratio": st.max_ratio,
+                        "max_xml_mb": st.max_xml_mb,
+                    },
+                )
                 from sarship.service.scenes import label_scene  # GET /scenes: the file name, the ingest time
 
                 label_scene(stage, inputs.get("filename") or src.name)
-            if not self.store.finish(job_id, self.owner, "successful", f"scene {sid} ready", {"scene": sid},
-                                     attempt=attempt, publish=publish):
-                log.warning("ingest %s (attempt %d) finished, but the job is no longer ours: discarded",
-                            job_id, attempt)
+            if not self.store.finish(
+                job_id, self.owner, "successful", f"scene {sid} ready", {"scene": sid}, attempt=attempt, publish=publish
+            ):
+                log.warning(
+                    "ingest %s (attempt %d) finished, but the job is no longer ours: discarded", job_id, attempt
+                )
         except Dismissed:
             pass
         except IngestRefused as exc:
-            self.store.finish(job_id, self.owner, "failed", self._public(str(exc)), {"bad_input": True},
-                              attempt=attempt)
+            self.store.finish(
+                job_id, self.owner, "failed", self._public(str(exc)), {"bad_input": True}, attempt=attempt
+            )
         except IngestTransient as exc:
             self._retry(job, f"the data folder is full: {exc}")
         except IngestCrashed as exc:
@@ -439,8 +502,13 @@ class Runner:
                 self._retry(job, why)
                 return
             log.error("ingest %s failed: %s", job_id, traceback.format_exc())
-            self.store.finish(job_id, self.owner, "failed",
-                              self._public(f"internal error: {type(exc).__name__}: {exc}"), attempt=attempt)
+            self.store.finish(
+                job_id,
+                self.owner,
+                "failed",
+                self._public(f"internal error: {type(exc).__name__}: {exc}"),
+                attempt=attempt,
+            )
         finally:
             _remove(stage)
 
@@ -464,7 +532,7 @@ def _remove(p: Path) -> None:
             pass
 
 
-def wait_final(store: JobStore, job_id: str, timeout: float) -> Optional[dict]:
+def wait_final(store: JobStore, job_id: str, timeout: float) -> dict | None:
     """Poll the store until the job is final (or ``timeout``): the job row."""
     t_end = time.time() + timeout
     while True:

@@ -10,7 +10,6 @@ import threading
 import time
 import uuid
 from pathlib import Path
-from typing import Optional
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
@@ -31,7 +30,7 @@ RETENTION_PERIOD_S = 3600.0
 
 
 @router.post("/scenes", responses=problems(400, 413, 507))
-async def upload(request: Request, filename: Optional[str] = None):
+async def upload(request: Request, filename: str | None = None):
     """A scene file, streamed to disk (raw body with ``?filename=``, or multipart field
     ``file``), checked against the size limit as it arrives, named by its SHA-256, and
     ingested to ``DATA/scenes/ID.zarr`` by an ``ingest`` job. The same content uploaded
@@ -78,8 +77,12 @@ async def upload(request: Request, filename: Optional[str] = None):
         name = Path(filename or "").name
         ext = "".join(Path(name).suffixes).lower()
         if not name or not re.fullmatch(r"(\.[a-z0-9]{1,8}){1,3}", ext):
-            raise Problem(400, "missing filename", "give the file name with its extension (?filename=scene.tif "
-                                                   "or the multipart file name): it selects the reader")
+            raise Problem(
+                400,
+                "missing filename",
+                "give the file name with its extension (?filename=scene.tif "
+                "or the multipart file name): it selects the reader",
+            )
         scene_id = scene_key(h.hexdigest())
         final = settings.uploads_dir / f"{scene_id}{ext}"
         if final.exists():
@@ -90,18 +93,30 @@ async def upload(request: Request, filename: Optional[str] = None):
         tmp.unlink(missing_ok=True)
         raise
     b = base_url(request)
-    doc = {"sceneID": scene_id, "sha256": h.hexdigest(), "bytes": n, "filename": name,
-           "links": [{"href": f"{b}/scenes/{scene_id}", "rel": "self", "type": "application/json"}]}
+    doc = {
+        "sceneID": scene_id,
+        "sha256": h.hexdigest(),
+        "bytes": n,
+        "filename": name,
+        "links": [{"href": f"{b}/scenes/{scene_id}", "rel": "self", "type": "application/json"}],
+    }
     if (settings.scenes_dir / f"{scene_id}.zarr").exists():
         return JSONResponse({**doc, "status": "ready"}, status_code=200)
     # an ingest of this content already under way (an earlier upload, an inbox pass) is reused
-    job, _ = store_of(request).create_ingest({"upload": str(final), "scene_id": scene_id, "filename": name,
-                                              "sha256": h.hexdigest(), "bytes": n})
+    job, _ = store_of(request).create_ingest(
+        {"upload": str(final), "scene_id": scene_id, "filename": name, "sha256": h.hexdigest(), "bytes": n}
+    )
     request.app.state.runner.wake.set()
-    return JSONResponse({**doc, "status": "ingesting", "jobID": job["id"],
-                         "links": doc["links"] + [{"href": f"{b}/jobs/{job['id']}", "rel": "monitor",
-                                                   "type": "application/json"}]},
-                        status_code=201, headers={"Location": f"{b}/scenes/{scene_id}"})
+    return JSONResponse(
+        {
+            **doc,
+            "status": "ingesting",
+            "jobID": job["id"],
+            "links": doc["links"] + [{"href": f"{b}/jobs/{job['id']}", "rel": "monitor", "type": "application/json"}],
+        },
+        status_code=201,
+        headers={"Location": f"{b}/scenes/{scene_id}"},
+    )
 
 
 def inside_roots(settings: Settings, p: Path) -> bool:
@@ -115,7 +130,7 @@ def inside_roots(settings: Settings, p: Path) -> bool:
     return any(real == r or r in real.parents for r in settings.roots())
 
 
-def scene_doc(settings: Settings, scene_id: str, b: str) -> Optional[dict]:
+def scene_doc(settings: Settings, scene_id: str, b: str) -> dict | None:
     from sarship.pipeline.scene import open_scene
 
     p = settings.scenes_dir / f"{scene_id}.zarr"
@@ -125,10 +140,18 @@ def scene_doc(settings: Settings, scene_id: str, b: str) -> Optional[dict]:
         sc = open_scene(p)
     except Exception as exc:
         return {"sceneID": scene_id, "status": "unreadable", "detail": settings.hide_paths(str(exc))}
-    return {"sceneID": scene_id, "status": "ready", **scene_names(sc.attrs), "ingested": iso(ingested_at(p, sc.attrs)),
-            "shape": list(sc.shape), "kind": sc.kind,
-            "looks": sc.looks, "variables": list(sc.variables), "tile": sc.tile,
-            "links": [{"href": f"{b}/scenes/{scene_id}", "rel": "self", "type": "application/json"}]}
+    return {
+        "sceneID": scene_id,
+        "status": "ready",
+        **scene_names(sc.attrs),
+        "ingested": iso(ingested_at(p, sc.attrs)),
+        "shape": list(sc.shape),
+        "kind": sc.kind,
+        "looks": sc.looks,
+        "variables": list(sc.variables),
+        "tile": sc.tile,
+        "links": [{"href": f"{b}/scenes/{scene_id}", "rel": "self", "type": "application/json"}],
+    }
 
 
 def scene_names(attrs: dict) -> dict:
@@ -145,11 +168,14 @@ def scene_names(attrs: dict) -> dict:
     name = Path(str(name)).name if name else None
     product = attrs.get("product") or (name.split(".", 1)[0] if name else None)
     acquired = attrs.get("acquired")
-    return {"filename": name, "product": str(product) if product else None,
-            "acquired": str(acquired) if acquired and str(acquired) != "None" else None}
+    return {
+        "filename": name,
+        "product": str(product) if product else None,
+        "acquired": str(acquired) if acquired and str(acquired) != "None" else None,
+    }
 
 
-def ingested_at(p: Path, attrs: dict) -> Optional[float]:
+def ingested_at(p: Path, attrs: dict) -> float | None:
     """When scene store ``p`` was ingested (POSIX time): the service's record (``ingested``),
     else the time its metadata was last written."""
     from datetime import datetime
@@ -166,7 +192,7 @@ def ingested_at(p: Path, attrs: dict) -> Optional[float]:
         return None
 
 
-def label_scene(store: Path, filename: Optional[str]) -> None:
+def label_scene(store: Path, filename: str | None) -> None:
     """Record on a scene store the service has just ingested the name of the file it came from
     (its base name) and the time (:func:`scene_names`, :func:`ingested_at`)."""
     from sarship.pipeline.scene import finalize_scene
@@ -235,7 +261,7 @@ def delete_scene(settings: Settings, store: JobStore, scene_id: str) -> bool:
     return True
 
 
-def expire_scenes(settings: Settings, store: JobStore, now: Optional[float] = None) -> list[str]:
+def expire_scenes(settings: Settings, store: JobStore, now: float | None = None) -> list[str]:
     """The scene retention: remove the scenes of ``DATA/scenes`` ingested more than
     ``scene_retention_days`` ago (:func:`ingested_at`) that no accepted or running job names;
     also what earlier deletions left renamed aside (a process stopped mid-removal). The ids
@@ -282,7 +308,7 @@ class Retention:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="sarship-retention", daemon=True)
 
-    def start(self) -> "Retention":
+    def start(self) -> Retention:
         self._thread.start()
         return self
 
@@ -325,16 +351,29 @@ def pending_doc(scene_id: str, job: dict, b: str = "") -> dict:
     ingest dismissed, or one that succeeded but whose scene store is gone, counts as failed)."""
     links = [{"href": f"{b}/jobs/{job['id']}", "rel": "monitor", "type": "application/json"}]
     if job["status"] in ("accepted", "running"):
-        return {"sceneID": scene_id, "status": "ingesting", "jobID": job["id"], "message": job["message"],
-                "links": links}
+        return {
+            "sceneID": scene_id,
+            "status": "ingesting",
+            "jobID": job["id"],
+            "message": job["message"],
+            "links": links,
+        }
     if job["status"] == "failed":
         reason = job["message"] or "ingest failed"
     elif job["status"] == "dismissed":
-        reason = f"its ingest job was dismissed ({job['message']})" if job["message"] else "its ingest job was dismissed"
+        reason = (
+            f"its ingest job was dismissed ({job['message']})" if job["message"] else "its ingest job was dismissed"
+        )
     else:
         reason = "the scene store is missing (it was removed after its ingest)"
-    return {"sceneID": scene_id, "status": "failed", "reason": reason, "jobID": job["id"], "message": reason,
-            "links": links}
+    return {
+        "sceneID": scene_id,
+        "status": "failed",
+        "reason": reason,
+        "jobID": job["id"],
+        "message": reason,
+        "links": links,
+    }
 
 
 @router.delete("/scenes/{scene_id}", responses=problems(404, 409))
@@ -347,14 +386,19 @@ def remove_scene(request: Request, scene_id: str):
         done = ok and delete_scene(settings_of(request), store_of(request), scene_id)
     except SceneInUse as exc:
         ids = exc.args[0]
-        raise Problem(409, "scene in use", f"scene '{scene_id}' is used by accepted or running job(s) "
-                                           f"{', '.join(ids[:10])}{' ...' if len(ids) > 10 else ''}: "
-                                           "dismiss them (DELETE /jobs/{id}) or wait until they finish") from None
+        raise Problem(
+            409,
+            "scene in use",
+            f"scene '{scene_id}' is used by accepted or running job(s) "
+            f"{', '.join(ids[:10])}{' ...' if len(ids) > 10 else ''}: "
+            "dismiss them (DELETE /jobs/{id}) or wait until they finish",
+        ) from None
     if not done:
         job = store_of(request).active_ingest(scene_id) if ok else None
         if job is not None:
-            raise Problem(409, "scene in use", f"scene '{scene_id}' is being ingested (job {job['id']}): dismiss "
-                                               "that job first")
+            raise Problem(
+                409, "scene in use", f"scene '{scene_id}' is being ingested (job {job['id']}): dismiss that job first"
+            )
         raise Problem(404, "no such scene", f"no scene '{scene_id}'")
     return {"sceneID": scene_id, "status": "deleted"}
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Optional
+from typing import Any
 
 log = logging.getLogger("sarship.service")
 
@@ -43,8 +43,7 @@ class SchedulerLink:
     how often the client's state is looked at.
     """
 
-    def __init__(self, address: str, first_s: float = 1.0, max_s: float = 30.0, connect=None,
-                 watch_s: float = 0.25):
+    def __init__(self, address: str, first_s: float = 1.0, max_s: float = 30.0, connect=None, watch_s: float = 0.25):
         self.address = address
         self.first_s, self.max_s = float(first_s), float(max_s)
         self._connect = connect or (lambda: _client(address))
@@ -53,10 +52,9 @@ class SchedulerLink:
         self._failures = 0
         self._next_try = 0.0
         self.reconnects = 0
-        self.last_error: Optional[str] = None
+        self.last_error: str | None = None
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._watch, args=(watch_s,), name="sarship-scheduler-link",
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._watch, args=(watch_s,), name="sarship-scheduler-link", daemon=True)
         self._thread.start()
 
     # ------------------------------------------------------------------ the client's place
@@ -76,8 +74,9 @@ class SchedulerLink:
         if getattr(c, "status", "closed") != "running":
             wait = max(self._next_try - time.monotonic(), 0.0)
             why = f": {self.last_error}" if self.last_error else ""
-            raise ConnectionError(f"the Dask scheduler at '{self.address}' is unreachable (reconnecting, next try in "
-                                  f"{wait:.0f} s{why})")
+            raise ConnectionError(
+                f"the Dask scheduler at '{self.address}' is unreachable (reconnecting, next try in {wait:.0f} s{why})"
+            )
         return c
 
     def __getattr__(self, name: str) -> Any:
@@ -114,8 +113,12 @@ class SchedulerLink:
                 delay = backoff(self.first_s, self.max_s, self._failures - 1)
                 self._next_try = time.monotonic() + delay
                 self.last_error = " ".join(str(exc).split())[:300]
-                log.warning("Dask scheduler %s: reconnection failed (%s); next try in %g s", self.address,
-                            self.last_error, delay)
+                log.warning(
+                    "Dask scheduler %s: reconnection failed (%s); next try in %g s",
+                    self.address,
+                    self.last_error,
+                    delay,
+                )
                 return False
             old, self._client = self._client, new
             self._failures, self._next_try, self.last_error = 0, 0.0, None
@@ -148,7 +151,10 @@ def open_link(address: str, first_s: float = 1.0, max_s: float = 30.0, echo: boo
     link = SchedulerLink(address, first_s, max_s)
     if echo:
         c = link.current()
-        print(f"sarship: using Dask scheduler {address} ({len(c.scheduler_info().get('workers', {}))} workers), "
-              f"{dashboard_note(c)}, reconnected with a back-off of {first_s:g}-{max_s:g} s when it goes "
-              "away", file=sys.stderr)
+        print(
+            f"sarship: using Dask scheduler {address} ({len(c.scheduler_info().get('workers', {}))} workers), "
+            f"{dashboard_note(c)}, reconnected with a back-off of {first_s:g}-{max_s:g} s when it goes "
+            "away",
+            file=sys.stderr,
+        )
     return link

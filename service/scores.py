@@ -13,14 +13,13 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Optional
 
 from sarship.service.cache import build_once
 
 log = logging.getLogger("sarship.service")
 
 
-def truth_path(run: dict) -> Optional[Path]:
+def truth_path(run: dict) -> Path | None:
     """The scene's truth file, or None (see the module doc)."""
     scene = Path(run["scene"]["path"])
     cands = [Path(f"{scene}.truth.geojson")]
@@ -30,7 +29,7 @@ def truth_path(run: dict) -> Optional[Path]:
     return next((p for p in cands if p.is_file()), None)
 
 
-def job_scores(job_dir: Path, run: dict) -> Optional[dict]:
+def job_scores(job_dir: Path, run: dict) -> dict | None:
     """The job's scores (cached in ``JOB/scores.json``), or None when the scene has no truth.
 
     A truth file that cannot be read is reported as ``{"error": ...}`` rather than failing the

@@ -14,15 +14,19 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Any
 
 from pydantic import Field, ValidationInfo, field_validator
 from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from sarship.pipeline import settings as env_settings
-from sarship.pipeline.readers.limits import (DEFAULT_MAX_CHUNK_MB, DEFAULT_MAX_PIXELS, DEFAULT_MAX_RATIO,
-                                             DEFAULT_MAX_XML_MB)
+from sarship.pipeline.readers.limits import (
+    DEFAULT_MAX_CHUNK_MB,
+    DEFAULT_MAX_PIXELS,
+    DEFAULT_MAX_RATIO,
+    DEFAULT_MAX_XML_MB,
+)
 
 #: Scan interval used when neither an interval nor a cron expression is set.
 DEFAULT_INBOX_INTERVAL_S = 30.0
@@ -66,7 +70,7 @@ def parse_inbox_detectors(value: Any) -> list[dict[str, Any]]:
         if isinstance(entry, str):
             entry = {"detector": entry}
         if not isinstance(entry, dict):
-            raise ValueError(f"{where}: expected a detector name or an object {{\"detector\": NAME, ...}}")
+            raise ValueError(f'{where}: expected a detector name or an object {{"detector": NAME, ...}}')
         entry = dict(entry)
         name = entry.get("detector")
         if not isinstance(name, str):
@@ -90,8 +94,9 @@ def check_cron(expr: str) -> str:
     from croniter import croniter
 
     if not croniter.is_valid(expr):
-        raise ValueError(f"'{expr}' is not a valid cron expression (5 fields: minute hour day month weekday, "
-                         "e.g. '*/10 * * * *')")
+        raise ValueError(
+            f"'{expr}' is not a valid cron expression (5 fields: minute hour day month weekday, e.g. '*/10 * * * *')"
+        )
     return expr
 
 
@@ -101,94 +106,158 @@ class Settings(BaseSettings):
     data: Path = Field(Path("sarship-data"), description="data folder: job store, scenes, job outputs")
     host: str = Field("127.0.0.1", description="address the API listens on")
     port: int = Field(8080, ge=0, le=65535, description="port the API listens on")
-    scheduler: Optional[str] = env_settings.field("scheduler")  # shared with the command line
-    workers: Optional[int] = Field(None, ge=1, description="local cluster CPU worker processes (default: all cores; "
-                                                           "with GPU workers, all cores less two per GPU, at least 1)")
-    worker_threads: bool = Field(False, description="local cluster CPU workers as threads of the API process "
-                                                     "(one worker, --workers threads) instead of worker processes: "
-                                                     "starts in about a second, for small deployments and tests; "
-                                                     "a crash of a detector takes the API process with it, and "
-                                                     "a stop waits for the tiles in flight")
-    gpus: str = Field("all", description="local cluster GPUs: all (one pinned worker per visible GPU), none, or a "
-                                         "comma list of GPU IDs; tiles go to GPU workers unless a job asks "
-                                         "device=cpu")
+    scheduler: str | None = env_settings.field("scheduler")  # shared with the command line
+    workers: int | None = Field(
+        None,
+        ge=1,
+        description="local cluster CPU worker processes (default: all cores; "
+        "with GPU workers, all cores less two per GPU, at least 1)",
+    )
+    worker_threads: bool = Field(
+        False,
+        description="local cluster CPU workers as threads of the API process "
+        "(one worker, --workers threads) instead of worker processes: "
+        "starts in about a second, for small deployments and tests; "
+        "a crash of a detector takes the API process with it, and "
+        "a stop waits for the tiles in flight",
+    )
+    gpus: str = Field(
+        "all",
+        description="local cluster GPUs: all (one pinned worker per visible GPU), none, or a "
+        "comma list of GPU IDs; tiles go to GPU workers unless a job asks "
+        "device=cpu",
+    )
     concurrency: int = Field(2, ge=1, le=64, description="jobs this API process runs at once")
-    lease_s: float = Field(30.0, gt=1.0, description="job lease: a job whose runner stops renewing it is re-run "
-                                                   "(the stale run cannot publish)")
-    allowed_roots: list[Path] = Field(default_factory=list,
-                                      description="folders a job may name scenes in (besides DATA/scenes)")
+    lease_s: float = Field(
+        30.0,
+        gt=1.0,
+        description="job lease: a job whose runner stops renewing it is re-run (the stale run cannot publish)",
+    )
+    allowed_roots: list[Path] = Field(
+        default_factory=list, description="folders a job may name scenes in (besides DATA/scenes)"
+    )
     sync_timeout_s: float = Field(600.0, gt=0.0, description="longest wait of a 'Prefer: respond-sync' execution")
     max_upload_mb: float = Field(4096.0, gt=0.0, description="largest scene upload (POST /scenes), MiB")
-    max_body_kb: float = Field(1024.0, gt=0.0, description="largest request body of every other route (the JSON "
-                                                           "of an execution), KiB: 413 beyond it")
-    max_sync_waits: int = Field(8, ge=0, le=10000,
-                                description="'Prefer: respond-sync' executions waiting at once in this API process; "
-                                            "one more is answered 503 with Retry-After (0: no synchronous execution)")
-    max_pixels: float = Field(DEFAULT_MAX_PIXELS, gt=0.0,
-                              description="largest image an ingest takes, rows x columns (checked from the header)")
-    max_chunk_mb: float = Field(DEFAULT_MAX_CHUNK_MB, gt=0.0,
-                                description="largest decoded compressed TIFF strip/tile an ingest takes, MiB")
-    max_ratio: float = Field(DEFAULT_MAX_RATIO, gt=0.0,
-                             description="largest ratio of declared decoded bytes to file size of a compressed or "
-                                         "sparse TIFF an ingest takes")
-    max_xml_mb: float = Field(DEFAULT_MAX_XML_MB, gt=0.0,
-                              description="largest XML member (annotation, manifest...) of a Sentinel-1 SAFE product "
-                                          "an ingest takes, MiB (checked before it is inflated)")
-    ingest_memory_mb: float = Field(4096.0, ge=0.0,
-                                    description="address-space cap of the child process each ingest runs in, MiB "
-                                                "(0: no cap); an ingest beyond it fails its job, the file is refused")
+    max_body_kb: float = Field(
+        1024.0,
+        gt=0.0,
+        description="largest request body of every other route (the JSON of an execution), KiB: 413 beyond it",
+    )
+    max_sync_waits: int = Field(
+        8,
+        ge=0,
+        le=10000,
+        description="'Prefer: respond-sync' executions waiting at once in this API process; "
+        "one more is answered 503 with Retry-After (0: no synchronous execution)",
+    )
+    max_pixels: float = Field(
+        DEFAULT_MAX_PIXELS,
+        gt=0.0,
+        description="largest image an ingest takes, rows x columns (checked from the header)",
+    )
+    max_chunk_mb: float = Field(
+        DEFAULT_MAX_CHUNK_MB, gt=0.0, description="largest decoded compressed TIFF strip/tile an ingest takes, MiB"
+    )
+    max_ratio: float = Field(
+        DEFAULT_MAX_RATIO,
+        gt=0.0,
+        description="largest ratio of declared decoded bytes to file size of a compressed or "
+        "sparse TIFF an ingest takes",
+    )
+    max_xml_mb: float = Field(
+        DEFAULT_MAX_XML_MB,
+        gt=0.0,
+        description="largest XML member (annotation, manifest...) of a Sentinel-1 SAFE product "
+        "an ingest takes, MiB (checked before it is inflated)",
+    )
+    ingest_memory_mb: float = Field(
+        4096.0,
+        ge=0.0,
+        description="address-space cap of the child process each ingest runs in, MiB "
+        "(0: no cap); an ingest beyond it fails its job, the file is refused",
+    )
     land_max_mb: float = env_settings.field("land_max_mb")  # shared with the land-mask reader
-    scene_retention_days: Optional[float] = Field(
-        None, ge=0.0, allow_inf_nan=False, description="scenes in DATA/scenes older than this many days (since their ingest finished, "
-                                  "else since the store was last written) that no accepted or running job names "
-                                  "are removed, at start-up and then hourly (unset or 0: scenes are kept forever)")
-    min_free_mb: float = Field(100.0, ge=0.0,
-                               description="free space the data folder needs, MiB: below it /readyz answers 503 "
-                                           "(not ready) with the reason (0: not checked)")
-    retry_s: float = Field(5.0, gt=0.0,
-                           description="first wait before a job that failed for a fault of the service (data folder "
-                                       "full, job store busy, scheduler unreachable) is tried again, seconds; "
-                                       "doubled at each attempt up to retry_max_s; such a job is never failed for it "
-                                       "(an inbox pass is never quarantined for it)")
+    scene_retention_days: float | None = Field(
+        None,
+        ge=0.0,
+        allow_inf_nan=False,
+        description="scenes in DATA/scenes older than this many days (since their ingest finished, "
+        "else since the store was last written) that no accepted or running job names "
+        "are removed, at start-up and then hourly (unset or 0: scenes are kept forever)",
+    )
+    min_free_mb: float = Field(
+        100.0,
+        ge=0.0,
+        description="free space the data folder needs, MiB: below it /readyz answers 503 "
+        "(not ready) with the reason (0: not checked)",
+    )
+    retry_s: float = Field(
+        5.0,
+        gt=0.0,
+        description="first wait before a job that failed for a fault of the service (data folder "
+        "full, job store busy, scheduler unreachable) is tried again, seconds; "
+        "doubled at each attempt up to retry_max_s; such a job is never failed for it "
+        "(an inbox pass is never quarantined for it)",
+    )
     retry_max_s: float = Field(300.0, gt=0.0, description="longest wait between two tries of such a job, seconds")
-    reconnect_s: float = Field(1.0, gt=0.0,
-                               description="with an external scheduler: first wait before the API makes a new Dask "
-                                           "client once its client has closed (the scheduler went away), seconds; "
-                                           "doubled after each failed try up to reconnect_max_s")
-    reconnect_max_s: float = Field(30.0, gt=0.0,
-                                   description="longest wait between two reconnection tries to the scheduler, seconds")
-    preview_cache_mb: float = Field(256.0, ge=0.0,
-                                    description="disk space of the cached preview PNGs of all jobs together, MiB; "
-                                                "beyond it the oldest are removed (0: none kept)")
-    tokens: list[str] = Field(default_factory=list,
-                              description="API tokens (Authorization: Bearer TOKEN); "
-                                          "when set, POST and DELETE need one")
-    allow_unauthenticated: bool = Field(False, description="serve on an address other machines can reach "
-                                                           "(not loopback) without tokens; refused otherwise")
-    dashboard_url: Optional[str] = Field(None, pattern=r"^https?://\S+$",
-                                         description="where GET /dashboard sends browsers when the scheduler "
-                                                     "serves a dashboard (default: the cluster's own link; set "
-                                                     "it when browsers reach the dashboard at another address)")
-    protect_reads: bool = Field(False, description="with tokens set, GET requests need one too "
-                                                   "(/livez, /readyz and /metrics stay open)")
+    reconnect_s: float = Field(
+        1.0,
+        gt=0.0,
+        description="with an external scheduler: first wait before the API makes a new Dask "
+        "client once its client has closed (the scheduler went away), seconds; "
+        "doubled after each failed try up to reconnect_max_s",
+    )
+    reconnect_max_s: float = Field(
+        30.0, gt=0.0, description="longest wait between two reconnection tries to the scheduler, seconds"
+    )
+    preview_cache_mb: float = Field(
+        256.0,
+        ge=0.0,
+        description="disk space of the cached preview PNGs of all jobs together, MiB; "
+        "beyond it the oldest are removed (0: none kept)",
+    )
+    tokens: list[str] = Field(
+        default_factory=list, description="API tokens (Authorization: Bearer TOKEN); when set, POST and DELETE need one"
+    )
+    allow_unauthenticated: bool = Field(
+        False,
+        description="serve on an address other machines can reach (not loopback) without tokens; refused otherwise",
+    )
+    dashboard_url: str | None = Field(
+        None,
+        pattern=r"^https?://\S+$",
+        description="where GET /dashboard sends browsers when the scheduler "
+        "serves a dashboard (default: the cluster's own link; set "
+        "it when browsers reach the dashboard at another address)",
+    )
+    protect_reads: bool = Field(
+        False, description="with tokens set, GET requests need one too (/livez, /readyz and /metrics stay open)"
+    )
     # ---------------------------------------------------------------- scheduled ingest
     inbox: Annotated[list[Path], NoDecode] = Field(
-        default_factory=list, description="inbox folders watched for new passes (JSON list or comma list); "
-                                          "empty: the ingest loop is off")
-    inbox_interval_s: Optional[float] = Field(
-        None, gt=0.0, description=f"seconds between inbox scans (default {DEFAULT_INBOX_INTERVAL_S:g} when no cron)")
-    inbox_cron: Optional[str] = Field(
-        None, description="cron expression (UTC) of the inbox scans, instead of an interval")
+        default_factory=list,
+        description="inbox folders watched for new passes (JSON list or comma list); empty: the ingest loop is off",
+    )
+    inbox_interval_s: float | None = Field(
+        None, gt=0.0, description=f"seconds between inbox scans (default {DEFAULT_INBOX_INTERVAL_S:g} when no cron)"
+    )
+    inbox_cron: str | None = Field(None, description="cron expression (UTC) of the inbox scans, instead of an interval")
     inbox_detectors: Annotated[list[dict[str, Any]], NoDecode] = Field(
-        default_factory=list, description="detector jobs submitted for each new pass: JSON list like "
-                                          "[{\"detector\": \"os_cfar\", \"pfa\": 1e-6}] or a comma list of names; "
-                                          "empty: ingest only")
+        default_factory=list,
+        description="detector jobs submitted for each new pass: JSON list like "
+        '[{"detector": "os_cfar", "pfa": 1e-6}] or a comma list of names; '
+        "empty: ingest only",
+    )
     inbox_settle_s: float = Field(
-        5.0, ge=0.0, description="a file is taken when its size and mtime have not changed for this long "
-                                 "(at once when FILE.done exists and is not older than the file; the marker "
-                                 "is removed when the file is taken)")
-    inbox_quarantine: Optional[Path] = Field(
-        None, description="where files that fail to ingest are moved (default DATA/quarantine)")
+        5.0,
+        ge=0.0,
+        description="a file is taken when its size and mtime have not changed for this long "
+        "(at once when FILE.done exists and is not older than the file; the marker "
+        "is removed when the file is taken)",
+    )
+    inbox_quarantine: Path | None = Field(
+        None, description="where files that fail to ingest are moved (default DATA/quarantine)"
+    )
 
     @field_validator("inbox", mode="before")
     @classmethod
@@ -227,7 +296,7 @@ class Settings(BaseSettings):
 
     @field_validator("inbox_cron")
     @classmethod
-    def _cron(cls, v: Optional[str], info: ValidationInfo) -> Optional[str]:
+    def _cron(cls, v: str | None, info: ValidationInfo) -> str | None:
         if v is None or not v.strip():
             return None
         if info.data.get("inbox_interval_s") is not None:
@@ -270,7 +339,7 @@ class Settings(BaseSettings):
         return self.inbox_quarantine if self.inbox_quarantine is not None else self.data / "quarantine"
 
     @property
-    def inbox_schedule(self) -> dict[str, Optional[Any]]:
+    def inbox_schedule(self) -> dict[str, Any | None]:
         """``{"interval_s": s, "cron": None}`` or ``{"interval_s": None, "cron": expr}``."""
         if self.inbox_cron:
             return {"interval_s": None, "cron": self.inbox_cron}

@@ -44,9 +44,9 @@ from __future__ import annotations
 
 import json
 import re
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 from sarship.pipeline import __version__
 
@@ -58,16 +58,28 @@ SAT_EXT = "https://stac-extensions.github.io/sat/v1.0.0/schema.json"
 
 #: Frequency bands of SAR missions (STAC sar extension, "Common Frequency Band Names").
 MISSION_BANDS = (
-    (r"SENTINEL-?1|^S1[A-D]?\b", "C"), (r"RADARSAT|^RCM", "C"), (r"ENVISAT|ASAR", "C"), (r"^ERS", "C"),
-    (r"GAOFEN-?3|^GF-?3", "C"), (r"RISAT", "C"), (r"TERRASAR|TANDEM|^TSX|^TDX", "X"),
-    (r"COSMO|^CSK|^CSG", "X"), (r"^PAZ", "X"), (r"KOMPSAT-?5", "X"), (r"ICEYE", "X"), (r"CAPELLA", "X"),
-    (r"UMBRA", "X"), (r"ALOS|PALSAR|^JERS", "L"), (r"SAOCOM", "L"), (r"NISAR", "L"),
+    (r"SENTINEL-?1|^S1[A-D]?\b", "C"),
+    (r"RADARSAT|^RCM", "C"),
+    (r"ENVISAT|ASAR", "C"),
+    (r"^ERS", "C"),
+    (r"GAOFEN-?3|^GF-?3", "C"),
+    (r"RISAT", "C"),
+    (r"TERRASAR|TANDEM|^TSX|^TDX", "X"),
+    (r"COSMO|^CSK|^CSG", "X"),
+    (r"^PAZ", "X"),
+    (r"KOMPSAT-?5", "X"),
+    (r"ICEYE", "X"),
+    (r"CAPELLA", "X"),
+    (r"UMBRA", "X"),
+    (r"ALOS|PALSAR|^JERS", "L"),
+    (r"SAOCOM", "L"),
+    (r"NISAR", "L"),
 )
 _POLS = ("HH", "HV", "VH", "VV")
 _S1_NAME = re.compile(r"^S1[A-D]_([A-Z0-9]{2})_(GRD|SLC|OCN)", re.I)
 
 
-def rfc3339(value: Any) -> Optional[str]:
+def rfc3339(value: Any) -> str | None:
     """An ISO 8601 time as RFC 3339 UTC (``...Z``); a time without zone is taken as UTC (SAR
     product times are); None when it does not parse."""
     if not isinstance(value, str) or not value.strip():
@@ -77,11 +89,11 @@ def rfc3339(value: Any) -> Optional[str]:
     except ValueError:
         return None
     if t.tzinfo is None:
-        t = t.replace(tzinfo=timezone.utc)
-    return t.astimezone(timezone.utc).isoformat().replace("+00:00", "Z")
+        t = t.replace(tzinfo=UTC)
+    return t.astimezone(UTC).isoformat().replace("+00:00", "Z")
 
 
-def footprint(attrs: dict, shape: tuple[int, int], n: int = 16) -> tuple[Optional[dict], Optional[list]]:
+def footprint(attrs: dict, shape: tuple[int, int], n: int = 16) -> tuple[dict | None, list | None]:
     """``(geometry, bbox)`` of the scene border in WGS84, or ``(None, None)`` without georeference."""
     from sarship.pipeline.targets.ship_features import Georeference
 
@@ -141,8 +153,11 @@ def sar_fields(attrs: dict, variables: dict) -> dict:
         pols = list(_POLS)  # fully polarimetric: all four (sar extension, sar:polarizations)
     if not (mode and band and pols):
         return {}
-    out: dict[str, Any] = {"sar:instrument_mode": str(mode), "sar:frequency_band": str(band),
-                           "sar:polarizations": sorted(set(pols), key=_POLS.index)}
+    out: dict[str, Any] = {
+        "sar:instrument_mode": str(mode),
+        "sar:frequency_band": str(band),
+        "sar:polarizations": sorted(set(pols), key=_POLS.index),
+    }
     ptype = attrs.get("product_type") or (s1.group(2).upper() if s1 else None)
     if ptype:  # the SAFE reader's "GRD (GRDH)": the type, as the extension's examples ("GRD", "SLC")
         out["sar:product_type"] = str(ptype).split(" (")[0]
@@ -159,13 +174,16 @@ def sar_fields(attrs: dict, variables: dict) -> dict:
 
 #: ESA Sentinel-1 product name: mission, mode, type + resolution, level/class/polarisation, start,
 #: stop, absolute orbit, datatake ID (hex), product unique ID
-_S1_FULL = re.compile(r"^(S1[A-D])_([A-Z0-9]{2})_([A-Z]{3})([FHM_])_(\d)([SA])(SH|SV|DH|DV|HH|HV|VV|VH)_"
-                      r"(\d{8}T\d{6})_(\d{8}T\d{6})_(\d{6})_([0-9A-F]{6})_([0-9A-F]{4})", re.I)
+_S1_FULL = re.compile(
+    r"^(S1[A-D])_([A-Z0-9]{2})_([A-Z]{3})([FHM_])_(\d)([SA])(SH|SV|DH|DV|HH|HV|VV|VH)_"
+    r"(\d{8}T\d{6})_(\d{8}T\d{6})_(\d{6})_([0-9A-F]{6})_([0-9A-F]{4})",
+    re.I,
+)
 #: relative orbit = (absolute - offset) mod 175 + 1 (175 orbits per 12-day repeat cycle)
 _S1_RELATIVE_OFFSET = {"S1A": 73, "S1B": 27}
 
 
-def _int(v: Any) -> Optional[int]:
+def _int(v: Any) -> int | None:
     try:
         i = int(v)
     except (TypeError, ValueError):
@@ -183,8 +201,11 @@ def product_fields(attrs: dict) -> tuple[dict, list[str]]:
     unit = m.group(1).upper()[2] if m else (sm.group(1) if sm else None)
     if unit is None:
         return {}, []
-    out: dict[str, Any] = {"platform": f"sentinel-1{unit.lower()}", "constellation": "sentinel-1",
-                           "instruments": ["c-sar"]}
+    out: dict[str, Any] = {
+        "platform": f"sentinel-1{unit.lower()}",
+        "constellation": "sentinel-1",
+        "instruments": ["c-sar"],
+    }
     start, end = rfc3339(attrs.get("acquisition_start")), rfc3339(attrs.get("acquisition_stop"))
     if start and end:
         out["start_datetime"], out["end_datetime"] = start, end
@@ -209,12 +230,12 @@ def product_fields(attrs: dict) -> tuple[dict, list[str]]:
     return out, ([SAT_EXT] if sat else [])
 
 
-def _epsg_code(crs: Any) -> Optional[str]:
+def _epsg_code(crs: Any) -> str | None:
     m = re.fullmatch(r"\s*EPSG:(\d+)\s*", str(crs or ""), re.I)
     return f"EPSG:{m.group(1)}" if m else None
 
 
-def stac_item(job: dict, run: dict, base: str, scenes_dir: Path, finished: Optional[str]) -> dict:
+def stac_item(job: dict, run: dict, base: str, scenes_dir: Path, finished: str | None) -> dict:
     """The STAC Item of a finished job (see the module doc). ``run``: the job's run.json."""
     from sarship.pipeline.scene import open_scene
 
@@ -241,15 +262,21 @@ def stac_item(job: dict, run: dict, base: str, scenes_dir: Path, finished: Optio
     exts += ident_exts
     params = run.get("parameters") or {}
     pstr = ", ".join(f"{k}={v}" for k, v in params.items())
-    props.update({
-        "processing:software": {"sarship": run.get("sarship_version", __version__)},
-        "processing:level": "L2",
-        "processing:lineage": (f"Ships detected by sarship detector '{run.get('detector')}' "
-                               f"({run.get('reference', '')}) on channel {run.get('channel')} of scene "
-                               f"'{scene_path.name}' with {pstr}"),
-        "processing:expression": {"format": "sarship-detector",
-                                  "expression": {"detector": run.get("detector"), "parameters": params}},
-    })
+    props.update(
+        {
+            "processing:software": {"sarship": run.get("sarship_version", __version__)},
+            "processing:level": "L2",
+            "processing:lineage": (
+                f"Ships detected by sarship detector '{run.get('detector')}' "
+                f"({run.get('reference', '')}) on channel {run.get('channel')} of scene "
+                f"'{scene_path.name}' with {pstr}"
+            ),
+            "processing:expression": {
+                "format": "sarship-detector",
+                "expression": {"detector": run.get("detector"), "parameters": params},
+            },
+        }
+    )
     exts.append(PROCESSING_EXT)
     code = _epsg_code(attrs.get("crs"))
     if code and attrs.get("transform"):
@@ -260,10 +287,21 @@ def stac_item(job: dict, run: dict, base: str, scenes_dir: Path, finished: Optio
         inside = scene_path.resolve().parent == scenes_dir.resolve() and scene_path.name.endswith(".zarr")
     except OSError:
         inside = False
-    scene_asset = ({"href": f"{base}/scenes/{scene_path.name[:-5]}", "type": "application/json",
-                    "title": "input scene (service scene document)", "roles": ["metadata"]} if inside else
-                   {"href": scene_path.resolve().as_uri(), "type": "application/vnd+zarr",
-                    "title": "input scene (Zarr store)", "roles": ["data"]})
+    scene_asset = (
+        {
+            "href": f"{base}/scenes/{scene_path.name[:-5]}",
+            "type": "application/json",
+            "title": "input scene (service scene document)",
+            "roles": ["metadata"],
+        }
+        if inside
+        else {
+            "href": scene_path.resolve().as_uri(),
+            "type": "application/vnd+zarr",
+            "title": "input scene (Zarr store)",
+            "roles": ["data"],
+        }
+    )
     item = {
         "type": "Feature",
         "stac_version": STAC_VERSION,
@@ -279,16 +317,36 @@ def stac_item(job: dict, run: dict, base: str, scenes_dir: Path, finished: Optio
             {"rel": "related", "href": f"{u}/tiles.json", "type": "application/json", "title": "XYZ tiles (TileJSON)"},
         ],
         "assets": {
-            "mask": {"href": f"{u}/results/mask", "type": "image/tiff; application=geotiff; profile=cloud-optimized",
-                     "title": "detection mask (uint8, 1 = ship), max-pooled overviews", "roles": ["data"]},
-            "mask-zarr": {"href": f"{u}/results/mask?f=zarr", "type": "application/zip",
-                          "title": "detection mask as a zipped Zarr v3 store", "roles": ["data"]},
-            "detections": {"href": f"{u}/results/detections", "type": "application/geo+json",
-                           "title": "detected ships", "roles": ["data"]},
-            "metrics": {"href": f"{u}/results/metrics", "type": "application/json",
-                        "title": "run record (run.json) and scores", "roles": ["metadata"]},
-            "preview": {"href": f"{u}/preview.png?size=512", "type": "image/png",
-                        "title": "quicklook", "roles": ["thumbnail"]},
+            "mask": {
+                "href": f"{u}/results/mask",
+                "type": "image/tiff; application=geotiff; profile=cloud-optimized",
+                "title": "detection mask (uint8, 1 = ship), max-pooled overviews",
+                "roles": ["data"],
+            },
+            "mask-zarr": {
+                "href": f"{u}/results/mask?f=zarr",
+                "type": "application/zip",
+                "title": "detection mask as a zipped Zarr v3 store",
+                "roles": ["data"],
+            },
+            "detections": {
+                "href": f"{u}/results/detections",
+                "type": "application/geo+json",
+                "title": "detected ships",
+                "roles": ["data"],
+            },
+            "metrics": {
+                "href": f"{u}/results/metrics",
+                "type": "application/json",
+                "title": "run record (run.json) and scores",
+                "roles": ["metadata"],
+            },
+            "preview": {
+                "href": f"{u}/preview.png?size=512",
+                "type": "image/png",
+                "title": "quicklook",
+                "roles": ["thumbnail"],
+            },
             "scene": scene_asset,
         },
     }

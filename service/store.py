@@ -33,10 +33,11 @@ import sqlite3
 import threading
 import time
 import uuid
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Callable, Iterator, Optional
+from typing import Any
 
 STATUSES = ("accepted", "running", "successful", "failed", "dismissed")
 FINAL = ("successful", "failed", "dismissed")
@@ -72,11 +73,11 @@ CREATE INDEX IF NOT EXISTS jobs_ingest_status ON jobs (status, created) WHERE pr
 INGEST = "ingest"
 
 
-def iso(t: Optional[float]) -> Optional[str]:
+def iso(t: float | None) -> str | None:
     """RFC 3339 UTC timestamp of a POSIX time (None stays None)."""
     if t is None:
         return None
-    return datetime.fromtimestamp(t, tz=timezone.utc).isoformat().replace("+00:00", "Z")
+    return datetime.fromtimestamp(t, tz=UTC).isoformat().replace("+00:00", "Z")
 
 
 class JobStore:
@@ -125,15 +126,14 @@ class JobStore:
 
     # ------------------------------------------------------------------ jobs
 
-    def create(self, process: str, inputs: dict[str, Any], waits_for: Optional[str] = None,
-               message: str = "") -> dict:
+    def create(self, process: str, inputs: dict[str, Any], waits_for: str | None = None, message: str = "") -> dict:
         """A new accepted job; with ``waits_for`` (an ingest job's ID) it is not claimed until
         that job is final."""
         with self._tx() as c:
             job_id = insert_job(c, process, inputs, waits_for, message)
         return self.get(job_id)
 
-    def active_ingest(self, scene_id: str) -> Optional[dict]:
+    def active_ingest(self, scene_id: str) -> dict | None:
         """The accepted or running ingest job of ``scene_id``, if any."""
         job_id = active_ingest(self._conn(), scene_id)
         return self.get(job_id) if job_id else None
@@ -152,35 +152,58 @@ class JobStore:
     def ingest_jobs(self, statuses: tuple[str, ...]) -> list[dict]:
         """Ingest jobs in ``statuses``, newest first (the partial index ``jobs_ingest_status``)."""
         marks = ", ".join("?" * len(statuses))
-        rows = self._conn().execute(f"SELECT * FROM jobs WHERE process = 'ingest' AND status IN ({marks}) "
-                                    "ORDER BY created DESC", statuses).fetchall()
+        rows = (
+            self._conn()
+            .execute(
+                f"SELECT * FROM jobs WHERE process = 'ingest' AND status IN ({marks}) ORDER BY created DESC", statuses
+            )
+            .fetchall()
+        )
         return [_row(r) for r in rows]
 
-    def ingest_job_for_scene(self, scene_id: str) -> Optional[dict]:
+    def ingest_job_for_scene(self, scene_id: str) -> dict | None:
         """The newest ingest job of a scene (the expression index ``jobs_ingest_scene``)."""
-        row = self._conn().execute("SELECT * FROM jobs WHERE process = 'ingest' AND "
-                                   "json_extract(inputs, '$.scene_id') = ? ORDER BY created DESC LIMIT 1",
-                                   (scene_id,)).fetchone()
+        row = (
+            self._conn()
+            .execute(
+                "SELECT * FROM jobs WHERE process = 'ingest' AND "
+                "json_extract(inputs, '$.scene_id') = ? ORDER BY created DESC LIMIT 1",
+                (scene_id,),
+            )
+            .fetchone()
+        )
         return _row(row)
 
     def active_jobs(self) -> list[dict]:
         """Accepted and running jobs (every process), oldest first (the index ``jobs_status``):
         what a scene deletion must not pull a scene from under."""
-        rows = self._conn().execute("SELECT * FROM jobs WHERE status IN ('accepted', 'running') "
-                                    "ORDER BY created").fetchall()
+        rows = (
+            self._conn()
+            .execute("SELECT * FROM jobs WHERE status IN ('accepted', 'running') ORDER BY created")
+            .fetchall()
+        )
         return [_row(r) for r in rows]
 
-    def get(self, job_id: str) -> Optional[dict]:
+    def get(self, job_id: str) -> dict | None:
         row = self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return _row(row)
 
-    def list(self, limit: int = 1000, offset: int = 0, status: Optional[str] = None) -> list[dict]:
+    def list(self, limit: int = 1000, offset: int = 0, status: str | None = None) -> list[dict]:
         if status:
-            rows = self._conn().execute("SELECT * FROM jobs WHERE status = ? ORDER BY created DESC LIMIT ? OFFSET ?",
-                                        (status, limit, offset)).fetchall()
+            rows = (
+                self._conn()
+                .execute(
+                    "SELECT * FROM jobs WHERE status = ? ORDER BY created DESC LIMIT ? OFFSET ?",
+                    (status, limit, offset),
+                )
+                .fetchall()
+            )
         else:
-            rows = self._conn().execute("SELECT * FROM jobs ORDER BY created DESC LIMIT ? OFFSET ?",
-                                        (limit, offset)).fetchall()
+            rows = (
+                self._conn()
+                .execute("SELECT * FROM jobs ORDER BY created DESC LIMIT ? OFFSET ?", (limit, offset))
+                .fetchall()
+            )
         return [_row(r) for r in rows]
 
     def counts(self) -> dict[str, int]:
@@ -189,7 +212,7 @@ class JobStore:
         out.update({r["status"]: r["n"] for r in rows})
         return out
 
-    def claim(self, owner: str, lease_s: float) -> Optional[dict]:
+    def claim(self, owner: str, lease_s: float) -> dict | None:
         """Take the oldest job that is accepted (waiting for no ingest job still accepted or
         running, and not waiting to be retried: ``not_before``), or running with an expired
         lease (its runner died or stalled): mark it running under ``owner`` until
@@ -200,16 +223,22 @@ class JobStore:
                 "SELECT id FROM jobs j WHERE (status = 'accepted' AND (not_before IS NULL OR not_before <= ?) AND "
                 "(waits_for IS NULL OR NOT EXISTS (SELECT 1 FROM jobs d WHERE d.id = j.waits_for AND "
                 "d.status IN ('accepted', 'running')))) "
-                "OR (status = 'running' AND lease_until < ?) ORDER BY created LIMIT 1", (now, now)).fetchone()
+                "OR (status = 'running' AND lease_until < ?) ORDER BY created LIMIT 1",
+                (now, now),
+            ).fetchone()
             if row is None:
                 return None
-            c.execute("UPDATE jobs SET status = 'running', lease_owner = ?, lease_until = ?, started = ?, "
-                      "updated = ?, attempts = attempts + 1, progress = 0, message = ?, not_before = NULL "
-                      "WHERE id = ?", (owner, now + lease_s, now, now, "running", row["id"]))
+            c.execute(
+                "UPDATE jobs SET status = 'running', lease_owner = ?, lease_until = ?, started = ?, "
+                "updated = ?, attempts = attempts + 1, progress = 0, message = ?, not_before = NULL "
+                "WHERE id = ?",
+                (owner, now + lease_s, now, now, "running", row["id"]),
+            )
         return self.get(row["id"])
 
-    def renew(self, job_id: str, owner: str, lease_s: float, progress: Optional[int] = None,
-              attempt: Optional[int] = None) -> bool:
+    def renew(
+        self, job_id: str, owner: str, lease_s: float, progress: int | None = None, attempt: int | None = None
+    ) -> bool:
         """Extend the lease (and record progress); False if the job is no longer ours to run
         (dismissed, or re-claimed after our lease lapsed: by another runner, or by this one as
         a newer ``attempt``)."""
@@ -217,15 +246,26 @@ class JobStore:
         fence, args = _fence(job_id, owner, attempt)
         with self._tx() as c:
             if progress is None:
-                cur = c.execute(f"UPDATE jobs SET lease_until = ?, updated = ? WHERE {fence}",
-                                (now + lease_s, now, *args))
+                cur = c.execute(
+                    f"UPDATE jobs SET lease_until = ?, updated = ? WHERE {fence}", (now + lease_s, now, *args)
+                )
             else:
-                cur = c.execute(f"UPDATE jobs SET lease_until = ?, updated = ?, progress = ? WHERE {fence}",
-                                (now + lease_s, now, int(progress), *args))
+                cur = c.execute(
+                    f"UPDATE jobs SET lease_until = ?, updated = ?, progress = ? WHERE {fence}",
+                    (now + lease_s, now, int(progress), *args),
+                )
             return cur.rowcount == 1
 
-    def finish(self, job_id: str, owner: str, status: str, message: str, result: Optional[dict] = None,
-               attempt: Optional[int] = None, publish: Optional[Callable[[], None]] = None) -> bool:
+    def finish(
+        self,
+        job_id: str,
+        owner: str,
+        status: str,
+        message: str,
+        result: dict | None = None,
+        attempt: int | None = None,
+        publish: Callable[[], None] | None = None,
+    ) -> bool:
         """Final state of a job this runner holds (as ``attempt``); False if it is not ours any
         more. ``publish()`` (moving the attempt's outputs into place) runs inside the same
         transaction, only when the job is still ours: no other attempt can finish or publish
@@ -234,46 +274,58 @@ class JobStore:
         now = time.time()
         fence, args = _fence(job_id, owner, attempt)
         with self._tx() as c:
-            cur = c.execute("UPDATE jobs SET status = ?, message = ?, result = ?, finished = ?, updated = ?, "
-                            "progress = CASE WHEN ? = 'successful' THEN 100 ELSE progress END, lease_owner = NULL, "
-                            f"lease_until = NULL WHERE {fence}",
-                            (status, message, json.dumps(result) if result is not None else None, now, now, status,
-                             *args))
+            cur = c.execute(
+                "UPDATE jobs SET status = ?, message = ?, result = ?, finished = ?, updated = ?, "
+                "progress = CASE WHEN ? = 'successful' THEN 100 ELSE progress END, lease_owner = NULL, "
+                f"lease_until = NULL WHERE {fence}",
+                (status, message, json.dumps(result) if result is not None else None, now, now, status, *args),
+            )
             if cur.rowcount != 1:
                 return False
             if publish is not None:
                 publish()
             return True
 
-    def retry_later(self, job_id: str, owner: str, attempt: Optional[int], delay_s: float, message: str) -> bool:
+    def retry_later(self, job_id: str, owner: str, attempt: int | None, delay_s: float, message: str) -> bool:
         """A job this runner holds failed for a fault of the service, not of its input: back to
         ``accepted``, claimable again ``delay_s`` from now (``not_before``), with ``message``
         saying why. False if the job is not ours any more."""
         now = time.time()
         fence, args = _fence(job_id, owner, attempt)
         with self._tx() as c:
-            cur = c.execute("UPDATE jobs SET status = 'accepted', message = ?, progress = 0, updated = ?, "
-                            f"lease_owner = NULL, lease_until = NULL, not_before = ? WHERE {fence}",
-                            (message, now, now + delay_s, *args))
+            cur = c.execute(
+                "UPDATE jobs SET status = 'accepted', message = ?, progress = 0, updated = ?, "
+                f"lease_owner = NULL, lease_until = NULL, not_before = ? WHERE {fence}",
+                (message, now, now + delay_s, *args),
+            )
             return cur.rowcount == 1
 
-    def retry_now(self, process: Optional[str] = None) -> int:
+    def retry_now(self, process: str | None = None) -> int:
         """Jobs waiting to be retried (``not_before``) may be claimed at once (of ``process``,
         or all); how many."""
         with self._tx() as c:
-            cur = c.execute("UPDATE jobs SET not_before = NULL WHERE status = 'accepted' AND not_before IS NOT NULL "
-                            "AND (? IS NULL OR process = ?)", (process, process))
+            cur = c.execute(
+                "UPDATE jobs SET not_before = NULL WHERE status = 'accepted' AND not_before IS NOT NULL "
+                "AND (? IS NULL OR process = ?)",
+                (process, process),
+            )
             return cur.rowcount
 
     def live_ingest_scenes(self) -> set[str]:
         """Scene ids whose ingest job is running under a lease that has not expired (its
         runner, in this or another process, may be writing the scene's temporary store)."""
-        rows = self._conn().execute("SELECT json_extract(inputs, '$.scene_id') AS s FROM jobs WHERE "
-                                    "process = 'ingest' AND status = 'running' AND lease_until >= ?",
-                                    (time.time(),)).fetchall()
+        rows = (
+            self._conn()
+            .execute(
+                "SELECT json_extract(inputs, '$.scene_id') AS s FROM jobs WHERE "
+                "process = 'ingest' AND status = 'running' AND lease_until >= ?",
+                (time.time(),),
+            )
+            .fetchall()
+        )
         return {r["s"] for r in rows}
 
-    def dismiss(self, job_id: str) -> tuple[Optional[dict], Optional[str]]:
+    def dismiss(self, job_id: str) -> tuple[dict | None, str | None]:
         """Dismiss (OGC API - Processes): accepted or running -> dismissed (a running job's
         runner stops at its next tile); successful or failed -> dismissed (the caller removes
         its outputs; ``finished`` keeps the time it finished). A dismissed job stays as it is.
@@ -283,11 +335,16 @@ class JobStore:
             row = c.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
             before = row["status"] if row else None
             if before in ("accepted", "running"):
-                c.execute("UPDATE jobs SET status = 'dismissed', message = 'dismissed by request', finished = ?, "
-                          "updated = ?, lease_owner = NULL, lease_until = NULL WHERE id = ?", (now, now, job_id))
+                c.execute(
+                    "UPDATE jobs SET status = 'dismissed', message = 'dismissed by request', finished = ?, "
+                    "updated = ?, lease_owner = NULL, lease_until = NULL WHERE id = ?",
+                    (now, now, job_id),
+                )
             elif before in ("successful", "failed"):
-                c.execute("UPDATE jobs SET status = 'dismissed', message = ?, updated = ? WHERE id = ?",
-                          (f"dismissed by request ({before}; its results are removed)", now, job_id))
+                c.execute(
+                    "UPDATE jobs SET status = 'dismissed', message = ?, updated = ? WHERE id = ?",
+                    (f"dismissed by request ({before}; its results are removed)", now, job_id),
+                )
         return self.get(job_id), before
 
     def close(self) -> None:
@@ -297,7 +354,7 @@ class JobStore:
             self._local.conn = None
 
 
-def _fence(job_id: str, owner: str, attempt: Optional[int]) -> tuple[str, tuple]:
+def _fence(job_id: str, owner: str, attempt: int | None) -> tuple[str, tuple]:
     """The WHERE clause of an update by the runner holding a job: the job is running, under
     ``owner`` and (when given) as ``attempt``."""
     if attempt is None:
@@ -305,26 +362,32 @@ def _fence(job_id: str, owner: str, attempt: Optional[int]) -> tuple[str, tuple]
     return "id = ? AND lease_owner = ? AND attempts = ? AND status = 'running'", (job_id, owner, int(attempt))
 
 
-def insert_job(c: sqlite3.Connection, process: str, inputs: dict[str, Any], waits_for: Optional[str] = None,
-               message: str = "") -> str:
+def insert_job(
+    c: sqlite3.Connection, process: str, inputs: dict[str, Any], waits_for: str | None = None, message: str = ""
+) -> str:
     """Insert an accepted job inside the caller's transaction (so that callers can record the
     job's ID in the same transaction that creates it); its ID."""
     now = time.time()
     job_id = uuid.uuid4().hex
-    c.execute("INSERT INTO jobs (id, process, inputs, status, message, created, updated, waits_for) "
-              "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-              (job_id, process, json.dumps(inputs), "accepted", message, now, now, waits_for))
+    c.execute(
+        "INSERT INTO jobs (id, process, inputs, status, message, created, updated, waits_for) "
+        "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+        (job_id, process, json.dumps(inputs), "accepted", message, now, now, waits_for),
+    )
     return job_id
 
 
-def active_ingest(c: sqlite3.Connection, scene_id: str) -> Optional[str]:
+def active_ingest(c: sqlite3.Connection, scene_id: str) -> str | None:
     """The ID of an accepted or running ingest job of ``scene_id`` (inside a transaction)."""
-    row = c.execute("SELECT id FROM jobs WHERE process = 'ingest' AND json_extract(inputs, '$.scene_id') = ? "
-                    "AND status IN ('accepted', 'running') ORDER BY created LIMIT 1", (scene_id,)).fetchone()
+    row = c.execute(
+        "SELECT id FROM jobs WHERE process = 'ingest' AND json_extract(inputs, '$.scene_id') = ? "
+        "AND status IN ('accepted', 'running') ORDER BY created LIMIT 1",
+        (scene_id,),
+    ).fetchone()
     return row["id"] if row else None
 
 
-def _row(row) -> Optional[dict]:
+def _row(row) -> dict | None:
     if row is None:
         return None
     d = dict(row)

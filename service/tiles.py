@@ -38,7 +38,6 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -81,7 +80,7 @@ class Window:
         return -(-(self.c1 - self.c0) // self.f)
 
 
-def tile_window(shape: tuple[int, int], z: int, x: int, y: int, tile: int = TILE) -> Optional[Window]:
+def tile_window(shape: tuple[int, int], z: int, x: int, y: int, tile: int = TILE) -> Window | None:
     """The scene window of XYZ tile (z, x, y), or None when there is no such tile."""
     H, W = shape
     Z = max_zoom(shape, tile)
@@ -101,7 +100,7 @@ def tile_counts(shape: tuple[int, int], z: int, tile: int = TILE) -> tuple[int, 
     return -(-shape[1] // s), -(-shape[0] // s)
 
 
-def parse_layers(text: Optional[str]) -> tuple[str, ...]:
+def parse_layers(text: str | None) -> tuple[str, ...]:
     """``"scene,mask"`` -> ``("scene", "mask")`` (canonical order); ValueError naming a bad one."""
     names = [t.strip() for t in (text if text is not None else "scene,mask").split(",")]
     if not names or any(not n for n in names):
@@ -112,13 +111,13 @@ def parse_layers(text: Optional[str]) -> tuple[str, ...]:
     return tuple(n for n in LAYERS if n in names)
 
 
-def scene_grey(job_dir: Path, w: Window, base_max: Optional[int] = None) -> np.ndarray:
+def scene_grey(job_dir: Path, w: Window, base_max: int | None = None) -> np.ndarray:
     """The grey (job stretch) of a tile window: ``(w.rows, w.cols)`` uint8."""
     meta = job_stretch(job_dir)
     step, base = grey_base(job_dir) if base_max is None else grey_base(job_dir, base_max)
     if w.f % step == 0:  # coarse zoom: sampled from the decimated base (same pixels as a strided read)
         k = w.f // step
-        out = base[w.r0 // step: -(-w.r1 // step): k, w.c0 // step: -(-w.c1 // step): k]
+        out = base[w.r0 // step : -(-w.r1 // step) : k, w.c0 // step : -(-w.c1 // step) : k]
     else:
         src = source_of(meta)
         out = grey(src, strided_reader(src)(w.r0, w.r1, w.c0, w.c1, w.f), meta)
@@ -128,11 +127,18 @@ def scene_grey(job_dir: Path, w: Window, base_max: Optional[int] = None) -> np.n
 
 def mask_tile(job_dir: Path, w: Window, x: int, y: int) -> np.ndarray:
     """The max-pooled mask of a tile window: ``(w.rows, w.cols)`` bool (one COG tile)."""
-    return cog_tile(mask_cog(job_dir), w.level, y, x)[:w.rows, :w.cols] > 0
+    return cog_tile(mask_cog(job_dir), w.level, y, x)[: w.rows, : w.cols] > 0
 
 
-def render_tile(job_dir: Path, shape: tuple[int, int], z: int, x: int, y: int, layers: tuple[str, ...],
-                base_max: Optional[int] = None) -> Optional[bytes]:
+def render_tile(
+    job_dir: Path,
+    shape: tuple[int, int],
+    z: int,
+    x: int,
+    y: int,
+    layers: tuple[str, ...],
+    base_max: int | None = None,
+) -> bytes | None:
     """PNG bytes of XYZ tile (z, x, y), or None when there is no such tile."""
     from PIL import Image
 
@@ -142,20 +148,20 @@ def render_tile(job_dir: Path, shape: tuple[int, int], z: int, x: int, y: int, l
     rgba = np.zeros((TILE, TILE, 4), np.uint8)
     if "scene" in layers:
         g = scene_grey(job_dir, w, base_max)
-        rgba[:w.rows, :w.cols, 0] = g
-        rgba[:w.rows, :w.cols, 1] = g
-        rgba[:w.rows, :w.cols, 2] = g
-        rgba[:w.rows, :w.cols, 3] = 255
+        rgba[: w.rows, : w.cols, 0] = g
+        rgba[: w.rows, : w.cols, 1] = g
+        rgba[: w.rows, : w.cols, 2] = g
+        rgba[: w.rows, : w.cols, 3] = 255
     if "land" in layers:
         land = land_array(job_dir)
         if land is not None:
-            lm = np.asarray(land[w.r0:w.r1:w.f, w.c0:w.c1:w.f]) > 0
-            view = rgba[:w.rows, :w.cols]
+            lm = np.asarray(land[w.r0 : w.r1 : w.f, w.c0 : w.c1 : w.f]) > 0
+            view = rgba[: w.rows, : w.cols]
             view[..., :3] = tint_land(view[..., :3], lm)
             view[..., 3][lm] = 255
     if "mask" in layers:
         m = mask_tile(job_dir, w, x, y)
-        rgba[:w.rows, :w.cols][m] = MASK_RGBA
+        rgba[: w.rows, : w.cols][m] = MASK_RGBA
     buf = io.BytesIO()
     # zlib level 1: on speckled sea 4 ms and ~100 KB a tile, where level 6 took 20 ms and gave
     # ~190 KB (PIL picks its filters by level; measured on a 4096^2 simulated scene)
@@ -164,11 +170,12 @@ def render_tile(job_dir: Path, shape: tuple[int, int], z: int, x: int, y: int, l
 
 
 _lru_lock = threading.Lock()
-_lru: "OrderedDict[tuple, bytes]" = OrderedDict()
+_lru: OrderedDict[tuple, bytes] = OrderedDict()
 
 
-def cached_tile(job_dir: Path, version: str, shape: tuple[int, int], z: int, x: int, y: int,
-                layers: tuple[str, ...]) -> Optional[bytes]:
+def cached_tile(
+    job_dir: Path, version: str, shape: tuple[int, int], z: int, x: int, y: int, layers: tuple[str, ...]
+) -> bytes | None:
     """:func:`render_tile` through the in-memory LRU (key: job folder, job version, tile, layers)."""
     key = (str(job_dir), version, z, x, y, layers)
     with _lru_lock:
@@ -188,7 +195,7 @@ def cached_tile(job_dir: Path, version: str, shape: tuple[int, int], z: int, x: 
 GRID_CELLS = 16
 
 
-def lonlat_grid(attrs: dict, shape: tuple[int, int], n: int = GRID_CELLS) -> Optional[dict]:
+def lonlat_grid(attrs: dict, shape: tuple[int, int], n: int = GRID_CELLS) -> dict | None:
     """The WGS84 position of a regular grid of scene pixel coordinates, for a map drawing the
     scene in lon/lat (the web page warps each tile between the grid's nodes, bilinearly).
 
@@ -228,20 +235,33 @@ def lonlat_grid(attrs: dict, shape: tuple[int, int], n: int = GRID_CELLS) -> Opt
         return None
     # continuous across the antimeridian: unwrapped around the first node (values may pass +-180)
     lon = lon[0, 0] + (lon - lon[0, 0] + 180.0) % 360.0 - 180.0
-    if not (np.isfinite(lon).all() and np.isfinite(lat).all() and (np.abs(lon) <= 360).all()
-            and (np.abs(lat) <= 90).all()):
+    if not (
+        np.isfinite(lon).all() and np.isfinite(lat).all() and (np.abs(lon) <= 360).all() and (np.abs(lat) <= 90).all()
+    ):
         return None
     # 1e-7 degree: about a centimetre
-    return {"rows": rows.tolist(), "cols": cols.tolist(), "lon": np.round(lon, 7).tolist(),
-            "lat": np.round(lat, 7).tolist(), "method": g.method}
+    return {
+        "rows": rows.tolist(),
+        "cols": cols.tolist(),
+        "lon": np.round(lon, 7).tolist(),
+        "lat": np.round(lat, 7).tolist(),
+        "method": g.method,
+    }
 
 
-def tilejson(base: str, job_id: str, shape: tuple[int, int], attrs: Optional[dict] = None) -> dict:
+def tilejson(base: str, job_id: str, shape: tuple[int, int], attrs: dict | None = None) -> dict:
     """The TileJSON 3.0.0 document of a job's tiles (plus the scene's ``width`` and ``height``,
     and ``lonlat``, :func:`lonlat_grid`, when the scene's attributes ``attrs`` georeference it)."""
     H, W = shape
-    doc = {"tilejson": "3.0.0", "tiles": [f"{base}/jobs/{job_id}/tiles/{{z}}/{{x}}/{{y}}.png"], "minzoom": 0,
-           "maxzoom": max_zoom(shape), "tileSize": TILE, "width": int(W), "height": int(H)}
+    doc = {
+        "tilejson": "3.0.0",
+        "tiles": [f"{base}/jobs/{job_id}/tiles/{{z}}/{{x}}/{{y}}.png"],
+        "minzoom": 0,
+        "maxzoom": max_zoom(shape),
+        "tileSize": TILE,
+        "width": int(W),
+        "height": int(H),
+    }
     grid = lonlat_grid(attrs or {}, shape)
     if grid is not None:
         doc["lonlat"] = grid

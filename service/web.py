@@ -73,12 +73,16 @@ def ui_page(request: Request) -> Response:
     """The page: ``index.html`` with its asset links stamped with the current digest."""
     body = index_html()
     etag = f'"{hashlib.sha256(body).hexdigest()[:16]}"'
-    headers = {"Cache-Control": NO_CACHE, "ETag": etag, "X-Content-Type-Options": "nosniff",
-               "Referrer-Policy": "same-origin",
-               # everything the page loads comes from this server; tiles and quicklooks may be blobs
-               "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; "
-                                          "style-src 'self'; script-src 'self'; object-src 'none'; "
-                                          "base-uri 'self'; frame-ancestors 'self'"}
+    headers = {
+        "Cache-Control": NO_CACHE,
+        "ETag": etag,
+        "X-Content-Type-Options": "nosniff",
+        "Referrer-Policy": "same-origin",
+        # everything the page loads comes from this server; tiles and quicklooks may be blobs
+        "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; "
+        "style-src 'self'; script-src 'self'; object-src 'none'; "
+        "base-uri 'self'; frame-ancestors 'self'",
+    }
     if etag in request.headers.get("if-none-match", ""):
         return Response(status_code=304, headers=headers)
     return Response(body, media_type="text/html; charset=utf-8", headers=headers)

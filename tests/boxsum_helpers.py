@@ -31,12 +31,12 @@ def vh_ref(a: np.ndarray, m: int, g0: int, zero_start: bool) -> np.ndarray:
         lo, hi = max(s, 0), min(s + m, n)
         if lo < hi:
             e = s + m - 1
-            suf = run(a[..., lo:e + 1][..., ::-1])[..., ::-1]  # suf[..., c - lo], c in [lo, e]
+            suf = run(a[..., lo : e + 1][..., ::-1])[..., ::-1]  # suf[..., c - lo], c in [lo, e]
             if lo == s:
                 out[..., s] = suf[..., 0]
             first = max(lo, s + 1)
             if first < hi:
-                pre = run(a[..., s + m: hi + m - 1])  # pre[..., k]: rows s + m .. s + m + k
+                pre = run(a[..., s + m : hi + m - 1])  # pre[..., k]: rows s + m .. s + m + k
                 for i in range(first, hi):
                     out[..., i] = suf[..., i - lo] + pre[..., i - s - 1]
         s += m
@@ -49,7 +49,7 @@ def box_sum_ref(block, m, halo, origin):
     off = halo - r
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
-    sub = np.asarray(block[off: off + h + m - 1, off: off + w + m - 1], dtype=np.float64)
+    sub = np.asarray(block[off : off + h + m - 1, off : off + w + m - 1], dtype=np.float64)
     with np.errstate(all="ignore"):  # inf - inf and the like are part of the test inputs
         horiz = vh_ref(sub, m, origin[1] + off, zero_start=True)
         return np.ascontiguousarray(vh_ref(horiz.T, m, origin[0] + off, zero_start=False).T)
@@ -65,8 +65,10 @@ def assert_bits(got, ref):
     np.testing.assert_array_equal(nan_g, nan_r)
     if got[~nan_g].tobytes() != ref[~nan_r].tobytes():
         d = np.flatnonzero((got != ref) & ~nan_g)
-        raise AssertionError(f"{d.size} values differ, first at {np.unravel_index(d[0], got.shape)}: "
-                             f"{got.flat[d[0]]!r} != {ref.flat[d[0]]!r}")
+        raise AssertionError(
+            f"{d.size} values differ, first at {np.unravel_index(d[0], got.shape)}: "
+            f"{got.flat[d[0]]!r} != {ref.flat[d[0]]!r}"
+        )
 
 
 #: Values of the "special" kind: (lo, hi, value), the cells whose uniform draw u is in
@@ -128,5 +130,8 @@ def tiles(P, halo, shape, sizes=((1, 1), (5, 9), (13, 4), (40, 83))):
         for r0 in range(0, shape[0], th):
             for c0 in range(0, shape[1], tw):
                 r1, c1 = min(r0 + th, shape[0]), min(c0 + tw, shape[1])
-                yield ((slice(r0, r1), slice(c0, c1)), P[r0: r1 + 2 * halo, c0: c1 + 2 * halo],
-                       (r0 - halo, c0 - halo))
+                yield (
+                    (slice(r0, r1), slice(c0, c1)),
+                    P[r0 : r1 + 2 * halo, c0 : c1 + 2 * halo],
+                    (r0 - halo, c0 - halo),
+                )

@@ -57,8 +57,9 @@ def client():
     """A real two-process Dask cluster, shared by the tests that need one."""
     from distributed import Client, LocalCluster
 
-    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                           dashboard_address=":0", silence_logs=logging.ERROR)
+    cluster = LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR
+    )
     c = Client(cluster)
     yield c
     c.close()
@@ -75,6 +76,7 @@ def fsize_limit(limit: int):
     def preexec():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
     return preexec
 
 
@@ -83,8 +85,9 @@ def write_scene(path, arrays: dict, tile: int = 256, **attrs):
     from sarship.pipeline.scene import create_scene, finalize_scene
 
     shape = next(iter(arrays.values())).shape
-    g = create_scene(path, shape, {k: v.dtype for k, v in arrays.items()}, tile=tile,
-                     attrs={"kind": "intensity", **attrs})
+    g = create_scene(
+        path, shape, {k: v.dtype for k, v in arrays.items()}, tile=tile, attrs={"kind": "intensity", **attrs}
+    )
     for k, v in arrays.items():
         g[k][:] = v
     finalize_scene(path)
@@ -99,7 +102,7 @@ def blobs_scene(shape=(301, 257), looks=2.0, seed=0, n=12, amp=40.0):
         r = int(rng.integers(0, shape[0] - 6))
         c = int(rng.integers(0, shape[1] - 12))
         hh, ww = int(rng.integers(1, 6)), int(rng.integers(1, 12))
-        x[r:r + hh, c:c + ww] += amp * rng.random((hh, ww)).astype(np.float32) + amp / 4
+        x[r : r + hh, c : c + ww] += amp * rng.random((hh, ww)).astype(np.float32) + amp / 4
     return x
 
 
@@ -114,9 +117,26 @@ def dask_processes(tmp_path, workers: dict[str, list[str]], cwd=None):
         pytest.skip("the 'dask' command is not on PATH")
     sched_file = tmp_path / "scheduler.json"
     env = {**os.environ, "DASK_DISTRIBUTED__LOGGING__DISTRIBUTED": "error"}
-    procs = [subprocess.Popen([DASK, "scheduler", "--scheduler-file", str(sched_file), "--port", "0",
-                               "--dashboard-address", ":0", "--host", "127.0.0.1"], cwd=cwd,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    procs = [
+        subprocess.Popen(
+            [
+                DASK,
+                "scheduler",
+                "--scheduler-file",
+                str(sched_file),
+                "--port",
+                "0",
+                "--dashboard-address",
+                ":0",
+                "--host",
+                "127.0.0.1",
+            ],
+            cwd=cwd,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=env,
+        )
+    ]
     try:
         for _ in range(300):
             if sched_file.exists() and sched_file.stat().st_size > 0:
@@ -126,9 +146,15 @@ def dask_processes(tmp_path, workers: dict[str, list[str]], cwd=None):
             pytest.fail("dask scheduler did not start")
         address = json.loads(sched_file.read_text())["address"]
         for name, extra in workers.items():
-            procs.append(subprocess.Popen([DASK, "worker", address, "--nthreads", "1", "--name", name,
-                                           "--no-dashboard", *extra], cwd=cwd, stdout=subprocess.DEVNULL,
-                                          stderr=subprocess.DEVNULL, env=env))
+            procs.append(
+                subprocess.Popen(
+                    [DASK, "worker", address, "--nthreads", "1", "--name", name, "--no-dashboard", *extra],
+                    cwd=cwd,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                    env=env,
+                )
+            )
         from distributed import Client
 
         with Client(address, timeout="20s") as c:

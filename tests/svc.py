@@ -14,8 +14,7 @@ from pathlib import Path
 import httpx
 
 
-def data_with_scene(root: Path, shape: tuple[int, int] = (300, 260), seed: int = 3, tile: int = 128,
-                    **blobs) -> Path:
+def data_with_scene(root: Path, shape: tuple[int, int] = (300, 260), seed: int = 3, tile: int = 128, **blobs) -> Path:
     """A fresh service data folder ``root/data`` holding one small scene ``s1`` (gamma clutter,
     L = 2, bright blobs; ``blobs`` go to ``conftest.blobs_scene``), written with the project's
     store code."""
@@ -23,8 +22,12 @@ def data_with_scene(root: Path, shape: tuple[int, int] = (300, 260), seed: int =
 
     data = root / "data"
     (data / "scenes").mkdir(parents=True)
-    write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene(shape, looks=2.0, seed=seed, **blobs)},
-                tile=tile, looks=2.0)
+    write_scene(
+        data / "scenes" / "s1.zarr",
+        {"intensity": blobs_scene(shape, looks=2.0, seed=seed, **blobs)},
+        tile=tile,
+        looks=2.0,
+    )
     return data
 
 
@@ -50,15 +53,25 @@ class Server:
         self.url = f"http://127.0.0.1:{port}"
         # worker threads: two worker processes per server cost seconds of start-up on the 2-core test
         # machine; the README walk-through test runs the default worker processes
-        self.env = {**os.environ, "SARSHIP_WORKERS": "2", "SARSHIP_WORKER_THREADS": "1", "SARSHIP_LEASE_S": "4",
-                    "CUDA_VISIBLE_DEVICES": "", **env}
+        self.env = {
+            **os.environ,
+            "SARSHIP_WORKERS": "2",
+            "SARSHIP_WORKER_THREADS": "1",
+            "SARSHIP_LEASE_S": "4",
+            "CUDA_VISIBLE_DEVICES": "",
+            **env,
+        }
         self.proc = None
 
-    def start(self, timeout: float = 120.0) -> "Server":
+    def start(self, timeout: float = 120.0) -> Server:
         self.log = open(self.data.parent / f"server-{self.port}-{time.time_ns()}.log", "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(self.data),
-                                      "--port", str(self.port)], stdout=self.log, stderr=subprocess.STDOUT,
-                                     env=self.env, start_new_session=True)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "sarship", "serve", "--data", str(self.data), "--port", str(self.port)],
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+            env=self.env,
+            start_new_session=True,
+        )
         t_end = time.time() + timeout
         while time.time() < t_end:
             if self.proc.poll() is not None:

@@ -19,7 +19,7 @@ import os
 import socket
 import sys
 import warnings
-from typing import Iterator
+from collections.abc import Iterator
 
 from sarship.pipeline import settings
 from sarship.pipeline.errors import InputError
@@ -55,8 +55,16 @@ def cluster_host() -> str:
 
 
 def _quiet() -> None:
-    for name in ("distributed", "distributed.scheduler", "distributed.worker", "distributed.nanny",
-                 "distributed.core", "distributed.http.proxy", "bokeh", "tornado"):
+    for name in (
+        "distributed",
+        "distributed.scheduler",
+        "distributed.worker",
+        "distributed.nanny",
+        "distributed.core",
+        "distributed.http.proxy",
+        "bokeh",
+        "tornado",
+    ):
         logging.getLogger(name).setLevel(logging.ERROR)
 
 
@@ -203,14 +211,18 @@ def check_versions(client) -> None:
     try:
         got = client.run(_sarship_version)
     except Exception as exc:
-        raise InputError(f"the cluster's workers cannot run sarship ({type(exc).__name__}: {exc}); "
-                         f"install sarship {__version__} on every worker") from None
+        raise InputError(
+            f"the cluster's workers cannot run sarship ({type(exc).__name__}: {exc}); "
+            f"install sarship {__version__} on every worker"
+        ) from None
     other = {w: v for w, v in got.items() if v != __version__}
     if other:
         info = client.scheduler_info(n_workers=-1).get("workers", {})
         names = ", ".join(sorted(f"{info.get(w, {}).get('name', w)} at {w} ({v})" for w, v in other.items()))
-        raise InputError(f"workers run another sarship version than this client ({__version__}): {names}; "
-                         f"every process of a cluster must run the same version")
+        raise InputError(
+            f"workers run another sarship version than this client ({__version__}): {names}; "
+            f"every process of a cluster must run the same version"
+        )
 
 
 @contextlib.contextmanager
@@ -225,7 +237,7 @@ def connect(
     threads: bool = False,
     short_lived: bool = False,
     procs_per_gpu: int | None = None,
-) -> Iterator["distributed.Client"]:  # noqa: F821
+) -> Iterator[distributed.Client]:  # noqa: F821
     """Yield a connected :class:`distributed.Client`.
 
     ``scheduler``: address of an existing scheduler (``tcp://host:8786``); otherwise a
@@ -243,8 +255,7 @@ def connect(
         client = connect_checked(scheduler)
         if echo:
             n = len(client.scheduler_info().get("workers", {}))
-            print(f"sarship: using Dask scheduler {scheduler} ({n} workers), {dashboard_note(client)}",
-                  file=sys.stderr)
+            print(f"sarship: using Dask scheduler {scheduler} ({n} workers), {dashboard_note(client)}", file=sys.stderr)
         try:
             yield client
         finally:
@@ -259,11 +270,19 @@ def connect(
     method = worker_start_method(short_lived)
     # Dask's raw "Port 8787 is already in use" and the like; Python's warning that a process
     # with threads forks (the scheduler's loop thread; nothing in it is used by a child)
-    with warnings.catch_warnings(), dask.config.set({"distributed.worker.multiprocessing-method": method,
-                                                     "distributed.nanny.pre-spawn-environ": nanny_environ()}):
+    with (
+        warnings.catch_warnings(),
+        dask.config.set(
+            {
+                "distributed.worker.multiprocessing-method": method,
+                "distributed.nanny.pre-spawn-environ": nanny_environ(),
+            }
+        ),
+    ):
         warnings.simplefilter("ignore")
-        client, cluster, what = _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads,
-                                             threads, procs_per_gpu)
+        client, cluster, what = _start_local(
+            gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads, threads, procs_per_gpu
+        )
     if "processes" in what:
         what += f" ({method})"
     if echo:
@@ -361,8 +380,9 @@ def gpu_procs(n_gpus: int = 1, long_lived: bool = False) -> int:
     return procs
 
 
-def gpu_cluster_spec(gpu_ids: list[str], cpu_workers: int, dashboard_address: str, host: str,
-                     gpu_threads: int = 2, per_gpu: int = 1) -> dict:
+def gpu_cluster_spec(
+    gpu_ids: list[str], cpu_workers: int, dashboard_address: str, host: str, gpu_threads: int = 2, per_gpu: int = 1
+) -> dict:
     """The keyword arguments of the GPU local cluster's :class:`distributed.SpecCluster`: its
     scheduler and one pinned nanny per GPU process (:func:`sarship.workers.gpus.worker_specs`),
     the scheduler, every nanny and worker (and the worker's HTTP server, which listens where
@@ -373,8 +393,15 @@ def gpu_cluster_spec(gpu_ids: list[str], cpu_workers: int, dashboard_address: st
     from sarship.workers.gpus import worker_specs
 
     return {
-        "workers": worker_specs(gpu_ids, cpu_workers, prefix="local-", silence_logs=logging.ERROR,
-                                gpu_threads=gpu_threads, gpu_procs=per_gpu, host=host),
+        "workers": worker_specs(
+            gpu_ids,
+            cpu_workers,
+            prefix="local-",
+            silence_logs=logging.ERROR,
+            gpu_threads=gpu_threads,
+            gpu_procs=per_gpu,
+            host=host,
+        ),
         "scheduler": {"cls": Scheduler, "options": {"host": host, "dashboard_address": dashboard_address}},
         "silence_logs": logging.ERROR,
     }
@@ -391,9 +418,16 @@ def _start_local(gpu_ids, n_workers, dashboard_address, cpu_workers, gpu_threads
     if gpu_ids:
         from distributed import SpecCluster
 
-        cluster = SpecCluster(**gpu_cluster_spec(
-            gpu_ids, cpu_workers, dashboard_address, host, per_gpu=per_gpu,
-            gpu_threads=gpu_threads or settings.read("gpu_threads")))
+        cluster = SpecCluster(
+            **gpu_cluster_spec(
+                gpu_ids,
+                cpu_workers,
+                dashboard_address,
+                host,
+                per_gpu=per_gpu,
+                gpu_threads=gpu_threads or settings.read("gpu_threads"),
+            )
+        )
         what = f"{len(gpu_ids) * per_gpu} GPU worker processes" + (f" and {cpu_workers} CPU" if cpu_workers else "")
     elif threads:
         n = n_workers or os.cpu_count() or 1

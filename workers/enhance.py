@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 
 from sarship.pipeline import __version__
-from sarship.pipeline.image.destripe import DestripeParams, apply_gain, assemble, estimate, segment_sums
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.tiling.inputs import intensity_source, make_reader
+from sarship.pipeline.image.destripe import DestripeParams, apply_gain, assemble, estimate, segment_sums
 from sarship.pipeline.scene import atomic_store, create_scene, finalize_scene, open_scene, tile_slices
+from sarship.pipeline.tiling.inputs import intensity_source, make_reader
 
 
 @dataclass(frozen=True)
@@ -50,8 +50,14 @@ def tile_stats(job: EnhanceTile, params: DestripeParams) -> dict[str, Any]:
     return {"index": job.index, "part": part, "pixels": (r1 - r0) * (c1 - c0)}
 
 
-def tile_apply(job: EnhanceTile, out_path: str, variables: dict[str, str], amplitude: dict[str, bool],
-               profile_part: np.ndarray, params: DestripeParams) -> dict[str, Any]:
+def tile_apply(
+    job: EnhanceTile,
+    out_path: str,
+    variables: dict[str, str],
+    amplitude: dict[str, bool],
+    profile_part: np.ndarray,
+    params: DestripeParams,
+) -> dict[str, Any]:
     """Filter one tile of every variable and write it into the output store."""
     import zarr
 
@@ -59,8 +65,9 @@ def tile_apply(job: EnhanceTile, out_path: str, variables: dict[str, str], ampli
     for name in variables:
         src = zarr.open_array(f"{job.scene_path}/{name}", mode="r")
         dst = zarr.open_array(f"{out_path}/{name}", mode="r+")
-        dst[r0:r1, c0:c1] = apply_gain(np.asarray(src[r0:r1, c0:c1]), profile_part, params,
-                                       complex_amplitude=amplitude[name])
+        dst[r0:r1, c0:c1] = apply_gain(
+            np.asarray(src[r0:r1, c0:c1]), profile_part, params, complex_amplitude=amplitude[name]
+        )
     return {"index": job.index, "pixels": (r1 - r0) * (c1 - c0)}
 
 
@@ -69,8 +76,10 @@ def check_enhance_out(out: Path, scene_path: Path, overwrite: bool) -> None:
     without ``overwrite``."""
     o, s = out.resolve(), scene_path.resolve()
     if o == s or s in o.parents or o in s.parents:
-        raise InputError(f"--out '{out}' is the input scene '{scene_path}', inside it or around it: "
-                         "choose another path (not even --overwrite writes into an input)")
+        raise InputError(
+            f"--out '{out}' is the input scene '{scene_path}', inside it or around it: "
+            "choose another path (not even --overwrite writes into an input)"
+        )
     if out.exists() and not overwrite:
         raise InputError(f"output '{out}' already exists: pass --overwrite to replace it")
     if out.exists() and not (out / "zarr.json").is_file():
@@ -83,9 +92,16 @@ def _amplitude(scene_kind: str, dtype: str) -> bool:
     return "complex" in dtype and scene_kind != "covariance"
 
 
-def run_enhance(scene_path: str | Path, out: str | Path, destripe: DestripeParams | None = None,
-                client=None, scheduler: str | None = None, progress: bool = True,
-                overwrite: bool = False, channel: str | None = None) -> dict[str, Any]:
+def run_enhance(
+    scene_path: str | Path,
+    out: str | Path,
+    destripe: DestripeParams | None = None,
+    client=None,
+    scheduler: str | None = None,
+    progress: bool = True,
+    overwrite: bool = False,
+    channel: str | None = None,
+) -> dict[str, Any]:
     """Destripe ``scene_path`` into the new scene store ``out``; returns the ``enhance`` record."""
     from sarship.workers.progress import Progress
 
@@ -97,19 +113,29 @@ def run_enhance(scene_path: str | Path, out: str | Path, destripe: DestripeParam
     src = Path(scene_path).absolute()
     var, transform = intensity_source(scene, channel)
     if transform not in ("real", "abs2"):
-        raise InputError(f"sarship enhance: scene '{scene_path}' of kind '{scene.kind}': destriping reads "
-                         f"intensity or a complex channel, got '{var}' ({transform})")
+        raise InputError(
+            f"sarship enhance: scene '{scene_path}' of kind '{scene.kind}': destriping reads "
+            f"intensity or a complex channel, got '{var}' ({transform})"
+        )
     H, W = scene.shape
-    jobs = [EnhanceTile(str(src), var, transform, (i, j), (r0, r1, c0, c1))
-            for i, j, r0, r1, c0, c1 in tile_slices((H, W), scene.tile)]
+    jobs = [
+        EnhanceTile(str(src), var, transform, (i, j), (r0, r1, c0, c1))
+        for i, j, r0, r1, c0, c1 in tile_slices((H, W), scene.tile)
+    ]
     with contextlib.ExitStack() as stack:
         if client is None:
             from sarship.workers.cluster import connect
 
             client = stack.enter_context(connect(scheduler, short_lived=True))
         tag = uuid.uuid4().hex[:6]
-        stats = _run(client, tile_stats, jobs, [f"sarship-destripe-stats-{j.index[0]}-{j.index[1]}-{tag}" for j in jobs],
-                     Progress(len(jobs), "enhance: stripe spectrum", progress), params=params)
+        stats = _run(
+            client,
+            tile_stats,
+            jobs,
+            [f"sarship-destripe-stats-{j.index[0]}-{j.index[1]}-{tag}" for j in jobs],
+            Progress(len(jobs), "enhance: stripe spectrum", progress),
+            params=params,
+        )
         t_pass = time.perf_counter()
         sums, counts = assemble([s["part"] for s in sorted(stats, key=lambda s: s["index"])], (H, W), params)
         est = estimate(sums, counts, params)
@@ -119,8 +145,9 @@ def run_enhance(scene_path: str | Path, out: str | Path, destripe: DestripeParam
         with atomic_store(out, overwrite=overwrite) as tmp:
             attrs = {k: v for k, v in scene.attrs.items()}
             prior = attrs.get("enhance")
-            create_scene(tmp, (H, W), {k: np.dtype(v) for k, v in scene.variables.items()}, tile=scene.tile,
-                         attrs=attrs)
+            create_scene(
+                tmp, (H, W), {k: np.dtype(v) for k, v in scene.variables.items()}, tile=scene.tile, attrs=attrs
+            )
             prof = est.profile
             futures_args = []
             for j in jobs:
@@ -129,12 +156,17 @@ def run_enhance(scene_path: str | Path, out: str | Path, destripe: DestripeParam
                 futures_args.append((j, part))
             keys = [f"sarship-destripe-apply-{j.index[0]}-{j.index[1]}-{tag}" for j in jobs]
             bar = Progress(len(jobs), "enhance: destripe", progress)
-            futures = [client.submit(tile_apply, j, str(tmp.absolute()), scene.variables, amp, part, params,
-                                     key=k, pure=False) for (j, part), k in zip(futures_args, keys)]
+            futures = [
+                client.submit(tile_apply, j, str(tmp.absolute()), scene.variables, amp, part, params, key=k, pure=False)
+                for (j, part), k in zip(futures_args, keys)
+            ]
             _gather(client, futures, bar)
             t_apply = time.perf_counter()
-            record["destripe"]["timings"] = {"spectrum_s": round(t_pass - t0, 4), "estimate_s": round(t_est - t_pass, 4),
-                                             "filter_s": round(t_apply - t_est, 4)}
+            record["destripe"]["timings"] = {
+                "spectrum_s": round(t_pass - t0, 4),
+                "estimate_s": round(t_est - t_pass, 4),
+                "filter_s": round(t_apply - t_est, 4),
+            }
             record["input"] = str(src)
             record["sarship_version"] = __version__
             history = (prior if isinstance(prior, list) else [prior] if prior else []) + [record]

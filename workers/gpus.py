@@ -112,8 +112,15 @@ def parse_gpus(text: str) -> list[str]:
     return ids
 
 
-def worker_specs(gpu_ids: list[str], cpus: int, prefix: str, memory_limit: str | None = None,
-                 gpu_threads: int = 2, gpu_procs: int = 1, **options) -> dict[str, dict]:
+def worker_specs(
+    gpu_ids: list[str],
+    cpus: int,
+    prefix: str,
+    memory_limit: str | None = None,
+    gpu_threads: int = 2,
+    gpu_procs: int = 1,
+    **options,
+) -> dict[str, dict]:
     """``distributed.SpecCluster``-style worker specs: one pinned process per GPU, ``cpus``
     single-threaded CPU processes (``options``: more ``Nanny`` keyword arguments).
 
@@ -134,10 +141,18 @@ def worker_specs(gpu_ids: list[str], cpus: int, prefix: str, memory_limit: str |
         for k in range(max(1, int(gpu_procs))):
             name = f"{prefix}gpu{gid}" + (f"-{k}" if gpu_procs > 1 else "")
             env = {"CUDA_VISIBLE_DEVICES": str(gid), "SARSHIP_DEVICE": "gpu"}
-            specs[name] = {"cls": Nanny, "options": {"name": name, "nthreads": gpu_threads,
-                                                      "resources": {"GPU": gpu_threads},
-                                                      "plugins": {CudaWarmup()},
-                                                      "env": env, **_mem(memory_limit), **options}}
+            specs[name] = {
+                "cls": Nanny,
+                "options": {
+                    "name": name,
+                    "nthreads": gpu_threads,
+                    "resources": {"GPU": gpu_threads},
+                    "plugins": {CudaWarmup()},
+                    "env": env,
+                    **_mem(memory_limit),
+                    **options,
+                },
+            }
     for k in range(cpus):
         name = f"{prefix}cpu{k}"
         # a CPU worker must not grab a GPU by accident: hide them. An empty value, not "-1":
@@ -145,8 +160,17 @@ def worker_specs(gpu_ids: list[str], cpus: int, prefix: str, memory_limit: str |
         # worker's start (the Nanny applies ``env`` after the child has read Dask's config,
         # so the monitor cannot be switched off from here).
         env = {"CUDA_VISIBLE_DEVICES": "", "SARSHIP_DEVICE": "cpu"} if gpu_ids else {"SARSHIP_DEVICE": "cpu"}
-        specs[name] = {"cls": Nanny, "options": {"name": name, "nthreads": 1, "resources": {"CPU": 1},
-                                                  "env": env, **_mem(memory_limit), **options}}
+        specs[name] = {
+            "cls": Nanny,
+            "options": {
+                "name": name,
+                "nthreads": 1,
+                "resources": {"CPU": 1},
+                "env": env,
+                **_mem(memory_limit),
+                **options,
+            },
+        }
     return specs
 
 

@@ -31,13 +31,12 @@ import shutil
 import sys
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from sarship.pipeline.stats import model_fit
-from sarship.pipeline.targets.components import merge_tiles
 from sarship.pipeline.run.fit import fit_record
 from sarship.pipeline.run.merge import discriminate
 from sarship.pipeline.run.outputs import check_out, check_out_path, prepare_out, publish
@@ -45,6 +44,8 @@ from sarship.pipeline.run.plan import Plan, make_plan
 from sarship.pipeline.run.record import Outcome, run_record
 from sarship.pipeline.run.refine import refine
 from sarship.pipeline.scene import claim_output, create_mask_store, finalize_scene, open_scene, tile_slices
+from sarship.pipeline.stats import model_fit
+from sarship.pipeline.targets.components import merge_tiles
 from sarship.pipeline.targets.ship_features import collection, write_json
 from sarship.workers.land import LAND_STORE, finish_land, prepare_land
 from sarship.workers.progress import Progress
@@ -88,8 +89,18 @@ def run_detection(
     outputs (refused too without ``overwrite``).
     """
     request = JobRequest.from_inputs(detector, {**(settings or {}), "scene": str(scene_path), "device": device})
-    return run_request(request, out_dir, tile=tile, client=client, scheduler=scheduler, progress=progress,
-                       on_tile=on_tile, overwrite=overwrite, cluster_note=cluster_note, claim=True)
+    return run_request(
+        request,
+        out_dir,
+        tile=tile,
+        client=client,
+        scheduler=scheduler,
+        progress=progress,
+        on_tile=on_tile,
+        overwrite=overwrite,
+        cluster_note=cluster_note,
+        claim=True,
+    )
 
 
 def run_request(
@@ -125,8 +136,9 @@ def run_request(
         return run(*args, **kw)
 
 
-def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
-              cluster_note, **publication) -> dict[str, Any]:
+def _run_auto(
+    request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite, cluster_note, **publication
+) -> dict[str, Any]:
     """``--detector auto``: the clutter-model fit of each candidate (pipeline/stats/model_fit.py,
     ``AUTO_CANDIDATES``) measured on the scene's sample (the candidate run with the request's
     parameters, its own PFA and the probe PFA, its kept detections excluded, no output
@@ -141,8 +153,9 @@ def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, o
             from sarship.workers.cluster import connect, threads_max_px
 
             H, W = scene.shape
-            client = stack.enter_context(connect(scheduler, gpus=request.device != "cpu",
-                                                 threads=H * W <= threads_max_px(), short_lived=True))
+            client = stack.enter_context(
+                connect(scheduler, gpus=request.device != "cpu", threads=H * W <= threads_max_px(), short_lived=True)
+            )
         elif cluster_note:
             print(cluster_note, file=sys.stderr)
         fits = {}
@@ -154,29 +167,61 @@ def _run_auto(request: JobRequest, out_dir, tile, client, scheduler, progress, o
             "candidates": list(model_fit.AUTO_CANDIDATES),
             "probe_pfa": model_fit.PROBE_PFA,
             "tolerance": model_fit.AUTO_TOLERANCE,
-            "fits": {n: {k: r[k] for k in ("verdict", "ratio", "rate", "interval", "exceedances", "sample")}
-                     for n, r in fits.items()},
+            "fits": {
+                n: {k: r[k] for k in ("verdict", "ratio", "rate", "interval", "exceedances", "sample")}
+                for n, r in fits.items()
+            },
             "chosen": chosen,
             "why": why,
         }
         if progress:
             print(f"detector auto: {chosen} ({why})", file=sys.stderr)
         final = request.model_copy(update={"detector": chosen})
-        return _run_request(final, out_dir, tile, client, None, progress, on_tile, overwrite, None,
-                            extra_run={"detector_auto": record}, **publication)
+        return _run_request(
+            final,
+            out_dir,
+            tile,
+            client,
+            None,
+            progress,
+            on_tile,
+            overwrite,
+            None,
+            extra_run={"detector_auto": record},
+            **publication,
+        )
 
 
-def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress, on_tile, overwrite,
-                 cluster_note, fit_only: bool = False, extra_run: dict | None = None,
-                 publish_with: Callable[[Path, Path], None] = publish,
-                 land_source: dict | None = None) -> dict[str, Any]:
+def _run_request(
+    request: JobRequest,
+    out_dir,
+    tile,
+    client,
+    scheduler,
+    progress,
+    on_tile,
+    overwrite,
+    cluster_note,
+    fit_only: bool = False,
+    extra_run: dict | None = None,
+    publish_with: Callable[[Path, Path], None] = publish,
+    land_source: dict | None = None,
+) -> dict[str, Any]:
     """One detection run (:func:`run_request`), the stages of the module docstring in order.
     ``fit_only``: only the clutter-model fit (``--detector auto``'s candidates): no output is
     written, the ``model_fit`` record is returned. ``extra_run``: entries added to ``run.json``;
     ``publish_with``, ``land_source``: see :func:`run_request`."""
     clock = {"start": time.perf_counter()}
-    plan = make_plan(request.spec, request.detector_params(), device=request.device, channel=request.channel,
-                     scene_path=request.scene, out_dir=out_dir, tile=tile, overwrite=overwrite)
+    plan = make_plan(
+        request.spec,
+        request.detector_params(),
+        device=request.device,
+        channel=request.channel,
+        scene_path=request.scene,
+        out_dir=out_dir,
+        tile=tile,
+        overwrite=overwrite,
+    )
     if fit_only and plan.fit is None:
         raise ValueError(f"fit_only: the fit of '{plan.detector}' is not measured")
     created = not plan.out_dir.exists()
@@ -201,8 +246,9 @@ def _run_request(request: JobRequest, out_dir, tile, client, scheduler, progress
         raise
 
 
-def _execute_plan(plan: Plan, tmp: Path, client, scheduler, cluster_note, progress: bool, on_tile,
-                  fit_only: bool, clock: dict) -> Outcome | dict:
+def _execute_plan(
+    plan: Plan, tmp: Path, client, scheduler, cluster_note, progress: bool, on_tile, fit_only: bool, clock: dict
+) -> Outcome | dict:
     """The stages that run on the cluster (module docstring), on ``client`` or a cluster started
     for the run (``scheduler``, else a local one) and closed at the end. ``fit_only``: the
     ``model_fit`` record, once the detections are merged."""
@@ -228,10 +274,14 @@ def _execute_plan(plan: Plan, tmp: Path, client, scheduler, cluster_note, progre
         stack.callback(blocks.clear)  # the job's kept reads are released however it ends
         keep = kept_blocks(jobs, plan.params, budget * (len(workers) or 1)) if budget is not None else 0
         jobs, land_record = prepare_land(
-            plan, jobs, tmp,
-            lambda fn, js, stage: _execute_land(client, js, plan.detector, progress, fn, stage, placement.submit,
-                                                keep, blocks),
-            progress=progress)
+            plan,
+            jobs,
+            tmp,
+            lambda fn, js, stage: _execute_land(
+                client, js, plan.detector, progress, fn, stage, placement.submit, keep, blocks
+            ),
+            progress=progress,
+        )
         jobs, prep, scene_pass, warnings = _scene_pass(plan, client, jobs, placement.submit, progress)
         clock["prep"] = time.perf_counter()
         results = _execute(client, jobs, plan.detector, progress, on_tile, submit=placement.submit, extra=blocks)
@@ -270,11 +320,23 @@ def _execute_plan(plan: Plan, tmp: Path, client, scheduler, cluster_note, progre
         "read_cpu_s": round(sum(r["read_s"] for r in results), 4),
         "mpx_per_s": round(H * W / max(clock["tiles"] - clock["prep"], 1e-9) / 1e6, 3),
     }
-    return Outcome(prep=prep, scene_pass=scene_pass, land=land_record, results=results, refined=refined,
-                   discarded=discarded, model_fit=fit, kept_px=kept_px, tiles=len(jobs), device=placement.device,
-                   placement_reason=placement.reason,
-                   restriction={k: v for k, v in placement.submit.items() if k != "allow_other_workers"},
-                   dashboard=dashboard, warnings=warnings, timings=timings)
+    return Outcome(
+        prep=prep,
+        scene_pass=scene_pass,
+        land=land_record,
+        results=results,
+        refined=refined,
+        discarded=discarded,
+        model_fit=fit,
+        kept_px=kept_px,
+        tiles=len(jobs),
+        device=placement.device,
+        placement_reason=placement.reason,
+        restriction={k: v for k, v in placement.submit.items() if k != "allow_other_workers"},
+        dashboard=dashboard,
+        warnings=warnings,
+        timings=timings,
+    )
 
 
 def _tile_jobs(plan: Plan, tmp: Path, fit_only: bool) -> list[TileJob]:
@@ -282,16 +344,30 @@ def _tile_jobs(plan: Plan, tmp: Path, fit_only: bool) -> list[TileJob]:
     store) and one :class:`TileJob` per output tile (``fit_only``: the tiles write nothing)."""
     H, W = plan.shape
     scene = plan.scene
-    create_mask_store(tmp / "mask.zarr", (H, W), plan.tile, {"detector": plan.detector, "scene": str(scene.path),
-                                                             **plan.geo},
-                      arrays=("mask", DETECTED_ARRAY))
+    create_mask_store(
+        tmp / "mask.zarr",
+        (H, W),
+        plan.tile,
+        {"detector": plan.detector, "scene": str(scene.path), **plan.geo},
+        arrays=("mask", DETECTED_ARRAY),
+    )
     create_mask_store(tmp / LABEL_STORE, (H, W), plan.tile, arrays=("labels",), dtype="int32")
     return [
         TileJob(
-            scene_path=str(scene.path), var=plan.var, transform=plan.transform, scene_shape=(H, W),
-            index=(i, j), bounds=(r0, r1, c0, c1), halo=plan.halo, merge_r=plan.merge_r, detector=plan.detector,
-            params=plan.params.model_dump(), prep=plan.prep,
-            mask_path=None if fit_only else str(tmp / "mask.zarr" / "mask"), spacing=plan.spacing, fit=plan.fit,
+            scene_path=str(scene.path),
+            var=plan.var,
+            transform=plan.transform,
+            scene_shape=(H, W),
+            index=(i, j),
+            bounds=(r0, r1, c0, c1),
+            halo=plan.halo,
+            merge_r=plan.merge_r,
+            detector=plan.detector,
+            params=plan.params.model_dump(),
+            prep=plan.prep,
+            mask_path=None if fit_only else str(tmp / "mask.zarr" / "mask"),
+            spacing=plan.spacing,
+            fit=plan.fit,
             detected_path=None if fit_only else str(tmp / "mask.zarr" / DETECTED_ARRAY),
             label_path=None if fit_only else str(tmp / LABEL_STORE / "labels"),
             line_join=plan.params.line_gap_px is not None,
@@ -311,13 +387,17 @@ def _cluster(plan: Plan, stack: contextlib.ExitStack, client, scheduler, cluster
 
     t0 = time.perf_counter()
     H, W = plan.shape
-    client = stack.enter_context(connect(scheduler, gpus=plan.device != "cpu" and plan.has_gpu,
-                                         threads=H * W <= threads_max_px(), short_lived=True))
+    client = stack.enter_context(
+        connect(
+            scheduler, gpus=plan.device != "cpu" and plan.has_gpu, threads=H * W <= threads_max_px(), short_lived=True
+        )
+    )
     return client, time.perf_counter() - t0
 
 
-def _scene_pass(plan: Plan, client, jobs: list[TileJob], submit: dict, progress: bool
-                ) -> tuple[list[TileJob], dict, dict | None, list[str]]:
+def _scene_pass(
+    plan: Plan, client, jobs: list[TileJob], submit: dict, progress: bool
+) -> tuple[list[TileJob], dict, dict | None, list[str]]:
     """The detector's scene-wide statistics (``DetectorSpec.scene_pass`` / ``reduce``), pass
     after pass while ``reduce`` asks for another: the jobs with the merged values in their
     ``prep``, that ``prep``, the ``run.json`` ``scene_pass`` record (None without one) and the
@@ -327,7 +407,7 @@ def _scene_pass(plan: Plan, client, jobs: list[TileJob], submit: dict, progress:
         return jobs, prep, None, warnings
     t0 = time.perf_counter()
     values_all: dict = {}
-    for n_pass in range(1, spec.scene_passes_max + 1):  # reduce may ask for another pass
+    for n_pass in range(1, spec.scene_passes_max + 1):  # noqa: B007 (reported after the loop); reduce may ask for another pass
         stats = _execute(client, jobs, plan.detector, progress, None, run_tile_stats, "scene statistics", submit)
         values = spec.reduce([s["stats"] for s in sorted(stats, key=lambda s: s["index"])], plan.params, prep)
         again = bool(values.pop("another_pass", False))
@@ -339,8 +419,12 @@ def _scene_pass(plan: Plan, client, jobs: list[TileJob], submit: dict, progress:
             break
     else:
         raise RuntimeError(f"{plan.detector}: more than {spec.scene_passes_max} scene passes asked for")
-    record = {"tiles": len(stats), "seconds": round(time.perf_counter() - t0, 4), "passes": n_pass,
-              "values": values_all}
+    record = {
+        "tiles": len(stats),
+        "seconds": round(time.perf_counter() - t0, 4),
+        "passes": n_pass,
+        "values": values_all,
+    }
     return jobs, prep, record, warnings
 
 
@@ -359,8 +443,9 @@ def _write_outputs(plan: Plan, tmp: Path, run: dict, feats: list[dict], clock: d
     write_json(tmp / "run.json", run)
 
 
-def _write_kept(client, jobs: list[TileJob], merged: np.ndarray, members: dict, kept: np.ndarray, detector: str,
-                submit: dict | None) -> int:
+def _write_kept(
+    client, jobs: list[TileJob], merged: np.ndarray, members: dict, kept: np.ndarray, detector: str, submit: dict | None
+) -> int:
     """Write ``mask.zarr/mask``: each tile with a part of a kept detection (``kept``: the final
     records, a subset of ``merged``, matched by their peak pixel, which belongs to one component)
     writes its pixels of them from its label store (:func:`run_tile_keep`), on the workers.
@@ -377,9 +462,17 @@ def _write_kept(client, jobs: list[TileJob], merged: np.ndarray, members: dict, 
         if len(sel):
             todo.append((job, sel))
     tag = uuid.uuid4().hex[:6]
-    futures = [client.submit(run_tile_keep, job, ids, pure=False,
-                             key=f"sarship-{detector}-keep-{job.index[0]}-{job.index[1]}-{tag}", **(submit or {}))
-               for job, ids in todo]
+    futures = [
+        client.submit(
+            run_tile_keep,
+            job,
+            ids,
+            pure=False,
+            key=f"sarship-{detector}-keep-{job.index[0]}-{job.index[1]}-{tag}",
+            **(submit or {}),
+        )
+        for job, ids in todo
+    ]
     try:
         return int(sum(r["kept_px"] for r in client.gather(futures)))
     except BaseException:
@@ -404,20 +497,43 @@ def kept_blocks(jobs: list[TileJob], params, budget: int) -> int:
     return int(min(len(jobs), budget // per))
 
 
-def _execute_land(client, jobs: list[TileJob], detector: str, progress: bool, fn, stage: str,
-                  submit: dict | None, keep: int, blocks: dict) -> list[dict]:
+def _execute_land(
+    client,
+    jobs: list[TileJob],
+    detector: str,
+    progress: bool,
+    fn,
+    stage: str,
+    submit: dict | None,
+    keep: int,
+    blocks: dict,
+) -> list[dict]:
     """The land pass: the first ``keep`` tiles are read by :func:`read_land_block` into Dask data
     (futures in ``blocks``, by tile index, kept for the detection), their samples taken from
     those reads; the other tiles' samples read the scene themselves."""
     tag = uuid.uuid4().hex[:6]
     for j in jobs[:keep]:
-        blocks[j.index] = client.submit(read_land_block, j, pure=False,
-                                        key=f"sarship-{detector}-read-{j.index[0]}-{j.index[1]}-{tag}", **(submit or {}))
+        blocks[j.index] = client.submit(
+            read_land_block,
+            j,
+            pure=False,
+            key=f"sarship-{detector}-read-{j.index[0]}-{j.index[1]}-{tag}",
+            **(submit or {}),
+        )
     return _execute(client, jobs, detector, progress, None, fn, stage, submit, extra=blocks)
 
 
-def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile, fn=run_tile,
-             stage: str = "detect", submit: dict | None = None, extra: dict | None = None) -> list[dict]:
+def _execute(
+    client,
+    jobs: list[TileJob],
+    detector: str,
+    progress: bool,
+    on_tile,
+    fn=run_tile,
+    stage: str = "detect",
+    submit: dict | None = None,
+    extra: dict | None = None,
+) -> list[dict]:
     """One future per tile, each carrying the placement's restriction (``submit``); ``extra``:
     futures of the tiles' land-pass reads (by tile index), passed as each task's second
     argument where there is one (Dask runs the task where the read is); a detection's read is
@@ -427,8 +543,9 @@ def _execute(client, jobs: list[TileJob], detector: str, progress: bool, on_tile
     tag = {run_tile_stats: "stats", run_tile: "tile"}.get(fn, "land")
     keys = [f"sarship-{detector}-{tag}-{j.index[0]}-{j.index[1]}-{uuid.uuid4().hex[:6]}" for j in jobs]
     if extra:
-        futures = [client.submit(fn, j, extra.get(j.index), pure=False, key=k, **(submit or {}))
-                   for j, k in zip(jobs, keys)]
+        futures = [
+            client.submit(fn, j, extra.get(j.index), pure=False, key=k, **(submit or {})) for j, k in zip(jobs, keys)
+        ]
     else:
         futures = client.map(fn, jobs, pure=False, key=keys, **(submit or {}))
     prog = Progress(len(jobs), f"{stage} {detector}", progress)

@@ -38,11 +38,15 @@ if TYPE_CHECKING:  # the service's capped land child imports this module: no det
 LAND_STORE = "land.zarr"
 
 
-def texture_config(params) -> "Any":
+def texture_config(params) -> Any:
     from sarship.pipeline.land.landmask import TextureConfig
 
-    return TextureConfig(window=int(params.land_window), classes=int(params.land_classes),
-                         open_px=int(params.land_open_px), close_px=int(params.land_close_px))
+    return TextureConfig(
+        window=int(params.land_window),
+        classes=int(params.land_classes),
+        open_px=int(params.land_open_px),
+        close_px=int(params.land_close_px),
+    )
 
 
 def create_land_store(path: Path, shape: tuple[int, int], tile: int, attrs: dict):
@@ -52,8 +56,15 @@ def create_land_store(path: Path, shape: tuple[int, int], tile: int, attrs: dict
     from sarship.pipeline.scene import _jsonable, _zstd, chunking
 
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
-    arr = g.create_array("land", shape=tuple(int(s) for s in shape), dtype="uint8", **chunking(tile),
-                         compressors=_zstd(), dimension_names=("y", "x"), fill_value=0)
+    arr = g.create_array(
+        "land",
+        shape=tuple(int(s) for s in shape),
+        dtype="uint8",
+        **chunking(tile),
+        compressors=_zstd(),
+        dimension_names=("y", "x"),
+        fill_value=0,
+    )
     g.attrs.update(_jsonable(attrs))
     return arr
 
@@ -81,11 +92,21 @@ def coastline_record(coast, count: int, seconds: float) -> dict:
     from sarship.pipeline.land.coastline import shoreline_version
 
     st = coast.stats
-    return {"source": "coastline", "shoreline": f"GSHHG full resolution, level 1 ({shoreline_version()})",
-            "buffer_m": coast.buffer_m, "spacing_m": list(coast.spacing), "spacing_source": coast.spacing_source,
-            "halo_px": list(coast.halo), "lattice_step_px": coast.step, "lattice_points": st["lattice_points"],
-            "refined_px": st["refined_px"], "evaluated_px": st["pixels"], "land_px": count,
-            "land": count > 0, "seconds": round(seconds, 4)}
+    return {
+        "source": "coastline",
+        "shoreline": f"GSHHG full resolution, level 1 ({shoreline_version()})",
+        "buffer_m": coast.buffer_m,
+        "spacing_m": list(coast.spacing),
+        "spacing_source": coast.spacing_source,
+        "halo_px": list(coast.halo),
+        "lattice_step_px": coast.step,
+        "lattice_points": st["lattice_points"],
+        "refined_px": st["refined_px"],
+        "evaluated_px": st["pixels"],
+        "land_px": count,
+        "land": count > 0,
+        "seconds": round(seconds, 4),
+    }
 
 
 def prepare_land(plan: Plan, jobs: list, tmp: Path, execute, progress: bool = False) -> tuple[list, dict | None]:
@@ -147,16 +168,28 @@ def _texture_land(plan: Plan, jobs: list, tmp: Path, execute, progress: bool, t0
 
         t1 = time.perf_counter()
         g = zarr.open_group(str(store), mode="r+")
-        carr = g.create_array("coastline", shape=(H, W), dtype="uint8", **chunking(plan.tile), compressors=_zstd(),
-                              dimension_names=("y", "x"), fill_value=0)
+        carr = g.create_array(
+            "coastline",
+            shape=(H, W),
+            dtype="uint8",
+            **chunking(plan.tile),
+            compressors=_zstd(),
+            dimension_names=("y", "x"),
+            fill_value=0,
+        )
         count = rasterize_coastline(plan.land.source, carr, (H, W), plan.tile, progress)
         coast_record = coastline_record(plan.land.source, count, time.perf_counter() - t1)
         land = {**land, "coastline": str(store / "coastline")}
     jobs = [dataclasses.replace(j, land=land, land_halo=halo, land_path=str(store / "land")) for j in jobs]
     record = {"source": "texture", **decision, "seconds": round(time.perf_counter() - t0, 4)}
     if coast_record is not None:
-        record = {**record, "source": "coastline+texture", "texture_land": decision["land"],
-                  "land": bool(decision["land"] or coast_record["land"]), "coastline": coast_record}
+        record = {
+            **record,
+            "source": "coastline+texture",
+            "texture_land": decision["land"],
+            "land": bool(decision["land"] or coast_record["land"]),
+            "coastline": coast_record,
+        }
     return jobs, record
 
 
@@ -178,9 +211,15 @@ def _file_land(plan: Plan, jobs: list, tmp: Path, t0: float) -> tuple[list, dict
         count += int(block.sum())
     land = {"mode": "file", "store": str(store / "land")}
     jobs = [dataclasses.replace(j, land=land, land_halo=0, land_path=None) for j in jobs]
-    record = {"source": "file", "path": str(Path(land_file.path).resolve()), "kind": land_file.kind,
-              "format": land_file.format, **land_file.info, "land": count > 0,
-              "seconds": round(time.perf_counter() - t0, 4)}
+    record = {
+        "source": "file",
+        "path": str(Path(land_file.path).resolve()),
+        "kind": land_file.kind,
+        "format": land_file.format,
+        **land_file.info,
+        "land": count > 0,
+        "seconds": round(time.perf_counter() - t0, 4),
+    }
     return jobs, record
 
 

@@ -15,7 +15,8 @@ The detector's parameters are checked against its own pydantic model
 from __future__ import annotations
 
 import re
-from typing import Any, Literal, Mapping, Optional, get_args
+from collections.abc import Mapping
+from typing import Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
 
@@ -44,8 +45,12 @@ def format_validation(exc: ValidationError, detector: str) -> str:
         loc = ".".join(str(x) for x in e.get("loc", ()))
         msg = e.get("msg", "invalid").removeprefix("Value error, ")
         ctx = e.get("ctx") or {}
-        bounds = {"greater_than": "greater than", "greater_than_equal": "at least", "less_than": "less than",
-                  "less_than_equal": "at most"}
+        bounds = {
+            "greater_than": "greater than",
+            "greater_than_equal": "at least",
+            "less_than": "less than",
+            "less_than_equal": "at most",
+        }
         if e.get("type") in bounds:  # the limit as a number reads (pydantic writes 1e-15 as 0.000000000000001)
             limit = next(iter(ctx.values()), None)
             if isinstance(limit, (int, float)):
@@ -99,13 +104,13 @@ class JobRequest(BaseModel):
     scene: str = Field(min_length=1, description="scene store path, or scene id (service)")
     detector: str = Field(description="detector name (sarship detectors)")
     device: Device = Field("auto", description="where tiles run: auto, gpu or cpu")
-    channel: Optional[str] = Field(None, min_length=1, description="scene variable the detector reads")
+    channel: str | None = Field(None, min_length=1, description="scene variable the detector reads")
     params: dict[str, Any] = Field(default_factory=dict, description="the detector's parameters")
     #: the parsed detector parameters (:meth:`detector_params`), once parsed
-    _parsed: Optional[DetectorParams] = PrivateAttr(default=None)
+    _parsed: DetectorParams | None = PrivateAttr(default=None)
 
     @classmethod
-    def from_inputs(cls, detector: str, inputs: Mapping[str, Any]) -> "JobRequest":
+    def from_inputs(cls, detector: str, inputs: Mapping[str, Any]) -> JobRequest:
         """The request of ``detector`` with the flat ``inputs`` (``scene``, ``device``,
         ``channel`` and parameters), validated: unknown detector, missing scene, bad device or
         channel, parameter values that are not numbers or strings, and every parameter the
@@ -124,8 +129,10 @@ class JobRequest(BaseModel):
             raise InputError(f"input 'device' must be {', '.join(DEVICES[:-1])} or {DEVICES[-1]}, got {device!r}")
         channel = inputs.get("channel")
         if channel is not None and (not isinstance(channel, str) or not CHANNEL.fullmatch(channel)):
-            raise InputError(f"input 'channel' must be a scene variable name (or a comma list of them, "
-                             f"e.g. hh,vv), never a path: got {channel!r}")
+            raise InputError(
+                f"input 'channel' must be a scene variable name (or a comma list of them, "
+                f"e.g. hh,vv), never a path: got {channel!r}"
+            )
         params = {k: v for k, v in inputs.items() if k not in RESERVED}
         fields = {k: f for s in _specs(detector) for k, f in s.params.model_fields.items()}
         for k, v in params.items():
@@ -138,16 +145,20 @@ class JobRequest(BaseModel):
         return req
 
     @classmethod
-    def from_stored(cls, detector: str, inputs: Mapping[str, Any]) -> "JobRequest":
+    def from_stored(cls, detector: str, inputs: Mapping[str, Any]) -> JobRequest:
         """The request a job store keeps (the flat :meth:`inputs` of a request that
         :meth:`from_inputs` validated when the job was submitted), rebuilt without validating
         it again: its parameters are parsed once, when the run first asks for them
         (:meth:`detector_params`)."""
-        return cls.model_construct(scene=inputs.get("scene", ""), detector=detector,
-                                   device=inputs.get("device", "auto"), channel=inputs.get("channel"),
-                                   params={k: v for k, v in inputs.items() if k not in RESERVED})
+        return cls.model_construct(
+            scene=inputs.get("scene", ""),
+            detector=detector,
+            device=inputs.get("device", "auto"),
+            channel=inputs.get("channel"),
+            params={k: v for k, v in inputs.items() if k not in RESERVED},
+        )
 
-    def model_copy(self, *, update: Optional[Mapping[str, Any]] = None, deep: bool = False) -> "JobRequest":
+    def model_copy(self, *, update: Mapping[str, Any] | None = None, deep: bool = False) -> JobRequest:
         """A copy with ``update``; the parsed parameters are kept unless ``detector`` or
         ``params`` change (then the copy parses its own)."""
         copy = super().model_copy(update=update, deep=deep)
@@ -155,7 +166,7 @@ class JobRequest(BaseModel):
             copy._parsed = None
         return copy
 
-    def with_param(self, name: str, value: Any) -> "JobRequest":
+    def with_param(self, name: str, value: Any) -> JobRequest:
         """A copy with detector parameter ``name`` set to ``value`` (already valid for it, e.g.
         the service's rasterised ``land_mask`` FILE): the parsed parameters are updated
         rather than parsed again."""
@@ -183,8 +194,9 @@ class JobRequest(BaseModel):
                 try:
                     parsed.append(parse_params(spec, self.params))
                 except InputError as exc:
-                    raise InputError(f"detector auto (candidates {', '.join(s.name for s in _specs(AUTO))}): "
-                                     f"{exc}") from None
+                    raise InputError(
+                        f"detector auto (candidates {', '.join(s.name for s in _specs(AUTO))}): {exc}"
+                    ) from None
             return parsed[0]
         return parse_params(self.spec, self.params)
 

@@ -17,7 +17,7 @@ from sarship.workers.request import DEVICES
 
 @dataclass(frozen=True)
 class Placement:
-    device: str                      # what the tiles run on: "gpu" or "cpu"
+    device: str  # what the tiles run on: "gpu" or "cpu"
     submit: dict = field(default_factory=dict)  # extra keyword arguments of client.map
     reason: str = ""
 
@@ -42,8 +42,10 @@ def plan(requested: str, detector: str, has_gpu: bool, workers: dict[str, dict])
         if not has_gpu:
             raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation in this version")
         if not gpu:
-            raise InputError("--device gpu: no GPU worker on the cluster (start them with 'sarship worker "
-                             "--gpus all', or use --device auto/cpu)")
+            raise InputError(
+                "--device gpu: no GPU worker on the cluster (start them with 'sarship worker "
+                "--gpus all', or use --device auto/cpu)"
+            )
         return Placement("gpu", {"resources": {"GPU": 1}}, f"{len(gpu)} GPU workers")
     if requested == "auto" and has_gpu and gpu:
         return Placement("gpu", {"resources": {"GPU": 1}}, f"auto: {len(gpu)} GPU workers")
@@ -55,6 +57,9 @@ def plan(requested: str, detector: str, has_gpu: bool, workers: dict[str, dict])
     if cpu_res or plain:
         if not gpu:  # nothing to keep away from: no restriction
             return Placement("cpu", {}, why + f"{len(cpu_res) + len(plain)} workers")
-        return Placement("cpu", {"workers": sorted(cpu_res + plain), "allow_other_workers": False},
-                         why + f"{len(cpu_res) + len(plain)} CPU workers")
+        return Placement(
+            "cpu",
+            {"workers": sorted(cpu_res + plain), "allow_other_workers": False},
+            why + f"{len(cpu_res) + len(plain)} CPU workers",
+        )
     return Placement("cpu", {}, why + "no CPU workers: the GPU workers run the CPU code")

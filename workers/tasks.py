@@ -25,8 +25,9 @@ from sarship.pipeline.tiling.inputs import make_reader, open_array, pixel_power
 from sarship.pipeline.tiling.windows import padded_block
 
 
-def _chunk_box(chunks: tuple[int, int], r0: int, c0: int, shape: tuple[int, int],
-               rows: tuple[int, int], cols: tuple[int, int]) -> tuple[int, int, int, int]:
+def _chunk_box(
+    chunks: tuple[int, int], r0: int, c0: int, shape: tuple[int, int], rows: tuple[int, int], cols: tuple[int, int]
+) -> tuple[int, int, int, int]:
     """The box ``(a, b, c, d)`` (tile coordinates) of the array's chunks that holds the tile's
     set pixels ``rows = (first, last)``, ``cols = (first, last)``, clipped to the tile."""
     ch, cw = chunks
@@ -50,14 +51,22 @@ def write_sparse(path: str, r0: int, c0: int, core: np.ndarray) -> tuple[int, in
         return None
     cols = np.flatnonzero(core.any(axis=0))
     out = open_array(path, write=True)  # chunks equal to the fill value are not stored
-    a, b, c, d = _chunk_box(out.chunks, r0, c0, core.shape, (int(rows[0]), int(rows[-1])),
-                            (int(cols[0]), int(cols[-1])))  # the inner chunks of a sharded array
-    out[r0 + a: r0 + b, c0 + c: c0 + d] = core[a:b, c:d].astype(np.uint8)
+    a, b, c, d = _chunk_box(
+        out.chunks, r0, c0, core.shape, (int(rows[0]), int(rows[-1])), (int(cols[0]), int(cols[-1]))
+    )  # the inner chunks of a sharded array
+    out[r0 + a : r0 + b, c0 + c : c0 + d] = core[a:b, c:d].astype(np.uint8)
     return r0 + a, r0 + b, c0 + c, c0 + d
 
 
-def write_points(path: str, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray,
-                 shape: tuple[int, int], values: np.ndarray | None = None) -> tuple[int, int, int, int] | None:
+def write_points(
+    path: str,
+    r0: int,
+    c0: int,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    shape: tuple[int, int],
+    values: np.ndarray | None = None,
+) -> tuple[int, int, int, int] | None:
     """:func:`write_sparse` of the tile (``shape``, its ``[0, 0]`` at scene ``(r0, c0)``) whose
     set pixels are at ``(rows, cols)`` (tile coordinates): the same chunks written with the same
     content, built from the points without scanning the tile. ``values``: what each point holds
@@ -67,8 +76,9 @@ def write_points(path: str, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray
     if rows.size == 0:
         return None
     out = open_array(path, write=True)
-    a, b, c, d = _chunk_box(out.chunks, r0, c0, shape, (int(rows.min()), int(rows.max())),
-                            (int(cols.min()), int(cols.max())))
+    a, b, c, d = _chunk_box(
+        out.chunks, r0, c0, shape, (int(rows.min()), int(rows.max())), (int(cols.min()), int(cols.max()))
+    )
     if values is None:
         box = np.zeros((b - a, d - c), np.uint8)
         box[rows - a, cols - c] = 1
@@ -76,7 +86,7 @@ def write_points(path: str, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray
         values = np.asarray(values)
         box = np.zeros((b - a, d - c), values.dtype)
         box[rows - a, cols - c] = values
-    out[r0 + a: r0 + b, c0 + c: c0 + d] = box
+    out[r0 + a : r0 + b, c0 + c : c0 + d] = box
     return r0 + a, r0 + b, c0 + c, c0 + d
 
 
@@ -160,18 +170,19 @@ def _land_block(job: TileJob, block, r0: int, r1: int, c0: int, c1: int):
     h, lh = job.halo, job.land_halo
     if job.land["mode"] == "texture" and not job.land["decision"].get("land") and not job.land.get("coastline"):
         # the scene has no land (the decision): nothing to compute, mark or write
-        return (block[lh: block.shape[0] - lh, lh: block.shape[1] - lh] if lh else block), None
+        return (block[lh : block.shape[0] - lh, lh : block.shape[1] - lh] if lh else block), None
     if job.land["mode"] == "texture":
         cfg = landmask.TextureConfig(**job.land["config"])
         land = landmask.classify(block, lh, (r0 - h - lh, c0 - h - lh), cfg, job.land["decision"])
         if lh:
-            block = block[lh: block.shape[0] - lh, lh: block.shape[1] - lh]
+            block = block[lh : block.shape[0] - lh, lh : block.shape[1] - lh]
         if job.land.get("coastline"):  # land_mask=coastline+texture: the union (workers/land.py)
             import zarr
 
             carr = zarr.open_array(job.land["coastline"], mode="r")
-            land = land | (padded_block(lambda a, b, c, d: np.asarray(carr[a:b, c:d]), job.scene_shape,
-                                        r0, r1, c0, c1, h) > 0)
+            land = land | (
+                padded_block(lambda a, b, c, d: np.asarray(carr[a:b, c:d]), job.scene_shape, r0, r1, c0, c1, h) > 0
+            )
     else:
         import zarr
 
@@ -220,8 +231,14 @@ def run_tile_stats(job: TileJob) -> dict[str, Any]:
     if gpu:
         block = _to_device(block)
     stats = spec.scene_pass(block, job.halo, (r0 - job.halo, c0 - job.halo), params, job.prep)
-    return {"index": job.index, "stats": stats, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
-            "device": "gpu" if gpu else "cpu", "seconds": time.perf_counter() - t0}
+    return {
+        "index": job.index,
+        "stats": stats,
+        "worker": _worker_name(),
+        "pixels": (r1 - r0) * (c1 - c0),
+        "device": "gpu" if gpu else "cpu",
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def _extended(job: TileJob) -> tuple[int, int, int, int]:
@@ -242,7 +259,7 @@ def _land_pass_block(job: TileJob, window: tuple[int, int, int, int], full):
     extra = landmask.TextureConfig(**job.land["config"]).halo - job.land_halo  # read with the full land halo
     if extra < 0:
         return None
-    return full[extra: full.shape[0] - extra, extra: full.shape[1] - extra] if extra else full
+    return full[extra : full.shape[0] - extra, extra : full.shape[1] - extra] if extra else full
 
 
 def read_land_block(job: TileJob) -> np.ndarray:
@@ -275,13 +292,19 @@ def run_tile_land_stats(job: TileJob, full: np.ndarray | None = None) -> dict[st
         er0, _er1, ec0, _ec1 = _extended(job)
         big = job.halo + cfg.halo
         a, b = (r0 - r) - (er0 - big), (c0 - r) - (ec0 - big)
-        block = full[a: a + (r1 - r0) + 2 * r, b: b + (c1 - c0) + 2 * r]
+        block = full[a : a + (r1 - r0) + 2 * r, b : b + (c1 - c0) + 2 * r]
     else:
         read = make_reader(job.scene_path, job.var, job.transform)
         block = padded_block(read, job.scene_shape, r0, r1, c0, c1, r)
     sample = landmask.texture_sample(block, r, (r0 - r, c0 - r), cfg, int(job.land["stride"]))
-    return {"index": job.index, "stats": sample, "worker": _worker_name(), "pixels": (r1 - r0) * (c1 - c0),
-            "device": "cpu", "seconds": time.perf_counter() - t0}
+    return {
+        "index": job.index,
+        "stats": sample,
+        "worker": _worker_name(),
+        "pixels": (r1 - r0) * (c1 - c0),
+        "device": "cpu",
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def _host(a) -> np.ndarray:
@@ -296,16 +319,16 @@ def _fit_flags(job: TileJob, spec, params, host_block, block, origin, mask, stat
     the device for a GPU tile; ``host_block``: the same on the host). None without ``job.fit``."""
     if job.fit is None:
         return None
+    from sarship.pipeline.stats import model_fit
     from sarship.pipeline.tiling import intensity_absent
 
-    from sarship.pipeline.stats import model_fit
     r0, r1, c0, c1 = job.bounds
     er0, _er1, ec0, _ec1 = _extended(job)
     a, b, hb = r0 - er0, c0 - ec0, job.halo
     rs, cs, gi, gj = model_fit.grid_slices(r0, c0, r1 - r0, c1 - c0, int(job.fit["stride"]))
     er = slice(a + rs.start, a + rs.stop, rs.step)
     ec = slice(b + cs.start, b + cs.stop, cs.step)
-    core = np.asarray(host_block[hb + er.start: hb + er.stop: er.step, hb + ec.start: hb + ec.stop: ec.step])
+    core = np.asarray(host_block[hb + er.start : hb + er.stop : er.step, hb + ec.start : hb + ec.stop : ec.step])
     valid = intensity_absent.present(core, getattr(params, "nodata", None))
     exceed = [_host(mask[er, ec])]
     for probe in job.fit["probes"]:
@@ -366,10 +389,12 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
     if job.detected_path is not None:
         write_points(job.detected_path, r0, c0, pr[incore] - a, pc[incore] - b, (h, w))
     if job.label_path is not None:
-        write_points(job.label_path, r0, c0, pr[incore] - a, pc[incore] - b, (h, w), (comp[incore] + 1).astype(np.int32))
+        write_points(
+            job.label_path, r0, c0, pr[incore] - a, pc[incore] - b, (h, w), (comp[incore] + 1).astype(np.int32)
+        )
     hb = job.halo
     if job.land_path is not None and land is not None:
-        write_sparse(job.land_path, r0, c0, land[hb + a: hb + a + h, hb + b: hb + b + w])
+        write_sparse(job.land_path, r0, c0, land[hb + a : hb + a + h, hb + b : hb + b + w])
     t3 = time.perf_counter()
     comps = points_components(rr, cc, val_p, stat_p, (h, w), m, (r0, c0), job.index, comp)
     pre = size_prefilter(params, job.line_join)
@@ -386,7 +411,9 @@ def run_tile(job: TileJob, full: np.ndarray | None = None) -> dict[str, Any]:
         "device": "gpu" if gpu else "cpu",
         "detected_px": int(incore.sum()),
         "size_dropped": size_dropped,  # complete components the size rule dropped here
-        "land_px": 0 if land is None else int(land[job.halo + a: job.halo + a + h, job.halo + b: job.halo + b + w].sum()),
+        "land_px": 0
+        if land is None
+        else int(land[job.halo + a : job.halo + a + h, job.halo + b : job.halo + b + w].sum()),
         "pixels": h * w,
         "block_from": timing["block_from"],  # "land pass": the land pass's read, kept as Dask data
         "read_s": t1 - t0 - timing["land_s"],
@@ -410,5 +437,4 @@ def run_tile_keep(job: TileJob, ids: np.ndarray) -> dict[str, Any]:
     rows, cols = np.nonzero(labels)
     sel = np.isin(labels[rows, cols] - 1, np.asarray(ids, np.int64))
     write_points(job.mask_path, r0, c0, rows[sel], cols[sel], (r1 - r0, c1 - c0))
-    return {"index": job.index, "kept_px": int(sel.sum()), "pixels": (r1 - r0) * (c1 - c0),
-            "worker": _worker_name()}
+    return {"index": job.index, "kept_px": int(sel.sum()), "pixels": (r1 - r0) * (c1 - c0), "worker": _worker_name()}

@@ -66,16 +66,27 @@ async def _main(address: str, specs: dict[str, dict], echo: bool) -> int:
     for f in (*ended, stopped):
         f.cancel()
     if gone:
-        print(f"sarship worker: worker {', '.join(gone)} ended without being asked to: the scheduler at "
-              f"'{address}' went away or closed it; exiting {EXIT_SCHEDULER_GONE} so that a service manager "
-              "restarts it", file=sys.stderr, flush=True)
+        print(
+            f"sarship worker: worker {', '.join(gone)} ended without being asked to: the scheduler at "
+            f"'{address}' went away or closed it; exiting {EXIT_SCHEDULER_GONE} so that a service manager "
+            "restarts it",
+            file=sys.stderr,
+            flush=True,
+        )
         return EXIT_SCHEDULER_GONE
     return 0
 
 
-def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str | None = None,
-          memory_limit: str | None = None, echo: bool = True, gpu_threads: int = 2,
-          gpu_procs: int | None = None) -> int:
+def serve(
+    scheduler: str,
+    gpus: str = "all",
+    cpus: int | None = None,
+    name: str | None = None,
+    memory_limit: str | None = None,
+    echo: bool = True,
+    gpu_threads: int = 2,
+    gpu_procs: int | None = None,
+) -> int:
     """Start the workers and block until they stop: 0 after SIGINT/SIGTERM,
     :data:`EXIT_SCHEDULER_GONE` (1) when they ended on their own (the scheduler went away). ``gpu_procs``: worker
     processes per GPU (default: the local cluster's rule, :func:`sarship.workers.cluster.gpu_procs`:
@@ -105,5 +116,10 @@ def serve(scheduler: str, gpus: str = "all", cpus: int | None = None, name: str 
     from sarship.workers.cluster import nanny_environ
 
     with dask.config.set({"distributed.nanny.pre-spawn-environ": nanny_environ()}):  # (reads: see there)
-        return asyncio.run(_main(scheduler, worker_specs(gpu_ids, cpus, prefix, memory_limit,
-                                                         gpu_threads=gpu_threads, gpu_procs=gpu_procs), echo))
+        return asyncio.run(
+            _main(
+                scheduler,
+                worker_specs(gpu_ids, cpus, prefix, memory_limit, gpu_threads=gpu_threads, gpu_procs=gpu_procs),
+                echo,
+            )
+        )

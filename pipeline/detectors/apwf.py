@@ -79,9 +79,9 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy import special
 
-from sarship.pipeline.tiling.boxsum import centered_box_sum
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 from sarship.pipeline.gpu import is_device_array, to_host
+from sarship.pipeline.tiling.boxsum import centered_box_sum
 from sarship.pipeline.tiling.polsar_absent import present, zero_absent
 
 #: Fewest valid cells in a pixel's estimate, as a fraction of N (see the module docstring).
@@ -92,14 +92,15 @@ STRIP_ROWS = 256
 STRIP_COLS = 1024
 
 
-class APWFParams(with_defaults(DetectorParams, "APWFDefaults", pfa=1e-6, guard=41, background=61,
-                               min_area_px=2, merge_px=5)):
+class APWFParams(
+    with_defaults(DetectorParams, "APWFDefaults", pfa=1e-6, guard=41, background=61, min_area_px=2, merge_px=5)
+):
     """Parameters of ``apwf`` (the shared parameters plus ``estimator``)."""
 
     estimator: Literal["ring", "window"] = Field(
         "ring",
         description="clutter cells estimating Sigma: 'ring' (between guard and background "
-                    "windows) or 'window' (the thesis: the whole background window, CUT included)",
+        "windows) or 'window' (the thesis: the whole background window, CUT included)",
     )
 
     @model_validator(mode="after")
@@ -111,7 +112,7 @@ class APWFParams(with_defaults(DetectorParams, "APWFDefaults", pfa=1e-6, guard=4
     def n_samples(self) -> int:
         """N, the number of cells in the covariance estimate."""
         if self.estimator == "window":
-            return self.background ** 2
+            return self.background**2
         return self.n_ring
 
 
@@ -123,7 +124,7 @@ def threshold(pfa: float, p: int, n: int, estimator: str = "ring") -> float:
     if n <= p:
         raise ValueError(f"need more than p = {p} samples in the covariance estimate, got N = {n}")
     if estimator == "ring":
-        z = float(special.betaincinv(n - p + 1, p, pfa))   # = N / (T + N)
+        z = float(special.betaincinv(n - p + 1, p, pfa))  # = N / (T + N)
         return n * (1.0 - z) / z
     if estimator == "window":
         return n * (1.0 - float(special.betaincinv(n - p, p, pfa)))
@@ -176,8 +177,11 @@ def threshold_large_n(pfa: float, p: int) -> float:
 
 def prepare(prm: APWFParams) -> dict:
     n = prm.n_samples()
-    dist = ("y/N ~ beta-prime(p, N-p+1) (eq 2-9)" if prm.estimator == "ring"
-            else "y/N ~ Beta(p, N-p) (CUT in its own estimate; Sherman-Morrison)")
+    dist = (
+        "y/N ~ beta-prime(p, N-p+1) (eq 2-9)"
+        if prm.estimator == "ring"
+        else "y/N ~ Beta(p, N-p) (CUT in its own estimate; Sherman-Morrison)"
+    )
     return {
         "n_samples": n,
         "min_valid": {str(p): min_valid(n, p) for p in (2, 3)},
@@ -223,8 +227,7 @@ def herm_inv(A):
         out[0, 1] = -b / det
         out[1, 0] = -b.conjugate() / det
         return out
-    A11, A22, A33, A12, A13, A23, det = _adj3(A[0, 0].real, A[1, 1].real, A[2, 2].real,
-                                              A[0, 1], A[0, 2], A[1, 2])
+    A11, A22, A33, A12, A13, A23, det = _adj3(A[0, 0].real, A[1, 1].real, A[2, 2].real, A[0, 1], A[0, 2], A[1, 2])
     out[0, 0] = A11 / det
     out[1, 1] = A22 / det
     out[2, 2] = A33 / det
@@ -348,15 +351,24 @@ def _pwf(x, S, K, T, thr, mask, stat):
                 x1 = np.complex128(x[i, j, 1])
                 x2 = np.complex128(x[i, j, 2])
                 A11, A22, A33, A12, A13, A23, det = _adj3(
-                    S[0, i, j], S[1, i, j], S[2, i, j],
-                    complex(S[3, i, j], S[4, i, j]), complex(S[5, i, j], S[6, i, j]),
-                    complex(S[7, i, j], S[8, i, j]))
-                q = (A11 * (x0.real * x0.real + x0.imag * x0.imag)
-                     + A22 * (x1.real * x1.real + x1.imag * x1.imag)
-                     + A33 * (x2.real * x2.real + x2.imag * x2.imag)
-                     + 2.0 * ((x0.conjugate() * A12 * x1).real
-                              + (x0.conjugate() * A13 * x2).real
-                              + (x1.conjugate() * A23 * x2).real))
+                    S[0, i, j],
+                    S[1, i, j],
+                    S[2, i, j],
+                    complex(S[3, i, j], S[4, i, j]),
+                    complex(S[5, i, j], S[6, i, j]),
+                    complex(S[7, i, j], S[8, i, j]),
+                )
+                q = (
+                    A11 * (x0.real * x0.real + x0.imag * x0.imag)
+                    + A22 * (x1.real * x1.real + x1.imag * x1.imag)
+                    + A33 * (x2.real * x2.real + x2.imag * x2.imag)
+                    + 2.0
+                    * (
+                        (x0.conjugate() * A12 * x1).real
+                        + (x0.conjugate() * A13 * x2).real
+                        + (x1.conjugate() * A23 * x2).real
+                    )
+                )
                 nz = (x0 != 0) or (x1 != 0) or (x2 != 0)
             else:
                 x0 = np.complex128(x[i, j, 0])
@@ -365,9 +377,11 @@ def _pwf(x, S, K, T, thr, mask, stat):
                 d = S[1, i, j]
                 b = complex(S[2, i, j], S[3, i, j])
                 det = a * d - (b.real * b.real + b.imag * b.imag)
-                q = (d * (x0.real * x0.real + x0.imag * x0.imag)
-                     + a * (x1.real * x1.real + x1.imag * x1.imag)
-                     - 2.0 * (x0.conjugate() * b * x1).real)
+                q = (
+                    d * (x0.real * x0.real + x0.imag * x0.imag)
+                    + a * (x1.real * x1.real + x1.imag * x1.imag)
+                    - 2.0 * (x0.conjugate() * b * x1).real
+                )
                 nz = (x0 != 0) or (x1 != 0)
             if det > 0.0:
                 y = n * q / det
@@ -400,7 +414,7 @@ def window_sums_counts(block: np.ndarray, halo: int, origin: tuple[int, int], pr
     off = halo - r
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
-    sub = block[off: off + h + 2 * r, off: off + w + 2 * r]
+    sub = block[off : off + h + 2 * r, off : off + w + 2 * r]
     o = (int(origin[0]) + off, int(origin[1]) + off)
     p = block.shape[2]
     ok = present(sub)
@@ -423,7 +437,7 @@ def window_sums_counts(block: np.ndarray, halo: int, origin: tuple[int, int], pr
         K = centered_box_sum(v, b, r, o)
         if prm.estimator == "ring":
             K -= centered_box_sum(v, g, r, o)
-    return S, K, ok[r: r + h, r: r + w]
+    return S, K, ok[r : r + h, r : r + w]
 
 
 def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParams, prep: dict):
@@ -438,17 +452,30 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
     arithmetic) and returns CuPy arrays.
     """
     cov = block.ndim == 4
-    if not ((block.ndim == 3 and block.shape[2] in (2, 3))
-            or (cov and block.shape[2] == block.shape[3] and block.shape[2] in (2, 3))):
-        raise ValueError(f"apwf needs (rows, cols, p) channels or (rows, cols, p, p) covariances with p = 2 or 3, "
-                         f"got shape {block.shape}")
+    if not (
+        (block.ndim == 3 and block.shape[2] in (2, 3))
+        or (cov and block.shape[2] == block.shape[3] and block.shape[2] in (2, 3))
+    ):
+        raise ValueError(
+            f"apwf needs (rows, cols, p) channels or (rows, cols, p, p) covariances with p = 2 or 3, "
+            f"got shape {block.shape}"
+        )
     b = int(prm.background)
     check_windows(halo, b)
     p = block.shape[2]
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.polsar)
-        return SPEC.twin()(block, halo, origin, b, int(prm.guard), prm.estimator == "ring",
-                    float(prep["n_samples"]), float(prep["thresholds"][str(p)]),
-                    pfa=float(prm.pfa), kmin=min_valid(int(prep["n_samples"]), p))
+        return SPEC.twin()(
+            block,
+            halo,
+            origin,
+            b,
+            int(prm.guard),
+            prm.estimator == "ring",
+            float(prep["n_samples"]),
+            float(prep["thresholds"][str(p)]),
+            pfa=float(prm.pfa),
+            kmin=min_valid(int(prep["n_samples"]), p),
+        )
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     n = float(prep["n_samples"])
@@ -460,10 +487,10 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], prm: APWFParam
         r1 = min(r0 + STRIP_ROWS, h)
         for c0 in range(0, w, STRIP_COLS):
             c1 = min(c0 + STRIP_COLS, w)
-            sub = block[r0: r1 + 2 * halo, c0: c1 + 2 * halo]
+            sub = block[r0 : r1 + 2 * halo, c0 : c1 + 2 * halo]
             S, K, ok = window_sums_counts(sub, halo, (origin[0] + r0, origin[1] + c0), prm)
             T = threshold_map(K, ok & (K >= kmin), float(prm.pfa), p, prm.estimator, n, thr)
-            core = zero_absent(sub[halo: halo + r1 - r0, halo: halo + c1 - c0], ok)
+            core = zero_absent(sub[halo : halo + r1 - r0, halo : halo + c1 - c0], ok)
             if cov:
                 tested = T < np.inf
                 y = _cov_to_x_free_stat(core, S, K, tested)
@@ -483,7 +510,7 @@ SPEC = DetectorSpec(
     name="apwf",
     summary="Adaptive polarimetric whitening filter + CFAR (quad- or dual-pol SLC), exact threshold",
     reference="Sun 2020 (Tsinghua thesis) ch. 2, eq 2-6, 2-8, 2-9, 2-10; Novak & Burl 1990 (PWF); "
-              "docs/algorithms/apwf.md",
+    "docs/algorithms/apwf.md",
     params=APWFParams,
     prepare=prepare,
     detect=detect,

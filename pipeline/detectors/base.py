@@ -27,18 +27,23 @@ docs/adding-a-detector.md.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Optional
+from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-AREA_HELP = ("smallest detection kept, in pixels; unset: automatic (the size rule): the detector's pixel "
-             "default when the scene's pixel spacing is unknown, else the pixel count of the detector's "
-             "smallest area in square metres, with min_length_m ('sarship detectors --json': size_defaults)")
-LENGTH_HELP = ("shortest ship kept, in metres (needs the scene's pixel spacing); unset: automatic (the size "
-               "rule): the detector's default length when the spacing is known and min_area_px is unset; "
-               "0 turns it off")
+AREA_HELP = (
+    "smallest detection kept, in pixels; unset: automatic (the size rule): the detector's pixel "
+    "default when the scene's pixel spacing is unknown, else the pixel count of the detector's "
+    "smallest area in square metres, with min_length_m ('sarship detectors --json': size_defaults)"
+)
+LENGTH_HELP = (
+    "shortest ship kept, in metres (needs the scene's pixel spacing); unset: automatic (the size "
+    "rule): the detector's default length when the spacing is known and min_area_px is unset; "
+    "0 turns it off"
+)
 
 
 #: Defaults of the line rule (pipeline/targets/lines.py): the gap chosen on half A of the shared chips
@@ -67,13 +72,16 @@ class DetectorParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
-    pfa: float = Field(1e-5, ge=PFA_MIN, lt=0.5,
-                       description=f"probability of false alarm per pixel ({PFA_MIN:g} to 0.5)")
+    pfa: float = Field(
+        1e-5, ge=PFA_MIN, lt=0.5, description=f"probability of false alarm per pixel ({PFA_MIN:g} to 0.5)"
+    )
     target: int = Field(1, ge=1, le=255, description="target window side (odd, pixels)")
     guard: int = Field(41, ge=1, le=511, description="guard window side (odd, pixels)")
     background: int = Field(61, ge=3, le=1023, description="background window side (odd, pixels)")
-    looks: Optional[float] = Field(
-        None, gt=0.0, le=1e4,
+    looks: float | None = Field(
+        None,
+        gt=0.0,
+        le=1e4,
         description="equivalent number of looks; default: the scene's 'looks' attribute",
     )
     #: The automatic size rule (:func:`resolve_size`), per detector: with ``min_area_px`` and
@@ -86,71 +94,113 @@ class DetectorParams(BaseModel):
     auto_min_area_m2: ClassVar[float] = 200.0
 
     min_area_px: int | None = Field(None, ge=1, description=AREA_HELP)
-    max_area_px: Optional[int] = Field(None, ge=1, description="largest detection kept, in pixels")
-    min_length_m: Optional[float] = Field(None, ge=0.0, description=LENGTH_HELP)
-    max_length_m: Optional[float] = Field(None, gt=0.0, description="longest ship kept (needs pixel spacing)")
-    max_elongation: Optional[float] = Field(
-        15.0, ge=1.0, description="longest length / width kept (moment length and width, in metres when the pixel "
-                                  "spacing is known): ships are at most ~11 times as long as wide, so a thinner "
-                                  "detection is a wake, a line or a structure; None keeps every shape")
-    min_contrast_db: Optional[float] = Field(
-        None, ge=-30.0, le=60.0,
+    max_area_px: int | None = Field(None, ge=1, description="largest detection kept, in pixels")
+    min_length_m: float | None = Field(None, ge=0.0, description=LENGTH_HELP)
+    max_length_m: float | None = Field(None, gt=0.0, description="longest ship kept (needs pixel spacing)")
+    max_elongation: float | None = Field(
+        15.0,
+        ge=1.0,
+        description="longest length / width kept (moment length and width, in metres when the pixel "
+        "spacing is known): ships are at most ~11 times as long as wide, so a thinner "
+        "detection is a wake, a line or a structure; None keeps every shape",
+    )
+    min_contrast_db: float | None = Field(
+        None,
+        ge=-30.0,
+        le=60.0,
         description="drop detections whose local contrast contrast_db (mean power over the mean power of the clutter "
-                    "ring around them, land and detections left out; pipeline/targets/local_contrast.py) is below this many "
-                    "dB, measured only when set (-30 measures every detection, dropping practically none); None keeps "
-                    "every detection (default: the detector's; 7 for superpixel_cfar)")
+        "ring around them, land and detections left out; pipeline/targets/local_contrast.py) is below this many "
+        "dB, measured only when set (-30 measures every detection, dropping practically none); None keeps "
+        "every detection (default: the detector's; 7 for superpixel_cfar)",
+    )
     merge_px: int = Field(2, ge=0, le=64, description="fragments whose gap is at most this many pixels are one ship")
     # discrimination of lines, smear and land edges (pipeline/targets/lines.py, docs/algorithms/discrimination.md)
-    line_gap_px: Optional[int] = Field(
-        LINE_GAP_PX, ge=0, le=256,
+    line_gap_px: int | None = Field(
+        LINE_GAP_PX,
+        ge=0,
+        le=256,
         description="lines: collinear detections (same orientation within line_angle_deg, one's end within this many "
-                    "pixels of the next one's along their common axis) are joined into one object before the "
-                    "max_elongation / max_length_m test, which drops the pieces of a line together; None turns the "
-                    "join off")
-    line_angle_deg: float = Field(LINE_ANGLE_DEG, ge=0.0, le=45.0,
-                                  description="lines: largest orientation difference (degrees) of joined pieces")
-    line_dominant_db: Optional[float] = Field(
-        LINE_DOMINANT_DB, ge=0.0, le=60.0,
+        "pixels of the next one's along their common axis) are joined into one object before the "
+        "max_elongation / max_length_m test, which drops the pieces of a line together; None turns the "
+        "join off",
+    )
+    line_angle_deg: float = Field(
+        LINE_ANGLE_DEG, ge=0.0, le=45.0, description="lines: largest orientation difference (degrees) of joined pieces"
+    )
+    line_dominant_db: float | None = Field(
+        LINE_DOMINANT_DB,
+        ge=0.0,
+        le=60.0,
         description="lines: a piece whose peak is at least this many dB above the median peak of the rest of its line "
-                    "is a ship with its smear or wake: kept (the rest dropped); None keeps no piece of a line")
-    land_gap_px: Optional[int] = Field(
-        None, ge=0, le=1000,
+        "is a ship with its smear or wake: kept (the rest dropped); None keeps no piece of a line",
+    )
+    land_gap_px: int | None = Field(
+        None,
+        ge=0,
+        le=1000,
         description="land edges: drop detections with land within this many pixels of their bounding box (0: "
-                    "touching it), where a land mask is in use; None (default) keeps them (ships moored at quays)")
-    sidelobes: bool = Field(True, description="cross-sidelobe suppression: length, width and heading measured on the "
-                                              "ship core where a sidelobe cross is found (docs/algorithms/sidelobes.md)")
+        "touching it), where a land mask is in use; None (default) keeps them (ships moored at quays)",
+    )
+    sidelobes: bool = Field(
+        True,
+        description="cross-sidelobe suppression: length, width and heading measured on the "
+        "ship core where a sidelobe cross is found (docs/algorithms/sidelobes.md)",
+    )
     # azimuth-ambiguity flags (pipeline/targets/ambiguity.py, docs/algorithms/ambiguity.md; defaults = its DEFAULT_*)
-    ambiguities: bool = Field(True, description="flag detections that are azimuth ambiguities (ghosts) of a brighter "
-                                                "detection: property ambiguity_of (docs/algorithms/ambiguity.md)")
-    ambiguity_tol_px: float = Field(8.0, ge=0.0, le=1000.0,
-                                    description="ambiguities: tolerance in pixels between a detection and a brighter "
-                                                "one's expected ghost position (range: plus the TOPS spread)")
-    ambiguity_min_db: float = Field(10.0, ge=0.0, le=60.0,
-                                    description="ambiguities: a ghost's peak is at least this many dB below its "
-                                                "parent's")
+    ambiguities: bool = Field(
+        True,
+        description="flag detections that are azimuth ambiguities (ghosts) of a brighter "
+        "detection: property ambiguity_of (docs/algorithms/ambiguity.md)",
+    )
+    ambiguity_tol_px: float = Field(
+        8.0,
+        ge=0.0,
+        le=1000.0,
+        description="ambiguities: tolerance in pixels between a detection and a brighter "
+        "one's expected ghost position (range: plus the TOPS spread)",
+    )
+    ambiguity_min_db: float = Field(
+        10.0, ge=0.0, le=60.0, description="ambiguities: a ghost's peak is at least this many dB below its parent's"
+    )
     # sea-land segmentation (pipeline/land/landmask.py, docs/algorithms/landmask.md): land pixels are
     # absent (NaN) for the detector: never tested, in no clutter ring, in no scene-wide statistic
-    land_mask: Optional[str] = Field(
-        None, min_length=1, max_length=4096,
+    land_mask: str | None = Field(
+        None,
+        min_length=1,
+        max_length=4096,
         description="land mask: none, texture (local amplitude variance + Gaussian mixture, "
-                    "sea = the low-texture class), coastline (the GSHHG shoreline on a georeferenced scene, "
-                    "widened by land_buffer_m; extra 'coastline'), coastline+texture (their union), or a FILE: a raster of the scene's shape (GeoTIFF, PNG, "
-                    ".npy, Zarr; non-zero = land) or GeoJSON polygons (lon/lat, or scene pixels with "
-                    "\"pixel_coordinates\": true); default: the detector's (texture for ca_cfar, os_cfar, "
-                    "two_parameter, g0_cfar, k_cfar, ggd_cfar, gamma_mrf and superpixel_cfar; none for the "
-                    "others)")
+        "sea = the low-texture class), coastline (the GSHHG shoreline on a georeferenced scene, "
+        "widened by land_buffer_m; extra 'coastline'), coastline+texture (their union), or a FILE: a raster of the scene's shape (GeoTIFF, PNG, "
+        ".npy, Zarr; non-zero = land) or GeoJSON polygons (lon/lat, or scene pixels with "
+        '"pixel_coordinates": true); default: the detector\'s (texture for ca_cfar, os_cfar, '
+        "two_parameter, g0_cfar, k_cfar, ggd_cfar, gamma_mrf and superpixel_cfar; none for the "
+        "others)",
+    )
     land_buffer_m: float = Field(
-        250.0, ge=0.0, le=5000.0,
+        250.0,
+        ge=0.0,
+        le=5000.0,
         description="land_mask=coastline: the GSHHG land is widened by this many metres (pixels within it of land "
-                    "are land too; the shoreline's position error at its 1:250 000 scale, docs/algorithms/landmask.md)")
+        "are land too; the shoreline's position error at its 1:250 000 scale, docs/algorithms/landmask.md)",
+    )
     land_window: int = Field(15, ge=3, le=101, description="land_mask=texture: texture window side (odd, pixels)")
-    land_classes: int = Field(2, ge=2, le=6, description="land_mask=texture: Gaussian mixture classes (sea = lowest texture)")
-    land_open_px: int = Field(51, ge=1, le=255,
-                              description="land_mask=texture: opening square side (odd, pixels): land narrower "
-                                          "than this (e.g. a ship's texture) is sea")
-    land_close_px: int = Field(5, ge=1, le=255,
-                               description="land_mask=texture: closing square side (odd, pixels): sea gaps "
-                                           "narrower than this inside land are land")
+    land_classes: int = Field(
+        2, ge=2, le=6, description="land_mask=texture: Gaussian mixture classes (sea = lowest texture)"
+    )
+    land_open_px: int = Field(
+        51,
+        ge=1,
+        le=255,
+        description="land_mask=texture: opening square side (odd, pixels): land narrower "
+        "than this (e.g. a ship's texture) is sea",
+    )
+    land_close_px: int = Field(
+        5,
+        ge=1,
+        le=255,
+        description="land_mask=texture: closing square side (odd, pixels): sea gaps "
+        "narrower than this inside land are land",
+    )
 
     @model_validator(mode="after")
     def _windows(self):
@@ -170,8 +220,7 @@ class DetectorParams(BaseModel):
             self.__dict__["land_mask"] = normalize_land_mask(self.land_mask)
         if self.max_area_px is not None and self.min_area_px is not None and self.max_area_px < self.min_area_px:
             raise ValueError(f"max_area_px ({self.max_area_px}) must be >= min_area_px ({self.min_area_px})")
-        if (self.min_length_m is not None and self.max_length_m is not None
-                and self.max_length_m < self.min_length_m):
+        if self.min_length_m is not None and self.max_length_m is not None and self.max_length_m < self.min_length_m:
             raise ValueError(f"max_length_m ({self.max_length_m}) must be >= min_length_m ({self.min_length_m})")
         return self
 
@@ -232,9 +281,15 @@ def float_block(block: np.ndarray, ndim: int = 2) -> np.ndarray:
     return np.ascontiguousarray(block)
 
 
-def with_defaults(base: type[DetectorParams], name: str, *, auto_min_area_px: int | None = None,
-                  auto_min_length_m: float | None = None, auto_min_area_m2: float | None = None,
-                  **defaults: Any) -> type[DetectorParams]:
+def with_defaults(
+    base: type[DetectorParams],
+    name: str,
+    *,
+    auto_min_area_px: int | None = None,
+    auto_min_length_m: float | None = None,
+    auto_min_area_m2: float | None = None,
+    **defaults: Any,
+) -> type[DetectorParams]:
     """A subclass of ``base`` whose listed fields have other defaults (constraints kept).
 
     Detectors tune their own defaults (see ``bench/REALDATA.md``) while sharing one
@@ -249,19 +304,30 @@ def with_defaults(base: type[DetectorParams], name: str, *, auto_min_area_px: in
     for key, value in defaults.items():
         f = base.model_fields[key]
         fields[key] = (f.annotation, FieldInfo.merge_field_infos(f, default=value))
-    auto = {k: v for k, v in (("auto_min_area_px", auto_min_area_px), ("auto_min_length_m", auto_min_length_m),
-                              ("auto_min_area_m2", auto_min_area_m2)) if v is not None}
+    auto = {
+        k: v
+        for k, v in (
+            ("auto_min_area_px", auto_min_area_px),
+            ("auto_min_length_m", auto_min_length_m),
+            ("auto_min_area_m2", auto_min_area_m2),
+        )
+        if v is not None
+    }
     if auto:
         px = auto.get("auto_min_area_px", base.auto_min_area_px)
         m = auto.get("auto_min_length_m", base.auto_min_length_m)
         a = auto.get("auto_min_area_m2", base.auto_min_area_m2)
         helps = {
-            "min_area_px": (f"smallest detection kept, in pixels; unset: automatic (the size rule): {px} px when "
-                            f"the scene's pixel spacing is unknown; when it is known, the pixels of {a:g} m^2 "
-                            "(ceil(area / pixel area), e.g. 2 px at 10 m), with min_length_m"),
-            "min_length_m": (f"shortest ship kept, in metres (needs the scene's pixel spacing); unset: automatic "
-                             f"(the size rule): {m:g} m when the spacing is known and min_area_px is unset; "
-                             "0 turns it off"),
+            "min_area_px": (
+                f"smallest detection kept, in pixels; unset: automatic (the size rule): {px} px when "
+                f"the scene's pixel spacing is unknown; when it is known, the pixels of {a:g} m^2 "
+                "(ceil(area / pixel area), e.g. 2 px at 10 m), with min_length_m"
+            ),
+            "min_length_m": (
+                f"shortest ship kept, in metres (needs the scene's pixel spacing); unset: automatic "
+                f"(the size rule): {m:g} m when the spacing is known and min_area_px is unset; "
+                "0 turns it off"
+            ),
         }
         for key, text in helps.items():
             if key not in fields:
@@ -283,8 +349,13 @@ def size_defaults(params: type[DetectorParams]) -> dict:
     metres = p.min_area_px is None and (p.min_length_m is not None or params.auto_min_length_m is not None)
     u, urule = resolve_size(p, None)
     return {
-        "spacing_known": {"min_length_m": r.min_length_m, "min_area_m2": params.auto_min_area_m2 if metres else None,
-                          "min_area_px": r.min_area_px, "at_spacing_m": [10.0, 10.0], "rule": rule},
+        "spacing_known": {
+            "min_length_m": r.min_length_m,
+            "min_area_m2": params.auto_min_area_m2 if metres else None,
+            "min_area_px": r.min_area_px,
+            "at_spacing_m": [10.0, 10.0],
+            "rule": rule,
+        },
         "spacing_unknown": {"min_area_px": u.min_area_px, "min_length_m": u.min_length_m, "rule": urule},
     }
 
@@ -319,8 +390,10 @@ def resolve_size(params: DetectorParams, spacing) -> tuple[DetectorParams, str]:
 
     if area is not None:
         if length is not None and spacing is not None:
-            return params, (f"metres and pixels: min_length_m {length:g} m ({src('min_length_m')}), "
-                            f"min_area_px {area} ({src('min_area_px')})")
+            return params, (
+                f"metres and pixels: min_length_m {length:g} m ({src('min_length_m')}), "
+                f"min_area_px {area} ({src('min_area_px')})"
+            )
         rule = f"pixels: min_area_px {area} ({src('min_area_px')})"
         if length is not None:
             rule += "; min_length_m ignored: the scene's pixel spacing is unknown"
@@ -335,13 +408,15 @@ def resolve_size(params: DetectorParams, spacing) -> tuple[DetectorParams, str]:
     area = f"min_area_px {px} (= {cls.auto_min_area_m2:g} m^2 at {spacing[0]:g} x {spacing[1]:g} m)"
     if length is not None:
         return params.model_copy(update={"min_area_px": px}), (
-            f"metres: min_length_m {length:g} m ({src('min_length_m')}), {area}")
+            f"metres: min_length_m {length:g} m ({src('min_length_m')}), {area}"
+        )
     if cls.auto_min_length_m is None:
         px = cap(cls.auto_min_area_px)
         return params.model_copy(update={"min_area_px": px}), f"pixels (the detector's default): min_area_px {px}"
     return params.model_copy(update={"min_area_px": px, "min_length_m": float(cls.auto_min_length_m)}), (
         f"metres (the default when the scene's pixel spacing is known): min_length_m "
-        f"{cls.auto_min_length_m:g} m, {area}")
+        f"{cls.auto_min_length_m:g} m, {area}"
+    )
 
 
 def area_px(area_m2: float, spacing) -> int:
@@ -369,8 +444,8 @@ class DetectorSpec:
     #: origin, params, prep) -> dict`` runs on every tile (same block as ``detect``), and
     #: ``reduce(list_of_dicts, params, prep) -> dict`` combines them; the result is merged
     #: into ``prep`` before ``detect`` runs, so every tile sees the same scene-wide values.
-    scene_pass: Optional[Callable[..., dict]] = None
-    reduce: Optional[Callable[..., dict]] = None
+    scene_pass: Callable[..., dict] | None = None
+    reduce: Callable[..., dict] | None = None
     #: More than one scene pass: ``reduce`` may return ``"another_pass": True`` (the key is
     #: dropped) to have every tile run ``scene_pass`` again with the merged ``prep`` (e.g.
     #: ``gamma_mrf``: one pass a re-estimation of its class means); at most this many passes.
@@ -378,33 +453,33 @@ class DetectorSpec:
     #: ``discriminate(records, params, prep) -> bool array``: the detector's own rules on whole
     #: components (after the tiles are merged and the size rule applied; the records of
     #: :mod:`sarship.pipeline.targets.components`: ``n``, ``peak``, ``sumv``, ...), e.g. a peak rule.
-    discriminate: Optional[Callable[..., np.ndarray]] = None
+    discriminate: Callable[..., np.ndarray] | None = None
     #: ``detection_properties(feats, records, read, read_mask, shape, merge_r, params, prep) ->
     #: feats``: properties computed from the scene's pixels under each whole detection, added
     #: to its ``properties`` after the merge, the size rule and the sidelobe step (``read``: the
     #: detector's input reader, ``read_mask``: the detection mask; keyword arguments ``spacing``
     #: and ``geo``: the scene's pixel spacing in metres or None, its georeference attributes, to
     #: re-measure geometry), e.g. ``csk``'s complex statistics, RFI flag and ship segmentation.
-    detection_properties: Optional[Callable[..., list]] = None
+    detection_properties: Callable[..., list] | None = None
     #: ``for_scene(params, shape, spacing) -> (params, warnings)``: settings chosen for the scene's
     #: shape (rows, cols) and ground pixel spacing in metres (None: unknown) before any work (e.g.
     #: ``gamma_mrf``'s EM sample on a small chip, ``superpixel_cfar``'s largest ship); raises
     #: :class:`~sarship.pipeline.errors.InputError` when the scene is too small for the method.
     #: The returned parameters are the run's (``run.json`` ``parameters``), the lines its warnings.
-    for_scene: Optional[Callable[..., tuple[Any, list[str]]]] = None
+    for_scene: Callable[..., tuple[Any, list[str]]] | None = None
     #: ``halo_fn(params) -> int`` for detectors whose context is not ``background // 2``.
-    halo_fn: Optional[Callable[[Any], int]] = None
+    halo_fn: Callable[[Any], int] | None = None
     halo_rule: str = "background // 2"
     #: The GPU twin, when ``detect`` (and ``scene_pass``) accept a CuPy block and run on its GPU:
     #: ``"package.module:function"`` or ``"package.module"`` under :mod:`sarship.pipeline.gpu`,
     #: resolved on first use by :meth:`twin`; None: GPU workers run the CPU code for this detector.
-    gpu: Optional[str] = None
+    gpu: str | None = None
     #: with ``gpu``: the scene pass runs on the device too (else on the host block)
     scene_pass_gpu: bool = True
     #: with ``gpu``: ``gpu_params(params) -> bool``, whether these parameters have GPU code
     #: (e.g. ``lmm``'s censored and refused fits have none); False sends the tiles to CPU
     #: workers as for a detector without GPU code (:meth:`gpu_for`).
-    gpu_params: Optional[Callable[[Any], bool]] = None
+    gpu_params: Callable[[Any], bool] | None = None
 
     def gpu_for(self, params: DetectorParams) -> bool:
         """Whether a job with ``params`` runs on GPU workers' devices (``gpu`` and, where the

@@ -24,21 +24,32 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 from numba import njit
 from pydantic import Field
-from sarship.pipeline.tiling import boxsum, intensity_absent
-from sarship.pipeline.tiling.boxsum import box_stream, box_stream_row
+
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
 from sarship.pipeline.gpu import is_device_array
 from sarship.pipeline.stats.tails import f_isf
+from sarship.pipeline.tiling import boxsum, intensity_absent
+from sarship.pipeline.tiling.boxsum import box_stream, box_stream_row
 
 
-class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-5, guard=41, background=81, merge_px=4,
-                             land_mask="texture",
-                             auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
+class CAParams(
+    with_defaults(
+        DetectorParams,
+        "CADefaults",
+        pfa=1e-5,
+        guard=41,
+        background=81,
+        merge_px=4,
+        land_mask="texture",
+        auto_min_area_px=10,
+        auto_min_length_m=25.0,
+        auto_min_area_m2=200.0,
+    )
+):
     """Parameters of ``ca_cfar`` (the shared parameters of docs/algorithms/README.md).
 
     Defaults chosen on real data by cross-validation (tuned on half A of SAR-Ship-Dataset,
@@ -48,9 +59,11 @@ class CAParams(with_defaults(DetectorParams, "CADefaults", pfa=1e-5, guard=41, b
     10 px otherwise.
     """
 
-    nodata: Optional[float] = Field(
-        None, description="value marking absent pixels besides NaN (e.g. 0 for a zero-filled border); "
-                          "None: NaN only (exact zeros are data: 8-bit chips have them in dark sea)")
+    nodata: float | None = Field(
+        None,
+        description="value marking absent pixels besides NaN (e.g. 0 for a zero-filled border); "
+        "None: NaN only (exact zeros are data: 8-bit chips have them in dark sea)",
+    )
 
 
 def threshold(pfa: float, looks: float, n_ring: int, n_target: int = 1) -> float:
@@ -96,8 +109,7 @@ def _make_detect_strip(boxsum_stamp: str):
     """
 
     @njit(nogil=True, cache=True)
-    def detect_strip(block, xs, halo, g0r, g0c, target, guard, background, inv, thr, c0, c1,
-                     mask, stat):
+    def detect_strip(block, xs, halo, g0r, g0c, target, guard, background, inv, thr, c0, c1, mask, stat):
         """Columns [c0, c1) of the core: window sums streamed row by row, then the decision.
 
         One :mod:`sarship.pipeline.tiling.boxsum` stream per window (the additions of ``centered_box_sum``),
@@ -108,8 +120,8 @@ def _make_detect_strip(boxsum_stamp: str):
         w = c1 - c0
         ob = halo - background // 2
         og = halo - guard // 2
-        xb = xs[ob: ob + h + background - 1, ob + c0: ob + c1 + background - 1]
-        xg = xs[og: og + h + guard - 1, og + c0: og + c1 + guard - 1]
+        xb = xs[ob : ob + h + background - 1, ob + c0 : ob + c1 + background - 1]
+        xg = xs[og : og + h + guard - 1, og + c0 : og + c1 + guard - 1]
         sb = box_stream(background, w, g0r + ob)
         sg = box_stream(guard, w, g0r + og)
         bgrow = np.empty(w, np.float64)
@@ -118,11 +130,12 @@ def _make_detect_strip(boxsum_stamp: str):
             for i in range(h):
                 box_stream_row(xb, background, g0c + ob + c0, sb, i, bgrow)
                 box_stream_row(xg, guard, g0c + og + c0, sg, i, gdrow)
-                _decide_row(block[halo + i, halo + c0: halo + c1], bgrow, gdrow, inv, thr,
-                            mask[i, c0:c1], stat[i, c0:c1])
+                _decide_row(
+                    block[halo + i, halo + c0 : halo + c1], bgrow, gdrow, inv, thr, mask[i, c0:c1], stat[i, c0:c1]
+                )
         else:
             ot = halo - target // 2
-            xt = xs[ot: ot + h + target - 1, ot + c0: ot + c1 + target - 1]
+            xt = xs[ot : ot + h + target - 1, ot + c0 : ot + c1 + target - 1]
             stt = box_stream(target, w, g0r + ot)
             trow = np.empty(w, np.float64)
             tt = float(target * target)
@@ -153,16 +166,41 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: CAParams, p
     b, g, t = int(p.background), int(p.guard), int(p.target)
     check_windows(halo, b, g, t)
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.cfar), same sums and rule
-        return SPEC.twin()(block, halo, origin, b, g, t, int(prep["n_ring"]), float(prep["threshold"]),
-                       pfa=float(p.pfa), looks=float(prep["looks"]), nodata=p.nodata)
+        return SPEC.twin()(
+            block,
+            halo,
+            origin,
+            b,
+            g,
+            t,
+            int(prep["n_ring"]),
+            float(prep["threshold"]),
+            pfa=float(p.pfa),
+            looks=float(prep["looks"]),
+            nodata=p.nodata,
+        )
     ok = intensity_absent.present(block, p.nodata)
     if not ok.all():  # absent pixels (module docstring of pipeline.intensity_absent)
-        xz = intensity_absent.fill(block if block.dtype in (np.float32, np.float64) else block.astype(np.float64),
-                                   ok, 0.0)
+        xz = intensity_absent.fill(
+            block if block.dtype in (np.float32, np.float64) else block.astype(np.float64), ok, 0.0
+        )
         mask, stat = _detect_complete(xz, halo, origin, t, g, b, prep)
-        intensity_absent.ca_redo(xz, ok, halo, origin, b, g, t, int(prep["n_ring"]), float(p.pfa),
-                                 float(prep["looks"]), float(prep["threshold"]), mask, stat,
-                                 boxsum.centered_box_sum)
+        intensity_absent.ca_redo(
+            xz,
+            ok,
+            halo,
+            origin,
+            b,
+            g,
+            t,
+            int(prep["n_ring"]),
+            float(p.pfa),
+            float(prep["looks"]),
+            float(prep["threshold"]),
+            mask,
+            stat,
+            boxsum.centered_box_sum,
+        )
         return mask, stat
     return _detect_complete(block, halo, origin, t, g, b, prep)
 
@@ -177,8 +215,9 @@ def _detect_complete(block, halo, origin, t, g, b, prep):
     thr = float(prep["threshold"])
     strip = boxsum.STRIP
     for c0 in range(0, w, strip):
-        _detect_strip(block, xs, halo, int(origin[0]), int(origin[1]), t, g, b, inv, thr,
-                      c0, min(c0 + strip, w), mask, stat)
+        _detect_strip(
+            block, xs, halo, int(origin[0]), int(origin[1]), t, g, b, inv, thr, c0, min(c0 + strip, w), mask, stat
+        )
     return mask, stat
 
 

@@ -36,41 +36,63 @@ ship's geometry replaces the mask's (:func:`segment_geometry`, pipeline/targets/
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from sarship.pipeline.tiling import boxsum
-from sarship.pipeline.stats import csk_null
-from sarship.pipeline.detectors.base import (DetectorParams, DetectorSpec, check_windows, land_mask_parts,
-                                             with_defaults)
+from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, land_mask_parts, with_defaults
 from sarship.pipeline.gpu import is_device_array
+from sarship.pipeline.stats import csk_null
+from sarship.pipeline.tiling import boxsum
 
 
-class CSKParams(with_defaults(DetectorParams, "CSKDefaults", pfa=1e-6, merge_px=10,
-                              auto_min_area_px=4, auto_min_length_m=20.0, auto_min_area_m2=100.0)):
+class CSKParams(
+    with_defaults(
+        DetectorParams,
+        "CSKDefaults",
+        pfa=1e-6,
+        merge_px=10,
+        auto_min_area_px=4,
+        auto_min_length_m=20.0,
+        auto_min_area_m2=100.0,
+    )
+):
     """Parameters of ``csk``. ``target``, ``guard``, ``background`` and ``looks`` are not used
     (one window, single-look complex data)."""
 
     window: int = Field(7, ge=3, le=15, description="CSK window side (odd, 3..15 pixels): n = window^2 cells")
     cells: Literal["bright", "window"] = Field(
-        "bright", description="bright: a pixel is detected when its window's CSK exceeds the threshold and its "
-                              "power exceeds the window's mean power (the ship's bright cells); window: every "
-                              "pixel whose window's CSK exceeds it; pfa is calibrated for the rule chosen")
-    npdd_s: int = Field(3, ge=1, le=31, description="NPDD (eq 19-21) of each detection's pixels: outer neighbourhood s "
-                                                     "(window side, centre excluded)")
+        "bright",
+        description="bright: a pixel is detected when its window's CSK exceeds the threshold and its "
+        "power exceeds the window's mean power (the ship's bright cells); window: every "
+        "pixel whose window's CSK exceeds it; pfa is calibrated for the rule chosen",
+    )
+    npdd_s: int = Field(
+        3,
+        ge=1,
+        le=31,
+        description="NPDD (eq 19-21) of each detection's pixels: outer neighbourhood s (window side, centre excluded)",
+    )
     npdd_t: int = Field(1, ge=1, le=31, description="NPDD inner neighbourhood t (1: the pixel itself)")
     ship_segmentation: Literal["kurtosis", "otsu", "none"] = Field(
-        "kurtosis", description="each detection's geometry (length, width, heading, centroid, outline) from a "
-                                "segmentation of its chip of the SLC (bounding box + segmentation_margin_px): "
-                                "kurtosis: the iterative kurtosis segmentation (seed 004 section 5.2), otsu: Otsu "
-                                "on the 8-bit amplitude stretch, none: the detection mask's own geometry")
-    segmentation_margin_px: int = Field(3, ge=1, le=64, description="margin (pixels) around a detection's bounding "
-                                                                     "box of the chip ship_segmentation reads")
-    nodata: Optional[float] = Field(
-        None, description="value of the complex data (real part, imaginary part 0) marking absent pixels besides "
-                          "NaN, e.g. 0 for a zero-filled border; None: NaN only")
+        "kurtosis",
+        description="each detection's geometry (length, width, heading, centroid, outline) from a "
+        "segmentation of its chip of the SLC (bounding box + segmentation_margin_px): "
+        "kurtosis: the iterative kurtosis segmentation (seed 004 section 5.2), otsu: Otsu "
+        "on the 8-bit amplitude stretch, none: the detection mask's own geometry",
+    )
+    segmentation_margin_px: int = Field(
+        3,
+        ge=1,
+        le=64,
+        description="margin (pixels) around a detection's bounding box of the chip ship_segmentation reads",
+    )
+    nodata: float | None = Field(
+        None,
+        description="value of the complex data (real part, imaginary part 0) marking absent pixels besides "
+        "NaN, e.g. 0 for a zero-filled border; None: NaN only",
+    )
 
     @field_validator("ship_segmentation", mode="before")
     @classmethod
@@ -89,8 +111,9 @@ class CSKParams(with_defaults(DetectorParams, "CSKDefaults", pfa=1e-6, merge_px=
         if self.npdd_s == self.npdd_t:
             raise ValueError(f"npdd_s and npdd_t must differ, got {self.npdd_s}")
         if "texture" in land_mask_parts(self.land_mask)[0]:
-            raise ValueError("land_mask: texture is not available for csk (its texture model reads intensity); "
-                             "give a land mask FILE")
+            raise ValueError(
+                "land_mask: texture is not available for csk (its texture model reads intensity); give a land mask FILE"
+            )
         return self
 
 
@@ -105,8 +128,10 @@ def prepare(p: CSKParams) -> dict:
         "cells": p.cells,
         "null_mean": -4.0 / (n + 1),
         "statistic": "zero-mean sample CSK of the window, eq 37: n S22/S11^2 - 2 - |S20|^2/S11^2",
-        "distribution": (f"circular complex Gaussian sea, n = {n}: importance-sampled "
-                         f"({samples} windows, seed {csk_null.SEED}; pipeline/stats/csk_null.py)"),
+        "distribution": (
+            f"circular complex Gaussian sea, n = {n}: importance-sampled "
+            f"({samples} windows, seed {csk_null.SEED}; pipeline/stats/csk_null.py)"
+        ),
     }
 
 
@@ -134,7 +159,7 @@ def csk_window(block, halo: int, origin: tuple[int, int], window: int, nodata: f
     k = n * s22 / den - 2.0 - (sr * sr + si * si) / den
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
-    return xp.where(tested, k, 0.0), tested, pw[halo: halo + h, halo: halo + w], s11
+    return xp.where(tested, k, 0.0), tested, pw[halo : halo + h, halo : halo + w], s11
 
 
 def decide(k, tested, pw, s11, n: int, thr: float, cells: str, xp):
@@ -154,8 +179,9 @@ def _complex_block(block) -> np.ndarray:
     if b.ndim != 2:
         raise ValueError(f"csk reads one complex channel: a 2-D block, got shape {b.shape}")
     if not np.iscomplexobj(b):
-        raise ValueError("csk needs complex single-look (SLC) data: amplitude or intensity has no phase "
-                         f"(got a {b.dtype} block)")
+        raise ValueError(
+            f"csk needs complex single-look (SLC) data: amplitude or intensity has no phase (got a {b.dtype} block)"
+        )
     return b
 
 
@@ -199,8 +225,18 @@ def rfi_flag(n: int, k: float, nc: float, alpha: float = RFI_ALPHA) -> bool:
     return bool(k <= 0.0 and n * nc * nc / 2.0 <= np.log(1.0 / alpha))
 
 
-def detection_properties(feats: list, records, read, read_mask, shape, merge_r: int, p: CSKParams, prep: dict,
-                         spacing: tuple[float, float] | None = None, geo: dict | None = None) -> list:
+def detection_properties(
+    feats: list,
+    records,
+    read,
+    read_mask,
+    shape,
+    merge_r: int,
+    p: CSKParams,
+    prep: dict,
+    spacing: tuple[float, float] | None = None,
+    geo: dict | None = None,
+) -> list:
     """Each detection's complex statistics from its own pixels (the component of the mask):
     ``csk`` (eq 37), ``noncircularity``, ``npdd_variance`` and ``npdd_rbar`` (circular variance
     and mean resultant length of NPDD_st, eq 19-21 and 5, 8) and ``rfi`` (:func:`rfi_flag`); then,
@@ -218,18 +254,20 @@ def detection_properties(feats: list, records, read, read_mask, shape, merge_r: 
         mask = np.asarray(read_mask(ra, rb, ca, cb)) > 0
         comp = component_in_window(mask, (int(rec["peak_r"]) - ra, int(rec["peak_c"]) - ca), merge_r)
         bb = np.zeros_like(comp)
-        bb[int(rec["r0"]) - ra:int(rec["r1"]) - ra, int(rec["c0"]) - ca:int(rec["c1"]) - ca] = True
+        bb[int(rec["r0"]) - ra : int(rec["r1"]) - ra, int(rec["c0"]) - ca : int(rec["c1"]) - ca] = True
         comp &= bb & np.isfinite(z.real) & np.isfinite(z.imag)
         k, nc = complex_stats(z[comp])
         var, rbar = circular.npdd_spread(circular.npdd(z, int(p.npdd_s), int(p.npdd_t))[comp])
         n = int(comp.sum())
-        f["properties"].update({
-            "csk": None if not np.isfinite(k) else round(k, 6),
-            "noncircularity": None if not np.isfinite(nc) else round(nc, 6),
-            "npdd_variance": None if not np.isfinite(var) else round(var, 6),
-            "npdd_rbar": None if not np.isfinite(rbar) else round(rbar, 6),
-            "rfi": rfi_flag(n, k, nc),
-        })
+        f["properties"].update(
+            {
+                "csk": None if not np.isfinite(k) else round(k, 6),
+                "noncircularity": None if not np.isfinite(nc) else round(nc, 6),
+                "npdd_variance": None if not np.isfinite(var) else round(var, 6),
+                "npdd_rbar": None if not np.isfinite(rbar) else round(rbar, 6),
+                "rfi": rfi_flag(n, k, nc),
+            }
+        )
     if p.ship_segmentation != "none":
         feats = segment_geometry(feats, records, read, read_mask, shape, merge_r, p, spacing, geo)
     return feats
@@ -241,8 +279,17 @@ SEGMENTATION_GROW_MAX = 4
 SEGMENTATION_MAX_SIDE = 256
 
 
-def segment_geometry(feats: list, records, read, read_mask, shape, merge_r: int, p: CSKParams,
-                     spacing: tuple[float, float] | None, geo: dict | None) -> list:
+def segment_geometry(
+    feats: list,
+    records,
+    read,
+    read_mask,
+    shape,
+    merge_r: int,
+    p: CSKParams,
+    spacing: tuple[float, float] | None,
+    geo: dict | None,
+) -> list:
     """Each detection's ship geometry from a segmentation of its chip (seed 004 section 5.2,
     fig 17; :mod:`sarship.pipeline.targets.kurtosis_seg`).
 
@@ -279,10 +326,11 @@ def segment_geometry(feats: list, records, read, read_mask, shape, merge_r: int,
             z = np.asarray(read(ra, rb, ca, cb)).astype(np.complex128)
             if p.nodata is not None:
                 z = np.where((z.real == float(p.nodata)) & (z.imag == 0.0), np.nan + 0j, z)
-            det = component_in_window(np.asarray(read_mask(ra, rb, ca, cb)) > 0,
-                                      (int(rec["peak_r"]) - ra, int(rec["peak_c"]) - ca), merge_r)
+            det = component_in_window(
+                np.asarray(read_mask(ra, rb, ca, cb)) > 0, (int(rec["peak_r"]) - ra, int(rec["peak_c"]) - ca), merge_r
+            )
             bb = np.zeros_like(det)
-            bb[int(rec["r0"]) - ra:int(rec["r1"]) - ra, int(rec["c0"]) - ca:int(rec["c1"]) - ca] = True
+            bb[int(rec["r0"]) - ra : int(rec["r1"]) - ra, int(rec["c0"]) - ca : int(rec["c1"]) - ca] = True
             seg, t = kurtosis_seg.segment(z, p.ship_segmentation)
             amp = np.abs(np.where(np.isfinite(z), z, 0))
             ship = kurtosis_seg.component_of(seg, amp, det & bb)
@@ -292,8 +340,11 @@ def segment_geometry(feats: list, records, read, read_mask, shape, merge_r: int,
             rr, cc = np.nonzero(ship)
             na, nb = min(ra, max(ra + int(rr.min()) - m, 0)), max(rb, min(ra + int(rr.max()) + 1 + m, H))
             nc, nd = min(ca, max(ca + int(cc.min()) - m, 0)), max(cb, min(ca + int(cc.max()) + 1 + m, W))
-            if (na, nb, nc, nd) == (ra, rb, ca, cb) or grow == SEGMENTATION_GROW_MAX \
-                    or max(nb - na, nd - nc) > SEGMENTATION_MAX_SIDE:
+            if (
+                (na, nb, nc, nd) == (ra, rb, ca, cb)
+                or grow == SEGMENTATION_GROW_MAX
+                or max(nb - na, nd - nc) > SEGMENTATION_MAX_SIDE
+            ):
                 break
             ra, rb, ca, cb = na, nb, nc, nd
         props["segmentation_window_px"] = [ra, ca, rb, cb]
@@ -317,7 +368,7 @@ def segment_geometry(feats: list, records, read, read_mask, shape, merge_r: int,
 SPEC = DetectorSpec(
     name="csk",
     summary="complex signal kurtosis of local SLC windows (eq 37), one global threshold calibrated on "
-            "circular complex Gaussian sea",
+    "circular complex Gaussian sea",
     reference="Leng et al. 2020, Journal of Radars 9(3), section 5.1 (seed 004); docs/algorithms/complex_stats.md",
     params=CSKParams,
     prepare=prepare,

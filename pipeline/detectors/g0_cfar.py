@@ -11,27 +11,26 @@ gamma (eq 2); the threshold t solves P(x > t) = pfa in closed form through the B
 
 from __future__ import annotations
 
-from typing import Optional
-
 from pydantic import Field, model_validator
 
-from sarship.pipeline.stats import molc
 from sarship.pipeline.detectors import molc_cfar
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
+from sarship.pipeline.stats import molc
 
-CENSOR_HELP = ("bright-pixel censoring of the ring: a ring sample brighter than CENSOR x the mean of its own "
-               "background-size window is left out of the fit (halo grows to 2 x (background // 2)); "
-               "unset: off (the calibrated default; docs/algorithms/g0_k_ggd.md)")
+CENSOR_HELP = (
+    "bright-pixel censoring of the ring: a ring sample brighter than CENSOR x the mean of its own "
+    "background-size window is left out of the fit (halo grows to 2 x (background // 2)); "
+    "unset: off (the calibrated default; docs/algorithms/g0_k_ggd.md)"
+)
 
 
-class MolcParams(with_defaults(DetectorParams, "MolcDefaults", pfa=1e-3, guard=41, background=81,
-                               land_mask="texture")):
+class MolcParams(with_defaults(DetectorParams, "MolcDefaults", pfa=1e-3, guard=41, background=81, land_mask="texture")):
     """The parameters of the three MoLC CFARs (``g0_cfar``, ``k_cfar``, ``ggd_cfar``; shared ones:
     docs/algorithms/README.md): PFA 1e-3 and the sea-land segmentation as in the seed (the land
     mask raised the held-out real-chip scores of all three on both folds, bench/REALDATA.md), the
     optional censoring, single-pixel targets."""
 
-    censor: Optional[float] = Field(None, gt=1.0, le=1e6, description=CENSOR_HELP)
+    censor: float | None = Field(None, gt=1.0, le=1e6, description=CENSOR_HELP)
 
     @model_validator(mode="after")
     def _single_pixel_target(self):
@@ -54,10 +53,14 @@ def prepare(p: G0Params) -> dict:
     if p.looks is None:
         raise ValueError("looks must be resolved before prepare()")
     tab = molc.g0_table(float(p.pfa), float(p.looks))
-    return {"n_ring": p.n_ring, "looks": float(p.looks), "threshold": 1.0,
-            "min_ring": molc_cfar.min_ring(p.n_ring),
-            "statistic": "x / t, t the G0 MoLC threshold of the ring (eqs 1-3)",
-            "table": {"variable": "w = ln(1 + k2 - psi_1(L))", "function": "H = ln t - k1", **tab.summary()}}
+    return {
+        "n_ring": p.n_ring,
+        "looks": float(p.looks),
+        "threshold": 1.0,
+        "min_ring": molc_cfar.min_ring(p.n_ring),
+        "statistic": "x / t, t the G0 MoLC threshold of the ring (eqs 1-3)",
+        "table": {"variable": "w = ln(1 + k2 - psi_1(L))", "function": "H = ln t - k1", **tab.summary()},
+    }
 
 
 def detect(block, halo: int, origin: tuple[int, int], p: G0Params, prep: dict):

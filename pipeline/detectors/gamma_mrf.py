@@ -64,7 +64,7 @@ from __future__ import annotations
 
 import math
 from fractions import Fraction
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from numba import njit
@@ -72,8 +72,8 @@ from pydantic import Field, model_validator
 
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.stats.gamma_mixture import (MEAN_FLOOR, class_energy_terms, fit_gamma_mixture, mixture_isf)
 from sarship.pipeline.gpu import is_device_array
+from sarship.pipeline.stats.gamma_mixture import MEAN_FLOOR, class_energy_terms, fit_gamma_mixture, mixture_isf
 
 #: Bins of the exact class sums: float32 binary exponents, offset so that every finite value fits.
 EXP_BINS = 300
@@ -86,8 +86,7 @@ MAX_PASSES = 31
 ANOTHER_PASS = "another_pass"
 
 
-class GammaMRFParams(with_defaults(DetectorParams, "GammaMRFDefaults", pfa=1e-3, merge_px=4,
-                                   land_mask="texture")):
+class GammaMRFParams(with_defaults(DetectorParams, "GammaMRFDefaults", pfa=1e-3, merge_px=4, land_mask="texture")):
     """Parameters of ``gamma_mrf`` (module docstring; docs/algorithms/gamma_mrf.md).
 
     ``pfa`` is the scattering rule's false-alarm probability under the fitted clutter mixture
@@ -96,41 +95,76 @@ class GammaMRFParams(with_defaults(DetectorParams, "GammaMRFDefaults", pfa=1e-3,
     and HRSID; reported on half B in bench/REALDATA.md).
     """
 
-    classes: int = Field(4, ge=2, le=8, description="K, classes of the gamma mixture (the paper: 4, calm sea, "
-                                                    "rough sea, flat land, man-made); the brightest is the ship class")
+    classes: int = Field(
+        4,
+        ge=2,
+        le=8,
+        description="K, classes of the gamma mixture (the paper: 4, calm sea, "
+        "rough sea, flat land, man-made); the brightest is the ship class",
+    )
     beta: float = Field(0.5, ge=0.0, le=20.0, description="Potts interaction (nats per disagreeing neighbour, eq (6))")
-    neighbourhood: int = Field(8, ge=4, le=8, json_schema_extra={"enum": [4, 8]},
-                               description="MRF neighbourhood eta: 4 or 8 neighbours")
-    sweeps: int = Field(5, ge=1, le=20, description="ICM sweeps at most (the halo is sweeps x colours: 2 for the "
-                                                    "4-neighbourhood, 4 for the 8-neighbourhood)")
-    change_tol: float = Field(0.0, ge=0.0, lt=1.0,
-                              description="stop the sweeps early when fewer than this fraction of the present "
-                                          "pixels changed label in the last sweep (0: always run every sweep)")
-    reestimate: bool = Field(True, description="re-estimate the class means from the labels before each sweep "
-                                               "(the paper; one extra scene pass a sweep); false: EM means throughout")
-    use_weights: bool = Field(False, description="include -ln pi_k (mixture weights) in the energy; false: Potts "
-                                                "prior only")
+    neighbourhood: int = Field(
+        8, ge=4, le=8, json_schema_extra={"enum": [4, 8]}, description="MRF neighbourhood eta: 4 or 8 neighbours"
+    )
+    sweeps: int = Field(
+        5,
+        ge=1,
+        le=20,
+        description="ICM sweeps at most (the halo is sweeps x colours: 2 for the "
+        "4-neighbourhood, 4 for the 8-neighbourhood)",
+    )
+    change_tol: float = Field(
+        0.0,
+        ge=0.0,
+        lt=1.0,
+        description="stop the sweeps early when fewer than this fraction of the present "
+        "pixels changed label in the last sweep (0: always run every sweep)",
+    )
+    reestimate: bool = Field(
+        True,
+        description="re-estimate the class means from the labels before each sweep "
+        "(the paper; one extra scene pass a sweep); false: EM means throughout",
+    )
+    use_weights: bool = Field(
+        False, description="include -ln pi_k (mixture weights) in the energy; false: Potts prior only"
+    )
     scatter: Literal["quantile", "none"] = Field(
-        "quantile", description="scattering rule: 'quantile': ship pixels exceed the (1 - pfa) quantile of the "
-                                "fitted clutter mixture (the clutter classes, see clutter_weight); 'none': the ship "
-                                "class(es) alone")
-    peak_pfa: Optional[float] = Field(
-        1e-9, ge=1e-15, lt=0.5,
+        "quantile",
+        description="scattering rule: 'quantile': ship pixels exceed the (1 - pfa) quantile of the "
+        "fitted clutter mixture (the clutter classes, see clutter_weight); 'none': the ship "
+        "class(es) alone",
+    )
+    peak_pfa: float | None = Field(
+        1e-9,
+        ge=1e-15,
+        lt=0.5,
         description="scattering rule on whole candidates: a ship's peak intensity exceeds the (1 - peak_pfa) "
-                    "quantile of the fitted clutter mixture; none: off")
+        "quantile of the fitted clutter mixture; none: off",
+    )
     clutter_weight: float = Field(
-        0.05, gt=0.0, lt=1.0,
+        0.05,
+        gt=0.0,
+        lt=1.0,
         description="classes up to the brightest holding at least this fraction of the scene are clutter; the "
-                    "classes above are ship classes (at least the brightest, the paper's man-made class)")
-    sample_stride: int = Field(8, ge=1, le=256, description="EM sample: pixels with row, col % stride == 0 (lowered "
-                                                            "on a small scene: see sample_min)")
-    sample_min: int = Field(1600, ge=1, le=1_000_000,
-                            description="EM sample size wanted: where the grid at the default sample_stride holds "
-                                        "fewer pixels (a small chip), the stride is lowered to the largest that "
-                                        "holds this many (1 at the least); a given sample_stride is lowered only "
-                                        "below 10 x classes (1600: chosen on half A of the real chips)")
+        "classes above are ship classes (at least the brightest, the paper's man-made class)",
+    )
+    sample_stride: int = Field(
+        8,
+        ge=1,
+        le=256,
+        description="EM sample: pixels with row, col % stride == 0 (lowered on a small scene: see sample_min)",
+    )
+    sample_min: int = Field(
+        1600,
+        ge=1,
+        le=1_000_000,
+        description="EM sample size wanted: where the grid at the default sample_stride holds "
+        "fewer pixels (a small chip), the stride is lowered to the largest that "
+        "holds this many (1 at the least); a given sample_stride is lowered only "
+        "below 10 x classes (1600: chosen on half A of the real chips)",
+    )
     em_max_iter: int = Field(300, ge=1, le=10000, description="EM iterations at most")
-    nodata: Optional[float] = Field(None, description="value marking absent pixels besides NaN")
+    nodata: float | None = Field(None, description="value marking absent pixels besides NaN")
 
     @model_validator(mode="after")
     def _own(self):
@@ -157,7 +191,7 @@ def grid_count(shape, stride: int) -> int:
     return -(-H // int(stride)) * -(-W // int(stride))
 
 
-def sample_plan(shape, p: GammaMRFParams) -> tuple[int, Optional[str]]:
+def sample_plan(shape, p: GammaMRFParams) -> tuple[int, str | None]:
     """The EM sample's stride for a scene of ``shape`` (rows, cols), before any work.
 
     Parameters
@@ -184,9 +218,11 @@ def sample_plan(shape, p: GammaMRFParams) -> tuple[int, Optional[str]]:
     H, W = (int(v) for v in shape)
     need = SAMPLES_PER_CLASS * int(p.classes)
     if H * W < need:
-        raise InputError(f"gamma_mrf: the scene is {H} x {W} = {H * W} pixels, too small for {p.classes} classes: "
-                         f"at least {need} pixels needed ({SAMPLES_PER_CLASS} a class, e.g. "
-                         f"{math.isqrt(need - 1) + 1} x {math.isqrt(need - 1) + 1})")
+        raise InputError(
+            f"gamma_mrf: the scene is {H} x {W} = {H * W} pixels, too small for {p.classes} classes: "
+            f"at least {need} pixels needed ({SAMPLES_PER_CLASS} a class, e.g. "
+            f"{math.isqrt(need - 1) + 1} x {math.isqrt(need - 1) + 1})"
+        )
     s = int(p.sample_stride)
     want = need if "sample_stride" in p.model_fields_set else min(int(p.sample_min), H * W)
     want = max(want, need)
@@ -194,9 +230,11 @@ def sample_plan(shape, p: GammaMRFParams) -> tuple[int, Optional[str]]:
         s -= 1
     if s == int(p.sample_stride):
         return s, None
-    return s, (f"gamma_mrf: sample_stride {p.sample_stride} lowered to {s} on this {H} x {W} scene "
-               f"(EM sample {grid_count((H, W), s)} pixels, {grid_count((H, W), p.sample_stride)} at stride "
-               f"{p.sample_stride}; wanted {want})")
+    return s, (
+        f"gamma_mrf: sample_stride {p.sample_stride} lowered to {s} on this {H} x {W} scene "
+        f"(EM sample {grid_count((H, W), s)} pixels, {grid_count((H, W), p.sample_stride)} at stride "
+        f"{p.sample_stride}; wanted {want})"
+    )
 
 
 def for_scene(p: GammaMRFParams, shape, spacing=None) -> tuple[GammaMRFParams, list[str]]:
@@ -210,9 +248,14 @@ def for_scene(p: GammaMRFParams, shape, spacing=None) -> tuple[GammaMRFParams, l
 def prepare(p: GammaMRFParams) -> dict:
     if p.looks is None:
         raise ValueError("looks must be resolved before prepare()")
-    return {"looks": float(p.looks), "classes": int(p.classes), "threshold": 0.0,
-            "statistic": "ICM energy gap (nats): best other class minus the ship class, at the pixel's last update",
-            "sweep_means": [], "passes": 0}
+    return {
+        "looks": float(p.looks),
+        "classes": int(p.classes),
+        "threshold": 0.0,
+        "statistic": "ICM energy gap (nats): best other class minus the ship class, at the pixel's last update",
+        "sweep_means": [],
+        "passes": 0,
+    }
 
 
 # ---------------------------------------------------------------------------------- kernels
@@ -369,13 +412,27 @@ def labels(block, halo_px: int, origin, p: GammaMRFParams, prep: dict):
     lab = np.empty(x.shape, np.int8)
     prev = np.empty(x.shape, np.int8)
     gap = np.empty(x.shape, np.float64)
-    icm(x, ok, int(origin[0]), int(origin[1]), a0, b0, A, B, float(p.beta), int(p.neighbourhood),
-        int(prep["ship_from"]), lab, prev, gap)
+    icm(
+        x,
+        ok,
+        int(origin[0]),
+        int(origin[1]),
+        a0,
+        b0,
+        A,
+        B,
+        float(p.beta),
+        int(p.neighbourhood),
+        int(prep["ship_from"]),
+        lab,
+        prev,
+        gap,
+    )
     return lab, prev, gap, ok
 
 
 def _core(a, h: int):
-    return a[h:a.shape[0] - h, h:a.shape[1] - h]
+    return a[h : a.shape[0] - h, h : a.shape[1] - h]
 
 
 def _grid(n0: int, n: int, s: int) -> np.ndarray:
@@ -471,20 +528,31 @@ def reduce(parts: list[dict], p: GammaMRFParams, prep: dict) -> dict:
         if y.size < need:
             if stride > 1:  # absent pixels (land, no-data) left the sample short: pass 0 again, denser
                 half = stride // 2
-                note = (f"gamma_mrf: {y.size} sampled pixels with data at sample_stride {stride} (fewer than "
-                        f"{need}): sampled again at stride {half}")
+                note = (
+                    f"gamma_mrf: {y.size} sampled pixels with data at sample_stride {stride} (fewer than "
+                    f"{need}): sampled again at stride {half}"
+                )
                 return {"passes": npass, "sample_stride": half, ANOTHER_PASS: True, "warnings": [note]}
-            raise InputError(f"gamma_mrf: {y.size} pixels with data (after the land mask and nodata) are too few "
-                             f"for {p.classes} classes: at least {need} needed ({SAMPLES_PER_CLASS} a class)")
+            raise InputError(
+                f"gamma_mrf: {y.size} pixels with data (after the land mask and nodata) are too few "
+                f"for {p.classes} classes: at least {need} needed ({SAMPLES_PER_CLASS} a class)"
+            )
         mix = fit_gamma_mixture(y, prep["looks"], p.classes, max_iter=p.em_max_iter)
         floor = MEAN_FLOOR * max(float(y.mean()), 1e-300)
         ks = ship_from(mix.weights, mix.means, p.clutter_weight)
         wc, mc = mix.weights[:ks], mix.means[:ks]
         q = mixture_isf(p.pfa, wc, mc, prep["looks"]) if p.scatter == "quantile" else 0.0
         qp = mixture_isf(p.peak_pfa, wc, mc, prep["looks"]) if p.peak_pfa is not None else None
-        out = {"mixture": mix.to_dict(), "sample_size": int(y.size), "sample_stride": stride,
-               "mean_floor": floor, "ship_from": ks,
-               "scatter_threshold": float(q), "peak_threshold": qp, "passes": npass}
+        out = {
+            "mixture": mix.to_dict(),
+            "sample_size": int(y.size),
+            "sample_stride": stride,
+            "mean_floor": floor,
+            "ship_from": ks,
+            "scatter_threshold": float(q),
+            "peak_threshold": qp,
+            "passes": npass,
+        }
         if p.reestimate:
             out.update({"sweep_means": [], ANOTHER_PASS: True})
         else:
@@ -544,7 +612,7 @@ def discriminate(records: np.ndarray, p: GammaMRFParams, prep: dict) -> np.ndarr
 SPEC = DetectorSpec(
     name="gamma_mrf",
     summary="K-class gamma mixture (EM) + Potts MRF MAP by ICM with per-sweep class re-estimation; "
-            "ships = brightest class above the clutter mixture's (1 - pfa) quantile",
+    "ships = brightest class above the clutter mixture's (1 - pfa) quantile",
     reference="Liu et al. 2017, GF-3 NSC ship detection (seed 003, section 3); docs/algorithms/gamma_mrf.md",
     params=GammaMRFParams,
     prepare=prepare,

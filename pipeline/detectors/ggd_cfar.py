@@ -11,10 +11,10 @@ The number of looks is not used (the GGD's own shape absorbs it). Statistic: x /
 
 from __future__ import annotations
 
-from sarship.pipeline.stats import molc
 from sarship.pipeline.detectors import molc_cfar
 from sarship.pipeline.detectors.base import DetectorSpec, check_windows
 from sarship.pipeline.detectors.g0_cfar import MolcParams, halo_of
+from sarship.pipeline.stats import molc
 
 
 class GGDParams(MolcParams):
@@ -23,9 +23,13 @@ class GGDParams(MolcParams):
 
 def prepare(p: GGDParams) -> dict:
     tab = molc.ggd_table(float(p.pfa))
-    return {"n_ring": p.n_ring, "threshold": 1.0, "min_ring": molc_cfar.min_ring(p.n_ring),
-            "statistic": "x / t, t the GGD MoLC threshold of the ring (eqs 1, 7, 8)",
-            "table": {"variable": "g1 = k3 / k2^1.5", "function": "D = (ln t - k1) / sqrt(k2)", **tab.summary()}}
+    return {
+        "n_ring": p.n_ring,
+        "threshold": 1.0,
+        "min_ring": molc_cfar.min_ring(p.n_ring),
+        "statistic": "x / t, t the GGD MoLC threshold of the ring (eqs 1, 7, 8)",
+        "table": {"variable": "g1 = k3 / k2^1.5", "function": "D = (ln t - k1) / sqrt(k2)", **tab.summary()},
+    }
 
 
 def detect(block, halo: int, origin: tuple[int, int], p: GGDParams, prep: dict):

@@ -12,10 +12,10 @@ Statistic: x / t.
 
 from __future__ import annotations
 
-from sarship.pipeline.stats import molc
 from sarship.pipeline.detectors import molc_cfar
 from sarship.pipeline.detectors.base import DetectorSpec, check_windows
 from sarship.pipeline.detectors.g0_cfar import MolcParams, halo_of
+from sarship.pipeline.stats import molc
 
 
 class KParams(MolcParams):
@@ -26,10 +26,14 @@ def prepare(p: KParams) -> dict:
     if p.looks is None:
         raise ValueError("looks must be resolved before prepare()")
     tab = molc.k_table(float(p.pfa), float(p.looks))
-    return {"n_ring": p.n_ring, "looks": float(p.looks), "threshold": 1.0,
-            "min_ring": molc_cfar.min_ring(p.n_ring),
-            "statistic": "x / t, t the K MoLC threshold of the ring (eqs 1, 4-6)",
-            "table": {"variable": "w = ln(1 + k2 - psi_1(L))", "function": "H = ln t - k1", **tab.summary()}}
+    return {
+        "n_ring": p.n_ring,
+        "looks": float(p.looks),
+        "threshold": 1.0,
+        "min_ring": molc_cfar.min_ring(p.n_ring),
+        "statistic": "x / t, t the K MoLC threshold of the ring (eqs 1, 4-6)",
+        "table": {"variable": "w = ln(1 + k2 - psi_1(L))", "function": "H = ln t - k1", **tab.summary()},
+    }
 
 
 def detect(block, halo: int, origin: tuple[int, int], p: KParams, prep: dict):

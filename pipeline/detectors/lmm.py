@@ -45,7 +45,6 @@ depends on :mod:`sarship.pipeline.stats.lmm_fit` and never on this module.
 from __future__ import annotations
 
 import math
-from typing import Optional
 
 import numpy as np
 from numba import njit
@@ -54,12 +53,34 @@ from scipy import special
 
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, float_block, with_defaults
 from sarship.pipeline.gpu import is_device_array
-from sarship.pipeline.stats.lmm_fit import (em_fit_points, fit_threshold, init_z_table, mixture_grad_hess, mixture_loglik,
-                                      mixture_sf_log, mixture_threshold_log, ml_newton, predictive_shift)
+from sarship.pipeline.stats.lmm_fit import (
+    em_fit_points,
+    fit_threshold,
+    init_z_table,
+    mixture_grad_hess,
+    mixture_loglik,
+    mixture_sf_log,
+    mixture_threshold_log,
+    ml_newton,
+    predictive_shift,
+)
 
-__all__ = ["LMMParams", "SPEC", "prepare", "detect", "em_fit_points", "mixture_threshold_log",
-           "mixture_sf_log", "mixture_loglik", "mixture_grad_hess", "ml_newton", "predictive_shift",
-           "fit_threshold", "init_z_table", "LMM_NOTES"]
+__all__ = [
+    "LMMParams",
+    "SPEC",
+    "prepare",
+    "detect",
+    "em_fit_points",
+    "mixture_threshold_log",
+    "mixture_sf_log",
+    "mixture_loglik",
+    "mixture_grad_hess",
+    "ml_newton",
+    "predictive_shift",
+    "fit_threshold",
+    "init_z_table",
+    "LMM_NOTES",
+]
 
 #: Measured agreement / speed of the forms: where they are written down.
 LMM_NOTES = "see docs/algorithms/lmm.md (agreement, calibration) and bench/RESULTS.md (timings)"
@@ -72,55 +93,108 @@ DEFAULT_CENSOR_LOW = 0.0
 DEFAULT_REFUSE_WEIGHT = 0.15
 
 
-class LMMParams(with_defaults(DetectorParams, "LMMDefaults", pfa=1e-3, guard=41, background=81, merge_px=4,
-                              auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
+class LMMParams(
+    with_defaults(
+        DetectorParams,
+        "LMMDefaults",
+        pfa=1e-3,
+        guard=41,
+        background=81,
+        merge_px=4,
+        auto_min_area_px=10,
+        auto_min_length_m=25.0,
+        auto_min_area_m2=200.0,
+    )
+):
     """LMM-CFAR parameters: the common ones plus the mixture / EM settings."""
 
-    components: int = Field(3, ge=1, le=6, description="K, number of lognormal components (eq 3-1); with "
-                                                       "select='bic' the most, K' <= K chosen per cell")
-    method: str = Field(DEFAULT_METHOD, pattern="^(exact|fast|grid)$",
-                        description="'exact': EM on the ring samples; 'fast': EM on the ring histogram of ln x; "
-                                    "'grid': the fast fit at global grid nodes, ln T bilinearly interpolated")
+    components: int = Field(
+        3,
+        ge=1,
+        le=6,
+        description="K, number of lognormal components (eq 3-1); with select='bic' the most, K' <= K chosen per cell",
+    )
+    method: str = Field(
+        DEFAULT_METHOD,
+        pattern="^(exact|fast|grid)$",
+        description="'exact': EM on the ring samples; 'fast': EM on the ring histogram of ln x; "
+        "'grid': the fast fit at global grid nodes, ln T bilinearly interpolated",
+    )
     max_iter: int = Field(200, ge=1, le=100000, description="EM iteration cap")
-    tol: float = Field(1e-5, gt=0.0, lt=1.0,
-                       description="EM stops when the mean log-likelihood per sample changes by less than this")
-    bin_width: float = Field(0.125, gt=0.0, le=1.0, description="fast / grid forms: histogram bin width in ln x (nepers)")
-    grid_step: Optional[int] = Field(None, ge=1, le=256,
-                                     description="grid form: node spacing in pixels (nodes at global multiples); "
-                                                 "default max(1, guard // 4), so nodes stay inside a ship's guard")
-    grid_refine: float = Field(1.0, ge=0.0, le=100.0,
-                               description="grid form: pixels with ln x_t > interpolated ln T - grid_refine "
-                                           "(nepers) get their own fast fit, which decides")
-    select: str = Field("bic", pattern="^(bic|fixed)$",
-                        description="'bic': per cell, K' <= components chosen by the BIC of the EM fits; "
-                                    "'fixed': K' = components (the thesis)")
-    tail: str = Field("predictive", pattern="^(predictive|plugin)$",
-                      description="'predictive': ML fit (Newton-polished EM) and its threshold raised by the "
-                                  "delta-method predictive correction (calibrated PFA); 'plugin': 1 - F(T) = PFA "
-                                  "for the EM fit (thesis eq 3-5)")
-    censor: float = Field(DEFAULT_CENSOR, ge=0.0, le=0.5,
-                          description="fraction of each ring's brightest usable samples right-censored in the "
-                                      "fit (censored likelihood; the threshold is the fitted clutter tail), "
-                                      "so that a ship's own pixels in the ring do not enter the clutter model; "
-                                      "0: the uncensored fit")
-    censor_level: float = Field(0.0, ge=0.0, le=0.2,
-                                description="with censor > 0, pass 2 censors only the ring samples above the "
-                                            "pass-1 clutter fit's exceedance level censor_level (0: 1/n, n "
-                                            "the ring's usable samples)")
-    censor_low: float = Field(DEFAULT_CENSOR_LOW, ge=0.0, le=0.5,
-                              description="fraction of each ring's darkest usable samples left-censored in the fit "
-                                          "(known only to lie below the lowest kept value): the coarse quantised "
-                                          "low values of 8-bit products and the lower tail no longer shape the "
-                                          "clutter's upper tail; 0: none")
-    refuse_weight: float = Field(DEFAULT_REFUSE_WEIGHT, ge=0.0, le=0.5,
-                                 description="a ring fit whose tail at the threshold is carried by a component "
-                                             "of weight <= refuse_weight is refused as contamination (a ship's "
-                                             "own pixels in the ring): the ring samples above the other "
-                                             "components' 1 - 1/n level are right-censored and the ring fitted "
-                                             "again (at most 3 times); 0: off")
-    nodata: Optional[float] = Field(
-        None, description="value marking absent pixels besides NaN (e.g. a positive fill value); "
-                          "non-positive values are never usable samples (ln x)")
+    tol: float = Field(
+        1e-5, gt=0.0, lt=1.0, description="EM stops when the mean log-likelihood per sample changes by less than this"
+    )
+    bin_width: float = Field(
+        0.125, gt=0.0, le=1.0, description="fast / grid forms: histogram bin width in ln x (nepers)"
+    )
+    grid_step: int | None = Field(
+        None,
+        ge=1,
+        le=256,
+        description="grid form: node spacing in pixels (nodes at global multiples); "
+        "default max(1, guard // 4), so nodes stay inside a ship's guard",
+    )
+    grid_refine: float = Field(
+        1.0,
+        ge=0.0,
+        le=100.0,
+        description="grid form: pixels with ln x_t > interpolated ln T - grid_refine "
+        "(nepers) get their own fast fit, which decides",
+    )
+    select: str = Field(
+        "bic",
+        pattern="^(bic|fixed)$",
+        description="'bic': per cell, K' <= components chosen by the BIC of the EM fits; "
+        "'fixed': K' = components (the thesis)",
+    )
+    tail: str = Field(
+        "predictive",
+        pattern="^(predictive|plugin)$",
+        description="'predictive': ML fit (Newton-polished EM) and its threshold raised by the "
+        "delta-method predictive correction (calibrated PFA); 'plugin': 1 - F(T) = PFA "
+        "for the EM fit (thesis eq 3-5)",
+    )
+    censor: float = Field(
+        DEFAULT_CENSOR,
+        ge=0.0,
+        le=0.5,
+        description="fraction of each ring's brightest usable samples right-censored in the "
+        "fit (censored likelihood; the threshold is the fitted clutter tail), "
+        "so that a ship's own pixels in the ring do not enter the clutter model; "
+        "0: the uncensored fit",
+    )
+    censor_level: float = Field(
+        0.0,
+        ge=0.0,
+        le=0.2,
+        description="with censor > 0, pass 2 censors only the ring samples above the "
+        "pass-1 clutter fit's exceedance level censor_level (0: 1/n, n "
+        "the ring's usable samples)",
+    )
+    censor_low: float = Field(
+        DEFAULT_CENSOR_LOW,
+        ge=0.0,
+        le=0.5,
+        description="fraction of each ring's darkest usable samples left-censored in the fit "
+        "(known only to lie below the lowest kept value): the coarse quantised "
+        "low values of 8-bit products and the lower tail no longer shape the "
+        "clutter's upper tail; 0: none",
+    )
+    refuse_weight: float = Field(
+        DEFAULT_REFUSE_WEIGHT,
+        ge=0.0,
+        le=0.5,
+        description="a ring fit whose tail at the threshold is carried by a component "
+        "of weight <= refuse_weight is refused as contamination (a ship's "
+        "own pixels in the ring): the ring samples above the other "
+        "components' 1 - 1/n level are right-censored and the ring fitted "
+        "again (at most 3 times); 0: off",
+    )
+    nodata: float | None = Field(
+        None,
+        description="value marking absent pixels besides NaN (e.g. a positive fill value); "
+        "non-positive values are never usable samples (ln x)",
+    )
 
 
 def cpu_only_fit(prep: dict, params: LMMParams) -> bool:
@@ -147,7 +221,7 @@ def prepare(p: LMMParams) -> dict:
         "n_ring": p.n_ring,
         "components": K,
         "method": p.method,
-        "z": float(-special.ndtri(p.pfa)),          # Phi^{-1}(1 - PFA)
+        "z": float(-special.ndtri(p.pfa)),  # Phi^{-1}(1 - PFA)
         "log_pfa": float(math.log(p.pfa)),
         "init_z": [float(special.ndtri((k + 0.5) / K)) for k in range(K)],
         "select": p.select,
@@ -165,7 +239,6 @@ def prepare(p: LMMParams) -> dict:
     }
 
 
-
 # ---------------------------------------------------------------------------------------
 # kernels: per tile, one fit per pixel (exact, fast) or per global node and candidate (grid).
 # ``fit`` = (K, init_zs, max_iter, tol, select, predictive, z, log_pfa, censor, censor_level, censor_low,
@@ -177,8 +250,27 @@ def prepare(p: LMMParams) -> dict:
 def _fit(y, wt, n_pts, shep, fit, a, mu, s):
     """``fit_threshold`` of the weighted points with the tile's settings: (t, work)."""
     K, init_zs, max_iter, tol, select, predictive, z, log_pfa, cens, cens_q, lcens, refuse = fit
-    t, work, _ = fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                               a, mu, s, cens, cens_q, lcens, refuse)
+    t, work, _ = fit_threshold(
+        y,
+        wt,
+        n_pts,
+        K,
+        init_zs,
+        max_iter,
+        tol,
+        shep,
+        select,
+        predictive,
+        z,
+        log_pfa,
+        a,
+        mu,
+        s,
+        cens,
+        cens_q,
+        lcens,
+        refuse,
+    )
     return t, work
 
 
@@ -382,8 +474,9 @@ def _grid_kernel(block, halo, h, w, rb, rg, rt, fit, nmin, bw, step, refine, g0r
         ci = (kr0 + u) * step - g0r + halo
         for v in range(nc):
             cj = (kc0 + v) * step - g0c + halo
-            T[u, v], itn[u, v] = _ring_hist_fit(B, hist, ci, cj, rb, rg, bmin, bmax, off, bw, yv, wv, fit, nmin,
-                                                a, mu, s)
+            T[u, v], itn[u, v] = _ring_hist_fit(
+                B, hist, ci, cj, rb, rg, bmin, bmax, off, bw, yv, wv, fit, nmin, a, mu, s
+            )
     inv_step = 1.0 / step
     for i in range(h):
         gr = g0r + i
@@ -402,8 +495,12 @@ def _grid_kernel(block, halo, h, w, rb, rg, rt, fit, nmin, bw, step, refine, g0r
             if lx != lx:
                 continue
             # fixed-order weighted mean over the valid surrounding nodes (weights > 0)
-            corners = ((T[u, v], (1.0 - fr) * (1.0 - fc)), (T[u, v + 1], (1.0 - fr) * fc),
-                       (T[u + 1, v], fr * (1.0 - fc)), (T[u + 1, v + 1], fr * fc))
+            corners = (
+                (T[u, v], (1.0 - fr) * (1.0 - fc)),
+                (T[u, v + 1], (1.0 - fr) * fc),
+                (T[u + 1, v], fr * (1.0 - fc)),
+                (T[u + 1, v + 1], fr * fc),
+            )
             num = 0.0
             den = 0.0
             for tq, wq in corners:
@@ -417,8 +514,9 @@ def _grid_kernel(block, halo, h, w, rb, rg, rt, fit, nmin, bw, step, refine, g0r
                     if tq < tmin:  # NaN compares False
                         tmin = tq
                 if refine > 0.0 and lx > tmin - refine:  # candidate: its own fit decides
-                    t, iters[i, j] = _ring_hist_fit(B, hist, ci, j + halo, rb, rg, bmin, bmax, off, bw, yv, wv,
-                                                    fit, nmin, a, mu, s)
+                    t, iters[i, j] = _ring_hist_fit(
+                        B, hist, ci, j + halo, rb, rg, bmin, bmax, off, bw, yv, wv, fit, nmin, a, mu, s
+                    )
                     if t != t:
                         continue
                 _decide(lx, t, i, j, mask, stat)
@@ -456,7 +554,7 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
     refine = float(prep.get("grid_refine", params.grid_refine))
     if halo > need:  # trim the extra halo (the kernels take halo == need)
         d = halo - need
-        block = block[d: block.shape[0] - d, d: block.shape[1] - d]
+        block = block[d : block.shape[0] - d, d : block.shape[1] - d]
         origin = (int(origin[0]) + d, int(origin[1]) + d)
         halo = need
     if gpu and cpu_only_fit(prep, params):
@@ -477,12 +575,20 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
     iters = np.zeros((h, w), dtype=np.int32)
     if h and w:
         block = np.ascontiguousarray(block)
-        fit = (K, init_z_table(K), int(prep["max_iter"]), float(prep["tol"]),
-               prep.get("select", params.select) == "bic", prep.get("tail", params.tail) == "predictive",
-               float(prep["z"]), float(prep["log_pfa"]), float(prep.get("censor", params.censor)),
-               float(prep.get("censor_level", params.censor_level)),
-               float(prep.get("censor_low", params.censor_low)),
-               float(prep.get("refuse_weight", params.refuse_weight)))
+        fit = (
+            K,
+            init_z_table(K),
+            int(prep["max_iter"]),
+            float(prep["tol"]),
+            prep.get("select", params.select) == "bic",
+            prep.get("tail", params.tail) == "predictive",
+            float(prep["z"]),
+            float(prep["log_pfa"]),
+            float(prep.get("censor", params.censor)),
+            float(prep.get("censor_level", params.censor_level)),
+            float(prep.get("censor_low", params.censor_low)),
+            float(prep.get("refuse_weight", params.refuse_weight)),
+        )
         if params.nodata is not None:  # a declared no-data value: absent, as NaN
             from sarship.pipeline.tiling.intensity_absent import fill, present
 
@@ -493,8 +599,17 @@ def detect(block, halo: int, origin, params: LMMParams, prep: dict, *, _iters: b
         if prep["method"] == "exact":
             _exact_kernel(*args, mask, stat, iters)
         elif grid:
-            _grid_kernel(*args, float(prep["bin_width"]), step, refine, int(origin[0]) + halo, int(origin[1]) + halo,
-                         mask, stat, iters)
+            _grid_kernel(
+                *args,
+                float(prep["bin_width"]),
+                step,
+                refine,
+                int(origin[0]) + halo,
+                int(origin[1]) + halo,
+                mask,
+                stat,
+                iters,
+            )
         else:
             _fast_kernel(*args, float(prep["bin_width"]), mask, stat, iters)
     if _iters:

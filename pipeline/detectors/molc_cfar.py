@@ -63,14 +63,14 @@ def ring_cumulants(xp, box, block, halo: int, origin, b: int, g: int, censor):
         okf = ok.astype(xp.float64)
         cnt = box(okf, b, hc, origin)
         sm = box(xz, b, hc, origin)
-        xe = xz[hc: hc + h + 2 * r, hc: hc + w + 2 * r]
-        oke = ok[hc: hc + h + 2 * r, hc: hc + w + 2 * r] & ~(xe * cnt > float(censor) * sm)
-        x = x[hc: hc + h + 2 * r, hc: hc + w + 2 * r]
-        ok_t = ok[halo: halo + h, halo: halo + w]
+        xe = xz[hc : hc + h + 2 * r, hc : hc + w + 2 * r]
+        oke = ok[hc : hc + h + 2 * r, hc : hc + w + 2 * r] & ~(xe * cnt > float(censor) * sm)
+        x = x[hc : hc + h + 2 * r, hc : hc + w + 2 * r]
+        ok_t = ok[halo : halo + h, halo : halo + w]
         halo, origin = r, (origin[0] + hc, origin[1] + hc)
         ok = oke
     else:
-        ok_t = ok[halo: halo + h, halo: halo + w]
+        ok_t = ok[halo : halo + h, halo : halo + w]
     y = xp.where(ok, xp.log(xp.where(ok, x, 1.0)), 0.0)
     y2 = y * y
     y3 = y2 * y
@@ -84,9 +84,9 @@ def ring_cumulants(xp, box, block, halo: int, origin, b: int, g: int, censor):
     s2 = box(y2, b, halo, origin) - box(y2, g, halo, origin)
     s3 = box(y3, b, halo, origin) - box(y3, g, halo, origin)
     k1, k2, k3 = molc.k_statistics(nn, s1, s2, s3)
-    y_t = y[halo: halo + h, halo: halo + w]
+    y_t = y[halo : halo + h, halo : halo + w]
     if censor is not None:  # the pixel under test is tested whatever its own flag
-        xt = x[halo: halo + h, halo: halo + w]
+        xt = x[halo : halo + h, halo : halo + w]
         y_t = xp.where(ok_t, xp.log(xp.where(ok_t, xt, 1.0)), 0.0)
     return n, k1, k2, k3, y_t, ok_t
 
@@ -118,8 +118,20 @@ def log_excess(xp, kind: str, tab, looks: float, k1, k2, k3, y_t):
     return (y_t - k1) - sk * dv, dom
 
 
-def decide(xp, box, block, halo: int, origin, b: int, g: int, censor, kind: str, tab, looks: float,
-           strip_rows: int = STRIP_ROWS):
+def decide(
+    xp,
+    box,
+    block,
+    halo: int,
+    origin,
+    b: int,
+    g: int,
+    censor,
+    kind: str,
+    tab,
+    looks: float,
+    strip_rows: int = STRIP_ROWS,
+):
     """``(mask, stat)`` of the core: mask = tested and ln x_t > ln t; stat = x_t / t (float32,
     > 1 exactly where mask; 0 where not tested). Processes ``strip_rows`` rows at a time."""
     h = block.shape[0] - 2 * halo
@@ -131,14 +143,14 @@ def decide(xp, box, block, halo: int, origin, b: int, g: int, censor, kind: str,
     above = np.nextafter(one, np.float32(2.0))
     for r0 in range(0, h, strip_rows):
         r1 = min(r0 + strip_rows, h)
-        sub = block[r0: r1 + 2 * halo]
+        sub = block[r0 : r1 + 2 * halo]
         n, k1, k2, k3, y_t, ok_t = ring_cumulants(xp, box, sub, halo, (origin[0] + r0, origin[1]), b, g, censor)
         d, dom = log_excess(xp, kind, tab, looks, k1, k2, k3, y_t)
         tested = ok_t & (n >= float(need)) & dom & xp.isfinite(d)
         m = tested & (d > 0.0)
         s = xp.exp(xp.where(tested, xp.minimum(d, 80.0), -xp.inf)).astype(xp.float32)
-        s = xp.where(m & ~(s > one), above, s)          # detected: stat > 1
-        s = xp.where(~m & (s > one), one, s)            # not detected: stat <= 1
+        s = xp.where(m & ~(s > one), above, s)  # detected: stat > 1
+        s = xp.where(~m & (s > one), one, s)  # not detected: stat <= 1
         mask[r0:r1] = m
         stat[r0:r1] = s
     return mask, stat

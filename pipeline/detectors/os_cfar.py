@@ -123,15 +123,14 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Optional
 
 import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 from scipy import special
 
-from sarship.pipeline.tiling import boxsum, intensity_absent
 from sarship.pipeline.gpu import is_device_array
+from sarship.pipeline.tiling import boxsum, intensity_absent
 
 from .base import DetectorParams, DetectorSpec, float_block, with_defaults
 
@@ -156,9 +155,20 @@ def default_k(n_ring: int) -> int:
     return max(1, (3 * int(n_ring) + 2) // 4)
 
 
-class OSParams(with_defaults(DetectorParams, "OSDefaults", pfa=1e-6, guard=21, background=41, merge_px=4,
-                             land_mask="texture",
-                             auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
+class OSParams(
+    with_defaults(
+        DetectorParams,
+        "OSDefaults",
+        pfa=1e-6,
+        guard=21,
+        background=41,
+        merge_px=4,
+        land_mask="texture",
+        auto_min_area_px=10,
+        auto_min_length_m=25.0,
+        auto_min_area_m2=200.0,
+    )
+):
     """OS-CFAR parameters: the common ones plus the rank ``k``.
 
     Defaults chosen on real data by cross-validation (tuned on half A of SAR-Ship-Dataset,
@@ -169,7 +179,7 @@ class OSParams(with_defaults(DetectorParams, "OSDefaults", pfa=1e-6, guard=21, b
     41/81 windows, over-alarm on textured sea at 3 m).
     """
 
-    k: Optional[int] = Field(
+    k: int | None = Field(
         None,
         description=(
             "rank of the ring sample used as clutter level, counted in ASCENDING order "
@@ -179,9 +189,11 @@ class OSParams(with_defaults(DetectorParams, "OSDefaults", pfa=1e-6, guard=21, b
         ),
     )
 
-    nodata: Optional[float] = Field(
-        None, description="value marking absent pixels besides NaN (e.g. 0 for a zero-filled border); "
-                          "None: NaN only (exact zeros are data: 8-bit chips have them in dark sea)")
+    nodata: float | None = Field(
+        None,
+        description="value marking absent pixels besides NaN (e.g. 0 for a zero-filled border); "
+        "None: NaN only (exact zeros are data: 8-bit chips have them in dark sea)",
+    )
 
     @model_validator(mode="after")
     def _rank(self):
@@ -217,8 +229,12 @@ def os_pfa_exponential(alpha, n_ring: int, k: int):
     _check_nk(n_ring, k)
     a = np.asarray(alpha, dtype=np.float64)
     n, kk = float(n_ring), float(k)
-    lp = (special.gammaln(n + 1.0) - special.gammaln(n - kk + 1.0)
-          + special.gammaln(n - kk + 1.0 + a) - special.gammaln(n + 1.0 + a))
+    lp = (
+        special.gammaln(n + 1.0)
+        - special.gammaln(n - kk + 1.0)
+        + special.gammaln(n - kk + 1.0 + a)
+        - special.gammaln(n + 1.0 + a)
+    )
     big = a > _GAMMALN_ALPHA_MAX
     if np.any(big):
         # gammaln(N-k+1+alpha) - gammaln(N+1+alpha) cancels catastrophically for huge
@@ -276,8 +292,7 @@ def _quadrature_rule(n_ring: int, k: int, looks: float, pfa_floor: float):
     return g, weights
 
 
-def os_pfa_quadrature(alpha, n_ring: int, k: int, looks: float = 1.0, n_target: int = 1,
-                      pfa_floor: float = 1e-20):
+def os_pfa_quadrature(alpha, n_ring: int, k: int, looks: float = 1.0, n_target: int = 1, pfa_floor: float = 1e-20):
     """PFA of OS-CFAR for L-look gamma clutter and an n-cell mean target window.
 
     ``E[Q(nL, n alpha G_(k))]`` by Gauss-Legendre quadrature (see the module docstring).
@@ -292,10 +307,11 @@ def os_pfa_quadrature(alpha, n_ring: int, k: int, looks: float = 1.0, n_target: 
 
 
 @functools.lru_cache(maxsize=1024)
-def _alpha_cached(n_ring: int, k: int, looks: float, n_target: int, pfa: float,
-                  quadrature: bool) -> float:
+def _alpha_cached(n_ring: int, k: int, looks: float, n_target: int, pfa: float, quadrature: bool) -> float:
     from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
+
     if not quadrature:
+
         def log_pfa(u):
             p = float(os_pfa_exponential(math.exp(u), n_ring, k))
             return math.log(p) if p > 0.0 else -1e300
@@ -332,8 +348,9 @@ def _alpha_cached(n_ring: int, k: int, looks: float, n_target: int, pfa: float,
     return float(math.exp(u))
 
 
-def os_threshold_multiplier(n_ring: int, k: int, pfa: float, looks: float = 1.0,
-                            n_target: int = 1, method: str = "auto") -> float:
+def os_threshold_multiplier(
+    n_ring: int, k: int, pfa: float, looks: float = 1.0, n_target: int = 1, method: str = "auto"
+) -> float:
     """alpha such that ``P(x_t > alpha X_(k)) = pfa`` in homogeneous gamma clutter.
 
     ``method="auto"``: closed form (Rohling 1983) for ``looks == 1`` and ``n_target == 1``,
@@ -536,8 +553,7 @@ def _hist_column(hist, bins, r0, r1, col, ptr, d):
 
 
 @njit(nogil=True, cache=True)
-def _os_kernel(block, bins, edges, halo, h, w, rb, rg, rt, k, alpha, stat_floor, screen,
-               mask, stat):
+def _os_kernel(block, bins, edges, halo, h, w, rb, rg, rt, k, alpha, stat_floor, screen, mask, stat):
     n_ring = (2 * rb + 1) ** 2 - (2 * rg + 1) ** 2
     max_above = n_ring - k
     n_cells = float((2 * rt + 1) ** 2)
@@ -733,8 +749,22 @@ def absent_redo(block, ok, halo, origin, params: OSParams, prep: dict, mask, sta
         ktab[kk] = kr
         atab[kk] = os_threshold_multiplier(int(kk), kr, pfa, looks, t * t)
     xn = intensity_absent.fill(block, ok, np.nan)
-    _os_partial(xn, halo, ii.astype(np.int64), jj.astype(np.int64), kv, rb, rg, rt, ktab, atab,
-                float(prep["alpha"]), _stat_floor(float(prep["alpha"])), mask, stat)
+    _os_partial(
+        xn,
+        halo,
+        ii.astype(np.int64),
+        jj.astype(np.int64),
+        kv,
+        rb,
+        rg,
+        rt,
+        ktab,
+        atab,
+        float(prep["alpha"]),
+        _stat_floor(float(prep["alpha"])),
+        mask,
+        stat,
+    )
 
 
 def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: bool = True):
@@ -776,8 +806,7 @@ def detect(block, halo: int, origin, params: OSParams, prep: dict, *, _screen: b
     xb = block if complete else intensity_absent.fill(block, ok, np.nan)
     if h and w:
         bins = _screen_bins(xb)
-        _os_kernel(xb, bins, _EDGES, halo, h, w, rb, rg, rt, k, alpha, float(a32),
-                   bool(_screen), mask, stat)
+        _os_kernel(xb, bins, _EDGES, halo, h, w, rb, rg, rt, k, alpha, float(a32), bool(_screen), mask, stat)
         if not complete:  # absent pixels (module docstring of pipeline.intensity_absent)
             absent_redo(xb, ok, halo, origin, params, prep, mask, stat)
     return mask, stat

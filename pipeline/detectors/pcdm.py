@@ -63,9 +63,9 @@ import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 
-from sarship.pipeline.tiling.boxsum import centered_box_sum
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, with_defaults
 from sarship.pipeline.gpu import is_device_array, to_host
+from sarship.pipeline.tiling.boxsum import centered_box_sum
 from sarship.pipeline.tiling.polsar_absent import present, zero_absent
 
 #: Fixed bins of ln SPAN_P for the scene-wide histogram (``span_rule="pfa"``).
@@ -92,7 +92,8 @@ class PCDMParams(with_defaults(DetectorParams, "PCDMDefaults", pfa=1e-6, min_are
 
     looks_window: int = Field(3, ge=1, le=31, description="boxcar side (odd) averaging k k^H into C")
     span_rule: Literal["fraction", "pfa"] = Field(
-        "pfa", description="T_SPAN = span_fraction*(max-min) of SPAN_P (thesis), or a lognormal CFAR at pfa")
+        "pfa", description="T_SPAN = span_fraction*(max-min) of SPAN_P (thesis), or a lognormal CFAR at pfa"
+    )
     span_fraction: float = Field(0.005, gt=0.0, lt=1.0, description="thesis: 0.005 of (max - min) SPAN_P")
     psh_threshold: float = Field(0.0, ge=0.0, le=1.0, description="T_PSH on |l3|/(|l1|+|l2|) (0: neutral)")
     combine: Literal["and", "or", "span"] = Field("and", description="SPAN AND PSH, SPAN OR PSH, or SPAN alone")
@@ -271,7 +272,7 @@ def span_psh(block: np.ndarray, halo_px: int, origin, p: PCDMParams) -> tuple[np
     off = halo_px - r - 1
     h = block.shape[0] - 2 * halo_px
     w = block.shape[1] - 2 * halo_px
-    C = np.ascontiguousarray(C[:, off: off + h + 2, off: off + w + 2])
+    C = np.ascontiguousarray(C[:, off : off + h + 2, off : off + w + 2])
     span = np.empty((h, w))
     psh = np.empty((h, w))
     _pcdm_kernel(C, block.shape[2], span, psh)
@@ -328,6 +329,7 @@ def _hist_quantile(hist: np.ndarray, q: float) -> float:
 def reduce(parts: list[dict], p: PCDMParams, prep: dict) -> dict:
     """Scene-wide T_SPAN from the tiles' statistics."""
     from scipy import stats  # lazy: importing scipy.stats costs every command start-up time
+
     los = [d["min"] for d in parts if d["min"] is not None]
     his = [d["max"] for d in parts if d["max"] is not None]
     lo = min(los) if los else None  # None: no tested pixel in the scene
@@ -347,8 +349,9 @@ def reduce(parts: list[dict], p: PCDMParams, prep: dict) -> dict:
         c = np.cumsum(hist[order])
         mad = float(dev[order][min(int(np.searchsorted(c, 0.5 * c[-1])), len(c) - 1)])
         sigma = 1.4826 * mad
-        out.update({"ln_median": med, "ln_sigma": sigma,
-                    "t_span": float(math.exp(med + sigma * stats.norm.isf(p.pfa)))})
+        out.update(
+            {"ln_median": med, "ln_sigma": sigma, "t_span": float(math.exp(med + sigma * stats.norm.isf(p.pfa)))}
+        )
     return out
 
 

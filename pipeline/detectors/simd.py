@@ -66,6 +66,7 @@ class _Vec4Model(models.PrimitiveModel):
 # element index, unchecked. Array views are avoided in the hot code on purpose: each view
 # costs two atomic reference-count operations.
 
+
 def _is_c(a, dtype=types.float64):
     return isinstance(a, types.Array) and a.layout == "C" and a.dtype == dtype
 
@@ -86,10 +87,12 @@ def _transpose(builder, va, vb, vc, vd):
     t1 = builder.shuffle_vector(va, vb, _mask(1, 5, 3, 7))  # a1 b1 a3 b3
     t2 = builder.shuffle_vector(vc, vd, _mask(0, 4, 2, 6))  # c0 d0 c2 d2
     t3 = builder.shuffle_vector(vc, vd, _mask(1, 5, 3, 7))  # c1 d1 c3 d3
-    return (builder.shuffle_vector(t0, t2, _mask(0, 1, 4, 5)),  # a0 b0 c0 d0
-            builder.shuffle_vector(t1, t3, _mask(0, 1, 4, 5)),  # a1 b1 c1 d1
-            builder.shuffle_vector(t0, t2, _mask(2, 3, 6, 7)),  # a2 b2 c2 d2
-            builder.shuffle_vector(t1, t3, _mask(2, 3, 6, 7)))  # a3 b3 c3 d3
+    return (
+        builder.shuffle_vector(t0, t2, _mask(0, 1, 4, 5)),  # a0 b0 c0 d0
+        builder.shuffle_vector(t1, t3, _mask(0, 1, 4, 5)),  # a1 b1 c1 d1
+        builder.shuffle_vector(t0, t2, _mask(2, 3, 6, 7)),  # a2 b2 c2 d2
+        builder.shuffle_vector(t1, t3, _mask(2, 3, 6, 7)),
+    )  # a3 b3 c3 d3
 
 
 @intrinsic
@@ -127,8 +130,9 @@ def vstep(typingctx, h, ka, kb, pre, kp):
     def codegen(context, builder, sig, args):
         h, ka, kb, pre, kp = args
         pp = _ptr(context, builder, sig.args[3], pre, kp, _V4)
-        p = builder.fadd(builder.load(pp, align=8),
-                         builder.load(_ptr(context, builder, sig.args[0], h, kb, _V4), align=8))
+        p = builder.fadd(
+            builder.load(pp, align=8), builder.load(_ptr(context, builder, sig.args[0], h, kb, _V4), align=8)
+        )
         builder.store(p, pp, align=8)
         ha = builder.load(_ptr(context, builder, sig.args[0], h, ka, _V4), align=8)
         return builder.fadd(ha, p)
@@ -148,8 +152,7 @@ def prefetch(typingctx, a, r, c):
         i8p = ir.IntType(8).as_pointer()
         fty = ir.FunctionType(ir.VoidType(), [i8p, _I32, _I32, _I32])
         fn = cgutils.get_or_insert_function(builder.module, fty, "llvm.prefetch.p0i8")
-        builder.call(fn, [builder.bitcast(p, i8p), ir.Constant(_I32, 0), ir.Constant(_I32, 3),
-                          ir.Constant(_I32, 1)])
+        builder.call(fn, [builder.bitcast(p, i8p), ir.Constant(_I32, 0), ir.Constant(_I32, 3), ir.Constant(_I32, 1)])
         return context.get_dummy_value()
 
     return types.none(a, types.intp, types.intp), codegen
@@ -175,8 +178,7 @@ vdiv = _vbinop("fdiv")
 @intrinsic
 def vsqrt(typingctx, a):
     def codegen(context, builder, sig, args):
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4, [_V4]),
-                                            "llvm.sqrt.v4f64")
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4, [_V4]), "llvm.sqrt.v4f64")
         return builder.call(fn, [args[0]])
 
     return _vec4(a), codegen
@@ -197,18 +199,20 @@ def vdivn(typingctx, a, n, y):
     This needs normal numbers throughout: a vector with any |a| outside [2**-900, 2**1000]
     (zeros, subnormals, huge values, inf, NaN) goes through the divider instead.
     """
+
     def codegen(context, builder, sig, args):
         a, n, y = args
         v3 = ir.FunctionType(_V4, [_V4] * 3)
         fma = cgutils.get_or_insert_function(builder.module, v3, "llvm.fma.v4f64")
-        fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4, [_V4]),
-                                              "llvm.fabs.v4f64")
+        fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4, [_V4]), "llvm.fabs.v4f64")
         q0 = builder.fmul(a, y)
         r = builder.call(fma, [builder.fneg(q0), n, a])
         q1 = builder.call(fma, [r, y, q0])
         fa = builder.call(fabs, [a])
-        ok = builder.and_(builder.fcmp_ordered(">=", fa, ir.Constant(_V4, [2.0 ** -900] * 4)),
-                          builder.fcmp_ordered("<=", fa, ir.Constant(_V4, [2.0 ** 1000] * 4)))
+        ok = builder.and_(
+            builder.fcmp_ordered(">=", fa, ir.Constant(_V4, [2.0**-900] * 4)),
+            builder.fcmp_ordered("<=", fa, ir.Constant(_V4, [2.0**1000] * 4)),
+        )
         i4 = ir.IntType(4)
         all_ok = builder.icmp_unsigned("==", builder.bitcast(ok, i4), ir.Constant(i4, 15))
         with builder.if_else(all_ok, likely=True) as (fast, slow):
@@ -228,6 +232,7 @@ def vdivn(typingctx, a, n, y):
 @intrinsic
 def vsplat(typingctx, x):
     """(x, x, x, x)."""
+
     def codegen(context, builder, sig, args):
         v = builder.insert_element(ir.Constant(_V4, ir.Undefined), args[0], ir.Constant(_I32, 0))
         return builder.shuffle_vector(v, v, _mask(0, 0, 0, 0))
@@ -238,6 +243,7 @@ def vsplat(typingctx, x):
 @intrinsic
 def vsel_gt(typingctx, a, b, x, y):
     """x where a > b (ordered: false for NaN) else y, lane by lane."""
+
     def codegen(context, builder, sig, args):
         return builder.select(builder.fcmp_ordered(">", args[0], args[1]), args[2], args[3])
 
@@ -253,8 +259,7 @@ def vstore_stat(typingctx, stat, mask, k, s, thr):
     def codegen(context, builder, sig, args):
         st, mk, k, s, thr = args
         f4 = ir.VectorType(ir.FloatType(), 4)
-        builder.store(builder.fptrunc(s, f4), _ptr(context, builder, sig.args[0], st, k, f4),
-                      align=4)
+        builder.store(builder.fptrunc(s, f4), _ptr(context, builder, sig.args[0], st, k, f4), align=4)
         b4 = ir.VectorType(ir.IntType(8), 4)
         gt = builder.zext(builder.fcmp_ordered(">", s, thr), b4)
         builder.store(gt, _ptr(context, builder, sig.args[1], mk, k, b4), align=1)
@@ -272,8 +277,7 @@ def vcol(typingctx, y, o0, o1, o2, o3, c):
     def codegen(context, builder, sig, args):
         v = ir.Constant(_V4, ir.Undefined)
         for k in range(4):
-            x = builder.load(_ptr(context, builder, sig.args[0], args[0],
-                                  builder.add(args[1 + k], args[5])))
+            x = builder.load(_ptr(context, builder, sig.args[0], args[0], builder.add(args[1 + k], args[5])))
             v = builder.insert_element(v, x, ir.Constant(_I32, k))
         return v
 
@@ -288,9 +292,10 @@ def vcols(typingctx, y, o0, o1, o2, o3, c):
         return None
 
     def codegen(context, builder, sig, args):
-        rows = [builder.load(_ptr(context, builder, sig.args[0], args[0],
-                                  builder.add(args[1 + k], args[5]), _V4), align=8)
-                for k in range(4)]
+        rows = [
+            builder.load(_ptr(context, builder, sig.args[0], args[0], builder.add(args[1 + k], args[5]), _V4), align=8)
+            for k in range(4)
+        ]
         return context.make_tuple(builder, sig.return_type, _transpose(builder, *rows))
 
     return types.UniTuple(_vec4, 4)(y, o0, o1, o2, o3, c), codegen
@@ -304,9 +309,10 @@ def vscatter(typingctx, h, o0, o1, o2, o3, c, v):
 
     def codegen(context, builder, sig, args):
         for k in range(4):
-            builder.store(builder.extract_element(args[6], ir.Constant(_I32, k)),
-                          _ptr(context, builder, sig.args[0], args[0],
-                               builder.add(args[1 + k], args[5])))
+            builder.store(
+                builder.extract_element(args[6], ir.Constant(_I32, k)),
+                _ptr(context, builder, sig.args[0], args[0], builder.add(args[1 + k], args[5])),
+            )
         return context.get_dummy_value()
 
     return types.none(h, o0, o1, o2, o3, c, v), codegen
@@ -321,9 +327,9 @@ def vscatter4(typingctx, h, o0, o1, o2, o3, c, a, b, cc, d):
 
     def codegen(context, builder, sig, args):
         for k, r in enumerate(_transpose(builder, *args[6:10])):
-            builder.store(r, _ptr(context, builder, sig.args[0], args[0],
-                                  builder.add(args[1 + k], args[5]), _V4), align=8)
+            builder.store(
+                r, _ptr(context, builder, sig.args[0], args[0], builder.add(args[1 + k], args[5]), _V4), align=8
+            )
         return context.get_dummy_value()
 
     return types.none(h, o0, o1, o2, o3, c, a, b, cc, d), codegen
-

@@ -56,15 +56,15 @@ device (:mod:`sarship.pipeline.gpu.superpixel_cfar`); masks equal the CPU's bit 
 from __future__ import annotations
 
 import math
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 
-from sarship.pipeline.image import superpixels as spx
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, area_px, float_block, with_defaults
 from sarship.pipeline.gpu import is_device_array, to_host
+from sarship.pipeline.image import superpixels as spx
 from sarship.pipeline.stats.rayleigh_mixture import BIN_WIDTH, fit_binned, threshold_intensity
 
 #: Fixed histogram of log10(superpixel mean) for the scene-wide K-means and shadow rule.
@@ -79,8 +79,11 @@ MAX_SHIP_M2 = 300000.0
 POINT_PFA = 1e-7
 
 
-class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults", pfa=1e-3, merge_px=4,
-                                         land_mask="texture", min_contrast_db=7.0)):
+class SuperpixelCFARParams(
+    with_defaults(
+        DetectorParams, "SuperpixelCFARDefaults", pfa=1e-3, merge_px=4, land_mask="texture", min_contrast_db=7.0
+    )
+):
     """Parameters of ``superpixel_cfar`` (module docstring; docs/algorithms/superpixel_cfar.md).
 
     The paper's defaults: M_a = 3, CoV over 7x7, kappa 0.4, at most 10 clutter superpixels,
@@ -90,59 +93,109 @@ class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults
     from 1.63 % to 0.15 % (bench/REALDATA.md).
     """
 
-    spacing: int = Field(12, ge=4, le=64, description="seed grid spacing in pixels (superpixels of about "
-                                                       "spacing^2 pixels)")
-    reach: int = Field(8, ge=2, le=128, description="a superpixel grows at most this many pixels from its seed "
-                                                     "(Chebyshev); at least spacing / 2")
+    spacing: int = Field(
+        12, ge=4, le=64, description="seed grid spacing in pixels (superpixels of about spacing^2 pixels)"
+    )
+    reach: int = Field(
+        8,
+        ge=2,
+        le=128,
+        description="a superpixel grows at most this many pixels from its seed (Chebyshev); at least spacing / 2",
+    )
     eps: float = Field(4.0, gt=0.0, le=1e6, description="growth threshold on the pixel dissimilarity (eq 7-8)")
-    min_size: int = Field(32, ge=1, le=10000, description="superpixels smaller than this merge into their least "
-                                                          "dissimilar neighbour (eq 9-10)")
-    shadow_ratio: float = Field(0.05, ge=0.0, lt=1.0, description="shadow superpixels: mean below this times the "
-                                                                  "scene's median superpixel mean (0: off)")
-    kmeans: bool = Field(True, description="K-means (k = 2) on superpixel means: test only the brighter class; "
-                                           "false: test every superpixel (diagnostics, calibration)")
+    min_size: int = Field(
+        32,
+        ge=1,
+        le=10000,
+        description="superpixels smaller than this merge into their least dissimilar neighbour (eq 9-10)",
+    )
+    shadow_ratio: float = Field(
+        0.05,
+        ge=0.0,
+        lt=1.0,
+        description="shadow superpixels: mean below this times the scene's median superpixel mean (0: off)",
+    )
+    kmeans: bool = Field(
+        True,
+        description="K-means (k = 2) on superpixel means: test only the brighter class; "
+        "false: test every superpixel (diagnostics, calibration)",
+    )
     min_separation_db: float = Field(
-        6.0, ge=0.0, le=100.0, description="the K-means split is kept when its class centroids are this many dB "
-                                           "apart (0: always, as the paper); otherwise the potential targets are "
-                                           "the superpixels this many dB above the centroid of all")
-    th_clu: float = Field(4.0, ge=0.0, le=1e9, description="Table 1: adjacent background superpixels with "
-                                                           "dissimilarity (eq 9) above this are clutter")
-    tl_clu: float = Field(2.0, ge=0.0, le=1e9, description="Table 1: clutter grows through neighbours with "
-                                                           "dissimilarity below this")
+        6.0,
+        ge=0.0,
+        le=100.0,
+        description="the K-means split is kept when its class centroids are this many dB "
+        "apart (0: always, as the paper); otherwise the potential targets are "
+        "the superpixels this many dB above the centroid of all",
+    )
+    th_clu: float = Field(
+        4.0,
+        ge=0.0,
+        le=1e9,
+        description="Table 1: adjacent background superpixels with dissimilarity (eq 9) above this are clutter",
+    )
+    tl_clu: float = Field(
+        2.0, ge=0.0, le=1e9, description="Table 1: clutter grows through neighbours with dissimilarity below this"
+    )
     max_clutter: int = Field(10, ge=1, le=100, description="Table 1: most clutter superpixels per target")
-    clutter_radius: int = Field(36, ge=1, le=512, description="clutter superpixels' anchors lie within this "
-                                                              "many pixels (Chebyshev) of the target's")
-    rings: int = Field(1, ge=0, le=32, description="Table 1 for a target superpixel without background "
-                                                   "neighbours: look for them through at most this many rings "
-                                                   "of target superpixels (0: adjacent only, as the paper)")
+    clutter_radius: int = Field(
+        36,
+        ge=1,
+        le=512,
+        description="clutter superpixels' anchors lie within this many pixels (Chebyshev) of the target's",
+    )
+    rings: int = Field(
+        1,
+        ge=0,
+        le=32,
+        description="Table 1 for a target superpixel without background "
+        "neighbours: look for them through at most this many rings "
+        "of target superpixels (0: adjacent only, as the paper)",
+    )
     components: int = Field(3, ge=1, le=8, description="Rayleigh components M_a of the clutter mixture (eq 3)")
     em_iter: int = Field(50, ge=1, le=10000, description="EM iterations at most (eq 5-6 as M-step)")
     contrast: Literal["paper", "off"] = Field(
-        "paper", description="local contrast of eq 11-13 in the decision (eq 16), or off (eq 15)")
+        "paper", description="local contrast of eq 11-13 in the decision (eq 16), or off (eq 15)"
+    )
     kappa: float = Field(0.4, gt=0.0, le=100.0, description="spatial factor kappa of eq 12")
     cov_window: int = Field(7, ge=3, le=31, description="CoV window side of eq 13 (odd, pixels)")
-    fraction: float = Field(0.7, ge=0.0, lt=1.0, description="a target superpixel whose detected fraction "
-                                                             "exceeds this is target whole (section 3.4)")
-    point_pfa: Optional[float] = Field(
-        POINT_PFA, ge=1e-15, lt=0.5,
+    fraction: float = Field(
+        0.7,
+        ge=0.0,
+        lt=1.0,
+        description="a target superpixel whose detected fraction exceeds this is target whole (section 3.4)",
+    )
+    point_pfa: float | None = Field(
+        POINT_PFA,
+        ge=1e-15,
+        lt=0.5,
         description="small ships (a few pixels: they raise their superpixel's mean too little to make it a "
-                    "potential target): in a background superpixel, a pixel whose intensity exceeds the (1 - "
-                    "point_pfa) quantile of the gamma law (L looks) of the superpixel's mean is detected (chosen on "
-                    "half A of the real chips; none: off, the paper)")
-    max_ship_m2: Optional[float] = Field(
-        MAX_SHIP_M2, gt=0.0, le=1e9,
+        "potential target): in a background superpixel, a pixel whose intensity exceeds the (1 - "
+        "point_pfa) quantile of the gamma law (L looks) of the superpixel's mean is detected (chosen on "
+        "half A of the real chips; none: off, the paper)",
+    )
+    max_ship_m2: float | None = Field(
+        MAX_SHIP_M2,
+        gt=0.0,
+        le=1e9,
         description="largest detection kept where the scene's pixel spacing is known, in m^2 (the superpixel "
-                    "decision marks whole superpixels, so a ship's detection is larger than its hull: chosen on "
-                    "half A of the real chips); a larger one is land, a quay or a structure with the ships it "
-                    "swallowed; sets max_area_px when that is not given (none: no limit)")
-    max_ship_px: Optional[int] = Field(
-        MAX_SHIP_PX, ge=1, le=10**9,
+        "decision marks whole superpixels, so a ship's detection is larger than its hull: chosen on "
+        "half A of the real chips); a larger one is land, a quay or a structure with the ships it "
+        "swallowed; sets max_area_px when that is not given (none: no limit)",
+    )
+    max_ship_px: int | None = Field(
+        MAX_SHIP_PX,
+        ge=1,
+        le=10**9,
         description="largest ship kept where the pixel spacing is unknown, in pixels (chosen on half A of the "
-                    "real chips, bench/REALDATA.md); sets max_area_px when that is not given (none: no limit)")
+        "real chips, bench/REALDATA.md); sets max_area_px when that is not given (none: no limit)",
+    )
     decision: Literal["superpixel", "pixel", "boundaries"] = Field(
-        "superpixel", description="superpixel: step 7's decision; pixel: eq 16's pixel mask; boundaries: the "
-                                  "mask is the superpixel boundaries (to view the segmentation in the mask "
-                                  "quicklook; its detections mean nothing)")
+        "superpixel",
+        description="superpixel: step 7's decision; pixel: eq 16's pixel mask; boundaries: the "
+        "mask is the superpixel boundaries (to view the segmentation in the mask "
+        "quicklook; its detections mean nothing)",
+    )
 
     @model_validator(mode="after")
     def _own(self):
@@ -157,7 +210,7 @@ class SuperpixelCFARParams(with_defaults(DetectorParams, "SuperpixelCFARDefaults
         return self
 
 
-def largest_ship_px(p: SuperpixelCFARParams, spacing) -> Optional[int]:
+def largest_ship_px(p: SuperpixelCFARParams, spacing) -> int | None:
     """The largest detection kept, in pixels: ``max_area_px`` when given; else ``max_ship_m2`` as
     pixels (:func:`~sarship.pipeline.detectors.base.area_px`) where the ground ``spacing``
     (azimuth, range metres) is known, ``max_ship_px`` where it is not (None: no limit)."""
@@ -211,8 +264,9 @@ def _looks(p, prep) -> float:
 def _check(block, halo_px, p):
     x = float_block(to_host(block))  # a CuPy block: the host steps run on a host copy
     if int(halo_px) < halo(p):
-        raise ValueError(f"superpixel_cfar needs a halo of {halo(p)} (10 reach + 5 + clutter_radius), "
-                         f"block has {halo_px}")
+        raise ValueError(
+            f"superpixel_cfar needs a halo of {halo(p)} (10 reach + 5 + clutter_radius), block has {halo_px}"
+        )
     return x
 
 
@@ -283,10 +337,17 @@ def reduce(parts: list[dict], p: SuperpixelCFARParams, prep: dict) -> dict:
         # are the superpixels min_separation_db above the centroid of all (non-shadow) superpixels
         tb, rule = above_centroid(counts, sh, p.min_separation_db), "centroid + min_separation_db"
     edge = lambda b: float(10.0 ** (HIST_LO + b / HIST_PER_DECADE)) if b < HIST_BINS else None  # noqa: E731
-    return {"superpixels": int(counts.sum()), "shadow_bin": sh, "target_bin": tb,
-            "shadow_below": edge(sh) if sh > 0 else 0.0, "target_from": edge(tb),
-            "shadow_count": int(counts[:sh].sum()), "target_count": int(counts[tb:].sum()),
-            "separation_db": sep, "target_rule": rule}
+    return {
+        "superpixels": int(counts.sum()),
+        "shadow_bin": sh,
+        "target_bin": tb,
+        "shadow_below": edge(sh) if sh > 0 else 0.0,
+        "target_from": edge(tb),
+        "shadow_count": int(counts[:sh].sum()),
+        "target_count": int(counts[tb:].sum()),
+        "separation_db": sep,
+        "target_rule": rule,
+    }
 
 
 def scene_prep(x: np.ndarray, p: SuperpixelCFARParams, prep: dict | None = None, tile: int | None = None) -> dict:
@@ -303,14 +364,41 @@ def scene_prep(x: np.ndarray, p: SuperpixelCFARParams, prep: dict | None = None,
     for r in range(0, H, t):
         for c in range(0, W, t):
             r1, c1 = min(r + t, H), min(c + t, W)
-            parts.append(scene_pass(P[r:r1 + 2 * h, c:c1 + 2 * h], h, (r - h, c - h), p, prep))
+            parts.append(scene_pass(P[r : r1 + 2 * h, c : c1 + 2 * h], h, (r - h, c - h), p, prep))
     prep.update(reduce(parts, p, prep))
     return prep
 
 
 @njit(cache=True, nogil=True)
-def _thresholds(cands, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, pix_ptr, pix, xf, radius, th_clu,
-                tl_clu, max_clutter, rings, looks, K, em_iter, bin_width, pfa, thr, somega_out, decided, n_clutter):
+def _thresholds(
+    cands,
+    is_bg,
+    is_target,
+    n,
+    mean,
+    cov,
+    ptr,
+    idx,
+    anc_r,
+    anc_c,
+    pix_ptr,
+    pix,
+    xf,
+    radius,
+    th_clu,
+    tl_clu,
+    max_clutter,
+    rings,
+    looks,
+    K,
+    em_iter,
+    bin_width,
+    pfa,
+    thr,
+    somega_out,
+    decided,
+    n_clutter,
+):
     """Steps 4-5 per candidate: Table 1's clutter set, the Rayleigh-mixture EM on its pixels'
     values ``xf`` and ``T_cfar`` (eq 14), and eq 11's ``sum Omega(SP_m, SP_n)`` over the set;
     ``decided[t]``: ``t`` has a threshold (clutter found, at least ``K`` clutter pixels)."""
@@ -322,8 +410,27 @@ def _thresholds(cands, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, p
     s = np.zeros(K)
     for ci in range(cands.size):
         t = cands[ci]
-        m = spx.select_clutter(t, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, radius, th_clu, tl_clu,
-                               max_clutter, looks, out, mark, queue, rings)
+        m = spx.select_clutter(
+            t,
+            is_bg,
+            is_target,
+            n,
+            mean,
+            cov,
+            ptr,
+            idx,
+            anc_r,
+            anc_c,
+            radius,
+            th_clu,
+            tl_clu,
+            max_clutter,
+            looks,
+            out,
+            mark,
+            queue,
+            rings,
+        )
         n_clutter[t] = m
         if m == 0:
             continue
@@ -378,8 +485,9 @@ def point_level(point_pfa: float, looks: float) -> float:
     return float(gammainccinv(float(looks), float(point_pfa))) / float(looks)
 
 
-def point_targets(x: np.ndarray, ok: np.ndarray, sp: spx.Superpixels, bg: np.ndarray, p: SuperpixelCFARParams,
-                  looks: float) -> tuple[np.ndarray, np.ndarray]:
+def point_targets(
+    x: np.ndarray, ok: np.ndarray, sp: spx.Superpixels, bg: np.ndarray, p: SuperpixelCFARParams, looks: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Small ships (issue 31): ``(det, ratio)`` block arrays, ``det`` the present pixels of
     background superpixels whose intensity exceeds ``mean x point_level(point_pfa, looks)`` of
     their superpixel, ``ratio`` intensity / that threshold there (0 elsewhere). A ship of a few
@@ -420,7 +528,7 @@ def host_steps(x: np.ndarray, halo_px: int, origin, p: SuperpixelCFARParams, pre
         target = (~shadow) & (sp.size > 0)
         bg = target.copy()
     lab = sp.labels
-    core = lab[hp:lab.shape[0] - hp, hp:lab.shape[1] - hp]
+    core = lab[hp : lab.shape[0] - hp, hp : lab.shape[1] - hp]
     in_core = np.zeros(sp.size.size, bool)
     in_core[core[core >= 0]] = True
     cands = np.flatnonzero(in_core & target).astype(np.int64)
@@ -431,14 +539,52 @@ def host_steps(x: np.ndarray, halo_px: int, origin, p: SuperpixelCFARParams, pre
     somega = np.zeros(nl)
     decided = np.zeros(nl, np.bool_)
     n_clutter = np.zeros(nl, np.int64)
-    _thresholds(cands, bg, target, sp.size, sp.mean, sp.cov, sp.ptr, sp.idx, sp.anchor[:, 0].copy(),
-                sp.anchor[:, 1].copy(), pix_ptr, order, np.where(ok, x, 0.0).ravel(), int(p.clutter_radius),
-                float(p.th_clu), float(p.tl_clu), int(p.max_clutter), int(p.rings), looks, int(p.components),
-                int(p.em_iter), float(BIN_WIDTH), float(p.pfa), thr, somega, decided, n_clutter)
+    _thresholds(
+        cands,
+        bg,
+        target,
+        sp.size,
+        sp.mean,
+        sp.cov,
+        sp.ptr,
+        sp.idx,
+        sp.anchor[:, 0].copy(),
+        sp.anchor[:, 1].copy(),
+        pix_ptr,
+        order,
+        np.where(ok, x, 0.0).ravel(),
+        int(p.clutter_radius),
+        float(p.th_clu),
+        float(p.tl_clu),
+        int(p.max_clutter),
+        int(p.rings),
+        looks,
+        int(p.components),
+        int(p.em_iter),
+        float(BIN_WIDTH),
+        float(p.pfa),
+        thr,
+        somega,
+        decided,
+        n_clutter,
+    )
     point, point_ratio = point_targets(x, ok, sp, bg, p, looks)
-    return {"sp": sp, "ok": ok, "shadow": shadow, "target": target, "background": bg, "candidates": cands,
-            "pix_ptr": pix_ptr, "pix": order, "threshold": thr, "somega": somega, "decided": decided,
-            "n_clutter": n_clutter, "point": point, "point_ratio": point_ratio}
+    return {
+        "sp": sp,
+        "ok": ok,
+        "shadow": shadow,
+        "target": target,
+        "background": bg,
+        "candidates": cands,
+        "pix_ptr": pix_ptr,
+        "pix": order,
+        "threshold": thr,
+        "somega": somega,
+        "decided": decided,
+        "n_clutter": n_clutter,
+        "point": point,
+        "point_ratio": point_ratio,
+    }
 
 
 def analyse(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) -> dict:
@@ -459,13 +605,25 @@ def analyse(block, halo_px: int, origin, p: SuperpixelCFARParams, prep: dict) ->
     frac = np.zeros(nl)
     det = np.zeros(x.size, np.bool_)
     ratio = np.zeros(x.size)
-    _pixels(res["candidates"], res["decided"], res["threshold"], res["somega"], res["pix_ptr"], res["pix"], amp,
-            zeta, p.contrast == "paper", frac, det, ratio)
+    _pixels(
+        res["candidates"],
+        res["decided"],
+        res["threshold"],
+        res["somega"],
+        res["pix_ptr"],
+        res["pix"],
+        amp,
+        zeta,
+        p.contrast == "paper",
+        frac,
+        det,
+        ratio,
+    )
     return {**res, "frac": frac, "pixel_det": det.reshape(x.shape), "ratio": ratio.reshape(x.shape)}
 
 
 def _core(a, h):
-    return a[h:a.shape[0] - h, h:a.shape[1] - h]
+    return a[h : a.shape[0] - h, h : a.shape[1] - h]
 
 
 def _above(stat, mask, level: float):
@@ -500,8 +658,7 @@ def detect(block, halo_px, origin, p: SuperpixelCFARParams, prep: dict):
     lab = _core(res["sp"].labels, hp)
     if res["frac"].size == 0:  # nothing present
         return np.zeros(lab.shape, bool), np.zeros(lab.shape, np.float32)
-    return superpixel_mask(lab, res["frac"], res["target"], _core(res["point"], hp), _core(res["point_ratio"], hp),
-                           p)
+    return superpixel_mask(lab, res["frac"], res["target"], _core(res["point"], hp), _core(res["point_ratio"], hp), p)
 
 
 def superpixel_mask(lab, frac, target, point, point_ratio, p: SuperpixelCFARParams):
@@ -540,7 +697,7 @@ def superpixel_labels(block, halo_px: int, origin, p: SuperpixelCFARParams, prep
 SPEC = DetectorSpec(
     name="superpixel_cfar",
     summary="Superpixel CFAR: bounded DBSCAN superpixels, scene K-means, Table 1 clutter superpixels, "
-            "Rayleigh-mixture (EM) threshold per superpixel, CoV local contrast, superpixel decision",
+    "Rayleigh-mixture (EM) threshold per superpixel, CoV local contrast, superpixel decision",
     reference="Zhang et al. 2023, Journal of Radars 12(1) (seed 002); docs/algorithms/superpixel_cfar.md",
     params=SuperpixelCFARParams,
     prepare=prepare,

@@ -26,25 +26,53 @@ outliers into the ring statistics: use ``intensity`` or ``amplitude`` for such d
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from numba import njit, objmode, uint64
 from pydantic import Field
 
-from sarship.pipeline.tiling import boxsum, intensity_absent
 from sarship.pipeline.detectors import simd
-from sarship.pipeline.tiling.boxsum import hsum_row, ring_slot, stream_state, vertical_row, vertical_steady
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, check_windows, with_defaults
+from sarship.pipeline.detectors.simd import (
+    prefetch,
+    vadd,
+    vcol,
+    vcols,
+    vdiv,
+    vdivn,
+    vload,
+    vmul,
+    vscatter,
+    vscatter4,
+    vsel_gt,
+    vsplat,
+    vsqrt,
+    vstep,
+    vstore,
+    vstore_stat,
+    vsub,
+)
 from sarship.pipeline.gpu import is_device_array
 from sarship.pipeline.stats.tails import norm_isf, t_isf
-from sarship.pipeline.detectors.simd import (prefetch, vadd, vcol, vcols, vdiv, vdivn, vload, vmul, vscatter,
-                                   vscatter4, vsel_gt, vsplat, vsqrt, vstep, vstore, vstore_stat, vsub)
+from sarship.pipeline.tiling import boxsum, intensity_absent
+from sarship.pipeline.tiling.boxsum import hsum_row, ring_slot, stream_state, vertical_row, vertical_steady
 
 
-class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", pfa=1e-6, guard=41,
-                                       background=81, merge_px=2, land_mask="texture",
-                                       auto_min_area_px=10, auto_min_length_m=25.0, auto_min_area_m2=200.0)):
+class TwoParameterParams(
+    with_defaults(
+        DetectorParams,
+        "TwoParameterDefaults",
+        pfa=1e-6,
+        guard=41,
+        background=81,
+        merge_px=2,
+        land_mask="texture",
+        auto_min_area_px=10,
+        auto_min_length_m=25.0,
+        auto_min_area_m2=200.0,
+    )
+):
     """Parameters of ``two_parameter``.
 
     Defaults chosen on real data by cross-validation (tuned on half A of SAR-Ship-Dataset,
@@ -56,12 +84,12 @@ class TwoParameterParams(with_defaults(DetectorParams, "TwoParameterDefaults", p
     threshold: Literal["student", "gaussian"] = Field(
         "student", description="exact Student-t threshold for N ring samples, or the classical Gaussian one"
     )
-    domain: Literal["intensity", "amplitude", "db"] = Field(
-        "intensity", description="quantity modelled as Gaussian"
+    domain: Literal["intensity", "amplitude", "db"] = Field("intensity", description="quantity modelled as Gaussian")
+    nodata: float | None = Field(
+        None,
+        description="value marking absent pixels besides NaN (e.g. 0 for a zero-filled border); "
+        "None: NaN only (exact zeros are data: 8-bit chips have them in dark sea)",
     )
-    nodata: Optional[float] = Field(
-        None, description="value marking absent pixels besides NaN (e.g. 0 for a zero-filled border); "
-                          "None: NaN only (exact zeros are data: 8-bit chips have them in dark sea)")
 
 
 def threshold(pfa: float, n_ring: int, n_target: int, kind: str = "student") -> float:
@@ -220,8 +248,7 @@ def _hscan4(Y, y0, y1, y2, y3, m, g0, n_out, H1, H2, o0, o1, o2, o3, su, sw):
                 a, b = _suffix_step(a, b, v0, su, sw, ju - 12, H2)
                 c -= 4
             while c >= i_lo:
-                a, b = _suffix_step(a, b, vcol(Y, y0, y1, y2, y3, uint64(c)), su, sw,
-                                    uint64(4 * (c - s)), H2)
+                a, b = _suffix_step(a, b, vcol(Y, y0, y1, y2, y3, uint64(c)), su, sw, uint64(4 * (c - s)), H2)
                 c -= 1
             i0 = i_lo
             if i0 == s:  # the window starting the block is the whole block: suffix alone
@@ -282,8 +309,24 @@ def _fill(Y, ys, k, r0, col, m, g0, nrows, H1, H2, st, su, sw):
         o1 = ring_slot(st, r0 + 1, Rz) * n_out
         o2 = ring_slot(st, r0 + 2, Rz) * n_out
         o3 = ring_slot(st, r0 + 3, Rz) * n_out
-        _hscan4(Y, ys[0] * ny + col, ys[1] * ny + col, ys[2] * ny + col, ys[3] * ny + col, m, g0,
-                n_out, H1, H2, o0, o1, o2, o3, su, sw)
+        _hscan4(
+            Y,
+            ys[0] * ny + col,
+            ys[1] * ny + col,
+            ys[2] * ny + col,
+            ys[3] * ny + col,
+            m,
+            g0,
+            n_out,
+            H1,
+            H2,
+            o0,
+            o1,
+            o2,
+            o3,
+            su,
+            sw,
+        )
     else:
         for q in range(k):
             r = r0 + q
@@ -292,8 +335,36 @@ def _fill(Y, ys, k, r0, col, m, g0, nrows, H1, H2, st, su, sw):
 
 
 @njit(nogil=True, error_model="numpy", _nrt=False)
-def _decide_row(w, steady_b, steady_g, Hb1, Hb2, ab, bb, Hg1, Hg2, ag, bg, P, D, X, xo, tt,
-                n_ring, thr, mask, stat, i, c0, tmp_s, tmp_m, src, pf, pfc, pfn):
+def _decide_row(
+    w,
+    steady_b,
+    steady_g,
+    Hb1,
+    Hb2,
+    ab,
+    bb,
+    Hg1,
+    Hg2,
+    ag,
+    bg,
+    P,
+    D,
+    X,
+    xo,
+    tt,
+    n_ring,
+    thr,
+    mask,
+    stat,
+    i,
+    c0,
+    tmp_s,
+    tmp_m,
+    src,
+    pf,
+    pfc,
+    pfn,
+):
     """Window sums of output row i, columns c0 .. c0 + w - 1 (steady streams: from their
     rings, suffix row a and next-block row b, and running prefix P[0..3]; the others from
     D[0..3]), x_t = X.flat[xo + j] (divided by tt unless 1), and the decision, four columns
@@ -347,6 +418,7 @@ def _decide_row(w, steady_b, steady_g, Hb1, Hb2, ab, bb, Hg1, Hg2, ag, bg, P, D,
                 mask[i, c0 + j + c] = tmp_m[c]
 
 
+# fmt: off (argument lists laid out by hand)
 def _make_detect_strip(stamp: str):
     """The fused kernel. Its machine code includes code of :mod:`sarship.pipeline.detectors.simd` and
     :mod:`sarship.pipeline.tiling.boxsum`, but numba's on-disk cache only watches this file:
@@ -357,8 +429,7 @@ def _make_detect_strip(stamp: str):
     """
 
     @njit(nogil=True, cache=True)
-    def detect_strip(src, mode, halo, g0r, g0c, target, guard, background, n_ring, thr, c0, c1,
-                     mask, stat):
+    def detect_strip(src, mode, halo, g0r, g0c, target, guard, background, n_ring, thr, c0, c1, mask, stat):
         """Columns [c0, c1) of the core: all window sums streamed row by row, and the decision."""
         stamp  # noqa: B018 (keeps the stamp in the closure, hence in the cache key)
         h = mask.shape[0]
@@ -421,8 +492,7 @@ def _make_detect_strip(stamp: str):
                 _fill(Y, ys, k, F - ob, 0, b, g0c + ob + c0, h + b - 1, Hb1, Hb2, sb1, su, sw)
                 _fill(Y, ys, k, F - og, og - ob, g, g0c + og + c0, h + g - 1, Hg1, Hg2, sg1, su, sw)
                 if t > 1:
-                    _fill(Y, ys, k, F - ot, ot - ob, t, g0c + ot + c0, h + t - 1, Ht, None, stt, su,
-                          sw)
+                    _fill(Y, ys, k, F - ot, ot - ob, t, g0c + ot + c0, h + t - 1, Ht, None, stt, su, sw)
                 F += k
             steady_b = vertical_row(Hb1, sb1, b, i, Pb1, Db1)
             vertical_row(Hb2, sb2, b, i, Pb2, Db2)
@@ -438,12 +508,41 @@ def _make_detect_strip(stamp: str):
             pf = F + 4 + (i & 3) if mode != 2 else band0 + DB_BAND + i % DB_BAND
             if pf >= src.shape[0]:
                 pf = -1
-            _decide_row(w, steady_b, steady_g, Hb1, Hb2, ring_slot(sb1, i, Rb),
-                        ring_slot(sb1, i + b - 1, Rb), Hg1, Hg2, ring_slot(sg1, i, Rg),
-                        ring_slot(sg1, i + g - 1, Rg), P, D, Y, xo, tt, n_ring, thr, mask, stat, i,
-                        c0, tmp_s, tmp_m, src, pf, xc, win)
+            _decide_row(
+                w,
+                steady_b,
+                steady_g,
+                Hb1,
+                Hb2,
+                ring_slot(sb1, i, Rb),
+                ring_slot(sb1, i + b - 1, Rb),
+                Hg1,
+                Hg2,
+                ring_slot(sg1, i, Rg),
+                ring_slot(sg1, i + g - 1, Rg),
+                P,
+                D,
+                Y,
+                xo,
+                tt,
+                n_ring,
+                thr,
+                mask,
+                stat,
+                i,
+                c0,
+                tmp_s,
+                tmp_m,
+                src,
+                pf,
+                xc,
+                win,
+            )
 
     return detect_strip
+
+
+# fmt: on
 
 
 _detect_strip = _make_detect_strip(simd.source_stamp(simd, boxsum))
@@ -492,7 +591,7 @@ def detect_reference(block: np.ndarray, halo: int, origin: tuple[int, int], p: T
     s2b = centered_box_sum(x2, p.background, halo, origin)
     s2g = centered_box_sum(x2, p.guard, halo, origin)
     if p.target == 1:
-        xt = np.ascontiguousarray(x[halo:x.shape[0] - halo, halo:x.shape[1] - halo])
+        xt = np.ascontiguousarray(x[halo : x.shape[0] - halo, halo : x.shape[1] - halo])
     else:
         xt = centered_box_sum(x, p.target, halo, origin) / float(p.target**2)
     mask = np.empty(xt.shape, np.bool_)
@@ -520,16 +619,42 @@ def detect(block: np.ndarray, halo: int, origin: tuple[int, int], p: TwoParamete
     b, g, t = int(p.background), int(p.guard), int(p.target)
     check_windows(halo, b, g, t)
     if is_device_array(block):  # CuPy block: the GPU twin (pipeline.gpu.cfar), same sums and rule
-        return SPEC.twin()(block, halo, origin, b, g, t, float(prep["n_ring"]), float(prep["threshold"]),
-                             p.domain, pfa=float(p.pfa), kind=p.threshold, nodata=p.nodata)
+        return SPEC.twin()(
+            block,
+            halo,
+            origin,
+            b,
+            g,
+            t,
+            float(prep["n_ring"]),
+            float(prep["threshold"]),
+            p.domain,
+            pfa=float(p.pfa),
+            kind=p.threshold,
+            nodata=p.nodata,
+        )
     ok = intensity_absent.present(block, p.nodata)
     if not ok.all():  # absent pixels (module docstring of pipeline.intensity_absent)
         src = block if block.dtype in (np.float32, np.float64) else block.astype(np.float64)
         xz = intensity_absent.fill(src, ok, 0.0)
         mask, stat = _detect_complete(xz, halo, origin, p, prep)
         yz = intensity_absent.fill(_transform_reference(xz, p.domain), ok, 0.0)
-        intensity_absent.tp_redo(yz, ok, halo, origin, b, g, t, int(prep["n_ring"]), float(p.pfa), p.threshold,
-                                 float(prep["threshold"]), mask, stat, boxsum.centered_box_sum)
+        intensity_absent.tp_redo(
+            yz,
+            ok,
+            halo,
+            origin,
+            b,
+            g,
+            t,
+            int(prep["n_ring"]),
+            float(p.pfa),
+            p.threshold,
+            float(prep["threshold"]),
+            mask,
+            stat,
+            boxsum.centered_box_sum,
+        )
         return mask, stat
     return _detect_complete(block, halo, origin, p, prep)
 
@@ -550,8 +675,9 @@ def _detect_complete(block, halo, origin, p, prep):
     sw = -(-w // max(n_strips, 1))  # equal strips (a narrow last strip would cost its overlap)
     try:
         for c0 in range(0, w, max(sw, 1)):
-            _detect_strip(src, mode, halo, int(origin[0]), int(origin[1]), t, g, b, n_ring, thr,
-                          c0, min(c0 + sw, w), mask, stat)
+            _detect_strip(
+                src, mode, halo, int(origin[0]), int(origin[1]), t, g, b, n_ring, thr, c0, min(c0 + sw, w), mask, stat
+            )
     except Exception as exc:  # compile failure of the intrinsics on another Numba/LLVM
         from numba.core.errors import NumbaError
 
@@ -560,8 +686,11 @@ def _detect_complete(block, halo, origin, p, prep):
         import warnings
 
         _FUSED_BROKEN.append(f"{type(exc).__name__}: {exc}")
-        warnings.warn(f"two_parameter: fused kernel unavailable ({type(exc).__name__}); using the "
-                      "reference implementation", RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"two_parameter: fused kernel unavailable ({type(exc).__name__}); using the reference implementation",
+            RuntimeWarning,
+            stacklevel=2,
+        )
         return detect_reference(block, halo, origin, p, prep)
     return mask, stat
 

@@ -231,7 +231,7 @@ absent region is processed exactly as anywhere else.
 from __future__ import annotations
 
 import math
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from numba import njit
@@ -254,17 +254,23 @@ class VBPolSARParams(with_defaults(DetectorParams, "VBPolSARDefaults", pfa=1e-7,
     """
 
     components: int = Field(5, ge=1, le=16, description="K, Gaussian components of the clutter mixture")
-    alpha0: Optional[float] = Field(None, gt=0.0, lt=0.5,
-                                    description="Beta prior alpha0 (beta0 = 1 - alpha0); None: from pfa "
-                                                "by `calibration`")
+    alpha0: float | None = Field(
+        None, gt=0.0, lt=0.5, description="Beta prior alpha0 (beta0 = 1 - alpha0); None: from pfa by `calibration`"
+    )
     calibration: Literal["tail", "gaussian"] = Field(
-        "tail", description="alpha0=None: decision threshold from the sample's log-odds tail (default) "
-                            "or chi2_D.isf(pfa) / 2 (Gaussian clutter)")
-    tail_trim: float = Field(2e-3, ge=0.0, le=0.01,
-                             description="top fraction of the calibration sample's log-odds left out of "
-                                         "the tail fit (ships)")
-    calibration_stride: int = Field(4, ge=1, le=256,
-                                    description="tail calibration sample: pixels with row, col % stride == 0")
+        "tail",
+        description="alpha0=None: decision threshold from the sample's log-odds tail (default) "
+        "or chi2_D.isf(pfa) / 2 (Gaussian clutter)",
+    )
+    tail_trim: float = Field(
+        2e-3,
+        ge=0.0,
+        le=0.01,
+        description="top fraction of the calibration sample's log-odds left out of the tail fit (ships)",
+    )
+    calibration_stride: int = Field(
+        4, ge=1, le=256, description="tail calibration sample: pixels with row, col % stride == 0"
+    )
     phi0: float = Field(6.0, gt=0.0, description="Wishart prior degrees of freedom (must exceed D - 1)")
     beta1: float = Field(1e-6, gt=0.0, description="Wishart prior scale W0^-1 = beta1 * s * I")
     beta2: float = Field(1e-6, gt=0.0, description="Gauss-Wishart prior precision scale of u_k")
@@ -275,7 +281,8 @@ class VBPolSARParams(with_defaults(DetectorParams, "VBPolSARDefaults", pfa=1e-7,
     init_iter: int = Field(50, ge=1, le=10000, description="most VB-GMM iterations of the initial mixture fit")
     sample_stride: int = Field(8, ge=1, le=256, description="scene-wide sample: pixels with row, col % stride == 0")
     coupling: Literal["paper", "joint"] = Field(
-        "joint", description="q(a, z) one factor (default), or q(a) q(z) factorised as A-15")
+        "joint", description="q(a, z) one factor (default), or q(a) q(z) factorised as A-15"
+    )
 
 
 def halo(p: VBPolSARParams) -> int:
@@ -293,6 +300,7 @@ def alpha0_of(p: VBPolSARParams, D: int) -> float:
     threshold is then set by :func:`tail_threshold` in ``reduce``.
     """
     from scipy import stats  # lazy: importing scipy.stats costs every command start-up time
+
     if p.alpha0 is not None:
         return float(p.alpha0)
     return alpha0_of_threshold(0.5 * float(stats.chi2.isf(p.pfa, D)))
@@ -336,7 +344,7 @@ def ship_log_odds(x: np.ndarray, span: np.ndarray, terms: dict, t_init: float, j
     return np.where(span > t_init, lam, -np.inf)
 
 
-def tail_threshold(s: np.ndarray, pfa: float, trim: float = 2e-3, top: float = TAIL_FROM) -> Optional[dict]:
+def tail_threshold(s: np.ndarray, pfa: float, trim: float = 2e-3, top: float = TAIL_FROM) -> dict | None:
     """Threshold L with P(s >= L) ~ pfa, from the upper tail of the sample s (None: too few).
 
     Quantile regression in z = -ln(survival): the order statistics ``s_(k)`` (k-th largest of
@@ -378,18 +386,25 @@ def tail_threshold(s: np.ndarray, pfa: float, trim: float = 2e-3, top: float = T
             break
         m = m_new
     L = _tail_quantile(coef, z0, pfa)
-    return {"threshold": L, "model": "quadratic" if coef[2] > 0 else "exponential",
-            "coef": [float(c) for c in coef], "z0": z0, "n": int(n), "points": int(k_hi - max(k_lo, m)),
-            "outliers": int(m)}
+    return {
+        "threshold": L,
+        "model": "quadratic" if coef[2] > 0 else "exponential",
+        "coef": [float(c) for c in coef],
+        "z0": z0,
+        "n": int(n),
+        "points": int(k_hi - max(k_lo, m)),
+        "outliers": int(m),
+    }
 
 
 #: refits of the tail with the outliers' rank shift removed
 OUTLIER_PASSES = 2
 
 
-def _tail_fit(ss: np.ndarray, n: int, lo: int, hi: int, m: int, z0: float) -> Optional[np.ndarray]:
+def _tail_fit(ss: np.ndarray, n: int, lo: int, hi: int, m: int, z0: float) -> np.ndarray | None:
     """Weighted least squares of s_(k) on z = ln(n / (k - m - 1/2)), lo < k <= hi."""
     from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
+
     k = np.arange(lo + 1, hi + 1)
     t = ss[k - 1]
     kc = (k - m).astype(float)
@@ -399,8 +414,7 @@ def _tail_fit(ss: np.ndarray, n: int, lo: int, hi: int, m: int, z0: float) -> Op
     if not np.all(np.isfinite(A)) or not np.all(np.isfinite(t)):
         return None
     # b, c >= 0: the quantile function increases and is convex in z (exponential to K tails)
-    coef = optimize.lsq_linear(A, t * sw, bounds=([-np.inf, 0.0, 0.0], [np.inf, np.inf, np.inf]),
-                               method="bvls").x
+    coef = optimize.lsq_linear(A, t * sw, bounds=([-np.inf, 0.0, 0.0], [np.inf, np.inf, np.inf]), method="bvls").x
     if not np.all(np.isfinite(coef)) or coef[1] + coef[2] <= 0.0:
         return None
     return coef
@@ -515,16 +529,23 @@ def _init_resp(span: np.ndarray, K: int) -> np.ndarray:
 
 def hyper_of(x_clutter: np.ndarray, p: VBPolSARParams) -> dict:
     D = x_clutter.shape[1]
-    s = float(np.mean(x_clutter ** 2)) if x_clutter.size else 1.0
+    s = float(np.mean(x_clutter**2)) if x_clutter.size else 1.0
     s = s if s > 0 else 1.0
     return {"W0inv": p.beta1 * s * np.eye(D), "beta2": p.beta2, "phi0": p.phi0, "eta0": p.eta0}
 
 
-def fit_vbgmm(x: np.ndarray, K: int, hyper: dict, weights: Optional[np.ndarray] = None,
-              max_iter: int = 100, tol: float = 1e-5, resp: Optional[np.ndarray] = None) -> dict:
+def fit_vbgmm(
+    x: np.ndarray,
+    K: int,
+    hyper: dict,
+    weights: np.ndarray | None = None,
+    max_iter: int = 100,
+    tol: float = 1e-5,
+    resp: np.ndarray | None = None,
+) -> dict:
     """Variational Bayes Gaussian mixture (Gauss-Wishart, Dirichlet) of weighted vectors x."""
     w = np.ones(len(x)) if weights is None else np.asarray(weights, float)
-    r = _init_resp((x ** 2).sum(1), K) if resp is None else resp
+    r = _init_resp((x**2).sum(1), K) if resp is None else resp
     mix = update_gw(x, r * w[:, None], hyper)
     prev = None
     for _ in range(max_iter):
@@ -573,7 +594,7 @@ def vb_sample(x: np.ndarray, span: np.ndarray, p: VBPolSARParams) -> dict:
     mix = fit_vbgmm(xc, p.components, hyper, max_iter=p.init_iter)
     joint = p.coupling == "joint"
     iters, thr = 0, float("nan")
-    norms = np.sqrt((x ** 2).sum(1))
+    norms = np.sqrt((x**2).sum(1))
     for it in range(p.max_iter):
         terms = mixture_terms(mix)
         g0 = log_terms(x, terms)
@@ -594,8 +615,16 @@ def vb_sample(x: np.ndarray, span: np.ndarray, p: VBPolSARParams) -> dict:
         iters = it + 1
         if thr < p.tol:
             break
-    return {"mix": mix, "t_init": t_init, "alpha0": a0, "beta0": b0, "iterations": iters, "a26": thr,
-            "n_sample": int(n), "sample_ship_fraction": float((ab <= a0).mean()) if n else 0.0}
+    return {
+        "mix": mix,
+        "t_init": t_init,
+        "alpha0": a0,
+        "beta0": b0,
+        "iterations": iters,
+        "a26": thr,
+        "n_sample": int(n),
+        "sample_ship_fraction": float((ab <= a0).mean()) if n else 0.0,
+    }
 
 
 @njit(nogil=True, cache=True)
@@ -673,7 +702,7 @@ def _pixels(X, c, P, m, g1, t_init, a0, b0, max_iter, tol, joint, mask, stat):
                     s0 += math.exp(g0[k] - mx0)
                     s1 += math.exp(g1[k] - mx1)
                 lam0 = (mx1 + math.log(s1)) - (mx0 + math.log(s0))
-            for it in range(max_iter):
+            for _it in range(max_iter):
                 if not joint:
                     mx = -1e300
                     for k in range(K):
@@ -729,7 +758,7 @@ def scene_pass(block, halo_px, origin, p: VBPolSARParams, prep: dict) -> dict:
     if x.ndim != 3 or x.shape[2] not in (2, 3):
         raise ValueError("vb_polsar needs a (rows, cols, 2 or 3) block of complex channels")
     hp = int(halo_px)
-    core = x[hp: x.shape[0] - hp, hp: x.shape[1] - hp]
+    core = x[hp : x.shape[0] - hp, hp : x.shape[1] - hp]
     r0, c0 = origin[0] + hp, origin[1] + hp
     ok = present(core)
     sub, rc = _grid_values(core, r0, c0, p.sample_stride, ok)
@@ -758,7 +787,7 @@ def reduce(parts: list[dict], p: VBPolSARParams, prep: dict) -> dict:
     d = _sorted(parts, "rc", "d")
     if len(d) < 2 * p.components:
         raise ValueError(f"vb_polsar: {len(d)} sampled pixels (with data) are too few; lower sample_stride")
-    span = (d ** 2).sum(1)
+    span = (d**2).sum(1)
     res = vb_sample(d, span, p)
     mix = res.pop("mix")
     terms = mixture_terms(mix)
@@ -769,7 +798,7 @@ def reduce(parts: list[dict], p: VBPolSARParams, prep: dict) -> dict:
         rule = "gaussian"
     else:
         xc = pauli_vectors(_sorted(parts, "cal_rc", "cal"))
-        s = ship_log_odds(xc, (xc ** 2).sum(1), terms, res["t_init"], joint)
+        s = ship_log_odds(xc, (xc**2).sum(1), terms, res["t_init"], joint)
         cal = tail_threshold(s, p.pfa, p.tail_trim)
         if cal is None:
             rule = "gaussian (calibration sample too small for the tail fit)"
@@ -798,7 +827,7 @@ def detect(block, halo_px, origin, p: VBPolSARParams, prep: dict):
     if x.ndim != 3 or x.shape[2] not in (2, 3):
         raise ValueError("vb_polsar needs a (rows, cols, 2 or 3) block of complex channels")
     hp = int(halo_px)
-    core = x[hp: x.shape[0] - hp, hp: x.shape[1] - hp]
+    core = x[hp : x.shape[0] - hp, hp : x.shape[1] - hp]
     if not is_device_array(core):
         core = np.ascontiguousarray(core)
     terms = mixture_terms(prep["mixture"])
@@ -808,16 +837,38 @@ def detect(block, halo_px, origin, p: VBPolSARParams, prep: dict):
     complete = bool(ok.all())
     core = zero_absent(core, ok)
     if is_device_array(core):  # CuPy block: the same per-pixel updates on its GPU
-        mask, stat = SPEC.twin()(core, terms["c"], terms["P"], terms["m"], terms["g1"], float(prep["t_init"]),
-                               float(prep["alpha0"]), float(prep["beta0"]), int(p.max_iter), float(p.tol),
-                               p.coupling == "joint")
+        mask, stat = SPEC.twin()(
+            core,
+            terms["c"],
+            terms["P"],
+            terms["m"],
+            terms["g1"],
+            float(prep["t_init"]),
+            float(prep["alpha0"]),
+            float(prep["beta0"]),
+            int(p.max_iter),
+            float(p.tol),
+            p.coupling == "joint",
+        )
     else:
         h, w = core.shape[:2]
         mask = np.zeros((h, w), np.bool_)
         stat = np.zeros((h, w), np.float32)
-        _pixels(np.ascontiguousarray(core), terms["c"], np.ascontiguousarray(terms["P"]), terms["m"], terms["g1"],
-                float(prep["t_init"]), float(prep["alpha0"]), float(prep["beta0"]), int(p.max_iter),
-                float(p.tol), p.coupling == "joint", mask, stat)
+        _pixels(
+            np.ascontiguousarray(core),
+            terms["c"],
+            np.ascontiguousarray(terms["P"]),
+            terms["m"],
+            terms["g1"],
+            float(prep["t_init"]),
+            float(prep["alpha0"]),
+            float(prep["beta0"]),
+            int(p.max_iter),
+            float(p.tol),
+            p.coupling == "joint",
+            mask,
+            stat,
+        )
     if not complete:  # absent pixels: never ships (log-odds -inf, as ship_log_odds' never-ships)
         mask &= ok
         stat[~ok] = -np.inf
@@ -828,7 +879,7 @@ SPEC = DetectorSpec(
     name="vb_polsar",
     summary="Variational-Bayes PolSAR ship detection: D = A*D + C, Beta-Bernoulli ships, VB-GMM clutter",
     reference="Sun 2020 (Tsinghua thesis) appendix A (translated paper), eq A-1..A-27, Algorithm 6; "
-              "docs/algorithms/vb_polsar.md",
+    "docs/algorithms/vb_polsar.md",
     params=VBPolSARParams,
     prepare=prepare,
     detect=detect,

@@ -32,7 +32,7 @@ def cupy_module():
     return cupy
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def twin(ref: str) -> Any:
     """The GPU twin named by ``ref``: ``"package.module"`` (the module) or ``"package.module:name"``
     (one of its attributes), imported on first use. The one place where a detector's CPU code

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from sarship.pipeline import settings
-from sarship.pipeline.tiling.boxsum import window_input
 from sarship.pipeline.gpu import kernels
+from sarship.pipeline.tiling.boxsum import window_input
 
 _I32 = np.int32
 _I64 = np.int64
@@ -32,8 +32,11 @@ def _hsum(cp, x, m: int, g0c: int, n_out: int):
         name = "hsum_f64"
     out = cp.empty((R, n_out), cp.float64)
     nblk = n_out // m + 2
-    kernels.launch(name, R * nblk, (x, _I64(x.strides[0] // x.itemsize), out, _I64(n_out), _I32(R),
-                                    _I64(n_out), _I32(m), _I64(g0c), _I64(nblk)))
+    kernels.launch(
+        name,
+        R * nblk,
+        (x, _I64(x.strides[0] // x.itemsize), out, _I64(n_out), _I32(R), _I64(n_out), _I32(m), _I64(g0c), _I64(nblk)),
+    )
     return out
 
 
@@ -46,8 +49,11 @@ def _hsum_transposed(cp, x, m: int, g0c: int, n_out: int):
         xt = xt.astype(cp.float64)
     out_t = cp.empty((n_out, R), cp.float64)
     nblk = n_out // m + 2
-    kernels.launch("vsum_f32" if xt.dtype == cp.float32 else "vsum", R * nblk,
-                   (xt, _I64(R), out_t, _I64(R), _I64(R), _I64(n_out), _I32(m), _I64(g0c), _I64(nblk)))
+    kernels.launch(
+        "vsum_f32" if xt.dtype == cp.float32 else "vsum",
+        R * nblk,
+        (xt, _I64(R), out_t, _I64(R), _I64(R), _I64(n_out), _I32(m), _I64(g0c), _I64(nblk)),
+    )
     return cp.ascontiguousarray(out_t.T)
 
 
@@ -61,8 +67,11 @@ def _vsum(cp, H, m: int, g0r: int, n_out: int):
     w = H.shape[1]
     out = cp.empty((n_out, w), cp.float64)
     nblk = n_out // m + 2
-    kernels.launch("vsum", w * nblk, (H, _I64(H.strides[0] // 8), out, _I64(w), _I64(w), _I64(n_out),
-                                      _I32(m), _I64(g0r), _I64(nblk)))
+    kernels.launch(
+        "vsum",
+        w * nblk,
+        (H, _I64(H.strides[0] // 8), out, _I64(w), _I64(w), _I64(n_out), _I32(m), _I64(g0r), _I64(nblk)),
+    )
     return out
 
 

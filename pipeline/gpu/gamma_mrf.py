@@ -104,8 +104,21 @@ def icm(y, ok, r0: int, c0: int, a0, b0, A, B, beta: float, nbh: int, ks: int):
     lab = cp.empty((H, W), cp.int8)
     gap = cp.empty((H, W), cp.float64)
     n = H * W
-    _launch(f"gm_init_{sfx}", n, (y, ok, lab, gap, cp.asarray(a0, cp.float64), cp.asarray(b0, cp.float64),
-                                  np.int32(K), np.int32(ks), np.int64(n)))
+    _launch(
+        f"gm_init_{sfx}",
+        n,
+        (
+            y,
+            ok,
+            lab,
+            gap,
+            cp.asarray(a0, cp.float64),
+            cp.asarray(b0, cp.float64),
+            np.int32(K),
+            np.int32(ks),
+            np.int64(n),
+        ),
+    )
     S = int(A.shape[0])
     ncol = 2 if int(nbh) == 4 else 4
     prev = lab.copy() if S == 0 else None
@@ -114,8 +127,27 @@ def icm(y, ok, r0: int, c0: int, a0, b0, A, B, beta: float, nbh: int, ks: int):
             prev = lab.copy()
         a, b = cp.asarray(A[s], cp.float64), cp.asarray(B[s], cp.float64)
         for col in range(ncol):
-            _launch(f"gm_phase_{sfx}", n, (y, ok, lab, gap, a, b, np.float64(beta), np.int32(nbh), np.int32(K),
-                                           np.int32(ks), np.int32(H), np.int32(W), np.int64(r0), np.int64(c0), np.int32(col)))
+            _launch(
+                f"gm_phase_{sfx}",
+                n,
+                (
+                    y,
+                    ok,
+                    lab,
+                    gap,
+                    a,
+                    b,
+                    np.float64(beta),
+                    np.int32(nbh),
+                    np.int32(K),
+                    np.int32(ks),
+                    np.int32(H),
+                    np.int32(W),
+                    np.int64(r0),
+                    np.int64(c0),
+                    np.int32(col),
+                ),
+            )
     return lab, prev, gap
 
 
@@ -133,8 +165,19 @@ def labels(block, halo_px: int, origin, p, prep: dict):
     from sarship.pipeline.detectors.gamma_mrf import energies
 
     a0, b0, A, B = energies(prep, p)
-    lab, prev, _ = icm(block, _present(cp, block, p.nodata), int(origin[0]), int(origin[1]), a0, b0, A, B,
-                       float(p.beta), int(p.neighbourhood), int(prep["ship_from"]))
+    lab, prev, _ = icm(
+        block,
+        _present(cp, block, p.nodata),
+        int(origin[0]),
+        int(origin[1]),
+        a0,
+        b0,
+        A,
+        B,
+        float(p.beta),
+        int(p.neighbourhood),
+        int(prep["ship_from"]),
+    )
     return lab, prev
 
 
@@ -149,8 +192,19 @@ def detect(block, halo_px: int, origin, p, prep: dict):
         raise ValueError(f"gamma_mrf needs a halo of {halo(p)} (sweeps x colours), block has {hp}")
     a0, b0, A, B = energies(prep, p)
     ok = _present(cp, block, p.nodata)
-    lab, _, gap = icm(block, ok, int(origin[0]), int(origin[1]), a0, b0, A, B, float(p.beta), int(p.neighbourhood),
-                      int(prep["ship_from"]))
+    lab, _, gap = icm(
+        block,
+        ok,
+        int(origin[0]),
+        int(origin[1]),
+        a0,
+        b0,
+        A,
+        B,
+        float(p.beta),
+        int(p.neighbourhood),
+        int(prep["ship_from"]),
+    )
     H, W = block.shape
     core = (slice(hp, H - hp), slice(hp, W - hp))
     mask = ok[core] & (lab[core] >= int(prep["ship_from"]))

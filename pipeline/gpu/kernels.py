@@ -567,7 +567,7 @@ __global__ void apwf_decide_valid(const double* __restrict__ S, long long n, con
 THREADS = 256
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def compiled(source: str, std: str, device_id: int):
     """``source`` compiled by NVRTC for ``device_id`` (once per process and device), without
     fused multiply-adds so the sums match the CPU's bit for bit."""
@@ -583,8 +583,7 @@ def get(name: str, source: str = SOURCE, std: str = "c++14"):
     return compiled(source, std, cp.cuda.Device().id).get_function(name)
 
 
-def launch(name: str, n: int, args: tuple, *, source: str = SOURCE, std: str = "c++14",
-           threads: int = THREADS) -> None:
+def launch(name: str, n: int, args: tuple, *, source: str = SOURCE, std: str = "c++14", threads: int = THREADS) -> None:
     """Launch ``name`` over ``n`` threads (1-D grid of ``threads``-thread blocks)."""
     if n <= 0:
         return

@@ -550,7 +550,7 @@ def _launch(name: str, n: int, args: tuple) -> None:
 SCRATCH_BYTES = 256 * 2**20
 
 
-def _init_zs(K: int) -> "np.ndarray":
+def _init_zs(K: int) -> np.ndarray:
     """:func:`~sarship.pipeline.stats.lmm_fit.init_z_table` in rows of KMAX = 6 (the kernels' layout)."""
     t = np.zeros((K, 6))
     t[:, :K] = init_z_table(K)
@@ -575,17 +575,39 @@ def _hist_fits(cp, B, ld, cells, w2, r0, c0, step, rb, rg, nb, bmin, off, bw, co
     """Fast-form fits at the listed cells, in chunks bounded by :data:`SCRATCH_BYTES`."""
     chunk = max(1024, SCRATCH_BYTES // (4 * max(nb, 1)))
     for s in range(0, int(cells.size), chunk):
-        part = cells[s: s + chunk]
+        part = cells[s : s + chunk]
         n = int(part.size)
         scratch = cp.empty(nb * n, cp.int32)
-        _launch("lmm_hist_fit", n, (B, np.int64(ld), part, np.int64(n), np.int64(w2), np.int64(r0), np.int64(c0),
-                                    np.int32(step), np.int32(rb), np.int32(rg), scratch, np.int32(nb), np.int32(bmin),
-                                    np.int32(off), np.float64(bw), *common, T))
+        _launch(
+            "lmm_hist_fit",
+            n,
+            (
+                B,
+                np.int64(ld),
+                part,
+                np.int64(n),
+                np.int64(w2),
+                np.int64(r0),
+                np.int64(c0),
+                np.int32(step),
+                np.int32(rb),
+                np.int32(rg),
+                scratch,
+                np.int32(nb),
+                np.int32(bmin),
+                np.int32(off),
+                np.float64(bw),
+                *common,
+                T,
+            ),
+        )
         del scratch
 
 
-def detect(block, halo: int, origin, rb: int, rg: int, rt: int, K: int, prep: dict, method: str,
-           step: int, refine: float):
+# fmt: off (argument lists laid out by hand)
+def detect(
+    block, halo: int, origin, rb: int, rg: int, rt: int, K: int, prep: dict, method: str, step: int, refine: float
+):
     """``lmm`` on a CuPy block (same arguments as the CPU kernels; see the module docstring)."""
     import cupy as cp
 
@@ -597,10 +619,17 @@ def detect(block, halo: int, origin, rb: int, rg: int, rt: int, K: int, prep: di
     if h <= 0 or w <= 0:
         return mask, stat
     init_zs = cp.asarray(_init_zs(K))
-    common = (np.int32(K), init_zs, np.int32(int(prep["max_iter"])), np.float64(float(prep["tol"])),
-              np.int32(prep.get("select", "bic") == "bic"), np.int32(prep.get("tail", "predictive") == "predictive"),
-              np.float64(float(prep["z"])), np.float64(float(prep["log_pfa"])),
-              np.int32(max(8, 3 * K, ((2 * rb + 1) ** 2 - (2 * rg + 1) ** 2 + 1) // 2)))  # lmm.min_usable
+    common = (
+        np.int32(K),
+        init_zs,
+        np.int32(int(prep["max_iter"])),
+        np.float64(float(prep["tol"])),
+        np.int32(prep.get("select", "bic") == "bic"),
+        np.int32(prep.get("tail", "predictive") == "predictive"),
+        np.float64(float(prep["z"])),
+        np.float64(float(prep["log_pfa"])),
+        np.int32(max(8, 3 * K, ((2 * rb + 1) ** 2 - (2 * rg + 1) ** 2 + 1) // 2)),
+    )  # lmm.min_usable
     if method == "exact":
         ok = (X64 > 0.0) & (X64 < np.inf)
         Y = cp.where(ok, cp.log(cp.where(ok, X64, 1.0)), cp.nan)
@@ -608,8 +637,26 @@ def detect(block, halo: int, origin, rb: int, rg: int, rt: int, K: int, prep: di
         chunk = 1 << 18
         for t0 in range(0, total, chunk):
             nt = min(chunk, total - t0)
-            _launch("lmm_exact", nt, (X64, Y, np.int64(ld), np.int64(h), np.int64(w), np.int64(t0), np.int64(nt),
-                                      np.int32(halo), np.int32(rb), np.int32(rg), np.int32(rt), *common, mask, stat))
+            _launch(
+                "lmm_exact",
+                nt,
+                (
+                    X64,
+                    Y,
+                    np.int64(ld),
+                    np.int64(h),
+                    np.int64(w),
+                    np.int64(t0),
+                    np.int64(nt),
+                    np.int32(halo),
+                    np.int32(rb),
+                    np.int32(rg),
+                    np.int32(rt),
+                    *common,
+                    mask,
+                    stat,
+                ),
+            )
         return mask, stat
     bw = float(prep["bin_width"])
     B, off, bmin, bmax = _bins(cp, X64, bw)
@@ -618,10 +665,12 @@ def detect(block, halo: int, origin, rb: int, rg: int, rt: int, K: int, prep: di
     nb = bmax - bmin + 1
     if method == "fast":
         T = cp.full(h * w, cp.nan, cp.float64)
-        _hist_fits(cp, B, ld, cp.arange(h * w, dtype=cp.int64), w, halo, halo, 1, rb, rg, nb, bmin, off, bw,
-                   common, T)
-        _launch("lmm_decide", h * w, (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt),
-                                      T, mask, stat))
+        _hist_fits(cp, B, ld, cp.arange(h * w, dtype=cp.int64), w, halo, halo, 1, rb, rg, nb, bmin, off, bw, common, T)
+        _launch(
+            "lmm_decide",
+            h * w,
+            (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt), T, mask, stat),
+        )
         return mask, stat
     # grid: node fits, interpolation, candidates refitted at their own pixel
     g0r, g0c = int(origin[0]) + halo, int(origin[1]) + halo
@@ -629,16 +678,58 @@ def detect(block, halo: int, origin, rb: int, rg: int, rt: int, K: int, prep: di
     kc0, kc1 = g0c // step, (g0c + w - 1) // step + 1
     nr, nc = kr1 - kr0 + 1, kc1 - kc0 + 1
     Tn = cp.full(nr * nc, cp.nan, cp.float64)
-    _hist_fits(cp, B, ld, cp.arange(nr * nc, dtype=cp.int64), nc, kr0 * step - g0r + halo, kc0 * step - g0c + halo,
-               step, rb, rg, nb, bmin, off, bw, common, Tn)
+    _hist_fits(
+        cp,
+        B,
+        ld,
+        cp.arange(nr * nc, dtype=cp.int64),
+        nc,
+        kr0 * step - g0r + halo,
+        kc0 * step - g0c + halo,
+        step,
+        rb,
+        rg,
+        nb,
+        bmin,
+        off,
+        bw,
+        common,
+        Tn,
+    )
     cand = cp.empty((h, w), cp.uint8)
-    _launch("lmm_grid_pixels", h * w, (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt),
-                                       Tn, np.int64(nc), np.int64(kr0), np.int64(kc0), np.int64(g0r), np.int64(g0c),
-                                       np.int32(step), np.float64(refine), cand, mask, stat))
+    _launch(
+        "lmm_grid_pixels",
+        h * w,
+        (
+            X64,
+            np.int64(ld),
+            np.int64(h),
+            np.int64(w),
+            np.int32(halo),
+            np.int32(rt),
+            Tn,
+            np.int64(nc),
+            np.int64(kr0),
+            np.int64(kc0),
+            np.int64(g0r),
+            np.int64(g0c),
+            np.int32(step),
+            np.float64(refine),
+            cand,
+            mask,
+            stat,
+        ),
+    )
     cells = cp.flatnonzero(cand).astype(cp.int64)
     if cells.size:
         T = cp.full(h * w, cp.nan, cp.float64)
         _hist_fits(cp, B, ld, cells, w, halo, halo, 1, rb, rg, nb, bmin, off, bw, common, T)
-        _launch("lmm_decide", h * w, (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt),
-                                      T, mask, stat))
+        _launch(
+            "lmm_decide",
+            h * w,
+            (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt), T, mask, stat),
+        )
     return mask, stat
+
+
+# fmt: on

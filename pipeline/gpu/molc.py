@@ -39,9 +39,8 @@ def molc_cfar(block, halo: int, origin, b: int, g: int, censor, kind: str, tab, 
     :func:`sarship.pipeline.detectors.molc_cfar.decide`)."""
     import cupy
 
-    from sarship.pipeline.gpu.box import centered_box_sum
     from sarship.pipeline.detectors.molc_cfar import GPU_STRIP_ROWS, decide
+    from sarship.pipeline.gpu.box import centered_box_sum
 
     dt = _DeviceTable(tab, _device_table(tab.key, cupy.cuda.Device().id))
-    return decide(cupy, centered_box_sum, block, halo, origin, b, g, censor, kind, dt, looks,
-                  strip_rows=GPU_STRIP_ROWS)
+    return decide(cupy, centered_box_sum, block, halo, origin, b, g, censor, kind, dt, looks, strip_rows=GPU_STRIP_ROWS)

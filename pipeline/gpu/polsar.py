@@ -33,13 +33,26 @@ def _planes(cp, block, scale1: float):
     if block.ndim == 4:
         kernels.launch("cov_planes", n, (x, np.int64(cols), np.int64(rows), np.int64(cols), np.int32(p), planes))
     else:
-        kernels.launch("xxh_planes", n, (x, np.int64(cols), np.int64(rows), np.int64(cols), np.int32(p),
-                                         np.float64(scale1), planes))
+        kernels.launch(
+            "xxh_planes",
+            n,
+            (x, np.int64(cols), np.int64(rows), np.int64(cols), np.int32(p), np.float64(scale1), planes),
+        )
     return planes
 
 
-def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float, thr: float,
-         pfa: float | None = None, kmin: int | None = None):
+def apwf(
+    block,
+    halo: int,
+    origin,
+    b: int,
+    g: int,
+    ring: bool,
+    n_samples: float,
+    thr: float,
+    pfa: float | None = None,
+    kmin: int | None = None,
+):
     """Adaptive PWF (see :mod:`sarship.pipeline.detectors.apwf`): y = K X^H S^-1 X > T(K).
 
     Absent pixels (:func:`sarship.pipeline.tiling.polsar_absent.present`) are zeroed before the
@@ -59,7 +72,7 @@ def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float,
     w = block.shape[1] - 2 * halo
     r = b // 2
     off = halo - r
-    sub = block[off: off + h + 2 * r, off: off + w + 2 * r]
+    sub = block[off : off + h + 2 * r, off : off + w + 2 * r]
     o = (int(origin[0]) + off, int(origin[1]) + off)
     ok = present(sub)
     complete = bool(ok.all())
@@ -77,23 +90,47 @@ def apwf(block, halo: int, origin, b: int, g: int, ring: bool, n_samples: float,
         K = centered_box_sum(v, b, r, o)
         if ring:
             K -= centered_box_sum(v, g, r, o)
-    okc = ok[r: r + h, r: r + w]
+    okc = ok[r : r + h, r : r + w]
     if kmin is None:
         kmin = min_valid(int(n_samples), p)
     if pfa is None and not complete:
         raise ValueError("apwf on a tile with absent pixels needs pfa (per-pixel thresholds)")
-    T = threshold_map(K, okc & (K >= kmin), pfa if pfa is not None else 0.5, p,
-                      "ring" if ring else "window", float(n_samples), float(thr))
-    core = cp.ascontiguousarray(sub[r: r + h, r: r + w])
-    Cp = cp.ascontiguousarray(prods[:, r: r + h, r: r + w]) if cov else S  # core covariance planes
+    T = threshold_map(
+        K,
+        okc & (K >= kmin),
+        pfa if pfa is not None else 0.5,
+        p,
+        "ring" if ring else "window",
+        float(n_samples),
+        float(thr),
+    )
+    core = cp.ascontiguousarray(sub[r : r + h, r : r + w])
+    Cp = cp.ascontiguousarray(prods[:, r : r + h, r : r + w]) if cov else S  # core covariance planes
     mask = cp.empty((h, w), cp.bool_)
     stat = cp.empty((h, w), cp.float32)
     thr32 = np.float32(thr)
     above = np.nextafter(thr32, np.float32(np.inf))
     n = h * w
-    kernels.launch("apwf_decide_valid", n, (S, np.int64(n), core.view(cp.float32), np.int64(w), np.int64(w),
-                                            np.int32(p), np.int32(1 if cov else 0), Cp, cp.ascontiguousarray(K),
-                                            cp.ascontiguousarray(T), np.float64(thr), np.float32(above), mask, stat))
+    kernels.launch(
+        "apwf_decide_valid",
+        n,
+        (
+            S,
+            np.int64(n),
+            core.view(cp.float32),
+            np.int64(w),
+            np.int64(w),
+            np.int32(p),
+            np.int32(1 if cov else 0),
+            Cp,
+            cp.ascontiguousarray(K),
+            cp.ascontiguousarray(T),
+            np.float64(thr),
+            np.float32(above),
+            mask,
+            stat,
+        ),
+    )
     return mask, stat
 
 
@@ -118,11 +155,14 @@ def pcdm_span_psh(block, halo_px: int, origin, looks_window: int):
     off = halo_px - r - 1
     h = block.shape[0] - 2 * halo_px
     w = block.shape[1] - 2 * halo_px
-    C = cp.ascontiguousarray(planes[:, off: off + h + 2, off: off + w + 2])
+    C = cp.ascontiguousarray(planes[:, off : off + h + 2, off : off + w + 2])
     span = cp.empty((h, w), cp.float64)
     psh = cp.empty((h, w), cp.float64)
-    kernels.launch("pcdm_kernel", h * w, (C, np.int64(w + 2), np.int64((h + 2) * (w + 2)), np.int64(h),
-                                          np.int64(w), np.int32(p), span, psh))
+    kernels.launch(
+        "pcdm_kernel",
+        h * w,
+        (C, np.int64(w + 2), np.int64((h + 2) * (w + 2)), np.int64(h), np.int64(w), np.int32(p), span, psh),
+    )
     if not complete:
         untested = tested_count(ok, looks_window, halo_px, origin) < (looks_window + 2) ** 2
         span[untested] = cp.nan
@@ -130,8 +170,7 @@ def pcdm_span_psh(block, halo_px: int, origin, looks_window: int):
     return span, psh
 
 
-def vb_pixels(core, c, P, m, g1, t_init: float, a0: float, b0: float, max_iter: int, tol: float,
-              joint: bool):
+def vb_pixels(core, c, P, m, g1, t_init: float, a0: float, b0: float, max_iter: int, tol: float, joint: bool):
     """vb_polsar pass 2 on the device (see :func:`sarship.pipeline.detectors.vb_polsar._pixels`):
     ``core`` (h, w, p) complex channels; the mixture terms as NumPy arrays. CUDA's
     ``exp``/``log`` differ from the CPU's in the last bits: the log-odds agree to ~1e-12
@@ -147,7 +186,24 @@ def vb_pixels(core, c, P, m, g1, t_init: float, a0: float, b0: float, max_iter: 
     mask = cp.empty((h, w), cp.bool_)
     stat = cp.empty((h, w), cp.float32)
     n = h * w
-    kernels.launch("vb_pixels", n, (core.view(cp.float32), np.int64(n), np.int32(p), np.int32(K), np.int32(D),
-                                    *dev, np.float64(t_init), np.float64(a0), np.float64(b0),
-                                    np.int32(max_iter), np.float64(tol), np.int32(1 if joint else 0), mask, stat))
+    kernels.launch(
+        "vb_pixels",
+        n,
+        (
+            core.view(cp.float32),
+            np.int64(n),
+            np.int32(p),
+            np.int32(K),
+            np.int32(D),
+            *dev,
+            np.float64(t_init),
+            np.float64(a0),
+            np.float64(b0),
+            np.int32(max_iter),
+            np.float64(tol),
+            np.int32(1 if joint else 0),
+            mask,
+            stat,
+        ),
+    )
     return mask, stat

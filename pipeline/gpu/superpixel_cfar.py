@@ -157,9 +157,30 @@ def pixel_steps(xd, res: dict, origin, p) -> dict:
     cv = cp.empty((H, W), cp.float64)
     near = cp.empty((H, W), cp.bool_)
     if nl:
-        _launch("spc_decide", n, (amp, lab, decided, thr, somega, s1, s2, cnt, np.int32(H), np.int32(W),
-                                  np.int32(r), np.int32(use_contrast), np.float64(p.kappa), np.float64(TIE_REL),
-                                  det, ratio, cv, near))
+        _launch(
+            "spc_decide",
+            n,
+            (
+                amp,
+                lab,
+                decided,
+                thr,
+                somega,
+                s1,
+                s2,
+                cnt,
+                np.int32(H),
+                np.int32(W),
+                np.int32(r),
+                np.int32(use_contrast),
+                np.float64(p.kappa),
+                np.float64(TIE_REL),
+                det,
+                ratio,
+                cv,
+                near,
+            ),
+        )
     else:
         det[...] = False
         ratio[...] = 0.0
@@ -210,5 +231,11 @@ def detect(block, halo_px: int, origin, p, prep: dict):
     if res["sp"].size.size == 0:  # nothing present
         return cp.zeros(lab.shape, cp.bool_), cp.zeros(lab.shape, cp.float32)
     # the point targets (small ships) are host arrays of host_steps: the CPU's, bit for bit
-    return D.superpixel_mask(lab, dev["frac"], cp.asarray(res["target"]), cp.asarray(D._core(res["point"], hp)),
-                             cp.asarray(D._core(res["point_ratio"], hp)), p)
+    return D.superpixel_mask(
+        lab,
+        dev["frac"],
+        cp.asarray(res["target"]),
+        cp.asarray(D._core(res["point"], hp)),
+        cp.asarray(D._core(res["point_ratio"], hp)),
+        p,
+    )

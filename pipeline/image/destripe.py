@@ -50,7 +50,7 @@ from sarship.pipeline.errors import InputError
 from sarship.pipeline.tiling.intensity_absent import xp_of as _xp  # NumPy or CuPy, by the array
 
 #: Fixed-point scale of the exact scene-pass sums (``y`` in units of 2**-24).
-FIXED_SCALE = float(2 ** 24)
+FIXED_SCALE = float(2**24)
 #: ``|ln P|`` beyond this is clipped before the fixed-point sums (P in [1e-130, 1e130]).
 Y_CLIP = 300.0
 STRIPE_AXES = ("azimuth", "range")
@@ -60,32 +60,43 @@ STRIPE_AXES = ("azimuth", "range")
 class DestripeParams:
     """Parameters of the stripe estimate (docs/algorithms/destripe.md)."""
 
-    stripes_along: str = "azimuth"   # the axis along which the stripe gain is constant
-    segment: int = 32                # lines per segment along the stripe axis
-    groups: int = 8                  # segment groups (rows of the Hough image)
-    z_min: float = 4.0               # noise floor of the coherence ratio Z
-    min_votes: float = 0.75          # fraction of groups a stripe line must cross
-    theta_max_deg: float = 20.0      # largest Hough line slope from the stripe axis
-    notch_halfwidth: int = 1         # stop band: detected bins +- this many bins
-    k_min: int = 1                   # lowest frequency bin that may be stopped (0 = mean: never)
-    bright_db: float = 5.0           # cells (segment x segment) this far over the median: land, left out
+    stripes_along: str = "azimuth"  # the axis along which the stripe gain is constant
+    segment: int = 32  # lines per segment along the stripe axis
+    groups: int = 8  # segment groups (rows of the Hough image)
+    z_min: float = 4.0  # noise floor of the coherence ratio Z
+    min_votes: float = 0.75  # fraction of groups a stripe line must cross
+    theta_max_deg: float = 20.0  # largest Hough line slope from the stripe axis
+    notch_halfwidth: int = 1  # stop band: detected bins +- this many bins
+    k_min: int = 1  # lowest frequency bin that may be stopped (0 = mean: never)
+    bright_db: float = 5.0  # cells (segment x segment) this far over the median: land, left out
 
     def __post_init__(self) -> None:
         if self.stripes_along not in STRIPE_AXES:
-            raise InputError(f"destripe stripes_along: must be one of {', '.join(STRIPE_AXES)} "
-                             f"(got {self.stripes_along!r})")
+            raise InputError(
+                f"destripe stripes_along: must be one of {', '.join(STRIPE_AXES)} (got {self.stripes_along!r})"
+            )
         checks = (
-            ("segment", self.segment, 2, 4096), ("groups", self.groups, 1, 256),
-            ("notch_halfwidth", self.notch_halfwidth, 0, 64), ("k_min", self.k_min, 1, 1 << 20),
+            ("segment", self.segment, 2, 4096),
+            ("groups", self.groups, 1, 256),
+            ("notch_halfwidth", self.notch_halfwidth, 0, 64),
+            ("k_min", self.k_min, 1, 1 << 20),
         )
         for name, v, lo, hi in checks:
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise InputError(f"destripe {name}: must be an integer in [{lo}, {hi}] (got {v!r})")
-        fchecks = (("z_min", self.z_min, 1.0, 1e12), ("min_votes", self.min_votes, 0.0, 1.0),
-                   ("theta_max_deg", self.theta_max_deg, 0.0, 60.0), ("bright_db", self.bright_db, 0.5, 100.0))
+        fchecks = (
+            ("z_min", self.z_min, 1.0, 1e12),
+            ("min_votes", self.min_votes, 0.0, 1.0),
+            ("theta_max_deg", self.theta_max_deg, 0.0, 60.0),
+            ("bright_db", self.bright_db, 0.5, 100.0),
+        )
         for name, v, lo, hi in fchecks:
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating)) \
-                    or not math.isfinite(float(v)) or not lo <= float(v) <= hi:
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float, np.floating))
+                or not math.isfinite(float(v))
+                or not lo <= float(v) <= hi
+            ):
                 raise InputError(f"destripe {name}: must be a number in [{lo:g}, {hi:g}] (got {v!r})")
         if self.min_votes <= 0:
             raise InputError(f"destripe min_votes: must be in (0, 1] (got {self.min_votes!r})")
@@ -125,9 +136,9 @@ def _quantised_log(block):
     xp = _xp(block)
     a = block
     if a.ndim == 3:
-        p = (a.real ** 2 + a.imag ** 2).sum(axis=2) if xp.iscomplexobj(a) else (a ** 2).sum(axis=2)
+        p = (a.real**2 + a.imag**2).sum(axis=2) if xp.iscomplexobj(a) else (a**2).sum(axis=2)
     elif xp.iscomplexobj(a):
-        p = a.real ** 2 + a.imag ** 2
+        p = a.real**2 + a.imag**2
     else:
         p = a
     if p.dtype != xp.float32:
@@ -176,7 +187,9 @@ def segment_sums(block, r0: int, c0: int, params: DestripeParams) -> dict[str, A
     return {"j0": int(j0), "b0": int(b0), "sums": sums, "counts": counts}
 
 
-def assemble(parts: list[dict[str, Any]], shape: tuple[int, int], params: DestripeParams) -> tuple[np.ndarray, np.ndarray]:
+def assemble(
+    parts: list[dict[str, Any]], shape: tuple[int, int], params: DestripeParams
+) -> tuple[np.ndarray, np.ndarray]:
     """The scene's ``(sums, counts)`` (segments x across positions) from the tiles' parts."""
     H, W = shape
     n_along, n_across = (W, H) if params.stripes_along == "range" else (H, W)
@@ -186,8 +199,8 @@ def assemble(parts: list[dict[str, Any]], shape: tuple[int, int], params: Destri
     for p in parts:
         j0, b0 = p["j0"], p["b0"]
         n, w = p["sums"].shape
-        sums[j0:j0 + n, b0:b0 + w] += p["sums"]
-        counts[j0:j0 + n, b0:b0 + w] += p["counts"]
+        sums[j0 : j0 + n, b0 : b0 + w] += p["sums"]
+        counts[j0 : j0 + n, b0 : b0 + w] += p["counts"]
     return sums, counts
 
 
@@ -222,8 +235,9 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     return float(edges[k + 1])
 
 
-def hough_lines(binary: np.ndarray, theta_max_deg: float, min_votes: int,
-                n_theta: int | None = None) -> list[dict[str, float]]:
+def hough_lines(
+    binary: np.ndarray, theta_max_deg: float, min_votes: int, n_theta: int | None = None
+) -> list[dict[str, float]]:
     """Straight lines in a binary image by the Hough transform (Duda & Hart 1972, eq. 1).
 
     The image axes are ``(g, k)`` (rows: groups along the stripe axis, columns: frequency
@@ -241,8 +255,9 @@ def hough_lines(binary: np.ndarray, theta_max_deg: float, min_votes: int,
     if n_theta is None:
         # one theta step moves the line end by at most half a bin across the image height
         n_theta = 1 + 2 * int(math.ceil(math.radians(theta_max_deg) * max(G - 1, 1) * 2))
-    thetas = np.linspace(-math.radians(theta_max_deg), math.radians(theta_max_deg), n_theta) \
-        if n_theta > 1 else np.zeros(1)
+    thetas = (
+        np.linspace(-math.radians(theta_max_deg), math.radians(theta_max_deg), n_theta) if n_theta > 1 else np.zeros(1)
+    )
     g, k = np.nonzero(b)
     if g.size == 0:
         return []
@@ -259,7 +274,7 @@ def hough_lines(binary: np.ndarray, theta_max_deg: float, min_votes: int,
     out = []
     for t, r in cand:
         v = acc[t, r]
-        nb = acc[max(t - 1, 0):t + 2, max(r - 1, 0):r + 2]
+        nb = acc[max(t - 1, 0) : t + 2, max(r - 1, 0) : r + 2]
         if v < nb.max():
             continue
         # ties: keep the cell of smallest |theta| (then smallest rho) among equal neighbours
@@ -288,8 +303,8 @@ class StripeEstimate:
 
     params: DestripeParams
     n_across: int
-    stop: np.ndarray                      # bool, rfft bins stopped
-    profile: np.ndarray                   # float64 stripe profile s (ln gain) per across position
+    stop: np.ndarray  # bool, rfft bins stopped
+    profile: np.ndarray  # float64 stripe profile s (ln gain) per across position
     lines: list[dict[str, float]] = field(default_factory=list)
     threshold_log10z: float = float("nan")
     otsu_log10z: float = float("nan")
@@ -309,10 +324,10 @@ class StripeEstimate:
             "lines": self.lines,
             "stop_bins": [int(b) for b in bins],
             "stop_periods_px": [round(self.n_across / int(b), 3) for b in bins if b > 0],
-            "stripe_rms_db": float(10.0 / math.log(10.0) * np.sqrt(np.mean(self.profile ** 2)))
-            if self.profile.size else 0.0,
-            "stripe_max_db": float(10.0 / math.log(10.0) * np.max(np.abs(self.profile)))
-            if self.profile.size else 0.0,
+            "stripe_rms_db": float(10.0 / math.log(10.0) * np.sqrt(np.mean(self.profile**2)))
+            if self.profile.size
+            else 0.0,
+            "stripe_max_db": float(10.0 / math.log(10.0) * np.max(np.abs(self.profile))) if self.profile.size else 0.0,
         }
 
 
@@ -377,12 +392,12 @@ def stripe_spectrum(sums: np.ndarray, counts: np.ndarray, params: DestripeParams
         m[bright_cells(sums, counts, params)] = np.nan
         m = _winsorise(m)
         prof = _profiles(m)
-    P = np.fft.rfft(prof, axis=1)                      # segment spectra
+    P = np.fft.rfft(prof, axis=1)  # segment spectra
     G = max(1, min(params.groups, nseg // 2)) if nseg >= 2 else 1
     bounds = np.linspace(0, nseg, G + 1).round().astype(int)
     Z = np.zeros((G, P.shape[1]))
     for g in range(G):
-        Pg = P[bounds[g]:bounds[g + 1]]
+        Pg = P[bounds[g] : bounds[g + 1]]
         ng = Pg.shape[0]
         mean = Pg.mean(axis=0)
         if ng >= 2:
@@ -400,8 +415,7 @@ def estimate(sums: np.ndarray, counts: np.ndarray, params: DestripeParams) -> St
     nb = pooled.shape[0]
     stop = np.zeros(nb, bool)
     k_lo = params.k_min
-    res = StripeEstimate(params=params, n_across=n, stop=stop, profile=np.zeros(n), groups=G,
-                         segments=spec["segments"])
+    res = StripeEstimate(params=params, n_across=n, stop=stop, profile=np.zeros(n), groups=G, segments=spec["segments"])
     if nb <= k_lo or sums.shape[0] < 2:
         return res
     with np.errstate(divide="ignore"):
@@ -424,7 +438,7 @@ def estimate(sums: np.ndarray, counts: np.ndarray, params: DestripeParams) -> St
                 a -= 1
             while b + 1 < nb and wide[b + 1]:
                 b += 1
-            stop[max(a - params.notch_halfwidth, k_lo):min(b + params.notch_halfwidth, nb - 1) + 1] = True
+            stop[max(a - params.notch_halfwidth, k_lo) : min(b + params.notch_halfwidth, nb - 1) + 1] = True
     res.lines = [{**ln, "rho": ln["rho"] + k_lo} for ln in lines]
     res.profile = stripe_profile(pooled, stop, n)
     return res
@@ -458,8 +472,12 @@ def apply_gain(block, profile_part: np.ndarray, params: DestripeParams, complex_
 # --------------------------------------------------------------------------- metric
 
 
-def stripe_to_background_db(power: np.ndarray, stripes_along: str = "azimuth",
-                            reference: np.ndarray | None = None, valid: np.ndarray | None = None) -> float:
+def stripe_to_background_db(
+    power: np.ndarray,
+    stripes_along: str = "azimuth",
+    reference: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
+) -> float:
     """Stripe-to-background ratio (dB) of a scene: how much the across-stripe profile of
     ``ln P`` (mean along the stripe axis over present pixels, its mean removed) varies.
 
@@ -469,6 +487,7 @@ def stripe_to_background_db(power: np.ndarray, stripes_along: str = "azimuth",
     profile of independent speckle would have (``var(ln P) / n_along``). ``valid``: the pixels
     to use (e.g. the sea), others are left out.
     """
+
     def prof(p):
         y = log_power(np.asarray(p))
         if valid is not None:

@@ -84,7 +84,7 @@ def local_stats(x: np.ndarray, ok: np.ndarray, origin, side: int) -> tuple[np.nd
     s1 = centered_box_sum(xf, side, r, org)
     s2 = centered_box_sum(xf * xf, side, r, org)
     n = centered_box_sum(ok.astype(np.float64), side, r, org)
-    _mean_cov(s1, s2, n, mean[r:H - r, r:W - r], cov[r:H - r, r:W - r])
+    _mean_cov(s1, s2, n, mean[r : H - r, r : W - r], cov[r : H - r, r : W - r])
     return mean, cov
 
 
@@ -396,8 +396,9 @@ def anchors_of(gid: np.ndarray, spacing: int) -> np.ndarray:
     return np.stack([gi * s + s // 2, gj * s + s // 2], 1)
 
 
-def segment(x: np.ndarray, ok: np.ndarray, origin, spacing: int, reach: int, eps: float, looks: float,
-            min_size: int) -> Superpixels:
+def segment(
+    x: np.ndarray, ok: np.ndarray, origin, spacing: int, reach: int, eps: float, looks: float, min_size: int
+) -> Superpixels:
     """Clustering and merging stages (module docstring) on a block ``x`` (intensity, ``ok``: present)."""
     x = np.ascontiguousarray(x, np.float64)
     ok = np.ascontiguousarray(ok, np.bool_)
@@ -425,13 +426,33 @@ def segment(x: np.ndarray, ok: np.ndarray, origin, spacing: int, reach: int, eps
     lab[present] = fmap[lab[present]]
     n, mean, cov = region_stats(lab, x, nl)
     ptr, idx = merged_adjacency(ptr, idx, fmap)
-    return Superpixels(labels=lab, gid=uniq, anchor=anchors_of(uniq, spacing), size=n, mean=mean, cov=cov,
-                       ptr=ptr, idx=idx)
+    return Superpixels(
+        labels=lab, gid=uniq, anchor=anchors_of(uniq, spacing), size=n, mean=mean, cov=cov, ptr=ptr, idx=idx
+    )
 
 
 @njit(cache=True, nogil=True)
-def select_clutter(t, is_bg, is_target, n, mean, cov, ptr, idx, anc_r, anc_c, radius, th_clu, tl_clu,
-                   max_clutter, looks, out, mark, queue, rings):
+def select_clutter(
+    t,
+    is_bg,
+    is_target,
+    n,
+    mean,
+    cov,
+    ptr,
+    idx,
+    anc_r,
+    anc_c,
+    radius,
+    th_clu,
+    tl_clu,
+    max_clutter,
+    looks,
+    out,
+    mark,
+    queue,
+    rings,
+):
     """Table 1 for target superpixel ``t``: the background neighbours with ``Omega > th_clu``,
     then, grown breadth-first from them, background neighbours of clutter superpixels with
     ``Omega < tl_clu``, until ``max_clutter``; only superpixels whose anchor lies within

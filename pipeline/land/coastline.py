@@ -57,8 +57,9 @@ from __future__ import annotations
 import functools
 import importlib.util
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -101,8 +102,9 @@ def available() -> bool:
 def require() -> None:
     """One-line :class:`InputError` naming the extra when the shoreline package is missing."""
     if not available():
-        raise InputError(f"parameter 'land_mask': coastline needs the GSHHG shoreline package roaring-landmask: "
-                         f"{INSTALL_HINT}")
+        raise InputError(
+            f"parameter 'land_mask': coastline needs the GSHHG shoreline package roaring-landmask: {INSTALL_HINT}"
+        )
 
 
 @functools.lru_cache(maxsize=1)
@@ -188,8 +190,7 @@ class Coastline:
             return out
         # the exact test of a large batch on every core (rayon threads in roaring-landmask; a pure
         # function of the points, so the result is the same)
-        fn = lm.mask.contains_many if mask_only else (lm.contains_many_par if lon.size >= PAR_MIN
-                                                      else lm.contains_many)
+        fn = lm.mask.contains_many if mask_only else (lm.contains_many_par if lon.size >= PAR_MIN else lm.contains_many)
         if ok.all():
             return np.asarray(fn(lon.ravel(), lat.ravel()), bool).reshape(lon.shape)
         out[ok] = np.asarray(fn(np.ascontiguousarray(lon[ok]), np.ascontiguousarray(lat[ok])), bool)
@@ -218,8 +219,8 @@ class Coastline:
         # block (i, j) sits at lattice index (i - bi0 + 2, j - bj0 + 2); the filters' windows with
         # origin -1 cover index - 2 .. index + 3
         nb, mb = bi1 - bi0 + 1, bj1 - bj0 + 1
-        sea = ~anyM[2:2 + nb, 2:2 + mb]
-        land = allL[2:2 + nb, 2:2 + mb]
+        sea = ~anyM[2 : 2 + nb, 2 : 2 + mb]
+        land = allL[2 : 2 + nb, 2 : 2 + mb]
         refine = ~sea & ~land
         # fill: land blocks whole, refined blocks pixel by pixel
         rr = np.arange(r0, r1)
@@ -233,7 +234,7 @@ class Coastline:
             pr, pc = np.nonzero(ref)
             self.stats["refined_px"] += int(pr.size)
             for k in range(0, pr.size, BATCH):
-                a, b = pr[k:k + BATCH], pc[k:k + BATCH]
+                a, b = pr[k : k + BATCH], pc[k : k + BATCH]
                 out[a, b] = self._test((a + r0).astype(np.float64), (b + c0).astype(np.float64))
         return out
 
@@ -250,7 +251,7 @@ class Coastline:
         for i in range(0, h, EDT_SIDE):
             for j in range(0, w, EDT_SIDE):
                 i1, j1 = min(i + EDT_SIDE, h), min(j + EDT_SIDE, w)
-                out[i:i1, j:j1] = buffered(land[i: i1 + 2 * hr, j: j1 + 2 * hc], self.spacing, self.buffer_m, hr, hc)
+                out[i:i1, j:j1] = buffered(land[i : i1 + 2 * hr, j : j1 + 2 * hc], self.spacing, self.buffer_m, hr, hc)
         return out
 
 
@@ -261,13 +262,13 @@ def buffered(land: np.ndarray, spacing: tuple[float, float], buffer_m: float, hr
     transform :func:`scipy.ndimage.distance_transform_edt` with ``sampling=spacing``,
     thresholded at ``buffer_m``."""
     h, w = land.shape[0] - 2 * hr, land.shape[1] - 2 * hc
-    core = land[hr: hr + h, hc: hc + w]
+    core = land[hr : hr + h, hc : hc + w]
     if buffer_m <= 0 or not land.any():
         return core.copy()
     if land.all():
         return np.ones((h, w), bool)
     d = ndimage.distance_transform_edt(~land, sampling=spacing)
-    return d[hr: hr + h, hc: hc + w] <= buffer_m
+    return d[hr : hr + h, hc : hc + w] <= buffer_m
 
 
 def lattice_step(lonlat, shape: tuple[int, int], spacing: tuple[float, float], cell_deg: tuple[float, float]) -> int:
@@ -287,8 +288,10 @@ def lattice_step(lonlat, shape: tuple[int, int], spacing: tuple[float, float], c
     return max(1, min(MAX_STEP_PX, s))
 
 
-NOT_GEOREFERENCED = ("parameter 'land_mask': coastline needs a georeferenced scene (crs + transform, or gcps); "
-                     "this scene has no georeference")
+NOT_GEOREFERENCED = (
+    "parameter 'land_mask': coastline needs a georeferenced scene (crs + transform, or gcps); "
+    "this scene has no georeference"
+)
 
 
 def check_scene(attrs: dict | None) -> None:
@@ -299,8 +302,9 @@ def check_scene(attrs: dict | None) -> None:
         raise InputError(NOT_GEOREFERENCED)
 
 
-def open_coastline(attrs: dict, shape: tuple[int, int], buffer_m: float = DEFAULT_BUFFER_M,
-                   load: bool = True) -> Coastline:
+def open_coastline(
+    attrs: dict, shape: tuple[int, int], buffer_m: float = DEFAULT_BUFFER_M, load: bool = True
+) -> Coastline:
     """Check that the coastline mask can be made for a scene (the package is installed, the scene
     is georeferenced, the buffer is valid) and return its reader. Every problem is one
     :class:`InputError` line, raised before any work. ``load=False`` defers loading the
@@ -322,13 +326,22 @@ def open_coastline(attrs: dict, shape: tuple[int, int], buffer_m: float = DEFAUL
         spacing = spacing_from_geo(lonlat, shape)
         source = "geo model"
         if not all(math.isfinite(x) and x > 0 for x in spacing):
-            raise InputError("parameter 'land_mask': coastline needs the scene's pixel spacing and its georeference "
-                             "gives none usable")
+            raise InputError(
+                "parameter 'land_mask': coastline needs the scene's pixel spacing and its georeference "
+                "gives none usable"
+            )
     lm = shoreline() if load else None
     cell = (float(lm.dx), float(lm.dy)) if lm is not None else (1.0 / 240.0, 1.0 / 240.0)
     step = lattice_step(lonlat, shape, spacing, cell)
-    return Coastline(shape=tuple(int(x) for x in shape), lonlat=lonlat, spacing=spacing, spacing_source=source,
-                     buffer_m=b, step=step, landmask=lm)
+    return Coastline(
+        shape=tuple(int(x) for x in shape),
+        lonlat=lonlat,
+        spacing=spacing,
+        spacing_source=source,
+        buffer_m=b,
+        step=step,
+        landmask=lm,
+    )
 
 
 def brute_force(cl: Coastline, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:

@@ -258,14 +258,13 @@ def _grid_sums(sub, m, g0r, g0c, ri, ci, n_out, s1_out, s2_out):
             s2_out[k, l] = _vertical_sum(hi, m, ph_r)
 
 
-def texture_sample(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: TextureConfig,
-                   stride: int) -> dict:
+def texture_sample(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: TextureConfig, stride: int) -> dict:
     """A tile's part of the scene-wide sample: finite textures of the core pixels on the global
     ``stride`` grid, with their (row, col), in (row, col) order. ``block`` has ``halo >=
     window // 2``; ``origin`` is its ``[0, 0]``. The window sums are formed at the grid pixels
     alone (:func:`_grid_sums`), bit for bit the values of :func:`texture` there."""
     r = cfg.window // 2
-    sub = block[halo - r: block.shape[0] - (halo - r), halo - r: block.shape[1] - (halo - r)]
+    sub = block[halo - r : block.shape[0] - (halo - r), halo - r : block.shape[1] - (halo - r)]
     if sub.dtype not in (np.float32, np.float64) or sub.ndim != 2:
         sub = power(sub)
     r0, c0 = origin[0] + halo, origin[1] + halo
@@ -277,15 +276,17 @@ def texture_sample(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: T
     s1 = np.empty_like(n)
     s2 = np.empty_like(n)
     if ri.size and ci.size:
-        _grid_sums(sub, cfg.window, r0 - r, c0 - r, ri.astype(np.int64),
-                   ci.astype(np.int64), n, s1, s2)
+        _grid_sums(sub, cfg.window, r0 - r, c0 - r, ri.astype(np.int64), ci.astype(np.int64), n, s1, s2)
     g = _texture_of_sums(n, s1, s2, cfg.window)
     rr, cc = np.meshgrid(rows[ri], cols[ci], indexing="ij")
     keep = np.isfinite(g)
     with np.errstate(divide="ignore", invalid="ignore"):
         m = s2 / n  # the window's mean power (finite wherever the texture is)
-    return {"t": g[keep].astype(np.float64), "m": m[keep].astype(np.float64),
-            "rc": np.stack([rr[keep], cc[keep]], -1).astype(np.int64)}
+    return {
+        "t": g[keep].astype(np.float64),
+        "m": m[keep].astype(np.float64),
+        "rc": np.stack([rr[keep], cc[keep]], -1).astype(np.int64),
+    }
 
 
 def pool_samples(parts: list[dict], key: str = "t") -> np.ndarray:
@@ -327,8 +328,9 @@ def _normal_logpdf(x: np.ndarray, mu: np.ndarray, var: np.ndarray) -> np.ndarray
 EM_BINS = 4096
 
 
-def fit_mixture(t: np.ndarray, k: int = 2, tol: float = EM_TOL, max_iter: int = EM_MAX_ITER,
-                bins: int = EM_BINS) -> dict:
+def fit_mixture(
+    t: np.ndarray, k: int = 2, tol: float = EM_TOL, max_iter: int = EM_MAX_ITER, bins: int = EM_BINS
+) -> dict:
     """EM for a ``k``-component 1-D Gaussian mixture (Dempster et al. 1977; Bishop 2006 sec.
     9.2.2), run on the histogram of ``t`` (``bins`` equal bins over [min, max]; each bin's
     centre weighted by its count). Deterministic: means start at the quantiles ``(j + 1/2) / k``
@@ -357,7 +359,7 @@ def fit_mixture(t: np.ndarray, k: int = 2, tol: float = EM_TOL, max_iter: int = 
     w = np.full(k, 1.0 / k)
     ll_old = -np.inf
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported after the loop)
         lp = _normal_logpdf(c, mu, var) + np.log(w)
         lmax = lp.max(axis=1, keepdims=True)
         lse = lmax[:, 0] + np.log(np.exp(lp - lmax).sum(axis=1))
@@ -374,8 +376,15 @@ def fit_mixture(t: np.ndarray, k: int = 2, tol: float = EM_TOL, max_iter: int = 
     lmax = lp.max(axis=1, keepdims=True)
     ll = float((cnt * (lmax[:, 0] + np.log(np.exp(lp - lmax).sum(axis=1)))).sum())
     o = np.argsort(mu, kind="stable")
-    return {"weights": w[o].tolist(), "means": mu[o].tolist(), "sds": np.sqrt(var[o]).tolist(),
-            "loglik": ll, "iterations": it, "bic": -2.0 * ll + (3 * k - 1) * math.log(n), "n": int(n)}
+    return {
+        "weights": w[o].tolist(),
+        "means": mu[o].tolist(),
+        "sds": np.sqrt(var[o]).tolist(),
+        "loglik": ll,
+        "iterations": it,
+        "bic": -2.0 * ll + (3 * k - 1) * math.log(n),
+        "n": int(n),
+    }
 
 
 def sea_posterior(t: np.ndarray, fit: dict) -> np.ndarray:
@@ -423,9 +432,17 @@ def decide(t: np.ndarray, cfg: TextureConfig) -> dict:
     """The scene-wide land decision from the pooled texture sample ``t``: the mixture, Ashman's
     D, whether land is present and the threshold ``t*`` (JSON-serialisable, for ``run.json``).
     Too few samples (a scene almost all absent) means no land."""
-    out: dict = {"source": "texture", "window": cfg.window, "classes": cfg.classes, "open_px": cfg.open_px,
-                 "close_px": cfg.close_px, "halo_px": cfg.halo, "sample": int(np.size(t)),
-                 "min_separation": MIN_SEPARATION, "min_land_weight": MIN_LAND_WEIGHT}
+    out: dict = {
+        "source": "texture",
+        "window": cfg.window,
+        "classes": cfg.classes,
+        "open_px": cfg.open_px,
+        "close_px": cfg.close_px,
+        "halo_px": cfg.halo,
+        "sample": int(np.size(t)),
+        "min_separation": MIN_SEPARATION,
+        "min_land_weight": MIN_LAND_WEIGHT,
+    }
     t = np.asarray(t, np.float64)
     t = t[np.isfinite(t)]
     out["sample_finite"] = int(t.size)
@@ -433,19 +450,36 @@ def decide(t: np.ndarray, cfg: TextureConfig) -> dict:
         return {**out, "land": False, "threshold": None, "reason": f"{t.size} texture samples: too few for a fit"}
     one = fit_mixture(t, 1)
     fit, d, thr, land, reason = _decide_k(t, cfg.classes)
-    res = {**out, "mixture": fit, "bic_one_class": one["bic"], "ashman_d": d, "land": bool(land),
-           "threshold": thr if land else None, "reason": reason}
+    res = {
+        **out,
+        "mixture": fit,
+        "bic_one_class": one["bic"],
+        "ashman_d": d,
+        "land": bool(land),
+        "threshold": thr if land else None,
+        "reason": reason,
+    }
     if not land and d < MIN_SEPARATION and cfg.classes < MAX_CLASSES and t.size >= 10 * (cfg.classes + 1):
         # Two kinds of land (fields and town) with little sea: K classes split the land and the
         # sea hides in the lowest one (D < 2). One more class gives the sea its own (module doc,
         # "Two kinds of land"); on open sea the extra class splits the sea and D stays < 2.
         fit2, d2, thr2, land2, reason2 = _decide_k(t, cfg.classes + 1)
         land2 = land2 and 1.0 - fit2["weights"][0] >= MIN_EXTRA_LAND_WEIGHT
-        res["extra_class"] = {"classes": cfg.classes + 1, "mixture": fit2, "ashman_d": d2, "land": bool(land2),
-                              "min_land_weight": MIN_EXTRA_LAND_WEIGHT}
+        res["extra_class"] = {
+            "classes": cfg.classes + 1,
+            "mixture": fit2,
+            "ashman_d": d2,
+            "land": bool(land2),
+            "min_land_weight": MIN_EXTRA_LAND_WEIGHT,
+        }
         if land2:
-            res.update(land=True, threshold=thr2, mixture=fit2, ashman_d=d2,
-                       reason=f"{reason}; with {cfg.classes + 1} classes: {reason2}")
+            res.update(
+                land=True,
+                threshold=thr2,
+                mixture=fit2,
+                ashman_d=d2,
+                reason=f"{reason}; with {cfg.classes + 1} classes: {reason2}",
+            )
     return res
 
 
@@ -470,20 +504,21 @@ def _decide_k(t: np.ndarray, k: int) -> tuple[dict, float, float | None, bool, s
 def _square_open_close(m: np.ndarray, open_px: int, close_px: int) -> np.ndarray:
     u = m.astype(np.uint8)
     if open_px > 1:
-        opened = ndimage.maximum_filter(ndimage.minimum_filter(u, size=open_px, mode="nearest"), size=open_px,
-                                        mode="nearest")
+        opened = ndimage.maximum_filter(
+            ndimage.minimum_filter(u, size=open_px, mode="nearest"), size=open_px, mode="nearest"
+        )
         # bounded reconstruction: candidates within open_px - 1 of the opened land are land again
         # (the coast keeps its detail; isolated blobs, removed whole by the opening, stay removed)
         near = ndimage.maximum_filter(opened, size=2 * open_px - 1, mode="nearest")
         u = u & near
     if close_px > 1:
-        u = ndimage.minimum_filter(ndimage.maximum_filter(u, size=close_px, mode="nearest"), size=close_px,
-                                   mode="nearest")
+        u = ndimage.minimum_filter(
+            ndimage.maximum_filter(u, size=close_px, mode="nearest"), size=close_px, mode="nearest"
+        )
     return u.astype(bool)
 
 
-def classify(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: TextureConfig, decision: dict
-             ) -> np.ndarray:
+def classify(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: TextureConfig, decision: dict) -> np.ndarray:
     """Boolean land mask of the core of a padded block (``halo >= cfg.halo``): texture above
     ``t*``, opened and closed (module doc). All False when the decision says no land."""
     h, w = block.shape[0] - 2 * halo, block.shape[1] - 2 * halo
@@ -497,7 +532,7 @@ def classify(block: np.ndarray, halo: int, origin: tuple[int, int], cfg: Texture
     with np.errstate(invalid="ignore"):
         cand = t > decision["threshold"]  # NaN (absent) and -inf are sea
     m = _square_open_close(cand, cfg.open_px, cfg.close_px)
-    return m[e: e + h, e: e + w] if e else m
+    return m[e : e + h, e : e + w] if e else m
 
 
 def apply_absent(block: np.ndarray, land_core: np.ndarray) -> np.ndarray:

@@ -34,9 +34,10 @@ from __future__ import annotations
 import json
 import os
 import stat
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -85,8 +86,9 @@ def check_land_path(path: str | os.PathLike, max_bytes: int | None = None) -> os
     except OSError as exc:
         raise _bad(path, f"cannot be read ({exc.strerror})") from None
     if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
-        raise _bad(path, "is not a regular file (a FIFO, device or socket): give a raster or GeoJSON file, "
-                         "or a Zarr folder")
+        raise _bad(
+            path, "is not a regular file (a FIFO, device or socket): give a raster or GeoJSON file, or a Zarr folder"
+        )
     if stat.S_ISREG(st.st_mode) and Path(path).suffix.lower() in GEOJSON_SUFFIXES:
         _check_size(path, st.st_size, max_bytes)
     return st
@@ -95,8 +97,11 @@ def check_land_path(path: str | os.PathLike, max_bytes: int | None = None) -> os
 def _check_size(path: Any, size: int, max_bytes: int | None) -> None:
     limit = land_max_bytes() if max_bytes is None else int(max_bytes)
     if size > limit:
-        raise _bad(path, f"is {size / 2**20:.1f} MiB, larger than the {limit / 2**20:g} MiB a GeoJSON land mask "
-                         "may be (SARSHIP_LAND_MAX_MB)")
+        raise _bad(
+            path,
+            f"is {size / 2**20:.1f} MiB, larger than the {limit / 2**20:g} MiB a GeoJSON land mask "
+            "may be (SARSHIP_LAND_MAX_MB)",
+        )
 
 
 def open_land_file(path: str, shape: tuple[int, int], attrs: dict, max_bytes: int | None = None) -> LandFile:
@@ -114,8 +119,10 @@ def open_land_file(path: str, shape: tuple[int, int], attrs: dict, max_bytes: in
     with os.fdopen(fd, "rb") as fh:
         st = os.fstat(fh.fileno())
         if not stat.S_ISREG(st.st_mode):
-            raise _bad(path, "is not a regular file (a FIFO, device or socket): give a raster or GeoJSON file, "
-                             "or a Zarr folder")
+            raise _bad(
+                path,
+                "is not a regular file (a FIFO, device or socket): give a raster or GeoJSON file, or a Zarr folder",
+            )
         try:
             head = fh.read(64)
         except OSError as exc:
@@ -201,8 +208,9 @@ def _raster_mask(p: Path, shape: tuple[int, int]) -> LandFile:
     if tuple(src.shape) != tuple(shape):
         H, W = src.shape
         src.close()
-        raise _bad(p, f"is {H}x{W} pixels, the scene is {shape[0]}x{shape[1]} (a raster land mask must "
-                      "have the scene's shape)")
+        raise _bad(
+            p, f"is {H}x{W} pixels, the scene is {shape[0]}x{shape[1]} (a raster land mask must have the scene's shape)"
+        )
 
     def read(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         return _nonzero(src.read(r0, r1, c0, c1))
@@ -335,8 +343,11 @@ def _vector_mask(p: Path, raw: bytes, shape: tuple[int, int], attrs: dict, max_b
                     rs.append(np.stack([c, r], -1))
                 conv.append(rs)
         except ValueError as exc:
-            raise _bad(p, f"has lon/lat coordinates but {exc}; for scene pixel coordinates set the "
-                          "top-level member \"pixel_coordinates\": true") from None
+            raise _bad(
+                p,
+                f"has lon/lat coordinates but {exc}; for scene pixel coordinates set the "
+                'top-level member "pixel_coordinates": true',
+            ) from None
         polys = conv
     edges = _edges(polys)
 
@@ -347,7 +358,8 @@ def _vector_mask(p: Path, raw: bytes, shape: tuple[int, int], attrs: dict, max_b
     xs = np.concatenate([ring[:, 0] for poly in polys for ring in poly])
     ys = np.concatenate([ring[:, 1] for poly in polys for ring in poly])
     inside = bool(((xs >= 0) & (xs <= W) & (ys >= 0) & (ys <= H)).any()) or bool(
-        xs.min() < W and xs.max() > 0 and ys.min() < H and ys.max() > 0)
+        xs.min() < W and xs.max() > 0 and ys.min() < H and ys.max() > 0
+    )
     info = {"polygons": len(polys), "coordinates": "pixel" if pixel else "lonlat", "overlaps_scene": inside}
     return LandFile(str(p), "vector", "geojson", read, info)
 

@@ -57,8 +57,9 @@ def format_of(path: str | os.PathLike) -> str:
     """``"gpkg"`` or ``"kml"`` from the file's suffix; InputError otherwise."""
     suffix = Path(path).suffix.lower()
     if suffix not in FORMATS:
-        raise InputError(f"'{path}': the output must end in .gpkg (GeoPackage) or .kml (KML), not "
-                         f"'{suffix or '(no suffix)'}'")
+        raise InputError(
+            f"'{path}': the output must end in .gpkg (GeoPackage) or .kml (KML), not '{suffix or '(no suffix)'}'"
+        )
     return FORMATS[suffix]
 
 
@@ -73,8 +74,11 @@ def table(collection: dict, source: str = "detections") -> tuple[list[bytes], li
 
     InputError when a feature has no WGS84 outline (the scene was not georeferenced) or a
     geometry other than a Polygon."""
-    if not isinstance(collection, dict) or collection.get("type") != "FeatureCollection" \
-            or not isinstance(collection.get("features"), list):
+    if (
+        not isinstance(collection, dict)
+        or collection.get("type") != "FeatureCollection"
+        or not isinstance(collection.get("features"), list)
+    ):
         raise InputError(f"'{source}' is not a GeoJSON FeatureCollection")
     feats = collection["features"]
     wkb: list[bytes] = []
@@ -82,8 +86,10 @@ def table(collection: dict, source: str = "detections") -> tuple[list[bytes], li
     for i, f in enumerate(feats):
         g = f.get("geometry") if isinstance(f, dict) else None
         if g is None:
-            raise InputError(f"'{source}': detection {i + 1} has no WGS84 outline (geometry null): the scene is "
-                             "not georeferenced (no crs + transform or GCPs), so there is nothing to put on a map")
+            raise InputError(
+                f"'{source}': detection {i + 1} has no WGS84 outline (geometry null): the scene is "
+                "not georeferenced (no crs + transform or GCPs), so there is nothing to put on a map"
+            )
         if g.get("type") != "Polygon" or not g.get("coordinates"):
             raise InputError(f"'{source}': detection {i + 1} has a {g.get('type')} geometry; Polygon expected")
         wkb.append(polygon_wkb(g["coordinates"][0]))
@@ -111,7 +117,7 @@ def table(collection: dict, source: str = "detections") -> tuple[list[bytes], li
             arr = np.array([bool(v) if v is not None else False for v in vals], bool)
         elif all(isinstance(v, int) and not isinstance(v, bool) for v in present):
             ints = [v if v is not None else 0 for v in vals]
-            small = all(-2**31 <= v < 2**31 for v in ints)  # Integer (32-bit): KML's int, GPKG's INTEGER
+            small = all(-(2**31) <= v < 2**31 for v in ints)  # Integer (32-bit): KML's int, GPKG's INTEGER
             arr = np.array(ints, np.int32 if small else np.int64)
         elif all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in present):
             arr = np.array([float(v) if v is not None else np.nan for v in vals], np.float64)
@@ -122,8 +128,13 @@ def table(collection: dict, source: str = "detections") -> tuple[list[bytes], li
     return wkb, names, arrays, masks
 
 
-def write(collection: dict, dst: str | os.PathLike, overwrite: bool = False, source: str = "detections",
-          fmt: str | None = None) -> int:
+def write(
+    collection: dict,
+    dst: str | os.PathLike,
+    overwrite: bool = False,
+    source: str = "detections",
+    fmt: str | None = None,
+) -> int:
     """Write ``collection`` (detections.geojson's content) to ``dst``; returns the number of
     features. ``fmt``: ``"gpkg"`` or ``"kml"`` (default: from the suffix of ``dst``). Temporary
     file beside ``dst`` (with the format's suffix, a name of its own per call), renamed into place."""
@@ -151,19 +162,36 @@ def write(collection: dict, dst: str | os.PathLike, overwrite: bool = False, sou
         if driver == "GPKG":
             kwargs["dataset_metadata"] = meta or None
         elif driver == "LIBKML":
-            kwargs["dataset_options"] = {"NAME": "sarship detections",
-                                         "DESCRIPTION": "; ".join(f"{k}: {v}" for k, v in meta.items()) or "sarship"}
-        pyogrio.raw.write(str(tmp), np.array(wkb, dtype=object), arrays, names, field_mask=masks,
-                          layer="detections", driver=driver, geometry_type="Polygon", crs="EPSG:4326",
-                          **kwargs)
+            kwargs["dataset_options"] = {
+                "NAME": "sarship detections",
+                "DESCRIPTION": "; ".join(f"{k}: {v}" for k, v in meta.items()) or "sarship",
+            }
+        pyogrio.raw.write(
+            str(tmp),
+            np.array(wkb, dtype=object),
+            arrays,
+            names,
+            field_mask=masks,
+            layer="detections",
+            driver=driver,
+            geometry_type="Polygon",
+            crs="EPSG:4326",
+            **kwargs,
+        )
         os.replace(tmp, dst)
     except InputError:
         raise
     except Exception as exc:  # GDAL's errors: one line naming the file
-        raise InputError(f"'{dst}': cannot write {fmt.upper()} ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        raise InputError(
+            f"'{dst}': cannot write {fmt.upper()} ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+        ) from None
     finally:
-        for p in (tmp, tmp.with_name(tmp.name + "-journal"), tmp.with_name(tmp.name + "-wal"),
-                  tmp.with_name(tmp.name + "-shm")):
+        for p in (
+            tmp,
+            tmp.with_name(tmp.name + "-journal"),
+            tmp.with_name(tmp.name + "-wal"),
+            tmp.with_name(tmp.name + "-shm"),
+        ):
             if p.exists():
                 p.unlink()
     return len(wkb)

@@ -46,8 +46,9 @@ Pixel scores (when both a detection mask and a truth mask are given)
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -90,7 +91,7 @@ def _candidates(
         return out
     darea = np.clip(dboxes[:, 2] - dboxes[:, 0], 0, None) * np.clip(dboxes[:, 3] - dboxes[:, 1], 0, None)
     for start in range(0, len(tindex), _CHUNK):
-        ti = tindex[start:start + _CHUNK]
+        ti = tindex[start : start + _CHUNK]
         tb = tboxes[ti][:, None, :]  # (T, 1, 4)
         tc = tcents[ti][:, None, :]
         db = dboxes[None, :, :]  # (1, D, 4)
@@ -103,8 +104,10 @@ def _candidates(
         with np.errstate(divide="ignore", invalid="ignore"):
             iou = np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
         inside = (
-            (dc[..., 0] >= tb[..., 0]) & (dc[..., 0] < tb[..., 2])
-            & (dc[..., 1] >= tb[..., 1]) & (dc[..., 1] < tb[..., 3])
+            (dc[..., 0] >= tb[..., 0])
+            & (dc[..., 0] < tb[..., 2])
+            & (dc[..., 1] >= tb[..., 1])
+            & (dc[..., 1] < tb[..., 3])
         )
         by_iou = iou >= IOU_MIN - IOU_TOL
         ok = by_iou | inside
@@ -192,7 +195,10 @@ def flagged(ship: Ship) -> bool:
 
 
 def score(
-    detections: list[Ship], truth: list[Ship], det_mask: Any = None, truth_mask: Any = None,
+    detections: list[Ship],
+    truth: list[Ship],
+    det_mask: Any = None,
+    truth_mask: Any = None,
     ignore_flagged: bool = False,
 ) -> dict:
     """Object scores (and pixel ``tpr``/``fpr`` when both masks are given); see module docstring.
@@ -255,7 +261,9 @@ def aggregate(per_image: Iterable[dict]) -> dict:
 
 
 def evaluate(
-    detections_path: str | os.PathLike, truth_path: str | os.PathLike, mask_path: str | os.PathLike | None = None,
+    detections_path: str | os.PathLike,
+    truth_path: str | os.PathLike,
+    mask_path: str | os.PathLike | None = None,
     ignore_flagged: bool = False,
 ) -> dict:
     """Back-end of ``sarship evaluate DETECTIONS.geojson --truth TRUTH``.
@@ -316,15 +324,20 @@ def format_scores(scores: dict) -> str:
         lines.append("; ".join(head))
     lines.append(
         f"objects: {s['n_truth']} truth ships, {s['n_detections']} detections"
-        + (f" ({s['n_difficult']} difficult ships, {s['n_ignored']} detections on them ignored)"
-           if s.get("n_difficult") else "")
-        + (f" ({s['n_flagged_ignored']} flagged ambiguities matching no ship ignored)"
-           if "n_flagged_ignored" in s else "")
+        + (
+            f" ({s['n_difficult']} difficult ships, {s['n_ignored']} detections on them ignored)"
+            if s.get("n_difficult")
+            else ""
+        )
+        + (
+            f" ({s['n_flagged_ignored']} flagged ambiguities matching no ship ignored)"
+            if "n_flagged_ignored" in s
+            else ""
+        )
     )
     lines.append(f"  hits {s['n_hit']}   false alarms {s['n_false']}   missed {s['n_missed']}")
     lines.append(
-        f"  Pd (recall) {_fmt(s['pd'])}   precision {_fmt(s['precision'])}   "
-        f"FoM {_fmt(s['fom'])}   F1 {_fmt(s['f1'])}"
+        f"  Pd (recall) {_fmt(s['pd'])}   precision {_fmt(s['precision'])}   FoM {_fmt(s['fom'])}   F1 {_fmt(s['f1'])}"
     )
     if "tpr" in s:
         lines.append(

@@ -47,9 +47,10 @@ import math
 import os
 import warnings
 import xml.etree.ElementTree as ET
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -79,7 +80,7 @@ class Ship:
     properties: dict = field(default_factory=dict)
 
     @classmethod
-    def from_bbox(cls, bbox: Iterable[float], difficult: bool = False, **properties: Any) -> "Ship":
+    def from_bbox(cls, bbox: Iterable[float], difficult: bool = False, **properties: Any) -> Ship:
         """A ship whose centroid is the centre of ``bbox``."""
         r0, c0, r1, c1 = (float(v) for v in bbox)
         return cls((r0, c0, r1, c1), ((r0 + r1) / 2.0, (c0 + c1) / 2.0), bool(difficult), dict(properties))
@@ -558,9 +559,7 @@ def load_ships(
                 raise InputError(f"'{p}': no '{stem}.xml' for scene '{stem}' ({len(files)} xml files)")
             return load_voc(hit[0], one_based=one_based), None
         if len(files) != 1:
-            raise InputError(
-                f"'{p}': {len(files)} xml files and no scene name to choose one (give one xml file)"
-            )
+            raise InputError(f"'{p}': {len(files)} xml files and no scene name to choose one (give one xml file)")
         return load_voc(files[0], one_based=one_based), None
     mask = read_mask(p)
     return ships_from_mask(mask), mask

@@ -75,8 +75,13 @@ class _Source:
         """A bounded sample of the file: up to five PROBE_SIDE windows, flattened per band."""
         H, W = self.shape
         s = PROBE_SIDE
-        centres = [(H // 2, W // 2), (H // 4, W // 4), (H // 4, 3 * W // 4),
-                   (3 * H // 4, W // 4), (3 * H // 4, 3 * W // 4)]
+        centres = [
+            (H // 2, W // 2),
+            (H // 4, W // 4),
+            (H // 4, 3 * W // 4),
+            (3 * H // 4, W // 4),
+            (3 * H // 4, 3 * W // 4),
+        ]
         seen, parts = set(), []
         for cy, cx in centres:
             r0, c0 = max(0, min(cy - s // 2, H - s)), max(0, min(cx - s // 2, W - s))
@@ -91,8 +96,10 @@ class _Source:
 
 
 def _check_dtype(p: Path, dt: np.dtype) -> None:
-    if not (np.issubdtype(dt, np.integer) or np.issubdtype(dt, np.floating)
-            or np.issubdtype(dt, np.complexfloating)) or dt == np.bool_:
+    if (
+        not (np.issubdtype(dt, np.integer) or np.issubdtype(dt, np.floating) or np.issubdtype(dt, np.complexfloating))
+        or dt == np.bool_
+    ):
         raise InputError(f"'{p}': unsupported sample type {dt} (need integer, float or complex)")
 
 

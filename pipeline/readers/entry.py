@@ -39,20 +39,26 @@ import errno
 import math
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers.common import _Source, _one_line
+from sarship.pipeline.readers.common import _one_line, _Source
 from sarship.pipeline.readers.formats import _open_safe  # noqa: F401 - where tests and tools find it
 from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.readers.plan import _plan
 from sarship.pipeline.readers.protocol import Reader, SceneReader
 from sarship.pipeline.readers.registry import READERS, choose
-from sarship.pipeline.readers.writing import (_estimate_scene_looks, _rank_one_looks, _write_tiles, choose_codec,
-                                              ingest_writers)
+from sarship.pipeline.readers.writing import (
+    _estimate_scene_looks,
+    _rank_one_looks,
+    _write_tiles,
+    choose_codec,
+    ingest_writers,
+)
 from sarship.pipeline.scene import (
     DEFAULT_INGEST_CODEC,
     DEFAULT_TILE,
@@ -77,14 +83,20 @@ INGEST_KINDS = ("auto", "amplitude", "intensity", "slc", "quadpol", "covariance"
 ROW_BAND_BYTES = 256 * 2**20
 
 
-def _open_source(p: Path, sidecar_root: Path | bool | None = None, limits: InputLimits | None = None,
-                 swath: str | None = None) -> _Source:
+def _open_source(
+    p: Path, sidecar_root: Path | bool | None = None, limits: InputLimits | None = None, swath: str | None = None
+) -> _Source:
     """The input ``p`` opened by the reader :func:`~.registry.choose` picks for it (:func:`_open_with`)."""
     return _open_with(choose(p), p, sidecar_root, limits, swath)
 
 
-def _open_with(reader: Reader, p: Path, sidecar_root: Path | bool | None = None, limits: InputLimits | None = None,
-               swath: str | None = None) -> _Source:
+def _open_with(
+    reader: Reader,
+    p: Path,
+    sidecar_root: Path | bool | None = None,
+    limits: InputLimits | None = None,
+    swath: str | None = None,
+) -> _Source:
     """``p`` opened by ``reader``.
 
     Raises :class:`InputError` (one line) when ``swath`` is given to a reader without
@@ -162,8 +174,11 @@ def _check_args(inputs, out, kind, tile, looks, channels, overwrite=True):
         except OSError:
             continue
         if o == i or i in o.parents:
-            raise InputError(f"--out '{outp}' is " + ("also an input" if o == i else f"inside the input '{p}'")
-                             + ": choose a path outside the inputs (not even --overwrite writes into an input)")
+            raise InputError(
+                f"--out '{outp}' is "
+                + ("also an input" if o == i else f"inside the input '{p}'")
+                + ": choose a path outside the inputs (not even --overwrite writes into an input)"
+            )
         if o in i.parents:
             raise InputError(f"--out '{outp}' holds the input '{p}': choose another path")
     if outp.exists() and not (outp.is_dir() and ((outp / "zarr.json").exists() or (outp / ".zgroup").exists())):
@@ -240,12 +255,14 @@ def ingest(
             raise InputError(f"codec must be one of {', '.join(INGEST_CODECS)}, got '{codec}'")
         ingest_writers()  # so is a bad SARSHIP_INGEST_WRITERS
         spacing = _check_spacing(spacing)
-        return _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, sidecar_root, limits,
-                       swath, codec)
+        return _ingest(
+            paths, outp, kind, tile, progress, band, channels, looks, spacing, sidecar_root, limits, swath, codec
+        )
 
 
-def _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, sidecar_root, limits, swath,
-            codec) -> Scene:
+def _ingest(
+    paths, outp, kind, tile, progress, band, channels, looks, spacing, sidecar_root, limits, swath, codec
+) -> Scene:
     user_progress = progress
 
     def progress(done: int, total: int) -> None:  # noqa: F811 - the caller's, exceptions passed through
@@ -259,8 +276,16 @@ def _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, s
         readers = [choose(p) for p in paths]
         _check_readers(paths, readers, kind, swath)
         if isinstance(readers[0], SceneReader):  # alone: the only input
-            readers[0].ingest(paths[0], outp, tile=tile, progress=progress, looks=looks, codec=codec,
-                              spacing=spacing, limits=limits or InputLimits())
+            readers[0].ingest(
+                paths[0],
+                outp,
+                tile=tile,
+                progress=progress,
+                looks=looks,
+                codec=codec,
+                spacing=spacing,
+                limits=limits or InputLimits(),
+            )
             return open_scene(outp)
         srcs: list[_Source] = []
         try:
@@ -277,8 +302,10 @@ def _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, s
     except _CallbackError as exc:
         raise exc.exc from None
     except MemoryError:
-        raise InputError(f"ingest of {', '.join(str(p) for p in paths)} ran out of memory (a PNG/JPEG, or one "
-                         "compressed TIFF strip/tile, is decoded whole: convert it to a tiled GeoTIFF)") from None
+        raise InputError(
+            f"ingest of {', '.join(str(p) for p in paths)} ran out of memory (a PNG/JPEG, or one "
+            "compressed TIFF strip/tile, is decoded whole: convert it to a tiled GeoTIFF)"
+        ) from None
     except OSError as exc:
         if exc.errno in _STORAGE_FULL:  # not the input's fault: the caller retries or says so
             raise
@@ -287,8 +314,7 @@ def _ingest(paths, outp, kind, tile, progress, band, channels, looks, spacing, s
         raise InputError(f"ingest of {', '.join(str(p) for p in paths)} failed: {_one_line(exc)}") from None
 
 
-def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing=None,
-                    codec=DEFAULT_INGEST_CODEC):
+def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spacing=None, codec=DEFAULT_INGEST_CODEC):
     plan = _plan(srcs, kind, band, channels)
     H, W = srcs[0].shape
     attrs = dict(plan.attrs)
@@ -303,8 +329,7 @@ def _ingest_sources(srcs, outp, kind, tile, progress, band, channels, looks, spa
     for s in srcs:  # first file that knows wins
         for k, v in s.meta.items():
             meta.setdefault(k, v)
-    for k in ("crs", "transform", "gcps", "pixel_spacing_m", "pixel_spacing_source", "sensor",
-              "acquired", "product"):
+    for k in ("crs", "transform", "gcps", "pixel_spacing_m", "pixel_spacing_source", "sensor", "acquired", "product"):
         if k in meta:
             attrs[k] = meta[k]
     if spacing is not None:

@@ -15,8 +15,8 @@ Their order, the order of dispatch, is :data:`sarship.pipeline.readers.registry.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.image import _open_image
@@ -72,8 +72,9 @@ class SafeReader(BaseReader):
     def check(self, path: Path, kind: str) -> None:
         check_safe_kind(path, kind)
 
-    def open(self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None,
-             swath: str | None = None) -> Source:
+    def open(
+        self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None, swath: str | None = None
+    ) -> Source:
         return _open_safe(path, limits, swath)
 
 
@@ -86,12 +87,23 @@ class ZarrReader(BaseReader):
     def detect(self, probe: Probe) -> bool:
         return probe.is_dir and is_zarr_scene(probe.path)
 
-    def open(self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None,
-             swath: str | None = None) -> Source:
+    def open(
+        self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None, swath: str | None = None
+    ) -> Source:
         raise InputError(f"'{path}': {self.alone}")  # a scene is copied by ingest, never a source
 
-    def ingest(self, path: Path, out: Path, *, tile: int, progress: Callable[[int, int], None], looks: float | None,
-               codec: str, spacing: list[float] | None, limits: InputLimits) -> None:
+    def ingest(
+        self,
+        path: Path,
+        out: Path,
+        *,
+        tile: int,
+        progress: Callable[[int, int], None],
+        looks: float | None,
+        codec: str,
+        spacing: list[float] | None,
+        limits: InputLimits,
+    ) -> None:
         """Copy the scene ``path`` to ``out`` re-tiled; ``spacing`` (when given) overrides its own."""
         limits.check_pixels(path, *open_scene(path).shape)
         if spacing is None:
@@ -120,12 +132,14 @@ class PolsarproReader(BaseReader):
         if p.name.lower() == "config.txt":
             raise InputError(f"'{p}': a config.txt, but its folder holds no PolSARpro C11.bin or T11.bin")
         if re.fullmatch(r"[ct]\d\d(_real|_imag)?\.bin", p.name.lower()) and _polsarpro_folder(p.parent):
-            raise InputError(f"'{p}' is one element of a PolSARpro folder: pass the folder '{p.parent}' "
-                             "(or its config.txt)")
+            raise InputError(
+                f"'{p}' is one element of a PolSARpro folder: pass the folder '{p.parent}' (or its config.txt)"
+            )
         return False
 
-    def open(self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None,
-             swath: str | None = None) -> Source:
+    def open(
+        self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None, swath: str | None = None
+    ) -> Source:
         folder = _polsarpro_folder(path)
         if folder is None:  # only when called without detect
             raise InputError(f"'{path}' is not a PolSARpro folder (no C11.bin or T11.bin)")
@@ -140,8 +154,9 @@ class TiffReader(BaseReader):
     def detect(self, probe: Probe) -> bool:
         return not probe.is_dir and probe.head[:4] in _TIFF_MAGIC
 
-    def open(self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None,
-             swath: str | None = None) -> Source:
+    def open(
+        self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None, swath: str | None = None
+    ) -> Source:
         return _open_tiff(path, sidecar_root, limits)
 
 
@@ -153,8 +168,9 @@ class ImageReader(BaseReader):
     def detect(self, probe: Probe) -> bool:
         return not probe.is_dir and (probe.head[:8] == _PNG_MAGIC or probe.head[:3] == _JPEG_MAGIC)
 
-    def open(self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None,
-             swath: str | None = None) -> Source:
+    def open(
+        self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None, swath: str | None = None
+    ) -> Source:
         return _open_image(path, limits)
 
 
@@ -166,6 +182,7 @@ class NpyReader(BaseReader):
     def detect(self, probe: Probe) -> bool:
         return not probe.is_dir and probe.head[:6] == _NPY_MAGIC
 
-    def open(self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None,
-             swath: str | None = None) -> Source:
+    def open(
+        self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None, swath: str | None = None
+    ) -> Source:
         return _checked(path, _open_npy(path), limits)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers.common import _Source, _check_hw, _one_line
+from sarship.pipeline.readers.common import _check_hw, _one_line, _Source
 from sarship.pipeline.readers.limits import InputLimits
 
 #: Largest channel difference (digital numbers) of an RGB image still taken as grey.
@@ -58,11 +58,13 @@ def _open_image(p: Path, limits: InputLimits | None = None) -> _Source:
             rgb = a[..., :3]
             diff = 0
             for r0 in range(0, rgb.shape[0], 1024):  # bounded temporaries
-                blk = rgb[r0:r0 + 1024].astype(np.int16)
-                diff = max(diff,
-                           int(np.abs(blk[..., 0] - blk[..., 1]).max(initial=0)),
-                           int(np.abs(blk[..., 0] - blk[..., 2]).max(initial=0)),
-                           int(np.abs(blk[..., 1] - blk[..., 2]).max(initial=0)))
+                blk = rgb[r0 : r0 + 1024].astype(np.int16)
+                diff = max(
+                    diff,
+                    int(np.abs(blk[..., 0] - blk[..., 1]).max(initial=0)),
+                    int(np.abs(blk[..., 0] - blk[..., 2]).max(initial=0)),
+                    int(np.abs(blk[..., 1] - blk[..., 2]).max(initial=0)),
+                )
             if diff > GREY_TOLERANCE_DN:
                 raise InputError(
                     f"'{p}': colour image (RGB channels differ by up to {diff} DN > "
@@ -73,7 +75,7 @@ def _open_image(p: Path, limits: InputLimits | None = None) -> _Source:
             else:
                 g = np.empty(rgb.shape[:2], np.float32)
                 for r0 in range(0, rgb.shape[0], 1024):
-                    g[r0:r0 + 1024] = rgb[r0:r0 + 1024].astype(np.float32).mean(axis=2)
+                    g[r0 : r0 + 1024] = rgb[r0 : r0 + 1024].astype(np.float32).mean(axis=2)
                 a = g
         else:
             a = a[..., 0]

@@ -82,7 +82,8 @@ class InputLimits:
         if int(H) * int(W) > self.max_pixels:
             raise InputError(
                 f"'{p}': declares {H} x {W} = {int(H) * int(W):.3g} pixels, above the limit of "
-                f"{self.max_pixels:.3g} ({self._knob('max_pixels')})")
+                f"{self.max_pixels:.3g} ({self._knob('max_pixels')})"
+            )
 
     def check_ratio(self, p: Path | str, what: str, declared: float, stored: float) -> None:
         """Refuse ``declared`` decoded bytes held in ``stored`` bytes beyond ``max_ratio``;
@@ -92,14 +93,16 @@ class InputLimits:
             raise InputError(
                 f"'{p}': {what} declares {declared / 2**20:.0f} MiB in {size / 2**10:.0f} KiB "
                 f"(ratio {declared / size:.0f}:1, above the limit of {self.max_ratio:g}:1, "
-                f"{self._knob('max_ratio')}): a decompression bomb or a mostly empty file")
+                f"{self._knob('max_ratio')}): a decompression bomb or a mostly empty file"
+            )
 
     def check_xml(self, p: Path | str, member: str, size: float) -> None:
         """Refuse an XML member of ``size`` bytes beyond ``max_xml_mb``."""
         if size > self.max_xml_mb * 2**20:
             raise InputError(
                 f"'{p}': {member} is {size / 2**20:.0f} MiB, above the limit of {self.max_xml_mb:g} MiB for an "
-                f"XML member ({self._knob('max_xml_mb')}; a real annotation is about 2 MiB)")
+                f"XML member ({self._knob('max_xml_mb')}; a real annotation is about 2 MiB)"
+            )
 
     def check_tiff(self, p: Path, series: Any, nbands: int, dtype: np.dtype) -> None:
         """The chunk and ratio limits of a TIFF series, from its page headers."""
@@ -124,7 +127,8 @@ class InputLimits:
             raise InputError(
                 f"'{p}': one compressed strip/tile decodes to {chunk_bytes / 2**20:.0f} MiB, above the limit of "
                 f"{self.max_chunk_mb:g} MiB ({self._knob('max_chunk_mb')}); rewrite it tiled "
-                "(e.g. gdal_translate -co TILED=YES) or raise the limit")
+                "(e.g. gdal_translate -co TILED=YES) or raise the limit"
+            )
         if compressed or sparse:
             declared = float(H) * W * nbands * dtype.itemsize
             size = max(os.path.getsize(p), 1)
@@ -132,7 +136,8 @@ class InputLimits:
                 raise InputError(
                     f"'{p}': declares {declared / 2**20:.0f} MiB of pixels in a {size / 2**10:.0f} KiB file "
                     f"(ratio {declared / size:.0f}:1, above the limit of {self.max_ratio:g}:1, "
-                    f"{self._knob('max_ratio')}): a decompression bomb or a mostly empty sparse file")
+                    f"{self._knob('max_ratio')}): a decompression bomb or a mostly empty sparse file"
+                )
 
 
 def _series_hw(series: Any) -> tuple[int, int]:

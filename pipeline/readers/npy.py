@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers.common import _Source, _check_dtype, _check_hw, _one_line
+from sarship.pipeline.readers.common import _check_dtype, _check_hw, _one_line, _Source
 
 
 class _NpySource(_Source):
@@ -65,9 +65,7 @@ def _open_npy(p: Path) -> _Source:
         layout, nb = "covariance", shape[2]
     else:
         raise InputError(
-            f"'{p}': {len(shape)}-D array of shape {shape}; expected (H, W), (H, W, k), "
-            "(H, W, 3, 3) or (H, W, 2, 2)"
+            f"'{p}': {len(shape)}-D array of shape {shape}; expected (H, W), (H, W, k), (H, W, 3, 3) or (H, W, 2, 2)"
         )
     _check_hw(p, shape[0], shape[1])
-    return _NpySource(path=p, shape=(shape[0], shape[1]), nbands=nb, dtype=np.dtype(dt),
-                      fmt="npy", layout=layout)
+    return _NpySource(path=p, shape=(shape[0], shape[1]), nbands=nb, dtype=np.dtype(dt), fmt="npy", layout=layout)

@@ -58,8 +58,9 @@ channels must be named among ``hh, hv, vh, vv``.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -127,9 +128,11 @@ def _complex_names(n: int, srcs: list[_Source], channels: list[str] | None) -> l
             side = srcs[0].meta.get("sidecar")
             raise InputError(
                 f"'{srcs[0].path}': {n} complex channel(s), but its metadata"
-                + (f" ({side})" if side else "") + f" names the polarisations {', '.join(meta)} and neither "
+                + (f" ({side})" if side else "")
+                + f" names the polarisations {', '.join(meta)} and neither "
                 "the file name nor its folders say which: name them with --channels (e.g. --channels "
-                f"{','.join(meta[:n])})")
+                f"{','.join(meta[:n])})"
+            )
     bad = [c for c in names if c not in COMPLEX_CHANNELS]
     if bad:
         raise InputError(f"complex channel names must be among {', '.join(COMPLEX_CHANNELS)}; got {', '.join(bad)}")
@@ -225,8 +228,9 @@ def _auto_quantity(s: _Source) -> tuple[str, str]:
             if s.fmt == "npy":
                 raise _negative_error(s, ".npy real arrays are intensity", vmin, "the sample read")
             if s.nbands % 2 == 0:
-                return "pairs", (f"negative samples cannot be amplitude or intensity: {s.nbands} "
-                                 "real bands taken as (re, im) pairs")
+                return "pairs", (
+                    f"negative samples cannot be amplitude or intensity: {s.nbands} real bands taken as (re, im) pairs"
+                )
             raise InputError(
                 f"'{s.path}': real samples include negative values (sampled min {vmin:g}), so they are "
                 f"neither amplitude nor intensity (dB? convert to linear power first), and {s.nbands} "
@@ -242,8 +246,7 @@ def _auto_quantity(s: _Source) -> tuple[str, str]:
         sample = sample[sample != s.meta["nodata"]]
     fin = sample[np.isfinite(sample)]
     if fin.size and fin.max() > 1 and np.all(fin == np.floor(fin)):
-        return "amplitude", (f"{s.dtype} samples are all whole numbers (digital numbers stored as float): "
-                             "amplitude")
+        return "amplitude", (f"{s.dtype} samples are all whole numbers (digital numbers stored as float): amplitude")
     return "intensity", f"{s.dtype} samples are intensity"
 
 
@@ -255,9 +258,11 @@ def _check_tile(s: _Source, a: np.ndarray, asked: str) -> None:
     if np.issubdtype(a.dtype, np.floating):
         inf = np.isposinf(a)
         if inf.any() and not ("nodata" in s.meta and np.isposinf(s.meta["nodata"])):
-            raise InputError(f"'{s.path}': {asked}, but the data has infinite values ({int(inf.sum())} pixels in "
-                             "a tile being written): a damaged or unscaled product? Mark absent pixels as NaN "
-                             "or with a declared no-data value")
+            raise InputError(
+                f"'{s.path}': {asked}, but the data has infinite values ({int(inf.sum())} pixels in "
+                "a tile being written): a damaged or unscaled product? Mark absent pixels as NaN "
+                "or with a declared no-data value"
+            )
     neg = a < 0
     if not neg.any():
         return
@@ -277,7 +282,12 @@ def _to_f32_intensity(a: np.ndarray, amplitude: bool, nodata: float | None = Non
     return x
 
 
-def _plan(srcs: list[_Source], kind: str, band, channels, ) -> _Plan:
+def _plan(
+    srcs: list[_Source],
+    kind: str,
+    band,
+    channels,
+) -> _Plan:
     H, W = srcs[0].shape
     for s in srcs[1:]:
         if s.shape != (H, W):
@@ -304,14 +314,13 @@ def _plan(srcs: list[_Source], kind: str, band, channels, ) -> _Plan:
             out = {}
             for i, j in names:
                 v = a[:, :, i, j]
-                out[f"c{i + 1}{j + 1}"] = (np.real(v).astype(np.float32) if i == j
-                                           else v.astype(np.complex64))
+                out[f"c{i + 1}{j + 1}"] = np.real(v).astype(np.float32) if i == j else v.astype(np.complex64)
             return out
 
         attrs["quantity"] = f"covariance C{n}"
         attrs["quantity_rule"] = f"(H, W, {n}, {n}) array: covariance matrix per pixel"
         attrs["format"] = f"npy covariance C{n}"
-        attrs["covariance_basis"] = (C3_BASIS if n == 3 else "dual-pol [k1, k2] as given (channels unknown)")
+        attrs["covariance_basis"] = C3_BASIS if n == 3 else "dual-pol [k1, k2] as given (channels unknown)"
         attrs.update(cov[0].meta.get("cov_attrs", {}))
         attrs["channels"] = list(variables)
         return _Plan("covariance", variables, compute, attrs, "c11")

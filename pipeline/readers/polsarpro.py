@@ -41,13 +41,14 @@ from __future__ import annotations
 import math
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers.common import _Source, _one_line
+from sarship.pipeline.readers.common import _one_line, _Source
 
 #: The unitary change of basis from lexicographic to Pauli scattering vectors:
 #: ``k_pauli = PAULI_U @ k_lex`` with ``k_lex = [HH, sqrt2 HV, VV]`` and
@@ -59,8 +60,19 @@ C3_BASIS = "lexicographic [HH, sqrt2 HV, VV]"
 
 
 _ENVI_DTYPES = {4: "f4", 5: "f8"}
-_ENVI_DTYPE_NAMES = {1: "uint8", 2: "int16", 3: "int32", 4: "float32", 5: "float64", 6: "complex64",
-                     9: "complex128", 12: "uint16", 13: "uint32", 14: "int64", 15: "uint64"}
+_ENVI_DTYPE_NAMES = {
+    1: "uint8",
+    2: "int16",
+    3: "int32",
+    4: "float32",
+    5: "float64",
+    6: "complex64",
+    9: "complex128",
+    12: "uint16",
+    13: "uint32",
+    14: "int64",
+    15: "uint64",
+}
 #: PolSARpro dual-pol PolarType -> the channels of the C2 scattering vector.
 _DUAL_TYPES = {"pp1": ["hh", "hv"], "pp2": ["vv", "vh"], "pp3": ["hh", "vv"]}
 
@@ -227,15 +239,19 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
     if basis == "C" and ("c44.bin" in files) or basis == "T" and ("t44.bin" in files):
         raise InputError(f"'{d}': a PolSARpro {basis}4 folder (4 x 4, bistatic); only C3, T3 and C2 are supported")
     if basis == "C":
-        dual = polar_type in _DUAL_TYPES or polar_type.startswith("pp") or (
-            polar_type != "full" and "c33.bin" not in files and "c13_real.bin" not in files
-            and "c22.bin" in files)
+        dual = (
+            polar_type in _DUAL_TYPES
+            or polar_type.startswith("pp")
+            or (polar_type != "full" and "c33.bin" not in files and "c13_real.bin" not in files and "c22.bin" in files)
+        )
         n = 2 if dual else 3
     else:
-        if polar_type.startswith("pp") or ("t33.bin" not in files and "t13_real.bin" not in files
-                                           and "t22.bin" in files):
-            raise InputError(f"'{d}': a PolSARpro T2 folder; only C3, T3 and C2 are supported "
-                             "(convert it to C2 in PolSARpro)")
+        if polar_type.startswith("pp") or (
+            "t33.bin" not in files and "t13_real.bin" not in files and "t22.bin" in files
+        ):
+            raise InputError(
+                f"'{d}': a PolSARpro T2 folder; only C3, T3 and C2 are supported (convert it to C2 in PolSARpro)"
+            )
         n = 3
     label = f"{basis}{n}"
     elems = _elements(basis, n)
@@ -248,8 +264,9 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
         try:
             ncfg = (int(cfg["Nrow"]), int(cfg["Ncol"]))
         except (KeyError, ValueError):
-            raise InputError(f"'{cfg_path}': Nrow/Ncol are not whole numbers "
-                             f"(Nrow={cfg.get('Nrow')!r}, Ncol={cfg.get('Ncol')!r})") from None
+            raise InputError(
+                f"'{cfg_path}': Nrow/Ncol are not whole numbers (Nrow={cfg.get('Nrow')!r}, Ncol={cfg.get('Ncol')!r})"
+            ) from None
     out: dict[str, tuple[Path, np.dtype, int]] = {}
     shape = None
     orders, headerless = set(), []
@@ -267,7 +284,8 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
             if code not in _ENVI_DTYPES:
                 raise InputError(
                     f"'{h}': unsupported ENVI data type {code} ({_ENVI_DTYPE_NAMES.get(code, 'unknown')}); "
-                    "PolSARpro element files are data type 4 (float32) or 5 (float64)")
+                    "PolSARpro element files are data type 4 (float32) or 5 (float64)"
+                )
             if nb != 1:
                 raise InputError(f"'{h}': {nb} bands; a PolSARpro element file holds one band")
             if inter not in ("bsq", "bil", "bip"):
@@ -280,8 +298,7 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
             what = f"its header '{h.name}' says {W} samples x {H} lines x {dt.itemsize} bytes + offset {off}"
         else:
             if ncfg is None:
-                raise InputError(f"'{b}': no ENVI header ('{b.name}.hdr') and no config.txt Nrow/Ncol "
-                                 "to give its size")
+                raise InputError(f"'{b}': no ENVI header ('{b.name}.hdr') and no config.txt Nrow/Ncol to give its size")
             (H, W), off, order, dt = ncfg, 0, 0, np.dtype("<f4")
             headerless.append(b.name)
             what = f"config.txt says Nrow {H} x Ncol {W} x 4 bytes (float32, no header)"
@@ -293,16 +310,18 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
             shape = (H, W)
         elif (H, W) != shape:
             first = stems[0]
-            raise InputError(f"'{b}': {H} lines x {W} samples but {first}.bin is "
-                             f"{shape[0]} x {shape[1]}: element files must have equal sizes")
+            raise InputError(
+                f"'{b}': {H} lines x {W} samples but {first}.bin is "
+                f"{shape[0]} x {shape[1]}: element files must have equal sizes"
+            )
         if ncfg is not None and ncfg != (H, W):
-            raise InputError(f"'{b}': {H} lines x {W} samples but '{cfg_path}' says "
-                             f"Nrow {ncfg[0]} x Ncol {ncfg[1]}")
+            raise InputError(f"'{b}': {H} lines x {W} samples but '{cfg_path}' says Nrow {ncfg[0]} x Ncol {ncfg[1]}")
         orders.add("big-endian" if order == 1 else "little-endian")
         out[s] = (b, dt, off)
     assert shape is not None
-    src = _PolsarproSource(path=d, shape=shape, nbands=n, dtype=out[stems[0]][1].newbyteorder("="), fmt="polsarpro",
-                           layout="covariance")
+    src = _PolsarproSource(
+        path=d, shape=shape, nbands=n, dtype=out[stems[0]][1].newbyteorder("="), fmt="polsarpro", layout="covariance"
+    )
     src.basis, src.files = basis, out
     fmt_name = f"PolSARpro {label}" if basis == "C" else "PolSARpro T3 -> C3"
     attrs: dict[str, Any] = {
@@ -314,19 +333,26 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
     if n == 3:
         attrs["covariance_basis"] = C3_BASIS
         attrs["quantity_rule"] = (
-            "PolSARpro C3 folder: element files stored as they are" if basis == "C" else
-            "PolSARpro T3 folder (coherency, Pauli basis k_p = (1/sqrt2)[HH+VV, HH-VV, 2HV]) converted "
-            "to C3 = U^H T U, U = (1/sqrt2)[[1,0,1],[1,0,-1],[0,sqrt2,0]]")
+            "PolSARpro C3 folder: element files stored as they are"
+            if basis == "C"
+            else "PolSARpro T3 folder (coherency, Pauli basis k_p = (1/sqrt2)[HH+VV, HH-VV, 2HV]) converted "
+            "to C3 = U^H T U, U = (1/sqrt2)[[1,0,1],[1,0,-1],[0,sqrt2,0]]"
+        )
     else:
         ch = _DUAL_TYPES.get(polar_type)
-        attrs["covariance_basis"] = (f"dual-pol [{ch[0].upper()}, {ch[1].upper()}] (PolarType {polar_type})"
-                                     if ch else "dual-pol [k1, k2] as given (channels unknown)")
+        attrs["covariance_basis"] = (
+            f"dual-pol [{ch[0].upper()}, {ch[1].upper()}] (PolarType {polar_type})"
+            if ch
+            else "dual-pol [k1, k2] as given (channels unknown)"
+        )
         if ch:
             attrs["polarisations"] = ch
         attrs["quantity_rule"] = "PolSARpro C2 folder: element files stored as they are"
     if cfg:
         attrs["polsarpro_config"] = {k: cfg[k] for k in ("Nrow", "Ncol", "PolarCase", "PolarType") if k in cfg}
     if headerless:
-        attrs["polsarpro_note"] = f"no ENVI header for {', '.join(headerless)}: size from config.txt, float32 little-endian"
+        attrs["polsarpro_note"] = (
+            f"no ENVI header for {', '.join(headerless)}: size from config.txt, float32 little-endian"
+        )
     src.meta["cov_attrs"] = attrs
     return src

@@ -11,8 +11,9 @@ theirs (``detect``) and opens it with the first that says yes. How to add one:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.common import _one_line, _Source
@@ -93,8 +94,9 @@ class Reader(Protocol):
         """Refuse a ``--kind`` that does not fit the input, before anything is opened."""
         ...
 
-    def open(self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None,
-             swath: str | None = None) -> Source:
+    def open(
+        self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None, swath: str | None = None
+    ) -> Source:
         """The input as a :data:`Source`, its declared size checked against ``limits`` before
         any pixel is decoded (``limits.check_pixels`` and, for compressed data, the chunk and
         ratio checks of :class:`~sarship.pipeline.readers.limits.InputLimits`)."""
@@ -106,8 +108,18 @@ class SceneReader(Reader, Protocol):
     """A reader whose input is already a whole scene (a Zarr scene): ``ingest`` copies it to
     ``out`` instead of the tile loop over sources. Such a reader is never combined."""
 
-    def ingest(self, path: Path, out: Path, *, tile: int, progress: Callable[[int, int], None], looks: float | None,
-               codec: str, spacing: list[float] | None, limits: InputLimits) -> None:
+    def ingest(
+        self,
+        path: Path,
+        out: Path,
+        *,
+        tile: int,
+        progress: Callable[[int, int], None],
+        looks: float | None,
+        codec: str,
+        spacing: list[float] | None,
+        limits: InputLimits,
+    ) -> None:
         """Write the scene ``out`` from the scene ``path`` (atomic, as the tile loop)."""
         ...
 
@@ -128,8 +140,9 @@ class BaseReader:
     def check(self, path: Path, kind: str) -> None:
         """Every ``--kind`` is accepted here (the sample-type rules are the plan's)."""
 
-    def open(self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None,
-             swath: str | None = None) -> Source:  # pragma: no cover - every reader writes its own
+    def open(
+        self, path: Path, limits: InputLimits, *, sidecar_root: Path | bool | None = None, swath: str | None = None
+    ) -> Source:  # pragma: no cover - every reader writes its own
         raise NotImplementedError
 
     def __repr__(self) -> str:

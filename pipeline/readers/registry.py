@@ -22,8 +22,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers.formats import (ImageReader, NpyReader, PolsarproReader, SafeReader, TiffReader,
-                                              ZarrReader)
+from sarship.pipeline.readers.formats import ImageReader, NpyReader, PolsarproReader, SafeReader, TiffReader, ZarrReader
 from sarship.pipeline.readers.protocol import Probe, Reader
 
 #: The readers, in the order of dispatch: the first whose ``detect`` says yes opens the input.
@@ -82,8 +81,10 @@ def refuse(probe: Probe) -> NoReturn:
     """Raise the :class:`InputError` for an input no reader takes."""
     p = probe.path
     if probe.is_dir:
-        raise InputError(f"'{p}' is a folder but not a Zarr scene (no zarr.json), a PolSARpro "
-                         "C3/T3/C2 folder (no C11.bin or T11.bin) nor a Sentinel-1 SAFE product (no manifest.safe)")
+        raise InputError(
+            f"'{p}' is a folder but not a Zarr scene (no zarr.json), a PolSARpro "
+            "C3/T3/C2 folder (no C11.bin or T11.bin) nor a Sentinel-1 SAFE product (no manifest.safe)"
+        )
     if probe.head[:4] == b"PK\x03\x04" and p.suffix.lower() == ".npz":
         raise InputError(f"'{p}': .npz archives are not supported; save one array with np.save")
     raise InputError(

@@ -69,8 +69,9 @@ _MEAS_RE = re.compile(r"^s1[abcd]-([a-z0-9]+)-(grd|slc)-(hh|hv|vh|vv)-.*\.tiff?$
 # --------------------------------------------------------------------------------------
 
 
-def bilinear_lut(lines: np.ndarray, pixels: np.ndarray, values: np.ndarray,
-                 r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+def bilinear_lut(
+    lines: np.ndarray, pixels: np.ndarray, values: np.ndarray, r0: int, r1: int, c0: int, c1: int
+) -> np.ndarray:
     """``values`` (``len(lines) x len(pixels)``, on increasing line and pixel coordinates)
     interpolated bilinearly at rows ``r0:r1`` x columns ``c0:c1`` (float64); outside the grid
     the edge values are held (as ``np.interp`` does)."""
@@ -90,8 +91,9 @@ def bilinear_lut(lines: np.ndarray, pixels: np.ndarray, values: np.ndarray,
     return (1.0 - t) * along[i - lo] + t * along[i + 1 - lo]
 
 
-def azimuth_noise(blocks: list[tuple[int, int, int, int, np.ndarray, np.ndarray]],
-                  r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+def azimuth_noise(
+    blocks: list[tuple[int, int, int, int, np.ndarray, np.ndarray]], r0: int, r1: int, c0: int, c1: int
+) -> np.ndarray:
     """The noise azimuth LUT at rows ``r0:r1`` x columns ``c0:c1`` (float64): each block
     ``(first_line, last_line, first_sample, last_sample, lines, lut)`` (inclusive bounds, as
     the annotation's ``noiseAzimuthVector``) interpolated linearly in line over its rectangle;
@@ -103,7 +105,7 @@ def azimuth_noise(blocks: list[tuple[int, int, int, int, np.ndarray, np.ndarray]
         if a0 >= a1 or b0 >= b1:
             continue
         v = np.interp(np.arange(a0, a1, dtype=float), np.asarray(lines, float), np.asarray(lut, float))
-        out[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = v[:, None]
+        out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = v[:, None]
     return out
 
 
@@ -145,11 +147,14 @@ def check_safe_kind(p: Path, kind: str) -> None:
         return
     if product_is_slc(_Product(p, layout).members):
         if kind != "slc":
-            raise InputError(f"'{p}': a Sentinel-1 SLC product is ingested as complex channels (kind slc); "
-                             f"--kind {kind} does not apply")
+            raise InputError(
+                f"'{p}': a Sentinel-1 SLC product is ingested as complex channels (kind slc); "
+                f"--kind {kind} does not apply"
+            )
     elif kind != "intensity":
-        raise InputError(f"'{p}': a Sentinel-1 GRD product is ingested as intensity (DN^2 or sigma0); "
-                         f"--kind {kind} does not apply")
+        raise InputError(
+            f"'{p}': a Sentinel-1 GRD product is ingested as intensity (DN^2 or sigma0); --kind {kind} does not apply"
+        )
 
 
 #: Bytes read at a time from an XML member (:meth:`_Product.open_member`).
@@ -183,8 +188,11 @@ class _Product:
         else:
             with zipfile.ZipFile(p) as z:
                 pre = self.inner + "/"
-                self.sizes = {i.filename[len(pre):]: (int(i.file_size), int(i.compress_size)) for i in z.infolist()
-                              if i.filename.startswith(pre) and not i.filename.endswith("/")}
+                self.sizes = {
+                    i.filename[len(pre) :]: (int(i.file_size), int(i.compress_size))
+                    for i in z.infolist()
+                    if i.filename.startswith(pre) and not i.filename.endswith("/")
+                }
             self.url = f"zip://{self.inner}/manifest.safe::{p.resolve()}"
         self.members = sorted(self.sizes)
         self.name = p.name if self.kind == "dir" else str(self.inner)
@@ -227,7 +235,8 @@ class _Product:
                 if buf.tell() > cap:
                     raise InputError(
                         f"'{self.path}': {member} inflates to more than {self.limits.max_xml_mb:g} MiB, the limit "
-                        f"for an XML member ({self.limits._knob('max_xml_mb')}): read stopped there")
+                        f"for an XML member ({self.limits._knob('max_xml_mb')}): read stopped there"
+                    )
         buf.seek(0)
         return buf
 
@@ -239,15 +248,24 @@ def _require():
         import xarray_sentinel  # noqa: F401
         from xarray_sentinel import esa_safe  # noqa: F401
     except ImportError as exc:
-        raise InputError(f"reading Sentinel-1 SAFE products needs xarray-sentinel ({_one_line(exc)}): "
-                         f"{INSTALL_HINT}") from None
+        raise InputError(
+            f"reading Sentinel-1 SAFE products needs xarray-sentinel ({_one_line(exc)}): {INSTALL_HINT}"
+        ) from None
 
 
 class _SafeSource(_Source):
     """A GRD product: ``read`` gives ``(h, w, npol)`` float32 DN^2 or sigma0 (see module doc)."""
 
-    def __init__(self, p: Path, prod: _Product, pols: list[str], meas: dict[str, str],
-                 meta: dict[str, Any], luts: dict[str, dict[str, Any]], shape: tuple[int, int]):
+    def __init__(
+        self,
+        p: Path,
+        prod: _Product,
+        pols: list[str],
+        meas: dict[str, str],
+        meta: dict[str, Any],
+        luts: dict[str, dict[str, Any]],
+        shape: tuple[int, int],
+    ):
         super().__init__(path=p, shape=shape, nbands=len(pols), dtype=np.dtype(np.float32), fmt="safe", meta=meta)
         import rasterio
 
@@ -293,8 +311,7 @@ def check_image_size(p: Path, ann: str, hw: tuple[int, int]) -> None:
         raise InputError(f"'{p}': the annotation {ann} declares an empty image ({hw[0]} x {hw[1]} pixels)")
 
 
-def check_measurement(p: Path, prod: _Product, member: str, ann: str, hw: tuple[int, int],
-                      limits: InputLimits) -> None:
+def check_measurement(p: Path, prod: _Product, member: str, ann: str, hw: tuple[int, int], limits: InputLimits) -> None:
     """What a measurement GeoTIFF may declare, from its header alone, before any pixel is read:
     its size must be the annotation's ``hw`` (lines, samples); the chunk limit (GDAL decodes a
     compressed strip/tile whole); the ratio limit: its declared bytes (lines x samples x bytes
@@ -313,12 +330,16 @@ def check_measurement(p: Path, prod: _Product, member: str, ann: str, hw: tuple[
     except Exception as exc:
         raise InputError(f"'{p}': cannot read the measurement {member} ({_one_line(exc)})") from None
     if (th, tw) != tuple(hw):
-        raise InputError(f"'{p}': the annotation {ann} declares {hw[0]} x {hw[1]} pixels but the measurement "
-                         f"{member} is {th} x {tw}: a damaged or edited product")
+        raise InputError(
+            f"'{p}': the annotation {ann} declares {hw[0]} x {hw[1]} pixels but the measurement "
+            f"{member} is {th} x {tw}: a damaged or edited product"
+        )
     limits.check_pixels(p, th, tw)
     if comp != 1 and chunk > limits.max_chunk_mb * 2**20:
-        raise InputError(f"'{p}': one compressed strip/tile of {member} decodes to {chunk / 2**20:.3g} MiB, above "
-                         f"the limit of {limits.max_chunk_mb:g} MiB ({limits._knob('max_chunk_mb')})")
+        raise InputError(
+            f"'{p}': one compressed strip/tile of {member} decodes to {chunk / 2**20:.3g} MiB, above "
+            f"the limit of {limits.max_chunk_mb:g} MiB ({limits._knob('max_chunk_mb')})"
+        )
     where = "compressed in the zip" if prod.kind == "zip" else "on disk"
     limits.check_ratio(p, f"the measurement {member} ({where})", float(th) * tw * pixel_bytes, prod.sizes[member][1])
 
@@ -339,8 +360,10 @@ def check_lut(p: Path, what: str, lines: Any, pixels: Any, values: Any, positive
     if bad.any():
         i, j = (int(k[0]) for k in np.nonzero(bad))
         want = "finite positive" if positive else "finite non-negative"
-        raise InputError(f"'{p}': the {what} has {int(bad.sum())} of {v.size} nodes that are not {want} numbers "
-                         f"(first at line {lines[i]:g}, pixel {pixels[j]:g}: {v[i, j]:g}): a damaged product")
+        raise InputError(
+            f"'{p}': the {what} has {int(bad.sum())} of {v.size} nodes that are not {want} numbers "
+            f"(first at line {lines[i]:g}, pixel {pixels[j]:g}: {v[i, j]:g}): a damaged product"
+        )
 
 
 def manifest_attrs(p: Path, prod) -> dict[str, Any]:
@@ -354,8 +377,9 @@ def manifest_attrs(p: Path, prod) -> dict[str, Any]:
         raise InputError(f"'{p}': cannot read the SAFE manifest ({_one_line(exc)})") from None
 
 
-def product_measurements(p: Path, limits: InputLimits, layout: tuple[str, str | None]
-                         ) -> tuple[_Product, dict[str, str], set[str], dict[str, dict[str, str]]]:
+def product_measurements(
+    p: Path, limits: InputLimits, layout: tuple[str, str | None]
+) -> tuple[_Product, dict[str, str], set[str], dict[str, dict[str, str]]]:
     """The product's members checked, and its measurements: ``(product, {pol: member},
     swaths, {swath: {pol: member}} of SLC measurements)`` (the last empty for a GRD). The entry
     point opens an SLC with :func:`sarship.pipeline.readers.safe_slc.open_slc`, a GRD with
@@ -379,8 +403,9 @@ def product_measurements(p: Path, limits: InputLimits, layout: tuple[str, str | 
     return prod, meas, swaths, slc
 
 
-def open_grd(p: Path, prod: _Product, meas: dict[str, str], swaths: set[str], limits: InputLimits,
-             swath: str | None = None) -> _Source:
+def open_grd(
+    p: Path, prod: _Product, meas: dict[str, str], swaths: set[str], limits: InputLimits, swath: str | None = None
+) -> _Source:
     """A GRD product as a source (its measurements from :func:`product_measurements`)."""
     import xarray as xr
     from xarray_sentinel import esa_safe
@@ -428,9 +453,18 @@ def open_grd(p: Path, prod: _Product, meas: dict[str, str], swaths: set[str], li
                 lat, lon, h, inc = (g[v].values for v in ("latitude", "longitude", "height", "incidenceAngle"))
                 # annotation line/pixel index a pixel, whose centre is (line + 1/2, pixel + 1/2) in the
                 # scene's pixel-is-area coordinates (as GDAL's SAFE GCPs and SNAP's tie-point grids)
-                gcps = [{"row": float(gl[i]) + 0.5, "col": float(gp[j]) + 0.5, "x": float(lon[i, j]), "y": float(lat[i, j]),
-                         "z": float(h[i, j]), "incidence": float(inc[i, j])}
-                        for i in range(len(gl)) for j in range(len(gp))]
+                gcps = [
+                    {
+                        "row": float(gl[i]) + 0.5,
+                        "col": float(gp[j]) + 0.5,
+                        "x": float(lon[i, j]),
+                        "y": float(lat[i, j]),
+                        "z": float(h[i, j]),
+                        "incidence": float(inc[i, j]),
+                    }
+                    for i in range(len(gl))
+                    for j in range(len(gp))
+                ]
             lut: dict[str, Any] = {}
             if f"annotation/calibration/calibration-{base}.xml" in prod.members:
                 c = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/calibration")
@@ -440,20 +474,32 @@ def open_grd(p: Path, prod: _Product, meas: dict[str, str], swaths: set[str], li
             if f"annotation/calibration/noise-{base}.xml" in prod.members:
                 n = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/noise_range")
                 lut["noise_range"] = (n["line"].values, n["pixel"].values, n["noiseRangeLut"].values)
-                check_lut(p, f"noise range LUT of {pol.upper()} (noise-{base}.xml)", *lut["noise_range"],
-                          positive=False)
+                check_lut(
+                    p, f"noise range LUT of {pol.upper()} (noise-{base}.xml)", *lut["noise_range"], positive=False
+                )
                 # every block (xarray-sentinel 0.9's noise_azimuth group keeps only the first)
                 with prod.open_member(f"annotation/calibration/noise-{base}.xml") as f:
                     vecs = esa_safe.parse_tag_as_list(f, "//noiseAzimuthVector", "noise")
                 lut["noise_azimuth"] = [
-                    (int(v.get("firstAzimuthLine", 0)), int(v.get("lastAzimuthLine", shape[0] - 1)),
-                     int(v.get("firstRangeSample", 0)), int(v.get("lastRangeSample", shape[1] - 1)),
-                     np.array(str(v["line"]["$"]).split(), float),
-                     np.array(str(v["noiseAzimuthLut"]["$"]).split(), float))
-                    for v in vecs]
+                    (
+                        int(v.get("firstAzimuthLine", 0)),
+                        int(v.get("lastAzimuthLine", shape[0] - 1)),
+                        int(v.get("firstRangeSample", 0)),
+                        int(v.get("lastRangeSample", shape[1] - 1)),
+                        np.array(str(v["line"]["$"]).split(), float),
+                        np.array(str(v["noiseAzimuthLut"]["$"]).split(), float),
+                    )
+                    for v in vecs
+                ]
                 for b in lut["noise_azimuth"]:
-                    check_lut(p, f"noise azimuth LUT of {pol.upper()} (noise-{base}.xml)", b[4], [b[2]], b[5][:, None],
-                              positive=False)
+                    check_lut(
+                        p,
+                        f"noise azimuth LUT of {pol.upper()} (noise-{base}.xml)",
+                        b[4],
+                        [b[2]],
+                        b[5][:, None],
+                        positive=False,
+                    )
                 denoised.append(pol)
             luts[pol] = lut
         except InputError:
@@ -476,8 +522,9 @@ def open_grd(p: Path, prod: _Product, meas: dict[str, str], swaths: set[str], li
     }
     if (mode, res) in NOMINAL_ENL:
         meta["looks"] = NOMINAL_ENL[(mode, res)]
-        meta["looks_note"] = (f"nominal ENL of {mode} {res} (ESA Sentinel-1 product definition); the "
-                              "annotation carries no ENL")
+        meta["looks_note"] = (
+            f"nominal ENL of {mode} {res} (ESA Sentinel-1 product definition); the annotation carries no ENL"
+        )
     if calibrated and len(calibrated) == len(pols):
         cal = "sigma0 = DN^2 / A^2 (sigmaNought LUT, bilinear)"
     elif calibrated:
@@ -491,9 +538,13 @@ def open_grd(p: Path, prod: _Product, meas: dict[str, str], swaths: set[str], li
         "acquisition_stop": str(root.get("stop_time")),
         "orbit_pass": str(root.get("pass", "")),
         "calibration": cal,
-        "thermal_noise_removal": (f"max(DN^2 - N, 0) for {', '.join(denoised)} (noise range x azimuth LUTs)"
-                                  if denoised else "none (no noise annotation in the product)"),
+        "thermal_noise_removal": (
+            f"max(DN^2 - N, 0) for {', '.join(denoised)} (noise range x azimuth LUTs)"
+            if denoised
+            else "none (no noise annotation in the product)"
+        ),
     }
     from sarship.pipeline.readers.safe_geometry import sar_geometry  # issue 16: azimuth-ambiguity geometry
+
     meta["extra_attrs"]["sar_geometry"] = sar_geometry(prod, swath, pols[0])
     return _SafeSource(p, prod, pols, meas, meta, luts, shape)

@@ -48,7 +48,7 @@ from sarship.pipeline.targets.ambiguity import C_LIGHT, effective_velocity_from_
 def _poly(coeffs: np.ndarray, t0: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """Annotation polynomials ``sum_d c_d (tau - t0)^d``: (n_az, deg) x (n_az,) at tau -> (n_az, n_tau)."""
     dt = tau[None, :] - t0[:, None]
-    return sum(coeffs[:, d, None] * dt ** d for d in range(coeffs.shape[1]))
+    return sum(coeffs[:, d, None] * dt**d for d in range(coeffs.shape[1]))
 
 
 def _seconds(t: Any) -> float:
@@ -62,8 +62,11 @@ def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
     :func:`sar_geometry` for the form that never raises)."""
     import xarray as xr
 
-    ann = [m for m in prod.members if m.startswith("annotation/") and m.count("/") == 1
-           and f"-{swath.lower()}-" in m and f"-{pol.lower()}-" in m]
+    ann = [
+        m
+        for m in prod.members
+        if m.startswith("annotation/") and m.count("/") == 1 and f"-{swath.lower()}-" in m and f"-{pol.lower()}-" in m
+    ]
     if not ann:
         raise ValueError(f"no annotation for {swath}/{pol.upper()}")
 
@@ -102,10 +105,19 @@ def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
             if name not in prfs:
                 raise ValueError(f"no PRF for sub-swath {name}")
             bl = m.findall("swathBoundsList/swathBounds")
-            swaths.append({"name": name, "prf_hz": float(np.median(prfs[name])),
-                           "blocks": [[int(b.findtext(k, "")) for k in ("firstAzimuthLine", "lastAzimuthLine",
-                                                                         "firstRangeSample", "lastRangeSample")]
-                                      for b in bl]})
+            swaths.append(
+                {
+                    "name": name,
+                    "prf_hz": float(np.median(prfs[name])),
+                    "blocks": [
+                        [
+                            int(b.findtext(k, ""))
+                            for k in ("firstAzimuthLine", "lastAzimuthLine", "firstRangeSample", "lastRangeSample")
+                        ]
+                        for b in bl
+                    ],
+                }
+            )
     else:
         name = swath.upper()
         if name not in prfs:
@@ -145,9 +157,11 @@ def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
         if lpb > 0:
             burst_s = lpb * ati
         else:
-            win = [_seconds(e.findtext("fineDceAzimuthStopTime")) - _seconds(e.findtext("fineDceAzimuthStartTime"))
-                   for e in root.iterfind("dopplerCentroid/dcEstimateList/dcEstimate")
-                   if e.findtext("fineDceAzimuthStartTime") and e.findtext("fineDceAzimuthStopTime")]
+            win = [
+                _seconds(e.findtext("fineDceAzimuthStopTime")) - _seconds(e.findtext("fineDceAzimuthStartTime"))
+                for e in root.iterfind("dopplerCentroid/dcEstimateList/dcEstimate")
+                if e.findtext("fineDceAzimuthStartTime") and e.findtext("fineDceAzimuthStopTime")
+            ]
             burst_s = float(np.median(win)) if win else None
         if not burst_s or burst_s <= 0:
             raise ValueError("a TOPS product without burst duration (linesPerBurst or dcEstimate windows)")
@@ -160,8 +174,12 @@ def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
         "azimuth_time_interval_s": ati,
         "range_sampling_rate_hz": fs,
         "slant_range_time_s": tau0,
-        "range_table": {"col": cols.tolist(), "slant_range_m": R.tolist(),
-                        "effective_velocity_m_s": vr.tolist(), "doppler_centroid_hz": fdc.tolist()},
+        "range_table": {
+            "col": cols.tolist(),
+            "slant_range_m": R.tolist(),
+            "effective_velocity_m_s": vr.tolist(),
+            "doppler_centroid_hz": fdc.tolist(),
+        },
         "swaths": swaths,
         "doppler_centroid_spread_hz": spread,
         "azimuth_steering_rate_deg_s": steer,

@@ -33,11 +33,10 @@ from typing import Any
 
 import numpy as np
 
-from sarship.pipeline.errors import InputError
 import sarship.pipeline.readers.tops as tops
+from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers.common import _one_line, _Source
 from sarship.pipeline.readers.limits import InputLimits
-
 
 #: Rows processed at once within a tile (bounds the float64 temporaries of the LUT and the
 #: deramping phase to a few MiB per column block).
@@ -55,9 +54,20 @@ def _iso(epoch: np.datetime64, s: float) -> str:
 class SlcSource(_Source):
     """One debursted, calibrated, deramped sub-swath: ``read`` gives ``(h, w, npol)`` complex64."""
 
-    def __init__(self, p: Path, prod, pols: list[str], meas: dict[str, str], meta: dict[str, Any],
-                 shape: tuple[int, int], segs: list[tops.Segment], lpb: int, valid: list[tuple[np.ndarray, np.ndarray]],
-                 ramps: list[tops.BurstRamp] | None, luts: dict[str, tuple]):
+    def __init__(
+        self,
+        p: Path,
+        prod,
+        pols: list[str],
+        meas: dict[str, str],
+        meta: dict[str, Any],
+        shape: tuple[int, int],
+        segs: list[tops.Segment],
+        lpb: int,
+        valid: list[tuple[np.ndarray, np.ndarray]],
+        ramps: list[tops.BurstRamp] | None,
+        luts: dict[str, tuple],
+    ):
         super().__init__(path=p, shape=shape, nbands=len(pols), dtype=np.dtype(np.complex64), fmt="safe", meta=meta)
         import rasterio
 
@@ -79,7 +89,7 @@ class SlcSource(_Source):
         for sg in self.segs:
             for a in range(max(r0, sg.row0), min(r1, sg.row1), STRIP_ROWS):  # strips bound the temporaries
                 b = min(a + STRIP_ROWS, r1, sg.row1)
-                covered[a - r0:b - r0] = True
+                covered[a - r0 : b - r0] = True
                 l0, l1 = a + sg.offset, b + sg.offset  # lines within the burst
                 t0, t1 = sg.burst * self.lpb + l0, sg.burst * self.lpb + l1  # measurement rows
                 fv, lv = self.valid[sg.burst]
@@ -98,7 +108,7 @@ class SlcSource(_Source):
                         lines, pixels, vals = self.luts[pol]
                         inv = np.reciprocal(bilinear_lut(lines, pixels, vals, t0, t1, c0, c1), dtype=np.float32)
                         f = inv if rot is None else rot * inv
-                    dst = out[a - r0:b - r0, :, k]
+                    dst = out[a - r0 : b - r0, :, k]
                     if f is None:
                         dst[...] = z
                     else:
@@ -162,8 +172,9 @@ def open_slc(p: Path, prod, slc: dict[str, dict[str, str]], limits: InputLimits,
     if "shape" in geom:  # the scene's (debursted) rows, not the measurement's stacked lines
         geom["shape"] = [b["H"], b["width"]]
     meta["extra_attrs"]["sar_geometry"] = geom
-    return SlcSource(p, prod, pols, meas, meta, (b["H"], b["width"]), b["segs"], b["lpb"], b["valid_samples"], ramps,
-                     luts)
+    return SlcSource(
+        p, prod, pols, meas, meta, (b["H"], b["width"]), b["segs"], b["lpb"], b["valid_samples"], ramps, luts
+    )
 
 
 def _choose_swath(p: Path, slc: dict[str, dict[str, str]], swath: str | None) -> str:
@@ -171,8 +182,10 @@ def _choose_swath(p: Path, slc: dict[str, dict[str, str]], swath: str | None) ->
     have = sorted(slc)
     if swath is None:
         if len(have) > 1:
-            raise InputError(f"'{p}': an IW SLC product with the sub-swaths {', '.join(have)}: choose one with "
-                             f"--swath {'|'.join(have)} (one scene per sub-swath)")
+            raise InputError(
+                f"'{p}': an IW SLC product with the sub-swaths {', '.join(have)}: choose one with "
+                f"--swath {'|'.join(have)} (one scene per sub-swath)"
+            )
         swath = have[0]
     sw = str(swath).strip().upper()
     if sw not in slc:
@@ -186,6 +199,7 @@ def _annotation(p: Path, prod, ann0: str):
     from xarray_sentinel import esa_safe, sentinel1
 
     try:
+
         def tag(path):
             with prod.open_member(ann0) as f:
                 return esa_safe.parse_tag(f, path)
@@ -204,8 +218,9 @@ def _annotation(p: Path, prod, ann0: str):
     return info, pinfo, timing, dc, fm, orbit
 
 
-def _bursts(p: Path, prod, sw: str, ann0: str, info, timing, meas: dict[str, str], pols: list[str],
-            limits: InputLimits) -> dict[str, Any]:
+def _bursts(
+    p: Path, prod, sw: str, ann0: str, info, timing, meas: dict[str, str], pols: list[str], limits: InputLimits
+) -> dict[str, Any]:
     """The image size and every measurement's header checked against the annotation, then the
     bursts: lines per burst, azimuth times, valid samples and the debursted segments (tops)."""
     from sarship.pipeline.readers.safe import check_image_size, check_measurement
@@ -224,8 +239,13 @@ def _bursts(p: Path, prod, sw: str, ann0: str, info, timing, meas: dict[str, str
         dt = float(info["azimuthTimeInterval"])
         epoch = np.datetime64(str(bursts[0]["azimuthTime"]), "ns")
         btimes = [_seconds(b["azimuthTime"], epoch) for b in bursts]
-        valid_samples = [(np.array(str(b["firstValidSample"]["$"]).split(), np.int64),
-                          np.array(str(b["lastValidSample"]["$"]).split(), np.int64)) for b in bursts]
+        valid_samples = [
+            (
+                np.array(str(b["firstValidSample"]["$"]).split(), np.int64),
+                np.array(str(b["lastValidSample"]["$"]).split(), np.int64),
+            )
+            for b in bursts
+        ]
         if any(len(f) != lpb or len(lv) != lpb for f, lv in valid_samples):
             raise ValueError("firstValidSample/lastValidSample do not have linesPerBurst values")
         vlines = [tops.valid_lines(f) for f, _ in valid_samples]
@@ -234,8 +254,19 @@ def _bursts(p: Path, prod, sw: str, ann0: str, info, timing, meas: dict[str, str
         raise
     except Exception as exc:
         raise InputError(f"'{p}': the {sw} burst annotation of {ann0} is not usable ({_one_line(exc)})") from None
-    return {"lines_in": lines_in, "width": width, "lpb": lpb, "n": len(bursts), "dt": dt, "epoch": epoch,
-            "btimes": btimes, "valid_samples": valid_samples, "segs": segs, "H": H, "t_first": t_first}
+    return {
+        "lines_in": lines_in,
+        "width": width,
+        "lpb": lpb,
+        "n": len(bursts),
+        "dt": dt,
+        "epoch": epoch,
+        "btimes": btimes,
+        "valid_samples": valid_samples,
+        "segs": segs,
+        "H": H,
+        "t_first": t_first,
+    }
 
 
 def _ramps(p: Path, sw: str, ann0: str, info, pinfo, orbit, fm, dc, b: dict[str, Any]) -> list:
@@ -254,15 +285,29 @@ def _ramps(p: Path, sw: str, ann0: str, info, pinfo, orbit, fm, dc, b: dict[str,
             dcc, dct0 = _interp_record(dc, "data_dc_polynomial", at)
             fv, _ = b["valid_samples"][k]
             first_col = int(np.median(fv[fv >= 0]))
-            ramps.append(tops.burst_ramp(tau, float(np.linalg.norm(v)), float(pinfo["radarFrequency"]),
-                                         float(pinfo["azimuthSteeringRate"]), fmc, fmt0, dcc, dct0, first_col, lpb, dt))
+            ramps.append(
+                tops.burst_ramp(
+                    tau,
+                    float(np.linalg.norm(v)),
+                    float(pinfo["radarFrequency"]),
+                    float(pinfo["azimuthSteeringRate"]),
+                    fmc,
+                    fmt0,
+                    dcc,
+                    dct0,
+                    first_col,
+                    lpb,
+                    dt,
+                )
+            )
     except Exception as exc:
         raise InputError(f"'{p}': cannot compute the {sw} deramping function from {ann0} ({_one_line(exc)})") from None
     return ramps
 
 
-def _calibration_and_gcps(p: Path, prod, sw: str, pols: list[str], anns: dict, b: dict[str, Any]
-                          ) -> tuple[dict[str, tuple], list | None]:
+def _calibration_and_gcps(
+    p: Path, prod, sw: str, pols: list[str], anns: dict, b: dict[str, Any]
+) -> tuple[dict[str, tuple], list | None]:
     """Each polarisation's size checked, its sigmaNought LUT (where the product has one) and the
     swath's GCPs on the debursted rows."""
     import xarray as xr
@@ -281,8 +326,10 @@ def _calibration_and_gcps(p: Path, prod, sw: str, pols: list[str], anns: dict, b
                 with prod.open_member(ann) as f:
                     other = esa_safe.parse_tag(f, "//imageInformation")
                 if (int(other["numberOfLines"]), int(other["numberOfSamples"])) != (lines_in, width):
-                    raise InputError(f"'{p}': the {sw} {pol.upper()} measurement is {other['numberOfLines']} x "
-                                     f"{other['numberOfSamples']}, not {lines_in} x {width}")
+                    raise InputError(
+                        f"'{p}': the {sw} {pol.upper()} measurement is {other['numberOfLines']} x "
+                        f"{other['numberOfSamples']}, not {lines_in} x {width}"
+                    )
             if gcps is None:
                 g = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/gcp")
                 gl, gp = g["line"].values, g["pixel"].values
@@ -290,15 +337,22 @@ def _calibration_and_gcps(p: Path, prod, sw: str, pols: list[str], anns: dict, b
                 # measurement line -> debursted row, by the line's azimuth time
                 rows = [_row_of_line(int(L), b["btimes"], b["lpb"], b["dt"], b["t_first"]) for L in gl]
                 # + 1/2: the centre of the indexed pixel in pixel-is-area coordinates (safe.py)
-                gcps = [{"row": float(rows[i]) + 0.5, "col": float(gp[j]) + 0.5, "x": float(lon[i, j]),
-                         "y": float(lat[i, j]),
-                         "z": float(h[i, j]), "incidence": float(inc[i, j])}
-                        for i in range(len(gl)) for j in range(len(gp))]
+                gcps = [
+                    {
+                        "row": float(rows[i]) + 0.5,
+                        "col": float(gp[j]) + 0.5,
+                        "x": float(lon[i, j]),
+                        "y": float(lat[i, j]),
+                        "z": float(h[i, j]),
+                        "incidence": float(inc[i, j]),
+                    }
+                    for i in range(len(gl))
+                    for j in range(len(gp))
+                ]
             if f"annotation/calibration/calibration-{base}.xml" in prod.members:
                 c = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/calibration")
                 luts[pol] = (c["line"].values, c["pixel"].values, c["sigmaNought"].values)
-                check_lut(p, f"sigmaNought calibration LUT of {sw} {pol.upper()} (calibration-{base}.xml)",
-                          *luts[pol])
+                check_lut(p, f"sigmaNought calibration LUT of {sw} {pol.upper()} (calibration-{base}.xml)", *luts[pol])
         except InputError:
             raise
         except Exception as exc:
@@ -341,11 +395,19 @@ def _slc_meta(prod, sw: str, pols: list[str], info, root: dict, gcps, luts: dict
         "orbit_pass": str(root.get("pass", "")),
         "calibration": cal,
         "thermal_noise_removal": "none (SLC: noise power applies to |DN|^2, not to complex samples)",
-        "slc_phase": ("debursted (seams at the burst-overlap midpoints), deramped and demodulated to baseband per "
-                      "burst (ESA TOPS SLC deramping function)"),
-        "bursts": [{"burst": sg.burst, "rows": [sg.row0, sg.row1],
-                    "measurement_lines": [sg.burst * lpb + sg.row0 + sg.offset, sg.burst * lpb + sg.row1 + sg.offset],
-                    "azimuth_time": _iso(epoch, t_first + sg.row0 * dt)} for sg in b["segs"]],
+        "slc_phase": (
+            "debursted (seams at the burst-overlap midpoints), deramped and demodulated to baseband per "
+            "burst (ESA TOPS SLC deramping function)"
+        ),
+        "bursts": [
+            {
+                "burst": sg.burst,
+                "rows": [sg.row0, sg.row1],
+                "measurement_lines": [sg.burst * lpb + sg.row0 + sg.offset, sg.burst * lpb + sg.row1 + sg.offset],
+                "azimuth_time": _iso(epoch, t_first + sg.row0 * dt),
+            }
+            for sg in b["segs"]
+        ],
         "incidence_angle_mid_swath_deg": inc,
         "ground_range_spacing_m": spacing[1] / float(np.sin(np.radians(inc))) if np.isfinite(inc) and inc > 0 else None,
     }

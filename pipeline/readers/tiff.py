@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers.common import _POL_RE, _Source, _check_dtype, _check_hw, _one_line
+from sarship.pipeline.readers.common import _POL_RE, _check_dtype, _check_hw, _one_line, _Source
 from sarship.pipeline.readers.limits import InputLimits
 from sarship.pipeline.scene import COMPLEX_CHANNELS
 
@@ -160,8 +160,9 @@ def _check_tiff_complete(p: Path, tif, series) -> None:
         raise InputError(f"'{p}': truncated TIFF (image data end at byte {end}, file has {size} bytes)")
 
 
-def _tiff_metadata(p: Path, tif, page, nbands: int, shape: tuple[int, int],
-                   sidecar_root: Path | bool | None = None) -> dict[str, Any]:
+def _tiff_metadata(
+    p: Path, tif, page, nbands: int, shape: tuple[int, int], sidecar_root: Path | bool | None = None
+) -> dict[str, Any]:
     meta: dict[str, Any] = {}
     items: dict[str, str] = {}
     band_desc: list[str] = []
@@ -233,11 +234,17 @@ def _tiff_metadata(p: Path, tif, page, nbands: int, shape: tuple[int, int],
                 meta["nodata"] = v
         except ValueError:
             pass
-    side = {} if sidecar_root is False else _snap_sidecar(
-        p, stop=sidecar_root if isinstance(sidecar_root, Path) else None)
+    side = (
+        {} if sidecar_root is False else _snap_sidecar(p, stop=sidecar_root if isinstance(sidecar_root, Path) else None)
+    )
     # the TIFF's own georeference, looks and band names win over the product-level sidecar
-    groups = {"pixel_spacing_m": "pixel_spacing_m", "pixel_spacing_source": "pixel_spacing_m",
-              "looks": "looks", "looks_note": "looks", "pols": "pols"}
+    groups = {
+        "pixel_spacing_m": "pixel_spacing_m",
+        "pixel_spacing_source": "pixel_spacing_m",
+        "looks": "looks",
+        "looks_note": "looks",
+        "pols": "pols",
+    }
     have = {g for g in groups.values() if g in meta}
     for k, v in side.items():
         if groups.get(k) in have:
@@ -261,11 +268,33 @@ def _quantity_from_words(words: list[str]) -> str | None:
 
 # EPSG codes of projected CRSs in metres, used when ProjLinearUnitsGeoKey is absent.
 _METRE_EPSG_RANGES = (
-    (32601, 32660), (32701, 32760), (32201, 32260), (32301, 32360), (26901, 26923),
-    (25828, 25838), (28348, 28358), (31466, 31469), (3857, 3857), (3395, 3395),
-    (3035, 3035), (3034, 3034), (3031, 3031), (3413, 3413), (3976, 3976), (3995, 3995),
-    (2154, 2154), (27700, 27700), (5070, 5070), (6933, 6933), (3577, 3577), (2056, 2056),
-    (21781, 21781), (4087, 4087), (32662, 32662), (3578, 3578), (3005, 3005),
+    (32601, 32660),
+    (32701, 32760),
+    (32201, 32260),
+    (32301, 32360),
+    (26901, 26923),
+    (25828, 25838),
+    (28348, 28358),
+    (31466, 31469),
+    (3857, 3857),
+    (3395, 3395),
+    (3035, 3035),
+    (3034, 3034),
+    (3031, 3031),
+    (3413, 3413),
+    (3976, 3976),
+    (3995, 3995),
+    (2154, 2154),
+    (27700, 27700),
+    (5070, 5070),
+    (6933, 6933),
+    (3577, 3577),
+    (2056, 2056),
+    (21781, 21781),
+    (4087, 4087),
+    (32662, 32662),
+    (3578, 3578),
+    (3005, 3005),
 )
 _LINEAR_UNITS = {9001: 1.0, 9002: 0.3048, 9003: 1200.0 / 3937.0, 9036: 1000.0}
 
@@ -288,7 +317,7 @@ def _geotiff(page, shape: tuple[int, int]) -> dict[str, Any]:
             g = [int(v) for v in gkd]
             n = g[3]
             for k in range(n):
-                kid, loc, cnt, v = g[4 + 4 * k: 8 + 4 * k]
+                kid, loc, cnt, v = g[4 + 4 * k : 8 + 4 * k]
                 if loc == 0:
                     keys[kid] = v
         except (IndexError, TypeError, ValueError):
@@ -449,9 +478,7 @@ def _snap_sidecar(p: Path, stop: Path | None = None) -> dict[str, Any]:
             la, lr = float(a["azimuth_looks"]), float(a["range_looks"])
             if la > 0 and lr > 0:
                 out["looks"] = la * lr
-                out["looks_note"] = (
-                    f"SNAP metadata {c.name}: azimuth_looks {la:g} x range_looks {lr:g} (nominal)"
-                )
+                out["looks_note"] = f"SNAP metadata {c.name}: azimuth_looks {la:g} x range_looks {lr:g} (nominal)"
         except (KeyError, TypeError, ValueError):
             pass
         return out

@@ -41,8 +41,8 @@ interpolated linearly in time between the annotation's records, the end records 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -69,8 +69,9 @@ def valid_lines(first_valid_sample: Sequence[int]) -> tuple[int, int]:
     return int(v[0]), int(v[-1])
 
 
-def deburst_segments(burst_times: Sequence[float], valid: Sequence[tuple[int, int]],
-                     dt: float) -> tuple[list[Segment], int, float]:
+def deburst_segments(
+    burst_times: Sequence[float], valid: Sequence[tuple[int, int]], dt: float
+) -> tuple[list[Segment], int, float]:
     """The deburst of a sub-swath (module docstring): ``(segments, rows, t_first)``.
 
     ``burst_times``: azimuth time (s, any origin) of each burst's first line, increasing;
@@ -138,9 +139,19 @@ class BurstRamp:
     dt: float
 
 
-def burst_ramp(tau: np.ndarray, speed: float, radar_frequency: float, steering_rate_deg_s: float,
-               fm_coeffs: Sequence[float], fm_t0: float, dc_coeffs: Sequence[float], dc_t0: float,
-               first_valid_col: int, lines_per_burst: int, dt: float) -> BurstRamp:
+def burst_ramp(
+    tau: np.ndarray,
+    speed: float,
+    radar_frequency: float,
+    steering_rate_deg_s: float,
+    fm_coeffs: Sequence[float],
+    fm_t0: float,
+    dc_coeffs: Sequence[float],
+    dc_t0: float,
+    first_valid_col: int,
+    lines_per_burst: int,
+    dt: float,
+) -> BurstRamp:
     """The deramping parameters of one burst at slant-range times ``tau`` (two-way, s)."""
     wavelength = SPEED_OF_LIGHT / radar_frequency
     ks = 2.0 * speed / wavelength * math.radians(steering_rate_deg_s)

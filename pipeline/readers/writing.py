@@ -148,8 +148,15 @@ def choose_codec(shape, tile, read_tile, variables) -> tuple[str, dict[str, Any]
             packed += len(z.encode(b))
     ratio = raw / packed if packed else 1.0
     codec = "zstd" if ratio >= AUTO_CODEC_MIN_RATIO else "none"
-    return codec, {"codec": codec, "codec_choice": {"rule": "auto", "zstd_ratio_of_sample": round(ratio, 4),
-                                                    "min_ratio": AUTO_CODEC_MIN_RATIO, "sample_bytes": raw}}
+    return codec, {
+        "codec": codec,
+        "codec_choice": {
+            "rule": "auto",
+            "zstd_ratio_of_sample": round(ratio, 4),
+            "min_ratio": AUTO_CODEC_MIN_RATIO,
+            "sample_bytes": raw,
+        },
+    }
 
 
 def _sample_windows(shape, tile):
@@ -198,10 +205,14 @@ def _rank_one_looks(store: Path, variables: list[str], shape, tile) -> dict[str,
     med = float(np.median(v))
     if med >= RANK_ONE_TOL:
         return {}
-    return {"looks": 1.0,
-            "looks_source": (f"estimated: rank-one covariance (median over sampled pixels of the largest "
-                             f"1 - |c_ij|^2/(c_ii c_jj) is {med:.1e} < {RANK_ONE_TOL:g}, {len(wins)} tile(s)): "
-                             "single look")}
+    return {
+        "looks": 1.0,
+        "looks_source": (
+            f"estimated: rank-one covariance (median over sampled pixels of the largest "
+            f"1 - |c_ij|^2/(c_ii c_jj) is {med:.1e} < {RANK_ONE_TOL:g}, {len(wins)} tile(s)): "
+            "single look"
+        ),
+    }
 
 
 def _estimate_scene_looks(store: Path, var: str, shape, tile) -> dict[str, Any]:
@@ -223,6 +234,8 @@ def _estimate_scene_looks(store: Path, var: str, shape, tile) -> dict[str, Any]:
         return {"looks": None, "looks_source": f"unknown: {exc}"}
     return {
         "looks": float(L),
-        "looks_source": (f"estimated: MoLC (median log-variance of 32x32 windows, trigamma inverted) "
-                         f"on '{var}', {len(picks)} tile(s)"),
+        "looks_source": (
+            f"estimated: MoLC (median log-variance of 32x32 windows, trigamma inverted) "
+            f"on '{var}', {len(picks)} tile(s)"
+        ),
     }

@@ -31,8 +31,9 @@ def _ingest_zarr(src: Path, outp: Path, tile: int, progress, looks, codec: str =
             try:
                 out[name] = np.asarray(a[r0:r1, c0:c1])
             except Exception as exc:
-                raise InputError(f"'{src}': cannot read '{name}' rows {r0}:{r1}, cols {c0}:{c1} "
-                                 f"({_one_line(exc)})") from None
+                raise InputError(
+                    f"'{src}': cannot read '{name}' rows {r0}:{r1}, cols {c0}:{c1} ({_one_line(exc)})"
+                ) from None
         return out
 
     attrs.pop("codec_choice", None)  # the source's choice is not this store's

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarship.pipeline.stats import model_fit
 from sarship.pipeline.run.plan import Plan
+from sarship.pipeline.stats import model_fit
 
 
 def fit_record(plan: Plan, results: list[dict], records: np.ndarray) -> dict:

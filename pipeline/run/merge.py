@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarship.pipeline.targets.lines import discard_lines
 from sarship.pipeline.run.plan import Plan
+from sarship.pipeline.targets.lines import discard_lines
 from sarship.pipeline.targets.ship_features import keep_mask, size_prefilter
 
 
-def size_and_lines(records: np.ndarray, params, spacing: tuple[float, float] | None,
-                   tile_size_dropped: int) -> tuple[np.ndarray, dict[str, int]]:
+def size_and_lines(
+    records: np.ndarray, params, spacing: tuple[float, float] | None, tile_size_dropped: int
+) -> tuple[np.ndarray, dict[str, int]]:
     """The size, shape and line rules (module docstring) on the merged components; returns the
     kept records and the count each rule dropped (``tile_size_dropped``: those the tiles
     dropped already; ``detector``, ``land`` and ``contrast`` start at 0)."""
@@ -27,8 +28,15 @@ def size_and_lines(records: np.ndarray, params, spacing: tuple[float, float] | N
     keep = keep_mask(records, pre, spacing) if pre is not params else np.ones(len(records), bool)
     size = tile_size_dropped + int(len(keep) - keep.sum())
     records = records[keep]
-    reason = discard_lines(records, params.line_gap_px, params.line_angle_deg, params.line_dominant_db,
-                           params.max_elongation, params.max_length_m, spacing)
+    reason = discard_lines(
+        records,
+        params.line_gap_px,
+        params.line_angle_deg,
+        params.line_dominant_db,
+        params.max_elongation,
+        params.max_length_m,
+        spacing,
+    )
     counts = {"line": int((reason == "line").sum()), "smear": int((reason == "smear").sum())}
     records = records[reason == ""]
     keep = keep_mask(records, params, spacing)
@@ -36,8 +44,9 @@ def size_and_lines(records: np.ndarray, params, spacing: tuple[float, float] | N
     return records[keep], counts
 
 
-def discriminate(plan: Plan, prep: dict, merged: np.ndarray, tile_size_dropped: int
-                 ) -> tuple[np.ndarray, dict[str, int]]:
+def discriminate(
+    plan: Plan, prep: dict, merged: np.ndarray, tile_size_dropped: int
+) -> tuple[np.ndarray, dict[str, int]]:
     """The stage (module docstring): the kept records and ``discarded``. ``prep``: the detector's
     prepared values with the scene pass's."""
     records, discarded = size_and_lines(merged, plan.params, plan.spacing, tile_size_dropped)

@@ -29,8 +29,10 @@ def check_out_path(out_dir: Path, scene_path: Path) -> None:
     would replace the scene itself."""
     out, scene = out_dir.resolve(), scene_path.resolve()
     if out == scene or scene in out.parents:
-        raise InputError(f"--out '{out_dir}' is inside the scene store '{scene_path}': "
-                         "choose a folder outside it (not even --overwrite writes into an input)")
+        raise InputError(
+            f"--out '{out_dir}' is inside the scene store '{scene_path}': "
+            "choose a folder outside it (not even --overwrite writes into an input)"
+        )
     if scene in {out / name for name in OUTPUTS}:
         raise InputError(f"--out '{out_dir}' would replace the scene '{scene_path}' itself: choose another folder")
 
@@ -41,8 +43,10 @@ def check_out(out_dir: Path, scene_path: Path, overwrite: bool) -> None:
     check_out_path(out_dir, scene_path)
     out = out_dir.resolve()
     if not overwrite and out.is_dir() and any(p.name != CLAIM_SUFFIX for p in out.iterdir()):
-        raise InputError(f"output folder '{out_dir}' exists and is not empty: pass --overwrite to replace "
-                         f"its {', '.join(OUTPUTS)}, or choose another folder")
+        raise InputError(
+            f"output folder '{out_dir}' exists and is not empty: pass --overwrite to replace "
+            f"its {', '.join(OUTPUTS)}, or choose another folder"
+        )
 
 
 def prepare_out(out_dir: Path) -> Path:

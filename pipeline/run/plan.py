@@ -14,15 +14,15 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
-from sarship.pipeline.stats import model_fit
-from sarship.pipeline.targets.components import merge_radius
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, land_mask_parts, resolve_size
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.tiling.inputs import detector_source, make_reader
 from sarship.pipeline.run.outputs import check_out
 from sarship.pipeline.scene import Scene, open_scene, processing_tile
+from sarship.pipeline.stats import model_fit
+from sarship.pipeline.targets.components import merge_radius
+from sarship.pipeline.tiling.inputs import detector_source, make_reader
 
 #: The smallest processing tile side (pixels).
 MIN_TILE = 8
@@ -34,7 +34,7 @@ class LandOptions:
     names, and the checked source of the file or coastline (None for none/texture)."""
 
     kinds: frozenset[str]
-    path: Optional[str]
+    path: str | None
     source: Any = None
 
     @property
@@ -52,13 +52,13 @@ class Plan:
 
     detector: str
     spec: DetectorSpec
-    params: DetectorParams           # the run's parameters (run.json ``parameters``)
-    prep: dict                       # ``spec.prepare`` on them (run.json ``prepared``)
-    device: str                      # asked: auto, cpu or gpu
-    has_gpu: bool                    # GPU code for these parameters
-    scene: Scene                     # with its absolute path (tile tasks run elsewhere)
-    out_dir: Path                    # absolute
-    var: Any                         # what the detector reads (pipeline/tiling/inputs.py)
+    params: DetectorParams  # the run's parameters (run.json ``parameters``)
+    prep: dict  # ``spec.prepare`` on them (run.json ``prepared``)
+    device: str  # asked: auto, cpu or gpu
+    has_gpu: bool  # GPU code for these parameters
+    scene: Scene  # with its absolute path (tile tasks run elsewhere)
+    out_dir: Path  # absolute
+    var: Any  # what the detector reads (pipeline/tiling/inputs.py)
     transform: str
     tile: int
     tile_source: str
@@ -67,9 +67,9 @@ class Plan:
     land: LandOptions
     looks_source: str
     size_rule: str
-    spacing: Optional[tuple[float, float]]
-    geo: dict                        # the scene's georeference attributes
-    fit: Optional[dict]              # the clutter-model fit's settings, None when not measured
+    spacing: tuple[float, float] | None
+    geo: dict  # the scene's georeference attributes
+    fit: dict | None  # the clutter-model fit's settings, None when not measured
     warnings: tuple[str, ...]
 
     @property
@@ -84,12 +84,14 @@ def check_device(spec: DetectorSpec, detector: str, device: str, params: Detecto
         raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation in this version")
     has_gpu = spec.gpu_for(params)
     if device == "gpu" and not has_gpu:
-        raise InputError(f"--device gpu: detector '{detector}' has no GPU implementation for these parameters "
-                         f"(docs/algorithms/{detector}.md, 'GPU'); use --device auto or cpu")
+        raise InputError(
+            f"--device gpu: detector '{detector}' has no GPU implementation for these parameters "
+            f"(docs/algorithms/{detector}.md, 'GPU'); use --device auto or cpu"
+        )
     return has_gpu
 
 
-def choose_tile(scene: Scene, tile: Optional[int]) -> tuple[int, str]:
+def choose_tile(scene: Scene, tile: int | None) -> tuple[int, str]:
     """The processing tile side and where it came from (``given``, ``scene``, ``scene tile x N``)."""
     if tile:
         tile, source = int(tile), "given"
@@ -101,7 +103,7 @@ def choose_tile(scene: Scene, tile: Optional[int]) -> tuple[int, str]:
     return tile, source
 
 
-def land_options(params: DetectorParams, scene: Optional[Scene] = None) -> LandOptions:
+def land_options(params: DetectorParams, scene: Scene | None = None) -> LandOptions:
     """``land_mask`` parsed (:func:`~sarship.pipeline.detectors.base.land_mask_parts`) and, with a
     scene, its source checked: the FILE (:class:`~sarship.pipeline.land.landmask_files.LandFile`), the
     coastline (:class:`~sarship.pipeline.land.coastline.Coastline`: package installed, scene
@@ -121,8 +123,9 @@ def land_options(params: DetectorParams, scene: Optional[Scene] = None) -> LandO
     return LandOptions(kinds, path, open_land_file(path, scene.shape, scene.attrs))
 
 
-def resolve_looks(spec: DetectorSpec, params: DetectorParams, scene: Scene, var: Any, transform: str
-                  ) -> tuple[DetectorParams, str]:
+def resolve_looks(
+    spec: DetectorSpec, params: DetectorParams, scene: Scene, var: Any, transform: str
+) -> tuple[DetectorParams, str]:
     """Fill ``looks`` from the parameter, else the scene attribute, else an estimate from a
     sample of the scene (:func:`sarship.pipeline.stats.looks.estimate_scene_looks`)."""
     if not spec.needs_looks or params.looks is not None:
@@ -146,8 +149,10 @@ def shape_rules(params: DetectorParams, scene: Scene, spacing) -> tuple[Detector
             params = params.model_copy(update={"max_elongation": None})
         elif spacing is None:
             params = params.model_copy(update={"max_elongation": None})
-            warnings.append(f"max_elongation not applied: the {scene.kind} scene's pixel spacing is unknown (its "
-                            "pixels need not be square; give it with sarship ingest --spacing AZ,RG)")
+            warnings.append(
+                f"max_elongation not applied: the {scene.kind} scene's pixel spacing is unknown (its "
+                "pixels need not be square; give it with sarship ingest --spacing AZ,RG)"
+            )
     if spacing is None and (params.min_length_m is not None or params.max_length_m is not None):
         warnings.append("min_length_m/max_length_m ignored: the scene's pixel spacing is unknown")
     return params, warnings
@@ -163,21 +168,42 @@ def fit_config(detector: str, spec: DetectorSpec, params: DetectorParams, shape:
     for p in model_fit.pfas_of(params.pfa)[1:]:
         other = model_fit.MODEL_PROBE.get(detector)
         if other is None:
-            probes.append({"pfa": p, "prep": spec.prepare(params.model_copy(update={"pfa": p})),
-                           "statistic": detector in model_fit.STATISTIC_PROBE})
+            probes.append(
+                {
+                    "pfa": p,
+                    "prep": spec.prepare(params.model_copy(update={"pfa": p})),
+                    "statistic": detector in model_fit.STATISTIC_PROBE,
+                }
+            )
             continue
         from sarship.pipeline import detectors
 
         ospec = detectors.get(other)  # the same model, windows, looks and absent pixels
         same = {k: getattr(params, k) for k in ("target", "guard", "background", "looks", "nodata")}
         oparams = ospec.params(pfa=p, land_mask=None, **same)
-        probes.append({"pfa": p, "prep": ospec.prepare(oparams), "statistic": False, "detector": other,
-                       "params": oparams.model_dump()})
+        probes.append(
+            {
+                "pfa": p,
+                "prep": ospec.prepare(oparams),
+                "statistic": False,
+                "detector": other,
+                "params": oparams.model_dump(),
+            }
+        )
     return {"stride": model_fit.sample_stride(shape), "probes": probes}
 
 
-def make_plan(spec: DetectorSpec, params: DetectorParams, *, device: str, channel: Optional[str],
-              scene_path: str | Path, out_dir: str | Path, tile: Optional[int], overwrite: bool) -> Plan:
+def make_plan(
+    spec: DetectorSpec,
+    params: DetectorParams,
+    *,
+    device: str,
+    channel: str | None,
+    scene_path: str | Path,
+    out_dir: str | Path,
+    tile: int | None,
+    overwrite: bool,
+) -> Plan:
     """The run's :class:`Plan` from its parsed request; every check that can refuse the run
     (device, output folder, channel, tile, land source, scene size) runs here, before any
     output is written. ``params``: the request's parameters, parsed once by the caller."""
@@ -201,9 +227,25 @@ def make_plan(spec: DetectorSpec, params: DetectorParams, *, device: str, channe
         params, notes = spec.for_scene(params, scene.shape, spacing)
         warnings.extend(notes)
     return Plan(
-        detector=detector, spec=spec, params=params, prep=prep, device=device, has_gpu=has_gpu, scene=scene,
-        out_dir=Path(out_dir).absolute(), var=var, transform=transform, tile=tile, tile_source=tile_source,
-        halo=spec.halo(params), merge_r=merge_radius(params.merge_px), land=land, looks_source=looks_source,
-        size_rule=size_rule, spacing=spacing,
+        detector=detector,
+        spec=spec,
+        params=params,
+        prep=prep,
+        device=device,
+        has_gpu=has_gpu,
+        scene=scene,
+        out_dir=Path(out_dir).absolute(),
+        var=var,
+        transform=transform,
+        tile=tile,
+        tile_source=tile_source,
+        halo=spec.halo(params),
+        merge_r=merge_radius(params.merge_px),
+        land=land,
+        looks_source=looks_source,
+        size_rule=size_rule,
+        spacing=spacing,
         geo={k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs},
-        fit=fit_config(detector, spec, params, scene.shape), warnings=tuple(warnings))
+        fit=fit_config(detector, spec, params, scene.shape),
+        warnings=tuple(warnings),
+    )

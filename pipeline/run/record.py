@@ -14,7 +14,7 @@ import math
 import platform
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional, TypedDict
+from typing import Any, TypedDict
 
 from sarship.pipeline import __version__
 from sarship.pipeline.run.outputs import OPTIONAL_OUTPUTS, OUTPUTS
@@ -37,11 +37,11 @@ class RunRecord(TypedDict, total=False):
     looks_source: str
     size_rule: str
     prepared: dict
-    scene_pass: Optional[dict]
-    land: Optional[dict]
+    scene_pass: dict | None
+    land: dict | None
     contrast: dict
     ambiguities: dict
-    model_fit: Optional[dict]
+    model_fit: dict | None
     detector_auto: dict
     scene: dict
     tiles: dict
@@ -64,18 +64,18 @@ class Outcome:
     """What the stages after the plan returned (module docstring)."""
 
     prep: dict
-    scene_pass: Optional[dict]
-    land: Optional[dict]
+    scene_pass: dict | None
+    land: dict | None
     results: list[dict]
     refined: Refined
     discarded: dict
-    model_fit: Optional[dict]
+    model_fit: dict | None
     kept_px: int
     tiles: int
     device: str
     placement_reason: str
     restriction: dict
-    dashboard: Optional[str]
+    dashboard: str | None
     warnings: list[str]
     timings: dict
     extra: dict = field(default_factory=dict)
@@ -124,9 +124,14 @@ def _tiles(plan: Plan, o: Outcome) -> dict:
         "halo_px": plan.halo,
         "merge_radius_px": plan.merge_r,
         "per_tile": [
-            {"index": list(r["index"]), "worker": r["worker"], "device": r["device"],
-             "detected_px": r["detected_px"], "block_from": r.get("block_from", "scene"),
-             **{k: round(r[k], 6) for k in TILE_TIMINGS}}
+            {
+                "index": list(r["index"]),
+                "worker": r["worker"],
+                "device": r["device"],
+                "detected_px": r["detected_px"],
+                "block_from": r.get("block_from", "scene"),
+                **{k: round(r[k], 6) for k in TILE_TIMINGS},
+            }
             for r in sorted(o.results, key=lambda r: r["index"])
         ],
     }
@@ -164,6 +169,9 @@ def run_record(plan: Plan, o: Outcome, tmp: Path) -> RunRecord:
         cluster={"dashboard": o.dashboard, "workers": sorted({r["worker"] for r in o.results})},
         versions=versions(),
         warnings=o.warnings,
-        outputs={name: str((plan.out_dir / name).resolve()) for name in OUTPUTS
-                 if name not in OPTIONAL_OUTPUTS or (tmp / name).exists()},
+        outputs={
+            name: str((plan.out_dir / name).resolve())
+            for name in OUTPUTS
+            if name not in OPTIONAL_OUTPUTS or (tmp / name).exists()
+        },
     )

@@ -16,17 +16,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
+from sarship.pipeline.run.plan import Plan
 from sarship.pipeline.targets.ambiguity import flag_features
-from sarship.pipeline.tiling.inputs import make_reader, pixel_power, window_reader
 from sarship.pipeline.targets.lines import near_land
 from sarship.pipeline.targets.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
-from sarship.pipeline.run.plan import Plan
 from sarship.pipeline.targets.ship_features import add_contrast, features, geolocate
 from sarship.pipeline.targets.sidelobes import refine_features
+from sarship.pipeline.tiling.inputs import make_reader, pixel_power, window_reader
 from sarship.pipeline.tiling.window_cache import CachedWindows
 
 
@@ -39,12 +39,20 @@ class Refined:
     records: np.ndarray
     contrast: dict
     ambiguities: dict
-    dropped_land: Optional[int]      # None when the land-gap rule did not run
+    dropped_land: int | None  # None when the land-gap rule did not run
     dropped_contrast: int
 
 
-def contrast_step(feats: list[dict], records, floor: float | None, scene_read, mask_read, land_path: Path | None,
-                  shape: tuple[int, int], nodata: float | None) -> tuple[list[dict], Any, dict]:
+def contrast_step(
+    feats: list[dict],
+    records,
+    floor: float | None,
+    scene_read,
+    mask_read,
+    land_path: Path | None,
+    shape: tuple[int, int],
+    nodata: float | None,
+) -> tuple[list[dict], Any, dict]:
     """The local contrast of every detection and the ``min_contrast_db`` rule
     (pipeline/targets/local_contrast.py): (kept features, their records, the ``run.json`` record).
     Measured only when a floor is set (a window read per detection; -30 dB measures every
@@ -54,18 +62,31 @@ def contrast_step(feats: list[dict], records, floor: float | None, scene_read, m
             f["properties"].update(contrast_db=None, contrast_ring_px=None)
         return feats, records, {"min_contrast_db": None, "measured": False}
     land_read = CachedWindows(window_reader(land_path), shape) if land_path is not None else None
-    feats = add_local_contrast(feats, lambda *w: pixel_power(np.asarray(scene_read(*w))), mask_read, shape,
-                               land_read, nodata)
+    feats = add_local_contrast(
+        feats, lambda *w: pixel_power(np.asarray(scene_read(*w))), mask_read, shape, land_read, nodata
+    )
     keep = keep_contrast(feats, floor)
-    record = {"min_contrast_db": floor, "measured": True, "gap_px": GAP_PX, "ring_px": RING_PX,
-              "min_ring_px": MIN_RING_PX, "land_excluded": land_path is not None,
-              "unmeasured": sum(f["properties"]["contrast_db"] is None for f in feats),
-              "dropped": len(keep) - sum(keep)}
+    record = {
+        "min_contrast_db": floor,
+        "measured": True,
+        "gap_px": GAP_PX,
+        "ring_px": RING_PX,
+        "min_ring_px": MIN_RING_PX,
+        "land_excluded": land_path is not None,
+        "unmeasured": sum(f["properties"]["contrast_db"] is None for f in feats),
+        "dropped": len(keep) - sum(keep),
+    }
     return [f for f, k in zip(feats, keep) if k], records[np.asarray(keep, bool)], record
 
 
-def refine(plan: Plan, prep: dict, records: np.ndarray, land_record: Optional[dict], land_path: Optional[Path],
-           detected_path: Path) -> Refined:
+def refine(
+    plan: Plan,
+    prep: dict,
+    records: np.ndarray,
+    land_record: dict | None,
+    land_path: Path | None,
+    detected_path: Path,
+) -> Refined:
     """The stage (module docstring). ``prep``: the detector's prepared values with the scene
     pass's; ``land_path``: the run's land array (None without a land mask); ``detected_path``:
     the detector's decision (``mask.zarr/detected``)."""
@@ -82,14 +103,17 @@ def refine(plan: Plan, prep: dict, records: np.ndarray, land_record: Optional[di
         # and the detections left out of the clutter ring)
         scene_read = CachedWindows(make_reader(str(plan.scene.path), plan.var, plan.transform), shape)
         mask_read = CachedWindows(window_reader(detected_path), shape)
-    feats, records, contrast = contrast_step(feats, records, params.min_contrast_db, scene_read, mask_read,
-                                             land_path, shape, getattr(params, "nodata", None))
+    feats, records, contrast = contrast_step(
+        feats, records, params.min_contrast_db, scene_read, mask_read, land_path, shape, getattr(params, "nodata", None)
+    )
     if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/targets/sidelobes.py)
         feats = refine_features(feats, records, scene_read, mask_read, shape, plan.merge_r, spacing, geo)
     if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
-        feats = spec.detection_properties(feats, records, scene_read, mask_read, shape, plan.merge_r, params,
-                                          prep, spacing=spacing, geo=geo)
+        feats = spec.detection_properties(
+            feats, records, scene_read, mask_read, shape, plan.merge_r, params, prep, spacing=spacing, geo=geo
+        )
     feats = geolocate(feats, geo)  # WGS84 outline + centre of the final geometry
-    feats, ambiguities = flag_features(feats, plan.scene.attrs, params.ambiguities, params.ambiguity_tol_px,
-                                       params.ambiguity_min_db)
+    feats, ambiguities = flag_features(
+        feats, plan.scene.attrs, params.ambiguities, params.ambiguity_tol_px, params.ambiguity_min_db
+    )
     return Refined(feats, records, contrast, ambiguities, dropped_land, contrast.get("dropped", 0))

@@ -28,27 +28,68 @@ Every name of the former module that other code uses is re-exported here.
 # Re-exports: the public API (``__all__``) and every other name that other code or the tests
 # use (``from sarship.pipeline import simulate as sim; sim.SEA_RHO, sim._model, ...``).
 from sarship.pipeline.simulate.artefacts import (  # noqa: F401
-    AMBIG_LEVEL_DB, AMBIG_SMEAR, SIDELOBE_FLOOR, SIDELOBE_MAX_PX, SIDELOBE_MIN,
-    SIDELOBE_OS)
+    AMBIG_LEVEL_DB,
+    AMBIG_SMEAR,
+    SIDELOBE_FLOOR,
+    SIDELOBE_MAX_PX,
+    SIDELOBE_MIN,
+    SIDELOBE_OS,
+)
 from sarship.pipeline.simulate.clutter import (  # noqa: F401
-    SEA_EPS, SEA_GAMMA, SEA_RHO, sea_covariance)
+    SEA_EPS,
+    SEA_GAMMA,
+    SEA_RHO,
+    effective_looks,  # noqa: F401
+    sea_covariance,
+)
 from sarship.pipeline.simulate.config import (  # noqa: F401
-    BORDER_PX, CLUTTERS, GAP_PX, KINDS, SimConfig, max_ships, validate, variables)
-from sarship.pipeline.simulate.clutter import effective_looks  # noqa: F401
+    BORDER_PX,
+    CLUTTERS,
+    GAP_PX,
+    KINDS,
+    SimConfig,
+    max_ships,
+    validate,
+    variables,
+)
 from sarship.pipeline.simulate.fields import (  # noqa: F401
-    BLOCK, NODE_BLOCK, _S_TEXTURE, _gamma_texture, _gauss_field)
+    _S_TEXTURE,
+    BLOCK,
+    NODE_BLOCK,
+    _gamma_texture,
+    _gauss_field,
+)
 from sarship.pipeline.simulate.geometry import ghost_offsets, sar_geometry  # noqa: F401
 from sarship.pipeline.simulate.ground_truth import ship_catalogue, truth_collection  # noqa: F401
 from sarship.pipeline.simulate.land import (  # noqa: F401
-    LAND_EPS, LAND_GAIN_CORR_PX, LAND_GAMMA, LAND_RHO, LAND_TEXTURE_CORR_PX, LAND_TEXTURE_NU,
-    URBAN_PX_PER_POINT, _land_mask)
+    LAND_EPS,
+    LAND_GAIN_CORR_PX,
+    LAND_GAMMA,
+    LAND_RHO,
+    LAND_TEXTURE_CORR_PX,
+    LAND_TEXTURE_NU,
+    URBAN_PX_PER_POINT,
+    _land_mask,
+)
 from sarship.pipeline.simulate.model import _model  # noqa: F401
 from sarship.pipeline.simulate.render import simulate_tile  # noqa: F401
 from sarship.pipeline.simulate.run import acquired_time, simulate, simulate_array  # noqa: F401
 from sarship.pipeline.simulate.ships import (  # noqa: F401
-    COVERAGE_MIN, HULL_SIGMA, LAND_MARGIN_PX, SHIP_CLASSES)
+    COVERAGE_MIN,
+    HULL_SIGMA,
+    LAND_MARGIN_PX,
+    SHIP_CLASSES,
+)
 
 __all__ = [
-    "SimConfig", "validate", "ship_catalogue", "simulate_tile", "truth_collection",
-    "simulate_array", "simulate", "sea_covariance", "effective_looks", "variables",
+    "SimConfig",
+    "validate",
+    "ship_catalogue",
+    "simulate_tile",
+    "truth_collection",
+    "simulate_array",
+    "simulate",
+    "sea_covariance",
+    "effective_looks",
+    "variables",
 ]

@@ -41,12 +41,12 @@ import numpy as np
 from sarship.pipeline.simulate.config import SimConfig
 from sarship.pipeline.simulate.fields import _S_RFI, _S_STRIPES, _rng
 
-SIDELOBE_OS = 1.2      # resolution / pixel spacing
-SIDELOBE_MIN = 10.0    # scatterer power / sea power for drawing sidelobes
+SIDELOBE_OS = 1.2  # resolution / pixel spacing
+SIDELOBE_MIN = 10.0  # scatterer power / sea power for drawing sidelobes
 SIDELOBE_FLOOR = 0.05  # sidelobes drawn out to this fraction of the sea power
 SIDELOBE_MAX_PX = 1024
 AMBIG_LEVEL_DB = -20.0
-AMBIG_SMEAR = 3        # ghost smear half-length (rows)
+AMBIG_SMEAR = 3  # ghost smear half-length (rows)
 
 
 def _stripes_gain(cfg: SimConfig) -> np.ndarray:
@@ -57,7 +57,7 @@ def _stripes_gain(cfg: SimConfig) -> np.ndarray:
     while c < W:
         w = int(rng.integers(24, 385))
         db = float(np.clip(rng.normal(0.0, 0.8), -2.5, 2.5))
-        g[c:c + w] = 10.0 ** (db / 10.0)
+        g[c : c + w] = 10.0 ** (db / 10.0)
         c += w
     return g.astype(np.float32)
 
@@ -71,10 +71,17 @@ def _rfi_events(cfg: SimConfig) -> list[dict[str, Any]]:
         r0 = int(rng.integers(0, H - thick + 1))
         n = max(1, int(round(rng.uniform(0.3, 1.0) * W)))
         c0 = int(rng.integers(0, W - n + 1))
-        out.append({"id": e, "rows": [r0, r0 + thick], "cols": [c0, c0 + n],
-                    "level_db": float(rng.uniform(3.0, 12.0)),
-                    "period_px": float(rng.uniform(40.0, 400.0)),
-                    "phase": float(rng.uniform(0.0, 2 * math.pi)), "modulation": 0.6})
+        out.append(
+            {
+                "id": e,
+                "rows": [r0, r0 + thick],
+                "cols": [c0, c0 + n],
+                "level_db": float(rng.uniform(3.0, 12.0)),
+                "period_px": float(rng.uniform(40.0, 400.0)),
+                "phase": float(rng.uniform(0.0, 2 * math.pi)),
+                "modulation": 0.6,
+            }
+        )
     return out
 
 

@@ -49,7 +49,7 @@ Clutter (sea)
 from __future__ import annotations
 
 import math
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 from scipy import special
@@ -62,7 +62,7 @@ SEA_GAMMA = 1.5
 SEA_RHO = complex(0.7 * math.cos(math.radians(10.0)), 0.7 * math.sin(math.radians(10.0)))
 
 
-def sea_covariance(cfg: Optional[SimConfig] = None) -> np.ndarray:
+def sea_covariance(cfg: SimConfig | None = None) -> np.ndarray:
     """The quad-pol sea covariance Sigma (eq 2-3), times ``cfg.clutter_mean`` (3x3 complex128)."""
     s = 1.0 if cfg is None else float(cfg.clutter_mean)
     return s * _refl_cov(SEA_EPS, SEA_GAMMA, SEA_RHO)
@@ -70,8 +70,7 @@ def sea_covariance(cfg: Optional[SimConfig] = None) -> np.ndarray:
 
 def _refl_cov(eps: float, gamma: float, rho: complex) -> np.ndarray:
     sg = math.sqrt(gamma)
-    return np.array([[1, 0, rho * sg], [0, eps, 0], [np.conj(rho) * sg, 0, gamma]],
-                    dtype=np.complex128)
+    return np.array([[1, 0, rho * sg], [0, eps, 0], [np.conj(rho) * sg, 0, gamma]], dtype=np.complex128)
 
 
 def _span_factor(eps: float, gamma: float) -> float:

@@ -22,36 +22,36 @@ KINDS = ("intensity", "slc", "quadpol")
 CLUTTERS = ("rayleigh", "gamma", "k", "g0", "ggd", "cggd")
 
 # Ship placement constraints, checked by validate() (see the ships module docstring).
-BORDER_PX = 5          # ships stay this far from the scene border
-GAP_PX = 3             # min gap between ship bounding boxes
+BORDER_PX = 5  # ships stay this far from the scene border
+GAP_PX = 3  # min gap between ship bounding boxes
 
 
 @dataclass(frozen=True)
 class SimConfig:
     """Simulation parameters (the physics: clutter, land, ships and artefacts modules)."""
 
-    kind: str = "intensity"          # "intensity" | "slc" | "quadpol"
+    kind: str = "intensity"  # "intensity" | "slc" | "quadpol"
     shape: tuple[int, int] = (2048, 2048)
     ships: int = 10
     seed: int = 0
-    looks: float = 1.0               # intensity scenes: L-look gamma speckle; slc/quadpol are single-look
-    clutter: str = "gamma"           # "rayleigh" | "gamma" | "k" | "g0" | "ggd"
+    looks: float = 1.0  # intensity scenes: L-look gamma speckle; slc/quadpol are single-look
+    clutter: str = "gamma"  # "rayleigh" | "gamma" | "k" | "g0" | "ggd"
     land: bool = False
     sidelobes: bool = False
     ambiguities: bool = False
     stripes: bool = False
     rfi: bool = False
-    pixel_spacing_m: tuple[float, float] = (10.0, 10.0)   # [azimuth(row), range(col)]
-    scr_db: float = 15.0             # mean ship power / mean sea power
+    pixel_spacing_m: tuple[float, float] = (10.0, 10.0)  # [azimuth(row), range(col)]
+    scr_db: float = 15.0  # mean ship power / mean sea power
     length_m: tuple[float, float] = (20.0, 400.0)
-    texture_shape: float = 4.0       # K: gamma texture shape nu; G0: inverse-gamma shape a = -alpha > 1 (smaller = spikier)
-    texture_corr_px: float = 16.0    # 1/e correlation length of the texture's Gaussian field
-    clutter_mean: float = 1.0        # mean sea intensity (HH for quadpol)
-    ggd_power: float = 0.7           # GGD clutter (intensity only): power v of (x / sigma)^v kappa ~ Gamma(kappa)
-    ggd_shape: float = 3.0           # GGD clutter: shape kappa
-    shape_beta: float = 1.0          # CGGD clutter (slc only): shape beta (1: complex Gaussian; < 1 super-Gaussian)
+    texture_shape: float = 4.0  # K: gamma texture shape nu; G0: inverse-gamma shape a = -alpha > 1 (smaller = spikier)
+    texture_corr_px: float = 16.0  # 1/e correlation length of the texture's Gaussian field
+    clutter_mean: float = 1.0  # mean sea intensity (HH for quadpol)
+    ggd_power: float = 0.7  # GGD clutter (intensity only): power v of (x / sigma)^v kappa ~ Gamma(kappa)
+    ggd_shape: float = 3.0  # GGD clutter: shape kappa
+    shape_beta: float = 1.0  # CGGD clutter (slc only): shape beta (1: complex Gaussian; < 1 super-Gaussian)
     geo: tuple[float, float] | None = None  # (lon, lat) of the scene centre: georeferenced (WGS84), land from GSHHG
-    geo_gcps: bool = False           # with geo: the georeference as a grid of GCPs instead of an affine transform
+    geo_gcps: bool = False  # with geo: the georeference as a grid of GCPs instead of an affine transform
 
     def as_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -155,8 +155,11 @@ def validate(cfg: SimConfig) -> SimConfig:
     if not 1 <= corr <= 4096:
         raise _bad("texture_corr_px", "a number in [1, 4096] px", cfg.texture_corr_px)
     if clutter == "g0" and not nu > 1.0:
-        raise _bad("texture_shape", "a number in (1, 100] for g0 clutter (a = -alpha; the mean is finite for a > 1)",
-                   cfg.texture_shape)
+        raise _bad(
+            "texture_shape",
+            "a number in (1, 100] for g0 clutter (a = -alpha; the mean is finite for a > 1)",
+            cfg.texture_shape,
+        )
     gv = _num(cfg.ggd_power, "ggd_power", "a number in [0.1, 10]")
     if not 0.1 <= gv <= 10:
         raise _bad("ggd_power", "a number in [0.1, 10]", cfg.ggd_power)
@@ -184,12 +187,30 @@ def validate(cfg: SimConfig) -> SimConfig:
     cm = _num(cfg.clutter_mean, "clutter_mean", "a number in [1e-12, 1e12]")
     if not 1e-12 <= cm <= 1e12:
         raise _bad("clutter_mean", "a number in [1e-12, 1e12]", cfg.clutter_mean)
-    out = SimConfig(kind=kind, shape=shape, ships=0, seed=seed, looks=looks, clutter=clutter,
-                    land=bool(cfg.land), sidelobes=bool(cfg.sidelobes),
-                    ambiguities=bool(cfg.ambiguities), stripes=bool(cfg.stripes),
-                    rfi=bool(cfg.rfi), pixel_spacing_m=spacing, scr_db=scr, length_m=length,
-                    texture_shape=nu, texture_corr_px=corr, clutter_mean=cm, ggd_power=gv, ggd_shape=gk,
-                    shape_beta=sb, geo=geo, geo_gcps=bool(cfg.geo_gcps))
+    out = SimConfig(
+        kind=kind,
+        shape=shape,
+        ships=0,
+        seed=seed,
+        looks=looks,
+        clutter=clutter,
+        land=bool(cfg.land),
+        sidelobes=bool(cfg.sidelobes),
+        ambiguities=bool(cfg.ambiguities),
+        stripes=bool(cfg.stripes),
+        rfi=bool(cfg.rfi),
+        pixel_spacing_m=spacing,
+        scr_db=scr,
+        length_m=length,
+        texture_shape=nu,
+        texture_corr_px=corr,
+        clutter_mean=cm,
+        ggd_power=gv,
+        ggd_shape=gk,
+        shape_beta=sb,
+        geo=geo,
+        geo_gcps=bool(cfg.geo_gcps),
+    )
     ships = _int(cfg.ships, "ships", "an integer >= 0")
     if ships < 0:
         raise _bad("ships", "an integer >= 0", cfg.ships)
@@ -200,7 +221,8 @@ def validate(cfg: SimConfig) -> SimConfig:
             raise InputError(
                 f"simulation length_m: the longest ship ({lmax_px:.0f} px at the pixel spacing) "
                 f"must fit the {shape[0]}x{shape[1]} scene: at most {fit} px "
-                f"(got length_m={cfg.length_m!r}; lower it, raise pixel_spacing_m or the shape)")
+                f"(got length_m={cfg.length_m!r}; lower it, raise pixel_spacing_m or the shape)"
+            )
         cap = max_ships(out)
         if ships > cap:
             raise _bad("ships", f"an integer in [0, {cap}] for this shape, length_m and land", ships)
@@ -213,5 +235,4 @@ def variables(cfg: SimConfig) -> dict[str, np.dtype]:
         return {"intensity": np.dtype(np.float32)}
     if cfg.kind == "slc":
         return {"hh": np.dtype(np.complex64)}
-    return {"hh": np.dtype(np.complex64), "hv": np.dtype(np.complex64),
-            "vv": np.dtype(np.complex64)}
+    return {"hh": np.dtype(np.complex64), "hv": np.dtype(np.complex64), "vv": np.dtype(np.complex64)}

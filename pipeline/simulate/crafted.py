@@ -12,8 +12,16 @@ from pathlib import Path
 __all__ = ["crafted_tiff"]
 
 
-def crafted_tiff(path: str | Path, height: int, width: int, *, tile: int | None = None,
-                 rows_per_strip: int | None = None, blob: bytes = b"", counts_zero: bool = False) -> Path:
+def crafted_tiff(
+    path: str | Path,
+    height: int,
+    width: int,
+    *,
+    tile: int | None = None,
+    rows_per_strip: int | None = None,
+    blob: bytes = b"",
+    counts_zero: bool = False,
+) -> Path:
     """A little-endian classic TIFF of float32 samples (one band), deflate-compressed, whose
     every strip or tile points at the same ``blob`` (e.g. ``zlib.compress(bytes(n))``), or
     declares byte count 0 with ``counts_zero`` (a sparse file). With ``tile``: square tiles of
@@ -36,14 +44,29 @@ def crafted_tiff(path: str | Path, height: int, width: int, *, tile: int | None 
     blob_at = counts_at + 4 * n
     count = 0 if counts_zero else len(blob)
     # (tag, type 3 SHORT / 4 LONG, count, value or offset of the values)
-    tags = [(256, 4, 1, width), (257, 4, 1, height), (258, 3, 1, 32), (259, 3, 1, 8), (262, 3, 1, 1),
-            (277, 3, 1, 1), (284, 3, 1, 1), (339, 3, 1, 3)]
+    tags = [
+        (256, 4, 1, width),
+        (257, 4, 1, height),
+        (258, 3, 1, 32),
+        (259, 3, 1, 8),
+        (262, 3, 1, 1),
+        (277, 3, 1, 1),
+        (284, 3, 1, 1),
+        (339, 3, 1, 3),
+    ]
     if tile:
-        tags += [(322, 4, 1, tile), (323, 4, 1, tile), (324, 4, n, offs_at if n > 1 else blob_at),
-                 (325, 4, n, counts_at if n > 1 else count)]
+        tags += [
+            (322, 4, 1, tile),
+            (323, 4, 1, tile),
+            (324, 4, n, offs_at if n > 1 else blob_at),
+            (325, 4, n, counts_at if n > 1 else count),
+        ]
     else:
-        tags += [(273, 4, n, offs_at if n > 1 else blob_at), (278, 4, 1, rows_per_strip),
-                 (279, 4, n, counts_at if n > 1 else count)]
+        tags += [
+            (273, 4, n, offs_at if n > 1 else blob_at),
+            (278, 4, 1, rows_per_strip),
+            (279, 4, n, counts_at if n > 1 else count),
+        ]
     tags.sort()
     assert len(tags) == n_tags
     out = bytearray(b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", n_tags))

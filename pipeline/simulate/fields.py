@@ -76,13 +76,13 @@ def _nodes(seed: int, stream: int, k0: int, k1: int, l0: int, l1: int) -> np.nda
         for b in range((l0 + _NODE_OFF) // nb, (l1 - 1 + _NODE_OFF) // nb + 1):
             cb = b * nb - _NODE_OFF
             j0, j1 = max(l0, cb), min(l1, cb + nb)
-            out[i0 - k0:i1 - k0, j0 - l0:j1 - l0] = _node_block(seed, stream, a, b)[
-                i0 - ra:i1 - ra, j0 - cb:j1 - cb]
+            out[i0 - k0 : i1 - k0, j0 - l0 : j1 - l0] = _node_block(seed, stream, a, b)[
+                i0 - ra : i1 - ra, j0 - cb : j1 - cb
+            ]
     return out
 
 
-def _gauss_field(seed: int, stream: int, corr_px: float, r0: int, r1: int, c0: int, c1: int
-                 ) -> np.ndarray:
+def _gauss_field(seed: int, stream: int, corr_px: float, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
     """Unit-variance Gaussian random field on pixels [r0:r1, c0:c1] (float32).
 
     Separable cubic B-spline interpolation of global i.i.d. nodes with spacing
@@ -114,8 +114,7 @@ def _gamma_table(nu: float) -> tuple[np.ndarray, np.ndarray]:
     from scipy import special
 
     g = np.linspace(_Q_LO, _Q_HI, _Q_N)
-    q = np.where(g < 0, special.gammaincinv(nu, special.ndtr(g)),
-                 special.gammainccinv(nu, special.ndtr(-g))) / nu
+    q = np.where(g < 0, special.gammaincinv(nu, special.ndtr(g)), special.gammainccinv(nu, special.ndtr(-g))) / nu
     q = np.maximum(q, 0.0)
     return q.astype(np.float32), np.diff(q).astype(np.float32)
 

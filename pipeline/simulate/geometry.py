@@ -40,7 +40,7 @@ def sar_geometry(shape: tuple[int, int], pixel_spacing_m: tuple[float, float]) -
     """The ``sar_geometry`` attribute of a simulated scene of ``shape`` and spacing [az, rg]."""
     W = int(shape[1])
     d_az, d_rg = float(pixel_spacing_m[0]), float(pixel_spacing_m[1])
-    vg = EFFECTIVE_VELOCITY_M_S ** 2 / PLATFORM_VELOCITY_M_S
+    vg = EFFECTIVE_VELOCITY_M_S**2 / PLATFORM_VELOCITY_M_S
     last = float(max(W - 1, 1))
     slant = [NEAR_RANGE_M, NEAR_RANGE_M + last * d_rg * math.sin(math.radians(INCIDENCE_DEG))]
     return {
@@ -49,9 +49,12 @@ def sar_geometry(shape: tuple[int, int], pixel_spacing_m: tuple[float, float]) -
         "prf_hz": PRF_HZ,
         "platform_velocity_m_s": PLATFORM_VELOCITY_M_S,
         "azimuth_time_interval_s": d_az / vg,
-        "range_table": {"col": [0.0, last], "slant_range_m": slant,
-                        "effective_velocity_m_s": [EFFECTIVE_VELOCITY_M_S] * 2,
-                        "doppler_centroid_hz": [DOPPLER_CENTROID_HZ] * 2},
+        "range_table": {
+            "col": [0.0, last],
+            "slant_range_m": slant,
+            "effective_velocity_m_s": [EFFECTIVE_VELOCITY_M_S] * 2,
+            "doppler_centroid_hz": [DOPPLER_CENTROID_HZ] * 2,
+        },
         "doppler_centroid_spread_hz": 0.0,
     }
 
@@ -61,13 +64,19 @@ def geometry(shape: tuple[int, int], pixel_spacing_m: tuple[float, float]) -> Ge
     return geometry_from_attrs({"sar_geometry": sar_geometry(shape, pixel_spacing_m)})
 
 
-def ghost_offsets(shape: tuple[int, int], pixel_spacing_m: tuple[float, float], row: float, col: float,
-                  orders: tuple[int, ...] = (-1, 1)) -> list[tuple[int, int, int]]:
+def ghost_offsets(
+    shape: tuple[int, int],
+    pixel_spacing_m: tuple[float, float],
+    row: float,
+    col: float,
+    orders: tuple[int, ...] = (-1, 1),
+) -> list[tuple[int, int, int]]:
     """``(k, d_row, d_col)`` of the k-th ghosts of a target at (row, col), rounded to whole
     pixels (the simulator moves the ship's rendered block by whole pixels)."""
     g = geometry(shape, pixel_spacing_m).ghosts([row], [col], orders)
-    return [(int(k), int(np.rint(g["row"][0, i] - row)), int(np.rint(g["col"][0, i] - col)))
-            for i, k in enumerate(orders)]
+    return [
+        (int(k), int(np.rint(g["row"][0, i] - row)), int(np.rint(g["col"][0, i] - col))) for i, k in enumerate(orders)
+    ]
 
 
 __all__ = ["ghost_offsets", "geometry", "sar_geometry"]

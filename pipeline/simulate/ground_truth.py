@@ -14,9 +14,10 @@ from sarship.pipeline.simulate.artefacts import AMBIG_LEVEL_DB
 from sarship.pipeline.simulate.clutter import SEA_EPS, SEA_GAMMA, SEA_RHO, _sea_power
 from sarship.pipeline.simulate.config import SimConfig, validate
 from sarship.pipeline.simulate.fields import BLOCK
-from sarship.pipeline.simulate.model import _model, _Model
+from sarship.pipeline.simulate.model import _Model, _model
 from sarship.pipeline.simulate.render import _ghost_render, _render_block
 from sarship.pipeline.simulate.ships import SHIP_CLASSES, _ship_geometry
+
 
 def _power(data: dict[str, np.ndarray], kind: str) -> np.ndarray:
     """Pixel power: intensity, |hh|^2, or span |hh|^2 + 2|hv|^2 + |vv|^2 (float32)."""
@@ -46,20 +47,28 @@ def ship_catalogue(cfg: SimConfig) -> list[dict[str, Any]]:
     m = _model(cfg)
     out = []
     for s in m.ships:
-        d = {"id": s.idx, **_ship_geometry(cfg, s), "center_px": [s.rc, s.cc],
-             "bow_deg": s.bow_deg, "scr_db": s.scr_db,
-             "mean_power": float(_sea_power(cfg) * 10.0 ** (s.scr_db / 10.0)),
-             "pol_class": s.pol_class}
+        d = {
+            "id": s.idx,
+            **_ship_geometry(cfg, s),
+            "center_px": [s.rc, s.cc],
+            "bow_deg": s.bow_deg,
+            "scr_db": s.scr_db,
+            "mean_power": float(_sea_power(cfg) * 10.0 ** (s.scr_db / 10.0)),
+            "pol_class": s.pol_class,
+        }
         if s.pol_class is not None:
             c = SHIP_CLASSES[s.pol_class]
             d["pol_signature"] = {"eps": c["eps"], "gamma": c["gamma"], "rho": c["rho"]}
         dom = s.dom
         d["scatterers"] = [
-            {"row": int(dom["row"][j]), "col": int(dom["col"][j]),
-             "power": float(dom["power"][j]),
-             "type": ("dihedral" if dom["dihedral"][j] else "trihedral")
-             if cfg.kind == "quadpol" else "point"}
-            for j in range(dom["row"].size)]
+            {
+                "row": int(dom["row"][j]),
+                "col": int(dom["col"][j]),
+                "power": float(dom["power"][j]),
+                "type": ("dihedral" if dom["dihedral"][j] else "trihedral") if cfg.kind == "quadpol" else "point",
+            }
+            for j in range(dom["row"].size)
+        ]
         out.append(d)
     return out
 
@@ -70,13 +79,11 @@ def _new_ship_buffers(m: _Model) -> dict[int, np.ndarray]:
 
 def _ship_boxes(m: _Model) -> np.ndarray:
     if m.boxes is None:
-        m.boxes = np.array([[s.r0, s.r1, s.c0, s.c1] for s in m.ships],
-                           dtype=np.int64).reshape(-1, 4)
+        m.boxes = np.array([[s.r0, s.r1, s.c0, s.c1] for s in m.ships], dtype=np.int64).reshape(-1, 4)
     return m.boxes
 
 
-def _collect_tile(m: _Model, bufs: dict[int, np.ndarray], data: dict[str, np.ndarray],
-                  r0: int, c0: int) -> None:
+def _collect_tile(m: _Model, bufs: dict[int, np.ndarray], data: dict[str, np.ndarray], r0: int, c0: int) -> None:
     """Copy the power of the ship pixels of a window (origin r0, c0) into the ship buffers."""
     r1 = r0 + next(iter(data.values())).shape[0]
     c1 = c0 + next(iter(data.values())).shape[1]
@@ -86,15 +93,20 @@ def _collect_tile(m: _Model, bufs: dict[int, np.ndarray], data: dict[str, np.nda
         s = m.ships[int(i)]
         a0, a1, b0, b1 = max(r0, s.r0), min(r1, s.r1), max(c0, s.c0), min(c1, s.c1)
         if a0 < a1 and b0 < b1:
-            sub = {k: v[a0 - r0:a1 - r0, b0 - c0:b1 - c0] for k, v in data.items()}
-            bufs[s.idx][a0 - s.r0:a1 - s.r0, b0 - s.c0:b1 - s.c0] = _power(sub, m.cfg.kind)
+            sub = {k: v[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] for k, v in data.items()}
+            bufs[s.idx][a0 - s.r0 : a1 - s.r0, b0 - s.c0 : b1 - s.c0] = _power(sub, m.cfg.kind)
 
 
 def _ship_buffers_by_blocks(m: _Model) -> dict[int, np.ndarray]:
     bufs = _new_ship_buffers(m)
-    need = sorted({(bi, bj) for s in m.ships
-                   for bi in range(s.r0 // BLOCK, (s.r1 - 1) // BLOCK + 1)
-                   for bj in range(s.c0 // BLOCK, (s.c1 - 1) // BLOCK + 1)})
+    need = sorted(
+        {
+            (bi, bj)
+            for s in m.ships
+            for bi in range(s.r0 // BLOCK, (s.r1 - 1) // BLOCK + 1)
+            for bj in range(s.c0 // BLOCK, (s.c1 - 1) // BLOCK + 1)
+        }
+    )
     for bi, bj in need:
         blk = _render_block(m, bi, bj)
         _collect_tile(m, bufs, blk, bi * BLOCK, bj * BLOCK)
@@ -106,9 +118,15 @@ def _truth(m: _Model, bufs: dict[int, np.ndarray]) -> dict[str, Any]:
     feats = []
     for s in m.ships:
         v = bufs[s.idx][s.mask]
-        props = {"id": s.idx, **_ship_geometry(cfg, s),
-                 "peak": float(v.max()), "mean": float(v.astype(np.float64).mean()),
-                 "score": None, "scr_db": round(s.scr_db, 6), "difficult": False}
+        props = {
+            "id": s.idx,
+            **_ship_geometry(cfg, s),
+            "peak": float(v.max()),
+            "mean": float(v.astype(np.float64).mean()),
+            "score": None,
+            "scr_db": round(s.scr_db, 6),
+            "difficult": False,
+        }
         if s.pol_class is not None:
             props["pol_class"] = s.pol_class
         feats.append({"type": "Feature", "id": s.idx, "geometry": None, "properties": props})
@@ -122,35 +140,45 @@ def _truth(m: _Model, bufs: dict[int, np.ndarray]) -> dict[str, Any]:
         r0, r1 = g["r0"], g["r0"] + pw.shape[0]
         a0, a1 = max(r0, 0), min(r1, H)
         b0, b1 = max(g["c0"], 0), min(g["c0"] + pw.shape[1], W)
-        peak = float(pw[a0 - r0:a1 - r0, b0 - g["c0"]:b1 - g["c0"]].max())
+        peak = float(pw[a0 - r0 : a1 - r0, b0 - g["c0"] : b1 - g["c0"]].max())
         rr, cc = np.nonzero(s.mask)
-        amb.append({"source_id": s.idx, "ambiguity_of": s.idx, "order": g["order"], "offset_rows": g["offset"],
-                    "offset_cols": g["offset_cols"],
-                    "bbox_px": [a0, b0, a1, b1],
-                    "centroid_px": [float(s.r0 + rr.mean() + 0.5 + g["offset"]),
-                                    float(s.c0 + cc.mean() + 0.5 + g["offset_cols"])],
-                    "level_db": AMBIG_LEVEL_DB,
-                    "peak_db_over_clutter": float(10 * math.log10(max(peak, 1e-30) / p_sea))})
+        amb.append(
+            {
+                "source_id": s.idx,
+                "ambiguity_of": s.idx,
+                "order": g["order"],
+                "offset_rows": g["offset"],
+                "offset_cols": g["offset_cols"],
+                "bbox_px": [a0, b0, a1, b1],
+                "centroid_px": [
+                    float(s.r0 + rr.mean() + 0.5 + g["offset"]),
+                    float(s.c0 + cc.mean() + 0.5 + g["offset_cols"]),
+                ],
+                "level_db": AMBIG_LEVEL_DB,
+                "peak_db_over_clutter": float(10 * math.log10(max(peak, 1e-30) / p_sea)),
+            }
+        )
     coll: dict[str, Any] = {
         "type": "FeatureCollection",
         "features": feats,
         "simulation": cfg.as_dict(),
         "ambiguities": amb,
         "clutter": {
-            "model": cfg.clutter, "looks": m.looks, "mean": cfg.clutter_mean,
-            "power_definition": {"intensity": "intensity", "slc": "|hh|^2",
-                                 "quadpol": "|hh|^2 + 2|hv|^2 + |vv|^2"}[cfg.kind],
+            "model": cfg.clutter,
+            "looks": m.looks,
+            "mean": cfg.clutter_mean,
+            "power_definition": {"intensity": "intensity", "slc": "|hh|^2", "quadpol": "|hh|^2 + 2|hv|^2 + |vv|^2"}[
+                cfg.kind
+            ],
             "mean_power": p_sea,
         },
     }
     if cfg.clutter in ("k", "g0"):
-        coll["clutter"].update({"texture_shape": cfg.texture_shape,
-                                "texture_corr_px": cfg.texture_corr_px})
+        coll["clutter"].update({"texture_shape": cfg.texture_shape, "texture_corr_px": cfg.texture_corr_px})
     if cfg.clutter == "ggd":
         coll["clutter"].update({"ggd_power": cfg.ggd_power, "ggd_shape": cfg.ggd_shape})
     if cfg.kind == "quadpol":
-        coll["clutter"]["sea_covariance"] = {"eps": SEA_EPS, "gamma": SEA_GAMMA,
-                                             "rho": [SEA_RHO.real, SEA_RHO.imag]}
+        coll["clutter"]["sea_covariance"] = {"eps": SEA_EPS, "gamma": SEA_GAMMA, "rho": [SEA_RHO.real, SEA_RHO.imag]}
     if m.rfi:
         coll["rfi"] = [{k: ev[k] for k in ("id", "rows", "cols", "level_db")} for ev in m.rfi]
     if m.land is not None and m.land.side == "gshhg":
@@ -158,8 +186,9 @@ def _truth(m: _Model, bufs: dict[int, np.ndarray]) -> dict[str, Any]:
     elif m.land is not None:
         coll["land"] = {"side": m.land.side, "mean_depth_px": m.land.depth}
     if m.sources:
-        coll["sidelobes"] = [{"source_id": sl["ship"], "row": sl["row"], "col": sl["col"],
-                              "extent_px": sl["n"]} for sl in m.sources]
+        coll["sidelobes"] = [
+            {"source_id": sl["ship"], "row": sl["row"], "col": sl["col"], "extent_px": sl["n"]} for sl in m.sources
+        ]
     if m.stripes is not None:
         coll["stripes"] = True
     return coll

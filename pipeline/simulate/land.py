@@ -43,12 +43,12 @@ LAND_CLEARANCE_PX = 8
 
 @dataclass
 class _Land:
-    side: str            # "top" | "bottom" | "left" | "right"
-    depth: float         # mean depth, px
+    side: str  # "top" | "bottom" | "left" | "right"
+    depth: float  # mean depth, px
     octaves: list[tuple[float, float, np.ndarray]]
 
 
-def _land_model(cfg: SimConfig) -> "_Land | _GeoLand":
+def _land_model(cfg: SimConfig) -> _Land | _GeoLand:
     if cfg.geo is not None:
         return _geo_land_model(cfg)
     H, W = cfg.shape
@@ -75,8 +75,7 @@ def _coast(land: _Land, along: np.ndarray) -> np.ndarray:
     for s, amp, nodes in land.octaves:
         k, w = _axis_weights(along, s)
         k = k + 2
-        d += amp * (w[0] * nodes[k] + w[1] * nodes[k + 1] + w[2] * nodes[k + 2]
-                    + w[3] * nodes[k + 3])
+        d += amp * (w[0] * nodes[k] + w[1] * nodes[k + 1] + w[2] * nodes[k + 2] + w[3] * nodes[k + 3])
     return d
 
 
@@ -95,8 +94,11 @@ def geo_attrs(cfg: SimConfig) -> dict:
     if not cfg.geo_gcps:
         return {"crs": "EPSG:4326", "transform": transform}
     c, a, b, f, d, e = transform
-    gcps = [{"row": float(r), "col": float(q), "x": c + a * q + b * r, "y": f + d * q + e * r}
-            for r in np.linspace(0.0, H, 6) for q in np.linspace(0.0, W, 6)]
+    gcps = [
+        {"row": float(r), "col": float(q), "x": c + a * q + b * r, "y": f + d * q + e * r}
+        for r in np.linspace(0.0, H, 6)
+        for q in np.linspace(0.0, W, 6)
+    ]
     return {"crs": "EPSG:4326", "gcps": gcps}
 
 
@@ -111,11 +113,12 @@ class _GeoLand:
 def _geo_land_model(cfg: SimConfig) -> _GeoLand:
     from sarship.pipeline.land.coastline import open_coastline
 
-    return _GeoLand(coast=open_coastline({**geo_attrs(cfg), "pixel_spacing_m": list(cfg.pixel_spacing_m)},
-                                         cfg.shape, buffer_m=0.0))
+    return _GeoLand(
+        coast=open_coastline({**geo_attrs(cfg), "pixel_spacing_m": list(cfg.pixel_spacing_m)}, cfg.shape, buffer_m=0.0)
+    )
 
 
-def _land_mask(cfg: SimConfig, land: "_Land | _GeoLand", r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+def _land_mask(cfg: SimConfig, land: _Land | _GeoLand, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
     if isinstance(land, _GeoLand):
         return land.coast.land(r0, r1, c0, c1)
     H, W = cfg.shape

@@ -10,12 +10,19 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
-from sarship.pipeline.simulate.artefacts import (AMBIG_SMEAR, SIDELOBE_FLOOR, SIDELOBE_MAX_PX, SIDELOBE_MIN,
-                                                 SIDELOBE_OS, _rfi_events, _stripes_gain)
+from sarship.pipeline.simulate.artefacts import (
+    AMBIG_SMEAR,
+    SIDELOBE_FLOOR,
+    SIDELOBE_MAX_PX,
+    SIDELOBE_MIN,
+    SIDELOBE_OS,
+    _rfi_events,
+    _stripes_gain,
+)
 from sarship.pipeline.simulate.clutter import SEA_EPS, SEA_GAMMA, _sea_power, _span_factor, effective_looks
 from sarship.pipeline.simulate.config import SimConfig
 from sarship.pipeline.simulate.fields import BLOCK
@@ -23,18 +30,19 @@ from sarship.pipeline.simulate.geometry import ghost_offsets
 from sarship.pipeline.simulate.land import _Land, _land_model
 from sarship.pipeline.simulate.ships import _dominants, _hull_pattern, _place_ships, _Ship
 
+
 @dataclass
 class _Model:
     cfg: SimConfig
     looks: float
     ships: list[_Ship]
-    land: Optional[_Land]
-    stripes: Optional[np.ndarray]
+    land: _Land | None
+    stripes: np.ndarray | None
     rfi: list[dict[str, Any]]
     sources: list[dict[str, Any]]
     ghosts: list[dict[str, Any]]
     buckets: dict[tuple[int, int], list[tuple[str, int, int, int, int, int]]]
-    boxes: Optional[np.ndarray] = None
+    boxes: np.ndarray | None = None
 
 
 def _build_model(cfg: SimConfig) -> _Model:
@@ -58,11 +66,21 @@ def _build_model(cfg: SimConfig) -> _Model:
                 p = float(d["power"][j])
                 if p < SIDELOBE_MIN * p_sea:
                     continue
-                n = int(min(SIDELOBE_MAX_PX,
-                            math.ceil(SIDELOBE_OS / math.pi * math.sqrt(p / (SIDELOBE_FLOOR * p_sea)))))
-                sources.append({"ship": s.idx, "j": j, "row": int(d["row"][j]),
-                                "col": int(d["col"][j]), "dr": float(d["dr"][j]),
-                                "dc": float(d["dc"][j]), "power": p, "n": n})
+                n = int(
+                    min(SIDELOBE_MAX_PX, math.ceil(SIDELOBE_OS / math.pi * math.sqrt(p / (SIDELOBE_FLOOR * p_sea))))
+                )
+                sources.append(
+                    {
+                        "ship": s.idx,
+                        "j": j,
+                        "row": int(d["row"][j]),
+                        "col": int(d["col"][j]),
+                        "dr": float(d["dr"][j]),
+                        "dc": float(d["dc"][j]),
+                        "power": p,
+                        "n": n,
+                    }
+                )
     ghosts: list[dict[str, Any]] = []
     if cfg.ambiguities:  # eqs. 1-3 of pipeline/targets/ambiguity.py with the simulated sensor (simulate/geometry.py)
         for s in ships:
@@ -91,15 +109,24 @@ def _build_model(cfg: SimConfig) -> _Model:
         add("ship", s.idx, s.r0, s.r1, s.c0, s.c1)
     for k, src in enumerate(sources):
         r, c, n = src["row"], src["col"], src["n"]
-        add("slr", k, r, r + 1, c - n, c + n + 1)   # along the row (range sidelobes)
-        add("slc", k, r - n, r + n + 1, c, c + 1)   # along the column (azimuth sidelobes)
+        add("slr", k, r, r + 1, c - n, c + n + 1)  # along the row (range sidelobes)
+        add("slc", k, r - n, r + n + 1, c, c + 1)  # along the column (azimuth sidelobes)
     for k, g in enumerate(ghosts):
         s = ships[g["ship"]]
         add("ghost", k, g["r0"], g["r0"] + s.mask.shape[0] + 2 * AMBIG_SMEAR, g["c0"], g["c0"] + s.mask.shape[1])
     for k, ev in enumerate(rfi):
         add("rfi", k, ev["rows"][0], ev["rows"][1], ev["cols"][0], ev["cols"][1])
-    return _Model(cfg=cfg, looks=effective_looks(cfg), ships=ships, land=land, stripes=stripes,
-                  rfi=rfi, sources=sources, ghosts=ghosts, buckets=buckets)
+    return _Model(
+        cfg=cfg,
+        looks=effective_looks(cfg),
+        ships=ships,
+        land=land,
+        stripes=stripes,
+        rfi=rfi,
+        sources=sources,
+        ghosts=ghosts,
+        buckets=buckets,
+    )
 
 
 @functools.lru_cache(maxsize=4)

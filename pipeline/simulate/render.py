@@ -24,17 +24,45 @@ import numpy as np
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.simulate.artefacts import AMBIG_LEVEL_DB, AMBIG_SMEAR, _sidelobe_ratio
-from sarship.pipeline.simulate.clutter import (SEA_EPS, SEA_GAMMA, SEA_RHO, _chol, _cn, _polmix,
-                                               _span_factor, _speckle, ggd_speckle, sea_texture)
+from sarship.pipeline.simulate.clutter import (
+    SEA_EPS,
+    SEA_GAMMA,
+    SEA_RHO,
+    _chol,
+    _cn,
+    _polmix,
+    _span_factor,
+    _speckle,
+    ggd_speckle,
+    sea_texture,
+)
 from sarship.pipeline.simulate.config import SimConfig, validate, variables
-from sarship.pipeline.simulate.fields import (_S_LAND_GAIN, _S_LAND_TEX, _S_RFI_NOISE,
-                                              _S_SHIPSPK, _S_SPECKLE, _S_TEXTURE, _S_URBAN, BLOCK,
-                                              _gamma_texture, _gauss_field, _rng)
-from sarship.pipeline.simulate.land import (LAND_EPS, LAND_GAIN_CORR_PX, LAND_GAMMA, LAND_RHO,
-                                            LAND_TEXTURE_CORR_PX, LAND_TEXTURE_NU,
-                                            URBAN_PX_PER_POINT, _land_mask)
-from sarship.pipeline.simulate.model import _model, _Model
+from sarship.pipeline.simulate.fields import (
+    _S_LAND_GAIN,
+    _S_LAND_TEX,
+    _S_RFI_NOISE,
+    _S_SHIPSPK,
+    _S_SPECKLE,
+    _S_TEXTURE,
+    _S_URBAN,
+    BLOCK,
+    _gamma_texture,
+    _gauss_field,
+    _rng,
+)
+from sarship.pipeline.simulate.land import (
+    LAND_EPS,
+    LAND_GAIN_CORR_PX,
+    LAND_GAMMA,
+    LAND_RHO,
+    LAND_TEXTURE_CORR_PX,
+    LAND_TEXTURE_NU,
+    URBAN_PX_PER_POINT,
+    _land_mask,
+)
+from sarship.pipeline.simulate.model import _Model, _model
 from sarship.pipeline.simulate.ships import SHIP_CLASSES, _hull_pattern
+
 
 @functools.lru_cache(maxsize=2048)
 def _ship_render(cfg: SimConfig, idx: int) -> dict[str, np.ndarray]:
@@ -82,12 +110,12 @@ def _ghost_render(cfg: SimConfig, k: int) -> dict[str, np.ndarray]:
         if a.dtype == np.float32:
             f = np.float32(10.0 ** (AMBIG_LEVEL_DB / 10.0) / n)
             for j in range(n):
-                acc[j:j + h] += a * f
+                acc[j : j + h] += a * f
         else:
             amp = 10.0 ** (AMBIG_LEVEL_DB / 20.0) / math.sqrt(n)
             for j in range(n):
                 t = j - AMBIG_SMEAR
-                acc[j:j + h] += a * np.complex64(amp * np.exp(1j * math.pi * t * t / n))
+                acc[j : j + h] += a * np.complex64(amp * np.exp(1j * math.pi * t * t / n))
         acc.flags.writeable = False
         out[name] = acc
     return out
@@ -145,10 +173,8 @@ def _power_fields(m: _Model, r0: int, r1: int, c0: int, c1: int) -> tuple[Any, A
         if land.any():
             gdb = _gauss_field(seed, _S_LAND_GAIN, LAND_GAIN_CORR_PX, r0, r1, c0, c1)
             gdb = np.clip(gdb + np.float32(10.0), 8.0, 12.0)
-            tl = _gamma_texture(_gauss_field(seed, _S_LAND_TEX, LAND_TEXTURE_CORR_PX,
-                                             r0, r1, c0, c1), LAND_TEXTURE_NU)
-            mu_land = (np.power(np.float32(10.0), gdb * np.float32(0.1)) * tl * cm
-                       ).astype(np.float32)
+            tl = _gamma_texture(_gauss_field(seed, _S_LAND_TEX, LAND_TEXTURE_CORR_PX, r0, r1, c0, c1), LAND_TEXTURE_NU)
+            mu_land = (np.power(np.float32(10.0), gdb * np.float32(0.1)) * tl * cm).astype(np.float32)
         else:
             land = None
     return mu, land, mu_land
@@ -166,7 +192,9 @@ def _clutter(m: _Model, bi: int, bj: int, shape: tuple[int, int], mu, land, mu_l
         sp *= mu
         out["intensity"] = sp
     elif cfg.kind == "slc":
-        if cfg.clutter == "cggd":  # circular CGGD of unit variance (pipeline/stats/cggd.py, seed 004 eq 27-31), as _cn's E|z|^2 = 2
+        if (
+            cfg.clutter == "cggd"
+        ):  # circular CGGD of unit variance (pipeline/stats/cggd.py, seed 004 eq 27-31), as _cn's E|z|^2 = 2
             from sarship.pipeline.stats.cggd import sample as cggd_sample
 
             z = cggd_sample(cfg.shape_beta, None, shape, rng, np.complex64) * np.float32(math.sqrt(2.0))
@@ -181,8 +209,7 @@ def _clutter(m: _Model, bi: int, bj: int, shape: tuple[int, int], mu, land, mu_l
         amp = np.sqrt(np.float32(0.5) * np.asarray(mu, dtype=np.float32))
         xs = _polmix(_chol(SEA_EPS, SEA_GAMMA, SEA_RHO), z, amp)
         if land is not None:
-            xl = _polmix(_chol(LAND_EPS, LAND_GAMMA, LAND_RHO), z,
-                         np.sqrt(np.float32(0.5) * mu_land))
+            xl = _polmix(_chol(LAND_EPS, LAND_GAMMA, LAND_RHO), z, np.sqrt(np.float32(0.5) * mu_land))
             xs = [np.where(land, a, b) for a, b in zip(xl, xs)]
         for name, x in zip(("hh", "hv", "vv"), xs):
             out[name] = np.ascontiguousarray(x, dtype=np.complex64)
@@ -211,9 +238,9 @@ def _urban_points(m: _Model, bi: int, bj: int, land: np.ndarray, out: dict[str, 
     if cfg.kind == "slc":
         np.add.at(out["hh"], (rr, cc), a.astype(np.complex64))
         return
-    vec = np.where(di[:, None], np.stack([np.cos(2 * psi), np.sin(2 * psi),
-                                          -np.cos(2 * psi)], axis=1),
-                   np.array([[1.0, 0.0, 1.0]])) / math.sqrt(2.0)
+    vec = np.where(
+        di[:, None], np.stack([np.cos(2 * psi), np.sin(2 * psi), -np.cos(2 * psi)], axis=1), np.array([[1.0, 0.0, 1.0]])
+    ) / math.sqrt(2.0)
     for k, name in enumerate(("hh", "hv", "vv")):
         np.add.at(out[name], (rr, cc), (a * vec[:, k]).astype(np.complex64))
 
@@ -268,19 +295,20 @@ def _add_rfi(m: _Model, idx: int, bi: int, bj: int, win: tuple[int, int, int, in
     a0, a1, b0, b1 = win
     ev = m.rfi[idx]
     cols = np.arange(b0, b1) + 0.5
-    p = (cfg.clutter_mean * 10.0 ** (ev["level_db"] / 10.0)
-         * (1.0 + ev["modulation"] * np.sin(2 * math.pi * cols / ev["period_px"]
-                                             + ev["phase"])))
+    p = (
+        cfg.clutter_mean
+        * 10.0 ** (ev["level_db"] / 10.0)
+        * (1.0 + ev["modulation"] * np.sin(2 * math.pi * cols / ev["period_px"] + ev["phase"]))
+    )
     rn = _rng(seed, _S_RFI_NOISE, idx, bi, bj)
     sh = (a1 - a0, b1 - b0)
     if cfg.kind == "intensity":
-        out["intensity"][dst] += rn.standard_exponential(sh, dtype=np.float32) * \
-            p.astype(np.float32)[None, :]
+        out["intensity"][dst] += rn.standard_exponential(sh, dtype=np.float32) * p.astype(np.float32)[None, :]
         return
     # narrow-band interference: 1-2 tones along range, drawn once per event (any tiling)
     re = _rng(seed, _S_RFI_NOISE, idx, 1 << 20, 0)
     nt = 1 + int(re.integers(0, 2))
-    freq = re.uniform(0.02, 0.48, nt)                            # cycles per pixel along range
+    freq = re.uniform(0.02, 0.48, nt)  # cycles per pixel along range
     psi = re.uniform(0.0, 2 * math.pi, (nt, ev["rows"][1] - ev["rows"][0]))  # per row
     rows = np.arange(a0, a1) - ev["rows"][0]
     tone = np.zeros(sh, np.complex128)
@@ -299,8 +327,9 @@ def _check_window(cfg: SimConfig, r0: int, r1: int, c0: int, c1: int) -> tuple[i
     except (TypeError, ValueError):
         raise InputError(f"tile window must be integers, got {(r0, r1, c0, c1)!r}") from None
     if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
-        raise InputError(f"tile window rows [{r0}, {r1}) cols [{c0}, {c1}) must be a non-empty "
-                         f"part of the {H}x{W} scene")
+        raise InputError(
+            f"tile window rows [{r0}, {r1}) cols [{c0}, {c1}) must be a non-empty part of the {H}x{W} scene"
+        )
     return r0, r1, c0, c1
 
 
@@ -322,6 +351,5 @@ def simulate_tile(cfg: SimConfig, r0: int, r1: int, c0: int, c1: int) -> dict[st
             b0, b1 = max(c0, bc0), min(c1, bc0 + BLOCK)
             blk = _render_block(m, bi, bj)
             for name in out:
-                out[name][a0 - r0:a1 - r0, b0 - c0:b1 - c0] = \
-                    blk[name][a0 - br0:a1 - br0, b0 - bc0:b1 - bc0]
+                out[name][a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = blk[name][a0 - br0 : a1 - br0, b0 - bc0 : b1 - bc0]
     return out

@@ -7,8 +7,9 @@ import datetime as _dt
 import json
 import os
 import uuid
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any
 
 import numpy as np
 
@@ -18,6 +19,7 @@ from sarship.pipeline.simulate.geometry import sar_geometry
 from sarship.pipeline.simulate.ground_truth import _collect_tile, _new_ship_buffers, _truth
 from sarship.pipeline.simulate.model import _model
 from sarship.pipeline.simulate.render import simulate_tile
+
 
 def simulate_array(cfg: SimConfig) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """The whole scene in memory and its truth (small scenes, tests)."""
@@ -32,7 +34,7 @@ def simulate_array(cfg: SimConfig) -> tuple[dict[str, np.ndarray], dict[str, Any
 
 def acquired_time(cfg: SimConfig) -> str:
     """A fixed ISO 8601 acquisition time derived from the seed."""
-    t0 = _dt.datetime(2020, 1, 1, tzinfo=_dt.timezone.utc)
+    t0 = _dt.datetime(2020, 1, 1, tzinfo=_dt.UTC)
     t = t0 + _dt.timedelta(seconds=int(cfg.seed) % (5 * 365 * 86400))
     return t.strftime("%Y-%m-%dT%H:%M:%SZ")
 
@@ -44,9 +46,14 @@ def _writable_dir(p: Path, what: str) -> None:
         raise InputError(f"{what} folder '{p}' is not writable")
 
 
-def simulate(out: str | os.PathLike, cfg: SimConfig, tile: int = 2048,
-             truth_path: str | os.PathLike | None = None,
-             progress: Optional[Callable[[int, int], None]] = None, overwrite: bool = True) -> Path:
+def simulate(
+    out: str | os.PathLike,
+    cfg: SimConfig,
+    tile: int = 2048,
+    truth_path: str | os.PathLike | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    overwrite: bool = True,
+) -> Path:
     """Write the scene store ``out`` tile by tile (bounded memory) and its truth GeoJSON.
 
     The truth goes to ``truth_path`` (default ``f"{out}.truth.geojson"``). ``progress(done,

@@ -28,7 +28,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
@@ -47,9 +47,9 @@ SHIP_CLASSES: dict[str, dict[str, Any]] = {
 }
 
 
-LAND_MARGIN_PX = 8     # min distance of ship pixels from the coast
-COVERAGE_MIN = 0.25    # min area fraction of a ship pixel
-HULL_SIGMA = 0.6       # lognormal sigma of hull RCS structure (nepers)
+LAND_MARGIN_PX = 8  # min distance of ship pixels from the coast
+COVERAGE_MIN = 0.25  # min area fraction of a ship pixel
+HULL_SIGMA = 0.6  # lognormal sigma of hull RCS structure (nepers)
 
 
 @dataclass
@@ -61,7 +61,7 @@ class _Ship:
     width_m: float
     bow_deg: float
     scr_db: float
-    pol_class: Optional[str]
+    pol_class: str | None
     r0: int
     c0: int
     mask: np.ndarray
@@ -85,8 +85,7 @@ def _unit_vectors(bow_deg: float) -> tuple[float, float, float, float]:
     return -math.cos(th), math.sin(th), math.sin(th), math.cos(th)
 
 
-def _ship_dims(length: float, ratio: float, bow_deg: float, dy: float, dx: float
-               ) -> tuple[float, float]:
+def _ship_dims(length: float, ratio: float, bow_deg: float, dy: float, dx: float) -> tuple[float, float]:
     """Rendered length and width (m): at least one pixel along and across."""
     ur, uc, vr, vc = _unit_vectors(bow_deg)
     lpx = math.hypot(ur / dy, uc / dx)
@@ -94,8 +93,9 @@ def _ship_dims(length: float, ratio: float, bow_deg: float, dy: float, dx: float
     return max(length, 1.0 / lpx), max(length / ratio, 1.0 / wpx)
 
 
-def _footprint(rc: float, cc: float, length: float, width: float, bow_deg: float,
-               dy: float, dx: float) -> tuple[int, int, np.ndarray, np.ndarray]:
+def _footprint(
+    rc: float, cc: float, length: float, width: float, bow_deg: float, dy: float, dx: float
+) -> tuple[int, int, np.ndarray, np.ndarray]:
     """Ship pixels: (r0, c0, mask, coverage) of the rotated rectangle centred at (rc, cc) px."""
     ur, uc, vr, vc = _unit_vectors(bow_deg)
     hr = (abs(ur) * length / 2 + abs(vr) * width / 2) / dy + 1.0
@@ -117,7 +117,7 @@ def _footprint(rc: float, cc: float, length: float, width: float, bow_deg: float
     return r0 + int(rows[0]), c0 + int(cols[0]), mask[sl].copy(), cov[sl].astype(np.float32)
 
 
-def _place_ships(cfg: SimConfig, land: Optional[_Land]) -> list[_Ship]:
+def _place_ships(cfg: SimConfig, land: _Land | None) -> list[_Ship]:
     H, W = cfg.shape
     dy, dx = cfg.pixel_spacing_m
     rng = _rng(cfg.seed, _S_CATALOGUE)
@@ -148,10 +148,16 @@ def _place_ships(cfg: SimConfig, land: Optional[_Land]) -> list[_Ship]:
                 if r0 < BORDER_PX or c0 < BORDER_PX or r1 > H - BORDER_PX or c1 > W - BORDER_PX:
                     continue
                 b = (r0 - GAP_PX, r1 + GAP_PX, c0 - GAP_PX, c1 + GAP_PX)
-                cells = [(p, q) for p in range(b[0] // cell, (b[1] - 1) // cell + 1)
-                         for q in range(b[2] // cell, (b[3] - 1) // cell + 1)]
-                if any(o[0] < b[1] and b[0] < o[1] and o[2] < b[3] and b[2] < o[3]
-                       for pq in cells for o in grid.get(pq, ())):
+                cells = [
+                    (p, q)
+                    for p in range(b[0] // cell, (b[1] - 1) // cell + 1)
+                    for q in range(b[2] // cell, (b[3] - 1) // cell + 1)
+                ]
+                if any(
+                    o[0] < b[1] and b[0] < o[1] and o[2] < b[3] and b[2] < o[3]
+                    for pq in cells
+                    for o in grid.get(pq, ())
+                ):
                     continue
                 if land is not None and _land_clearance(cfg, land, r0, r1, c0, c1) < LAND_MARGIN_PX:
                     continue
@@ -164,11 +170,25 @@ def _place_ships(cfg: SimConfig, land: Optional[_Land]) -> list[_Ship]:
             raise InputError(
                 f"simulation ships: could not place ship {i + 1} of {cfg.ships} on free sea "
                 f"in the {H}x{W} scene (ships must not overlap each other or land); "
-                f"use fewer ships, shorter length_m or a larger shape")
+                f"use fewer ships, shorter length_m or a larger shape"
+            )
         rc, cc, r0, c0, mask, cov = placed
-        ships.append(_Ship(idx=i, rc=rc, cc=cc, length_m=length, width_m=width, bow_deg=bow,
-                           scr_db=scr, pol_class=pcls if cfg.kind == "quadpol" else None,
-                           r0=r0, c0=c0, mask=mask, cov=cov))
+        ships.append(
+            _Ship(
+                idx=i,
+                rc=rc,
+                cc=cc,
+                length_m=length,
+                width_m=width,
+                bow_deg=bow,
+                scr_db=scr,
+                pol_class=pcls if cfg.kind == "quadpol" else None,
+                r0=r0,
+                c0=c0,
+                mask=mask,
+                cov=cov,
+            )
+        )
     return ships
 
 
@@ -186,11 +206,9 @@ def _dominants(cfg: SimConfig, s: _Ship) -> dict[str, np.ndarray]:
     rng = _rng(cfg.seed, _S_SHIPDOM, s.idx)
     n_extra = int(rng.integers(0, 3))
     L, Wd = s.length_m, s.width_m
-    along = np.concatenate([[0.42 * L, -0.42 * L, rng.uniform(-0.3, 0.15) * L],
-                            rng.uniform(-0.4, 0.4, n_extra) * L])
+    along = np.concatenate([[0.42 * L, -0.42 * L, rng.uniform(-0.3, 0.15) * L], rng.uniform(-0.4, 0.4, n_extra) * L])
     across = rng.uniform(-0.25, 0.25, along.size) * Wd
-    rel = np.concatenate([rng.uniform(4.0, 12.0, 2), rng.uniform(12.0, 40.0, 1),
-                          rng.uniform(3.0, 10.0, n_extra)])
+    rel = np.concatenate([rng.uniform(4.0, 12.0, 2), rng.uniform(12.0, 40.0, 1), rng.uniform(3.0, 10.0, n_extra)])
     phase = rng.uniform(0.0, 2 * math.pi, along.size)
     ur, uc, vr, vc = _unit_vectors(s.bow_deg)
     rp = s.rc + (along * ur + across * vr) / dy
@@ -209,11 +227,12 @@ def _dominants(cfg: SimConfig, s: _Ship) -> dict[str, np.ndarray]:
     info = SHIP_CLASSES[s.pol_class or "mixed"]
     is_di = rng.random(along.size) < info["p_dihedral"]
     psi = np.radians(rng.uniform(-info["psi_deg"], info["psi_deg"], along.size))
-    vec = np.where(is_di[:, None],
-                   np.stack([np.cos(2 * psi), np.sin(2 * psi), -np.cos(2 * psi)], axis=1),
-                   np.array([[1.0, 0.0, 1.0]])) / math.sqrt(2.0)
-    return {"row": rows, "col": cols, "dr": dr, "dc": dc, "rel": rel, "phase": phase,
-            "vec": vec, "dihedral": is_di}
+    vec = np.where(
+        is_di[:, None],
+        np.stack([np.cos(2 * psi), np.sin(2 * psi), -np.cos(2 * psi)], axis=1),
+        np.array([[1.0, 0.0, 1.0]]),
+    ) / math.sqrt(2.0)
+    return {"row": rows, "col": cols, "dr": dr, "dc": dc, "rel": rel, "phase": phase, "vec": vec, "dihedral": is_di}
 
 
 def _ship_geometry(cfg: SimConfig, s: _Ship) -> dict[str, Any]:

@@ -91,8 +91,9 @@ def _sqrtm_aug(C: np.ndarray) -> np.ndarray:
     return (V * np.sqrt(w)) @ V.conj().T
 
 
-def sample(beta: float, C: np.ndarray | None = None, size=1, rng: np.random.Generator | None = None,
-           dtype=np.complex128) -> np.ndarray:
+def sample(
+    beta: float, C: np.ndarray | None = None, size=1, rng: np.random.Generator | None = None, dtype=np.complex128
+) -> np.ndarray:
     """``size`` independent CGGD samples of shape ``beta`` and augmented covariance ``C``
     (default: circular, unit variance), by eq 27-31."""
     b = _check_beta(beta)
@@ -103,10 +104,10 @@ def sample(beta: float, C: np.ndarray | None = None, size=1, rng: np.random.Gene
     g = rng.standard_gamma(1.0 / b, size)
     u = rng.random(size)
     logc = special.gammaln(2.0 / b) - special.gammaln(1.0 / b)
-    r = np.exp(np.log(g) / (2.0 * b) - 0.5 * logc) if np.any(g > 0) else np.zeros_like(g)   # eq 27, 28
+    r = np.exp(np.log(g) / (2.0 * b) - 0.5 * logc) if np.any(g > 0) else np.zeros_like(g)  # eq 27, 28
     w = r * np.exp(2j * np.pi * u)
-    T = _sqrtm_aug(C)                                                                        # eq 30
-    v = T[0, 0] * w + T[0, 1] * np.conj(w)                                                    # eq 29, 31
+    T = _sqrtm_aug(C)  # eq 30
+    v = T[0, 0] * w + T[0, 1] * np.conj(w)  # eq 29, 31
     return v.astype(dtype, copy=False)
 
 
@@ -119,8 +120,14 @@ def log_pdf(z, beta: float, C: np.ndarray) -> np.ndarray:
     logc = special.gammaln(2.0 / b) - special.gammaln(1.0 / b)
     det = float(np.linalg.det(C).real)
     with np.errstate(divide="ignore"):  # q = 0 (z = 0): the exponential term is exp(-inf) = 0
-        return (math.log(b) + logc - math.log(math.pi) - 0.5 * math.log(det) - special.gammaln(1.0 / b)
-                - np.exp(b * (logc + np.log(0.5 * q))))
+        return (
+            math.log(b)
+            + logc
+            - math.log(math.pi)
+            - 0.5 * math.log(det)
+            - special.gammaln(1.0 / b)
+            - np.exp(b * (logc + np.log(0.5 * q)))
+        )
 
 
 def _quad(z: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -190,8 +197,8 @@ def csk_table(step: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
 
 def _beta_table(k: np.ndarray) -> np.ndarray:
     beta, c = csk_table()
-    rc = c[::-1]                       # increasing
-    i = np.searchsorted(rc, k)         # rc[i-1] < k <= rc[i]
+    rc = c[::-1]  # increasing
+    i = np.searchsorted(rc, k)  # rc[i-1] < k <= rc[i]
     i = np.clip(i, 1, rc.size - 1)
     nearer_low = np.abs(k - rc[i - 1]) <= np.abs(rc[i] - k)
     j = np.where(nearer_low, i - 1, i)
@@ -203,6 +210,7 @@ def _beta_table(k: np.ndarray) -> np.ndarray:
 
 def _beta_exact(k: float) -> float:
     from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
+
     hi_c = float(csk_of_beta(BETA_MIN))
     lo_c = float(csk_of_beta(BETA_MAX))
     if not k > lo_c:
@@ -248,7 +256,7 @@ def beta_csk(z, method: str = "exact", whiten_first: bool = False) -> float:
 class NoveyFit:
     beta: float
     C: np.ndarray
-    beta0: float       # the moment start of eq 32
+    beta0: float  # the moment start of eq 32
     iterations: int
     loglik: float
 
@@ -256,6 +264,7 @@ class NoveyFit:
 def _moment_start(z: np.ndarray) -> float:
     """beta minimising |f(beta)| of eq 32 (real and imaginary kurtoses summed)."""
     from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
+
     x, y = z.real, z.imag
     kx = np.mean(x**4) / np.mean(x**2) ** 2
     ky = np.mean(y**4) / np.mean(y**2) ** 2
@@ -264,8 +273,9 @@ def _moment_start(z: np.ndarray) -> float:
     def f(lb: float) -> float:
         return abs(s - 3.0 * (float(csk_of_beta(math.exp(lb))) + 2.0))
 
-    r = optimize.minimize_scalar(f, bounds=(math.log(0.05), math.log(BETA_MAX)), method="bounded",
-                                 options={"xatol": 1e-8})
+    r = optimize.minimize_scalar(
+        f, bounds=(math.log(0.05), math.log(BETA_MAX)), method="bounded", options={"xatol": 1e-8}
+    )
     return float(math.exp(r.x))
 
 
@@ -275,12 +285,12 @@ def _loglik_derivs(beta: float, q: np.ndarray, logdet: float) -> tuple[float, fl
     n = q.size
     a = 1.0 / beta
     logc = special.gammaln(2 * a) - special.gammaln(a)
-    g1 = 2 * special.digamma(2 * a) - special.digamma(a)          # d logc / da
+    g1 = 2 * special.digamma(2 * a) - special.digamma(a)  # d logc / da
     g2 = 4 * special.polygamma(1, 2 * a) - special.polygamma(1, a)  # d2 logc / da2
-    dl = -g1 / beta**2                                              # d logc / d beta
+    dl = -g1 / beta**2  # d logc / d beta
     d2l = g2 / beta**4 + 2 * g1 / beta**3
     u = logc + np.log(0.5 * q)
-    t = np.exp(beta * u)                                            # (c q / 2)^beta
+    t = np.exp(beta * u)  # (c q / 2)^beta
     du = dl
     s1 = u + beta * du
     L = n * (math.log(beta) + logc - math.log(math.pi) - 0.5 * logdet - special.gammaln(a)) - float(t.sum())
@@ -305,7 +315,7 @@ def beta_novey(z, max_iter: int = 100, tol: float = 1e-6) -> NoveyFit:
     beta0 = beta
     it = 0
     L = math.nan
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported after the loop)
         q = _quad(z, C)
         logdet = math.log(float(np.linalg.det(C).real))
         L, dL, d2L = _loglik_derivs(beta, q, logdet)
@@ -313,7 +323,7 @@ def beta_novey(z, max_iter: int = 100, tol: float = 1e-6) -> NoveyFit:
             step = dL / d2L
         else:  # not concave here: an uphill step of bounded size instead of Newton's
             step = -math.copysign(min(abs(dL), 0.1 * beta), dL)
-        new = beta - step                                            # eq 33
+        new = beta - step  # eq 33
         while not (new > BETA_MIN and _loglik_derivs(new, q, logdet)[0] >= L - 1e-12 * abs(L)):
             step *= 0.5
             new = beta - step
@@ -322,7 +332,7 @@ def beta_novey(z, max_iter: int = 100, tol: float = 1e-6) -> NoveyFit:
                 break
         done = abs(new - beta) < tol
         beta = min(max(new, BETA_MIN), BETA_MAX)
-        if beta < 1.0:                                               # eq 34
+        if beta < 1.0:  # eq 34
             c = math.exp(special.gammaln(2 / beta) - special.gammaln(1 / beta))
             q = _quad(z, C)
             wgt = q ** (beta - 1.0)

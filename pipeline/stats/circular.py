@@ -71,14 +71,14 @@ class CircularSummary:
     """The statistics of eq 4-11 of one sample of phases."""
 
     n: int
-    mean_direction: float          # mu = T_1, eq 4, in [0, 2 pi)
-    variance: float                # V = 1 - Rbar_1, eq 5
-    std: float                     # sqrt(-2 ln Rbar_1), eq 6 (Fisher; see the module docstring)
-    resultant_length: float        # R = R_1, eq 7
-    mean_resultant_length: float   # Rbar = Rbar_1, eq 8
-    dispersion: float              # (1 - Rbar_2) / (2 Rbar_1^2), eq 9 (Fisher)
-    skewness: float                # Rbar_2 sin(T_2 - 2 T_1) / (1 - Rbar_1)^(3/2), eq 10
-    kurtosis: float                # (Rbar_2 cos(T_2 - 2 T_1) - Rbar_1^4) / (1 - Rbar_1)^2, eq 11
+    mean_direction: float  # mu = T_1, eq 4, in [0, 2 pi)
+    variance: float  # V = 1 - Rbar_1, eq 5
+    std: float  # sqrt(-2 ln Rbar_1), eq 6 (Fisher; see the module docstring)
+    resultant_length: float  # R = R_1, eq 7
+    mean_resultant_length: float  # Rbar = Rbar_1, eq 8
+    dispersion: float  # (1 - Rbar_2) / (2 Rbar_1^2), eq 9 (Fisher)
+    skewness: float  # Rbar_2 sin(T_2 - 2 T_1) / (1 - Rbar_1)^(3/2), eq 10
+    kurtosis: float  # (Rbar_2 cos(T_2 - 2 T_1) - Rbar_1^4) / (1 - Rbar_1)^2, eq 11
 
 
 def summary(x) -> CircularSummary:
@@ -94,11 +94,19 @@ def summary(x) -> CircularSummary:
         std = float(np.sqrt(-2.0 * np.log(np.float64(r1)))) if r1 > 0 else math.inf
         disp = float(np.float64(1.0 - r2) / np.float64(2.0 * r1 * r1))
         d = np.float64(1.0 - r1)
-        skew = float(np.float64(r2 * math.sin(t2 - 2.0 * t1)) / d ** 1.5)
-        kurt = float(np.float64(r2 * math.cos(t2 - 2.0 * t1) - r1 ** 4) / (d * d))
-    return CircularSummary(n=a.size, mean_direction=t1, variance=1.0 - r1, std=std,
-                           resultant_length=r1 * a.size, mean_resultant_length=r1, dispersion=disp,
-                           skewness=skew, kurtosis=kurt)
+        skew = float(np.float64(r2 * math.sin(t2 - 2.0 * t1)) / d**1.5)
+        kurt = float(np.float64(r2 * math.cos(t2 - 2.0 * t1) - r1**4) / (d * d))
+    return CircularSummary(
+        n=a.size,
+        mean_direction=t1,
+        variance=1.0 - r1,
+        std=std,
+        resultant_length=r1 * a.size,
+        mean_resultant_length=r1,
+        dispersion=disp,
+        skewness=skew,
+        kurtosis=kurt,
+    )
 
 
 def mean_direction(x) -> float:
@@ -130,6 +138,7 @@ def kappa_from_rbar(r: float) -> float:
     below ~2/(1 - r)), then found by Brent's method to full double precision.
     """
     from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
+
     r = float(r)
     if not math.isfinite(r):
         raise ValueError(f"mean resultant length must be finite, got {r}")
@@ -147,10 +156,10 @@ def kappa_from_rbar(r: float) -> float:
 class VonMisesFit:
     """The von Mises fit of eq 13-17."""
 
-    mu: float        # eq 13, in [0, 2 pi)
-    kappa: float     # solves eq 17 with Rbar (corrected=False) or sqrt(Rbar_e^2) of eq 16
-    rbar: float      # Rbar (eq 8; sqrt of eq 14)
-    rbar_e2: float   # eq 16 (nan for N = 1)
+    mu: float  # eq 13, in [0, 2 pi)
+    kappa: float  # solves eq 17 with Rbar (corrected=False) or sqrt(Rbar_e^2) of eq 16
+    rbar: float  # Rbar (eq 8; sqrt of eq 14)
+    rbar_e2: float  # eq 16 (nan for N = 1)
     corrected: bool
 
 
@@ -164,8 +173,8 @@ def fit_von_mises(x, corrected: bool = True) -> VonMisesFit:
     a = _phases(x)
     n = a.size
     c, s, r, t = trig_moment(a, 1)
-    r2 = c * c + s * s                                   # eq 14
-    re2 = n / (n - 1.0) * (r2 - 1.0 / n) if n > 1 else math.nan   # eq 16
+    r2 = c * c + s * s  # eq 14
+    re2 = n / (n - 1.0) * (r2 - 1.0 / n) if n > 1 else math.nan  # eq 16
     if corrected:
         if n < 2:
             raise ValueError("the small-sample correction (eq 16) needs at least 2 phases")
@@ -223,10 +232,10 @@ def npdd(z, s: int = 3, t: int = 1) -> np.ndarray:
     if za.ndim != 2 or not np.iscomplexobj(za):
         raise ValueError("NPDD needs a 2-D complex (SLC) image: amplitude has no phase")
     ok = np.isfinite(za.real) & np.isfinite(za.imag) & (za != 0)
-    u = np.where(ok, za / np.where(ok, np.abs(za), 1.0), 0.0).astype(np.complex128)   # exp(j theta), eq 19
+    u = np.where(ok, za / np.where(ok, np.abs(za), 1.0), 0.0).astype(np.complex128)  # exp(j theta), eq 19
     a = _window_phasor_mean(u, s)
     b = _window_phasor_mean(u, t)
-    d = a * np.conj(b)                                                                 # eq 21
+    d = a * np.conj(b)  # eq 21
     out = np.angle(d)
     out[~ok | (np.abs(a) == 0) | (np.abs(b) == 0)] = np.nan
     return out

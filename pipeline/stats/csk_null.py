@@ -77,8 +77,17 @@ def samples_for(n: int) -> int:
 
 
 @njit(cache=True)
-def _simulate(n: int, m: int, seed: int, thetas: np.ndarray, alpha: float,
-              csk: np.ndarray, w: np.ndarray, is_max: np.ndarray, above: np.ndarray) -> None:
+def _simulate(
+    n: int,
+    m: int,
+    seed: int,
+    thetas: np.ndarray,
+    alpha: float,
+    csk: np.ndarray,
+    w: np.ndarray,
+    is_max: np.ndarray,
+    above: np.ndarray,
+) -> None:
     """``m`` windows of ``n`` cells: CSK, likelihood ratio, whether cell 0 is the brightest and
     how many cells exceed the window's mean power."""
     np.random.seed(seed)
@@ -162,8 +171,9 @@ def mean_csk(n: int, samples: int = SAMPLES, seed: int = SEED) -> tuple[float, f
     return float(v.mean()), float(v.std() / math.sqrt(samples))
 
 
-def threshold(n: int, pfa: float, event: str = "bright", samples: int = SAMPLES,
-              seed: int = SEED) -> tuple[float, float]:
+def threshold(
+    n: int, pfa: float, event: str = "bright", samples: int = SAMPLES, seed: int = SEED
+) -> tuple[float, float]:
     """``(T, rel_se)``: the threshold with estimated P(event, CSK_n > T) <= pfa, and the
     relative standard error of that estimate at T (0 where the table ends: see the module)."""
     if event not in ("window", "bright"):
@@ -172,11 +182,11 @@ def threshold(n: int, pfa: float, event: str = "bright", samples: int = SAMPLES,
         raise ValueError(f"pfa must be in (0, 1), got {pfa}")
     t, p, se = null_tail(n, samples, seed)[event]
     # p[i] = P(CSK >= t[i]); the threshold t[i] excludes sample i itself: P(CSK > t[i]) = p[i-1]
-    i = int(np.searchsorted(p, pfa, side="right"))   # first index with p > pfa
-    if i == 0:                                      # even the largest simulated value is too frequent
+    i = int(np.searchsorted(p, pfa, side="right"))  # first index with p > pfa
+    if i == 0:  # even the largest simulated value is too frequent
         raise ValueError(f"pfa {pfa:g} is above the simulated tail (n = {n})")
     if i >= t.size:
         return float(t[-1]), float(se[-1] / p[-1]) if p[-1] > 0 else 0.0
-    if p[i - 1] <= 0.0:                             # deeper than any simulated value reaches
+    if p[i - 1] <= 0.0:  # deeper than any simulated value reaches
         return float(n - 2), 0.0
     return float(t[i - 1]), float(se[i - 1] / p[i - 1])

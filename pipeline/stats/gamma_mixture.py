@@ -54,9 +54,14 @@ class GammaMixture:
     converged: bool
 
     def to_dict(self) -> dict:
-        return {"weights": [float(v) for v in self.weights], "means": [float(v) for v in self.means],
-                "looks": float(self.looks), "loglik": float(self.loglik), "iterations": int(self.iterations),
-                "converged": bool(self.converged)}
+        return {
+            "weights": [float(v) for v in self.weights],
+            "means": [float(v) for v in self.means],
+            "looks": float(self.looks),
+            "loglik": float(self.loglik),
+            "iterations": int(self.iterations),
+            "converged": bool(self.converged),
+        }
 
 
 def initial_mixture(y: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +75,7 @@ def initial_mixture(y: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray]:
     for k in range(1, K + 1):  # at least one sample a slice
         cuts[k] = min(max(cuts[k], cuts[k - 1] + 1), n - (K - k))
     w = np.diff(cuts).astype(np.float64) / n
-    mu = np.array([ys[cuts[k]:cuts[k + 1]].mean() for k in range(K)])
+    mu = np.array([ys[cuts[k] : cuts[k + 1]].mean() for k in range(K)])
     return w, mu
 
 
@@ -90,8 +95,7 @@ def _log_joint(y: np.ndarray, w: np.ndarray, mu: np.ndarray, L: float) -> np.nda
     return base[:, None] + np.log(w)[None, :] - L * np.log(mu)[None, :] - L * y[:, None] / mu[None, :]
 
 
-def fit_gamma_mixture(y: np.ndarray, looks: float, K: int = 4, max_iter: int = 500,
-                      tol: float = 1e-9) -> GammaMixture:
+def fit_gamma_mixture(y: np.ndarray, looks: float, K: int = 4, max_iter: int = 500, tol: float = 1e-9) -> GammaMixture:
     """EM for the K-class gamma mixture of eq (1)-(2) with L = ``looks`` fixed (module docstring).
 
     ``y``: a 1-D sample of non-negative finite intensities (absent pixels already left out).
@@ -108,14 +112,15 @@ def fit_gamma_mixture(y: np.ndarray, looks: float, K: int = 4, max_iter: int = 5
     floor = MEAN_FLOOR * max(float(y.mean()), np.finfo(np.float64).tiny)
     w, mu = initial_mixture(y, K)
     mu = np.maximum(mu, floor)
-    base = float(np.mean(L * math.log(L) - special.gammaln(L)
-                         + (L - 1.0) * np.log(np.maximum(y, np.finfo(np.float64).tiny))))
+    base = float(
+        np.mean(L * math.log(L) - special.gammaln(L) + (L - 1.0) * np.log(np.maximum(y, np.finfo(np.float64).tiny)))
+    )
     prev = -np.inf
     converged = False
     it = 0
     nk = np.empty(K)
     sy = np.empty(K)
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported after the loop)
         ll = _em_step(y, np.log(w) - L * np.log(mu), L / mu, nk, sy) / y.size + base
         w = np.maximum(nk / y.size, WEIGHT_FLOOR)  # M step
         w = w / w.sum()
@@ -173,6 +178,7 @@ def mixture_isf(p: float, weights, means, looks: float) -> float:
     """The intensity ``q`` with ``P(y > q) = p`` under the mixture (weights renormalised to 1):
     root of the monotone tail between the classes' own quantiles (scipy brentq)."""
     from scipy import optimize, stats  # lazy: importing scipy.optimize/stats costs every command start-up time
+
     w = np.asarray(weights, np.float64)
     w = w / w.sum()
     mu = np.asarray(means, np.float64)
@@ -181,5 +187,6 @@ def mixture_isf(p: float, weights, means, looks: float) -> float:
     lo, hi = float(qs.min()), float(qs.max())
     if lo == hi:
         return lo
-    return float(optimize.brentq(lambda q: mixture_sf(q, w, mu, L) - p, lo, hi, xtol=1e-14 * hi, rtol=1e-15,
-                                 maxiter=500))
+    return float(
+        optimize.brentq(lambda q: mixture_sf(q, w, mu, L) - p, lo, hi, xtol=1e-14 * hi, rtol=1e-15, maxiter=500)
+    )

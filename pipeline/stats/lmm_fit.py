@@ -38,8 +38,19 @@ import numpy as np
 from numba import njit
 from scipy import special
 
-__all__ = ["censored_grad_hess", "censored_loglik", "em_fit_points", "fit_threshold", "init_z_table", "mixture_grad_hess", "mixture_loglik", "mixture_sf_log",
-           "mixture_threshold_log", "ml_newton", "predictive_shift"]
+__all__ = [
+    "censored_grad_hess",
+    "censored_loglik",
+    "em_fit_points",
+    "fit_threshold",
+    "init_z_table",
+    "mixture_grad_hess",
+    "mixture_loglik",
+    "mixture_sf_log",
+    "mixture_threshold_log",
+    "ml_newton",
+    "predictive_shift",
+]
 
 
 def init_z_table(K: int) -> np.ndarray:
@@ -439,7 +450,7 @@ def censored_grad_hess(K, a, mu, s, c, nc, G, H, sgn=1.0):
     for k in range(K):
         lq[k] = math.log(a[k]) + _log_q(sgn * (c - mu[k]) / s[k])
         mx = max(mx, lq[k])
-    Q = np.empty(K)   # Q_k / scale
+    Q = np.empty(K)  # Q_k / scale
     ph = np.empty(K)  # phi_k / scale
     u = np.empty(K)
     S = 0.0
@@ -679,9 +690,29 @@ def _resolved(K, s, res):
     return True
 
 
+# fmt: off (argument lists laid out by hand)
 @njit(nogil=True, cache=True)
-def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                  a, mu, s, cens=0.0, cens_q=0.0, lcens=0.0, refuse=0.0):
+def fit_threshold(
+    y,
+    wt,
+    n_pts,
+    K,
+    init_zs,
+    max_iter,
+    tol,
+    shep,
+    select,
+    predictive,
+    z,
+    log_pfa,
+    a,
+    mu,
+    s,
+    cens=0.0,
+    cens_q=0.0,
+    lcens=0.0,
+    refuse=0.0,
+):
     """The threshold t = ln T for one ring (weighted points y, wt); returns (t, work, K').
 
     1. EM (:func:`em_fit_points`) for K' = 1..K (``select``), or K' = K only; components
@@ -721,8 +752,9 @@ def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predict
     ``cens = lcens = refuse = 0``: bit for bit the uncensored fit.
     """
     if not (cens > 0.0 or lcens > 0.0 or refuse > 0.0):
-        return _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s,
-                         np.inf, 0.0)
+        return _fit_core(
+            y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, np.inf, 0.0
+        )
     hb = math.sqrt(3.0 * shep)  # half a bin (0 for raw samples)
     Wall = 0.0
     for j in range(n_pts):
@@ -759,17 +791,76 @@ def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predict
             n1 += 1
         if nc > 0.0:
             q = cens_q if cens_q > 0.0 else 1.0 / Wall
-            c2, work, _ = _fit_core(ys, ws, n1, K, init_zs, max_iter, tol, shep, select, predictive,
-                                    _z_of(q), math.log(q), a, mu, s, ys[n1 - 1] + hb, nc, cl, nl)
-            t, w2, m = _fit_right(ys, ws, npk, n1, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive,
-                                  z, log_pfa, a, mu, s, cl, nl)
+            c2, work, _ = _fit_core(
+                ys,
+                ws,
+                n1,
+                K,
+                init_zs,
+                max_iter,
+                tol,
+                shep,
+                select,
+                predictive,
+                _z_of(q),
+                math.log(q),
+                a,
+                mu,
+                s,
+                ys[n1 - 1] + hb,
+                nc,
+                cl,
+                nl,
+            )
+            t, w2, m = _fit_right(
+                ys,
+                ws,
+                npk,
+                n1,
+                c2,
+                hb,
+                K,
+                init_zs,
+                max_iter,
+                tol,
+                shep,
+                select,
+                predictive,
+                z,
+                log_pfa,
+                a,
+                mu,
+                s,
+                cl,
+                nl,
+            )
         else:
-            t, w2, m = _fit_core(ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                                 a, mu, s, np.inf, 0.0, cl, nl)
+            t, w2, m = _fit_core(
+                ys,
+                ws,
+                npk,
+                K,
+                init_zs,
+                max_iter,
+                tol,
+                shep,
+                select,
+                predictive,
+                z,
+                log_pfa,
+                a,
+                mu,
+                s,
+                np.inf,
+                0.0,
+                cl,
+                nl,
+            )
         work += w2
     else:
-        t, work, m = _fit_core(ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                               a, mu, s, np.inf, 0.0, cl, nl)
+        t, work, m = _fit_core(
+            ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, np.inf, 0.0, cl, nl
+        )
     cprev = np.inf
     for _ in range(3 if refuse > 0.0 else 0):
         if m < 2:
@@ -778,8 +869,9 @@ def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predict
         if not (c2 < cprev):
             break
         cprev = c2
-        t2, w2, m2 = _fit_right(ys, ws, npk, 0, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive,
-                                z, log_pfa, a, mu, s, cl, nl)
+        t2, w2, m2 = _fit_right(
+            ys, ws, npk, 0, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, cl, nl
+        )
         work += w2
         if not (t2 == t2):
             break
@@ -788,9 +880,13 @@ def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predict
     return t, work, m
 
 
+# fmt: on
+
+
 @njit(nogil=True, cache=True)
-def _fit_right(ys, ws, npk, n1, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-               a, mu, s, cl, nl):
+def _fit_right(
+    ys, ws, npk, n1, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, cl, nl
+):
     """The fit with the points above ``c2`` (but none of the first ``n1``) right-censored."""
     n2 = npk
     while n2 > n1 and ys[n2 - 1] > c2:
@@ -799,10 +895,30 @@ def _fit_right(ys, ws, npk, n1, c2, hb, K, init_zs, max_iter, tol, shep, select,
     for j in range(n2, npk):
         nc += ws[j]
     if not (nc > 0.0) or n2 < 1:
-        return _fit_core(ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                         a, mu, s, np.inf, 0.0, cl, nl)
-    return _fit_core(ys, ws, n2, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
-                     a, mu, s, ys[n2 - 1] + hb, nc, cl, nl)
+        return _fit_core(
+            ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, np.inf, 0.0, cl, nl
+        )
+    return _fit_core(
+        ys,
+        ws,
+        n2,
+        K,
+        init_zs,
+        max_iter,
+        tol,
+        shep,
+        select,
+        predictive,
+        z,
+        log_pfa,
+        a,
+        mu,
+        s,
+        ys[n2 - 1] + hb,
+        nc,
+        cl,
+        nl,
+    )
 
 
 #: Phi^-1(1 - 1e-5): a refused component's mean lies beyond the others' threshold at PFA 1e-5 at least.
@@ -862,8 +978,9 @@ def _z_of(q):
 
 
 @njit(nogil=True, cache=True)
-def _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, cy, nc,
-              cl=-np.inf, nl=0.0):
+def _fit_core(
+    y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, cy, nc, cl=-np.inf, nl=0.0
+):
     """:func:`fit_threshold` on the first ``n_pts`` points, weight ``nc`` right-censored at ``cy``."""
     Ka = np.zeros(K, np.int64)
     ca = np.zeros((K, K))
@@ -935,5 +1052,3 @@ def _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive,
         q = v - shep
         s[k] = math.sqrt(q if q > 0.25 * v else 0.25 * v)
     return mixture_threshold_log(a, mu, s, m, z, log_pfa), work, m
-
-

@@ -43,7 +43,7 @@ The result is clipped to [MIN_LOOKS, MAX_LOOKS].
 
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -132,8 +132,7 @@ def estimate_looks(intensity_blocks: Iterable[np.ndarray], block: int = 32) -> f
     v, n = v[ok], n[ok]
     if v.size == 0:
         raise InputError(
-            "cannot estimate the number of looks: no window has enough positive pixels "
-            "(all zero or no data?)"
+            "cannot estimate the number of looks: no window has enough positive pixels (all zero or no data?)"
         )
     med = float(np.median(v))
     n_eff = float(np.median(n))
@@ -151,8 +150,9 @@ def estimate_looks(intensity_blocks: Iterable[np.ndarray], block: int = 32) -> f
     return float(brentq(f, lo, hi, xtol=1e-6, rtol=1e-8))
 
 
-def estimate_scene_looks(read: Callable[[int, int, int, int], np.ndarray], shape: tuple[int, int],
-                         side: int = 512, grid: int = 4) -> float:
+def estimate_scene_looks(
+    read: Callable[[int, int, int, int], np.ndarray], shape: tuple[int, int], side: int = 512, grid: int = 4
+) -> float:
     """:func:`estimate_looks` on a ``grid`` x ``grid`` sample of ``side`` x ``side`` blocks
     spread evenly over a scene of ``shape``, read with ``read(r0, r1, c0, c1)`` (intensity):
     16 blocks of 512^2 by default, whatever the scene's size, so the estimate costs the same

@@ -45,7 +45,7 @@ the PFA there.
 from __future__ import annotations
 
 import math
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -84,11 +84,22 @@ MODEL_PROBE = {"os_cfar": "ca_cfar"}
 #: ``--detector auto``: the candidate models, simplest first (gamma speckle, K, G0).
 AUTO_CANDIDATES = ("ca_cfar", "k_cfar", "g0_cfar")
 #: Models to suggest when a detector's model does not fit: heavier tails / lighter tails.
-HEAVIER = {"ca_cfar": ("k_cfar", "g0_cfar"), "os_cfar": ("k_cfar", "g0_cfar"),
-           "two_parameter": ("k_cfar", "g0_cfar"), "ggd_cfar": ("k_cfar", "g0_cfar"), "k_cfar": ("g0_cfar",),
-           "g0_cfar": ()}
-LIGHTER = {"g0_cfar": ("k_cfar", "ca_cfar"), "k_cfar": ("ca_cfar",), "ggd_cfar": ("k_cfar", "ca_cfar"),
-           "ca_cfar": (), "os_cfar": ("ca_cfar",), "two_parameter": ("ca_cfar",)}
+HEAVIER = {
+    "ca_cfar": ("k_cfar", "g0_cfar"),
+    "os_cfar": ("k_cfar", "g0_cfar"),
+    "two_parameter": ("k_cfar", "g0_cfar"),
+    "ggd_cfar": ("k_cfar", "g0_cfar"),
+    "k_cfar": ("g0_cfar",),
+    "g0_cfar": (),
+}
+LIGHTER = {
+    "g0_cfar": ("k_cfar", "ca_cfar"),
+    "k_cfar": ("ca_cfar",),
+    "ggd_cfar": ("k_cfar", "ca_cfar"),
+    "ca_cfar": (),
+    "os_cfar": ("ca_cfar",),
+    "two_parameter": ("ca_cfar",),
+}
 
 VALID = np.uint8(1)  # flag bit 0: a counted cell; bit i + 1: exceeds at the i-th PFA
 
@@ -126,7 +137,7 @@ def assemble(pieces: Iterable[dict], shape: tuple[int, int], stride: int) -> np.
     for p in pieces:
         f = p["flags"]
         a, b = p["at"]
-        grid[a: a + f.shape[0], b: b + f.shape[1]] = f
+        grid[a : a + f.shape[0], b : b + f.shape[1]] = f
     return grid
 
 
@@ -174,9 +185,16 @@ def measure(grid: np.ndarray, pfas: Sequence[float]) -> list[dict]:
         k = int(np.count_nonzero(grid & np.uint8(1 << (i + 1))))
         v, ci = verdict(p, k, n)
         rate = k / n if n else None
-        out.append({"pfa": p, "exceedances": k, "rate": rate,
-                    "interval": None if ci is None else [ci[0], ci[1]],
-                    "ratio": None if rate is None else rate / p, "verdict": v})
+        out.append(
+            {
+                "pfa": p,
+                "exceedances": k,
+                "rate": rate,
+                "interval": None if ci is None else [ci[0], ci[1]],
+                "ratio": None if rate is None else rate / p,
+                "verdict": v,
+            }
+        )
     return out
 
 
@@ -212,27 +230,34 @@ def advice(rec: dict) -> str | None:
         return None
     heavy = v == "too many false alarms"
     how = "heavier" if heavy else "lighter"
-    line = (f"model fit: the clutter is {how}-tailed than {det}'s model (exceedance {rec['ratio']:.3g}x the PFA "
-            f"at {rec['probe_pfa']:g}, {rec['exceedances']} of {rec['sample']} clutter cells): "
-            f"{'more' if heavy else 'fewer'} false alarms than pfa x pixels")
+    line = (
+        f"model fit: the clutter is {how}-tailed than {det}'s model (exceedance {rec['ratio']:.3g}x the PFA "
+        f"at {rec['probe_pfa']:g}, {rec['exceedances']} of {rec['sample']} clutter cells): "
+        f"{'more' if heavy else 'fewer'} false alarms than pfa x pixels"
+    )
     alt = (HEAVIER if heavy else LIGHTER).get(det, ())
     if alt:
         line += f"; try --detector {' or '.join(alt)}"
     return line
 
 
-def choose(records: dict[str, dict], order: Sequence[str] = AUTO_CANDIDATES,
-           tolerance: float = AUTO_TOLERANCE) -> tuple[str, str]:
+def choose(
+    records: dict[str, dict], order: Sequence[str] = AUTO_CANDIDATES, tolerance: float = AUTO_TOLERANCE
+) -> tuple[str, str]:
     """``auto``'s choice among the candidates' fit ``records`` (by name): the first in ``order``
     that fits at the probe PFA within ``tolerance`` (eq 2 with it); else the one whose rate is
     nearest its PFA (|log ratio|, a rate of zero counted as half an exceedance) among those the
     sample resolves; else (nothing resolved) the first. Returns (name, why)."""
-    verdicts = {n: verdict(records[n]["probe_pfa"], records[n]["exceedances"], records[n]["sample"], tolerance)[0]
-                for n in order}
+    verdicts = {
+        n: verdict(records[n]["probe_pfa"], records[n]["exceedances"], records[n]["sample"], tolerance)[0]
+        for n in order
+    }
     for name in order:
         if verdicts[name] == "fits":
-            return name, (f"the first candidate, simplest model first, whose false-alarm rate at "
-                          f"{records[name]['probe_pfa']:g} is within {tolerance:g}x of it")
+            return name, (
+                f"the first candidate, simplest model first, whose false-alarm rate at "
+                f"{records[name]['probe_pfa']:g} is within {tolerance:g}x of it"
+            )
 
     def off(name: str) -> float:
         r = records[name]
@@ -242,6 +267,8 @@ def choose(records: dict[str, dict], order: Sequence[str] = AUTO_CANDIDATES,
     measured = [n for n in order if verdicts[n] != "undetermined"]
     if measured:
         best = min(measured, key=off)
-        return best, (f"no candidate's model fits within {tolerance:g}x; {best}'s false-alarm rate is nearest its "
-                      f"PFA ({records[best]['ratio']:.3g}x)")
+        return best, (
+            f"no candidate's model fits within {tolerance:g}x; {best}'s false-alarm rate is nearest its "
+            f"PFA ({records[best]['ratio']:.3g}x)"
+        )
     return order[0], "the sample cannot resolve the probe PFA (too few sea pixels): the simplest model"

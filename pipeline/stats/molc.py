@@ -113,6 +113,7 @@ G1_MAX = float(-ggd_skew(KAPPA_MIN))
 def inv_ggd_skew(g: np.ndarray) -> np.ndarray:
     """kappa with g(kappa) = -|g| (0 < |g| < 2), on z = ln kappa over [ln 1e-6, ln 1e16]
     (g increasing), bisection then Newton; dg/dz = kappa (psi_3 / psi_1^{3/2} - 1.5 psi_2^2 / psi_1^{5/2})."""
+
     def df(z):
         k = np.exp(z)
         p1, p2, p3 = (special.polygamma(m, k) for m in (1, 2, 3))
@@ -181,6 +182,7 @@ def g0_log_odds(a, looks: float, pfa: float):
     (``betaincinv``, ``beta.isf``), so the smaller of c and r keeps its relative precision
     (r is small when a is large, c when a is small)."""
     from scipy import stats  # lazy: importing scipy.stats costs every command start-up time
+
     a = np.asarray(a, np.float64)
     c = special.betaincinv(a, looks, pfa)
     r = stats.beta.isf(pfa, looks, a)
@@ -298,8 +300,11 @@ def k_H(u, looks: float, pfa: float):
     pos = u > trigamma(SHAPE_INF)
     if pos.any():
         nu = inv_trigamma(u[pos])
-        out[pos] = (np.log(k_tau(nu, looks, pfa)) - (special.digamma(nu) - np.log(nu))
-                    - (special.digamma(looks) - math.log(looks)))
+        out[pos] = (
+            np.log(k_tau(nu, looks, pfa))
+            - (special.digamma(nu) - np.log(nu))
+            - (special.digamma(looks) - math.log(looks))
+        )
     return out
 
 
@@ -307,14 +312,15 @@ def ggd_D(g1, pfa: float):
     """D(g1) of eq (8): the upper-pfa quantile of the standardised ln x of a GGD whose ln x has
     skewness g1 (|g1| < 2); D(0) = z_pfa (lognormal limit)."""
     from scipy import stats  # lazy: importing scipy.stats costs every command start-up time
+
     g1 = np.atleast_1d(np.asarray(g1, np.float64))
     out = np.full(g1.shape, float(stats.norm.isf(pfa)))
     nz = np.abs(g1) > 1e-7
     if nz.any():
         kap = inv_ggd_skew(g1[nz])
         psi, s = special.digamma(kap), np.sqrt(special.polygamma(1, kap))
-        up = (np.log(special.gammainccinv(kap, pfa)) - psi) / s    # v > 0: g1 < 0
-        dn = -(np.log(special.gammaincinv(kap, pfa)) - psi) / s    # v < 0: g1 > 0
+        up = (np.log(special.gammainccinv(kap, pfa)) - psi) / s  # v > 0: g1 < 0
+        dn = -(np.log(special.gammaincinv(kap, pfa)) - psi) / s  # v < 0: g1 > 0
         out[nz] = np.where(g1[nz] < 0, up, dn)
     return out
 
@@ -355,8 +361,14 @@ class Table:
 
     def summary(self) -> dict:
         """JSON-safe description (for run.json): grid and a few values."""
-        return {"x0": self.x0, "x1": self.x1, "nodes": self.n + 1,
-                "f_first": float(self.f[0]), "f_mid": float(self.f[self.n // 2]), "f_last": float(self.f[-1])}
+        return {
+            "x0": self.x0,
+            "x1": self.x1,
+            "nodes": self.n + 1,
+            "f_first": float(self.f[0]),
+            "f_mid": float(self.f[self.n // 2]),
+            "f_last": float(self.f[-1]),
+        }
 
 
 def interp(xp, tab_f, x0: float, inv_h: float, n: int, x):
@@ -407,6 +419,7 @@ def k_table(pfa: float, looks: float) -> Table:
     """H of K on N_TABLE + 1 nodes of w in [0, w_max(L)]: exact (eqs 5, 6) on N_K_EXACT nodes
     (Chebyshev-Lobatto points, denser at both ends), cubic spline in between."""
     from scipy import interpolate  # lazy: importing scipy.interpolate costs every command start-up time
+
     wm = w_max(looks)
     j = np.arange(N_K_EXACT)
     we = 0.5 * wm * (1.0 - np.cos(np.pi * j / (N_K_EXACT - 1)))

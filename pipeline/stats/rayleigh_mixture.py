@@ -131,6 +131,7 @@ def mixture_threshold(weights, scales, pfa: float) -> float:
 def mixture_threshold_brentq(weights, scales, pfa: float) -> float:
     """Reference for :func:`mixture_threshold`: the same root by ``scipy.optimize.brentq``."""
     from scipy import optimize  # lazy: importing scipy.optimize costs every command start-up time
+
     w = np.asarray(weights, np.float64)
     s = np.asarray(scales, np.float64)
     keep = w > 0
@@ -210,7 +211,7 @@ def em_binned(counts, sums, K, max_iter, w, s):
     r = np.empty(K)
     prev = -np.inf
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported after the loop)
         for k in range(K):
             cw[k] = 0.0
             cs[k] = 0.0
@@ -270,8 +271,9 @@ def fit_binned(vals, K, max_iter, width, w, s):
     return em_binned(counts, sums, K, max_iter, w, s)
 
 
-def fit_rayleigh_mixture(amplitudes, components: int = 3, max_iter: int = 200,
-                         bin_width: float = BIN_WIDTH) -> RayleighMixture:
+def fit_rayleigh_mixture(
+    amplitudes, components: int = 3, max_iter: int = 200, bin_width: float = BIN_WIDTH
+) -> RayleighMixture:
     """Fit eq 3-4 to clutter amplitudes by EM (eq 5-6 as its M-step; module docstring)."""
     a = np.asarray(amplitudes, np.float64).ravel()
     a = a[np.isfinite(a)]

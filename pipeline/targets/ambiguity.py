@@ -59,8 +59,9 @@ ghost. See docs/algorithms/ambiguity.md.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -92,22 +93,33 @@ def azimuth_shift_m(k: Any, wavelength_m: Any, slant_range_m: Any, prf_hz: Any, 
     return -np.asarray(k) * wavelength_m * slant_range_m * prf_hz / (2.0 * v_platform_m_s)
 
 
-def range_shift_m(k: Any, wavelength_m: Any, slant_range_m: Any, prf_hz: Any, v_eff_m_s: Any,
-                  doppler_centroid_hz: Any = 0.0) -> Any:
+def range_shift_m(
+    k: Any, wavelength_m: Any, slant_range_m: Any, prf_hz: Any, v_eff_m_s: Any, doppler_centroid_hz: Any = 0.0
+) -> Any:
     """Eq. (3): slant-range shift of the k-th ambiguity, ``lambda^2 R ((f_dc + k PRF)^2 -
     f_dc^2) / (8 Vr^2)``: the range migration left uncorrected for energy aliased by k PRF."""
     k = np.asarray(k)
     f = np.asarray(doppler_centroid_hz, float)
-    return (np.square(wavelength_m) * slant_range_m * (np.square(f + k * prf_hz) - np.square(f))
-            / (8.0 * np.square(v_eff_m_s)))
+    return (
+        np.square(wavelength_m)
+        * slant_range_m
+        * (np.square(f + k * prf_hz) - np.square(f))
+        / (8.0 * np.square(v_eff_m_s))
+    )
 
 
-def range_spread_m(k: Any, wavelength_m: Any, slant_range_m: Any, prf_hz: Any, v_eff_m_s: Any,
-                   spread_hz: Any) -> Any:
+def range_spread_m(k: Any, wavelength_m: Any, slant_range_m: Any, prf_hz: Any, v_eff_m_s: Any, spread_hz: Any) -> Any:
     """Half-width of eq. (3) when ``f_dc`` is only known to +-``spread_hz`` (TOPS):
     ``lambda^2 R |k| PRF 2 spread / (8 Vr^2)``."""
-    return (np.square(wavelength_m) * slant_range_m * np.abs(np.asarray(k)) * prf_hz * 2.0
-            * np.asarray(spread_hz, float) / (8.0 * np.square(v_eff_m_s)))
+    return (
+        np.square(wavelength_m)
+        * slant_range_m
+        * np.abs(np.asarray(k))
+        * prf_hz
+        * 2.0
+        * np.asarray(spread_hz, float)
+        / (8.0 * np.square(v_eff_m_s))
+    )
 
 
 def effective_velocity_from_fm_rate(fm_rate_hz_s: Any, wavelength_m: Any, slant_range_m: Any) -> Any:
@@ -115,8 +127,9 @@ def effective_velocity_from_fm_rate(fm_rate_hz_s: Any, wavelength_m: Any, slant_
     return np.sqrt(np.abs(fm_rate_hz_s) * wavelength_m * slant_range_m / 2.0)
 
 
-def tops_doppler_spread_hz(fm_rate_hz_s: float, steering_rate_rad_s: float, v_platform_m_s: float,
-                           wavelength_m: float, burst_s: float) -> float:
+def tops_doppler_spread_hz(
+    fm_rate_hz_s: float, steering_rate_rad_s: float, v_platform_m_s: float, wavelength_m: float, burst_s: float
+) -> float:
     """Half the span of a TOPS target's Doppler centroid over a burst of ``burst_s`` seconds of
     zero-Doppler time: ``|kt| burst / 2``, ``kt = Ka ks / (Ka - ks)``, ``ks = 2 Vs k_psi /
     lambda`` (De Zan & Monti Guarnieri 2006; ESA's TOPS deramping note)."""
@@ -141,11 +154,11 @@ class Geometry:
 
     wavelength_m: float
     platform_velocity_m_s: float
-    cols: np.ndarray                 # increasing column positions of the range table
-    slant_range_m: np.ndarray        # R at those columns (strictly monotonic)
-    v_eff_m_s: np.ndarray            # effective velocity Vr at those columns
+    cols: np.ndarray  # increasing column positions of the range table
+    slant_range_m: np.ndarray  # R at those columns (strictly monotonic)
+    v_eff_m_s: np.ndarray  # effective velocity Vr at those columns
     doppler_centroid_hz: np.ndarray  # f_dc at those columns
-    prf_blocks: np.ndarray           # (n, 5): first_row, last_row, first_col, last_col (inclusive), prf
+    prf_blocks: np.ndarray  # (n, 5): first_row, last_row, first_col, last_col (inclusive), prf
     azimuth_time_interval_s: float | None = None
     azimuth_line_spacing_m: float | None = None
     doppler_centroid_spread_hz: float = 0.0
@@ -174,8 +187,9 @@ class Geometry:
         return b[best, 4]
 
     # -- eqs (1)-(3) in pixels -----------------------------------------------------------
-    def ghosts(self, rows: Sequence[float], cols: Sequence[float], orders: Sequence[int] = ORDERS
-               ) -> dict[str, np.ndarray]:
+    def ghosts(
+        self, rows: Sequence[float], cols: Sequence[float], orders: Sequence[int] = ORDERS
+    ) -> dict[str, np.ndarray]:
         """Expected positions of the ``orders`` ambiguities of targets at (rows, cols).
 
         Returns arrays of shape (n, len(orders)): ``row``, ``col`` (pixels), ``dx_m`` (eq. 2),
@@ -201,8 +215,16 @@ class Geometry:
         gcol = self.col_of_range(R + dr)
         spread = range_spread_m(k, lam, R, prf, vr, self.doppler_centroid_spread_hz)
         dcol_dr = np.abs(self.col_of_range(R + 1.0) - self.col_of_range(R))
-        return {"row": rows[:, None] + drow, "col": gcol, "dt_s": dt, "dx_m": dx, "dr_m": dr,
-                "col_spread_px": spread * dcol_dr, "prf_hz": prf[:, 0], "slant_range_m": R[:, 0]}
+        return {
+            "row": rows[:, None] + drow,
+            "col": gcol,
+            "dt_s": dt,
+            "dx_m": dx,
+            "dr_m": dr,
+            "col_spread_px": spread * dcol_dr,
+            "prf_hz": prf[:, 0],
+            "slant_range_m": R[:, 0],
+        }
 
 
 def _interp_extrap(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
@@ -248,8 +270,10 @@ def geometry_from_attrs(attrs: Mapping[str, Any]) -> Geometry:
         except (TypeError, ValueError, IndexError, KeyError):
             als = None
         if als is None or not math.isfinite(als) or als <= 0:
-            raise GeometryError(f"{ATTR} has neither azimuth_time_interval_s nor azimuth_line_spacing_m, "
-                                "and the scene's pixel_spacing_m is unknown")
+            raise GeometryError(
+                f"{ATTR} has neither azimuth_time_interval_s nor azimuth_line_spacing_m, "
+                "and the scene's pixel_spacing_m is unknown"
+            )
     spread = g.get("doppler_centroid_spread_hz", 0.0)
     if isinstance(spread, bool) or not isinstance(spread, (int, float)) or not 0 <= spread < 1e5:
         raise GeometryError(f"{ATTR}.doppler_centroid_spread_hz must be a number in [0, 1e5), got {spread!r}")
@@ -265,8 +289,10 @@ def geometry_from_attrs(attrs: Mapping[str, Any]) -> Geometry:
         raise GeometryError(f"{ATTR}.range_table is not a table of numbers ({exc})") from None
     n = len(cols)
     if n < 1 or cols.ndim != 1 or any(a.shape != (n,) for a in (R, vr, fdc)):
-        raise GeometryError(f"{ATTR}.range_table: col, slant_range_m, effective_velocity_m_s and "
-                            "doppler_centroid_hz must be lists of one length (>= 1)")
+        raise GeometryError(
+            f"{ATTR}.range_table: col, slant_range_m, effective_velocity_m_s and "
+            "doppler_centroid_hz must be lists of one length (>= 1)"
+        )
     if not all(np.all(np.isfinite(a)) for a in (cols, R, vr, fdc)):
         raise GeometryError(f"{ATTR}.range_table holds non-finite values")
     if n > 1 and not np.all(np.diff(cols) > 0):
@@ -290,17 +316,28 @@ def geometry_from_attrs(attrs: Mapping[str, Any]) -> Geometry:
                 try:
                     r0, r1, c0, c1 = (float(v) for v in b)
                 except (TypeError, ValueError):
-                    raise GeometryError(f"{ATTR}.swaths[].blocks: [first_row, last_row, first_col, last_col], "
-                                        f"got {b!r}") from None
+                    raise GeometryError(
+                        f"{ATTR}.swaths[].blocks: [first_row, last_row, first_col, last_col], got {b!r}"
+                    ) from None
                 blocks.append([r0, r1, c0, c1, prf])
     elif "prf_hz" in g:
         blocks.append([-math.inf, math.inf, -math.inf, math.inf, _pos(g, "prf_hz", 1.0, 1e5)])
     else:
         raise GeometryError(f"{ATTR} has neither prf_hz nor swaths[].prf_hz")
-    return Geometry(wavelength_m=C_LIGHT / f, platform_velocity_m_s=vs, cols=cols, slant_range_m=R, v_eff_m_s=vr,
-                    doppler_centroid_hz=fdc, prf_blocks=np.asarray(blocks, float), azimuth_time_interval_s=ati,
-                    azimuth_line_spacing_m=als, doppler_centroid_spread_hz=float(spread),
-                    source=str(g.get("source", "")), swath_names=tuple(names))
+    return Geometry(
+        wavelength_m=C_LIGHT / f,
+        platform_velocity_m_s=vs,
+        cols=cols,
+        slant_range_m=R,
+        v_eff_m_s=vr,
+        doppler_centroid_hz=fdc,
+        prf_blocks=np.asarray(blocks, float),
+        azimuth_time_interval_s=ati,
+        azimuth_line_spacing_m=als,
+        doppler_centroid_spread_hz=float(spread),
+        source=str(g.get("source", "")),
+        swath_names=tuple(names),
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -308,9 +345,14 @@ def geometry_from_attrs(attrs: Mapping[str, Any]) -> Geometry:
 # --------------------------------------------------------------------------------------
 
 
-def match_ambiguities(centroids: Any, peaks: Any, geom: Geometry, tol_px: float = DEFAULT_TOL_PX,
-                      min_db: float = DEFAULT_MIN_DB, orders: Sequence[int] = ORDERS
-                      ) -> tuple[list[int | None], list[int | None]]:
+def match_ambiguities(
+    centroids: Any,
+    peaks: Any,
+    geom: Geometry,
+    tol_px: float = DEFAULT_TOL_PX,
+    min_db: float = DEFAULT_MIN_DB,
+    orders: Sequence[int] = ORDERS,
+) -> tuple[list[int | None], list[int | None]]:
     """For each detection, the index of the brighter detection it is an azimuth ghost of
     (else None), and the order k of that ghost (else None).
 
@@ -335,7 +377,7 @@ def match_ambiguities(centroids: Any, peaks: Any, geom: Geometry, tol_px: float 
     idx = np.flatnonzero(ok)
     g = geom.ghosts(c[idx, 0], c[idx, 1], orders)
     K = len(orders)
-    pts = np.stack([g["row"].ravel(), g["col"].ravel()], axis=1)   # (len(idx) * K, 2)
+    pts = np.stack([g["row"].ravel(), g["col"].ravel()], axis=1)  # (len(idx) * K, 2)
     tol_c = tol_px + g["col_spread_px"].ravel()
     tree = cKDTree(pts)
     ratio = 10.0 ** (-min_db / 10.0)
@@ -365,9 +407,14 @@ def check_params(tol_px: float, min_db: float) -> None:
         raise ValueError(f"ambiguity_min_db must be a number in [0, 60] dB, got {min_db!r}")
 
 
-def flag_features(feats: list[dict], attrs: Mapping[str, Any], enabled: bool = True,
-                  tol_px: float = DEFAULT_TOL_PX, min_db: float = DEFAULT_MIN_DB,
-                  orders: Sequence[int] = ORDERS) -> tuple[list[dict], dict[str, Any]]:
+def flag_features(
+    feats: list[dict],
+    attrs: Mapping[str, Any],
+    enabled: bool = True,
+    tol_px: float = DEFAULT_TOL_PX,
+    min_db: float = DEFAULT_MIN_DB,
+    orders: Sequence[int] = ORDERS,
+) -> tuple[list[dict], dict[str, Any]]:
     """Give every detection Feature ``properties.ambiguity_of`` (the ``id`` of its parent, or
     None), ``ambiguity_order`` (k, or None) and ``ambiguity_positions_px`` (where its own
     ghosts of ``orders`` are expected: ``[{"order": k, "centroid_px": [row, col]}, ...]``, eqs.
@@ -381,8 +428,14 @@ def flag_features(feats: list[dict], attrs: Mapping[str, Any], enabled: bool = T
         f["properties"]["ambiguity_of"] = None
         f["properties"]["ambiguity_order"] = None
         f["properties"]["ambiguity_positions_px"] = None
-    rec: dict[str, Any] = {"applied": False, "reason": None, "tol_px": tol_px, "min_db": min_db,
-                           "orders": list(orders), "flagged": 0}
+    rec: dict[str, Any] = {
+        "applied": False,
+        "reason": None,
+        "tol_px": tol_px,
+        "min_db": min_db,
+        "orders": list(orders),
+        "flagged": 0,
+    }
     if not enabled:
         rec["reason"] = "switched off (ambiguities=false)"
         return feats, rec
@@ -395,8 +448,7 @@ def flag_features(feats: list[dict], attrs: Mapping[str, Any], enabled: bool = T
     if not feats:
         return feats, rec
     cent = np.array([f["properties"]["centroid_px"] for f in feats], float)
-    peaks = np.array([np.nan if f["properties"].get("peak") is None else f["properties"]["peak"] for f in feats],
-                     float)
+    peaks = np.array([np.nan if f["properties"].get("peak") is None else f["properties"]["peak"] for f in feats], float)
     parent, order = match_ambiguities(cent, peaks, geom, tol_px, min_db, orders)
     for f, par, k in zip(feats, parent, order):
         if par is not None:
@@ -409,18 +461,36 @@ def flag_features(feats: list[dict], attrs: Mapping[str, Any], enabled: bool = T
         for q, f in enumerate(f for f, good in zip(feats, ok) if good):
             f["properties"]["ambiguity_positions_px"] = [
                 {"order": int(k), "centroid_px": [round(float(exp["row"][q, i]), 3), round(float(exp["col"][q, i]), 3)]}
-                for i, k in enumerate(orders)]
+                for i, k in enumerate(orders)
+            ]
         g = geom.ghosts(cent[ok, 0], cent[ok, 1], (1,))
         rec["first_ambiguity_shift"] = {
-            "rows": [round(float(np.abs(g["row"][:, 0] - cent[ok, 0]).min()), 3),
-                     round(float(np.abs(g["row"][:, 0] - cent[ok, 0]).max()), 3)],
+            "rows": [
+                round(float(np.abs(g["row"][:, 0] - cent[ok, 0]).min()), 3),
+                round(float(np.abs(g["row"][:, 0] - cent[ok, 0]).max()), 3),
+            ],
             "metres": [round(float(np.abs(g["dx_m"]).min()), 3), round(float(np.abs(g["dx_m"]).max()), 3)],
             "range_m": [round(float(g["dr_m"].min()), 3), round(float(g["dr_m"].max()), 3)],
         }
     return feats, rec
 
 
-__all__ = ["ATTR", "C_LIGHT", "DEFAULT_MIN_DB", "DEFAULT_TOL_PX", "Geometry", "GeometryError", "ORDERS",
-           "azimuth_shift_m", "azimuth_shift_s", "check_params", "effective_velocity_from_fm_rate",
-           "flag_features", "geometry_from_attrs", "match_ambiguities", "range_shift_m", "range_spread_m",
-           "tops_doppler_spread_hz"]
+__all__ = [
+    "ATTR",
+    "C_LIGHT",
+    "DEFAULT_MIN_DB",
+    "DEFAULT_TOL_PX",
+    "Geometry",
+    "GeometryError",
+    "ORDERS",
+    "azimuth_shift_m",
+    "azimuth_shift_s",
+    "check_params",
+    "effective_velocity_from_fm_rate",
+    "flag_features",
+    "geometry_from_attrs",
+    "match_ambiguities",
+    "range_shift_m",
+    "range_spread_m",
+    "tops_doppler_spread_hz",
+]

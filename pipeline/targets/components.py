@@ -33,13 +33,25 @@ import numpy as np
 from numba import njit
 
 #: Structured dtype of a component's additive moments.
-MOMENT_DTYPE = np.dtype([
-    ("n", np.int64), ("sr", np.float64), ("sc", np.float64), ("srr", np.float64),
-    ("scc", np.float64), ("src", np.float64), ("r0", np.int64), ("c0", np.int64),
-    ("r1", np.int64), ("c1", np.int64), ("peak", np.float64), ("sumv", np.float64),
-    ("score", np.float64), ("peak_r", np.int64), ("peak_c", np.int64),
-])
-
+MOMENT_DTYPE = np.dtype(
+    [
+        ("n", np.int64),
+        ("sr", np.float64),
+        ("sc", np.float64),
+        ("srr", np.float64),
+        ("scc", np.float64),
+        ("src", np.float64),
+        ("r0", np.int64),
+        ("c0", np.int64),
+        ("r1", np.int64),
+        ("c1", np.int64),
+        ("peak", np.float64),
+        ("sumv", np.float64),
+        ("score", np.float64),
+        ("peak_r", np.int64),
+        ("peak_c", np.int64),
+    ]
+)
 
 
 def merge_radius(merge_px: int) -> int:
@@ -53,9 +65,9 @@ class TileComponents:
 
     tile: tuple[int, int]
     shape: tuple[int, int]
-    moments: np.ndarray                         # MOMENT_DTYPE of edge components, index = edge label - 1
+    moments: np.ndarray  # MOMENT_DTYPE of edge components, index = edge label - 1
     edges: dict[str, np.ndarray] = field(default_factory=dict)  # top/bottom/left/right label lines
-    complete: np.ndarray | None = None          # MOMENT_DTYPE of components inside the tile (final)
+    complete: np.ndarray | None = None  # MOMENT_DTYPE of components inside the tile (final)
     #: the tile's own component ids (:func:`points_components`' labels - 1) of ``moments`` and
     #: ``complete``, row for row: what the tile wrote in its label store, so the kept
     #: detections' pixels can be picked tile by tile (:func:`merge_tiles` ``members``)
@@ -304,8 +316,9 @@ def points_components(
     edges = {k: remap[v] for k, v in edges.items()}
     inner = np.flatnonzero(~touching)
     inner = inner[mom["n"][inner] > 0]
-    return TileComponents(tile=tile, shape=(h, w), moments=mom[touching], edges=edges, complete=mom[inner],
-                          ids=tid, complete_ids=inner)
+    return TileComponents(
+        tile=tile, shape=(h, w), moments=mom[touching], edges=edges, complete=mom[inner], ids=tid, complete_ids=inner
+    )
 
 
 def _pairs_line(a: np.ndarray, b: np.ndarray) -> set[tuple[int, int]]:
@@ -317,7 +330,7 @@ def _pairs_line(a: np.ndarray, b: np.ndarray) -> set[tuple[int, int]]:
         if lo >= hi:
             continue
         aa = a[lo:hi]
-        bb = b[lo + d:hi + d]
+        bb = b[lo + d : hi + d]
         ok = (aa > 0) & (bb > 0)
         if ok.any():
             out.update(zip(aa[ok].tolist(), bb[ok].tolist()))
@@ -401,7 +414,7 @@ def merge_tiles(tiles: dict[tuple[int, int], TileComponents], members: bool = Fa
             ends_a.append(ab[:, 0] + offset[ka] - 1)
             ends_b.append(ab[:, 1] + offset[kb] - 1)
 
-    for (i, j) in keys:
+    for i, j in keys:
         t = tiles[(i, j)]
         right = tiles.get((i, j + 1))
         if right is not None:
@@ -424,8 +437,11 @@ def merge_tiles(tiles: dict[tuple[int, int], TileComponents], members: bool = Fa
     owner = np.full(total, -1, np.int64)  # record (before ordering) of each edge part
     if total:
         allm = np.concatenate([tiles[k].moments for k in keys])
-        roots = min_labels(total, np.concatenate(ends_a) if ends_a else np.zeros(0, np.int64),
-                           np.concatenate(ends_b) if ends_b else np.zeros(0, np.int64))
+        roots = min_labels(
+            total,
+            np.concatenate(ends_a) if ends_a else np.zeros(0, np.int64),
+            np.concatenate(ends_b) if ends_b else np.zeros(0, np.int64),
+        )
         order = np.argsort(roots, kind="stable")
         rs = roots[order]
         starts = np.flatnonzero(np.r_[True, rs[1:] != rs[:-1]])
@@ -451,7 +467,7 @@ def merge_tiles(tiles: dict[tuple[int, int], TileComponents], members: bool = Fa
         t = tiles[k]
         ids, recs = [], []
         if len(t.moments):
-            own = owner[offset[k]: offset[k] + len(t.moments)]
+            own = owner[offset[k] : offset[k] + len(t.moments)]
             sel = (own >= 0) & (t.moments["n"] > 0)  # parts with pixels in this tile's core
             ids.append(np.asarray(t.ids, np.int64)[sel])
             recs.append(rank[own[sel]])
@@ -464,9 +480,7 @@ def merge_tiles(tiles: dict[tuple[int, int], TileComponents], members: bool = Fa
     return res, member
 
 
-def shape_from_moments(
-    rec: np.void | np.ndarray, spacing: tuple[float, float] | None
-) -> dict:
+def shape_from_moments(rec: np.void | np.ndarray, spacing: tuple[float, float] | None) -> dict:
     """Centroid, bounding box, length/width/heading (pixels and metres) of one component."""
     n = float(rec["n"])
     mr, mc = float(rec["sr"]) / n, float(rec["sc"]) / n

@@ -43,7 +43,8 @@ or columns, or alternate ones, interpolate from the rest): the figures of docs/s
 
 from __future__ import annotations
 
-from typing import Iterable, Protocol
+from collections.abc import Iterable
+from typing import Protocol
 
 import numpy as np
 from scipy.interpolate import RegularGridInterpolator
@@ -78,8 +79,7 @@ class GridGeoreference:
 
     method = "geolocation grid, bilinear"
 
-    def __init__(self, rows: np.ndarray, cols: np.ndarray, lon: np.ndarray, lat: np.ndarray,
-                 geographic: bool = True):
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, lon: np.ndarray, lat: np.ndarray, geographic: bool = True):
         rows, cols = np.asarray(rows, float), np.asarray(cols, float)
         lon, lat = np.asarray(lon, float), np.asarray(lat, float)
         if rows.ndim != 1 or cols.ndim != 1 or len(rows) < 2 or len(cols) < 2:
@@ -94,8 +94,9 @@ class GridGeoreference:
         self.geographic = geographic
         self.lon = _unwrap_about(lon, float(lon[0, 0])) if geographic else lon
         self.lat = lat
-        self._f = RegularGridInterpolator((rows, cols), np.stack([self.lon, lat], -1), method="linear",
-                                          bounds_error=False, fill_value=None)
+        self._f = RegularGridInterpolator(
+            (rows, cols), np.stack([self.lon, lat], -1), method="linear", bounds_error=False, fill_value=None
+        )
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -138,8 +139,12 @@ class PolynomialGeoreference:
 def gcp_arrays(gcps: Iterable[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(row, col, lon, lat) arrays of a ``gcps`` attribute."""
     g = list(gcps)
-    return (np.array([float(p["row"]) for p in g]), np.array([float(p["col"]) for p in g]),
-            np.array([float(p["x"]) for p in g]), np.array([float(p["y"]) for p in g]))
+    return (
+        np.array([float(p["row"]) for p in g]),
+        np.array([float(p["col"]) for p in g]),
+        np.array([float(p["x"]) for p in g]),
+        np.array([float(p["y"]) for p in g]),
+    )
 
 
 def _grid_cells(gcps: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -191,8 +196,15 @@ def as_grid(gcps: Iterable[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     return rows, cols, grid_field(g, "x"), grid_field(g, "y")
 
 
-def sea_level(rows: np.ndarray, cols: np.ndarray, lon: np.ndarray, lat: np.ndarray, height: np.ndarray,
-              incidence_deg: np.ndarray, h_ref: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+def sea_level(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    lon: np.ndarray,
+    lat: np.ndarray,
+    height: np.ndarray,
+    incidence_deg: np.ndarray,
+    h_ref: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, float]:
     """Geolocation grid points moved to one height ``h_ref`` (default: the grid's lowest point,
     the sea surface where the scene has sea): ``(lon, lat, h_ref)``.
 
@@ -222,8 +234,9 @@ def sea_level(rows: np.ndarray, cols: np.ndarray, lon: np.ndarray, lat: np.ndarr
     return _wrap(lon - d * east / norm / (k * coslat)), lat - d * north / norm / k, h0
 
 
-def pixel_of(geo: PixelToLonLat, x, y, rows0, cols0, tol_px: float = 1e-4, max_iter: int = 30
-             ) -> tuple[np.ndarray, np.ndarray]:
+def pixel_of(
+    geo: PixelToLonLat, x, y, rows0, cols0, tol_px: float = 1e-4, max_iter: int = 30
+) -> tuple[np.ndarray, np.ndarray]:
     """The inverse of ``geo.lonlat``: continuous (row, col) whose mapping is (``x``, ``y``)
     (lon/lat, or the projected coordinates of a non-geographic grid), by Newton's method from
     the start ``rows0``, ``cols0`` (e.g. a polynomial's inverse), with the Jacobian by central
@@ -268,8 +281,9 @@ def pixel_of(geo: PixelToLonLat, x, y, rows0, cols0, tol_px: float = 1e-4, max_i
     return r.reshape(shape), c.reshape(shape)
 
 
-def from_gcps(gcps: Iterable[dict], method: str = "auto", geographic: bool = True,
-              to_sea_level: bool = True) -> PixelToLonLat:
+def from_gcps(
+    gcps: Iterable[dict], method: str = "auto", geographic: bool = True, to_sea_level: bool = True
+) -> PixelToLonLat:
     """The pixel -> lon/lat mapping of a ``gcps`` attribute: ``"auto"`` = the grid when the GCPs
     form one (:func:`as_grid`), else the polynomial; ``"grid"`` / ``"polynomial"`` force one.
     ``geographic``: x is longitude in degrees (False: GCPs in a projected CRS; x, y returned in it).
@@ -303,12 +317,17 @@ def distance_m(lon1, lat1, lon2, lat2) -> np.ndarray:
 
 
 def _summary(d: np.ndarray) -> dict[str, float | int]:
-    return {"n": int(d.size), "median_m": float(np.median(d)), "rms_m": float(np.sqrt(np.mean(d * d))),
-            "max_m": float(d.max())}
+    return {
+        "n": int(d.size),
+        "median_m": float(np.median(d)),
+        "rms_m": float(np.sqrt(np.mean(d * d))),
+        "max_m": float(d.max()),
+    }
 
 
-def held_out_errors(gcps: Iterable[dict], scheme: str = "alternate",
-                    to_sea_level: bool = False) -> dict[str, dict[str, float | int]]:
+def held_out_errors(
+    gcps: Iterable[dict], scheme: str = "alternate", to_sea_level: bool = False
+) -> dict[str, dict[str, float | int]]:
     """Error in metres at grid points left out of the fit, for the bilinear grid and the global
     polynomial fitted to the same remaining points.
 
@@ -379,5 +398,14 @@ def held_out_errors(gcps: Iterable[dict], scheme: str = "alternate",
     return {"grid": _summary(np.concatenate(gd)), "polynomial": _summary(np.concatenate(pd))}
 
 
-__all__ = ["GridGeoreference", "PolynomialGeoreference", "as_grid", "from_gcps", "gcp_arrays", "grid_field",
-           "held_out_errors", "distance_m", "sea_level"]
+__all__ = [
+    "GridGeoreference",
+    "PolynomialGeoreference",
+    "as_grid",
+    "from_gcps",
+    "gcp_arrays",
+    "grid_field",
+    "held_out_errors",
+    "distance_m",
+    "sea_level",
+]

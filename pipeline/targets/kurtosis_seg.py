@@ -116,7 +116,7 @@ def otsu_threshold(z, clip_percentile: float = 99.5) -> float:
     with np.errstate(divide="ignore", invalid="ignore"):
         between = (mu[-1] * w0 - mu) ** 2 / (w0 * (1.0 - w0))
     between[~np.isfinite(between)] = -1.0
-    level = int(np.argmax(between))          # class 0: grey levels <= level
+    level = int(np.argmax(between))  # class 0: grey levels <= level
     return (level + 1) / 255.0 * hi
 
 
@@ -176,8 +176,9 @@ class ShipGeometry:
     heading_deg: float  # main axis as the product's heading_deg (shape_from_moments), in [0, 180)
 
 
-def ship_geometry(mask: np.ndarray, spacing: tuple[float, float], centre: tuple[float, float] | None = None
-                  ) -> ShipGeometry | None:
+def ship_geometry(
+    mask: np.ndarray, spacing: tuple[float, float], centre: tuple[float, float] | None = None
+) -> ShipGeometry | None:
     """The 8-connected component of ``mask`` nearest ``centre`` (default: the chip centre),
     measured in metres with ``spacing`` = (row, column) pixel sizes by the product's moment
     geometry (:func:`sarship.pipeline.targets.components.shape_from_moments`); None without pixels."""

@@ -32,7 +32,7 @@ docs/algorithms/discrimination.md.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -107,9 +107,12 @@ def collinear_pairs(seg: dict[str, np.ndarray], gap_px: float, angle_deg: float)
     along = np.abs(np.sum(d * ax, axis=1))
     lateral = np.abs(d[:, 0] * ax[:, 1] - d[:, 1] * ax[:, 0])
     gap = along - h[i] - h[j]
-    ok = ((aligned | round_i | round_j)
-          & (lateral <= (w[i] + w[j]) / 2.0 + 1.0)
-          & (gap <= gap_px) & (gap >= -0.5 * np.minimum(h[i], h[j])))
+    ok = (
+        (aligned | round_i | round_j)
+        & (lateral <= (w[i] + w[j]) / 2.0 + 1.0)
+        & (gap <= gap_px)
+        & (gap >= -0.5 * np.minimum(h[i], h[j]))
+    )
     return pairs[ok]
 
 
@@ -131,9 +134,15 @@ def group_moments(records: np.ndarray, labels: np.ndarray, n_groups: int) -> np.
     return out
 
 
-def discard_lines(records: np.ndarray, gap_px: int | None, angle_deg: float, dominant_db: float | None,
-                  max_elongation: float | None, max_length_m: float | None,
-                  spacing: tuple[float, float] | None) -> np.ndarray:
+def discard_lines(
+    records: np.ndarray,
+    gap_px: int | None,
+    angle_deg: float,
+    dominant_db: float | None,
+    max_elongation: float | None,
+    max_length_m: float | None,
+    spacing: tuple[float, float] | None,
+) -> np.ndarray:
     """Why each record is not a ship by the line rule: ``""`` (kept), ``"line"`` or ``"smear"``
     (the rule in the module docstring). ``gap_px`` None, or neither ``max_elongation`` nor
     (with ``spacing``) ``max_length_m`` set: nothing is dropped.
@@ -191,8 +200,9 @@ def discard_lines(records: np.ndarray, gap_px: int | None, angle_deg: float, dom
     return reason
 
 
-def near_land(records: np.ndarray, read_land: Callable[[int, int, int, int], np.ndarray],
-              shape: tuple[int, int], gap_px: int) -> np.ndarray:
+def near_land(
+    records: np.ndarray, read_land: Callable[[int, int, int, int], np.ndarray], shape: tuple[int, int], gap_px: int
+) -> np.ndarray:
     """Which records have a land pixel within ``gap_px`` pixels of their bounding box (0: in or
     touching it; Chebyshev distance), ``read_land(ra, rb, ca, cb)`` reading the land mask."""
     H, W = shape

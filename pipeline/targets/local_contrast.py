@@ -26,7 +26,7 @@ depend on the tiling.
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 
@@ -40,8 +40,13 @@ MIN_RING_PX = 32
 Reader = Callable[[int, int, int, int], np.ndarray]
 
 
-def ring_mean(power: np.ndarray, excluded: np.ndarray, box: tuple[int, int, int, int],
-              window: tuple[int, int, int, int], gap: int = GAP_PX) -> tuple[float, int]:
+def ring_mean(
+    power: np.ndarray,
+    excluded: np.ndarray,
+    box: tuple[int, int, int, int],
+    window: tuple[int, int, int, int],
+    gap: int = GAP_PX,
+) -> tuple[float, int]:
     """Mean of ``power`` over the ring pixels of one detection, and their number.
 
     ``power`` and ``excluded`` (bool: detected, land or absent) cover ``window`` =
@@ -60,9 +65,17 @@ def ring_mean(power: np.ndarray, excluded: np.ndarray, box: tuple[int, int, int,
     return float(np.mean(power[use], dtype=np.float64)), n
 
 
-def add_local_contrast(feats: list[dict], read_power: Reader, read_mask: Reader, shape: tuple[int, int],
-                       read_land: Optional[Reader] = None, nodata: Optional[float] = None,
-                       gap: int = GAP_PX, ring: int = RING_PX, min_ring: int = MIN_RING_PX) -> list[dict]:
+def add_local_contrast(
+    feats: list[dict],
+    read_power: Reader,
+    read_mask: Reader,
+    shape: tuple[int, int],
+    read_land: Reader | None = None,
+    nodata: float | None = None,
+    gap: int = GAP_PX,
+    ring: int = RING_PX,
+    min_ring: int = MIN_RING_PX,
+) -> list[dict]:
     """Set ``contrast_db`` (and ``contrast_ring_px``, the ring's pixel count) on every feature.
 
     ``read_power(ra, rb, ca, cb)``: pixel power of the scene rectangle (what the detector read,
@@ -85,16 +98,17 @@ def add_local_contrast(feats: list[dict], read_power: Reader, read_mask: Reader,
             excluded |= np.asarray(read_land(*win)) != 0
         ref, n = ring_mean(power, excluded, box, win, gap)
         mean = p.get("mean")
-        ok = (n >= min_ring and ref > 0 and mean is not None and math.isfinite(mean) and mean > 0)
+        ok = n >= min_ring and ref > 0 and mean is not None and math.isfinite(mean) and mean > 0
         p["contrast_db"] = round(10.0 * math.log10(mean / ref), 3) if ok else None
         p["contrast_ring_px"] = n
     return feats
 
 
-def keep_contrast(feats: list[dict], min_contrast_db: Optional[float]) -> list[bool]:
+def keep_contrast(feats: list[dict], min_contrast_db: float | None) -> list[bool]:
     """Which features pass ``min_contrast_db``: all when it is None; a feature whose contrast
     could not be measured (``contrast_db`` null) is kept (nothing says it is clutter)."""
     if min_contrast_db is None:
         return [True] * len(feats)
-    return [f["properties"].get("contrast_db") is None or f["properties"]["contrast_db"] >= min_contrast_db
-            for f in feats]
+    return [
+        f["properties"].get("contrast_db") is None or f["properties"]["contrast_db"] >= min_contrast_db for f in feats
+    ]

@@ -146,7 +146,7 @@ class Georeference:
         return np.asarray(x), np.asarray(y)
 
 
-def _outline(props: dict, spacing, geo: "Georeference | None") -> dict | None:
+def _outline(props: dict, spacing, geo: Georeference | None) -> dict | None:
     if geo is None or not geo.usable:
         return None
     cr, cc = props["centroid_px"]
@@ -199,7 +199,7 @@ def add_contrast(feats: list[dict], sea: float | None) -> list[dict]:
     return feats
 
 
-def _centre(props: dict, geo: "Georeference | None") -> list[float] | None:
+def _centre(props: dict, geo: Georeference | None) -> list[float] | None:
     if geo is None or not geo.usable:
         return None
     lon, lat = geo.lonlat([props["centroid_px"][0]], [props["centroid_px"][1]])
@@ -244,4 +244,13 @@ def _default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-__all__ = ["MOMENT_DTYPE", "keep_mask", "size_prefilter", "lengths_m", "features", "geolocate", "collection", "write_json"]
+__all__ = [
+    "MOMENT_DTYPE",
+    "keep_mask",
+    "size_prefilter",
+    "lengths_m",
+    "features",
+    "geolocate",
+    "collection",
+    "write_json",
+]

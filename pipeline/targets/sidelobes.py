@@ -54,8 +54,9 @@ References (docs/references.md): seed 003, tupin1998.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -70,35 +71,45 @@ GEOMETRY_KEYS = ("centroid_px", "length_px", "width_px", "heading_deg", "length_
 class SidelobeParams:
     """Parameters of the cross detector and the core (docs/algorithms/sidelobes.md)."""
 
-    line_ratio: float = 0.5          # Tupin D1 threshold r_min
-    line_gap: int = 0                # rows (columns) between the line and its side segments
-    min_arm_px: int = 2              # a half-arm reaches beyond the body by at least this many pixels
-    arm_width_px: int = 1            # an arm pixel: the detection is at most this thick across the arm
-    scatterer_ratio: float = 4.0     # a scatterer: local max >= this x the component's median
-    min_half_arms: int = 3           # half-arms (of 4) that make a cross
-    min_out_arms: int = 2            # of them, half-arms reaching beyond the body (min_arm_px pixels outside it)
-    arm_max_px: int = 64             # longest half-arm followed
-    gap_px: int = 3                  # gaps (outside the component) an arm may jump
-    margin_px: int = 3               # window = bounding box + this margin
-    max_scatterers: int = 8          # scatterers tried per detection, brightest first
-    oversampling: float = 1.2        # resolution / pixel spacing of the sinc^2 impulse response
-    arm_factor: float = 4.0          # an arm pixel is at most this x its scatterer's sinc^2 envelope
-    body_margin_px: float = 0.5      # the body rectangle is widened by this many pixels each side
+    line_ratio: float = 0.5  # Tupin D1 threshold r_min
+    line_gap: int = 0  # rows (columns) between the line and its side segments
+    min_arm_px: int = 2  # a half-arm reaches beyond the body by at least this many pixels
+    arm_width_px: int = 1  # an arm pixel: the detection is at most this thick across the arm
+    scatterer_ratio: float = 4.0  # a scatterer: local max >= this x the component's median
+    min_half_arms: int = 3  # half-arms (of 4) that make a cross
+    min_out_arms: int = 2  # of them, half-arms reaching beyond the body (min_arm_px pixels outside it)
+    arm_max_px: int = 64  # longest half-arm followed
+    gap_px: int = 3  # gaps (outside the component) an arm may jump
+    margin_px: int = 3  # window = bounding box + this margin
+    max_scatterers: int = 8  # scatterers tried per detection, brightest first
+    oversampling: float = 1.2  # resolution / pixel spacing of the sinc^2 impulse response
+    arm_factor: float = 4.0  # an arm pixel is at most this x its scatterer's sinc^2 envelope
+    body_margin_px: float = 0.5  # the body rectangle is widened by this many pixels each side
 
     def __post_init__(self) -> None:
         if not (isinstance(self.line_ratio, (int, float)) and 0.0 < float(self.line_ratio) < 1.0):
             raise InputError(f"sidelobes line_ratio: must be a number in (0, 1) (got {self.line_ratio!r})")
-        if not (isinstance(self.scatterer_ratio, (int, float)) and math.isfinite(self.scatterer_ratio)
-                and float(self.scatterer_ratio) >= 1.0):
+        if not (
+            isinstance(self.scatterer_ratio, (int, float))
+            and math.isfinite(self.scatterer_ratio)
+            and float(self.scatterer_ratio) >= 1.0
+        ):
             raise InputError(f"sidelobes scatterer_ratio: must be a number >= 1 (got {self.scatterer_ratio!r})")
-        for name, lo, hi in (("oversampling", 1.0, 4.0), ("arm_factor", 1.0, 1000.0),
-                             ("body_margin_px", 0.0, 16.0)):
+        for name, lo, hi in (("oversampling", 1.0, 4.0), ("arm_factor", 1.0, 1000.0), ("body_margin_px", 0.0, 16.0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= float(v) <= hi:
                 raise InputError(f"sidelobes {name}: must be a number in [{lo:g}, {hi:g}] (got {v!r})")
-        for name, lo, hi in (("min_half_arms", 1, 4), ("min_out_arms", 1, 4), ("arm_max_px", 1, 4096), ("gap_px", 0, 64),
-                             ("line_gap", 0, 4), ("min_arm_px", 1, 64), ("arm_width_px", 1, 16),
-                             ("margin_px", 2, 64), ("max_scatterers", 1, 1024)):
+        for name, lo, hi in (
+            ("min_half_arms", 1, 4),
+            ("min_out_arms", 1, 4),
+            ("arm_max_px", 1, 4096),
+            ("gap_px", 0, 64),
+            ("line_gap", 0, 4),
+            ("min_arm_px", 1, 64),
+            ("arm_width_px", 1, 16),
+            ("margin_px", 2, 64),
+            ("max_scatterers", 1, 1024),
+        ):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise InputError(f"sidelobes {name}: must be an integer in [{lo}, {hi}] (got {v!r})")
@@ -135,8 +146,8 @@ def line_response(power, along: str, gap: int = 0):
         s3[:, :-1] += v[:, 1:]
         n3[:, 1:] += o[:, :-1]
         n3[:, :-1] += o[:, 1:]
-        a, b = s3[:-2 * d], s3[2 * d:]          # the side segments of rows d .. h-d-1
-        na, nb = n3[:-2 * d], n3[2 * d:]
+        a, b = s3[: -2 * d], s3[2 * d :]  # the side segments of rows d .. h-d-1
+        na, nb = n3[: -2 * d], n3[2 * d :]
         core = (slice(d, h - d), slice(None))
     else:
         if d >= w:
@@ -146,12 +157,12 @@ def line_response(power, along: str, gap: int = 0):
         s3[:-1] += v[1:]
         n3[1:] += o[:-1]
         n3[:-1] += o[1:]
-        a, b = s3[:, :-2 * d], s3[:, 2 * d:]
-        na, nb = n3[:, :-2 * d], n3[:, 2 * d:]
+        a, b = s3[:, : -2 * d], s3[:, 2 * d :]
+        na, nb = n3[:, : -2 * d], n3[:, 2 * d :]
         core = (slice(None), slice(d, w - d))
     c = p[core]
     with np.errstate(invalid="ignore", divide="ignore"):
-        side = xp.maximum(a / na, b / nb)              # NaN where a side has no present pixel
+        side = xp.maximum(a / na, b / nb)  # NaN where a side has no present pixel
         r = 1.0 - side / c
     good = ok[core] & (na > 0) & (nb > 0) & (c > side) & (c > 0)
     out[core] = xp.where(good, r, 0.0)
@@ -187,8 +198,9 @@ def sinc2_envelope(k, oversampling: float = 1.2) -> np.ndarray:
     return np.minimum(env, 1.0)
 
 
-def _walk(comp: np.ndarray, line: np.ndarray, p: np.ndarray, r: int, c: int, dr: int, dc: int,
-          params: SidelobeParams) -> list[tuple[int, int]]:
+def _walk(
+    comp: np.ndarray, line: np.ndarray, p: np.ndarray, r: int, c: int, dr: int, dc: int, params: SidelobeParams
+) -> list[tuple[int, int]]:
     """The component's arm pixels from ``(r, c)`` outwards along ``(dr, dc)``: line pixels
     where the detection is at most ``arm_width_px`` thick across the arm (a hull is thicker)
     and no brighter than ``arm_factor`` times the scatterer's sinc^2 envelope at their offset
@@ -202,8 +214,11 @@ def _walk(comp: np.ndarray, line: np.ndarray, p: np.ndarray, r: int, c: int, dr:
             break
         if comp[rr, cc]:
             gap = 0
-            if line[rr, cc] and p[rr, cc] <= top * float(sinc2_envelope(k, params.oversampling)) \
-                    and _thickness(comp, rr, cc, dc, dr) <= params.arm_width_px:
+            if (
+                line[rr, cc]
+                and p[rr, cc] <= top * float(sinc2_envelope(k, params.oversampling))
+                and _thickness(comp, rr, cc, dc, dr) <= params.arm_width_px
+            ):
                 out.append((rr, cc))
         else:
             gap += 1
@@ -228,8 +243,9 @@ def _outside_body(body: np.ndarray, pts: np.ndarray, margin: float) -> np.ndarra
     return (np.abs(uv) > half).any(axis=1)
 
 
-def refine(power: np.ndarray, comp: np.ndarray, params: SidelobeParams = SidelobeParams(),
-           merge_r: int = 1) -> dict[str, Any]:
+def refine(
+    power: np.ndarray, comp: np.ndarray, params: SidelobeParams = SidelobeParams(), merge_r: int = 1
+) -> dict[str, Any]:
     """Cross detection and core of one detection (module doc, steps 1-3).
 
     ``power``: the window's pixel power (2-D, NaN absent); ``comp``: the detection's pixels in
@@ -247,15 +263,19 @@ def refine(power: np.ndarray, comp: np.ndarray, params: SidelobeParams = Sidelob
     med = float(np.median(vals)) if vals.size else 0.0
     cand = comp & np.isfinite(p) & (p >= params.scatterer_ratio * med)
     rs, cs = np.nonzero(cand)
-    order = np.argsort(-p[rs, cs], kind="stable")[:params.max_scatterers]
+    order = np.argsort(-p[rs, cs], kind="stable")[: params.max_scatterers]
     lh = line_response(p, "row", params.line_gap) >= params.line_ratio
     lv = line_response(p, "col", params.line_gap) >= params.line_ratio
     cut = np.zeros_like(comp)
     centres = []
     for i in order:
         r, c = int(rs[i]), int(cs[i])
-        half = [_walk(comp, lh, p, r, c, 0, -1, params), _walk(comp, lh, p, r, c, 0, 1, params),
-                _walk(comp, lv, p, r, c, -1, 0, params), _walk(comp, lv, p, r, c, 1, 0, params)]
+        half = [
+            _walk(comp, lh, p, r, c, 0, -1, params),
+            _walk(comp, lh, p, r, c, 0, 1, params),
+            _walk(comp, lv, p, r, c, -1, 0, params),
+            _walk(comp, lv, p, r, c, 1, 0, params),
+        ]
         if sum(1 for a in half if a) < params.min_out_arms:  # too few half-arms to reach out
             continue
         # the body: the detection without this scatterer's candidate arms; an arm of a real
@@ -264,13 +284,17 @@ def refine(power: np.ndarray, comp: np.ndarray, params: SidelobeParams = Sidelob
         for a in half:
             for rr, cc in a:
                 body[rr, cc] = False
-        outs = [np.asarray(a, np.int64)[_outside_body(body, np.asarray(a, np.int64), params.body_margin_px)]
-                if a else np.zeros((0, 2), np.int64) for a in half]
+        outs = [
+            np.asarray(a, np.int64)[_outside_body(body, np.asarray(a, np.int64), params.body_margin_px)]
+            if a
+            else np.zeros((0, 2), np.int64)
+            for a in half
+        ]
         out = [len(o) >= params.min_arm_px for o in outs]
         h, w = comp.shape
 
         def covered(dr: int, dc: int) -> bool:  # the hull (body) next to the scatterer along (dr, dc)
-            return any(0 <= r + s * dr < h and 0 <= c + s * dc < w and body[r + s * dr, c + s * dc] for s in (1, -1))
+            return any(0 <= r + s * dr < h and 0 <= c + s * dc < w and body[r + s * dr, c + s * dc] for s in (1, -1))  # noqa: B023 (called in this iteration)
 
         # one sidelobe line out on both sides, its other line hidden in the hull
         pair = (out[0] and out[1] and covered(1, 0)) or (out[2] and out[3] and covered(0, 1))
@@ -326,10 +350,17 @@ def core_record(rec: np.void, core: np.ndarray, power: np.ndarray, origin: tuple
     return out
 
 
-def refine_features(feats: list[dict], records: np.ndarray, read_power: Callable[[int, int, int, int], np.ndarray],
-                    read_mask: Callable[[int, int, int, int], np.ndarray], shape: tuple[int, int], merge_r: int,
-                    spacing: tuple[float, float] | None, geo: dict | None,
-                    params: SidelobeParams = SidelobeParams()) -> list[dict]:
+def refine_features(
+    feats: list[dict],
+    records: np.ndarray,
+    read_power: Callable[[int, int, int, int], np.ndarray],
+    read_mask: Callable[[int, int, int, int], np.ndarray],
+    shape: tuple[int, int],
+    merge_r: int,
+    spacing: tuple[float, float] | None,
+    geo: dict | None,
+    params: SidelobeParams = SidelobeParams(),
+) -> list[dict]:
     """Detections with their sidelobes suppressed (the properties of docs/interfaces/files.md).
 
     For each detection (``feats[i]`` built from ``records[i]``): its window (bounding box +
@@ -340,8 +371,8 @@ def refine_features(feats: list[dict], records: np.ndarray, read_power: Callable
     kept as ``<name>_raw``. Every detection gets ``sidelobes: true|false``. Detections whose
     peak is under ``scatterer_ratio`` times their mean hold no scatterer and are not read.
     """
-    from sarship.pipeline.tiling.inputs import pixel_power
     from sarship.pipeline.targets.ship_features import features
+    from sarship.pipeline.tiling.inputs import pixel_power
 
     H, W = shape
     m = params.margin_px
@@ -363,7 +394,7 @@ def refine_features(feats: list[dict], records: np.ndarray, read_power: Callable
         # the window may cut another detection's pixels joined through pixels outside it: keep
         # only those inside this detection's bounding box
         bb = np.zeros_like(comp)
-        bb[int(rec["r0"]) - ra:int(rec["r1"]) - ra, int(rec["c0"]) - ca:int(rec["c1"]) - ca] = True
+        bb[int(rec["r0"]) - ra : int(rec["r1"]) - ra, int(rec["c0"]) - ca : int(rec["c1"]) - ca] = True
         comp &= bb
         res = refine(power, comp, params, merge_r)
         if not res["sidelobes"]:

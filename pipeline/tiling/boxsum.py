@@ -228,8 +228,12 @@ def box_stream(m, w, g0r):
     Feed it to :func:`box_stream_row` for output rows 0, 1, 2, ... in order. Detectors that
     need several windows run one stream per window in lockstep (see ``ca_cfar``).
     """
-    return (np.empty((m + 4, w), np.float64), np.empty(w, np.float64),
-            np.empty((4, m), np.float64), stream_state(m, g0r))
+    return (
+        np.empty((m + 4, w), np.float64),
+        np.empty(w, np.float64),
+        np.empty((4, m), np.float64),
+        stream_state(m, g0r),
+    )
 
 
 @njit(nogil=True, cache=True)
@@ -240,8 +244,18 @@ def _stream_fill(x, m, g0c, H, suf, st, r):
     done = st[_ST_DONE]
     while done <= r:
         if done + 4 <= R:
-            _hsum4(x, done, m, g0c, H, ring_slot(st, done, Rz), ring_slot(st, done + 1, Rz),
-                   ring_slot(st, done + 2, Rz), ring_slot(st, done + 3, Rz), suf)
+            _hsum4(
+                x,
+                done,
+                m,
+                g0c,
+                H,
+                ring_slot(st, done, Rz),
+                ring_slot(st, done + 1, Rz),
+                ring_slot(st, done + 2, Rz),
+                ring_slot(st, done + 3, Rz),
+                suf,
+            )
             done += 4
         else:
             hsum_row(x, done, m, g0c, H, ring_slot(st, done, Rz), suf)
@@ -332,7 +346,7 @@ def _box_sum(x, m, g0r, g0c, strip, out):
     h, w = out.shape
     for c0 in range(0, w, strip):
         c1 = min(c0 + strip, w)
-        xs = x[:, c0: c1 + m - 1]
+        xs = x[:, c0 : c1 + m - 1]
         stream = box_stream(m, c1 - c0, g0r)
         for i in range(h):
             box_stream_row(xs, m, g0c + c0, stream, i, out[i, c0:c1])
@@ -350,7 +364,7 @@ def window_input(block, m: int, halo: int):
     h = block.shape[0] - 2 * halo
     w = block.shape[1] - 2 * halo
     off = halo - r
-    return block[off: off + h + m - 1, off: off + w + m - 1], off
+    return block[off : off + h + m - 1, off : off + w + m - 1], off
 
 
 def centered_box_sum(block: np.ndarray, m: int, halo: int, origin: tuple[int, int]) -> np.ndarray:

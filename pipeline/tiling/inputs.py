@@ -14,7 +14,8 @@ The reader (transform ``"stack"``) returns a complex64 ``(rows, cols, p)`` block
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -56,14 +57,18 @@ def complex_source(scene: Scene, channel: str | None = None) -> tuple[str, str]:
         if channel not in scene.variables:
             raise InputError(f"parameter 'channel': scene has no variable '{channel}' (has: {has})")
         if "complex" not in scene.variables[channel]:
-            raise InputError(f"parameter 'channel': variable '{channel}' is not complex; this detector reads a "
-                             f"complex single-look (SLC) channel, amplitude or intensity has no phase (scene has: {has})")
+            raise InputError(
+                f"parameter 'channel': variable '{channel}' is not complex; this detector reads a "
+                f"complex single-look (SLC) channel, amplitude or intensity has no phase (scene has: {has})"
+            )
         return channel, "complex"
     var = next((v for v in ("hh", "vv", "vh", "hv") if "complex" in scene.variables.get(v, "")), None)
     if var is None:
-        raise InputError(f"scene '{scene.path}' has no complex SLC channel (hh, vv, vh or hv complex64): this detector "
-                         f"needs the phase of single-look complex data, amplitude or intensity is refused "
-                         f"(scene has: {has}; ingest the SLC product, e.g. sarship ingest --kind slc)")
+        raise InputError(
+            f"scene '{scene.path}' has no complex SLC channel (hh, vv, vh or hv complex64): this detector "
+            f"needs the phase of single-look complex data, amplitude or intensity is refused "
+            f"(scene has: {has}; ingest the SLC product, e.g. sarship ingest --kind slc)"
+        )
     return var, "complex"
 
 
@@ -76,6 +81,7 @@ def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tupl
     variables, e.g. ``"hh,vv"``) overrides the choice; each must be complex. Fewer than two
     complex channels: :class:`InputError` naming what the scene has.
     """
+
     def is_complex(v: str) -> bool:
         return "complex" in scene.variables.get(v, "")
 
@@ -86,8 +92,10 @@ def polarimetric_source(scene: Scene, channels: str | None = None) -> tuple[tupl
             if c not in scene.variables:
                 raise InputError(f"parameter 'channel': scene has no variable '{c}' (has: {has})")
             if not is_complex(c):
-                raise InputError(f"parameter 'channel': variable '{c}' is not complex "
-                                 f"(a polarimetric detector needs complex channels; scene has: {has})")
+                raise InputError(
+                    f"parameter 'channel': variable '{c}' is not complex "
+                    f"(a polarimetric detector needs complex channels; scene has: {has})"
+                )
         if len(set(names)) != len(names) or not 2 <= len(names) <= 3:
             raise InputError(f"parameter 'channel': give 2 or 3 distinct complex channels, got '{channels}'")
         return tuple(names), "stack"
@@ -125,7 +133,8 @@ def detector_source(spec: Any, scene: Scene, channel: str | None = None) -> tupl
             raise InputError(
                 f"detector '{spec.name}' reads complex polarimetric channels (2 or 3 of hh, hv, vh, vv: a dual- or "
                 f"quad-pol SLC), not a covariance matrix; this scene is a {'C3' if len(var) == 6 else 'C2'} "
-                f"covariance scene ({', '.join(var)}): use apwf or pcdm, which read covariance scenes")
+                f"covariance scene ({', '.join(var)}): use apwf or pcdm, which read covariance scenes"
+            )
         return var, transform
     if spec.input == "slc":
         return complex_source(scene, channel)
@@ -146,8 +155,9 @@ def reader_backend() -> str:
         import tensorstore  # noqa: F401
     except ImportError:
         if want == "tensorstore":
-            raise InputError("SARSHIP_READER=tensorstore, but tensorstore is not installed "
-                             "(pip install tensorstore)") from None
+            raise InputError(
+                "SARSHIP_READER=tensorstore, but tensorstore is not installed (pip install tensorstore)"
+            ) from None
         return "zarr"
     return "tensorstore"
 
@@ -179,8 +189,13 @@ class _TensorStoreArray:
     def __init__(self, path: str, write: bool = False):
         import tensorstore as ts
 
-        self._t = ts.open({"driver": "zarr3", "kvstore": {"driver": "file", "path": path}},
-                          read=True, write=write, open=True, context=_ts_context()).result()
+        self._t = ts.open(
+            {"driver": "zarr3", "kvstore": {"driver": "file", "path": path}},
+            read=True,
+            write=write,
+            open=True,
+            context=_ts_context(),
+        ).result()
         self.shape = tuple(int(s) for s in self._t.shape)
         self.chunks = tuple(int(s) for s in self._t.chunk_layout.read_chunk.shape)
 
@@ -196,8 +211,8 @@ class _TensorStoreArray:
             raise ValueError("only slices with step >= 1 are supported")
         if len(r) == 0 or len(c) == 0:
             return np.empty((len(r), len(c)), self._t.dtype.numpy_dtype)
-        a = self._t[r[0]: r[-1] + 1, c[0]: c[-1] + 1].read().result()
-        return a if r.step == 1 and c.step == 1 else a[::r.step, ::c.step]
+        a = self._t[r[0] : r[-1] + 1, c[0] : c[-1] + 1].read().result()
+        return a if r.step == 1 and c.step == 1 else a[:: r.step, :: c.step]
 
 
 def open_array(path: str, write: bool = False):
@@ -228,8 +243,7 @@ def window_reader(path) -> Callable[[int, int, int, int], np.ndarray]:
     return read
 
 
-def make_reader(path: str, var: str | tuple[str, ...], transform: str
-                ) -> Callable[[int, int, int, int], np.ndarray]:
+def make_reader(path: str, var: str | tuple[str, ...], transform: str) -> Callable[[int, int, int, int], np.ndarray]:
     """``read(ra, rb, ca, cb)`` -> float32 intensity of the scene rectangle (transform
     ``"complex"``: the complex64 channel itself).
 

@@ -68,7 +68,7 @@ def counts(ok, halo: int, origin, b: int, g: int, t: int, box):
     K = nb - box(okf, g, halo, origin)
     h = ok.shape[0] - 2 * halo
     w = ok.shape[1] - 2 * halo
-    nt = box(okf, t, halo, origin) if t > 1 else okf[halo: halo + h, halo: halo + w]
+    nt = box(okf, t, halo, origin) if t > 1 else okf[halo : halo + h, halo : halo + w]
     return K, nb, nt
 
 
@@ -106,8 +106,8 @@ def scaled_stat(xp, s, thr_k, thr_n, det):
     hi = np.float32(thr_n)
     if float(hi) > thr_n:
         hi = np.nextafter(hi, np.float32(-np.inf))
-    r = xp.where(det & ~(r > lo), lo, r)           # detected: above T(N)
-    return xp.where(~det & (r > hi), hi, r)        # not detected: not above T(N)
+    r = xp.where(det & ~(r > lo), lo, r)  # detected: above T(N)
+    return xp.where(~det & (r > hi), hi, r)  # not detected: not above T(N)
 
 
 def ca_redo(xz, ok, halo, origin, b, g, t, n_ring, pfa, looks, thr_n, mask, stat, box):
@@ -128,7 +128,7 @@ def ca_redo(xz, ok, halo, origin, b, g, t, n_ring, pfa, looks, thr_n, mask, stat
     h = xz.shape[0] - 2 * halo
     w = xz.shape[1] - 2 * halo
     if t == 1:
-        xt = xz[halo: halo + h, halo: halo + w].astype(xp.float64)[tested]
+        xt = xz[halo : halo + h, halo : halo + w].astype(xp.float64)[tested]
     else:
         xt = box(xz, t, halo, origin)[tested] / float(t * t)
     k = K[tested].astype(xp.int64)
@@ -163,7 +163,7 @@ def tp_redo(yz, ok, halo, origin, b, g, t, n_ring, pfa, kind, thr_n, mask, stat,
     h = yz.shape[0] - 2 * halo
     w = yz.shape[1] - 2 * halo
     if t == 1:
-        xt = yz[halo: halo + h, halo: halo + w][tested]
+        xt = yz[halo : halo + h, halo : halo + w][tested]
     else:
         xt = box(yz, t, halo, origin)[tested] / float(t * t)
     kf = K[tested]

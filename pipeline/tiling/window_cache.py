@@ -13,7 +13,7 @@ many detections lie in them.
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -33,8 +33,13 @@ class CachedWindows:
     Returns what ``read`` would return for the window (a copy, never a view of the cache).
     """
 
-    def __init__(self, read: Callable[[int, int, int, int], np.ndarray], shape: tuple[int, int],
-                 block: int = BLOCK, max_bytes: int = MAX_BYTES):
+    def __init__(
+        self,
+        read: Callable[[int, int, int, int], np.ndarray],
+        shape: tuple[int, int],
+        block: int = BLOCK,
+        max_bytes: int = MAX_BYTES,
+    ):
         self._read = read
         self.H, self.W = int(shape[0]), int(shape[1])
         self.block = int(block)
@@ -73,5 +78,5 @@ class CachedWindows:
                 c0, c1 = max(ca, bj * b), min(cb, (bj + 1) * b)
                 if out is None:
                     out = np.empty((rb - ra, cb - ca) + blk.shape[2:], blk.dtype)
-                out[r0 - ra:r1 - ra, c0 - ca:c1 - ca] = blk[r0 - bi * b:r1 - bi * b, c0 - bj * b:c1 - bj * b]
+                out[r0 - ra : r1 - ra, c0 - ca : c1 - ca] = blk[r0 - bi * b : r1 - bi * b, c0 - bj * b : c1 - bj * b]
         return out

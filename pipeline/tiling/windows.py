@@ -10,7 +10,7 @@ slice of the one mirror-extended scene, whatever the tile size.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -18,8 +18,14 @@ ENV.pop("SARSHIP_DEBUG", None)
 
 
 def sarship(*args, cwd=None, timeout=240, env=None):
-    return subprocess.run([sys.executable, "-m", "sarship", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, env={**ENV, **(env or {})}, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "sarship", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env={**ENV, **(env or {})},
+        timeout=timeout,
+    )
 
 
 def sarship_here(*args, env=None):
@@ -40,8 +46,11 @@ def sarship_here(*args, env=None):
     os.environ.update(env or {})
     out, err = io.StringIO(), io.StringIO()
     try:
-        with warnings.catch_warnings(record=True) as seen, contextlib.redirect_stdout(out), \
-                contextlib.redirect_stderr(err):
+        with (
+            warnings.catch_warnings(record=True) as seen,
+            contextlib.redirect_stdout(out),
+            contextlib.redirect_stderr(err),
+        ):
             try:
                 code = main(argv)
             except SystemExit as exc:  # argparse's usage errors and --help
@@ -92,8 +101,18 @@ def test_detectors_json_lists_contract_names():
     info = {d["name"]: d for d in json.loads(res.stdout)}
     assert {"two_parameter", "ca_cfar", "os_cfar"} <= set(info)
     for d in info.values():
-        for key in ("pfa", "target", "guard", "background", "looks", "min_area_px", "max_area_px",
-                    "min_length_m", "max_length_m", "merge_px"):
+        for key in (
+            "pfa",
+            "target",
+            "guard",
+            "background",
+            "looks",
+            "min_area_px",
+            "max_area_px",
+            "min_length_m",
+            "max_length_m",
+            "merge_px",
+        ):
             assert key in d["parameters"], (d["name"], key)
 
 
@@ -103,11 +122,20 @@ def test_unknown_detector(small_scene, tmp_path):
     assert not (tmp_path / "o").exists() or listing(tmp_path / "o") == []
 
 
-@pytest.mark.parametrize("setting,word", [
-    ("pfa=2", "pfa"), ("pfa=abc", "pfa"), ("guard=40", "guard"), ("background=11", "background"),
-    ("target=0", "target"), ("looks=-1", "looks"), ("merge_px=-3", "merge_px"), ("colour=red", "colour"),
-    ("pfa", "key=value"),
-])
+@pytest.mark.parametrize(
+    "setting,word",
+    [
+        ("pfa=2", "pfa"),
+        ("pfa=abc", "pfa"),
+        ("guard=40", "guard"),
+        ("background=11", "background"),
+        ("target=0", "target"),
+        ("looks=-1", "looks"),
+        ("merge_px=-3", "merge_px"),
+        ("colour=red", "colour"),
+        ("pfa", "key=value"),
+    ],
+)
 def test_out_of_range_parameters(small_scene, tmp_path, setting, word):
     out = tmp_path / "o"
     # in this process (test_unknown_detector: the same refusal as a real process's one line)
@@ -177,14 +205,42 @@ def test_simulate_detect_evaluate_end_to_end(tmp_path):
     scene = tmp_path / "scene.zarr"
     # simulate and evaluate in this process (as processes: test_output_safety.py's simulate, test_realdata.py's
     # evaluate); the detections as commands
-    res = sarship_here("simulate", scene, "--shape", "512x384", "--ships", "6", "--seed", "4", "--looks", "4",
-                       "--scr-db", "18", "--tile", "256")
+    res = sarship_here(
+        "simulate",
+        scene,
+        "--shape",
+        "512x384",
+        "--ships",
+        "6",
+        "--seed",
+        "4",
+        "--looks",
+        "4",
+        "--scr-db",
+        "18",
+        "--tile",
+        "256",
+    )
     assert res.returncode == 0, res.stderr
     truth = Path(f"{scene}.truth.geojson")
     assert truth.exists()
     out = tmp_path / "run"
-    res = sarship("detect", scene, "--detector", "ca_cfar", "--out", out, "--tile", "200",
-                  "--set", "pfa=1e-6", "--set", "min_area_px=2", "--set", "merge_px=5")
+    res = sarship(
+        "detect",
+        scene,
+        "--detector",
+        "ca_cfar",
+        "--out",
+        out,
+        "--tile",
+        "200",
+        "--set",
+        "pfa=1e-6",
+        "--set",
+        "min_area_px=2",
+        "--set",
+        "merge_px=5",
+    )
     assert res.returncode == 0, res.stderr
     assert "dashboard" in res.stderr and "tiles" in res.stderr  # cluster address and progress
     assert listing(out) and {"mask.zarr", "detections.geojson", "run.json"} <= set(os.listdir(out))

@@ -34,15 +34,25 @@ def _env(sock: Path) -> dict:
 def run(sock, *args, cwd=None, env=None, timeout=240):
     # never the repository's folder: there `python -m sarship` would import the checkout, elsewhere the
     # installed copy, and the warm process refuses commands of another copy than its own
-    return subprocess.run([sys.executable, "-m", "sarship", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd or tempfile.gettempdir(), env={**_env(sock), **(env or {})}, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "sarship", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd or tempfile.gettempdir(),
+        env={**_env(sock), **(env or {})},
+        timeout=timeout,
+    )
 
 
 #: ``python -m sarship`` with SIGINT handled as in a terminal's foreground command: a test run from a
 #: background job (a CI script, ``cmd &``) passes SIGINT ignored to its children, and Python keeps
 #: an inherited "ignore", so a Ctrl-C test would send a signal the command never sees
-AS_IN_A_TERMINAL = [sys.executable, "-c", "import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
-                    "runpy.run_module('sarship', run_name='__main__', alter_sys=True)"]
+AS_IN_A_TERMINAL = [
+    sys.executable,
+    "-c",
+    "import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "runpy.run_module('sarship', run_name='__main__', alter_sys=True)",
+]
 
 
 @pytest.fixture()
@@ -71,8 +81,19 @@ def warm_cpu():
     sockdir = Path(tempfile.mkdtemp(prefix="sw-"))
     os.chmod(sockdir, 0o700)
     sock = sockdir / "warm.sock"
-    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "300",
-              "--dashboard", "127.0.0.1:0")
+    res = run(
+        sock,
+        "warm",
+        "start",
+        "--device",
+        "cpu",
+        "--workers",
+        "1",
+        "--idle-timeout",
+        "300",
+        "--dashboard",
+        "127.0.0.1:0",
+    )
     assert res.returncode == 0, res.stderr
     assert "warm cluster ready" in res.stdout and "1 worker processes" in res.stdout
     assert "warm-up (ca_cfar, " in (sockdir / "warm.sock.log").read_text()
@@ -91,7 +112,7 @@ def _scene(tmp_path, shape=(600, 500), tile=256):
     rng = np.random.default_rng(3)
     x = rng.gamma(1.0, 1.0, shape).astype(np.float32)
     for r, c in ((100, 120), (300, 50), (450, 400), (250, 260)):
-        x[r:r + 5, c:c + 9] += 300.0
+        x[r : r + 5, c : c + 9] += 300.0
     return write_scene(tmp_path / "scene.zarr", {"intensity": x}, tile=tile, looks=1.0)
 
 
@@ -108,8 +129,17 @@ def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
     assert a.returncode == 0, a.stderr
     assert "sarship: warm cluster, 1 worker processes" in a.stderr
     assert "local Dask cluster" not in a.stderr
-    b = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "own", cwd=tmp_path,
-            env={"SARSHIP_WARM": "0"})
+    b = run(
+        warm_cpu,
+        "detect",
+        "scene.zarr",
+        "--detector",
+        "ca_cfar",
+        "--out",
+        "own",
+        cwd=tmp_path,
+        env={"SARSHIP_WARM": "0"},
+    )
     assert b.returncode == 0, b.stderr
     assert "local Dask cluster" in b.stderr and "warm cluster" not in b.stderr
     # the same lines on stdout, with the paths of each run's folder (relative paths: the command's folder)
@@ -135,8 +165,19 @@ def test_detect_on_the_warm_cluster_equals_its_own_cluster(warm_cpu, tmp_path):
     own_help = sarship_here("detect", "--help", env={"COLUMNS": "100"})  # the command line's own, in this process
     assert helped.returncode == 0 and helped.stdout.startswith("usage: sarship detect")
     assert helped.stdout == own_help.stdout  # the command's terminal width, not the warm process's
-    over = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "warm", "--overwrite",
-               "--set", "pfa=1e-3", cwd=tmp_path)
+    over = run(
+        warm_cpu,
+        "detect",
+        "scene.zarr",
+        "--detector",
+        "ca_cfar",
+        "--out",
+        "warm",
+        "--overwrite",
+        "--set",
+        "pfa=1e-3",
+        cwd=tmp_path,
+    )
     assert over.returncode == 0, over.stderr
     assert json.loads((tmp_path / "warm" / "run.json").read_text())["parameters"]["pfa"] == pytest.approx(1e-3)
     st = run(warm_cpu, "warm", "status")
@@ -147,8 +188,19 @@ def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_pa
     _scene(tmp_path)
     before = warm.status(warm_cpu)["commands"]
     # another setting of the cluster's: said, then run on a cluster of its own, with the command's setting
-    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o1", "--device", "cpu",
-              cwd=tmp_path, env={"SARSHIP_BLOCK_CACHE_MB": "0"})
+    res = run(
+        warm_cpu,
+        "detect",
+        "scene.zarr",
+        "--detector",
+        "ca_cfar",
+        "--out",
+        "o1",
+        "--device",
+        "cpu",
+        cwd=tmp_path,
+        env={"SARSHIP_BLOCK_CACHE_MB": "0"},
+    )
     assert res.returncode == 0, res.stderr
     assert "not on the warm cluster: it was started with another SARSHIP_BLOCK_CACHE_MB" in res.stderr
     assert "sarship: local Dask cluster" in res.stderr and "sarship: warm cluster" not in res.stderr
@@ -165,15 +217,22 @@ def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_pa
     req = {"identity": state["identity"], "env": state["env"]}
     cmd = ["detect", "scene.zarr", "--detector", "ca_cfar"]
     assert _refusal(req, state, _parse_quietly(cmd, build_parser)) == ""
-    assert _refusal(req, state, _parse_quietly([*cmd, "--device", "gpu"], build_parser)).startswith("it has no GPU worker")
+    assert _refusal(req, state, _parse_quietly([*cmd, "--device", "gpu"], build_parser)).startswith(
+        "it has no GPU worker"
+    )
     assert _refusal(req, state, _parse_quietly([*cmd, "--sched", "local"], build_parser)) == "--scheduler was given"
     # --scheduler (an address or `local`), SARSHIP_SCHEDULER and SARSHIP_WARM=0 never go to it; other commands
     # neither (they run here, as always)
     monkeypatch.delenv("SARSHIP_WARM", raising=False)
     monkeypatch.delenv("SARSHIP_SCHEDULER", raising=False)
     assert warm.eligible(["detect", "s.zarr", "--detector", "ca_cfar"])
-    for argv in (["detect", "s.zarr", "--scheduler", "local"], ["detect", "s.zarr", "--scheduler=tcp://h:1"],
-                 ["ingest", "x.npy", "--out", "x.zarr"], ["--version"], ["warm", "status"]):
+    for argv in (
+        ["detect", "s.zarr", "--scheduler", "local"],
+        ["detect", "s.zarr", "--scheduler=tcp://h:1"],
+        ["ingest", "x.npy", "--out", "x.zarr"],
+        ["--version"],
+        ["warm", "status"],
+    ):
         assert not warm.eligible(argv), argv
     monkeypatch.setenv("SARSHIP_SCHEDULER", "tcp://h:8786")
     assert not warm.eligible(["detect", "s.zarr"])
@@ -188,12 +247,12 @@ def test_commands_the_warm_cluster_cannot_take_run_on_their_own(warm_cpu, tmp_pa
 def test_refused_commands_say_why_and_run_on_their_own(warm_cpu, tmp_path):
     _scene(tmp_path)
     # a CPU-only warm cluster and --device gpu: the command's own cluster decides
-    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", "--device", "gpu",
-              cwd=tmp_path)
+    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o2", "--device", "gpu", cwd=tmp_path)
     assert "not on the warm cluster: it has no GPU worker" in res.stderr
     # an abbreviation of --scheduler passes the client's check: the warm process refuses it after parsing
-    res = run(warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o3", "--sched", "local",
-              cwd=tmp_path)
+    res = run(
+        warm_cpu, "detect", "scene.zarr", "--detector", "ca_cfar", "--out", "o3", "--sched", "local", cwd=tmp_path
+    )
     assert res.returncode == 0 and "not on the warm cluster: --scheduler was given" in res.stderr, res.stderr
 
 
@@ -206,9 +265,14 @@ def test_interrupted_commands_leave_nothing_and_the_cluster_goes_on(warm_cpu, tm
     _scene(tmp_path, shape=(3072, 3072), tile=256)
     for sig, code in ((signal.SIGINT, 130), (signal.SIGTERM, 143)):
         out = tmp_path / f"out-{code}"
-        p = subprocess.Popen([*AS_IN_A_TERMINAL, "detect", "scene.zarr", "--detector", "os_cfar",
-                              "--out", out.name], cwd=tmp_path, env=_env(warm_cpu), stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
+        p = subprocess.Popen(
+            [*AS_IN_A_TERMINAL, "detect", "scene.zarr", "--detector", "os_cfar", "--out", out.name],
+            cwd=tmp_path,
+            env=_env(warm_cpu),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         seen = []
         while True:  # the detection's first progress line: the command is under way on the cluster
             line = p.stderr.readline()
@@ -230,13 +294,16 @@ def test_interrupted_commands_leave_nothing_and_the_cluster_goes_on(warm_cpu, tm
 
 
 def test_the_client_imports_no_array_library(warm_cpu, tmp_path):
-    code = ("import sys; from sarship import warm; "
-            "c = warm.run_remote(['detect', 'missing.zarr', '--detector', 'ca_cfar']); "
-            "heavy = sorted(m for m in sys.modules if m.split('.')[0] in "
-            "('numpy', 'scipy', 'numba', 'dask', 'distributed', 'zarr', 'pydantic', 'tensorstore')); "
-            "print(c, heavy)")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
-                         env=_env(warm_cpu), timeout=120)
+    code = (
+        "import sys; from sarship import warm; "
+        "c = warm.run_remote(['detect', 'missing.zarr', '--detector', 'ca_cfar']); "
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('numpy', 'scipy', 'numba', 'dask', 'distributed', 'zarr', 'pydantic', 'tensorstore')); "
+        "print(c, heavy)"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, env=_env(warm_cpu), timeout=120
+    )
     assert res.stdout.strip() == "2 []", (res.stdout, res.stderr)
     assert "scene 'missing.zarr' does not exist" in res.stderr
 
@@ -271,15 +338,41 @@ def test_start_twice_idle_timeout_and_a_stale_socket(sockdir, monkeypatch, capsy
     assert run(sock, "warm", "status").returncode == 1
     # a second start while one runs is refused (the first one's idle timeout is long: on a loaded
     # machine the second start took longer than a short one, and found it gone)
-    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "120",
-              "--dashboard", "127.0.0.1:0", "--warm-up", "none")
+    res = run(
+        sock,
+        "warm",
+        "start",
+        "--device",
+        "cpu",
+        "--workers",
+        "1",
+        "--idle-timeout",
+        "120",
+        "--dashboard",
+        "127.0.0.1:0",
+        "--warm-up",
+        "none",
+    )
     assert res.returncode == 0, res.stderr
     again = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--dashboard", "127.0.0.1:0")
     assert again.returncode == 2 and "runs already" in again.stderr and len(again.stderr.splitlines()) == 1
     assert run(sock, "warm", "stop").returncode == 0
     # the idle timeout: a warm process without a command for 4 s ends by itself
-    res = run(sock, "warm", "start", "--device", "cpu", "--workers", "1", "--idle-timeout", "4",
-              "--dashboard", "127.0.0.1:0", "--warm-up", "none")
+    res = run(
+        sock,
+        "warm",
+        "start",
+        "--device",
+        "cpu",
+        "--workers",
+        "1",
+        "--idle-timeout",
+        "4",
+        "--dashboard",
+        "127.0.0.1:0",
+        "--warm-up",
+        "none",
+    )
     assert res.returncode == 0, res.stderr
     for _ in range(300):  # idle for 4 s: it ends by itself
         if warm.status(sock) is None and not sock.exists():
@@ -324,14 +417,26 @@ def test_a_warm_cluster_with_gpus_runs_both_devices(sockdir, tmp_path):
     try:
         outs = {}
         for device in ("gpu", "cpu", "auto"):
-            r = run(sock, "detect", "scene.zarr", "--detector", "ca_cfar", "--device", device, "--out", device,
-                    cwd=tmp_path)
+            r = run(
+                sock, "detect", "scene.zarr", "--detector", "ca_cfar", "--device", device, "--out", device, cwd=tmp_path
+            )
             assert r.returncode == 0 and "sarship: warm cluster," in r.stderr, r.stderr
             rj = json.loads((tmp_path / device / "run.json").read_text())
             assert rj["device"] == ("cpu" if device == "cpu" else "gpu")
             outs[device] = _mask(tmp_path / device)
-        own = run(sock, "detect", "scene.zarr", "--detector", "ca_cfar", "--device", "gpu", "--out", "own",
-                  cwd=tmp_path, env={"SARSHIP_WARM": "0"})
+        own = run(
+            sock,
+            "detect",
+            "scene.zarr",
+            "--detector",
+            "ca_cfar",
+            "--device",
+            "gpu",
+            "--out",
+            "own",
+            cwd=tmp_path,
+            env={"SARSHIP_WARM": "0"},
+        )
         assert own.returncode == 0 and "local Dask cluster" in own.stderr, own.stderr
         np.testing.assert_array_equal(outs["gpu"], _mask(tmp_path / "own"))
         np.testing.assert_array_equal(outs["auto"], outs["gpu"])
@@ -366,8 +471,14 @@ def _edited_keeping_mtime(sock):
     """sarship.warm, the copy the commands import (installed, or this checkout), edited with its old
     modification time kept (``rsync -a``, ``cp -p``), and restored after."""
     code = "import sarship.warm as w; print(w.__file__)"
-    where = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
-                           env=_env(sock), check=True)
+    where = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        cwd=tempfile.gettempdir(),
+        env=_env(sock),
+        check=True,
+    )
     mod = Path(where.stdout.strip())
     st, text = mod.stat(), mod.read_bytes()
     try:
@@ -406,8 +517,14 @@ def test_a_changed_code_is_refused(warm_cpu):
 
     def command():  # a command's request (its identity and settings), made as the command makes it
         code = "import json, sarship.warm as w; print(json.dumps({'identity': w._identity(), 'env': w.relevant_env()}))"
-        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tempfile.gettempdir(),
-                             env=_env(warm_cpu), check=True)  # (the standard library only: tests below)
+        res = subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            cwd=tempfile.gettempdir(),
+            env=_env(warm_cpu),
+            check=True,
+        )  # (the standard library only: tests below)
         return json.loads(res.stdout)
 
     state = warm.status(warm_cpu)
@@ -415,8 +532,9 @@ def test_a_changed_code_is_refused(warm_cpu):
     assert _refusal(command(), state, ns) == ""
     with _edited_keeping_mtime(warm_cpu):
         edited = command()
-    assert _refusal(edited, state, ns) == ("sarship's code was changed since it started (sarship warm stop, then "
-                                           "sarship warm start, runs the new code)")
+    assert _refusal(edited, state, ns) == (
+        "sarship's code was changed since it started (sarship warm stop, then sarship warm start, runs the new code)"
+    )
     assert _refusal(command(), state, ns) == ""  # the code restored
 
 
@@ -424,9 +542,15 @@ def test_output_to_a_closed_pipe(warm_cpu, tmp_path):
     """`sarship detect ... | head -1`: the reader leaves after one line; the command still ends
     with its outputs in place and no traceback."""
     _scene(tmp_path)
-    p = subprocess.Popen(f"{sys.executable} -m sarship detect scene.zarr --detector ca_cfar --out piped | head -1",
-                         shell=True, cwd=tmp_path, env=_env(warm_cpu), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
+    p = subprocess.Popen(
+        f"{sys.executable} -m sarship detect scene.zarr --detector ca_cfar --out piped | head -1",
+        shell=True,
+        cwd=tmp_path,
+        env=_env(warm_cpu),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     out, err = p.communicate(timeout=240)
     assert out.startswith("detections: ") and len(out.splitlines()) == 1, out
     assert "Traceback" not in err and "warm cluster" in err, err

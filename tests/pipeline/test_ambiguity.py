@@ -22,16 +22,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sarship.pipeline.targets import ambiguity as amb
-from sarship.pipeline.targets.ambiguity import (C_LIGHT, GeometryError, flag_features, geometry_from_attrs,
-                                        match_ambiguities, range_shift_m)
 from sarship.pipeline.simulate.geometry import sar_geometry as sim_geometry
+from sarship.pipeline.targets import ambiguity as amb
+from sarship.pipeline.targets.ambiguity import (
+    C_LIGHT,
+    GeometryError,
+    flag_features,
+    geometry_from_attrs,
+    match_ambiguities,
+    range_shift_m,
+)
 
 SAFE_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "sentinel1-safe"
 GRD = next(iter(sorted(SAFE_DIR.glob("S1B_IW_GRDH_*.SAFE"))), None) if SAFE_DIR.is_dir() else None
 SLC = next(iter(sorted(SAFE_DIR.glob("S1B_IW_SLC_*.SAFE"))), None) if SAFE_DIR.is_dir() else None
 try:
     import xarray_sentinel  # noqa: F401
+
     HAVE_XS = True
 except ImportError:
     HAVE_XS = False
@@ -67,9 +74,11 @@ def test_equations_agree_with_each_other_and_with_the_hyperbola():
         # eq (1) is k PRF / Ka; eq (2) is Vg times eq (1), Vg = Vr^2 / Vs
         assert amb.azimuth_shift_s(k, lam, R, prf, vr) == pytest.approx(k * prf / ka, rel=1e-12)
         assert amb.azimuth_shift_m(k, lam, R, prf, vs) == pytest.approx(
-            amb.azimuth_shift_s(k, lam, R, prf, vr) * vr**2 / vs, rel=1e-12)
+            amb.azimuth_shift_s(k, lam, R, prf, vr) * vr**2 / vs, rel=1e-12
+        )
     # SUMO's |dx| = lambda R PRF / (2 V): 4.7 km for these numbers
     assert abs(amb.azimuth_shift_m(1, lam, R, prf, vs)) == pytest.approx(lam * R * prf / (2 * vs))
+
     # eq (3) against the exact range history R(t) = sqrt(R^2 + Vr^2 t^2), Doppler f = -2 R'(t) / lambda:
     # energy at Doppler f lies at t = -f lambda R(t) / (2 Vr^2), solved by fixed point
     def exact_excess(f: float) -> float:
@@ -88,7 +97,8 @@ def test_equations_agree_with_each_other_and_with_the_hyperbola():
     # the TOPS half-width: lambda^2 R |k| PRF 2 df / (8 Vr^2) is eq (3) moved by df
     df = 2500.0
     assert amb.range_spread_m(1, lam, R, prf, vr, df) == pytest.approx(
-        range_shift_m(1, lam, R, prf, vr, df) - range_shift_m(1, lam, R, prf, vr, 0.0), rel=1e-9)
+        range_shift_m(1, lam, R, prf, vr, df) - range_shift_m(1, lam, R, prf, vr, 0.0), rel=1e-9
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -104,8 +114,7 @@ def test_grd_displacement_matches_a_hand_computation_from_the_annotation():
     freq = float(root.findtext("generalAnnotation/productInformation/radarFrequency"))
     lam = C_LIGHT / freq
     assert lam == pytest.approx(0.05547, abs=1e-5)
-    prf = {d.findtext("swath"): float(d.findtext("prf"))
-           for d in root.iter("downlinkInformation")}
+    prf = {d.findtext("swath"): float(d.findtext("prf")) for d in root.iter("downlinkInformation")}
     assert prf["IW1"] == pytest.approx(1717.13, abs=0.01)
     ati = float(root.findtext("imageAnnotation/imageInformation/azimuthTimeInterval"))
     gp = [p for p in root.iter("geolocationGridPoint") if p.findtext("line") == "0" and p.findtext("pixel") == "0"][0]
@@ -120,10 +129,14 @@ def test_grd_displacement_matches_a_hand_computation_from_the_annotation():
     want_rows = prf["IW1"] / abs(ka) / ati
     assert 490 < want_rows < 500
     # eq (2) with the orbit's speed at mid product
-    t_mid = 0.5 * (_seconds(root.findtext("imageAnnotation/imageInformation/productFirstLineUtcTime"))
-                   + _seconds(root.findtext("imageAnnotation/imageInformation/productLastLineUtcTime")))
-    orb = [(_seconds(o.findtext("time")), math.sqrt(sum(float(o.findtext(f"velocity/{a}"))**2 for a in "xyz")))
-           for o in root.iter("orbit")]
+    t_mid = 0.5 * (
+        _seconds(root.findtext("imageAnnotation/imageInformation/productFirstLineUtcTime"))
+        + _seconds(root.findtext("imageAnnotation/imageInformation/productLastLineUtcTime"))
+    )
+    orb = [
+        (_seconds(o.findtext("time")), math.sqrt(sum(float(o.findtext(f"velocity/{a}")) ** 2 for a in "xyz")))
+        for o in root.iter("orbit")
+    ]
     vs = float(np.interp(t_mid, [t for t, _ in orb], [v for _, v in orb]))
     want_m = lam * R * prf["IW1"] / (2 * vs)
     assert 4900 < want_m < 5100
@@ -143,7 +156,7 @@ def test_grd_displacement_matches_a_hand_computation_from_the_annotation():
     # eq (3) by hand, in columns through the grid's slant range (ground range: ~5.3 m slant per column at near range)
     fdc = geom.at(np.array([0.0]), geom.doppler_centroid_hz)[0]
     assert abs(fdc) < prf["IW1"] / 2
-    dr = lam**2 * R * ((fdc + prf["IW1"])**2 - fdc**2) / (8 * vr**2)
+    dr = lam**2 * R * ((fdc + prf["IW1"]) ** 2 - fdc**2) / (8 * vr**2)
     gp2 = [p for p in root.iter("geolocationGridPoint") if p.findtext("line") == "0"][1]
     dR_dcol = (C_LIGHT * float(gp2.findtext("slantRangeTime")) / 2 - R) / float(gp2.findtext("pixel"))
     assert got["col"][0, 1] == pytest.approx(dr / dR_dcol, rel=0.02)
@@ -159,13 +172,21 @@ def test_grd_geometry_values_read_independently_from_the_xml():
     assert g["radar_frequency_hz"] == float(root.findtext("generalAnnotation/productInformation/radarFrequency"))
     assert g["azimuth_time_interval_s"] == float(root.findtext("imageAnnotation/imageInformation/azimuthTimeInterval"))
     prf = {d.findtext("swath"): float(d.findtext("prf")) for d in root.iter("downlinkInformation")}
-    merge = {m.findtext("swath"): [int(m.findtext(f"swathBoundsList/swathBounds/{k}")) for k in
-                                   ("firstAzimuthLine", "lastAzimuthLine", "firstRangeSample", "lastRangeSample")]
-             for m in root.iter("swathMerge")}
+    merge = {
+        m.findtext("swath"): [
+            int(m.findtext(f"swathBoundsList/swathBounds/{k}"))
+            for k in ("firstAzimuthLine", "lastAzimuthLine", "firstRangeSample", "lastRangeSample")
+        ]
+        for m in root.iter("swathMerge")
+    }
     assert [(s["name"], s["prf_hz"], s["blocks"]) for s in g["swaths"]] == [
-        (n, prf[n], [merge[n]]) for n in ("IW1", "IW2", "IW3")]
-    pts = {int(p.findtext("pixel")): float(p.findtext("slantRangeTime")) for p in root.iter("geolocationGridPoint")
-           if p.findtext("line") == "0"}
+        (n, prf[n], [merge[n]]) for n in ("IW1", "IW2", "IW3")
+    ]
+    pts = {
+        int(p.findtext("pixel")): float(p.findtext("slantRangeTime"))
+        for p in root.iter("geolocationGridPoint")
+        if p.findtext("line") == "0"
+    }
     t = g["range_table"]
     assert t["col"] == [float(c) for c in sorted(pts)]
     np.testing.assert_allclose(t["slant_range_m"], [C_LIGHT * pts[c] / 2 for c in sorted(pts)], rtol=1e-9)
@@ -178,15 +199,16 @@ def test_grd_geometry_values_read_independently_from_the_xml():
     assert 2000 < g["doppler_centroid_spread_hz"] < 3000
     # the column's swath gives its PRF
     geom = geometry_from_attrs({"sar_geometry": g})
-    np.testing.assert_array_equal(geom.prf_at(np.array([0.0, 100.0, 9000.0, 25000.0]),
-                                              np.array([5.0, 8681.0, 8682.0, 25787.0])),
-                                  [prf["IW1"], prf["IW1"], prf["IW2"], prf["IW3"]])
+    np.testing.assert_array_equal(
+        geom.prf_at(np.array([0.0, 100.0, 9000.0, 25000.0]), np.array([5.0, 8681.0, 8682.0, 25787.0])),
+        [prf["IW1"], prf["IW1"], prf["IW2"], prf["IW3"]],
+    )
 
 
 @needs_grd
 def test_safe_ingest_carries_the_geometry():
-    from sarship.pipeline.readers.limits import InputLimits
     from sarship.pipeline.readers.entry import _open_safe
+    from sarship.pipeline.readers.limits import InputLimits
     from sarship.pipeline.readers.safe_geometry import read_geometry
 
     src = _open_safe(GRD, InputLimits(max_ratio=1e5))  # the constant-pixel sample: ~1900:1
@@ -205,16 +227,19 @@ def test_slc_geometry_from_the_annotation():
     root = _annotation(SLC, "iw1")
     g = read_geometry(_product(SLC), "IW1", "vv")
     ii = "imageAnnotation/imageInformation/"
-    tau0, fs = float(root.findtext(ii + "slantRangeTime")), float(
-        root.findtext("generalAnnotation/productInformation/rangeSamplingRate"))
+    tau0, fs = (
+        float(root.findtext(ii + "slantRangeTime")),
+        float(root.findtext("generalAnnotation/productInformation/rangeSamplingRate")),
+    )
     W = int(root.findtext(ii + "numberOfSamples"))
     assert g["prf_hz"] == float(next(root.iter("downlinkInformation")).findtext("prf"))
     t = g["range_table"]
     assert t["col"][0] == 0 and t["col"][-1] == W - 1
     assert t["slant_range_m"][0] == pytest.approx(C_LIGHT * tau0 / 2, rel=1e-12)
     assert t["slant_range_m"][-1] == pytest.approx(C_LIGHT * (tau0 + (W - 1) / fs) / 2, rel=1e-12)
-    assert g["burst_duration_s"] == pytest.approx(int(root.findtext("swathTiming/linesPerBurst"))
-                                                  * float(root.findtext(ii + "azimuthTimeInterval")))
+    assert g["burst_duration_s"] == pytest.approx(
+        int(root.findtext("swathTiming/linesPerBurst")) * float(root.findtext(ii + "azimuthTimeInterval"))
+    )
     # the SLC's slant-range columns make the range shift ~18 m / 2.33 m ~ 7.7 columns
     geom = geometry_from_attrs({"sar_geometry": g})
     gh = geom.ghosts([5000.0], [0.0], (1,))
@@ -275,12 +300,17 @@ def test_matching_rules():
     ships = np.array([[2000.0, 300.0], [1200.0, 700.0]])
     gh = geom.ghosts(ships[:, 0], ships[:, 1])  # orders -2, -1, 1, 2
     k_idx = {k: q for q, k in enumerate(amb.ORDERS)}
-    c = np.array([ships[0], ships[1],
-                  [gh["row"][0, k_idx[1]] + 3.0, gh["col"][0, k_idx[1]] - 2.0],   # ghost k=+1 of ship 0
-                  [gh["row"][0, k_idx[-2]], gh["col"][0, k_idx[-2]]],             # ghost k=-2 of ship 0
-                  [gh["row"][1, k_idx[-1]] + 9.0, gh["col"][1, k_idx[-1]]],       # 9 rows off: beyond 8 px
-                  [gh["row"][1, k_idx[1]], gh["col"][1, k_idx[1]]],               # only 7 dB below ship 1
-                  [300.0, 900.0]])                                                # an unrelated ship
+    c = np.array(
+        [
+            ships[0],
+            ships[1],
+            [gh["row"][0, k_idx[1]] + 3.0, gh["col"][0, k_idx[1]] - 2.0],  # ghost k=+1 of ship 0
+            [gh["row"][0, k_idx[-2]], gh["col"][0, k_idx[-2]]],  # ghost k=-2 of ship 0
+            [gh["row"][1, k_idx[-1]] + 9.0, gh["col"][1, k_idx[-1]]],  # 9 rows off: beyond 8 px
+            [gh["row"][1, k_idx[1]], gh["col"][1, k_idx[1]]],  # only 7 dB below ship 1
+            [300.0, 900.0],
+        ]
+    )  # an unrelated ship
     p = np.array([1e5, 2e4, 50.0, 5.0, 30.0, 4e3, 60.0])
     parent, order = match_ambiguities(c, p, geom)
     assert parent == [None, None, 0, 0, None, None, None]
@@ -341,30 +371,41 @@ def test_matching_equals_brute_force_reference():
 
 
 def _feats(centroids, peaks):
-    return [{"type": "Feature", "geometry": None, "properties": {"centroid_px": list(c), "peak": pk}}
-            for c, pk in zip(centroids, peaks)]
+    return [
+        {"type": "Feature", "geometry": None, "properties": {"centroid_px": list(c), "peak": pk}}
+        for c, pk in zip(centroids, peaks)
+    ]
 
 
-@pytest.mark.parametrize("change,needle", [
-    (None, "no 'sar_geometry'"),
-    ("not a dict", "not an object"),
-    ({"unavailable": "ValueError: no PRF"}, "unavailable: ValueError: no PRF"),
-    ({"radar_frequency_hz": -5.0}, "radar_frequency_hz"),
-    ({"radar_frequency_hz": float("nan")}, "radar_frequency_hz"),
-    ({"platform_velocity_m_s": "fast"}, "platform_velocity_m_s"),
-    ({"prf_hz": 0.0}, "prf_hz"),
-    ({"prf_hz": None}, "prf_hz"),
-    ({"range_table": None}, "range_table"),
-    ({"range_table": {"col": [0, 10], "slant_range_m": [8e5, 8e5], "effective_velocity_m_s": [7e3, 7e3]}},
-     "monotonic"),
-    ({"range_table": {"col": [0], "slant_range_m": [8e5], "effective_velocity_m_s": [7e3]}}, "two columns"),
-    ({"range_table": {"col": [0, 10], "slant_range_m": [8e5, 9e5], "effective_velocity_m_s": [7e3, 1e9]}},
-     "effective_velocity_m_s"),
-    ({"range_table": {"col": [0, 10], "slant_range_m": [8e5, "x"], "effective_velocity_m_s": [7e3, 7e3]}},
-     "range_table"),
-    ({"azimuth_time_interval_s": None}, "pixel_spacing_m"),
-    ({"doppler_centroid_spread_hz": -1.0}, "doppler_centroid_spread_hz"),
-])
+@pytest.mark.parametrize(
+    "change,needle",
+    [
+        (None, "no 'sar_geometry'"),
+        ("not a dict", "not an object"),
+        ({"unavailable": "ValueError: no PRF"}, "unavailable: ValueError: no PRF"),
+        ({"radar_frequency_hz": -5.0}, "radar_frequency_hz"),
+        ({"radar_frequency_hz": float("nan")}, "radar_frequency_hz"),
+        ({"platform_velocity_m_s": "fast"}, "platform_velocity_m_s"),
+        ({"prf_hz": 0.0}, "prf_hz"),
+        ({"prf_hz": None}, "prf_hz"),
+        ({"range_table": None}, "range_table"),
+        (
+            {"range_table": {"col": [0, 10], "slant_range_m": [8e5, 8e5], "effective_velocity_m_s": [7e3, 7e3]}},
+            "monotonic",
+        ),
+        ({"range_table": {"col": [0], "slant_range_m": [8e5], "effective_velocity_m_s": [7e3]}}, "two columns"),
+        (
+            {"range_table": {"col": [0, 10], "slant_range_m": [8e5, 9e5], "effective_velocity_m_s": [7e3, 1e9]}},
+            "effective_velocity_m_s",
+        ),
+        (
+            {"range_table": {"col": [0, 10], "slant_range_m": [8e5, "x"], "effective_velocity_m_s": [7e3, 7e3]}},
+            "range_table",
+        ),
+        ({"azimuth_time_interval_s": None}, "pixel_spacing_m"),
+        ({"doppler_centroid_spread_hz": -1.0}, "doppler_centroid_spread_hz"),
+    ],
+)
 def test_bad_geometry_gives_no_flags_and_a_reason(change, needle):
     g = sim_geometry((1000, 500), (10.0, 10.0))
     if change is None:
@@ -421,8 +462,13 @@ def test_parameters_are_validated_and_defaults_agree():
 
     d = DetectorParams()
     assert (d.ambiguities, d.ambiguity_tol_px, d.ambiguity_min_db) == (True, amb.DEFAULT_TOL_PX, amb.DEFAULT_MIN_DB)
-    for k, v in (("ambiguity_tol_px", "-1"), ("ambiguity_tol_px", "1e9"), ("ambiguity_min_db", "70"),
-                 ("ambiguity_min_db", "loud"), ("ambiguities", "maybe")):
+    for k, v in (
+        ("ambiguity_tol_px", "-1"),
+        ("ambiguity_tol_px", "1e9"),
+        ("ambiguity_min_db", "70"),
+        ("ambiguity_min_db", "loud"),
+        ("ambiguities", "maybe"),
+    ):
         with pytest.raises(InputError, match=k):
             JobRequest.from_inputs("ca_cfar", {"scene": "s", k: v})
     p = JobRequest.from_inputs("ca_cfar", {"scene": "s", "ambiguities": "false", "ambiguity_tol_px": "3"})
@@ -438,8 +484,9 @@ DETECT = ["--detector", "ca_cfar", "--set", "pfa=1e-6", "--set", "land_mask=none
 
 
 def _cli(*args):
-    r = subprocess.run([sys.executable, "-m", "sarship.cli", *map(str, args)], capture_output=True, text=True,
-                       timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "sarship.cli", *map(str, args)], capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 0, r.stderr
     return r
 
@@ -481,7 +528,8 @@ def test_simulated_ghosts_flagged_end_to_end(ghost_scene):
     assert checked >= 4, "the scene should show several detected ghosts of detected ships"
     assert ship_det and all(f["properties"]["ambiguity_of"] is None for f in ship_det.values())
     assert run["ambiguities"]["applied"] and run["ambiguities"]["flagged"] == sum(
-        f["properties"]["ambiguity_of"] is not None for f in dets)
+        f["properties"]["ambiguity_of"] is not None for f in dets
+    )
     # 20 m lines: the first ghosts ~5.0 km = ~251 rows away
     assert 245 < run["ambiguities"]["first_ambiguity_shift"]["rows"][0] < 256
     assert [f["id"] for f in dets] == list(range(len(dets)))
@@ -494,8 +542,13 @@ def test_evaluate_ignore_flagged_leaves_out_the_flagged_ghosts(ghost_scene):
     dets = json.loads((ghost_scene / "out" / "detections.geojson").read_text())["features"]
     n_flagged = sum(f["properties"]["ambiguity_of"] is not None for f in dets)
     assert n_flagged >= 4
-    args = ["evaluate", ghost_scene / "out" / "detections.geojson", "--truth", ghost_scene / "s.zarr.truth.geojson",
-            "--json"]
+    args = [
+        "evaluate",
+        ghost_scene / "out" / "detections.geojson",
+        "--truth",
+        ghost_scene / "s.zarr.truth.geojson",
+        "--json",
+    ]
     plain = json.loads(_cli(*args).stdout)
     kept = json.loads(_cli(*args, "--ignore-flagged").stdout)
     assert "n_flagged_ignored" not in plain and kept["n_flagged_ignored"] == n_flagged
@@ -536,8 +589,9 @@ def test_no_flags_without_ghosts(tmp_path):
     from sarship.workers.jobs import run_detection
 
     _cli("simulate", tmp_path / "s.zarr", *SIM)  # the same ships, no --ambiguities
-    r = run_detection(tmp_path / "s.zarr", "ca_cfar", {"pfa": "1e-6", "land_mask": "none"}, out_dir=tmp_path / "o",
-                      progress=False)
+    r = run_detection(
+        tmp_path / "s.zarr", "ca_cfar", {"pfa": "1e-6", "land_mask": "none"}, out_dir=tmp_path / "o", progress=False
+    )
     dets = json.loads((tmp_path / "o" / "detections.geojson").read_text())["features"]
     assert r["ambiguities"]["applied"] is True and r["ambiguities"]["flagged"] == 0
     assert len(dets) >= 5 and all(f["properties"]["ambiguity_of"] is None for f in dets)

@@ -14,12 +14,12 @@ from scipy import special
 from sarship.pipeline import detectors
 from sarship.pipeline.detectors import apwf
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.tiling.inputs import polarimetric_source
 from sarship.pipeline.scene import open_scene
 from sarship.pipeline.simulate import SimConfig, sea_covariance, simulate
+from sarship.pipeline.tiling.inputs import polarimetric_source
 from sarship.pipeline.tiling.windows import mirror_pad, padded_block
-from tests.conftest import write_scene
 from sarship.workers.jobs import run_detection
+from tests.conftest import write_scene
 
 
 def _cn(rng, shape):
@@ -40,7 +40,7 @@ def _detect_whole(x, prm):
 def test_closed_form_inverse_matches_numpy():
     rng = np.random.default_rng(0)
     for p in (2, 3):
-        for k in range(200):
+        for _k in range(200):
             M = _cn(rng, (p, p + int(rng.integers(0, 6))))
             A = M @ M.conj().T * 10.0 ** rng.uniform(-3, 3)
             ref = np.linalg.inv(A)
@@ -61,11 +61,11 @@ def test_y_matches_brute_force(estimator, p):
     y = np.empty((H, W))
     for i in range(H):
         for j in range(W):
-            B = P[i:i + 9, j:j + 9].reshape(-1, p)
-            S = B.T @ B.conj()                                # sum of X X^H
+            B = P[i : i + 9, j : j + 9].reshape(-1, p)
+            S = B.T @ B.conj()  # sum of X X^H
             n = 81
             if estimator == "ring":
-                G = P[i + 3:i + 6, j + 3:j + 6].reshape(-1, p)
+                G = P[i + 3 : i + 6, j + 3 : j + 6].reshape(-1, p)
                 S = S - G.T @ G.conj()
                 n = 72
             X = P[i + h, j + h]
@@ -85,8 +85,12 @@ def test_pwf_equals_eq_2_8_for_reflection_symmetric_sigma():
     X = _cn(rng, (500, 3)) * 3.0
     hh, hv, vv = X[:, 0], X[:, 1], X[:, 2]
     d = s_hh * (1 - abs(rho) ** 2)
-    y28 = (abs(hh) ** 2 / d + abs(vv) ** 2 / (d * gam) + abs(hv) ** 2 / (s_hh * eps)
-           - 2 * np.real(rho * np.conj(hh) * vv) / (d * sg))
+    y28 = (
+        abs(hh) ** 2 / d
+        + abs(vv) ** 2 / (d * gam)
+        + abs(hv) ** 2 / (s_hh * eps)
+        - 2 * np.real(rho * np.conj(hh) * vv) / (d * sg)
+    )
     Ai = apwf.herm_inv(sigma)
     y = np.real(np.einsum("ni,ij,nj->n", X.conj(), Ai, X))
     np.testing.assert_allclose(y, y28, rtol=1e-10)
@@ -104,9 +108,9 @@ def test_thresholds_exact_and_eq_2_10_is_the_large_n_limit():
                 assert 1 - special.betainc(p, n - p, Tw / n) == pytest.approx(pfa, rel=1e-5)
             T10 = apwf.threshold_large_n(pfa, p)
             # eq 2-10 literally
-            assert math.exp(-T10) * sum(T10 ** k / math.factorial(k) for k in range(p)) == pytest.approx(pfa, rel=1e-10)
+            assert math.exp(-T10) * sum(T10**k / math.factorial(k) for k in range(p)) == pytest.approx(pfa, rel=1e-10)
             prev = None
-            for n in (10 ** 2, 10 ** 3, 10 ** 4, 10 ** 5, 10 ** 6):
+            for n in (10**2, 10**3, 10**4, 10**5, 10**6):
                 err = abs(apwf.threshold(pfa, p, n, "ring") / T10 - 1.0)
                 errw = abs(apwf.threshold(pfa, p, n, "window") / T10 - 1.0)
                 if prev is not None:
@@ -150,8 +154,8 @@ def test_padded_block_trailing_axes():
         P = mirror_pad(x3, h)
         for r0, r1, c0, c1 in [(0, 5, 0, 3), (20, 23, 6, 9), (7, 8, 4, 5), (0, 23, 0, 9)]:
             blk = padded_block(lambda a, b, c, d: x3[a:b, c:d], x.shape, r0, r1, c0, c1, h)
-            np.testing.assert_array_equal(blk, P[r0:r1 + 2 * h, c0:c1 + 2 * h])
-            np.testing.assert_array_equal(blk[..., 1], mirror_pad(2 * x, h)[r0:r1 + 2 * h, c0:c1 + 2 * h])
+            np.testing.assert_array_equal(blk, P[r0 : r1 + 2 * h, c0 : c1 + 2 * h])
+            np.testing.assert_array_equal(blk[..., 1], mirror_pad(2 * x, h)[r0 : r1 + 2 * h, c0 : c1 + 2 * h])
     x1 = x3[:1]  # one-row scene: the gather path
     blk = padded_block(lambda a, b, c, d: x1[a:b, c:d], x1.shape[:2], 0, 1, 2, 5, 4)
     np.testing.assert_array_equal(blk, mirror_pad(x1, 4)[0:9, 2:13])
@@ -175,7 +179,7 @@ def _ship_scene(rng, H, W, p):
     x = _clutter(rng, (H, W), sig)
     for _ in range(10):
         r, c = int(rng.integers(0, H - 4)), int(rng.integers(0, W - 9))
-        x[r:r + 3, c:c + 8] += (8.0 * _cn(rng, (3, 8, p))).astype(np.complex64)
+        x[r : r + 3, c : c + 8] += (8.0 * _cn(rng, (3, 8, p))).astype(np.complex64)
     x[0:2, 0:5] += 10.0  # on the corner, across the mirrored border
     return x
 
@@ -188,8 +192,14 @@ def test_tiled_equals_untiled(tmp_path, client, p, estimator):
     names = ("hh", "hv", "vv") if p == 3 else ("vh", "vv")
     arrays = {n: np.ascontiguousarray(x[..., k]) for k, n in enumerate(names)}
     scene = write_scene(tmp_path / "s.zarr", arrays, tile=32, kind="quadpol" if p == 3 else "slc")
-    settings = {"pfa": "1e-4", "guard": "9", "background": "41", "min_area_px": "1",
-                "merge_px": "2", "estimator": estimator}
+    settings = {
+        "pfa": "1e-4",
+        "guard": "9",
+        "background": "41",
+        "min_area_px": "1",
+        "merge_px": "2",
+        "estimator": estimator,
+    }
     out = {}
     for tile in (4096, 32, 27):
         o = tmp_path / f"o{tile}"
@@ -218,8 +228,7 @@ def test_detects_simulated_quadpol_ships(tmp_path, client):
     Parameters: pfa 1e-6, ring estimator, guard 41, background 61 (N = 2040),
     min_area_px 2, merge_px 5 (the detector's defaults).
     """
-    cfg = SimConfig(kind="quadpol", shape=(2048, 2048), ships=25, seed=11, clutter="rayleigh",
-                    scr_db=10.0)
+    cfg = SimConfig(kind="quadpol", shape=(2048, 2048), ships=25, seed=11, clutter="rayleigh", scr_db=10.0)
     scene = tmp_path / "q.zarr"
     truth = tmp_path / "q.truth.geojson"
     simulate(scene, cfg, tile=1024, truth_path=truth)

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from boxsum_helpers import assert_bits, box_sum_ref, cfar_cases, tiles, values
 
+from sarship.pipeline.detectors import ca_cfar
 from sarship.pipeline.tiling import boxsum
 from sarship.pipeline.tiling.boxsum import centered_box_sum
-from sarship.pipeline.detectors import ca_cfar
 from sarship.pipeline.tiling.windows import mirror_pad
 
 
@@ -25,7 +25,7 @@ def ca_cfar_ref(block, halo, origin, p, prep):
     bg = box_sum_ref(block, p.background, halo, origin)
     gd = box_sum_ref(block, p.guard, halo, origin)
     if p.target == 1:
-        xt = block[halo: block.shape[0] - halo, halo: block.shape[1] - halo]
+        xt = block[halo : block.shape[0] - halo, halo : block.shape[1] - halo]
     else:
         xt = box_sum_ref(block, p.target, halo, origin) / float(p.target**2)
     with np.errstate(all="ignore"):
@@ -35,8 +35,14 @@ def ca_cfar_ref(block, halo, origin, p, prep):
     return s > float(prep["threshold"]), s.astype(np.float32)
 
 
-KINDS = [("gamma", np.float32), ("wide", np.float64), ("special", np.float32),
-         ("nonfinite", np.float64), ("wide", np.float32), ("int16", None)]
+KINDS = [
+    ("gamma", np.float32),
+    ("wide", np.float64),
+    ("special", np.float32),
+    ("nonfinite", np.float64),
+    ("wide", np.float32),
+    ("int16", None),
+]
 
 
 def _box_cases(seed, n):
@@ -79,7 +85,7 @@ def test_box_sum_non_contiguous_input_and_exact_values():
     # sanity of the maths (not only of the order): integers are summed exactly
     x = rng.integers(0, 1000, (40, 50)).astype(np.float32)
     s = centered_box_sum(x, 7, 3, (5, -9))
-    ref = np.array([[x[i:i + 7, j:j + 7].sum(dtype=np.float64) for j in range(44)] for i in range(34)])
+    ref = np.array([[x[i : i + 7, j : j + 7].sum(dtype=np.float64) for j in range(44)] for i in range(34)])
     np.testing.assert_array_equal(s, ref)
 
 
@@ -95,8 +101,14 @@ def test_box_sum_tiling_invariant():
 
 def _cfar_cases(seed, n):
     for rng, _, block, halo, origin, (t, g, b) in cfar_cases(seed, n, KINDS, {0: (1, 41, 61)}):
-        p = ca_cfar.CAParams(pfa=float(rng.choice([1e-1, 1e-2, 1e-5])), target=t, guard=g, background=b,
-                             looks=float(rng.choice([1.0, 2.0, 4.5])), min_area_px=1)
+        p = ca_cfar.CAParams(
+            pfa=float(rng.choice([1e-1, 1e-2, 1e-5])),
+            target=t,
+            guard=g,
+            background=b,
+            looks=float(rng.choice([1.0, 2.0, 4.5])),
+            min_area_px=1,
+        )
         yield block, halo, origin, p
 
 
@@ -133,4 +145,4 @@ def test_ca_cfar_default_windows_on_a_large_tile():
     block = rng.gamma(2.0, 0.5, (300 + 2 * halo, 2100 + 2 * halo)).astype(np.float32)
     block[100:104, 500:506] = 40.0
     mask = _check(block, halo, (1234, -30), p)
-    assert mask[100 - halo:104 - halo, 500 - halo:506 - halo].all()
+    assert mask[100 - halo : 104 - halo, 500 - halo : 506 - halo].all()

@@ -69,10 +69,10 @@ def test_ca_cfar_matches_brute_force_and_target_window():
         ref = np.empty(x.shape)
         for i in range(x.shape[0]):
             for j in range(x.shape[1]):
-                w = P[i:i + 11, j:j + 11]
+                w = P[i : i + 11, j : j + 11]
                 ring = w.sum() - w[3:8, 3:8].sum()
                 t = target // 2
-                xt = w[5 - t:6 + t, 5 - t:6 + t].mean()
+                xt = w[5 - t : 6 + t, 5 - t : 6 + t].mean()
                 ref[i, j] = xt / (ring / 96.0)
         np.testing.assert_allclose(stat, ref, rtol=1e-5)
         np.testing.assert_array_equal(mask, ref > prep["threshold"])
@@ -108,13 +108,16 @@ def test_two_parameter_matches_brute_force():
     for domain in ("intensity", "amplitude", "db"):
         p = two_parameter.TwoParameterParams(pfa=1e-2, guard=3, background=9, domain=domain)
         mask, stat, prep = run_whole(two_parameter, x, p)
-        y = {"intensity": x.astype(np.float64), "amplitude": np.sqrt(x.astype(np.float64)),
-             "db": 10 * np.log10(x.astype(np.float64))}[domain]
+        y = {
+            "intensity": x.astype(np.float64),
+            "amplitude": np.sqrt(x.astype(np.float64)),
+            "db": 10 * np.log10(x.astype(np.float64)),
+        }[domain]
         P = mirror_pad(y, 4)
         ref = np.empty(x.shape)
         for i in range(x.shape[0]):
             for j in range(x.shape[1]):
-                w = P[i:i + 9, j:j + 9].copy()
+                w = P[i : i + 9, j : j + 9].copy()
                 ringv = np.concatenate([w[:3].ravel(), w[6:].ravel(), w[3:6, :3].ravel(), w[3:6, 6:].ravel()])
                 ref[i, j] = (w[4, 4] - ringv.mean()) / ringv.std(ddof=1)
         np.testing.assert_allclose(stat, ref, rtol=1e-4, atol=1e-5)

@@ -37,7 +37,10 @@ def test_sampler_follows_the_density(beta):
 @pytest.mark.parametrize("beta", [0.5, 1.0, 3.0])
 def test_density_integrates_to_one_and_reduces_to_gaussian(beta):
     C = _noncircular()
-    f = lambda y, x: math.exp(float(cggd.log_pdf(complex(x, y), beta, C)))
+
+    def f(y, x):
+        return math.exp(float(cggd.log_pdf(complex(x, y), beta, C)))
+
     tot, _ = integrate.dblquad(f, -40, 40, -40, 40, epsabs=1e-9, epsrel=1e-7)
     assert tot == pytest.approx(1.0, abs=2e-4)
     if beta == 1.0:  # complex Gaussian with augmented covariance C: the real bivariate normal
@@ -54,7 +57,7 @@ def test_csk_of_beta_eq39():
     assert float(cggd.csk_of_beta(0.5)) == pytest.approx(120 / 36 - 2, abs=1e-12)  # G(2)G(6)/G(4)^2 - 2
     beta, c = cggd.csk_table()
     assert beta.size == 10_000 and beta[0] == pytest.approx(1e-3) and beta[-1] == pytest.approx(10.0)
-    assert np.all(np.diff(c) < 0)                      # monotone: the inversion is unique
+    assert np.all(np.diff(c) < 0)  # monotone: the inversion is unique
     assert c[-1] > -2 / 3 and float(cggd.csk_of_beta(1e4)) == pytest.approx(-2 / 3, abs=1e-3)
 
 
@@ -63,11 +66,13 @@ def test_exact_inversion_vs_the_papers_table():
     b = np.concatenate([rng.uniform(0.05, 5.0, 300), [1e-3, 1.0, 9.999]])
     k = cggd.csk_of_beta(b)
     ex = cggd.beta_from_csk(k)
-    np.testing.assert_allclose(ex, b, rtol=1e-9)                     # exact round trip
+    np.testing.assert_allclose(ex, b, rtol=1e-9)  # exact round trip
     tb = cggd.beta_from_csk(k, method="table")
-    assert np.max(np.abs(tb - b)) <= 1e-3    # nearest CSK entry of a 1e-3 grid: within one step (measured 5.1e-4)
+    assert np.max(np.abs(tb - b)) <= 1e-3  # nearest CSK entry of a 1e-3 grid: within one step (measured 5.1e-4)
     assert cggd.beta_from_csk(-0.7) == 10.0 and cggd.beta_from_csk(-0.7, method="table") == 10.0
-    assert cggd.beta_from_csk(1e300) == pytest.approx(1e-3) and cggd.beta_from_csk(1e300, "table") == pytest.approx(1e-3)
+    assert cggd.beta_from_csk(1e300) == pytest.approx(1e-3) and cggd.beta_from_csk(1e300, "table") == pytest.approx(
+        1e-3
+    )
     with pytest.raises(ValueError, match="method"):
         cggd.beta_from_csk(0.0, method="lut")
 
@@ -76,7 +81,9 @@ def test_sample_csk_converges_to_eq39_and_whitening_makes_it_hold_for_noncircula
     rng = np.random.default_rng(3)
     for beta in (0.5, 1.0, 2.0):
         zc = cggd.sample(beta, None, 400_000, rng)
-        assert cggd.csk(zc) == pytest.approx(float(cggd.csk_of_beta(beta)), abs=0.05 + 0.02 * abs(float(cggd.csk_of_beta(beta))))
+        assert cggd.csk(zc) == pytest.approx(
+            float(cggd.csk_of_beta(beta)), abs=0.05 + 0.02 * abs(float(cggd.csk_of_beta(beta)))
+        )
         zn = cggd.sample(beta, cggd.augmented_covariance(1.0, 0.9), 400_000, rng)
         if beta != 1.0:  # eq 39 needs circularity
             assert abs(cggd.csk(zn) - float(cggd.csk_of_beta(beta))) > 0.1
@@ -104,8 +111,10 @@ def test_novey_ml_recovers_shape_and_covariance(beta):
     assert d1 == pytest.approx((Lp - Lm) / (2 * h), rel=1e-4, abs=1e-3)
     assert d2 == pytest.approx((Lp - 2 * L0 + Lm) / h**2, rel=1e-3)
     # the likelihood of eq 26 is the sum of log_pdf
-    assert L0 - 0.5 * 0.0 == pytest.approx(float(np.sum(cggd.log_pdf(z, fit.beta, fit.C)))
-                                           + 0.5 * z.size * math.log(float(np.linalg.det(fit.C).real)), rel=1e-9)
+    assert L0 - 0.5 * 0.0 == pytest.approx(
+        float(np.sum(cggd.log_pdf(z, fit.beta, fit.C))) + 0.5 * z.size * math.log(float(np.linalg.det(fit.C).real)),
+        rel=1e-9,
+    )
 
 
 def test_bad_parameters_raise():
@@ -130,8 +139,9 @@ def test_simulate_slc_cggd_clutter(tmp_path):
     from sarship.pipeline.simulate import SimConfig, simulate_array, validate
 
     for beta in (0.5, 2.0):
-        arr, _ = simulate_array(SimConfig(kind="slc", shape=(512, 512), ships=0, seed=4, clutter="cggd",
-                                          shape_beta=beta, clutter_mean=3.0))
+        arr, _ = simulate_array(
+            SimConfig(kind="slc", shape=(512, 512), ships=0, seed=4, clutter="cggd", shape_beta=beta, clutter_mean=3.0)
+        )
         z = arr["hh"]
         assert z.dtype == np.complex64 and np.mean(np.abs(z) ** 2) == pytest.approx(3.0, rel=0.03)
         assert cggd.csk(z) == pytest.approx(float(cggd.csk_of_beta(beta)), abs=0.08)
@@ -142,10 +152,43 @@ def test_simulate_slc_cggd_clutter(tmp_path):
     import subprocess
     import sys
 
-    res = subprocess.run([sys.executable, "-m", "sarship", "simulate", str(tmp_path / "s.zarr"), "--kind", "slc",
-                          "--shape", "64x64", "--ships", "0", "--clutter", "cggd", "--shape-beta", "0.7"],
-                         capture_output=True, text=True, timeout=120)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "simulate",
+            str(tmp_path / "s.zarr"),
+            "--kind",
+            "slc",
+            "--shape",
+            "64x64",
+            "--ships",
+            "0",
+            "--clutter",
+            "cggd",
+            "--shape-beta",
+            "0.7",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 0, res.stderr
-    res = subprocess.run([sys.executable, "-m", "sarship", "simulate", str(tmp_path / "t.zarr"), "--shape", "64x64",
-                          "--clutter", "cggd"], capture_output=True, text=True, timeout=120)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "simulate",
+            str(tmp_path / "t.zarr"),
+            "--shape",
+            "64x64",
+            "--clutter",
+            "cggd",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 2 and "cggd" in res.stderr and len(res.stderr.strip().splitlines()) == 1

@@ -90,13 +90,13 @@ def test_small_sample_correction_eq16_removes_the_bias():
     re2 = n / (n - 1) * (r2 - 1 / n)
     a2 = float(circular.bessel_ratio(kappa)) ** 2
     se = re2.std() / math.sqrt(reps)
-    assert abs(re2.mean() - a2) < 4 * se                          # eq 16 unbiased
-    assert r2.mean() - a2 > 20 * se                               # eq 14 biased up by ~ (1 - A^2)/N
+    assert abs(re2.mean() - a2) < 4 * se  # eq 16 unbiased
+    assert r2.mean() - a2 > 20 * se  # eq 14 biased up by ~ (1 - A^2)/N
     assert r2.mean() == pytest.approx(1 / n + (n - 1) / n * a2, abs=4 * r2.std() / math.sqrt(reps))  # eq 15
     k_ml = np.array([circular.fit_von_mises(xi, corrected=False).kappa for xi in x[:3000]])
     k_c = np.array([circular.fit_von_mises(xi, corrected=True).kappa for xi in x[:3000]])
-    assert k_ml.mean() > 1.2 * kappa          # ML over-estimates kappa at N = 10 (measured: 1.30)
-    assert abs(k_c.mean() - kappa) < abs(k_ml.mean() - kappa) / 3   # corrected: 0.99
+    assert k_ml.mean() > 1.2 * kappa  # ML over-estimates kappa at N = 10 (measured: 1.30)
+    assert abs(k_c.mean() - kappa) < abs(k_ml.mean() - kappa) / 3  # corrected: 0.99
     # uniform phases: corrected kappa is 0 about half the time, ML never
     u = rng.uniform(0, 2 * math.pi, (2000, n))
     zeros = np.mean([circular.fit_von_mises(ui).kappa == 0.0 for ui in u])
@@ -105,8 +105,13 @@ def test_small_sample_correction_eq16_removes_the_bias():
 
 def test_von_mises_pdf_eq12():
     for mu, k in [(0.0, 0.0), (1.0, 2.0), (-2.0, 700.0)]:
-        tot, _ = integrate.quad(lambda t: float(circular.von_mises_pdf(t, mu, k)), -math.pi, math.pi,
-                                points=[((mu + math.pi) % (2 * math.pi)) - math.pi], limit=400)
+        tot, _ = integrate.quad(
+            lambda t: float(circular.von_mises_pdf(t, mu, k)),
+            -math.pi,
+            math.pi,
+            points=[((mu + math.pi) % (2 * math.pi)) - math.pi],
+            limit=400,
+        )
         assert tot == pytest.approx(1.0, rel=1e-7)
     t = np.linspace(-3, 3, 13)
     np.testing.assert_allclose(circular.von_mises_pdf(t, 0.5, 3.0), stats.vonmises.pdf(t, 3.0, loc=0.5), rtol=1e-12)

@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from conftest import write_scene
 from scipy import ndimage
 
-from conftest import write_scene
-from sarship.pipeline.land import coastline as co
 from sarship.pipeline.detectors import get as get_detector
+from sarship.pipeline.land import coastline as co
 from sarship.pipeline.simulate import SimConfig, _land_mask, simulate
 from sarship.pipeline.simulate.land import geo_attrs
 from sarship.pipeline.simulate.model import _model
@@ -59,8 +59,9 @@ def land_truth(cfg: SimConfig) -> np.ndarray:
 def geo_coast(tmp_path_factory):
     """A 384 x 384 K-distributed sea (4 looks, 10 m) on the Oslofjord with GSHHG land and 4 ships."""
     d = tmp_path_factory.mktemp("geocoast")
-    cfg = SimConfig(shape=SHAPE, ships=4, seed=3, looks=4.0, clutter="k", land=True, scr_db=22.0,
-                    length_m=(60.0, 150.0), geo=AT)
+    cfg = SimConfig(
+        shape=SHAPE, ships=4, seed=3, looks=4.0, clutter="k", land=True, scr_db=22.0, length_m=(60.0, 150.0), geo=AT
+    )
     simulate(d / "s.zarr", cfg, tile=128)
     return d / "s.zarr", cfg, land_truth(cfg)
 
@@ -69,8 +70,15 @@ def geo_coast(tmp_path_factory):
 # the lattice and the buffer
 
 
-@pytest.mark.parametrize("at,sp,shape", [(AT, 10.0, (256, 256)), ((18.95, 69.65), 20.0, (200, 240)),
-                                         ((4.55, 52.45), 10.0, (256, 256)), ((-70.25, 41.6), 40.0, (160, 160))])
+@pytest.mark.parametrize(
+    "at,sp,shape",
+    [
+        (AT, 10.0, (256, 256)),
+        ((18.95, 69.65), 20.0, (200, 240)),
+        ((4.55, 52.45), 10.0, (256, 256)),
+        ((-70.25, 41.6), 40.0, (160, 160)),
+    ],
+)
 def test_lattice_equals_exact_test_on_every_pixel(at, sp, shape):
     """(C1)-(C3) reproduce the exact GSHHG test on every pixel (Oslofjord islands; Tromso at 69.6 N,
     where the mask cell is 160 m wide; the straight Dutch coast; Nantucket Sound), also in a region
@@ -103,8 +111,14 @@ def test_buffer_is_the_distance_to_land_on_the_pixel_grid():
     a["pixel_spacing_m"] = list(sp)
     # a transform of 8 m rows and 14 m columns to match the spacing
     lat = AT[1]
-    a["transform"] = [AT[0], sp[1] / (co.M_PER_DEG * math.cos(math.radians(lat))), 0.0, lat + 0.006, 0.0,
-                      -sp[0] / co.M_PER_DEG]
+    a["transform"] = [
+        AT[0],
+        sp[1] / (co.M_PER_DEG * math.cos(math.radians(lat))),
+        0.0,
+        lat + 0.006,
+        0.0,
+        -sp[0] / co.M_PER_DEG,
+    ]
     b = 300.0
     cl = co.open_coastline(a, shape, b)
     hr, hc = cl.halo
@@ -119,10 +133,11 @@ def test_buffer_is_the_distance_to_land_on_the_pixel_grid():
         d2 = ((lr[None, :] - r) * sp[0]) ** 2 + ((lc[None, :] - np.arange(shape[1])[:, None]) * sp[1]) ** 2
         want[r] = d2.min(axis=1) <= b * b
     assert np.array_equal(got, want), int((got != want).sum())
-    assert got.sum() > L[hr:hr + shape[0], hc:hc + shape[1]].sum()  # the buffer widened the land
-    assert np.array_equal(co.open_coastline(a, shape, 0.0).read(0, shape[0], 0, shape[1]),
-                          L[hr:hr + shape[0], hc:hc + shape[1]])
-    edt = ndimage.distance_transform_edt(~L, sampling=sp)[hr:hr + shape[0], hc:hc + shape[1]] <= b
+    assert got.sum() > L[hr : hr + shape[0], hc : hc + shape[1]].sum()  # the buffer widened the land
+    assert np.array_equal(
+        co.open_coastline(a, shape, 0.0).read(0, shape[0], 0, shape[1]), L[hr : hr + shape[0], hc : hc + shape[1]]
+    )
+    edt = ndimage.distance_transform_edt(~L, sampling=sp)[hr : hr + shape[0], hc : hc + shape[1]] <= b
     assert np.array_equal(got, edt)  # scipy's exact EDT agrees
 
 
@@ -184,13 +199,32 @@ def test_simulated_land_is_the_shoreline(geo_coast):
 
 def test_simulate_cli_geo(tmp_path):
     out = tmp_path / "g.zarr"
-    r = subprocess.run([sys.executable, "-m", "sarship.cli", "simulate", str(out), "--shape", "64x64", "--ships", "0",
-                        "--geo", "10.6,59.8", "--geo-gcps"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship.cli",
+            "simulate",
+            str(out),
+            "--shape",
+            "64x64",
+            "--ships",
+            "0",
+            "--geo",
+            "10.6,59.8",
+            "--geo-gcps",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     a = dict(zarr.open_group(str(out), mode="r").attrs)
     assert a["crs"] == "EPSG:4326" and len(a["gcps"]) == 36 and a["simulation"]["geo"] == [10.6, 59.8]
-    bad = subprocess.run([sys.executable, "-m", "sarship.cli", "simulate", str(tmp_path / "b.zarr"), "--geo", "10.6"],
-                         capture_output=True, text=True)
+    bad = subprocess.run(
+        [sys.executable, "-m", "sarship.cli", "simulate", str(tmp_path / "b.zarr"), "--geo", "10.6"],
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode == 2 and "LON,LAT" in bad.stderr and not (tmp_path / "b.zarr").exists()
 
 
@@ -205,8 +239,11 @@ def test_land_mask_parameter_parsing():
     assert P(land_mask="none").land_mask is None
     assert P(land_mask="/data/a+b.geojson").land_mask == "/data/a+b.geojson"  # a FILE
     assert P().land_buffer_m == co.DEFAULT_BUFFER_M
-    for bad, name in (({"land_mask": "texture+texture"}, "land_mask"), ({"land_buffer_m": -1}, "land_buffer_m"),
-                      ({"land_buffer_m": 6000}, "land_buffer_m")):
+    for bad, name in (
+        ({"land_mask": "texture+texture"}, "land_mask"),
+        ({"land_buffer_m": -1}, "land_buffer_m"),
+        ({"land_buffer_m": 6000}, "land_buffer_m"),
+    ):
         with pytest.raises(ValueError, match=name):
             P(**bad)
     with pytest.raises(ValueError, match="land_mask"):
@@ -223,8 +260,10 @@ def _cli_detect(args: list[str], block_package: bool = False) -> subprocess.Comp
 def test_without_the_extra_one_line_and_nothing_written(geo_coast, tmp_path):
     scene, _, _ = geo_coast
     out = tmp_path / "o"
-    r = _cli_detect(["detect", str(scene), "--detector", "ca_cfar", "--set", "land_mask=coastline", "--out", str(out)],
-                    block_package=True)
+    r = _cli_detect(
+        ["detect", str(scene), "--detector", "ca_cfar", "--set", "land_mask=coastline", "--out", str(out)],
+        block_package=True,
+    )
     assert r.returncode == 2, r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "pip install 'sarship[coastline]'" in lines[0], r.stderr
@@ -234,8 +273,9 @@ def test_without_the_extra_one_line_and_nothing_written(geo_coast, tmp_path):
 def test_non_georeferenced_scene_one_line_and_nothing_written(tmp_path):
     scene = write_scene(tmp_path / "plain.zarr", {"intensity": np.ones((64, 64), np.float32)}, tile=64)
     out = tmp_path / "o"
-    r = _cli_detect(["detect", str(scene), "--detector", "ca_cfar", "--set", "land_mask=coastline+texture",
-                     "--out", str(out)])
+    r = _cli_detect(
+        ["detect", str(scene), "--detector", "ca_cfar", "--set", "land_mask=coastline+texture", "--out", str(out)]
+    )
     assert r.returncode == 2, r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "georeferenced" in lines[0], r.stderr
@@ -268,8 +308,9 @@ def test_no_detection_on_land_ships_at_sea_found(geo_coast, client, tmp_path, de
     fc = json.loads((tmp_path / "c" / "detections.geojson").read_text())
     assert _found(fc, boxes) == len(boxes) == 4
     assert all(f["geometry"] is not None for f in fc["features"])  # georeferenced detections
-    run_detection(scene, detector, {"land_mask": "none"}, out_dir=tmp_path / "n", client=client, tile=128,
-                  progress=False)
+    run_detection(
+        scene, detector, {"land_mask": "none"}, out_dir=tmp_path / "n", client=client, tile=128, progress=False
+    )
     assert (mask(tmp_path / "n") & truth).sum() > 50
 
 
@@ -291,19 +332,26 @@ def test_buffer_masks_a_ship_within_it_and_keeps_one_beyond(client, tmp_path):
         rr, cc = np.nonzero(ok)
         assert rr.size, name
         r, c = int(rr[rr.size // 2]), int(cc[rr.size // 2])
-        I[r - 1:r + 2, c - 1:c + 2] = 300.0
+        I[r - 1 : r + 2, c - 1 : c + 2] = 300.0
         targets[name] = (r, c)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": I}, tile=128, looks=4.0, **attrs)
     st = {"guard": 11, "background": 21, "min_area_px": 1}
     runs = {}
     for b in (300.0, 0.0):
         out = tmp_path / f"b{int(b)}"
-        runs[b] = run_detection(scene, "ca_cfar", {**st, "land_mask": "coastline", "land_buffer_m": b}, out_dir=out,
-                                client=client, tile=128, progress=False)
+        runs[b] = run_detection(
+            scene,
+            "ca_cfar",
+            {**st, "land_mask": "coastline", "land_buffer_m": b},
+            out_dir=out,
+            client=client,
+            tile=128,
+            progress=False,
+        )
         runs[b] = (mask(out), land(out))
     M, L = runs[300.0]
     r, c = targets["near"]
-    assert L[r, c] and not M[r - 1:r + 2, c - 1:c + 2].any()
+    assert L[r, c] and not M[r - 1 : r + 2, c - 1 : c + 2].any()
     for name in ("mid", "far"):
         r, c = targets[name]
         assert not L[r, c] and M[r, c], name
@@ -324,8 +372,9 @@ def test_union_with_texture_and_tiled_equals_whole(geo_coast, client, tmp_path):
     for lm_ in ("coastline", "texture", "coastline+texture"):
         for tile in (384, 64):
             d = tmp_path / f"{lm_}-{tile}"
-            run = run_detection(scene, "ca_cfar", {**st, "land_mask": lm_}, out_dir=d, client=client, tile=tile,
-                                progress=False)
+            run = run_detection(
+                scene, "ca_cfar", {**st, "land_mask": lm_}, out_dir=d, client=client, tile=tile, progress=False
+            )
             out[lm_, tile] = (land(d), mask(d), run, d)
     for lm_ in ("coastline", "texture", "coastline+texture"):
         assert np.array_equal(out[lm_, 64][0], out[lm_, 384][0]), lm_
@@ -352,17 +401,27 @@ def test_scene_pass_with_no_data_and_coastline(geo_coast, client, tmp_path):
     I[20:60, 20:60] = np.nan
     attrs = {k: v for k, v in dict(g.attrs).items() if k in ("crs", "transform", "pixel_spacing_m", "looks")}
     s2 = write_scene(tmp_path / "nan.zarr", {"intensity": I}, tile=128, **attrs)
-    run = run_detection(s2, "gamma_mrf", {"land_mask": "coastline+texture"}, out_dir=tmp_path / "r", client=client,
-                        tile=128, progress=False)
+    run = run_detection(
+        s2,
+        "gamma_mrf",
+        {"land_mask": "coastline+texture"},
+        out_dir=tmp_path / "r",
+        client=client,
+        tile=128,
+        progress=False,
+    )
     M, L = mask(tmp_path / "r"), land(tmp_path / "r")
     assert not M[~np.isfinite(I)].any() and not (M & L).any() and not (M & truth).any()
     sp_ = run["scene_pass"]
-    assert sp_ is not None and all(np.isfinite(v).all() for v in sp_["values"].values()
-                                   if isinstance(v, (int, float, list)) and not isinstance(v, bool)), sp_
+    assert sp_ is not None and all(
+        np.isfinite(v).all()
+        for v in sp_["values"].values()
+        if isinstance(v, (int, float, list)) and not isinstance(v, bool)
+    ), sp_
     # the texture sample (stride 1 here) holds only windows at least half present: none in the NaN band
     assert run["land"]["coastline"]["land"] and run["land"]["texture_land"]
     assert run["land"]["sample"] <= int(np.isfinite(I).sum()) + 2 * 7 * (SHAPE[1] + 80)
     boxes = [[s.r0, s.c0, s.r0 + s.mask.shape[0], s.c0 + s.mask.shape[1]] for s in _model(cfg).ships]
-    present = [b for b in boxes if np.isfinite(I[b[0]:b[2], b[1]:b[3]]).all()]
+    present = [b for b in boxes if np.isfinite(I[b[0] : b[2], b[1] : b[3]]).all()]
     fc = json.loads((tmp_path / "r" / "detections.geojson").read_text())
     assert _found(fc, present) == len(present) >= 2

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from sarship.pipeline.tiling import boxsum
-from sarship.pipeline.stats import cggd, csk_null
 from sarship.pipeline import detectors
 from sarship.pipeline.detectors import csk
 from sarship.pipeline.errors import InputError
+from sarship.pipeline.stats import cggd, csk_null
+from sarship.pipeline.tiling import boxsum
 from sarship.pipeline.tiling.windows import mirror_pad
 from sarship.workers.jobs import run_detection
 from tests.conftest import write_scene
@@ -59,8 +59,8 @@ def test_importance_sampled_tail_against_plain_monte_carlo():
         z = rng.standard_normal((50_000, n)) + 1j * rng.standard_normal((50_000, n))
         p = np.abs(z) ** 2
         s1 = p.sum(1)
-        k[a:a + 50_000] = n * (p * p).sum(1) / s1**2 - 2 - np.abs((z * z).sum(1)) ** 2 / s1**2
-        bright[a:a + 50_000] = p[:, 0] * n > s1
+        k[a : a + 50_000] = n * (p * p).sum(1) / s1**2 - 2 - np.abs((z * z).sum(1)) ** 2 / s1**2
+        bright[a : a + 50_000] = p[:, 0] * n > s1
     for pfa in (1e-2, 1e-3):
         for event, hit in (("window", k > 0), ("bright", bright)):
             t, rse = csk_null.threshold(n, pfa, event)
@@ -72,13 +72,14 @@ def test_importance_sampled_tail_against_plain_monte_carlo():
             assert np.mean((k > t15) & hit) > pfa + 4 * sd
     # the asymptotic normal law N(-4/(n+1), 4/n) is much too light in the tail (why it is not used)
     from scipy import stats
+
     t_norm = stats.norm.isf(1e-3, -4 / (n + 1), 2 / math.sqrt(n))
     assert np.mean(k > t_norm) > 3e-3
 
 
 def test_thresholds_monotone_finite_to_the_pfa_floor():
     ts = [csk_null.threshold(49, p, "bright")[0] for p in (1e-2, 1e-4, 1e-6, 1e-9, 1e-12, 1e-15)]
-    assert all(a < b for a, b in zip(ts, ts[1:])) and ts[-1] < 49 - 3   # below the supremum n - 3
+    assert all(a < b for a, b in zip(ts, ts[1:])) and ts[-1] < 49 - 3  # below the supremum n - 3
     assert csk_null.threshold(49, 1e-6, "window")[0] > csk_null.threshold(49, 1e-6, "bright")[0]
     with pytest.raises(ValueError, match="event"):
         csk_null.threshold(49, 1e-3, "pixel")
@@ -100,11 +101,13 @@ def test_false_alarm_rate_on_circular_gaussian_slc_within_binomial_bound():
     assert tested.all()
     v = {("bright", 1e-3): 7.0, ("window", 1e-3): 12.5, ("bright", 1e-2): 15.0, ("window", 1e-2): 42.0}
     for (cells, pfa), vi in v.items():
+
         def count(q):
             t, rse = csk_null.threshold(49, q, cells)
             mask, stat = csk.decide(k, tested, pw, s11, 49, t, cells, np)
             assert np.all(stat[mask] > t)
             return int(mask.sum()), rse
+
         K, rse = count(pfa)
         bound = 5 * math.sqrt(vi * M * pfa) + 4 * rse * M * pfa
         assert abs(K - M * pfa) <= bound, (cells, pfa, K, M * pfa, bound)
@@ -141,8 +144,8 @@ def test_statistic_and_mask_against_brute_force():
     rng = np.random.default_rng(5)
     z = _cn(rng, (37, 41))
     z[10, 12] = 12.0 * np.exp(0.4j)  # a bright point (power 144)
-    z[20:23, 30:33] *= 6.0      # a small bright patch
-    z[3, 35] = np.nan           # absent pixels: windows holding them are not tested
+    z[20:23, 30:33] *= 6.0  # a small bright patch
+    z[3, 35] = np.nan  # absent pixels: windows holding them are not tested
     z[30, 5] = complex(np.nan, 0.0)
     h = 2
     P = mirror_pad(z, h)
@@ -150,7 +153,7 @@ def test_statistic_and_mask_against_brute_force():
     bright = np.zeros(z.shape, bool)
     for i in range(z.shape[0]):
         for j in range(z.shape[1]):
-            win = P[i:i + 5, j:j + 5].astype(np.complex128)
+            win = P[i : i + 5, j : j + 5].astype(np.complex128)
             if np.isfinite(win).all():
                 ref[i, j] = cggd.csk(win)
                 bright[i, j] = abs(complex(z[i, j])) ** 2 * 25 > float(np.sum(np.abs(win) ** 2))
@@ -180,11 +183,11 @@ def test_absent_pixels_change_only_the_windows_that_hold_them():
     m1, s1 = csk.detect(mirror_pad(zn, 3), 3, (-3, -3), p, prep)
     near = np.zeros(z.shape, bool)
     near[17:28, 87:103] = True
-    near[97:104, 7:14] = True       # the zero (data, not absent) changes its windows
+    near[97:104, 7:14] = True  # the zero (data, not absent) changes its windows
     assert not m1[20:25, 90:100].any() and not np.isnan(s1).any()
     np.testing.assert_array_equal(m1[~near], m0[~near])
     np.testing.assert_array_equal(s1[~near], s0[~near])
-    assert (s1[17:28, 87:103] == 0).sum() >= 5 * 10 + 6 * 16    # every window touching the hole
+    assert (s1[17:28, 87:103] == 0).sum() >= 5 * 10 + 6 * 16  # every window touching the hole
     # nodata=0 makes the zero pixel absent too
     p0 = csk.CSKParams(window=7, pfa=1e-3, nodata=0.0)
     m2, s2 = csk.detect(mirror_pad(zn, 3), 3, (-3, -3), p0, csk.prepare(p0))
@@ -196,7 +199,7 @@ def _slc_blobs(shape=(301, 257), seed=1, n=14, amp=12.0):
     z = _cn(rng, shape)
     for _ in range(n):
         r, c = int(rng.integers(0, shape[0] - 6)), int(rng.integers(0, shape[1] - 8))
-        z[r:r + 3, c:c + 5] *= np.float32(amp) * np.exp(1j * rng.uniform(0, 6.28, (3, 5))).astype(np.complex64)
+        z[r : r + 3, c : c + 5] *= np.float32(amp) * np.exp(1j * rng.uniform(0, 6.28, (3, 5))).astype(np.complex64)
         z[r + 1, c + 2] *= 3.0
     return z
 
@@ -212,11 +215,14 @@ def test_tiled_equals_whole(tmp_path, client):
     # 29: small tiles not dividing the 301 x 257 scene, each wider than the 3-px halo (as 13 px
     # would be, at 460 tiles instead of 99); 64: the store's chunks
     for tile in (4096, 29, 64):
-        run = run_detection(scene, "csk", settings, out_dir=tmp_path / f"t{tile}", tile=tile, client=client,
-                            progress=False)
+        run = run_detection(
+            scene, "csk", settings, out_dir=tmp_path / f"t{tile}", tile=tile, client=client, progress=False
+        )
         import zarr
 
-        mask = np.asarray(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "detected"), mode="r")[:]).astype(bool)
+        mask = np.asarray(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "detected"), mode="r")[:]).astype(
+            bool
+        )
         np.testing.assert_array_equal(mask, ref_mask)
         feats = json.loads((tmp_path / f"t{tile}" / "detections.geojson").read_text())["features"]
         out[tile] = [f["properties"] for f in feats]
@@ -244,8 +250,14 @@ def test_simulated_ships_found(tmp_path, client):
 
 
 def test_parameters_validated_with_their_names():
-    for bad, name in (({"window": 8}, "window"), ({"window": 1}, "window"), ({"window": 17}, "window"),
-                      ({"cells": "all"}, "cells"), ({"pfa": 0.7}, "pfa"), ({"land_mask": "texture"}, "land_mask")):
+    for bad, name in (
+        ({"window": 8}, "window"),
+        ({"window": 1}, "window"),
+        ({"window": 17}, "window"),
+        ({"cells": "all"}, "cells"),
+        ({"pfa": 0.7}, "pfa"),
+        ({"land_mask": "texture"}, "land_mask"),
+    ):
         with pytest.raises(ValidationError, match=name):
             csk.CSKParams(**bad)
     p = csk.CSKParams(window="9", cells="window")
@@ -263,8 +275,12 @@ def test_amplitude_input_refused(tmp_path, client):
     both = write_scene(tmp_path / "both.zarr", {"intensity": x, "vv": x.astype(np.complex64)}, tile=64)
     with pytest.raises(InputError, match="'intensity' is not complex"):
         run_detection(both, "csk", {"channel": "intensity"}, out_dir=tmp_path / "o2", client=client, progress=False)
-    res = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "csk",
-                          "--out", str(tmp_path / "o3")], capture_output=True, text=True, timeout=120)
+    res = subprocess.run(
+        [sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "csk", "--out", str(tmp_path / "o3")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 2 and "complex" in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
     assert not (tmp_path / "o3").exists()
 
@@ -282,15 +298,16 @@ def test_rfi_flag_separates_simulated_rfi_from_ships():
 
     right, total, rfi_right, rfi_total = 0, 0, 0, 0
     for seed in (1, 2, 3, 4):
-        arr, t = simulate_array(SimConfig(kind="slc", shape=(1024, 1024), ships=12, seed=seed,
-                                          clutter="rayleigh", scr_db=15.0, rfi=True))
+        arr, t = simulate_array(
+            SimConfig(kind="slc", shape=(1024, 1024), ships=12, seed=seed, clutter="rayleigh", scr_db=15.0, rfi=True)
+        )
         z = arr["hh"]
         assert t["rfi"]
         for b in t["rfi"]:
             (r0, r1), (c0, c1) = b["rows"], b["cols"]
-            assert csk.complex_stats(z[r0:r1, c0:c1])[0] < 0.0     # sub-Gaussian interference (with its sea)
+            assert csk.complex_stats(z[r0:r1, c0:c1])[0] < 0.0  # sub-Gaussian interference (with its sea)
             for c in range(c0, c1 - 32, 32):
-                v = z[r0:r1, c:c + 32]
+                v = z[r0:r1, c : c + 32]
                 ok = csk.rfi_flag(v.size, *csk.complex_stats(v))
                 rfi_right += ok
                 rfi_total += 1
@@ -305,14 +322,15 @@ def test_rfi_flag_separates_simulated_rfi_from_ships():
     # circular Gaussian speckle is neither: not sub-Gaussian often enough to be called RFI
     rng = np.random.default_rng(0)
     flags = [csk.rfi_flag(96, *csk.complex_stats(_cn(rng, (3, 32)))) for _ in range(400)]
-    assert 0.3 < np.mean(flags) < 0.7      # CSK <= 0 about half the time: the CSK sign carries the rule
+    assert 0.3 < np.mean(flags) < 0.7  # CSK <= 0 about half the time: the CSK sign carries the rule
 
 
 def test_detections_carry_complex_properties(tmp_path, client):
     z = _slc_blobs(seed=3)
     scene = write_scene(tmp_path / "s.zarr", {"hh": z}, tile=128, kind="slc", looks=1.0)
-    run_detection(scene, "csk", {"pfa": "1e-4", "min_area_px": "1"}, out_dir=tmp_path / "o", client=client,
-                  progress=False)
+    run_detection(
+        scene, "csk", {"pfa": "1e-4", "min_area_px": "1"}, out_dir=tmp_path / "o", client=client, progress=False
+    )
     feats = json.loads((tmp_path / "o" / "detections.geojson").read_text())["features"]
     assert len(feats) >= 8
     import zarr
@@ -324,18 +342,18 @@ def test_detections_carry_complex_properties(tmp_path, client):
         assert {"csk", "noncircularity", "npdd_variance", "npdd_rbar", "rfi"} <= set(p)
         assert isinstance(p["rfi"], bool) and 0.0 <= p["noncircularity"] <= 1.0
         r0, c0, r1, c1 = p["bbox_px"]
-        k, nc = csk.complex_stats(z[r0:r1, c0:c1][mask[r0:r1, c0:c1]])   # the mask pixels of its box
+        k, nc = csk.complex_stats(z[r0:r1, c0:c1][mask[r0:r1, c0:c1]])  # the mask pixels of its box
         same += p["csk"] == pytest.approx(k, abs=1e-5) and p["noncircularity"] == pytest.approx(nc, abs=1e-5)
         n = int(mask[r0:r1, c0:c1].sum())
         assert p["rfi"] == csk.rfi_flag(n, p["csk"], p["noncircularity"]) or n != p["area_px"]
-    assert same >= 0.8 * len(feats)     # (a box may also hold another detection's pixels)
+    assert same >= 0.8 * len(feats)  # (a box may also hold another detection's pixels)
 
 
 def test_service_refuses_amplitude_scene_with_400(tmp_path):
     """The job API validates a csk job's scene at submission: an amplitude-only scene or a real
     ``channel`` is a 400 problem naming the missing phase, an SLC scene passes."""
-    from sarship.service.job_inputs import validate_inputs
     from sarship.service.common import Problem
+    from sarship.service.job_inputs import validate_inputs
     from sarship.service.settings import Settings
 
     scenes = tmp_path / "data" / "scenes"

@@ -16,8 +16,7 @@ from sarship.pipeline import detectors
 from sarship.pipeline.gpu import available
 from sarship.pipeline.tiling.windows import mirror_pad
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 
 def _slc(n, seed):
@@ -25,8 +24,8 @@ def _slc(n, seed):
     z = ((rng.standard_normal((n, n)) + 1j * rng.standard_normal((n, n))) / np.sqrt(2)).astype(np.complex64)
     for _ in range(max(4, n // 40)):
         i, j = rng.integers(8, n - 12, 2)
-        z[i: i + 3, j: j + 5] *= 20.0
-    z[: n // 7, : n // 5] = np.nan    # no-data corner
+        z[i : i + 3, j : j + 5] *= 20.0
+    z[: n // 7, : n // 5] = np.nan  # no-data corner
     z[n // 2, n // 3] = 0.0
     return z
 

@@ -16,8 +16,8 @@ import sys
 import numpy as np
 import pytest
 
-from sarship.pipeline.image import destripe as D
 from sarship.pipeline.errors import InputError
+from sarship.pipeline.image import destripe as D
 from sarship.pipeline.simulate import SimConfig, simulate, simulate_array
 from sarship.pipeline.simulate.artefacts import _stripes_gain
 from sarship.pipeline.simulate.land import _land_mask, _land_model
@@ -31,11 +31,11 @@ def _otsu_brute(v: np.ndarray, bins: int = 256) -> float:
     centres = 0.5 * (edges[:-1] + edges[1:])
     best, arg = -1.0, None
     for k in range(bins - 1):
-        w0, w1 = hist[:k + 1].sum(), hist[k + 1:].sum()
+        w0, w1 = hist[: k + 1].sum(), hist[k + 1 :].sum()
         if w0 == 0 or w1 == 0:
             continue
-        m0 = (hist[:k + 1] * centres[:k + 1]).sum() / w0
-        m1 = (hist[k + 1:] * centres[k + 1:]).sum() / w1
+        m0 = (hist[: k + 1] * centres[: k + 1]).sum() / w0
+        m1 = (hist[k + 1 :] * centres[k + 1 :]).sum() / w1
         sb = w0 * w1 * (m0 - m1) ** 2
         if sb > best:
             best, arg = sb, edges[k + 1]
@@ -63,10 +63,10 @@ def test_hough_finds_planted_lines_and_not_noise():
     rng = np.random.default_rng(2)
     G, K = 8, 200
     b = rng.random((G, K)) < 0.03
-    b[:, 57] = True                                   # a vertical line (constant bin)
+    b[:, 57] = True  # a vertical line (constant bin)
     g = np.arange(G)
     k_slant = np.rint(120 + g * math.tan(math.radians(15))).astype(int)
-    b[g, k_slant] = True                              # a slanted one (drifting bin)
+    b[g, k_slant] = True  # a slanted one (drifting bin)
     lines = D.hough_lines(b, theta_max_deg=20, min_votes=7)
     found = {(round(ln["rho"]), round(ln["theta_deg"])) for ln in lines}
     assert (57, 0) in found
@@ -84,12 +84,12 @@ def test_hough_finds_planted_lines_and_not_noise():
 
 
 def _scene(seed: int, land: bool, stripes: bool, shape=(2048, 1024)):
-    cfg = SimConfig(shape=shape, ships=8, seed=seed, clutter="k", looks=1, land=land, sidelobes=True,
-                    stripes=stripes)
+    cfg = SimConfig(shape=shape, ships=8, seed=seed, clutter="k", looks=1, land=land, sidelobes=True, stripes=stripes)
     return cfg, simulate_array(cfg)[0]["intensity"]
 
 
-def _destripe(I, p=D.DestripeParams()):
+def _destripe(I, p=None):
+    p = D.DestripeParams() if p is None else p
     est = D.estimate(*D.assemble([D.segment_sums(I, 0, 0, p)], I.shape, p), p)
     return est, D.apply_gain(I, est.profile, p)
 
@@ -144,10 +144,10 @@ def test_periodic_stripes_along_range_fft_along_azimuth():
     p = D.DestripeParams(stripes_along="range")
     est, out = _destripe(J, p)
     stop = set(np.flatnonzero(est.stop))
-    assert {16, 44} <= stop and len(stop) < 20              # 1024/64 and 1024/23 = 44.5
+    assert {16, 44} <= stop and len(stop) < 20  # 1024/64 and 1024/23 = 44.5
     before = D.stripe_to_background_db(J, "range", reference=I)
     after = D.stripe_to_background_db(out, "range", reference=I)
-    assert before > 6.0 and after < 1.0      # measured 6.97 -> 0.2 dB
+    assert before > 6.0 and after < 1.0  # measured 6.97 -> 0.2 dB
     # along azimuth (the wrong axis) finds nothing to stop
     est_wrong, _ = _destripe(J)
     assert not est_wrong.stop.any()
@@ -156,8 +156,8 @@ def test_periodic_stripes_along_range_fft_along_azimuth():
 def test_scene_pass_exact_for_any_tiling_and_filter_bit_identical():
     cfg, I = _scene(1, True, True, shape=(700, 530))
     I = I.copy()
-    I[:40, :] = np.nan            # absent border
-    I[300:310, 100:200] = 0.0     # declared-zero block
+    I[:40, :] = np.nan  # absent border
+    I[300:310, 100:200] = 0.0  # declared-zero block
     p = D.DestripeParams(segment=32)
     whole = D.assemble([D.segment_sums(I, 0, 0, p)], I.shape, p)
     est = D.estimate(*whole, p)
@@ -165,9 +165,9 @@ def test_scene_pass_exact_for_any_tiling_and_filter_bit_identical():
         parts, outs = [], np.empty_like(I)
         for r0 in range(0, I.shape[0], tile):
             for c0 in range(0, I.shape[1], tile):
-                blk = I[r0:r0 + tile, c0:c0 + tile]
+                blk = I[r0 : r0 + tile, c0 : c0 + tile]
                 parts.append(D.segment_sums(blk, r0, c0, p))
-                outs[r0:r0 + tile, c0:c0 + tile] = D.apply_gain(blk, est.profile[c0:c0 + blk.shape[1]], p)
+                outs[r0 : r0 + tile, c0 : c0 + tile] = D.apply_gain(blk, est.profile[c0 : c0 + blk.shape[1]], p)
         tiled = D.assemble(parts, I.shape, p)
         assert np.array_equal(tiled[0], whole[0]) and np.array_equal(tiled[1], whole[1])
         assert np.array_equal(outs, D.apply_gain(I, est.profile, p), equal_nan=True)
@@ -184,17 +184,31 @@ def test_gain_on_complex_and_stacked_channels():
     out = D.apply_gain(z, s, p)
     assert out.dtype == np.complex64
     np.testing.assert_allclose(np.abs(out) ** 2, np.abs(z) ** 2 * np.exp(-s)[None, :], rtol=1e-5)
-    cov = D.apply_gain(z, s, p, complex_amplitude=False)   # covariance elements: powers
+    cov = D.apply_gain(z, s, p, complex_amplitude=False)  # covariance elements: powers
     np.testing.assert_allclose(cov, z * np.exp(-s)[None, :], rtol=1e-6)
     st = np.stack([z, 2 * z], axis=2)
     np.testing.assert_allclose(D.apply_gain(st, s, p)[..., 1], 2 * out, rtol=1e-6)
     np.testing.assert_allclose(D.log_power(st), np.log(5 * np.abs(z) ** 2), rtol=1e-5)
 
 
-@pytest.mark.parametrize("field, value", [
-    ("stripes_along", "diagonal"), ("segment", 1), ("segment", 2.5), ("groups", 0), ("z_min", 0.5),
-    ("z_min", float("nan")), ("min_votes", 0.0), ("min_votes", 1.5), ("theta_max_deg", 80.0),
-    ("notch_halfwidth", -1), ("k_min", 0), ("bright_db", 0.0), ("segment", True)])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("stripes_along", "diagonal"),
+        ("segment", 1),
+        ("segment", 2.5),
+        ("groups", 0),
+        ("z_min", 0.5),
+        ("z_min", float("nan")),
+        ("min_votes", 0.0),
+        ("min_votes", 1.5),
+        ("theta_max_deg", 80.0),
+        ("notch_halfwidth", -1),
+        ("k_min", 0),
+        ("bright_db", 0.0),
+        ("segment", True),
+    ],
+)
 def test_parameters_validated(field, value):
     with pytest.raises(InputError, match=field):
         D.DestripeParams(**{field: value})
@@ -224,8 +238,9 @@ def test_enhance_on_the_cluster_matches_the_whole_scene(tmp_path, client):
 
 
 def _cli(*args, timeout=180):
-    return subprocess.run([sys.executable, "-m", "sarship", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "sarship", *map(str, args)], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_enhance_cli_end_to_end(tmp_path, client, capsys):
@@ -250,13 +265,28 @@ def test_enhance_cli_end_to_end(tmp_path, client, capsys):
     assert (tmp_path / "o.zarr" / "zarr.json").read_bytes() == before
     # the same program in this process (faster): --overwrite replaces it
     capsys.readouterr()
-    assert main(["enhance", str(scene), "--out", str(tmp_path / "o.zarr"), "--destripe", "--overwrite",
-                 "--scheduler", sched]) == 0
+    assert (
+        main(
+            [
+                "enhance",
+                str(scene),
+                "--out",
+                str(tmp_path / "o.zarr"),
+                "--destripe",
+                "--overwrite",
+                "--scheduler",
+                sched,
+            ]
+        )
+        == 0
+    )
     assert np.array_equal(np.asarray(zarr.open_array(str(tmp_path / "o.zarr" / "hh"), mode="r")[:]), b)
     # never inside the input, never without --destripe, a missing scene: exit 2, one line each
-    for args, word in (([str(scene), "--out", str(scene / "x.zarr"), "--destripe", "--overwrite"], "input"),
-                       ([str(scene), "--out", str(tmp_path / "p.zarr")], "--destripe"),
-                       ([str(tmp_path / "missing.zarr"), "--out", str(tmp_path / "q.zarr"), "--destripe"], "missing")):
+    for args, word in (
+        ([str(scene), "--out", str(scene / "x.zarr"), "--destripe", "--overwrite"], "input"),
+        ([str(scene), "--out", str(tmp_path / "p.zarr")], "--destripe"),
+        ([str(tmp_path / "missing.zarr"), "--out", str(tmp_path / "q.zarr"), "--destripe"], "missing"),
+    ):
         capsys.readouterr()
         assert main(["enhance", *args, "--scheduler", sched]) == 2
         err = capsys.readouterr().err

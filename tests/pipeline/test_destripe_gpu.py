@@ -9,17 +9,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sarship.pipeline.image import destripe as D
 from sarship.pipeline.gpu import available
+from sarship.pipeline.image import destripe as D
 from sarship.pipeline.simulate import SimConfig, simulate_array
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 
 @pytest.fixture(scope="module")
 def scene():
-    I = simulate_array(SimConfig(shape=(1024, 768), ships=5, seed=1, clutter="k", stripes=True, land=True))[0]["intensity"]
+    I = simulate_array(SimConfig(shape=(1024, 768), ships=5, seed=1, clutter="k", stripes=True, land=True))[0][
+        "intensity"
+    ]
     I = I.copy()
     I[:20] = np.nan
     return I
@@ -52,5 +53,6 @@ def test_gain_on_device_equal_cpu(scene):
     assert isinstance(got, cp.ndarray) and got.dtype == want.dtype
     np.testing.assert_allclose(got.get(), want, rtol=2e-7, equal_nan=True)
     z = (scene * np.exp(1j * 0.3)).astype(np.complex64)
-    np.testing.assert_allclose(D.apply_gain(cp.asarray(z), est.profile, p).get(), D.apply_gain(z, est.profile, p),
-                               rtol=2e-7, equal_nan=True)
+    np.testing.assert_allclose(
+        D.apply_gain(cp.asarray(z), est.profile, p).get(), D.apply_gain(z, est.profile, p), rtol=2e-7, equal_nan=True
+    )

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from sarship.pipeline.products.scoring import evaluate, match
-from sarship.pipeline.simulate import SimConfig, simulate
 from sarship.pipeline.products.truth import load_detections, load_ships
-from tests.conftest import write_scene
+from sarship.pipeline.simulate import SimConfig, simulate
 from sarship.workers.jobs import run_detection
+from tests.conftest import write_scene
 
 SENSIBLE = {
     "ca_cfar": {"pfa": "1e-6", "min_area_px": "2", "merge_px": "5"},
@@ -25,18 +25,25 @@ def ship_scenes(tmp_path_factory):
     root = tmp_path_factory.mktemp("ships")
     out = {}
     for clutter, looks in (("rayleigh", 1.0), ("gamma", 4.0)):
-        cfg = SimConfig(kind="intensity", shape=(2048, 2048), ships=25, seed=3, looks=looks, clutter=clutter,
-                        scr_db=12.0)
+        cfg = SimConfig(
+            kind="intensity", shape=(2048, 2048), ships=25, seed=3, looks=looks, clutter=clutter, scr_db=12.0
+        )
         scene = root / f"{clutter}.zarr"
         simulate(scene, cfg, tile=1024, truth_path=root / f"{clutter}.truth.geojson")
         out[clutter] = (scene, root / f"{clutter}.truth.geojson")
     return out
 
 
-@pytest.mark.parametrize("clutter,det", [
-    ("gamma", "ca_cfar"), ("gamma", "os_cfar"), ("gamma", "two_parameter"),
-    ("rayleigh", "ca_cfar"), ("rayleigh", "os_cfar"),
-])
+@pytest.mark.parametrize(
+    "clutter,det",
+    [
+        ("gamma", "ca_cfar"),
+        ("gamma", "os_cfar"),
+        ("gamma", "two_parameter"),
+        ("rayleigh", "ca_cfar"),
+        ("rayleigh", "os_cfar"),
+    ],
+)
 def test_fom_on_simulated_ships(ship_scenes, client, tmp_path, clutter, det):
     scene, truth = ship_scenes[clutter]
     run_detection(scene, det, SENSIBLE[det], out_dir=tmp_path / "o", client=client, progress=False)
@@ -69,10 +76,22 @@ def test_georeferenced_geometry_and_looks_estimated(client, tmp_path):
     x = rng.gamma(3.0, 1 / 3.0, (300, 300)).astype(np.float32)
     x[100:104, 150:170] += 80.0  # a ship 20 px long along columns: heading 90
     # no 'looks' attribute: the run estimates it from the data
-    scene = write_scene(tmp_path / "g.zarr", {"intensity": x}, tile=128, crs="EPSG:4326",
-                        transform=[10.0, 1e-4, 0.0, 50.0, 0.0, -1e-4], pixel_spacing_m=[11.1, 7.1])
-    run = run_detection(scene, "ca_cfar", {"pfa": "1e-6", "guard": "31", "background": "51"},
-                        out_dir=tmp_path / "o", client=client, progress=False)
+    scene = write_scene(
+        tmp_path / "g.zarr",
+        {"intensity": x},
+        tile=128,
+        crs="EPSG:4326",
+        transform=[10.0, 1e-4, 0.0, 50.0, 0.0, -1e-4],
+        pixel_spacing_m=[11.1, 7.1],
+    )
+    run = run_detection(
+        scene,
+        "ca_cfar",
+        {"pfa": "1e-6", "guard": "31", "background": "51"},
+        out_dir=tmp_path / "o",
+        client=client,
+        progress=False,
+    )
     assert run["looks_source"].startswith("estimated")
     assert 2.5 < run["parameters"]["looks"] < 3.5
     fc = json.loads((tmp_path / "o" / "detections.geojson").read_text())

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sarship.pipeline.errors import InputError
 from sarship.pipeline.products import export as E
 from sarship.pipeline.targets.components import MOMENT_DTYPE
-from sarship.pipeline.errors import InputError
 from sarship.pipeline.targets.ship_features import collection, features
-from tests.conftest import write_scene
 from tests.cli.test_cli import assert_clean_error, sarship
+from tests.conftest import write_scene
 
 pyogrio = pytest.importorskip("pyogrio", reason="pyogrio not installed (pip install 'sarship[gis]')")
 
@@ -37,8 +37,9 @@ def _record(r0, c0, r1, c1, score=3.0):
 
 
 def _collection(geo=UTM) -> dict:
-    recs = np.concatenate([_record(100, 200, 104, 230), _record(300, 300, 320, 306, score=np.nan),
-                           _record(50, 60, 57, 63)])
+    recs = np.concatenate(
+        [_record(100, 200, 104, 230), _record(300, 300, 320, 306, score=np.nan), _record(50, 60, 57, 63)]
+    )
     f = features(recs, (10.0, 10.0), geo)
     f[1]["properties"]["sidelobes"] = True
     f[0]["properties"]["sidelobes"] = False  # the third has none: a null in the column
@@ -179,16 +180,33 @@ def test_cli_detect_formats(tmp_path):
     geo = write_scene(tmp_path / "geo.zarr", {"intensity": x}, tile=64, looks=2.0, pixel_spacing_m=[10.0, 10.0], **UTM)
     plain = write_scene(tmp_path / "plain.zarr", {"intensity": x}, tile=64, looks=2.0)
     out = tmp_path / "run"
-    res = sarship("detect", geo, "--detector", "ca_cfar", "--out", out, "--formats", "geojson,gpkg,kml",
-                  "--set", "min_area_px=2", "--set", "guard=9", "--set", "background=21")
+    res = sarship(
+        "detect",
+        geo,
+        "--detector",
+        "ca_cfar",
+        "--out",
+        out,
+        "--formats",
+        "geojson,gpkg,kml",
+        "--set",
+        "min_area_px=2",
+        "--set",
+        "guard=9",
+        "--set",
+        "background=21",
+    )
     assert res.returncode == 0, res.stderr
     assert {"detections.geojson", "detections.gpkg", "detections.kml"} <= set(os.listdir(out))
     assert not [p for p in os.listdir(out) if p.startswith(".")]
     fc = json.loads((out / "detections.geojson").read_text())
     assert fc["features"] and pyogrio.read_info(out / "detections.gpkg")["features"] == len(fc["features"])
     # refused before any work: unknown format, a scene without georeference
-    assert_clean_error(sarship("detect", geo, "--detector", "ca_cfar", "--out", tmp_path / "r2", "--formats", "shp"),
-                       "--formats", "shp")
+    assert_clean_error(
+        sarship("detect", geo, "--detector", "ca_cfar", "--out", tmp_path / "r2", "--formats", "shp"),
+        "--formats",
+        "shp",
+    )
     res = sarship("detect", plain, "--detector", "ca_cfar", "--out", tmp_path / "r3", "--formats", "kml")
     assert_clean_error(res, "not georeferenced")
     assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
@@ -203,20 +221,37 @@ GRD_NAME = "S1B_IW_GRDH_1SDV_20210401T052623_20210401T052648_026269_032297_ECC8"
 
 def _safe_attrs(product=GRD_NAME, **extra) -> dict:
     """A SAFE scene's attributes as pipeline/readers/safe.py writes them."""
-    return {"product": product, "sensor": "SENTINEL-1B", "mode": "IW", "product_type": "GRD (GRDH)",
-            "acquired": "2021-04-01T05:26:23.794457", "acquisition_start": "2021-04-01T05:26:23.794457",
-            "acquisition_stop": "2021-04-01T05:26:48.793373", "orbit_pass": "DESCENDING",
-            "polarisations": ["vv"], "looks": 4.4, "pixel_spacing_m": [10.0, 10.0],
-            "pixel_spacing_source": "SAFE annotation imageInformation azimuthPixelSpacing, rangePixelSpacing",
-            "gcps": [{"row": r, "col": c, "x": 10.0 + c * 1e-4, "y": 46.0 - r * 1e-4, "z": 0.0}
-                     for r in (0.0, 500.0) for c in (0.0, 800.0)], **extra}
+    return {
+        "product": product,
+        "sensor": "SENTINEL-1B",
+        "mode": "IW",
+        "product_type": "GRD (GRDH)",
+        "acquired": "2021-04-01T05:26:23.794457",
+        "acquisition_start": "2021-04-01T05:26:23.794457",
+        "acquisition_stop": "2021-04-01T05:26:48.793373",
+        "orbit_pass": "DESCENDING",
+        "polarisations": ["vv"],
+        "looks": 4.4,
+        "pixel_spacing_m": [10.0, 10.0],
+        "pixel_spacing_source": "SAFE annotation imageInformation azimuthPixelSpacing, rangePixelSpacing",
+        "gcps": [
+            {"row": r, "col": c, "x": 10.0 + c * 1e-4, "y": 46.0 - r * 1e-4, "z": 0.0}
+            for r in (0.0, 500.0)
+            for c in (0.0, 800.0)
+        ],
+        **extra,
+    }
 
 
 def test_stac_item_carries_the_product_identifiers(tmp_path):
     from sarship.service import stac
 
-    run = {"scene": {"path": str(tmp_path / "s1.zarr"), "shape": [500, 800], "attrs": _safe_attrs()},
-           "detector": "ca_cfar", "parameters": {"pfa": 1e-5}, "channel": "intensity"}
+    run = {
+        "scene": {"path": str(tmp_path / "s1.zarr"), "shape": [500, 800], "attrs": _safe_attrs()},
+        "detector": "ca_cfar",
+        "parameters": {"pfa": 1e-5},
+        "channel": "intensity",
+    }
     item = stac.stac_item({"id": "j1"}, run, "http://h", tmp_path, "2026-11-26T12:00:00Z")
     p = item["properties"]
     assert stac.SAT_EXT in item["stac_extensions"] and stac.SAR_EXT in item["stac_extensions"]
@@ -230,11 +265,18 @@ def test_stac_item_carries_the_product_identifiers(tmp_path):
     assert item["geometry"]["type"] == "Polygon"
     json.dumps(item, allow_nan=False)
     # attributes win over the name; S1A's relative orbit; an SLC sub-swath
-    f, _ = stac.product_fields(_safe_attrs("S1A_IW_SLC__1SDV_20160606T221231_20160606T221258_011596_011B8A_3FF3",
-                                           sensor="SENTINEL-1A", swath="IW2", relative_orbit=5))
+    f, _ = stac.product_fields(
+        _safe_attrs(
+            "S1A_IW_SLC__1SDV_20160606T221231_20160606T221258_011596_011B8A_3FF3",
+            sensor="SENTINEL-1A",
+            swath="IW2",
+            relative_orbit=5,
+        )
+    )
     assert f["sat:absolute_orbit"] == 11596 and f["sat:relative_orbit"] == 5 and f["sarship:swath"] == "IW2"
-    f, _ = stac.product_fields(_safe_attrs("S1A_IW_SLC__1SDV_20160606T221231_20160606T221258_011596_011B8A_3FF3",
-                                           sensor="SENTINEL-1A"))
+    f, _ = stac.product_fields(
+        _safe_attrs("S1A_IW_SLC__1SDV_20160606T221231_20160606T221258_011596_011B8A_3FF3", sensor="SENTINEL-1A")
+    )
     assert f["sat:relative_orbit"] == 149  # the product's REL_ORBIT (OpenSARShip's SNAP metadata of this product)
     assert f["sarship:datatake_id"] == 72586
     # not a Sentinel-1 product: nothing claimed
@@ -254,8 +296,13 @@ def test_product_fields_agree_with_the_manifest(pattern):
 
     product = next(iter(sorted(SAFE_DIR.glob(pattern))))
     root = xr.open_dataset(product, engine="sentinel-1").attrs
-    f, _ = stac.product_fields({"product": product.name.removesuffix(".SAFE"), "orbit_pass": root["pass"],
-                                "sensor": f"{root['family_name']}{root['number']}"})
+    f, _ = stac.product_fields(
+        {
+            "product": product.name.removesuffix(".SAFE"),
+            "orbit_pass": root["pass"],
+            "sensor": f"{root['family_name']}{root['number']}",
+        }
+    )
     assert f["sat:absolute_orbit"] == root["orbit_number"]
     assert f["sat:relative_orbit"] == root["relative_orbit_number"]
     assert f["sarship:datatake_id"] == root["mission_data_take_id"]
@@ -278,8 +325,9 @@ def test_service_results_offer_gpkg_and_kml(tmp_path, tmp_path_factory):
     x = rng.gamma(2.0, 0.5, (160, 140)).astype(np.float32)
     x[40:44, 30:40] += 60.0
     x[100:110, 90:93] += 60.0
-    write_scene(data / "scenes" / "exp_geo.zarr", {"intensity": x}, tile=80, looks=2.0, pixel_spacing_m=[10.0, 10.0],
-                **UTM)
+    write_scene(
+        data / "scenes" / "exp_geo.zarr", {"intensity": x}, tile=80, looks=2.0, pixel_spacing_m=[10.0, 10.0], **UTM
+    )
     write_scene(data / "scenes" / "exp_plain.zarr", {"intensity": x}, tile=80, looks=2.0)
     u = srv.url + "/processes/ca_cfar/execution"
     body = {"guard": 9, "background": 21, "min_area_px": 2}

@@ -14,8 +14,8 @@ from pydantic import ValidationError
 from scipy import special, stats
 
 from sarship.pipeline import detectors
-from sarship.pipeline.stats import molc
 from sarship.pipeline.errors import InputError
+from sarship.pipeline.stats import molc
 from sarship.pipeline.tiling.windows import mirror_pad
 
 L = 2.0
@@ -86,21 +86,23 @@ def _brute(det, x, pfa, b, g, censor=None):
     if censor is not None:  # flag: x_j > c * mean of the usable samples of its own b x b window
         for i in range(r, P.shape[0] - r):
             for j in range(r, P.shape[1] - r):
-                w, o = P[i - r: i + r + 1, j - r: j + r + 1], ok[i - r: i + r + 1, j - r: j + r + 1]
+                w, o = P[i - r : i + r + 1, j - r : j + r + 1], ok[i - r : i + r + 1, j - r : j + r + 1]
                 if ok[i, j] and P[i, j] * o.sum() > censor * w[o].sum():
                     use[i, j] = False
     H, W = x.shape
     N = b * b - g * g
     need = max(3, (N + 1) // 2)
     ring = np.ones((b, b), bool)
-    ring[r - g // 2: r + g // 2 + 1, r - g // 2: r + g // 2 + 1] = False
-    k1 = np.zeros((H, W)); k2 = np.zeros((H, W)); k3 = np.zeros((H, W))
+    ring[r - g // 2 : r + g // 2 + 1, r - g // 2 : r + g // 2 + 1] = False
+    k1 = np.zeros((H, W))
+    k2 = np.zeros((H, W))
+    k3 = np.zeros((H, W))
     tested = np.zeros((H, W), bool)
     for i in range(H):
         for j in range(W):
             ci, cj = i + h, j + h
-            win = P[ci - r: ci + r + 1, cj - r: cj + r + 1][ring]
-            u = use[ci - r: ci + r + 1, cj - r: cj + r + 1][ring]
+            win = P[ci - r : ci + r + 1, cj - r : cj + r + 1][ring]
+            u = use[ci - r : ci + r + 1, cj - r : cj + r + 1][ring]
             if ok[ci, cj] and u.sum() >= need:
                 tested[i, j] = True
                 k1[i, j], k2[i, j], k3[i, j] = molc.sample_log_cumulants(win[u])
@@ -131,11 +133,11 @@ def _brute(det, x, pfa, b, g, censor=None):
 def _small_scene(seed, n=34):
     rng = np.random.default_rng(seed)
     x = _g0(rng, (n, n), a=2.5)
-    x[3:6, 20:23] *= 60.0   # targets, some in each other's rings
+    x[3:6, 20:23] *= 60.0  # targets, some in each other's rings
     x[12, 9] *= 200.0
     x[25:27, 25:30] *= 30.0
-    x[0:4, 0:9] = np.nan    # no-data corner (a land mask's output looks the same)
-    x[18, 3] = 0.0          # a non-positive sample: unusable for ln x
+    x[0:4, 0:9] = np.nan  # no-data corner (a land mask's output looks the same)
+    x[18, 3] = 0.0  # a non-positive sample: unusable for ln x
     return x
 
 
@@ -194,7 +196,7 @@ def _tiled(det, x, tile, **kw):
     for r0 in range(0, H, tile):
         for c0 in range(0, W, tile):
             r1, c1 = min(r0 + tile, H), min(c0 + tile, W)
-            blk = P[r0: r1 + 2 * h, c0: c1 + 2 * h]
+            blk = P[r0 : r1 + 2 * h, c0 : c1 + 2 * h]
             m, s = spec.detect(blk, h, (r0 - h, c0 - h), p, prep)
             mask[r0:r1, c0:c1], stat[r0:r1, c0:c1] = m, s
     return mask, stat
@@ -245,9 +247,15 @@ def test_nan_border_is_absent_no_alarm_band(det):
 @pytest.mark.parametrize("det", ["g0_cfar", "k_cfar", "ggd_cfar"])
 def test_parameters_are_validated_by_name(det):
     P = detectors.get(det).params
-    for bad, name in (({"target": 3}, "target"), ({"censor": 0.5}, "censor"), ({"censor": "x"}, "censor"),
-                      ({"pfa": 0.7}, "pfa"), ({"guard": 41, "background": 41}, "background"),
-                      ({"background": 20}, "background"), ({"unknown": 1}, "unknown")):
+    for bad, name in (
+        ({"target": 3}, "target"),
+        ({"censor": 0.5}, "censor"),
+        ({"censor": "x"}, "censor"),
+        ({"pfa": 0.7}, "pfa"),
+        ({"guard": 41, "background": 41}, "background"),
+        ({"background": 20}, "background"),
+        ({"unknown": 1}, "unknown"),
+    ):
         with pytest.raises(ValidationError, match=name):
             P(**bad)
     p = P(censor="6.5", pfa="1e-4")
@@ -274,11 +282,12 @@ def test_ships_found_on_simulated_scene(clutter, det):
     from scipy import ndimage
 
     from sarship.pipeline.products.scoring import score as score_ships
-    from sarship.pipeline.simulate import SimConfig, simulate_array
     from sarship.pipeline.products.truth import Ship, _ship_from_feature
+    from sarship.pipeline.simulate import SimConfig, simulate_array
 
-    cfg = SimConfig(kind="intensity", shape=(768, 768), ships=12, seed=4, looks=L, clutter=clutter,
-                    texture_corr_px=2.0, scr_db=15.0)
+    cfg = SimConfig(
+        kind="intensity", shape=(768, 768), ships=12, seed=4, looks=L, clutter=clutter, texture_corr_px=2.0, scr_db=15.0
+    )
     data, truth = simulate_array(cfg)
     x = data["intensity"]
     m, _ = _run(det, x, pfa=1e-5, looks=truth["clutter"]["looks"])
@@ -290,8 +299,12 @@ def test_ships_found_on_simulated_scene(clutter, det):
         if sl is None or (lab[sl] == k).sum() < 2:
             continue
         rr, cc = np.nonzero(lab[sl] == k)
-        dets.append(Ship(bbox=(sl[0].start, sl[1].start, sl[0].stop, sl[1].stop),
-                         centroid=(sl[0].start + rr.mean() + 0.5, sl[1].start + cc.mean() + 0.5)))
+        dets.append(
+            Ship(
+                bbox=(sl[0].start, sl[1].start, sl[0].stop, sl[1].stop),
+                centroid=(sl[0].start + rr.mean() + 0.5, sl[1].start + cc.mean() + 0.5),
+            )
+        )
     ships = [_ship_from_feature(f, "truth") for f in truth["features"]]
     score = score_ships(dets, ships)
     assert score["n_truth"] == 12
@@ -305,8 +318,16 @@ def test_simulated_g0_and_ggd_follow_their_models():
     from sarship.pipeline.simulate import SimConfig, simulate_array
     from sarship.pipeline.simulate.clutter import _ggd_moment, ggd_enl
 
-    g0 = SimConfig(kind="intensity", shape=(512, 512), ships=0, seed=1, looks=2.0, clutter="g0",
-                   texture_shape=4.0, texture_corr_px=1.0)
+    g0 = SimConfig(
+        kind="intensity",
+        shape=(512, 512),
+        ships=0,
+        seed=1,
+        looks=2.0,
+        clutter="g0",
+        texture_shape=4.0,
+        texture_corr_px=1.0,
+    )
     x = simulate_array(g0)[0]["intensity"].astype(np.float64).ravel()
     a = 4.0  # G0: gamma = (a - 1) * clutter_mean
     d = stats.kstest(x, lambda t: 1.0 - molc.g0_sf(t, a, a - 1.0, 2.0)).statistic
@@ -320,8 +341,11 @@ def test_simulated_g0_and_ggd_follow_their_models():
     d = stats.kstest(y, lambda t: 1.0 - molc.ggd_sf(t, sig, 0.7, 3.0)).statistic
     dw = stats.kstest(y, lambda t: 1.0 - molc.ggd_sf(t, sig, 0.8, 3.0)).statistic
     assert d < 0.005 < 0.02 < dw, (d, dw)
-    assert truth["clutter"]["looks"] == pytest.approx(ggd_enl(0.7, 3.0)) == pytest.approx(
-        1.0 / (y.var() / y.mean() ** 2), rel=0.05)
+    assert (
+        truth["clutter"]["looks"]
+        == pytest.approx(ggd_enl(0.7, 3.0))
+        == pytest.approx(1.0 / (y.var() / y.mean() ** 2), rel=0.05)
+    )
     assert truth["clutter"]["ggd_power"] == 0.7 and special.gamma(1.0) == 1.0
 
 
@@ -346,8 +370,23 @@ def test_cli_simulate_g0_and_ggd(tmp_path):
 
     for cl, extra in (("g0", ["--texture-shape", "3"]), ("ggd", ["--ggd-power", "1.5", "--ggd-shape", "2"])):
         out = tmp_path / f"{cl}.zarr"
-        rc = main(["simulate", str(out), "--shape", "64x64", "--ships", "1", "--clutter", cl, "--looks", "2",
-                   "--tile", "32", *extra])
+        rc = main(
+            [
+                "simulate",
+                str(out),
+                "--shape",
+                "64x64",
+                "--ships",
+                "1",
+                "--clutter",
+                cl,
+                "--looks",
+                "2",
+                "--tile",
+                "32",
+                *extra,
+            ]
+        )
         assert rc == 0
         ds = xr.open_zarr(out)
         assert ds["intensity"].shape == (64, 64)

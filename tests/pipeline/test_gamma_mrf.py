@@ -17,8 +17,8 @@ from scipy import ndimage
 from sarship.pipeline import detectors
 from sarship.pipeline.detectors import gamma_mrf as gm
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.stats.gamma_mixture import fit_gamma_mixture, initial_mixture, mixture_isf, mixture_sf
 from sarship.pipeline.scene import tile_slices
+from sarship.pipeline.stats.gamma_mixture import fit_gamma_mixture, initial_mixture, mixture_isf, mixture_sf
 from sarship.pipeline.tiling.windows import mirror_pad
 from sarship.workers.jobs import run_detection
 from tests.conftest import blobs_scene, write_scene
@@ -35,8 +35,10 @@ def scene_values(x: np.ndarray, p, tile: int | None = None):
     tiles = [(0, H, 0, W)] if tile is None else [(r0, r1, c0, c1) for _, _, r0, r1, c0, c1 in tile_slices((H, W), tile)]
     prep = SPEC.prepare(p)
     for _ in range(SPEC.scene_passes_max):
-        parts = [SPEC.scene_pass(P[r0:r1 + 2 * h, c0:c1 + 2 * h], h, (r0 - h, c0 - h), p, prep)
-                 for r0, r1, c0, c1 in tiles]
+        parts = [
+            SPEC.scene_pass(P[r0 : r1 + 2 * h, c0 : c1 + 2 * h], h, (r0 - h, c0 - h), p, prep)
+            for r0, r1, c0, c1 in tiles
+        ]
         v = SPEC.reduce(parts, p, prep)
         again = v.pop(gm.ANOTHER_PASS, False)
         prep = {**prep, **v}
@@ -50,7 +52,7 @@ def run_tiles(x: np.ndarray, p, tile: int | None = None):
     mask = np.zeros(x.shape, bool)
     stat = np.zeros(x.shape, np.float32)
     for r0, r1, c0, c1 in tiles:
-        m, s = SPEC.detect(P[r0:r1 + 2 * h, c0:c1 + 2 * h], h, (r0 - h, c0 - h), p, prep)
+        m, s = SPEC.detect(P[r0 : r1 + 2 * h, c0 : c1 + 2 * h], h, (r0 - h, c0 - h), p, prep)
         mask[r0:r1, c0:c1], stat[r0:r1, c0:c1] = m, s
     return mask, stat, prep
 
@@ -58,11 +60,14 @@ def run_tiles(x: np.ndarray, p, tile: int | None = None):
 # ------------------------------------------------------------------------------ mixture (EM)
 
 
-@pytest.mark.parametrize("L,w,mu", [
-    (1.0, (0.7, 0.3), (1.0, 8.0)),
-    (4.0, (0.6, 0.3, 0.1), (1.0, 4.0, 30.0)),
-    (8.0, (0.5, 0.3, 0.15, 0.05), (1.0, 3.0, 10.0, 60.0)),
-])
+@pytest.mark.parametrize(
+    "L,w,mu",
+    [
+        (1.0, (0.7, 0.3), (1.0, 8.0)),
+        (4.0, (0.6, 0.3, 0.1), (1.0, 4.0, 30.0)),
+        (8.0, (0.5, 0.3, 0.15, 0.05), (1.0, 3.0, 10.0, 60.0)),
+    ],
+)
 def test_em_recovers_known_mixture(L, w, mu):
     rng = np.random.default_rng(7)
     n = 60_000
@@ -120,8 +125,8 @@ def reference_icm(y, ok, r0, c0, a0, b0, A, B, beta, nbh, ks):
             npres = np.zeros((H, W))
             for di, dj in offs:
                 sh = np.full((H, W), -1)
-                src = lab[max(di, 0):H + min(di, 0), max(dj, 0):W + min(dj, 0)]
-                sh[max(-di, 0):H + min(-di, 0), max(-dj, 0):W + min(-dj, 0)] = src
+                src = lab[max(di, 0) : H + min(di, 0), max(dj, 0) : W + min(dj, 0)]
+                sh[max(-di, 0) : H + min(-di, 0), max(-dj, 0) : W + min(-dj, 0)] = src
                 npres += sh >= 0
                 for k in range(K):
                     cnt[..., k] += sh == k
@@ -164,14 +169,19 @@ def test_icm_matches_brute_force(nbh, ks, origin):
 def test_absent_neighbour_casts_no_vote():
     """A pixel beside absent pixels has the energy of a pixel with only its present neighbours:
     the same as at an image border."""
-    a0 = np.array([0.0, 2.0]); b0 = np.array([1.0, 0.1])
+    a0 = np.array([0.0, 2.0])
+    b0 = np.array([1.0, 0.1])
     A, B = a0[None], b0[None]
     y = np.array([[9.0, 9.0, 9.0], [9.0, 3.0, 0.1], [np.nan, np.nan, np.nan]])
     # centre pixel: unary class 0 = 3.0, class 1 = 2.3 -> class 1; neighbours: five present
-    lab = np.empty(y.shape, np.int8); prev = lab.copy(); gap = np.empty(y.shape)
+    lab = np.empty(y.shape, np.int8)
+    prev = lab.copy()
+    gap = np.empty(y.shape)
     gm.icm(y, np.isfinite(y), 0, 0, a0, b0, A, B, 1.0, 8, 1, lab, prev, gap)
     cut = y[:2]
-    lab2 = np.empty(cut.shape, np.int8); prev2 = lab2.copy(); gap2 = np.empty(cut.shape)
+    lab2 = np.empty(cut.shape, np.int8)
+    prev2 = lab2.copy()
+    gap2 = np.empty(cut.shape)
     gm.icm(cut, np.isfinite(cut), 0, 0, a0, b0, A, B, 1.0, 8, 1, lab2, prev2, gap2)
     np.testing.assert_array_equal(lab[:2], lab2)
     np.testing.assert_array_equal(gap[:2], gap2)
@@ -192,8 +202,9 @@ def test_exact_class_sums():
         v = y[lab == k]
         ref = float(sum((Fraction(float(t)) for t in v), Fraction(0)) / len(v))
         assert got[k] == ref
-    assert gm.exact_means([{**parts[0], "counts": np.zeros(3, np.int64), "acc": 0 * parts[0]["acc"]}],
-                          [1.0, 2.0, 3.0], 0.0) == [1.0, 2.0, 3.0]  # empty classes keep their mean
+    assert gm.exact_means(
+        [{**parts[0], "counts": np.zeros(3, np.int64), "acc": 0 * parts[0]["acc"]}], [1.0, 2.0, 3.0], 0.0
+    ) == [1.0, 2.0, 3.0]  # empty classes keep their mean
 
 
 # ------------------------------------------------------------------------- tiled == whole
@@ -274,8 +285,10 @@ def test_false_alarms_on_pure_two_class_sea():
     peaks = ndimage.maximum(x, lab, np.arange(1, n + 1)) if n else np.zeros(0)
     kept = int((np.asarray(peaks) > prep["peak_threshold"]).sum())
     assert kept <= 1
-    print(f"gamma_mrf pure two-class sea: {alarms} alarm pixels, {above} pixels above q, M pfa = {M * pfa:.0f}, "
-          f"{n} candidates, {kept} kept by the peak rule")
+    print(
+        f"gamma_mrf pure two-class sea: {alarms} alarm pixels, {above} pixels above q, M pfa = {M * pfa:.0f}, "
+        f"{n} candidates, {kept} kept by the peak rule"
+    )
 
 
 # ------------------------------------------------------------------ ships on a simulated scene
@@ -289,8 +302,18 @@ def test_fom_on_simulated_gf3_like_scene_with_land(tmp_path, client):
     from sarship.pipeline.simulate import SimConfig, simulate_array
     from sarship.pipeline.simulate.land import _land_mask, _land_model
 
-    cfg = SimConfig(kind="intensity", shape=(1024, 1024), ships=20, seed=5, looks=4.0, clutter="k", land=True,
-                    stripes=True, sidelobes=True, scr_db=12.0)
+    cfg = SimConfig(
+        kind="intensity",
+        shape=(1024, 1024),
+        ships=20,
+        seed=5,
+        looks=4.0,
+        clutter="k",
+        land=True,
+        stripes=True,
+        sidelobes=True,
+        scr_db=12.0,
+    )
     data, truth = simulate_array(cfg)
     x = data["intensity"].copy()
     land = _land_mask(cfg, _land_model(cfg), 0, 1024, 0, 1024)
@@ -312,11 +335,27 @@ def test_fom_with_the_texture_land_mask(tmp_path, client):
     from sarship.pipeline.products.scoring import evaluate
     from sarship.pipeline.simulate import SimConfig, simulate
 
-    cfg = SimConfig(kind="intensity", shape=(1024, 1024), ships=20, seed=5, looks=4.0, clutter="k", land=True,
-                    stripes=True, sidelobes=True, scr_db=12.0)
+    cfg = SimConfig(
+        kind="intensity",
+        shape=(1024, 1024),
+        ships=20,
+        seed=5,
+        looks=4.0,
+        clutter="k",
+        land=True,
+        stripes=True,
+        sidelobes=True,
+        scr_db=12.0,
+    )
     simulate(tmp_path / "s.zarr", cfg, tile=512, truth_path=tmp_path / "t.geojson")
-    run = run_detection(tmp_path / "s.zarr", "gamma_mrf", {"land_mask": "texture"}, out_dir=tmp_path / "o",
-                        client=client, progress=False)
+    run = run_detection(
+        tmp_path / "s.zarr",
+        "gamma_mrf",
+        {"land_mask": "texture"},
+        out_dir=tmp_path / "o",
+        client=client,
+        progress=False,
+    )
     s = evaluate(tmp_path / "o" / "detections.geojson", tmp_path / "t.geojson")
     assert s["n_truth"] == 20
     assert s["fom"] >= 0.9, s
@@ -345,10 +384,17 @@ def test_nan_pixels_are_never_ships_and_not_sampled():
 
 
 def test_parameters_are_validated():
-    for bad, name in [({"neighbourhood": 6}, "neighbourhood"), ({"classes": 1}, "classes"),
-                      ({"beta": -1}, "beta"), ({"sweeps": 0}, "sweeps"), ({"peak_pfa": 0.7}, "peak_pfa"),
-                      ({"scatter": "max"}, "scatter"), ({"sample_stride": 0}, "sample_stride"),
-                      ({"change_tol": 1.5}, "change_tol"), ({"pfa": 0.9}, "pfa")]:
+    for bad, name in [
+        ({"neighbourhood": 6}, "neighbourhood"),
+        ({"classes": 1}, "classes"),
+        ({"beta": -1}, "beta"),
+        ({"sweeps": 0}, "sweeps"),
+        ({"peak_pfa": 0.7}, "peak_pfa"),
+        ({"scatter": "max"}, "scatter"),
+        ({"sample_stride": 0}, "sample_stride"),
+        ({"change_tol": 1.5}, "change_tol"),
+        ({"pfa": 0.9}, "pfa"),
+    ]:
         with pytest.raises(InputError, match=name):
             from sarship.workers.request import parse_params
 
@@ -407,7 +453,7 @@ def test_small_chips_run_on_cluster(tmp_path, client):
     for side in (24, 40):
         rng = np.random.default_rng(side)
         x = rng.gamma(2.0, 0.5, (side, side)).astype(np.float32)
-        x[side // 2 - 2:side // 2 + 2, side // 2 - 3:side // 2 + 3] = 60.0  # a 4 x 6 ship
+        x[side // 2 - 2 : side // 2 + 2, side // 2 - 3 : side // 2 + 3] = 60.0  # a 4 x 6 ship
         scene = write_scene(tmp_path / f"s{side}.zarr", {"intensity": x}, tile=64, looks=2.0)
         run = run_detection(scene, "gamma_mrf", {}, out_dir=tmp_path / f"o{side}", client=client, progress=False)
         stride = run["parameters"]["sample_stride"]
@@ -425,8 +471,14 @@ def test_land_short_sample_is_sampled_again(tmp_path, client):
     x[10:20, 10:20] = rng.gamma(2.0, 0.5, (10, 10))
     x[14:16, 14:17] = 80.0
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=2.0)
-    run = run_detection(scene, "gamma_mrf", {"min_area_px": "1", "sample_min": "400"}, out_dir=tmp_path / "o",
-                        client=client, progress=False)
+    run = run_detection(
+        scene,
+        "gamma_mrf",
+        {"min_area_px": "1", "sample_min": "400"},
+        out_dir=tmp_path / "o",
+        client=client,
+        progress=False,
+    )
     assert run["parameters"]["sample_stride"] == 2 and run["prepared"]["sample_stride"] == 1
     assert run["prepared"]["sample_size"] == 100
     assert any("sampled again at stride 1" in w for w in run["warnings"])
@@ -445,10 +497,12 @@ def test_too_small_scene_exits_2_before_work(tmp_path):
     from tests.cli.test_cli import assert_clean_error, sarship
 
     rng = np.random.default_rng(0)
-    scene = write_scene(tmp_path / "s.zarr", {"intensity": rng.gamma(2.0, 0.5, (6, 6)).astype(np.float32)},
-                        tile=64, looks=2.0)
-    res = sarship("detect", scene, "--detector", "gamma_mrf", "--out", tmp_path / "o", "--scheduler", "local",
-                  timeout=60)
+    scene = write_scene(
+        tmp_path / "s.zarr", {"intensity": rng.gamma(2.0, 0.5, (6, 6)).astype(np.float32)}, tile=64, looks=2.0
+    )
+    res = sarship(
+        "detect", scene, "--detector", "gamma_mrf", "--out", tmp_path / "o", "--scheduler", "local", timeout=60
+    )
     assert_clean_error(res, "gamma_mrf", "6 x 6", "at least 40 pixels")
     assert not (tmp_path / "o").exists()
 
@@ -464,8 +518,9 @@ def test_real_opensarship_small_chips(tmp_path, client):
     for prod in sorted(REAL.glob("opensarship/S1A_IW_GRDH_*")):
         chips = sorted(prod.glob("Patch/*.tif"), key=lambda f: (tifffile.TiffFile(f).series[0].shape[0], f.name))
         sc = ingest([chips[0]], tmp_path / f"{prod.name[17:32]}.zarr", channels=["vh", "vv"])
-        run = run_detection(sc.path, "gamma_mrf", {}, out_dir=tmp_path / prod.name[17:32], client=client,
-                            progress=False)
+        run = run_detection(
+            sc.path, "gamma_mrf", {}, out_dir=tmp_path / prod.name[17:32], client=client, progress=False
+        )
         assert run["parameters"]["sample_stride"] < 8 and run["prepared"]["sample_size"] >= 40
 
 
@@ -475,10 +530,12 @@ def test_service_submission_refuses_too_small_scene(tmp_path):
     from sarship.workers.request import JobRequest
 
     rng = np.random.default_rng(0)
-    scene = write_scene(tmp_path / "s.zarr", {"intensity": rng.gamma(2.0, 0.5, (6, 6)).astype(np.float32)},
-                        tile=64, looks=2.0)
+    scene = write_scene(
+        tmp_path / "s.zarr", {"intensity": rng.gamma(2.0, 0.5, (6, 6)).astype(np.float32)}, tile=64, looks=2.0
+    )
     with pytest.raises(InputError, match="at least 40 pixels"):
         check_scene_input(scene, JobRequest.from_inputs("gamma_mrf", {"scene": str(scene)}))
-    ok = write_scene(tmp_path / "t.zarr", {"intensity": rng.gamma(2.0, 0.5, (24, 24)).astype(np.float32)},
-                     tile=64, looks=2.0)
+    ok = write_scene(
+        tmp_path / "t.zarr", {"intensity": rng.gamma(2.0, 0.5, (24, 24)).astype(np.float32)}, tile=64, looks=2.0
+    )
     check_scene_input(ok, JobRequest.from_inputs("gamma_mrf", {"scene": str(ok)}))

@@ -16,8 +16,7 @@ from sarship.pipeline.gpu import available
 from tests.conftest import blobs_scene
 from tests.pipeline.test_gamma_mrf import scene_values
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 SPEC = detectors.get("gamma_mrf")
 
@@ -41,10 +40,14 @@ def test_icm_twin_bit_identical(cp, dtype, nbh, ks, origin):
     y[20:40, 10:30] = np.nan
     y[:, 90:] = np.nan
     ok = np.isfinite(y)
-    mu = np.array([0.5, 1.0, 2.5, 15.0]); w = np.array([0.3, 0.4, 0.25, 0.05])
+    mu = np.array([0.5, 1.0, 2.5, 15.0])
+    w = np.array([0.3, 0.4, 0.25, 0.05])
     a0, b0 = np.log(mu) - np.log(w), 1.0 / mu
-    A = np.stack([a0 * (1 + 0.01 * s) for s in range(4)]); B = np.stack([b0 * (1 - 0.02 * s) for s in range(4)])
-    lab = np.empty((H, W), np.int8); prev = lab.copy(); gap = np.empty((H, W))
+    A = np.stack([a0 * (1 + 0.01 * s) for s in range(4)])
+    B = np.stack([b0 * (1 - 0.02 * s) for s in range(4)])
+    lab = np.empty((H, W), np.int8)
+    prev = lab.copy()
+    gap = np.empty((H, W))
     gm.icm(y, ok, origin[0], origin[1], a0, b0, A, B, 0.9, nbh, ks, lab, prev, gap)
     gl, gp, gg = gpu_icm(cp.asarray(y), cp.asarray(ok), origin[0], origin[1], a0, b0, A, B, 0.9, nbh, ks)
     np.testing.assert_array_equal(gl.get(), lab)
@@ -68,7 +71,8 @@ def test_detect_and_scene_pass_twin(cp, kw):
     p0 = SPEC.prepare(p)
     a = SPEC.scene_pass(P, h, (-h, -h), p, p0)
     b = SPEC.scene_pass(cp.asarray(P), h, (-h, -h), p, p0)
-    np.testing.assert_array_equal(a["y"], b["y"]); np.testing.assert_array_equal(a["rc"], b["rc"])
+    np.testing.assert_array_equal(a["y"], b["y"])
+    np.testing.assert_array_equal(a["rc"], b["rc"])
     mid = {**prep, "sweep_means": prep["sweep_means"][:2]}
     a = SPEC.scene_pass(P, h, (-h, -h), p, mid)
     b = SPEC.scene_pass(cp.asarray(P), h, (-h, -h), p, mid)
@@ -83,7 +87,7 @@ def test_small_chip_twin(cp, side):
     device's mask and statistic equal the CPU's; the EM sample (pass 0) is the same on either."""
     rng = np.random.default_rng(side)
     x = rng.gamma(2.0, 0.5, (side, side)).astype(np.float32)
-    x[side // 2 - 2:side // 2 + 2, side // 2 - 3:side // 2 + 3] = 60.0
+    x[side // 2 - 2 : side // 2 + 2, side // 2 - 3 : side // 2 + 3] = 60.0
     p, notes = gm.for_scene(SPEC.params(looks=2.0), x.shape)
     assert p.sample_stride < 8 and notes
     prep, P, h, _ = scene_values(x, p)

@@ -53,7 +53,10 @@ def test_gcp_georeference_fits_polynomial():
 
 def test_no_or_unknown_georeference_gives_null_geometry():
     assert features(_record(0, 0, 2, 2), None, None)[0]["geometry"] is None
-    assert features(_record(0, 0, 2, 2), None, {"crs": "EPSG:999999", "transform": [0, 1, 0, 0, 0, -1]})[0]["geometry"] is None
+    assert (
+        features(_record(0, 0, 2, 2), None, {"crs": "EPSG:999999", "transform": [0, 1, 0, 0, 0, -1]})[0]["geometry"]
+        is None
+    )
 
 
 # ------------------------------------------------------------------ geolocation grids (pipeline/targets/georef.py)
@@ -78,8 +81,10 @@ TERRAIN_MEDIAN_BOUND_M = 600.0
 
 
 def _gcps(rows, cols, lon, lat):
-    return [{"row": float(r), "col": float(c), "x": float(x), "y": float(y), "z": 0.0}
-            for r, c, x, y in zip(np.ravel(rows), np.ravel(cols), np.ravel(lon), np.ravel(lat))]
+    return [
+        {"row": float(r), "col": float(c), "x": float(x), "y": float(y), "z": 0.0}
+        for r, c, x, y in zip(np.ravel(rows), np.ravel(cols), np.ravel(lon), np.ravel(lat))
+    ]
 
 
 def _grid(n=5, m=7, f=None):
@@ -167,7 +172,8 @@ def test_held_out_errors_measure_a_curved_grid():
     # errs by the cubic's curvature; the global quadratic errs more; a corrupted grid fails
     def f(r, c):
         u = c / 6000.0
-        return 8.0 + 0.6 * u + 0.15 * u ** 3 + 1e-6 * r, 54.0 - 1e-4 * r + 0.02 * u * u * u
+        return 8.0 + 0.6 * u + 0.15 * u**3 + 1e-6 * r, 54.0 - 1e-4 * r + 0.02 * u * u * u
+
     rows, cols, R, C, lon, lat = _grid(m=21, f=f)
     g = _gcps(R, C, lon, lat)
     for scheme in ("alternate", "row", "col"):
@@ -175,7 +181,7 @@ def test_held_out_errors_measure_a_curved_grid():
         assert e["grid"]["median_m"] < e["polynomial"]["median_m"], (scheme, e)
     # linear interpolation over a gap h errs by at most max|f''| h^2 / 8 (h = 600 px with one column
     # out): lon 0.9/6000^2 deg/px^2 (65.4 km/deg at 54N) and lat 0.12/6000^2 (111.2 km/deg): 75.5 m
-    bound = np.hypot(0.9 * 65.4e3, 0.12 * 111.2e3) / 6000.0 ** 2 * 600.0 ** 2 / 8.0
+    bound = np.hypot(0.9 * 65.4e3, 0.12 * 111.2e3) / 6000.0**2 * 600.0**2 / 8.0
     assert G.held_out_errors(g, "col")["grid"]["max_m"] <= bound
     bad = [dict(p) for p in g]
     for p in bad:  # one grid column's longitudes off by 0.05 degrees (~3 km)
@@ -192,8 +198,11 @@ def _annotation_gcps(product: Path, group: str) -> list[dict]:
     g = xr.open_dataset(product, engine="sentinel-1", group=f"{group}/gcp")
     gl, gp = g["line"].values, g["pixel"].values
     lat, lon, h = g["latitude"].values, g["longitude"].values, g["height"].values
-    return [{"row": float(gl[i]), "col": float(gp[j]), "x": float(lon[i, j]), "y": float(lat[i, j]),
-             "z": float(h[i, j])} for i in range(len(gl)) for j in range(len(gp))]
+    return [
+        {"row": float(gl[i]), "col": float(gp[j]), "x": float(lon[i, j]), "y": float(lat[i, j]), "z": float(h[i, j])}
+        for i in range(len(gl))
+        for j in range(len(gp))
+    ]
 
 
 @pytest.mark.skipif(GRD is None or SLC is None, reason=f"Sentinel-1 SAFE samples not found at {SAFE_DIR}")
@@ -330,16 +339,18 @@ def test_pixel_of_inverts_the_grid_and_land_files_use_it():
     """lon/lat -> pixel by Newton on the bilinear grid: round trip within 1e-3 px on a curved,
     unevenly spaced grid where the quadratic polynomial's inverse is off by pixels; the vector
     land-mask files (pipeline/land/landmask_files.lonlat_to_pixel) place lon/lat with it."""
-    from sarship.pipeline.targets.georef import GridGeoreference, from_gcps, pixel_of
     from sarship.pipeline.land.landmask_files import lonlat_to_pixel
+    from sarship.pipeline.targets.georef import GridGeoreference, from_gcps, pixel_of
 
     rows = np.array([0.0, 700.0, 1500.0, 2600.0, 3999.0])
     cols = np.linspace(0.0, 5999.0, 7)
     R, C = np.meshgrid(rows, cols, indexing="ij")
     lon = 10.0 + 1e-4 * C + 2e-5 * R + 3e-9 * C**2 + 0.004 * np.sin(R / 900.0)
     lat = 59.0 - 9e-5 * R + 1e-5 * C + 2e-9 * R * C
-    gcps = [{"row": float(r), "col": float(c), "x": float(x), "y": float(y), "z": 0.0}
-            for r, c, x, y in zip(R.ravel(), C.ravel(), lon.ravel(), lat.ravel())]
+    gcps = [
+        {"row": float(r), "col": float(c), "x": float(x), "y": float(y), "z": 0.0}
+        for r, c, x, y in zip(R.ravel(), C.ravel(), lon.ravel(), lat.ravel())
+    ]
     geo = from_gcps(gcps)
     assert isinstance(geo, GridGeoreference)
     rng = np.random.default_rng(5)
@@ -351,6 +362,7 @@ def test_pixel_of_inverts_the_grid_and_land_files_use_it():
     assert np.max(np.abs(r1 - rr)) < 1e-3 and np.max(np.abs(c1 - cc)) < 1e-3
     r2, c2 = lonlat_to_pixel(x, y, {"gcps": gcps})
     assert np.max(np.abs(r2 - rr)) < 1e-3 and np.max(np.abs(c2 - cc)) < 1e-3
+
     # what the land files did before: a quadratic fitted from lon/lat to pixels on the grid
     # points, pixels off by more than a pixel on this grid
     def design(a, b):

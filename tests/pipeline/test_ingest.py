@@ -152,8 +152,9 @@ def test_tiff_float_whole_numbers_are_amplitude(tmp_path):
 
 def test_tiff_multiband_tiled_compressed_planar(tmp_path):
     a = rand_f32((3, 300, 260), seed=3)
-    tifffile.imwrite(tmp_path / "m.tif", a, tile=(64, 64), compression="zlib", planarconfig="separate",
-                     photometric="minisblack")
+    tifffile.imwrite(
+        tmp_path / "m.tif", a, tile=(64, 64), compression="zlib", planarconfig="separate", photometric="minisblack"
+    )
     sc = ingest([tmp_path / "m.tif"], tmp_path / "m.zarr", tile=128, channels=["hh", "hv", "vv"], band="hv")
     assert sc.kind == "intensity"
     assert set(sc.variables) == {"intensity", "intensity_hh", "intensity_hv", "intensity_vv"}
@@ -168,8 +169,9 @@ def test_tiff_multiband_tiled_compressed_planar(tmp_path):
 
 def test_tiff_multiband_stripped_lzw_contig(tmp_path):
     a = rand_f32((130, 150, 2), seed=4)
-    tifffile.imwrite(tmp_path / "s.tif", a, rowsperstrip=7, compression="lzw", planarconfig="contig",
-                     photometric="minisblack")
+    tifffile.imwrite(
+        tmp_path / "s.tif", a, rowsperstrip=7, compression="lzw", planarconfig="contig", photometric="minisblack"
+    )
     sc = ingest([tmp_path / "s.tif"], tmp_path / "s.zarr", tile=64)
     np.testing.assert_array_equal(read(sc, "intensity_b0"), a[..., 0])
     np.testing.assert_array_equal(read(sc, "intensity_b1"), a[..., 1])
@@ -194,8 +196,9 @@ def test_tiff_real_pairs_as_slc(tmp_path):
         np.testing.assert_array_equal(read(sc, "vh"), z[..., 0])
         np.testing.assert_array_equal(read(sc, "vv"), z[..., 1])
     # odd band count with negative samples: neither pairs nor intensity
-    tifffile.imwrite(tmp_path / "n.tif", bands[..., :3].astype(np.float32), photometric="minisblack",
-                     planarconfig="contig")
+    tifffile.imwrite(
+        tmp_path / "n.tif", bands[..., :3].astype(np.float32), photometric="minisblack", planarconfig="contig"
+    )
     with pytest.raises(InputError, match="negative"):
         ingest([tmp_path / "n.tif"], tmp_path / "n.zarr")
     with pytest.raises(InputError, match="pairs"):
@@ -222,8 +225,7 @@ def test_geotiff_point_and_model_transformation(tmp_path):
     a = rand_f32((20, 30))
     # PixelIsPoint + ModelTransformation, metre CRS known by its code (no ProjLinearUnits key)
     M = (5.0, 0.0, 0.0, 1000.0, 0.0, -5.0, 0.0, 2000.0, 0, 0, 0, 0, 0, 0, 0, 1.0)
-    tags = [(34264, "d", 16, M, False),
-            (34735, "H", 16, geokeys((1024, 1), (1025, 2), (3072, 3857)), False)]
+    tags = [(34264, "d", 16, M, False), (34735, "H", 16, geokeys((1024, 1), (1025, 2), (3072, 3857)), False)]
     tifffile.imwrite(tmp_path / "g.tif", a, extratags=tags)
     sc = ingest([tmp_path / "g.tif"], tmp_path / "g.zarr", tile=32)
     assert sc.attrs["crs"] == "EPSG:3857"
@@ -406,8 +408,7 @@ def test_bad_arguments(tmp_path):
 
 def test_zarr_retile_keeps_attrs(tmp_path):
     a = rand_f32((3, 90, 70), seed=11)
-    tifffile.imwrite(tmp_path / "m.tif", a, photometric="minisblack", planarconfig="separate",
-                     metadata={"looks": 4})
+    tifffile.imwrite(tmp_path / "m.tif", a, photometric="minisblack", planarconfig="separate", metadata={"looks": 4})
     first = ingest([tmp_path / "m.tif"], tmp_path / "a.zarr", tile=64, channels=["x", "y", "z"], band="y")
     sc = ingest([tmp_path / "a.zarr"], tmp_path / "b.zarr", tile=32)
     assert sc.tile == 32 and sc.array("intensity").chunks == (32, 32) and sc.attrs["tile"] == 32
@@ -475,14 +476,15 @@ def test_corrupt_tiff_fails_mid_scene_and_keeps_previous_output(tmp_path):
     with tifffile.TiffFile(tmp_path / "c.tif") as t:
         off = t.pages[0].dataoffsets[10]  # a tile in the middle of the scene
     raw = bytearray((tmp_path / "c.tif").read_bytes())
-    raw[off:off + 64] = b"\x00" * 64
+    raw[off : off + 64] = b"\x00" * 64
     (tmp_path / "c.tif").write_bytes(bytes(raw))
     np.save(tmp_path / "ok.npy", a)
     ingest([tmp_path / "ok.npy"], tmp_path / "out.zarr", tile=32)
     done = []
     with pytest.raises(InputError, match="c.tif") as e:  # kind given: no probing, fails while writing
-        ingest([tmp_path / "c.tif"], tmp_path / "out.zarr", kind="intensity", tile=64,
-               progress=lambda d, t: done.append(d))
+        ingest(
+            [tmp_path / "c.tif"], tmp_path / "out.zarr", kind="intensity", tile=64, progress=lambda d, t: done.append(d)
+        )
     assert "\n" not in str(e.value)
     assert 0 < len(done) < 16  # it failed part-way through
     with pytest.raises(InputError, match="c.tif"):  # auto: the probe already meets the damage
@@ -552,8 +554,13 @@ def _rss_growth(tmp_path, src: Path) -> dict:
     script = tmp_path / "rss.py"
     script.write_text(_RSS_SCRIPT)
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    r = subprocess.run([sys.executable, str(script), str(src), str(tmp_path / "big.zarr")],
-                       capture_output=True, text=True, env=env, timeout=300)
+    r = subprocess.run(
+        [sys.executable, str(script), str(src), str(tmp_path / "big.zarr")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     return json.loads(r.stdout.strip().splitlines()[-1])
 
@@ -576,7 +583,7 @@ def test_bounded_memory_large_npy(tmp_path):
     assert res["growth_mb"] < 0.5 * size_mb, res
     assert abs(res["looks"] / 2.0 - 1) < 0.1
     a = zarr.open_array(str(tmp_path / "big.zarr" / "intensity"), mode="r")
-    np.testing.assert_array_equal(a[5000:5010, 7000:7010], band[5000 - 4096:5010 - 4096, 7000:7010] * 5)
+    np.testing.assert_array_equal(a[5000:5010, 7000:7010], band[5000 - 4096 : 5010 - 4096, 7000:7010] * 5)
 
 
 @pytest.mark.slow
@@ -589,15 +596,22 @@ def test_bounded_memory_large_tiled_tiff(tmp_path):
             b = band * (k + 1)
             for i in range(2):
                 for j in range(N_BIG // 512):
-                    yield b[i * 512:(i + 1) * 512, j * 512:(j + 1) * 512]
+                    yield b[i * 512 : (i + 1) * 512, j * 512 : (j + 1) * 512]
 
     p = tmp_path / "big.tif"
-    tifffile.imwrite(p, tiles(), shape=(N_BIG, N_BIG), dtype="float32", tile=(512, 512),
-                     compression="zstd", compressionargs={"level": 1})
+    tifffile.imwrite(
+        p,
+        tiles(),
+        shape=(N_BIG, N_BIG),
+        dtype="float32",
+        tile=(512, 512),
+        compression="zstd",
+        compressionargs={"level": 1},
+    )
     res = _rss_growth(tmp_path, p)
     assert res["growth_mb"] < 0.5 * 256, res  # the same design bound as the .npy test
     a = zarr.open_array(str(tmp_path / "big.zarr" / "intensity"), mode="r")
-    np.testing.assert_array_equal(a[8000:8010, 100:110], band[8000 - 7168:8010 - 7168, 100:110] * 8)
+    np.testing.assert_array_equal(a[8000:8010, 100:110], band[8000 - 7168 : 8010 - 7168, 100:110] * 8)
 
 
 # --------------------------------------------------------------------------- real data
@@ -712,8 +726,21 @@ def test_default_codec_and_unknown_codec(tmp_path):
     with pytest.raises(InputError, match="codec must be one of auto, lz4, zstd, none, got 'gzip'"):
         ingest([tmp_path / "x.npy"], tmp_path / "e.zarr", kind="intensity", tile=32, codec="gzip")
     assert not (tmp_path / "e.zarr").exists()
-    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out",
-                        str(tmp_path / "f.zarr"), "--codec", "lz4"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "ingest",
+            str(tmp_path / "x.npy"),
+            "--out",
+            str(tmp_path / "f.zarr"),
+            "--codec",
+            "lz4",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     (c,) = zarr.open_group(str(tmp_path / "f.zarr"), mode="r")["intensity"].compressors
     assert type(c).__name__ == "BloscCodec"
@@ -755,8 +782,15 @@ def test_tiles_are_written_in_parallel_to_the_same_store(tmp_path, monkeypatch):
     for n in ("1", "3"):
         monkeypatch.setenv("SARSHIP_INGEST_WRITERS", n)
         seen = []
-        sc = ingest([tmp_path / "x.npy"], tmp_path / f"w{n}.zarr", kind="intensity", tile=256, looks=1.0,
-                    codec="zstd", progress=lambda d, t: seen.append((d, t)))
+        sc = ingest(
+            [tmp_path / "x.npy"],
+            tmp_path / f"w{n}.zarr",
+            kind="intensity",
+            tile=256,
+            looks=1.0,
+            codec="zstd",
+            progress=lambda d, t: seen.append((d, t)),
+        )
         calls[n] = seen
         np.testing.assert_array_equal(zarr.open_group(str(sc.path), mode="r")["intensity"][:], x)
         root = tmp_path / f"w{n}.zarr" / "intensity"
@@ -777,8 +811,14 @@ def test_missing_output_folders_are_created_and_removed_on_failure(tmp_path):
     that fails leaves none of them; a file in the way is refused in one line."""
     np.save(tmp_path / "x.npy", rand_f32((16, 16)))
     out = tmp_path / "a" / "b" / "c.zarr"
-    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out", str(out)],
-                       capture_output=True, text=True, cwd=REPO, timeout=120, check=False)
+    r = subprocess.run(
+        [sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=120,
+        check=False,
+    )
     assert r.returncode == 0, r.stderr
     np.testing.assert_array_equal(read(open_scene(out), "intensity"), np.load(tmp_path / "x.npy"))
     assert sorted(os.listdir(out.parent)) == ["c.zarr"]  # published atomically, no temporary left

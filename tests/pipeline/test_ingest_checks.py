@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
+
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers import PROBE_SIDE, ingest
 from sarship.pipeline.scene import open_scene
@@ -26,8 +27,9 @@ from sarship.pipeline.scene import open_scene
 REPO = Path(__file__).resolve().parents[2]
 REAL = REPO.parent / "shared" / "data" / "real"
 OSS = REAL / "opensarship"
-needs_oss = pytest.mark.skipif(not OSS.is_dir(), reason=f"OpenSARShip chips not found at {OSS} "
-                               "(see shared/data/README.md)")
+needs_oss = pytest.mark.skipif(
+    not OSS.is_dir(), reason=f"OpenSARShip chips not found at {OSS} (see shared/data/README.md)"
+)
 
 
 def leftovers(folder: Path) -> list[str]:
@@ -46,19 +48,28 @@ def read(scene, name):
     return np.asarray(scene.array(name)[...])
 
 
-def snap_xml(pols=("VV",), sample_type="COMPLEX", az_looks=1.0, rg_looks=1.0, az=13.9, rg=2.33,
-             band_pols_only=False) -> str:
+def snap_xml(
+    pols=("VV",), sample_type="COMPLEX", az_looks=1.0, rg_looks=1.0, az=13.9, rg=2.33, band_pols_only=False
+) -> str:
     """A minimal SNAP metadata file (the OpenSARShip ``Metedata.xml``)."""
-    attrs = [("PRODUCT", "S1A_TEST_PRODUCT"), ("MISSION", "SENTINEL-1A"), ("ACQUISITION_MODE", "IW"),
-             ("first_line_time", "06-JUN-2016 22:12:31.646524"), ("SAMPLE_TYPE", sample_type),
-             ("azimuth_looks", az_looks), ("range_looks", rg_looks),
-             ("azimuth_spacing", az), ("range_spacing", rg)]
+    attrs = [
+        ("PRODUCT", "S1A_TEST_PRODUCT"),
+        ("MISSION", "SENTINEL-1A"),
+        ("ACQUISITION_MODE", "IW"),
+        ("first_line_time", "06-JUN-2016 22:12:31.646524"),
+        ("SAMPLE_TYPE", sample_type),
+        ("azimuth_looks", az_looks),
+        ("range_looks", rg_looks),
+        ("azimuth_spacing", az),
+        ("range_spacing", rg),
+    ]
     if not band_pols_only:
         attrs += [(f"mds{i + 1}_tx_rx_polar", pols[i] if i < len(pols) else "-") for i in range(4)]
     body = "".join(f'    <attrib name="{k}" value="{v}" />\n' for k, v in attrs)
     if band_pols_only:
-        body += "".join(f'    <Band_IW1_{p}>\n      <attrib name="polarization" value="{p}" />\n'
-                        f'    </Band_IW1_{p}>\n' for p in pols)
+        body += "".join(
+            f'    <Band_IW1_{p}>\n      <attrib name="polarization" value="{p}" />\n    </Band_IW1_{p}>\n' for p in pols
+        )
     return f'<?xml version="1.0"?>\n<Metadata>\n  <Abstracted_Metadata>\n{body}  </Abstracted_Metadata>\n</Metadata>\n'
 
 
@@ -119,8 +130,7 @@ def test_negative_tile_outside_the_probe_aborts_and_leaves_nothing(tmp_path):
     ok = np.ones((16, 16), np.float32)
     np.save(tmp_path / "ok.npy", ok)
     ingest([tmp_path / "ok.npy"], tmp_path / "o.zarr", tile=8)  # an existing scene at out
-    for f, kind in (("late.tif", "auto"), ("late.tif", "intensity"), ("late.tif", "amplitude"),
-                    ("late.npy", "auto")):
+    for f, kind in (("late.tif", "auto"), ("late.tif", "intensity"), ("late.tif", "amplitude"), ("late.npy", "auto")):
         with pytest.raises(InputError) as e:
             ingest([tmp_path / f], tmp_path / "o.zarr", kind=kind, tile=256)
         msg = str(e.value)
@@ -155,9 +165,24 @@ def test_cli_kind_intensity_of_slc_exit_2_one_line(tmp_path):
     (prod / "Patch").mkdir(parents=True)
     (prod / "Metedata.xml").write_text(snap_xml(pols=("VH", "VV")))
     write_tif(prod / "Patch" / "c.tif", slc_bands(npol=2))
-    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(prod / "Patch" / "c.tif"),
-                        "--out", str(tmp_path / "o.zarr"), "--kind", "intensity"],
-                       capture_output=True, text=True, cwd=REPO, timeout=120, check=False)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "ingest",
+            str(prod / "Patch" / "c.tif"),
+            "--out",
+            str(tmp_path / "o.zarr"),
+            "--kind",
+            "intensity",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=120,
+        check=False,
+    )
     assert r.returncode == 2, r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "c.tif" in lines[0] and "complex" in lines[0], r.stderr
@@ -192,8 +217,9 @@ def test_grd_chip_nominal_looks_from_nested_sidecar(tmp_path):
     # GRD amplitude chip two folders below the product's metadata: looks = 1 x 5 (not estimated)
     prod = tmp_path / "S1A_IW_GRDH_TEST"
     (prod / "chips" / "Patch").mkdir(parents=True)
-    (prod / "Metedata.xml").write_text(snap_xml(pols=("VH", "VV"), sample_type="DETECTED",
-                                                rg_looks=5.0, az=10.0, rg=10.0))
+    (prod / "Metedata.xml").write_text(
+        snap_xml(pols=("VH", "VV"), sample_type="DETECTED", rg_looks=5.0, az=10.0, rg=10.0)
+    )
     amp = np.random.default_rng(4).integers(1, 400, (64, 64, 2)).astype(np.float32)
     chip = prod / "chips" / "Patch" / "Cargo_x1_y1.tif"
     write_tif(chip, amp)
@@ -272,9 +298,12 @@ def _product_meta(xml: Path) -> dict:
     am = ET.parse(xml).getroot().find(".//Abstracted_Metadata")
     a = {e.get("name"): e.get("value") for e in am.findall("attrib")}
     pols = [a[f"mds{i}_tx_rx_polar"].lower() for i in range(1, 5) if a.get(f"mds{i}_tx_rx_polar", "-") != "-"]
-    return {"pols": pols, "looks": float(a["azimuth_looks"]) * float(a["range_looks"]),
-            "spacing": [float(a["azimuth_spacing"]), float(a["range_spacing"])],
-            "complex": a["SAMPLE_TYPE"] == "COMPLEX"}
+    return {
+        "pols": pols,
+        "looks": float(a["azimuth_looks"]) * float(a["range_looks"]),
+        "spacing": [float(a["azimuth_spacing"]), float(a["range_spacing"])],
+        "complex": a["SAMPLE_TYPE"] == "COMPLEX",
+    }
 
 
 def _real_chips():

@@ -21,9 +21,13 @@ from sarship.pipeline.readers import C3_BASIS, PAULI_U, ingest, t3_to_c3
 
 REAL_POLSAR = Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "polsar"
 
-SIGMA = np.array([[1.0, 0.10 + 0.05j, 0.45 - 0.10j],  # a sea-like HH/HV/VV covariance
-                  [0.10 - 0.05j, 0.08, 0.02 + 0.01j],
-                  [0.45 + 0.10j, 0.02 - 0.01j, 0.70]])
+SIGMA = np.array(
+    [
+        [1.0, 0.10 + 0.05j, 0.45 - 0.10j],  # a sea-like HH/HV/VV covariance
+        [0.10 - 0.05j, 0.08, 0.02 + 0.01j],
+        [0.45 + 0.10j, 0.02 - 0.01j, 0.70],
+    ]
+)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -51,7 +55,7 @@ def outer(k):
 
 def multilook(M, f):
     H, W = M.shape[0] // f, M.shape[1] // f
-    return M[:H * f, :W * f].reshape(H, f, W, f, *M.shape[2:]).mean(axis=(1, 3))
+    return M[: H * f, : W * f].reshape(H, f, W, f, *M.shape[2:]).mean(axis=(1, 3))
 
 
 def looked(shape, seed=0, f=2):
@@ -89,8 +93,11 @@ def write_folder(d: Path, M, prefix="C", order=0, config=True, headers=True, pol
     for i in range(n):
         for j in range(i, n):
             e = f"{prefix}{i + 1}{j + 1}"
-            parts = ([(e, M[..., i, i].real)] if i == j else
-                     [(f"{e}_real", M[..., i, j].real), (f"{e}_imag", M[..., i, j].imag)])
+            parts = (
+                [(e, M[..., i, i].real)]
+                if i == j
+                else [(f"{e}_real", M[..., i, j].real), (f"{e}_imag", M[..., i, j].imag)]
+            )
             for stem, v in parts:
                 np.ascontiguousarray(v, dtype=dt).tofile(d / f"{stem}.bin")
                 if headers:
@@ -98,8 +105,8 @@ def write_folder(d: Path, M, prefix="C", order=0, config=True, headers=True, pol
     if config:
         pt = polar_type or ("full" if n == 3 else "pp1")
         (d / "config.txt").write_text(
-            f"Nrow\n{H}\n---------\nNcol\n{W}\n---------\nPolarCase\nmonostatic\n"
-            f"---------\nPolarType\n{pt}\n")
+            f"Nrow\n{H}\n---------\nNcol\n{W}\n---------\nPolarCase\nmonostatic\n---------\nPolarType\n{pt}\n"
+        )
     return d
 
 
@@ -150,13 +157,18 @@ def test_c3_folder_exact(tmp_path):
     d = write_folder(tmp_path / "C3", C)
     sc = ingest([d], tmp_path / "c.zarr", tile=32)
     assert sc.kind == "covariance" and sc.shape == SHAPE
-    assert sc.variables == {"c11": "float32", "c12": "complex64", "c13": "complex64",
-                            "c22": "float32", "c23": "complex64", "c33": "float32"}
+    assert sc.variables == {
+        "c11": "float32",
+        "c12": "complex64",
+        "c13": "complex64",
+        "c22": "float32",
+        "c23": "complex64",
+        "c33": "float32",
+    }
     want = f32_elements(C)
     np.testing.assert_array_equal(stored(sc, 3), want)  # float32 values stored exactly
     a = sc.attrs
-    assert a["format"] == "PolSARpro C3" and a["covariance_basis"] == C3_BASIS == \
-        "lexicographic [HH, sqrt2 HV, VV]"
+    assert a["format"] == "PolSARpro C3" and a["covariance_basis"] == C3_BASIS == "lexicographic [HH, sqrt2 HV, VV]"
     assert a["source"] == ["C3"] and "C12_imag.bin" in a["source_files"] and a["byte_order"] == "little-endian"
     assert a["polsarpro_config"]["PolarType"] == "full"
     assert a["looks_source"].startswith("estimated: MoLC") and 2.0 < sc.looks < 8.0  # 4 looks
@@ -307,12 +319,15 @@ def test_header_offset_counts(tmp_path):
     np.testing.assert_array_equal(read(sc, "c11").ravel(), v)
 
 
-@pytest.mark.parametrize("field,value,match", [
-    ("dtype", 6, "unsupported ENVI data type 6"),
-    ("dtype", 2, "unsupported ENVI data type 2"),
-    ("interleave", "tiled", "unsupported interleave"),
-    ("bands", 2, "2 bands"),
-])
+@pytest.mark.parametrize(
+    "field,value,match",
+    [
+        ("dtype", 6, "unsupported ENVI data type 6"),
+        ("dtype", 2, "unsupported ENVI data type 2"),
+        ("interleave", "tiled", "unsupported interleave"),
+        ("bands", 2, "2 bands"),
+    ],
+)
 def test_unsupported_header(tmp_path, field, value, match):
     d = _c3(tmp_path)
     write_header(d / "C12_real.bin.hdr", 16, 24, **{field: value})
@@ -351,6 +366,7 @@ def test_failure_keeps_existing_scene(tmp_path):
     with pytest.raises(InputError, match="C33.bin"):
         ingest([bad], out, tile=32)
     from sarship.pipeline.scene import open_scene
+
     np.testing.assert_array_equal(stored(open_scene(out), 3), before)
 
 
@@ -358,15 +374,25 @@ def test_cli_ingest_folder(tmp_path):
     C, _ = looked((16, 24), seed=12)
     d = write_folder(tmp_path / "C3", C)
     env = dict(os.environ)
-    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(d), "--out", str(tmp_path / "c.zarr")],
-                       capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[2])
+    r = subprocess.run(
+        [sys.executable, "-m", "sarship", "ingest", str(d), "--out", str(tmp_path / "c.zarr")],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=Path(__file__).resolve().parents[2],
+    )
     if r.returncode != 0 and "No module named" in r.stderr:
         pytest.skip(f"sarship not runnable as a module: {r.stderr.strip()[:200]}")
     assert r.returncode == 0, r.stderr
     assert "kind=covariance" in r.stdout
     (d / "C11.bin").write_bytes(b"\0" * 8)
-    r = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(d), "--out", str(tmp_path / "e.zarr")],
-                       capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[2])
+    r = subprocess.run(
+        [sys.executable, "-m", "sarship", "ingest", str(d), "--out", str(tmp_path / "e.zarr")],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=Path(__file__).resolve().parents[2],
+    )
     assert r.returncode == 2 and "C11.bin" in r.stderr and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
+
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.readers import InputLimits, ingest
 from sarship.pipeline.simulate.crafted import crafted_tiff
@@ -119,19 +120,52 @@ def test_pixel_limit_applies_to_every_format(tmp_path):
 
 def test_cli_refuses_in_one_line_and_takes_the_settings(tmp_path):
     p = crafted_tiff(tmp_path / "strip.tif", 40000, 40000, blob=zlib.compress(bytes(2**16)))
-    res = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(p), "--out", str(tmp_path / "o.zarr")],
-                         capture_output=True, text=True, timeout=120)
+    res = subprocess.run(
+        [sys.executable, "-m", "sarship", "ingest", str(p), "--out", str(tmp_path / "o.zarr")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 2, res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and "--max-chunk-mb" in res.stderr, res.stderr
     assert "Traceback" not in res.stderr and not (tmp_path / "o.zarr").exists()
     x = np.ones((50, 40), np.float32)
     np.save(tmp_path / "x.npy", x)
-    res = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out",
-                          str(tmp_path / "x.zarr"), "--max-pixels", "1000"], capture_output=True, text=True, timeout=120)
-    assert res.returncode == 2 and "50 x 40 = 2e+03 pixels, above the limit of 1e+03 (--max-pixels)" in res.stderr, \
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "ingest",
+            str(tmp_path / "x.npy"),
+            "--out",
+            str(tmp_path / "x.zarr"),
+            "--max-pixels",
+            "1000",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert res.returncode == 2 and "50 x 40 = 2e+03 pixels, above the limit of 1e+03 (--max-pixels)" in res.stderr, (
         res.stderr
-    res = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out",
-                          str(tmp_path / "x.zarr"), "--max-pixels", "2000"], capture_output=True, text=True, timeout=120)
+    )
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "ingest",
+            str(tmp_path / "x.npy"),
+            "--out",
+            str(tmp_path / "x.zarr"),
+            "--max-pixels",
+            "2000",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 0, res.stderr
 
 
@@ -151,8 +185,13 @@ def test_service_ingests_in_a_capped_child_and_moves_on(tmp_path):
     httpx = pytest.importorskip("httpx")
     from svc import Server, data_with_scene, free_port, wait_job
 
-    srv = Server(data_with_scene(tmp_path), free_port(), SARSHIP_MAX_CHUNK_MB="1e6", SARSHIP_MAX_RATIO="1e9",
-                 SARSHIP_INGEST_MEMORY_MB="1024").start()
+    srv = Server(
+        data_with_scene(tmp_path),
+        free_port(),
+        SARSHIP_MAX_CHUNK_MB="1e6",
+        SARSHIP_MAX_RATIO="1e9",
+        SARSHIP_INGEST_MEMORY_MB="1024",
+    ).start()
     try:
         u = srv.url
         strip = crafted_tiff(tmp_path / "strip.tif", 40000, 40000, blob=zlib.compress(bytes(2**16)))

@@ -3,23 +3,22 @@
 
 from __future__ import annotations
 
-import math
-
 import json
+import math
 
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from sarship.pipeline.detectors import csk
 from sarship.pipeline.targets import kurtosis_seg as ks
 from sarship.pipeline.targets.components import shape_from_moments
-from sarship.pipeline.detectors import csk
 
 
 def _chip(rng, db):
     z = (rng.standard_normal((64, 64)) + 1j * rng.standard_normal((64, 64))) / math.sqrt(2)
     ship = np.zeros((64, 64), bool)
-    ship[22:42, 30:35] = True          # 20 x 5 px
+    ship[22:42, 30:35] = True  # 20 x 5 px
     z[ship] *= math.sqrt(10 ** (db / 10))
     return z, ship
 
@@ -60,7 +59,7 @@ def test_pure_gaussian_sea_has_almost_no_ship_pixels():
         z = rng.standard_normal((64, 64)) + 1j * rng.standard_normal((64, 64))
         t = ks.kurtosis_threshold(z)
         above.append(float((np.abs(z) > t).mean()))
-    assert np.mean(above) < 0.01    # truncated Gaussian real parts stay sub-Gaussian until the end
+    assert np.mean(above) < 0.01  # truncated Gaussian real parts stay sub-Gaussian until the end
 
 
 def test_otsu_against_brute_force():
@@ -69,19 +68,23 @@ def test_otsu_against_brute_force():
     t = ks.otsu_threshold(a.astype(np.complex128))
     hi = np.percentile(a, 99.5)
     g = np.clip(np.floor(a / hi * 255), 0, 255)
-    best = max(range(255), key=lambda L: (lambda c0, c1: c0.size * c1.size * (c0.mean() - c1.mean()) ** 2
-                                          if c0.size and c1.size else -1)(g[g <= L], g[g > L]))
+    best = max(
+        range(255),
+        key=lambda L: (lambda c0, c1: c0.size * c1.size * (c0.mean() - c1.mean()) ** 2 if c0.size and c1.size else -1)(
+            g[g <= L], g[g > L]
+        ),
+    )
     assert t == pytest.approx((best + 1) / 255 * hi)
     assert 1.0 < t < 8.0
 
 
 def test_ship_geometry_and_inputs():
     m = np.zeros((30, 40), bool)
-    m[10:14, 5:35] = True            # 4 rows x 30 columns
-    m[0, 0] = True                   # another component, far from the centre
+    m[10:14, 5:35] = True  # 4 rows x 30 columns
+    m[0, 0] = True  # another component, far from the centre
     g = ks.ship_geometry(m, (10.0, 2.0))
     assert g.pixels == 120 and g.length_m == pytest.approx(60.0) and g.width_m == pytest.approx(40.0)
-    assert g.heading_deg == pytest.approx(90.0)          # along the columns
+    assert g.heading_deg == pytest.approx(90.0)  # along the columns
     assert ks.ship_geometry(np.zeros((5, 5), bool), (1.0, 1.0)) is None
     with pytest.raises(ValueError, match="complex"):
         ks.kurtosis_threshold(np.ones((8, 8)))
@@ -96,14 +99,14 @@ def test_ship_geometry_is_the_products_moment_geometry():
     length (components.shape_from_moments), not the extent along the main axis (which counted the
     streak whole: 50 m here instead of the moment length)."""
     m = np.zeros((40, 40), bool)
-    m[15:25, 18:22] = True           # 10 rows x 4 columns
-    m[25:35, 20] = True              # a 10-pixel streak below it
+    m[15:25, 18:22] = True  # 10 rows x 4 columns
+    m[25:35, 20] = True  # a 10-pixel streak below it
     g = ks.ship_geometry(m, (10.0, 5.0))
     ref = shape_from_moments(ks.moment_record(m)[0], (10.0, 5.0))
     assert g.pixels == 50
     assert g.length_m == pytest.approx(ref["length_m"]) and g.width_m == pytest.approx(ref["width_m"])
     assert g.heading_deg == pytest.approx(ref["heading_deg"])
-    assert g.length_m < 180.0        # extent: 200 m
+    assert g.length_m < 180.0  # extent: 200 m
 
 
 def test_segment_finds_the_known_ship_length_and_heading():
@@ -124,8 +127,8 @@ def test_segment_leaves_absent_pixels_out():
     rng = np.random.default_rng(5)
     z, ship = _chip(rng, 15.0)
     zn = z.copy()
-    zn[:, :8] = np.nan                       # a no-data stripe
-    zn[30, 32] = complex(np.nan, 1.0)        # a ship pixel with a NaN part
+    zn[:, :8] = np.nan  # a no-data stripe
+    zn[30, 32] = complex(np.nan, 1.0)  # a ship pixel with a NaN part
     seg, t = ks.segment(zn, "kurtosis")
     ok = np.isfinite(zn.real) & np.isfinite(zn.imag)
     assert t == ks.kurtosis_threshold(zn[ok]) and not seg[~ok].any()
@@ -142,16 +145,20 @@ def test_segment_leaves_absent_pixels_out():
 def test_csk_segmentation_parameters_validated():
     assert csk.CSKParams().ship_segmentation == "kurtosis"
     assert csk.CSKParams(ship_segmentation="otsu", segmentation_margin_px="5").segmentation_margin_px == 5
-    assert csk.CSKParams(ship_segmentation=None).ship_segmentation == "none"     # --set ship_segmentation=none
-    for bad in ({"ship_segmentation": "watershed"}, {"ship_segmentation": ""}, {"segmentation_margin_px": 0},
-                {"segmentation_margin_px": 65}):
+    assert csk.CSKParams(ship_segmentation=None).ship_segmentation == "none"  # --set ship_segmentation=none
+    for bad in (
+        {"ship_segmentation": "watershed"},
+        {"ship_segmentation": ""},
+        {"segmentation_margin_px": 0},
+        {"segmentation_margin_px": 65},
+    ):
         with pytest.raises(ValidationError, match=next(iter(bad))):
             csk.CSKParams(**bad)
     from sarship.pipeline import detectors
     from sarship.pipeline.errors import InputError
     from sarship.workers.request import parse_params
 
-    with pytest.raises(InputError, match="parameter 'ship_segmentation'"):     # as the CLI and the API report it
+    with pytest.raises(InputError, match="parameter 'ship_segmentation'"):  # as the CLI and the API report it
         parse_params(detectors.get("csk"), {"ship_segmentation": "watershed"})
     assert parse_params(detectors.get("csk"), {"ship_segmentation": "none"}).ship_segmentation == "none"
 
@@ -165,7 +172,7 @@ def _scene(seed=11):
     ships = []
     for k in range(6):
         r, c = 20 + 70 * (k // 3), 25 + 60 * (k % 3)
-        z[r:r + 16, c:c + 4] *= np.float32(math.sqrt(10 ** 1.8))
+        z[r : r + 16, c : c + 4] *= np.float32(math.sqrt(10**1.8))
         ships.append((r, c))
     z[20:40, 14:22] = np.nan
     return z, ships
@@ -178,7 +185,7 @@ def _segmented_reference(z, mask, props, method):
     assert ra <= r0 and ca <= c0 and rb >= r1 and cb >= c1
     chip = z[ra:rb, ca:cb].astype(np.complex128)
     seed = np.zeros(chip.shape, bool)
-    seed[r0 - ra:r1 - ra, c0 - ca:c1 - ca] = mask[r0:r1, c0:c1]
+    seed[r0 - ra : r1 - ra, c0 - ca : c1 - ca] = mask[r0:r1, c0:c1]
     seg, _ = ks.segment(chip, method)
     comp = ks.component_of(seg, np.abs(np.where(np.isfinite(chip), chip, 0)), seed)
     return shape_from_moments(ks.moment_record(comp, (ra, ca))[0], (10.0, 5.0))
@@ -214,13 +221,19 @@ def test_csk_detections_carry_the_segmented_geometry(tmp_path, client):
         assert "length_m_raw" in p and "centroid_px_raw" in p
         r, c = p["centroid_px"]
         hit = [i for i, s in enumerate(ships) if s[0] <= r < s[0] + 16 and s[1] <= c < s[1] + 4]
-        if hit:       # (csk may find a ship's two ends: both fragments segment to the whole ship)
+        if hit:  # (csk may find a ship's two ends: both fragments segment to the whole ship)
             found.update(hit)
             assert abs(p["length_m"] - 160.0) <= 24.0, p
             assert min(p["heading_deg"], 180.0 - p["heading_deg"]) < 8.0, p
     assert found == set(range(len(ships)))
-    run_detection(scene, "csk", {**settings, "ship_segmentation": "none"}, out_dir=tmp_path / "none",
-                  client=client, progress=False)
+    run_detection(
+        scene,
+        "csk",
+        {**settings, "ship_segmentation": "none"},
+        out_dir=tmp_path / "none",
+        client=client,
+        progress=False,
+    )
     raw = [f["properties"] for f in json.loads((tmp_path / "none" / "detections.geojson").read_text())["features"]]
     assert len(raw) == len(props[4096])
     for a, b in zip(raw, props[4096]):

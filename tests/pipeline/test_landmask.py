@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-
 from conftest import write_scene
+
 from sarship.pipeline.land import landmask as lm
 from sarship.pipeline.simulate import SimConfig, _land_mask, simulate, simulate_array
 from sarship.pipeline.simulate.model import _model
@@ -58,8 +58,9 @@ def mask(run_dir: Path) -> np.ndarray:
 def coast(tmp_path_factory):
     """A 320 x 320 K-distributed sea (4 looks, 10 m) with land and 4 ships (SCR 22 dB), its store and land truth."""
     d = tmp_path_factory.mktemp("coast")
-    cfg = SimConfig(shape=(320, 320), ships=4, seed=3, looks=4.0, clutter="k", land=True, scr_db=22.0,
-                    length_m=(60.0, 200.0))
+    cfg = SimConfig(
+        shape=(320, 320), ships=4, seed=3, looks=4.0, clutter="k", land=True, scr_db=22.0, length_m=(60.0, 200.0)
+    )
     simulate(d / "s.zarr", cfg, tile=128)
     return d / "s.zarr", cfg, land_truth(cfg)
 
@@ -91,8 +92,16 @@ def test_open_sea_has_no_land(clutter, looks):
     class (the ships' texture) is too light (< 2 %) and no land is declared; with 12 ships of
     60-300 m (2.2 % of the pixels) it is declared, and the opening removes every ship blob."""
     for ships, declared in ((3, False), (12, True)):
-        cfg = SimConfig(shape=(512, 512), ships=ships, seed=2, looks=looks, clutter=clutter, land=False,
-                        length_m=(60.0, 300.0), scr_db=20.0)
+        cfg = SimConfig(
+            shape=(512, 512),
+            ships=ships,
+            seed=2,
+            looks=looks,
+            clutter=clutter,
+            land=False,
+            length_m=(60.0, 300.0),
+            scr_db=20.0,
+        )
         data, _ = simulate_array(cfg)
         tc = lm.TextureConfig()
         dec = whole_decision(data["intensity"], tc)
@@ -109,9 +118,9 @@ def town_and_fields(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     I = rng.exponential(1.0, (n, n))
     truth = np.zeros((n, n), bool)
-    truth[:, n // 10:] = True
+    truth[:, n // 10 :] = True
     town = truth.copy()
-    town[int(0.3 * n):] = False
+    town[int(0.3 * n) :] = False
     fields = truth & ~town
     tex = ndimage.gaussian_filter(rng.gamma(1.0, 1.0, (n, n)), 6)
     I[fields] *= 3 * (tex / tex.mean())[fields]
@@ -174,7 +183,7 @@ def test_texture_is_the_local_amplitude_variance():
     t = lm.texture(P, r, (-r, -r), m)
     for i in range(I.shape[0]):
         for j in range(I.shape[1]):
-            w = P[i:i + m, j:j + m]
+            w = P[i : i + m, j : j + m]
             v = w[np.isfinite(w)]
             if v.size < (m * m + 1) // 2:
                 assert np.isnan(t[i, j])
@@ -184,16 +193,23 @@ def test_texture_is_the_local_amplitude_variance():
 
 
 def test_texture_config_validation():
-    for kw, name in (({"window": 4}, "land_window"), ({"open_px": 10}, "land_open_px"),
-                     ({"classes": 1}, "land_classes")):
+    for kw, name in (
+        ({"window": 4}, "land_window"),
+        ({"open_px": 10}, "land_open_px"),
+        ({"classes": 1}, "land_classes"),
+    ):
         with pytest.raises(ValueError, match=name):
             lm.TextureConfig(**kw)
     from sarship.pipeline.detectors import get
-    from sarship.workers.request import JobRequest
     from sarship.pipeline.errors import InputError
+    from sarship.workers.request import JobRequest
 
-    for bad, name in (({"land_window": 8}, "land_window"), ({"land_open_px": 0}, "land_open_px"),
-                      ({"land_close_px": 4}, "land_close_px"), ({"land_classes": 9}, "land_classes")):
+    for bad, name in (
+        ({"land_window": 8}, "land_window"),
+        ({"land_open_px": 0}, "land_open_px"),
+        ({"land_close_px": 4}, "land_close_px"),
+        ({"land_classes": 9}, "land_classes"),
+    ):
         with pytest.raises(InputError, match=name):
             JobRequest.from_inputs("ca_cfar", {"scene": "x", **bad})
     assert get("os_cfar").params(land_mask="none").land_mask is None
@@ -207,8 +223,9 @@ def test_texture_config_validation():
 # lmm's fit (~13 s here) and os_cfar's order statistics (~16 s) are the slowest: under -m slow (the
 # mask is applied the same way for every detector, and the others run it in the default run); lmm's
 # absent-pixel handling is also tested by tests/pipeline/test_nodata_cfar.py
-@pytest.mark.parametrize("detector", [pytest.param(d, marks=pytest.mark.slow) if d in ("lmm", "os_cfar") else d
-                                      for d in INTENSITY_DETECTORS])
+@pytest.mark.parametrize(
+    "detector", [pytest.param(d, marks=pytest.mark.slow) if d in ("lmm", "os_cfar") else d for d in INTENSITY_DETECTORS]
+)
 def test_no_detections_on_land(coast, client, tmp_path, detector):
     """Every intensity detector, land_mask=texture: no detected pixel on the simulated land, no
     ship under the land mask, at least the ships found without it; with land_mask=none the same
@@ -221,8 +238,9 @@ def test_no_detections_on_land(coast, client, tmp_path, detector):
 
     scene, cfg, truth = coast
     st = {"min_area_px": 10}
-    run_detection(scene, detector, {**st, "land_mask": "texture"}, out_dir=tmp_path / "t", client=client,
-                  progress=False, tile=128)
+    run_detection(
+        scene, detector, {**st, "land_mask": "texture"}, out_dir=tmp_path / "t", client=client, progress=False, tile=128
+    )
     m, L = mask(tmp_path / "t"), land(tmp_path / "t")
     assert not (m & truth).any(), int((m & truth).sum())
     assert (L & truth).sum() / truth.sum() >= 0.99
@@ -231,8 +249,9 @@ def test_no_detections_on_land(coast, client, tmp_path, detector):
         r0, c0, r1, c1 = f["properties"]["bbox_px"]
         assert not L[r0:r1, c0:c1].any(), f["properties"]["bbox_px"]
     sc = evaluate(tmp_path / "t" / "detections.geojson", f"{scene}.truth.geojson")
-    run_detection(scene, detector, {**st, "land_mask": "none"}, out_dir=tmp_path / "n", client=client,
-                  progress=False, tile=128)
+    run_detection(
+        scene, detector, {**st, "land_mask": "none"}, out_dir=tmp_path / "n", client=client, progress=False, tile=128
+    )
     sc0 = evaluate(tmp_path / "n" / "detections.geojson", f"{scene}.truth.geojson")
     assert sc["pd"] >= sc0["pd"], (sc, sc0)
     if detector in ("ca_cfar", "os_cfar"):
@@ -245,8 +264,9 @@ def test_land_is_absent_from_rings(coast, client, tmp_path):
     rule: a pixel beside the coast is tested against its sea ring only): masks bit for bit."""
     scene, cfg, truth = coast
     for det in ("ca_cfar", "os_cfar"):
-        run_detection(scene, det, {"land_mask": "texture"}, out_dir=tmp_path / f"t{det}", client=client,
-                      progress=False, tile=128)
+        run_detection(
+            scene, det, {"land_mask": "texture"}, out_dir=tmp_path / f"t{det}", client=client, progress=False, tile=128
+        )
         L = land(tmp_path / f"t{det}")
         I = np.asarray(zarr.open_group(str(scene), mode="r")["intensity"][...]).copy()
         I[L] = np.nan
@@ -260,8 +280,7 @@ def test_land_is_absent_from_rings(coast, client, tmp_path):
 def test_tiled_equals_whole(client, tmp_path):
     """Land mask and detection mask bit for bit for tiles smaller than the windows (land halo 111 px)
     and not dividing the scene; the land mask equals classify() on the whole mirror-padded scene."""
-    cfg = SimConfig(shape=(301, 257), ships=3, seed=7, looks=2.0, clutter="k", land=True,
-                    length_m=(60.0, 150.0))
+    cfg = SimConfig(shape=(301, 257), ships=3, seed=7, looks=2.0, clutter="k", land=True, length_m=(60.0, 150.0))
     scene = simulate(tmp_path / "s.zarr", cfg, tile=64)
     I = np.asarray(zarr.open_group(str(scene), mode="r")["intensity"][...])
     st = {"land_mask": "texture", "guard": 11, "background": 21, "min_area_px": 1}
@@ -278,10 +297,14 @@ def test_tiled_equals_whole(client, tmp_path):
         assert runs[tile]["land"]["mixture"] == runs[301]["land"]["mixture"]
         assert runs[tile]["land"]["threshold"] == runs[301]["land"]["threshold"]
         assert runs[tile]["land"]["sea_mean"] == runs[301]["land"]["sea_mean"]  # the tcr_db reference
-        tcr = [f["properties"]["tcr_db"] for f in json.loads((tmp_path / f"r{tile}" / "detections.geojson")
-                                                             .read_text())["features"]]
-        assert tcr == [f["properties"]["tcr_db"] for f in json.loads((tmp_path / "r301" / "detections.geojson")
-                                                                    .read_text())["features"]]
+        tcr = [
+            f["properties"]["tcr_db"]
+            for f in json.loads((tmp_path / f"r{tile}" / "detections.geojson").read_text())["features"]
+        ]
+        assert tcr == [
+            f["properties"]["tcr_db"]
+            for f in json.loads((tmp_path / "r301" / "detections.geojson").read_text())["features"]
+        ]
     tc = lm.TextureConfig()
     assert np.array_equal(whole_land(I, tc, runs[301]["land"]), L0)
 
@@ -292,8 +315,15 @@ def test_sea_mean_and_detections_tcr(coast, client, tmp_path):
     mean; each detection's tcr_db is 10 log10(mean / reference), about the simulated ships' 22 dB
     SCR for the ships; null without the texture pass."""
     scene, cfg, truth = coast
-    run = run_detection(scene, "ca_cfar", {"land_mask": "texture", "min_area_px": 10}, out_dir=tmp_path / "t",
-                        client=client, progress=False, tile=128)
+    run = run_detection(
+        scene,
+        "ca_cfar",
+        {"land_mask": "texture", "min_area_px": 10},
+        out_dir=tmp_path / "t",
+        client=client,
+        progress=False,
+        tile=128,
+    )
     I = np.asarray(zarr.open_group(str(scene), mode="r")["intensity"][...], np.float64)
     sea = run["land"]["sea_mean"]
     assert abs(10 * np.log10(sea / I[~truth].mean())) < 1.0, (sea, I[~truth].mean())
@@ -304,12 +334,24 @@ def test_sea_mean_and_detections_tcr(coast, client, tmp_path):
         p = f["properties"]
         assert p["tcr_db"] == round(10 * np.log10(p["mean"] / sea), 3)
     ships = [f["properties"]["bbox_px"] for f in json.loads(Path(f"{scene}.truth.geojson").read_text())["features"]]
-    on_ship = [f["properties"]["tcr_db"] for f in feats
-               if any(r0 <= f["properties"]["centroid_px"][0] < r1 and c0 <= f["properties"]["centroid_px"][1] < c1
-                      for r0, c0, r1, c1 in ships)]
+    on_ship = [
+        f["properties"]["tcr_db"]
+        for f in feats
+        if any(
+            r0 <= f["properties"]["centroid_px"][0] < r1 and c0 <= f["properties"]["centroid_px"][1] < c1
+            for r0, c0, r1, c1 in ships
+        )
+    ]
     assert on_ship and min(on_ship) > 12.0, on_ship
-    run_detection(scene, "ca_cfar", {"land_mask": "none", "min_area_px": 10}, out_dir=tmp_path / "n",
-                  client=client, progress=False, tile=128)
+    run_detection(
+        scene,
+        "ca_cfar",
+        {"land_mask": "none", "min_area_px": 10},
+        out_dir=tmp_path / "n",
+        client=client,
+        progress=False,
+        tile=128,
+    )
     feats = json.loads((tmp_path / "n" / "detections.geojson").read_text())["features"]
     assert feats and all(f["properties"]["tcr_db"] is None for f in feats)
 
@@ -326,8 +368,9 @@ def test_sea_mean_rule():
 def test_land_zarr_written_listed_and_recorded(coast, client, tmp_path):
     scene, cfg, truth = coast
     out = tmp_path / "o"
-    run = run_detection(scene, "ca_cfar", {"land_mask": "texture"}, out_dir=out, client=client, progress=False,
-                        tile=128)
+    run = run_detection(
+        scene, "ca_cfar", {"land_mask": "texture"}, out_dir=out, client=client, progress=False, tile=128
+    )
     assert run["outputs"]["land.zarr"] == str((out / "land.zarr").resolve())
     on_disk = json.loads((out / "run.json").read_text())
     assert on_disk["land"]["source"] == "texture" and on_disk["land"]["land"] is True
@@ -336,8 +379,9 @@ def test_land_zarr_written_listed_and_recorded(coast, client, tmp_path):
     g = zarr.open_group(str(out / "land.zarr"), mode="r")
     assert g["land"].dtype == np.uint8 and g["land"].chunks[:2] == (128, 128)
     # a run without a land mask over it removes the stale land.zarr and does not list it
-    run2 = run_detection(scene, "ca_cfar", {"land_mask": "none"}, out_dir=out, client=client, progress=False, tile=128,
-                         overwrite=True)
+    run2 = run_detection(
+        scene, "ca_cfar", {"land_mask": "none"}, out_dir=out, client=client, progress=False, tile=128, overwrite=True
+    )
     assert "land.zarr" not in run2["outputs"] and not (out / "land.zarr").exists()
     assert run2["land"] is None
 
@@ -366,14 +410,16 @@ def test_file_raster_masks(coast, client, tmp_path):
     Image.fromarray((truth * 255).astype(np.uint8)).save(files["png"])
     tifffile.imwrite(files["tif"], truth.astype(np.float32) * 3.0)
     zarr_dir = tmp_path / "z"
-    run_detection(scene, "os_cfar", {"land_mask": str(files["npy"])}, out_dir=zarr_dir, client=client,
-                  progress=False, tile=128)
+    run_detection(
+        scene, "os_cfar", {"land_mask": str(files["npy"])}, out_dir=zarr_dir, client=client, progress=False, tile=128
+    )
     files["zarr"] = zarr_dir / "land.zarr"
     expected = _expected_from_file(scene, client, tmp_path, truth, "truthnan")
     for kind, f in files.items():
         out = tmp_path / f"run-{kind}"
-        run = run_detection(scene, "os_cfar", {"land_mask": str(f)}, out_dir=out, client=client, progress=False,
-                            tile=128)
+        run = run_detection(
+            scene, "os_cfar", {"land_mask": str(f)}, out_dir=out, client=client, progress=False, tile=128
+        )
         assert run["land"]["source"] == "file" and run["land"]["kind"] == "raster", run["land"]
         assert np.array_equal(land(out), truth), kind
         assert np.array_equal(mask(out), expected), kind
@@ -404,14 +450,29 @@ def test_file_vector_masks_pixel_and_lonlat(client, tmp_path):
     hole = [(25.0, 30.0), (40.0, 30.0), (40.0, 50.2), (25.0, 50.2)]
     expected = _brute_inside(outer, H, W) & ~_brute_inside(hole, H, W)
     transform = [500000.0, 10.0, 0.0, 5_600_000.0, 0.0, -10.0]
-    scene = write_scene(tmp_path / "g.zarr", {"intensity": rng.gamma(4.0, 0.25, (H, W)).astype(np.float32)},
-                        tile=32, looks=4.0, crs="EPSG:32631", transform=transform)
+    scene = write_scene(
+        tmp_path / "g.zarr",
+        {"intensity": rng.gamma(4.0, 0.25, (H, W)).astype(np.float32)},
+        tile=32,
+        looks=4.0,
+        crs="EPSG:32631",
+        transform=transform,
+    )
 
     def ring(pts):
         return [list(p) for p in pts] + [list(pts[0])]
 
-    pix = {"type": "FeatureCollection", "pixel_coordinates": True, "features": [
-        {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [ring(outer), ring(hole)]}}]}
+    pix = {
+        "type": "FeatureCollection",
+        "pixel_coordinates": True,
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {},
+                "geometry": {"type": "Polygon", "coordinates": [ring(outer), ring(hole)]},
+            }
+        ],
+    }
     (tmp_path / "pix.geojson").write_text(json.dumps(pix))
     from pyproj import Transformer
 
@@ -424,14 +485,23 @@ def test_file_vector_masks_pixel_and_lonlat(client, tmp_path):
             out.append(tr.transform(e, n))
         return out
 
-    ll = {"type": "Feature", "properties": {}, "geometry": {"type": "MultiPolygon", "coordinates": [
-        [ring(to_ll(outer)), ring(to_ll(hole))]]}}
+    ll = {
+        "type": "Feature",
+        "properties": {},
+        "geometry": {"type": "MultiPolygon", "coordinates": [[ring(to_ll(outer)), ring(to_ll(hole))]]},
+    }
     (tmp_path / "ll.geojson").write_text(json.dumps(ll))
     for name in ("pix", "ll"):
         out = tmp_path / f"r{name}"
-        run = run_detection(scene, "ca_cfar", {"land_mask": str(tmp_path / f"{name}.geojson"), "guard": 5,
-                                               "background": 11}, out_dir=out, client=client, progress=False,
-                            tile=32)
+        run = run_detection(
+            scene,
+            "ca_cfar",
+            {"land_mask": str(tmp_path / f"{name}.geojson"), "guard": 5, "background": 11},
+            out_dir=out,
+            client=client,
+            progress=False,
+            tile=32,
+        )
         assert run["land"]["kind"] == "vector"
         # (lon/lat: the round trip moves vertices by ~1e-9 px; no vertex or edge is that close to a pixel centre)
         assert np.array_equal(land(out), expected), (name, int((land(out) != expected).sum()))
@@ -452,8 +522,9 @@ def test_bad_file_cli_one_line_exit_2(tmp_path, case):
     """``sarship detect --set land_mask=FILE`` with a bad FILE: exit 2, one line naming land_mask,
     nothing written (the check runs before any tile, the cluster is never started)."""
     rng = np.random.default_rng(0)
-    scene = write_scene(tmp_path / "s.zarr", {"intensity": rng.gamma(2.0, 0.5, (40, 30)).astype(np.float32)},
-                        tile=32, looks=2.0)
+    scene = write_scene(
+        tmp_path / "s.zarr", {"intensity": rng.gamma(2.0, 0.5, (40, 30)).astype(np.float32)}, tile=32, looks=2.0
+    )
     content, words = BAD_FILES[case]
     f = tmp_path / ("m.npy" if content == "npy" else "m.geojson")
     if content == "npy":
@@ -461,9 +532,26 @@ def test_bad_file_cli_one_line_exit_2(tmp_path, case):
     elif content is not None:
         f.write_text(content)
     out = tmp_path / "out"
-    p = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
-                        "--set", f"land_mask={f}", "--out", str(out), "--scheduler", "tcp://127.0.0.1:1"],
-                       capture_output=True, text=True, timeout=120)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "detect",
+            str(scene),
+            "--detector",
+            "ca_cfar",
+            "--set",
+            f"land_mask={f}",
+            "--out",
+            str(out),
+            "--scheduler",
+            "tcp://127.0.0.1:1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert p.returncode == 2, p.stderr
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1, p.stderr
@@ -476,12 +564,18 @@ def test_polarimetric_land_is_absent(client, tmp_path, detector, settings):
     """Polarimetric detectors: the land mask comes from the texture of the span, land channels
     become NaN (absent for polsar_absent): the run equals the run on the scene whose land pixels
     are NaN in every channel, and no pixel of the simulated land is detected."""
-    cfg = SimConfig(kind="quadpol", shape=(192, 176), ships=2, seed=5, land=True, length_m=(60.0, 120.0),
-                    scr_db=20.0)
+    cfg = SimConfig(kind="quadpol", shape=(192, 176), ships=2, seed=5, land=True, length_m=(60.0, 120.0), scr_db=20.0)
     scene = simulate(tmp_path / "q.zarr", cfg, tile=64)
     truth = land_truth(cfg)
-    run = run_detection(scene, detector, {"land_mask": "texture", **settings}, out_dir=tmp_path / "t",
-                        client=client, progress=False, tile=64)
+    run = run_detection(
+        scene,
+        detector,
+        {"land_mask": "texture", **settings},
+        out_dir=tmp_path / "t",
+        client=client,
+        progress=False,
+        tile=64,
+    )
     L = land(tmp_path / "t")
     assert run["land"]["land"] and (L & truth).sum() >= 0.99 * truth.sum()
     assert not (mask(tmp_path / "t") & truth).any()

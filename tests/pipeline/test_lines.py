@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import write_scene
+
 from sarship.pipeline.targets.components import merge_radius, tile_components
 from sarship.pipeline.targets.lines import collinear_pairs, discard_lines, near_land, segments
 from sarship.pipeline.targets.ship_features import elongations
@@ -26,9 +26,9 @@ def _dashed(mask, r, c, n, piece=14, gap=4, thick=3, vertical=False):
     for k in range(n):
         a = c + k * (piece + gap)
         if vertical:
-            mask[a:a + piece, r:r + thick] = True
+            mask[a : a + piece, r : r + thick] = True
         else:
-            mask[r:r + thick, a:a + piece] = True
+            mask[r : r + thick, a : a + piece] = True
 
 
 def _rule(recs, **kw):
@@ -49,8 +49,8 @@ def test_segments_measure_like_shape_from_moments():
 
 def test_dashed_line_is_dropped_whole_and_azimuth_streak_is_smear():
     m = np.zeros((120, 300), bool)
-    _dashed(m, 20, 5, 15)                      # a range line: 15 pieces, each passing the shape test alone
-    _dashed(m, 285, 5, 6, vertical=True)       # an azimuth streak (along the rows)
+    _dashed(m, 20, 5, 15)  # a range line: 15 pieces, each passing the shape test alone
+    _dashed(m, 285, 5, 6, vertical=True)  # an azimuth streak (along the rows)
     recs = _records(m)
     assert len(recs) == 21 and (elongations(recs, None) <= 15.0).all()
     why = _rule(recs)
@@ -64,11 +64,11 @@ def test_dashed_line_is_dropped_whole_and_azimuth_streak_is_smear():
 
 def test_convoy_side_by_side_ships_in_a_column_and_a_long_ship_are_kept():
     m = np.zeros((200, 300), bool)
-    for k in range(5):                         # a convoy: parallel ships side by side, 6 px apart
-        m[10 + 10 * k: 14 + 10 * k, 20:50] = True
-    m[100:106, 20:50] = True                   # two ships bow to stern, 5 px apart
+    for k in range(5):  # a convoy: parallel ships side by side, 6 px apart
+        m[10 + 10 * k : 14 + 10 * k, 20:50] = True
+    m[100:106, 20:50] = True  # two ships bow to stern, 5 px apart
     m[100:106, 55:85] = True
-    m[150:158, 100:200] = True                 # one long ship (elongation 12.5)
+    m[150:158, 100:200] = True  # one long ship (elongation 12.5)
     recs = _records(m)
     assert len(recs) == 8
     assert (_rule(recs) == "").all()
@@ -77,11 +77,11 @@ def test_convoy_side_by_side_ships_in_a_column_and_a_long_ship_are_kept():
 
 def test_bright_ship_in_its_streak_is_kept_the_streak_dropped():
     m = np.zeros((200, 60), bool)
-    _dashed(m, 20, 5, 4, vertical=True)            # streak above
-    m[80:110, 18:26] = True                        # the ship, on the streak's axis
-    _dashed(m, 20, 114, 4, vertical=True)          # streak below
+    _dashed(m, 20, 5, 4, vertical=True)  # streak above
+    m[80:110, 18:26] = True  # the ship, on the streak's axis
+    _dashed(m, 20, 114, 4, vertical=True)  # streak below
     v = np.where(m, 2.0, 0.0)
-    v[80:110, 18:26] = 1000.0                      # 27 dB above the streak
+    v[80:110, 18:26] = 1000.0  # 27 dB above the streak
     recs = _records(m, v)
     why = _rule(recs)
     ship = recs["peak"] == 1000.0
@@ -93,8 +93,8 @@ def test_near_land():
     land = np.zeros((50, 50), bool)
     land[:, 40:] = True
     m = np.zeros((50, 50), bool)
-    m[10:14, 30:36] = True   # 4 px from land
-    m[30:34, 5:11] = True    # far
+    m[10:14, 30:36] = True  # 4 px from land
+    m[30:34, 5:11] = True  # far
     recs = _records(m)
     read = lambda a, b, c, d: land[a:b, c:d]  # noqa: E731
     assert near_land(recs, read, land.shape, 4).tolist() == [True, False]
@@ -102,6 +102,7 @@ def test_near_land():
 
 
 # ----------------------------------------------------------------------------- end to end
+
 
 def _lines_scene(tmp_path, tile):
     """Gamma sea (L = 4, mean 1) with, at 23 dB: a dashed range line across the scene (14 pieces
@@ -112,7 +113,7 @@ def _lines_scene(tmp_path, tile):
     m = np.zeros(x.shape, bool)
     _dashed(m, 60, 20, 14, gap=6)
     for k in range(4):
-        m[150 + 10 * k: 154 + 10 * k, 30:46] = True
+        m[150 + 10 * k : 154 + 10 * k, 30:46] = True
     m[180:188, 170:250] = True
     x[m] = rng.gamma(4.0, 50.0, int(m.sum()))
     return write_scene(tmp_path / f"lines_{tile}.zarr", {"intensity": x}, tile=tile, looks=4.0)
@@ -133,9 +134,9 @@ def test_line_across_tiles_dropped_convoy_and_long_ship_kept_end_to_end(client, 
         boxes[tile] = sorted(tuple(f["properties"]["bbox_px"]) for f in feats)
         assert run["discarded"]["line"] == 14, run["discarded"]
         assert run["parameters"]["line_gap_px"] == 16 and run["parameters"]["line_angle_deg"] == 10.0
-        assert not any(55 <= b[0] <= 65 for b in boxes[tile]), boxes[tile]      # nothing of the line
-        assert sum(b[0] >= 148 and b[3] <= 48 for b in boxes[tile]) == 4       # the convoy
-        assert sum(b[0] >= 178 and b[3] >= 240 for b in boxes[tile]) == 1      # the long ship
+        assert not any(55 <= b[0] <= 65 for b in boxes[tile]), boxes[tile]  # nothing of the line
+        assert sum(b[0] >= 148 and b[3] <= 48 for b in boxes[tile]) == 4  # the convoy
+        assert sum(b[0] >= 178 and b[3] >= 240 for b in boxes[tile]) == 1  # the long ship
     assert boxes[48] == boxes[320]
     # the join off: the line's pieces pass the shape test one by one
     feats, run = _detect(client, _lines_scene(tmp_path, 48), tmp_path / "off", 48, line_gap_px=None)
@@ -157,7 +158,7 @@ def test_land_gap_drops_detections_at_the_land_edge_end_to_end(client, tmp_path)
     the one in open sea kept; off by default (both kept)."""
     rng = np.random.default_rng(11)
     x = rng.gamma(4.0, 0.25, (160, 200)).astype(np.float32)
-    x[40:44, 40:52] = rng.gamma(4.0, 50.0, (4, 12))      # open sea
+    x[40:44, 40:52] = rng.gamma(4.0, 50.0, (4, 12))  # open sea
     x[110:114, 140:152] = rng.gamma(4.0, 50.0, (4, 12))  # 3 px from the land
     scene = write_scene(tmp_path / "coast.zarr", {"intensity": x}, tile=200, looks=4.0)
     land = np.zeros(x.shape, np.uint8)

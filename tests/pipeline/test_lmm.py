@@ -13,9 +13,20 @@ import zarr
 from scipy import optimize, special, stats
 
 from sarship.pipeline import detectors
-from sarship.pipeline.detectors.lmm import (LMMParams, SPEC, detect, em_fit_points, fit_threshold, init_z_table,
-                                    mixture_grad_hess, mixture_loglik, mixture_threshold_log, ml_newton,
-                                    predictive_shift, prepare)
+from sarship.pipeline.detectors.lmm import (
+    SPEC,
+    LMMParams,
+    detect,
+    em_fit_points,
+    fit_threshold,
+    init_z_table,
+    mixture_grad_hess,
+    mixture_loglik,
+    mixture_threshold_log,
+    ml_newton,
+    predictive_shift,
+    prepare,
+)
 from sarship.pipeline.tiling.windows import mirror_pad
 from tests.conftest import blobs_scene, write_scene
 
@@ -28,8 +39,18 @@ def _mixture(rng, shape, a, mu, s):
 def _fit(y, K, tol=1e-10, max_iter=5000, wt=None):
     a, mu, s = np.empty(K), np.empty(K), np.empty(K)
     wt = np.ones(y.size) if wt is None else wt
-    it = em_fit_points(np.asarray(y, float), np.asarray(wt, float), y.size, K,
-                       np.asarray(prepare(LMMParams(components=K))["init_z"]), max_iter, tol, a, mu, s)
+    it = em_fit_points(
+        np.asarray(y, float),
+        np.asarray(wt, float),
+        y.size,
+        K,
+        np.asarray(prepare(LMMParams(components=K))["init_z"]),
+        max_iter,
+        tol,
+        a,
+        mu,
+        s,
+    )
     return it, a, mu, s
 
 
@@ -37,10 +58,13 @@ def _fit(y, K, tol=1e-10, max_iter=5000, wt=None):
 # EM and threshold
 
 
-@pytest.mark.parametrize("a0,mu0,s0", [
-    ([0.5, 0.3, 0.2], [-1.0, 0.5, 2.0], [0.5, 0.4, 0.6]),
-    ([0.7, 0.3], [0.0, 1.5], [0.5, 0.8]),
-])
+@pytest.mark.parametrize(
+    "a0,mu0,s0",
+    [
+        ([0.5, 0.3, 0.2], [-1.0, 0.5, 2.0], [0.5, 0.4, 0.6]),
+        ([0.7, 0.3], [0.0, 1.5], [0.5, 0.8]),
+    ],
+)
 def test_em_recovers_mixture(a0, mu0, s0):
     rng = np.random.default_rng(3)
     y = _mixture(rng, 40000, a0, mu0, s0)
@@ -76,11 +100,15 @@ def test_threshold_solves_sf_equation(pfa):
         mu = rng.normal(0, 2, K)
         s = rng.uniform(0.05, 2.0, K)
         t = mixture_threshold_log(a, mu, s, K, z, math.log(pfa))
-        sf = lambda t: float(np.sum(a * stats.norm.sf((t - mu) / s)))
-        assert min(mu + s * z) - 1e-12 <= t <= max(mu + s * z) + 1e-12   # the bracket
+
+        def sf(t):
+            return float(np.sum(a * stats.norm.sf((t - mu) / s)))
+
+        assert min(mu + s * z) - 1e-12 <= t <= max(mu + s * z) + 1e-12  # the bracket
         assert abs(sf(t) / pfa - 1.0) < 1e-7
-        ref = optimize.brentq(lambda t: math.log(sf(t)) - math.log(pfa), min(mu + s * z) - 1e-9,
-                              max(mu + s * z) + 1e-9, xtol=1e-13)
+        ref = optimize.brentq(
+            lambda t: math.log(sf(t)) - math.log(pfa), min(mu + s * z) - 1e-9, max(mu + s * z) + 1e-9, xtol=1e-13
+        )
         assert abs(t - ref) < 1e-8
     # K = 1: the lognormal quantile exactly
     t = mixture_threshold_log(np.ones(1), np.array([0.3]), np.array([0.7]), 1, z, math.log(pfa))
@@ -92,9 +120,9 @@ def test_threshold_solves_sf_equation(pfa):
 
 
 def _unpack(th, K):
-    e = np.r_[th[:K - 1], 0.0]
+    e = np.r_[th[: K - 1], 0.0]
     a = np.exp(e - e.max())
-    return a / a.sum(), th[K - 1:2 * K - 1].copy(), np.exp(th[2 * K - 1:])
+    return a / a.sum(), th[K - 1 : 2 * K - 1].copy(), np.exp(th[2 * K - 1 :])
 
 
 def _np_loglik(y, w, a, mu, s):
@@ -108,8 +136,11 @@ def _np_grad(y, w, th, K):
     comp = a * stats.norm.pdf((y[:, None] - mu) / s) / s
     g = comp / comp.sum(1, keepdims=True)
     u = (y[:, None] - mu) / s
-    return np.r_[np.sum(w[:, None] * (g - a), 0)[:K - 1], np.sum(w[:, None] * g * u / s, 0),
-                 np.sum(w[:, None] * g * (u * u - 1), 0)]
+    return np.r_[
+        np.sum(w[:, None] * (g - a), 0)[: K - 1],
+        np.sum(w[:, None] * g * u / s, 0),
+        np.sum(w[:, None] * g * (u * u - 1), 0),
+    ]
 
 
 @pytest.mark.parametrize("K", [1, 2, 3, 4])
@@ -126,8 +157,7 @@ def test_grad_hess_matches_finite_differences(K):
     assert mixture_loglik(y, w, y.size, K, a, mu, s) == pytest.approx(ll, abs=1e-10)
     np.testing.assert_allclose(G, _np_grad(y, w, th, K), atol=1e-9)
     eps = 1e-5
-    Hn = np.array([(_np_grad(y, w, th + eps * e, K) - _np_grad(y, w, th - eps * e, K)) / (2 * eps)
-                   for e in np.eye(p)])
+    Hn = np.array([(_np_grad(y, w, th + eps * e, K) - _np_grad(y, w, th - eps * e, K)) / (2 * eps) for e in np.eye(p)])
     np.testing.assert_allclose(H, Hn, atol=1e-6)
     assert np.array_equal(H, H.T)
 
@@ -150,19 +180,29 @@ def _ref_threshold(y, K, pfa, tol=1e-5, max_iter=200):
         cands.append((bic, a.size, a, mu, s))
     _, k1, a, mu, s = min(cands, key=lambda c: c[0])
     th0 = np.r_[np.log(a[:-1] / a[-1]), mu, np.log(s)]
-    res = optimize.minimize(lambda th: -_np_loglik(y, w, *_unpack(th, k1)), th0,
-                            jac=lambda th: -_np_grad(y, w, th, k1), method="BFGS", options=dict(gtol=1e-10))
+    res = optimize.minimize(
+        lambda th: -_np_loglik(y, w, *_unpack(th, k1)),
+        th0,
+        jac=lambda th: -_np_grad(y, w, th, k1),
+        method="BFGS",
+        options=dict(gtol=1e-10),
+    )
     th = res.x
     p = 3 * k1 - 1
     eps = 1e-5
-    A = -np.array([(_np_grad(y, w, th + eps * e, k1) - _np_grad(y, w, th - eps * e, k1)) / (2 * eps)
-                   for e in np.eye(p)])
+    A = -np.array(
+        [(_np_grad(y, w, th + eps * e, k1) - _np_grad(y, w, th - eps * e, k1)) / (2 * eps) for e in np.eye(p)]
+    )
     A = 0.5 * (A + A.T)
     a, mu, s = _unpack(th, k1)
-    sf = lambda t: float(np.sum(a * stats.norm.sf((t - mu) / s)))
+
+    def sf(t):
+        return float(np.sum(a * stats.norm.sf((t - mu) / s)))
+
     zq = -special.ndtri(pfa)
-    t = optimize.brentq(lambda t: math.log(sf(t)) - math.log(pfa), min(mu + s * zq) - 1e-6,
-                        max(mu + s * zq) + 1e-6, xtol=1e-14)
+    t = optimize.brentq(
+        lambda t: math.log(sf(t)) - math.log(pfa), min(mu + s * zq) - 1e-6, max(mu + s * zq) + 1e-6, xtol=1e-14
+    )
     u = (t - mu) / s
     S, f = sf(t), float(np.sum(a * stats.norm.pdf(u) / s))
     dS = np.r_[(a * (stats.norm.sf(u) - S))[:-1], a * stats.norm.pdf(u) / s, a * stats.norm.pdf(u) * u]
@@ -178,9 +218,11 @@ def test_default_fit_matches_independent_reference():
     z, lp = float(-special.ndtri(pfa)), math.log(pfa)
     iz = init_z_table(K)
     chosen = set()
-    for clutter, n in [(([0.7, 0.3], [0.0, 1.0], [0.5, 0.8]), 600), (([0.5, 0.3, 0.2], [-1.0, 0.5, 2.0],
-                                                                        [0.5, 0.4, 0.6]), 900),
-                       (([1.0], [0.3], [0.7]), 300)]:
+    for clutter, n in [
+        (([0.7, 0.3], [0.0, 1.0], [0.5, 0.8]), 600),
+        (([0.5, 0.3, 0.2], [-1.0, 0.5, 2.0], [0.5, 0.4, 0.6]), 900),
+        (([1.0], [0.3], [0.7]), 300),
+    ]:
         for _ in range(2):
             y = _mixture(rng, n, *clutter)
             a, mu, s = np.empty(K), np.empty(K), np.empty(K)
@@ -190,7 +232,7 @@ def test_default_fit_matches_independent_reference():
             assert abs(t - t_ref) < 1e-6, (t, t_ref)
             chosen.add(k1)
             # the ML: score ~ 0 and information positive definite at the returned fit
-            th = np.r_[np.log(a[:k1 - 1] / a[k1 - 1]), mu[:k1], np.log(s[:k1])]
+            th = np.r_[np.log(a[: k1 - 1] / a[k1 - 1]), mu[:k1], np.log(s[:k1])]
             assert np.abs(_np_grad(y, np.ones(n), th, k1)).max() < 1e-5
     assert chosen == {1, 2, 3}
     # plumbing: detect's exact form (default select / tail) decides with this threshold
@@ -199,8 +241,8 @@ def test_default_fit_matches_independent_reference():
     halo = 6
     pad = mirror_pad(x, halo)
     _, stat = detect(pad, halo, (-halo, -halo), p, prepare(p))
-    for (i, j) in [(0, 0), (10, 17), (23, 23)]:
-        win = pad[i:i + 13, j:j + 13].astype(float).copy()
+    for i, j in [(0, 0), (10, 17), (23, 23)]:
+        win = pad[i : i + 13, j : j + 13].astype(float).copy()
         win[4:9, 4:9] = np.nan
         t_ref, _ = _ref_threshold(np.log(win[np.isfinite(win)]), 3, 1e-2)
         r = float(x[i, j]) / math.exp(t_ref)
@@ -222,8 +264,9 @@ def test_newton_from_em_and_degenerate_rings():
     z, lp = float(-special.ndtri(1e-5)), math.log(1e-5)
     iz = init_z_table(3)
     for y in (np.full(500, 2.0), np.r_[np.zeros(250), np.ones(250)]):
-        t, _, k1 = fit_threshold(y, np.ones(y.size), y.size, 3, iz, 200, 1e-5, 0.0, True, True, z, lp,
-                                 np.empty(3), np.empty(3), np.empty(3))
+        t, _, k1 = fit_threshold(
+            y, np.ones(y.size), y.size, 3, iz, 200, 1e-5, 0.0, True, True, z, lp, np.empty(3), np.empty(3), np.empty(3)
+        )
         assert np.isfinite(t) and t >= y.max() - 1e-9 and k1 >= 1
 
 
@@ -238,13 +281,29 @@ def test_predictive_shift_one_component():
     y = rng.normal(0.3, 0.7, n)
     m, s = y.mean(), y.std()
     shift = stats.norm.pdf(z) * s * (1 + z * z / 2) / (2 * n * pfa)
-    t, _, k1 = fit_threshold(y, np.ones(n), n, 1, init_z_table(1), 200, 1e-5, 0.0, True, True, z, math.log(pfa),
-                             np.empty(1), np.empty(1), np.empty(1))
+    t, _, k1 = fit_threshold(
+        y,
+        np.ones(n),
+        n,
+        1,
+        init_z_table(1),
+        200,
+        1e-5,
+        0.0,
+        True,
+        True,
+        z,
+        math.log(pfa),
+        np.empty(1),
+        np.empty(1),
+        np.empty(1),
+    )
     assert k1 == 1 and t == pytest.approx(m + s * z + shift, abs=1e-9)
     jac = np.ones(1)
-    A = np.diag([n / s ** 2, 2.0 * n])
-    assert predictive_shift(m + s * z, 1, np.ones(1), np.array([m]), np.array([s]), jac, A) == \
-        pytest.approx(shift, rel=1e-7)
+    A = np.diag([n / s**2, 2.0 * n])
+    assert predictive_shift(m + s * z, 1, np.ones(1), np.array([m]), np.array([s]), jac, A) == pytest.approx(
+        shift, rel=1e-7
+    )
     M = 2_000_000
     mh = rng.normal(0, 1 / math.sqrt(n), M)
     sh = np.sqrt(rng.chisquare(n - 1, M) / n)
@@ -265,9 +324,17 @@ def test_spec_registered_and_params():
     assert SPEC.halo(LMMParams(method="fast")) == p.background // 2
     assert SPEC.halo(LMMParams(method="grid", grid_step=8)) == p.background // 2 + 8
     assert p.select == "bic" and p.tail == "predictive"
-    for bad in (dict(components=0), dict(components=7), dict(method="nope"), dict(tol=0.0),
-                dict(grid_step=0), dict(grid_refine=-1.0), dict(select="aic"), dict(tail="exact")):
-        with pytest.raises(Exception):
+    for bad in (
+        dict(components=0),
+        dict(components=7),
+        dict(method="nope"),
+        dict(tol=0.0),
+        dict(grid_step=0),
+        dict(grid_refine=-1.0),
+        dict(select="aic"),
+        dict(tail="exact"),
+    ):
+        with pytest.raises(Exception):  # noqa: B017 (any refusal)
             LMMParams(**bad)
     prep = prepare(LMMParams(pfa=1e-5))
     assert prep["z"] == pytest.approx(4.264890793922825)
@@ -278,20 +345,26 @@ def _scene(rng, n=80, ships=6):
     x = np.exp(_mixture(rng, (n, n), [0.7, 0.3], [0.0, 1.0], [0.5, 0.8])).astype(np.float32)
     for _ in range(ships):
         r, c = rng.integers(2, n - 6, 2)
-        x[r:r + 3, c:c + 5] *= 60.0
+        x[r : r + 3, c : c + 5] *= 60.0
     return x
 
 
-@pytest.mark.parametrize("method,extra", [("exact", {}), ("fast", {}),
-                                          ("grid", dict(grid_step=4, grid_refine=0.0)),
-                                          ("grid", dict(grid_step=3, grid_refine=1.0))])
+@pytest.mark.parametrize(
+    "method,extra",
+    [
+        ("exact", {}),
+        ("fast", {}),
+        ("grid", dict(grid_step=4, grid_refine=0.0)),
+        ("grid", dict(grid_step=3, grid_refine=1.0)),
+    ],
+)
 def test_tiling_invariance_direct(method, extra):
     rng = np.random.default_rng(11)
     p = LMMParams(method=method, guard=5, background=11, pfa=1e-2, target=3, **extra)
     prep = prepare(p)
     halo = SPEC.halo(p)
     scene = _scene(rng, 40, 4)
-    scene[3, 7] = 0.0      # non-positive / non-finite samples are ignored
+    scene[3, 7] = 0.0  # non-positive / non-finite samples are ignored
     scene[20, 30] = np.nan
     padded = mirror_pad(scene, halo)
     wm, ws = detect(padded, halo, (-halo, -halo), p, prep)
@@ -302,7 +375,7 @@ def test_tiling_invariance_direct(method, extra):
     rows, cols = [0, 7, 19, 40], [0, 13, 27, 40]
     for r0, r1 in zip(rows[:-1], rows[1:]):
         for c0, c1 in zip(cols[:-1], cols[1:]):
-            m, s = detect(padded[r0:r1 + 2 * halo, c0:c1 + 2 * halo], halo, (r0 - halo, c0 - halo), p, prep)
+            m, s = detect(padded[r0 : r1 + 2 * halo, c0 : c1 + 2 * halo], halo, (r0 - halo, c0 - halo), p, prep)
             mask[r0:r1, c0:c1] = m
             stat[r0:r1, c0:c1] = s
     np.testing.assert_array_equal(mask, wm)
@@ -320,19 +393,31 @@ def test_exact_matches_bruteforce_pixel():
     """The thesis path (K fixed, plug-in tail): a few pixels against an independent numpy EM
     + scipy threshold on the same ring."""
     rng = np.random.default_rng(12)
-    p = LMMParams(method="exact", guard=5, background=13, pfa=1e-2, components=2, tol=1e-9, max_iter=3000,
-                  select="fixed", tail="plugin")
+    p = LMMParams(
+        method="exact",
+        guard=5,
+        background=13,
+        pfa=1e-2,
+        components=2,
+        tol=1e-9,
+        max_iter=3000,
+        select="fixed",
+        tail="plugin",
+    )
     prep = prepare(p)
     x = _scene(rng, 30, 2)
     halo = 6
     pad = mirror_pad(x, halo)
     _, stat = detect(pad, halo, (-halo, -halo), p, prep)
-    for (i, j) in [(0, 0), (10, 17), (29, 29), (15, 3)]:
-        win = pad[i:i + 13, j:j + 13].astype(float).copy()
+    for i, j in [(0, 0), (10, 17), (29, 29), (15, 3)]:
+        win = pad[i : i + 13, j : j + 13].astype(float).copy()
         win[4:9, 4:9] = np.nan
         y = np.log(win[np.isfinite(win)])
         _, a, mu, s = _fit(y, 2, tol=1e-9, max_iter=3000)
-        sf = lambda t: float(np.sum(a * stats.norm.sf((t - mu) / s)))
+
+        def sf(t):
+            return float(np.sum(a * stats.norm.sf((t - mu) / s)))
+
         t = optimize.brentq(lambda t: sf(t) - 1e-2, -50, 50, xtol=1e-13)
         r = x[i, j] / math.exp(t)
         if r > 1.0:
@@ -350,6 +435,7 @@ def test_fast_agrees_with_exact():
     the refusal is a discrete decision on each ring that binning can flip
     (docs/algorithms/lmm.md, "Exact, fast and grid forms")."""
     from scipy import ndimage
+
     x = _agreement_fast()[0]
     mf, sf = _run(x, method="fast", refuse_weight=0.0, **AGREEMENT)
     me, se = _run(x, method="exact", refuse_weight=0.0, **AGREEMENT)
@@ -371,7 +457,7 @@ def _run(x, **kw):
 AGREEMENT = dict(guard=7, background=17, pfa=1e-3)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _agreement_fast():
     """The agreement scene (96 x 96, 8 ships) and its fast-form (mask, stat): the reference of
     three agreement tests, computed once per session (read-only arrays)."""
@@ -390,6 +476,7 @@ def test_grid_agrees_with_fast():
     detections within 1); pure interpolation (grid_refine 0) is not, and is only required
     to be close."""
     from scipy import ndimage
+
     x, mf, sf = _agreement_fast()
     p = AGREEMENT
     m1, s1 = _run(x, method="grid", grid_step=1, **p)
@@ -413,7 +500,7 @@ def test_grid_default_windows_ships():
     x = np.exp(_mixture(rng, (n, n), [0.7, 0.3], [0.0, 1.0], [0.5, 0.8])).astype(np.float32)
     for _ in range(6):
         r, c = rng.integers(2, n - 16, 2)
-        x[r:r + 3, c:c + int(rng.integers(3, 14))] *= float(rng.uniform(30, 300))
+        x[r : r + 3, c : c + int(rng.integers(3, 14))] *= float(rng.uniform(30, 300))
     mf, _ = _run(x, method="fast", pfa=1e-5)
     mg, _ = _run(x, method="grid", pfa=1e-5)
     assert mf.sum() > 20
@@ -439,7 +526,8 @@ def test_detect_rejects_bad_input():
 
 def _count_parallel(x, halo, p, prep, size):
     def strip(r0):
-        return int(detect(x[r0:r0 + size // 2 + 2 * halo], halo, (r0, 0), p, prep)[0].sum())
+        return int(detect(x[r0 : r0 + size // 2 + 2 * halo], halo, (r0, 0), p, prep)[0].sum())
+
     with ThreadPoolExecutor(2) as ex:
         return sum(ex.map(strip, [0, size // 2]))
 
@@ -460,8 +548,7 @@ def test_false_alarm_rate_fast():
     rng = np.random.default_rng(7)
     shape = (size + 2 * halo, size + 2 * halo)
     x = np.exp(_mixture(rng, shape, [0.7, 0.3], [0.0, 1.0], [0.5, 0.8])).astype(np.float32)
-    p = LMMParams(method="fast", pfa=pfa, guard=11, background=41, components=2, select="fixed",
-                  tail="plugin")
+    p = LMMParams(method="fast", pfa=pfa, guard=11, background=41, components=2, select="fixed", tail="plugin")
     prep = prepare(p)
     expected = size * size * pfa
     bound = 5.0 * math.sqrt(1.5 * expected)
@@ -482,8 +569,17 @@ def test_false_alarm_rate_grid(refine):
     rng = np.random.default_rng(7)
     shape = (size + 2 * halo, size + 2 * halo)
     x = np.exp(_mixture(rng, shape, [0.7, 0.3], [0.0, 1.0], [0.5, 0.8])).astype(np.float32)
-    p = LMMParams(method="grid", pfa=pfa, guard=11, background=41, components=2, grid_step=8,
-                  grid_refine=refine, select="fixed", tail="plugin")
+    p = LMMParams(
+        method="grid",
+        pfa=pfa,
+        guard=11,
+        background=41,
+        components=2,
+        grid_step=8,
+        grid_refine=refine,
+        select="fixed",
+        tail="plugin",
+    )
     assert SPEC.halo(p) == halo
     prep = prepare(p)
     expected = size * size * pfa
@@ -492,7 +588,6 @@ def test_false_alarm_rate_grid(refine):
     assert abs(n - expected) <= bound, (n, expected, bound)
     wrong = dict(prep, z=float(-special.ndtri(1.3 * pfa)), log_pfa=math.log(1.3 * pfa))
     assert abs(_count_parallel(x, halo, p, wrong, size) - expected) > bound
-
 
 
 C2 = ([0.7, 0.3], [0.0, 1.0], [0.5, 0.8])
@@ -534,7 +629,7 @@ def test_default_fit_is_calibrated_ring_level(name):
     clutter = {"C2": C2, "C3": C3}[name]
     rng = np.random.default_rng(41)
     d = LMMParams()
-    assert d.background ** 2 - d.guard ** 2 == 4880
+    assert d.background**2 - d.guard**2 == 4880
     h = 0.125
     iz = init_z_table(3)
     a, mu, s = np.empty(3), np.empty(3), np.empty(3)
@@ -549,8 +644,12 @@ def test_default_fit_is_calibrated_ring_level(name):
 
     def ratio(rings, pfa, sel, pred, rob):
         z, lp = float(-special.ndtri(pfa)), math.log(pfa)
-        t = np.array([fit_threshold(yv, wv, yv.size, 3, iz, 200, 1e-5, h * h / 12, sel, pred, z, lp,
-                                    a, mu, s, *rob)[0] for yv, wv in rings])
+        t = np.array(
+            [
+                fit_threshold(yv, wv, yv.size, 3, iz, 200, 1e-5, h * h / 12, sel, pred, z, lp, a, mu, s, *rob)[0]
+                for yv, wv in rings
+            ]
+        )
         return float(_true_sf(t, clutter).mean() / pfa)
 
     default_rings = binned_rings(1000, 4880)
@@ -576,8 +675,15 @@ def test_default_false_alarm_count(name):
     clutter = {"C2": C2, "C3": C3}[name]
     size, pfa = 256, 1.6e-2  # expected 1049 as at 512^2 and 4e-3 (the power is the count's)
     p = LMMParams(pfa=pfa)
-    assert (p.components, p.method, p.select, p.tail, p.guard, p.background, p.grid_refine) == \
-        (3, "grid", "bic", "predictive", 41, 81, 1.0)
+    assert (p.components, p.method, p.select, p.tail, p.guard, p.background, p.grid_refine) == (
+        3,
+        "grid",
+        "bic",
+        "predictive",
+        41,
+        81,
+        1.0,
+    )
     halo = SPEC.halo(p)
     rng = np.random.default_rng(7)
     x = np.exp(_mixture(rng, (size + 2 * halo, size + 2 * halo), *clutter)).astype(np.float32)
@@ -604,8 +710,14 @@ def test_tiled_equals_untiled_dask(tmp_path, client):
     # the grid form: its per-pixel maths depends on the global origin (node positions) and
     # its halo comes from SPEC.halo_fn, so this is the stricter check of the tiled pipeline
     # (the fast / exact forms' tiling invariance: test_tiling_invariance_direct)
-    settings = {"pfa": "1e-3", "guard": "11", "background": "31", "min_area_px": "1",
-                "method": "grid", "grid_step": "8"}
+    settings = {
+        "pfa": "1e-3",
+        "guard": "11",
+        "background": "31",
+        "min_area_px": "1",
+        "method": "grid",
+        "grid_step": "8",
+    }
 
     def run(tile, tag):
         out = tmp_path / tag
@@ -633,15 +745,29 @@ def test_ships_on_simulated_scene(tmp_path, client):
     from sarship.pipeline.simulate import SimConfig, simulate
     from sarship.workers.jobs import run_detection
 
-    cfg = SimConfig(kind="intensity", shape=(768, 768), ships=10, seed=5, looks=4.0, clutter="gamma",
-                    scr_db=12.0, length_m=(30.0, 150.0))
+    cfg = SimConfig(
+        kind="intensity",
+        shape=(768, 768),
+        ships=10,
+        seed=5,
+        looks=4.0,
+        clutter="gamma",
+        scr_db=12.0,
+        length_m=(30.0, 150.0),
+    )
     scene = tmp_path / "sim.zarr"
     truth = tmp_path / "sim.truth.geojson"
     simulate(scene, cfg, tile=512, truth_path=truth)
     # grid form with default windows (its detections are fast-form decisions; equal to the
     # fast form's on test_grid_default_windows_ships); the fast form here took ~45 s
-    run_detection(scene, "lmm", {"pfa": "1e-6", "min_area_px": "2", "merge_px": "5", "method": "grid"},
-                  out_dir=tmp_path / "o", client=client, progress=False)
+    run_detection(
+        scene,
+        "lmm",
+        {"pfa": "1e-6", "min_area_px": "2", "merge_px": "5", "method": "grid"},
+        out_dir=tmp_path / "o",
+        client=client,
+        progress=False,
+    )
     s = evaluate(tmp_path / "o" / "detections.geojson", truth)
     assert s["n_truth"] == 10
     assert s["fom"] >= 0.9, s
@@ -661,12 +787,13 @@ def test_default_grid_meets_the_agreement_rule_default_windows():
     """The default grid (step 10, refine 2 nepers) at default windows with ships is within the
     stated tolerance of the fast form (<= 0.1 % of pixels, detections within 1)."""
     from scipy import ndimage
+
     rng = np.random.default_rng(21)
     n = 120
     y = np.exp(_mixture(rng, (n, n), [0.7, 0.3], [0.0, 1.0], [0.5, 0.8])).astype(np.float32)
     for _ in range(6):
         r, c = rng.integers(10, n - 14, size=2)
-        y[r:r + 3, c:c + 5] *= 60.0
+        y[r : r + 3, c : c + 5] *= 60.0
     mf, _ = _run(y, method="fast", pfa=1e-4)
     md, _ = _run(y, pfa=1e-4)
     assert mf.sum() > 20

@@ -7,22 +7,23 @@ import math
 
 import numpy as np
 import pytest
+from scipy import special, stats
+
 from sarship.pipeline.stats.lmm_fit import (
     censored_grad_hess,
     censored_loglik,
     fit_threshold,
     init_z_table,
 )
-from scipy import special, stats
 
 PFA = 1e-5
 H = 0.125  # the fast / grid forms' bin width
 
 
 def _unpack(th, K):
-    e = np.r_[th[:K - 1], 0.0]
+    e = np.r_[th[: K - 1], 0.0]
     a = np.exp(e - e.max())
-    return a / a.sum(), th[K - 1:2 * K - 1].copy(), np.exp(th[2 * K - 1:])
+    return a / a.sum(), th[K - 1 : 2 * K - 1].copy(), np.exp(th[2 * K - 1 :])
 
 
 def _np_cens(th, K, c, nc, sgn=1.0):
@@ -45,14 +46,16 @@ def test_censored_term_grad_hess(K, sgn):
     assert censored_loglik(K, a, mu, s, c, nc, sgn) == pytest.approx(v, rel=1e-12)
     eps = 1e-5
     E = np.eye(p)
-    Gn = np.array([(_np_cens(th + eps * e, K, c, nc, sgn) - _np_cens(th - eps * e, K, c, nc, sgn)) / (2 * eps)
-                   for e in E])
+    Gn = np.array(
+        [(_np_cens(th + eps * e, K, c, nc, sgn) - _np_cens(th - eps * e, K, c, nc, sgn)) / (2 * eps) for e in E]
+    )
     np.testing.assert_allclose(G, Gn, atol=1e-7)
 
     def grad(t):
         g, h = np.zeros(p), np.zeros((p, p))
         censored_grad_hess(K, *_unpack(t, K), c, nc, g, h, sgn)
         return g
+
     Hn = np.array([(grad(th + eps * e) - grad(th - eps * e)) / (2 * eps) for e in E])
     np.testing.assert_allclose(Hm, Hn, atol=1e-6)
 
@@ -60,9 +63,27 @@ def test_censored_term_grad_hess(K, sgn):
 def _thr(y, cens, q=0.0, lcens=0.0, refuse=0.0, K=3, pfa=PFA):
     b, cnt = np.unique(np.floor(y / H), return_counts=True)
     yv, wv = (b + 0.5) * H, cnt.astype(float)
-    return fit_threshold(yv, wv, yv.size, K, init_z_table(K), 200, 1e-5, H * H / 12, True, True,
-                         float(-special.ndtri(pfa)), math.log(pfa), np.empty(K), np.empty(K), np.empty(K),
-                         cens, q, lcens, refuse)
+    return fit_threshold(
+        yv,
+        wv,
+        yv.size,
+        K,
+        init_z_table(K),
+        200,
+        1e-5,
+        H * H / 12,
+        True,
+        True,
+        float(-special.ndtri(pfa)),
+        math.log(pfa),
+        np.empty(K),
+        np.empty(K),
+        np.empty(K),
+        cens,
+        q,
+        lcens,
+        refuse,
+    )
 
 
 def test_censor_zero_is_the_uncensored_fit_and_k1_censored_ml():
@@ -78,12 +99,48 @@ def test_censor_zero_is_the_uncensored_fit_and_k1_censored_ml():
     # the censored ML recovers (mu, s) of the whole sample
     y = np.sort(rng.normal(0.2, 0.6, 20000))
     a, mu, s = np.empty(1), np.empty(1), np.empty(1)
-    fit_threshold(y, np.ones(y.size), y.size, 1, init_z_table(1), 500, 1e-10, 0.0, True, True, 4.26,
-                  math.log(PFA), a, mu, s, 0.2, 0.15)
+    fit_threshold(
+        y,
+        np.ones(y.size),
+        y.size,
+        1,
+        init_z_table(1),
+        500,
+        1e-10,
+        0.0,
+        True,
+        True,
+        4.26,
+        math.log(PFA),
+        a,
+        mu,
+        s,
+        0.2,
+        0.15,
+    )
     assert mu[0] == pytest.approx(0.2, abs=0.02) and s[0] == pytest.approx(0.6, abs=0.02)
     # and 30 % left-censored as well (the darkest points known only to lie below the lowest kept one)
-    fit_threshold(y, np.ones(y.size), y.size, 1, init_z_table(1), 500, 1e-10, 0.0, True, True, 4.26,
-                  math.log(PFA), a, mu, s, 0.2, 0.15, 0.3, 0.0)
+    fit_threshold(
+        y,
+        np.ones(y.size),
+        y.size,
+        1,
+        init_z_table(1),
+        500,
+        1e-10,
+        0.0,
+        True,
+        True,
+        4.26,
+        math.log(PFA),
+        a,
+        mu,
+        s,
+        0.2,
+        0.15,
+        0.3,
+        0.0,
+    )
     assert mu[0] == pytest.approx(0.2, abs=0.02) and s[0] == pytest.approx(0.6, abs=0.02)
     # a refusal on one component never triggers (nothing to refuse): the uncensored fit bit for bit
     assert _thr(y[:1240], 0.0, refuse=0.15) == _thr(y[:1240], 0.0)
@@ -92,8 +149,16 @@ def test_censor_zero_is_the_uncensored_fit_and_k1_censored_ml():
 def _ksea(seed=3):
     from sarship.pipeline.simulate import SimConfig, simulate_array
 
-    cfg = SimConfig(kind="intensity", shape=(512, 512), ships=15, seed=seed, looks=4.0, clutter="k",
-                    scr_db=15.0, length_m=(120.0, 400.0))
+    cfg = SimConfig(
+        kind="intensity",
+        shape=(512, 512),
+        ships=15,
+        seed=seed,
+        looks=4.0,
+        clutter="k",
+        scr_db=15.0,
+        length_m=(120.0, 400.0),
+    )
     arrs, truth = simulate_array(cfg)
     return np.log(np.maximum(arrs["intensity"].astype(float), 1e-30)), truth["features"]
 
@@ -102,7 +167,7 @@ def _ring(lx, i, j, rg=10, rb=20):
     Hh, Ww = lx.shape
     r0, r1, c0, c1 = max(i - rb, 0), min(i + rb + 1, Hh), max(j - rb, 0), min(j + rb + 1, Ww)
     w = lx[r0:r1, c0:c1].copy()
-    w[max(i - rg, 0) - r0:i + rg + 1 - r0, max(j - rg, 0) - c0:j + rg + 1 - c0] = np.nan
+    w[max(i - rg, 0) - r0 : i + rg + 1 - r0, max(j - rg, 0) - c0 : j + rg + 1 - c0] = np.nan
     return w[np.isfinite(w)]
 
 
@@ -112,10 +177,16 @@ def _found(lx, ships, **opts):
     n = 0
     for f in ships:
         r0, c0, r1, c1 = f["properties"]["bbox_px"]
-        sub = lx[r0:r1 + 1, c0:c1 + 1]
+        sub = lx[r0 : r1 + 1, c0 : c1 + 1]
         top = np.argsort(sub.ravel())[::-1][:6]
-        n += sum(lx[r0 + k // sub.shape[1], c0 + k % sub.shape[1]] >
-                 _thr(_ring(lx, r0 + k // sub.shape[1], c0 + k % sub.shape[1]), **opts)[0] for k in top) >= 3
+        n += (
+            sum(
+                lx[r0 + k // sub.shape[1], c0 + k % sub.shape[1]]
+                > _thr(_ring(lx, r0 + k // sub.shape[1], c0 + k % sub.shape[1]), **opts)[0]
+                for k in top
+            )
+            >= 3
+        )
     return n
 
 
@@ -143,6 +214,7 @@ def _ships_found_end_to_end(x, ships, **kw):
     resolved for the simulator's 10 m pixels: 200 m^2 = 2 px; its 25 m length rule is not
     applied here, and cannot remove these ships of >= 120 m)."""
     from scipy import ndimage
+
     from sarship.pipeline.detectors.base import resolve_size
     from sarship.pipeline.detectors.lmm import SPEC, LMMParams, detect, prepare
 
@@ -158,7 +230,7 @@ def _ships_found_end_to_end(x, ships, **kw):
     n = 0
     for f in ships:
         r0, c0, r1, c1 = f["properties"]["bbox_px"]
-        n += bool(big[lab[r0:r1 + 1, c0:c1 + 1]].any())
+        n += bool(big[lab[r0 : r1 + 1, c0 : c1 + 1]].any())
     return n
 
 
@@ -171,8 +243,9 @@ def test_ships_k_sea_end_to_end_at_defaults():
     assert _ships_found_end_to_end(np.exp(lx), ships) >= 14
 
 
-@pytest.mark.parametrize("name,bad", [("refuse_weight", 0.7), ("refuse_weight", -0.1), ("censor_low", 0.6),
-                                      ("censor_low", -1.0)])
+@pytest.mark.parametrize(
+    "name,bad", [("refuse_weight", 0.7), ("refuse_weight", -0.1), ("censor_low", 0.6), ("censor_low", -1.0)]
+)
 def test_robust_fit_parameters_validated(name, bad):
     from sarship.pipeline.detectors.lmm import LMMParams
 

@@ -17,8 +17,7 @@ import pytest
 from sarship.pipeline import detectors
 from sarship.pipeline.gpu import available
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 
 @pytest.fixture(scope="module")
@@ -31,16 +30,19 @@ def cp():
 def _ksea_block(p, n=256):
     from sarship.pipeline.simulate import SimConfig, simulate_array
 
-    cfg = SimConfig(kind="intensity", shape=(n, n), ships=4, seed=3, looks=4.0, clutter="k",
-                    scr_db=15.0, length_m=(120.0, 400.0))
+    cfg = SimConfig(
+        kind="intensity", shape=(n, n), ships=4, seed=3, looks=4.0, clutter="k", scr_db=15.0, length_m=(120.0, 400.0)
+    )
     arrs, _ = simulate_array(cfg)
     spec = detectors.get("lmm")
     halo = spec.halo(p)
     return np.pad(arrs["intensity"].astype(np.float32), halo, constant_values=np.nan), halo
 
 
-@pytest.mark.parametrize("kw", [{}, {"method": "fast", "guard": 11, "background": 21},
-                                {"censor": 0.1, "censor_level": 0.03}, {"censor_low": 0.1}])
+@pytest.mark.parametrize(
+    "kw",
+    [{}, {"method": "fast", "guard": 11, "background": 21}, {"censor": 0.1, "censor_level": 0.03}, {"censor_low": 0.1}],
+)
 def test_robust_fit_on_cupy_block_equals_cpu(cp, kw):
     spec = detectors.get("lmm")
     p = spec.params(**kw)

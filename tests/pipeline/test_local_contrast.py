@@ -38,8 +38,9 @@ def test_ring_mean_leaves_out_the_grown_box_and_the_excluded():
 
 
 def _features(*boxes_means):
-    return [{"type": "Feature", "geometry": None, "properties": {"bbox_px": list(b), "mean": m}}
-            for b, m in boxes_means]
+    return [
+        {"type": "Feature", "geometry": None, "properties": {"bbox_px": list(b), "mean": m}} for b, m in boxes_means
+    ]
 
 
 def test_add_local_contrast_values_land_mask_and_edges():
@@ -174,10 +175,15 @@ def test_cached_windows_equal_direct_reads_and_read_each_block_once():
 
     cw = CachedWindows(read, a.shape, block=64)
     for _ in range(3):
-        for ra, rb, ca, cb in ((0, 10, 0, 10), (60, 70, 60, 130), (250, 300, 200, 257), (-5, 400, -3, 300),
-                               (100, 100, 5, 9)):
+        for ra, rb, ca, cb in (
+            (0, 10, 0, 10),
+            (60, 70, 60, 130),
+            (250, 300, 200, 257),
+            (-5, 400, -3, 300),
+            (100, 100, 5, 9),
+        ):
             got = cw(ra, rb, ca, cb)
-            want = a[max(ra, 0):min(rb, 300), max(ca, 0):min(cb, 257)]
+            want = a[max(ra, 0) : min(rb, 300), max(ca, 0) : min(cb, 257)]
             assert got.shape == want.shape and np.array_equal(got, want)
     n_blocks = 5 * 5  # 300 / 64 -> 5 block rows, 257 / 64 -> 5 block columns
     assert cw.reads == n_blocks  # every block read once over the three passes
@@ -185,8 +191,9 @@ def test_cached_windows_equal_direct_reads_and_read_each_block_once():
     got[:] = -1  # a copy: the cache is not changed through it
     assert np.array_equal(cw(0, 10, 0, 10), a[:10, :10])
     # trailing axes (stacked channels) and a budget of one block: still right, read again as needed
-    cs = CachedWindows(lambda ra, rb, ca, cb: stack[ra:rb, ca:cb], stack.shape[:2], block=64,
-                       max_bytes=stack[:64, :64].nbytes)
+    cs = CachedWindows(
+        lambda ra, rb, ca, cb: stack[ra:rb, ca:cb], stack.shape[:2], block=64, max_bytes=stack[:64, :64].nbytes
+    )
     for ra, rb, ca, cb in ((0, 130, 0, 70), (5, 9, 250, 257), (0, 130, 0, 70)):
         assert np.array_equal(cs(ra, rb, ca, cb), stack[ra:rb, ca:cb])
     assert cs.reads > 6 and len(cs._blocks) == 1
@@ -202,8 +209,9 @@ def test_contrast_of_complex_scenes(tmp_path, client, kind, detector):
     cfg = SimConfig(kind=kind, shape=(512, 512), ships=4, seed=5, clutter="rayleigh", scr_db=15.0)
     scene = tmp_path / "c.zarr"
     simulate(scene, cfg, tile=512, truth_path=tmp_path / "c.truth.geojson")
-    run = run_detection(scene, detector, {"min_contrast_db": -30}, out_dir=tmp_path / "o", client=client,
-                        progress=False)
+    run = run_detection(
+        scene, detector, {"min_contrast_db": -30}, out_dir=tmp_path / "o", client=client, progress=False
+    )
     feats = json.loads((tmp_path / "o" / "detections.geojson").read_text())["features"]
     assert run["contrast"]["measured"] and run["contrast"]["dropped"] == 0 and feats
     values = [f["properties"]["contrast_db"] for f in feats]
@@ -233,7 +241,7 @@ def test_land_file_is_left_out_of_the_ring_end_to_end(client, tmp_path):
     m = GAP_PX + RING_PX
     win = (slice(110 - m, 114 + m), slice(140 - m, 150 + m))
     ring = np.ones(x.shape, bool)
-    ring[110 - GAP_PX:114 + GAP_PX, 140 - GAP_PX:150 + GAP_PX] = False
+    ring[110 - GAP_PX : 114 + GAP_PX, 140 - GAP_PX : 150 + GAP_PX] = False
     ring &= ~detected
     keep = np.zeros(x.shape, bool)
     keep[win] = True

@@ -24,7 +24,7 @@ def add_bright_blobs(img: np.ndarray, frac: float = 0.02, seed: int = 0, gain: f
     while mask.mean() < frac:
         h, w = rng.integers(6, 16, 2)
         r, c = rng.integers(0, H - h), rng.integers(0, W - w)
-        mask[r:r + h, c:c + w] = True
+        mask[r : r + h, c : c + w] = True
     out = img.copy()
     out[mask] *= gain
     return out, mask

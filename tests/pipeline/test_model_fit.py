@@ -9,13 +9,14 @@ land mask off: the fit is what is tested here.
 from __future__ import annotations
 
 import json
+
 import numpy as np
 import pytest
 from scipy.stats import beta
 
 from sarship.pipeline.stats import model_fit
-from tests.conftest import write_scene
 from tests.cli.test_cli import assert_clean_error, sarship
+from tests.conftest import write_scene
 
 NO_LAND = {"land_mask": "none"}
 
@@ -27,7 +28,7 @@ def sea(kind: str, shape=(256, 256), looks: float = 4.0, nu: float = 2.0, seed: 
     if kind == "k":
         x = x * rng.gamma(nu, 1.0 / nu, shape)
     for r, c in ((60, 70), (180, 150)):
-        x[r:r + 4, c:c + 9] += 200.0
+        x[r : r + 4, c : c + 9] += 200.0
     return x.astype(np.float32)
 
 
@@ -40,8 +41,15 @@ def seas(tmp_path_factory):
 def _run(client, scene, detector, tmp_path, tile=None, **settings):
     from sarship.workers.jobs import run_detection
 
-    return run_detection(scene, detector, {**NO_LAND, **settings}, out_dir=tmp_path / f"{detector}-{tile}",
-                         tile=tile, client=client, progress=False)
+    return run_detection(
+        scene,
+        detector,
+        {**NO_LAND, **settings},
+        out_dir=tmp_path / f"{detector}-{tile}",
+        tile=tile,
+        client=client,
+        progress=False,
+    )
 
 
 # ----------------------------------------------------------------------------- the maths
@@ -55,14 +63,17 @@ def test_interval_is_clopper_pearson():
     assert model_fit.interval(0, 1000)[0] == 0.0
 
 
-@pytest.mark.parametrize("k,n,pfa,expected", [
-    (16, 16384, 1e-3, "fits"),            # 1x
-    (40, 16384, 1e-3, "fits"),            # 2.4x: the interval reaches below 2x the PFA
-    (500, 16384, 1e-3, "too many false alarms"),
-    (0, 16384, 1e-3, "too few"),
-    (0, 16384, 1e-5, "undetermined"),     # 0.16 expected: the sample cannot resolve 1e-5
-    (0, 0, 1e-3, "undetermined"),
-])
+@pytest.mark.parametrize(
+    "k,n,pfa,expected",
+    [
+        (16, 16384, 1e-3, "fits"),  # 1x
+        (40, 16384, 1e-3, "fits"),  # 2.4x: the interval reaches below 2x the PFA
+        (500, 16384, 1e-3, "too many false alarms"),
+        (0, 16384, 1e-3, "too few"),
+        (0, 16384, 1e-5, "undetermined"),  # 0.16 expected: the sample cannot resolve 1e-5
+        (0, 0, 1e-3, "undetermined"),
+    ],
+)
 def test_verdict(k, n, pfa, expected):
     assert model_fit.verdict(pfa, k, n)[0] == expected
 
@@ -79,8 +90,7 @@ def test_grid_is_global_and_targets_are_excluded():
 
 
 def test_choose_rule():
-    rec = {"verdict": "too many false alarms", "exceedances": 300, "sample": 10000, "probe_pfa": 1e-3,
-           "ratio": 30.0}
+    rec = {"verdict": "too many false alarms", "exceedances": 300, "sample": 10000, "probe_pfa": 1e-3, "ratio": 30.0}
     fits = {**rec, "verdict": "fits", "exceedances": 10, "ratio": 1.0}
     few = {**rec, "verdict": "too few", "exceedances": 0, "ratio": 0.0}
     assert model_fit.choose({"ca_cfar": rec, "k_cfar": fits, "g0_cfar": fits})[0] == "k_cfar"
@@ -90,8 +100,13 @@ def test_choose_rule():
     assert model_fit.choose({"ca_cfar": four, "k_cfar": fits, "g0_cfar": fits})[0] == "ca_cfar"
     assert model_fit.choose({"ca_cfar": rec, "k_cfar": few, "g0_cfar": fits})[0] == "k_cfar"
     # none fits: the nearest on a log scale (30x, 15x, 300x)
-    name, why = model_fit.choose({"ca_cfar": rec, "k_cfar": {**rec, "exceedances": 150, "ratio": 15.0},
-                                  "g0_cfar": {**rec, "exceedances": 3000, "ratio": 300.0}})
+    name, why = model_fit.choose(
+        {
+            "ca_cfar": rec,
+            "k_cfar": {**rec, "exceedances": 150, "ratio": 15.0},
+            "g0_cfar": {**rec, "exceedances": 3000, "ratio": 300.0},
+        }
+    )
     assert name == "k_cfar" and "no candidate" in why
 
 
@@ -116,7 +131,9 @@ def test_k_sea_ca_cfar_too_many_k_cfar_fits(client, seas, tmp_path):
     # the line stderr gets (sarship detect prints run.json's warnings, one line each)
     line = [w for w in run["warnings"] if w.startswith("model fit")]
     assert len(line) == 1 and "heavier-tailed than ca_cfar's model" in line[0], run["warnings"]
-    assert f"(exceedance {ca['ratio']:.3g}x the PFA at 0.001" in line[0] and "try --detector k_cfar or g0_cfar" in line[0]
+    assert (
+        f"(exceedance {ca['ratio']:.3g}x the PFA at 0.001" in line[0] and "try --detector k_cfar or g0_cfar" in line[0]
+    )
     k = _run(client, seas["k"], "k_cfar", tmp_path)
     assert k["model_fit"]["verdict"] == "fits", k["model_fit"]
     assert [m["pfa"] for m in k["model_fit"]["measurements"]] == [1e-3]  # its default PFA is the probe
@@ -152,8 +169,9 @@ def test_fit_measured_for_the_cfar_detectors_only():
     os_ = detectors.get("os_cfar")  # its probe: its gamma model's cell-averaging decision, same windows
     (probe,) = _fit_config("os_cfar", os_, os_.params(looks=4.0), (800, 800))["probes"]
     assert probe["detector"] == "ca_cfar" and probe["params"]["guard"] == os_.params().guard
-    assert probe["prep"]["threshold"] == ca.prepare(ca.params(looks=4.0, pfa=1e-3, guard=21, background=41))[
-        "threshold"]
+    assert (
+        probe["prep"]["threshold"] == ca.prepare(ca.params(looks=4.0, pfa=1e-3, guard=21, background=41))["threshold"]
+    )
     for name in ("lmm", "superpixel_cfar", "gamma_mrf", "csk"):
         assert _fit_config(name, None, None, (800, 800)) is None
 
@@ -168,8 +186,18 @@ def test_auto_on_gamma_sea_picks_ca_cfar(client, seas, tmp_path):
 
 def test_cli_auto_on_k_sea_picks_k_cfar(client, seas, tmp_path):
     out = tmp_path / "out"
-    res = sarship("detect", seas["k"], "--detector", "auto", "--set", "land_mask=none", "--out", out,
-                  "--scheduler", client.scheduler.address)
+    res = sarship(
+        "detect",
+        seas["k"],
+        "--detector",
+        "auto",
+        "--set",
+        "land_mask=none",
+        "--out",
+        out,
+        "--scheduler",
+        client.scheduler.address,
+    )
     assert res.returncode == 0, res.stderr
     run = json.loads((out / "run.json").read_text())
     auto = run["detector_auto"]

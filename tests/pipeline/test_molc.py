@@ -63,8 +63,9 @@ def test_k_bracket_is_a_bracket_and_inversion_converges(L, pfa):
     np.testing.assert_allclose(t, molc.k_tau_bisect(nu, L, pfa), rtol=1e-11)
 
 
-@pytest.mark.parametrize("a,L,pfa", [(0.08, 1.0, 1e-3), (1.5, 1.0, 1e-3), (3.0, 2.0, 1e-6), (80.0, 4.5, 1e-3),
-                                     (2e4, 1.0, 1e-12)])
+@pytest.mark.parametrize(
+    "a,L,pfa", [(0.08, 1.0, 1e-3), (1.5, 1.0, 1e-3), (3.0, 2.0, 1e-6), (80.0, 4.5, 1e-3), (2e4, 1.0, 1e-12)]
+)
 def test_g0_closed_form_equals_numerical_inversion(a, L, pfa):
     """Eq (3) against brentq on ln t of the G0 CDF (betainc)."""
     gam = max(2.0, a)  # x of order 1

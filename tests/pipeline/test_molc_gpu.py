@@ -16,8 +16,7 @@ from sarship.pipeline import detectors
 from sarship.pipeline.gpu import available
 from sarship.pipeline.tiling.windows import mirror_pad
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 
 @pytest.fixture(scope="module")
@@ -33,9 +32,9 @@ def _scene(n, seed):
     x = ((a - 1) * rng.gamma(L, 1 / L, (n, n)) / rng.gamma(a, 1.0, (n, n))).astype(np.float32)
     for _ in range(max(4, n // 40)):
         i, j = rng.integers(8, n - 12, 2)
-        x[i: i + 3, j: j + 5] *= 80.0
-    x[: n // 7, : n // 5] = np.nan   # no-data corner
-    x[n // 2, n // 3] = 0.0          # unusable for ln x
+        x[i : i + 3, j : j + 5] *= 80.0
+    x[: n // 7, : n // 5] = np.nan  # no-data corner
+    x[n // 2, n // 3] = 0.0  # unusable for ln x
     return x
 
 
@@ -59,9 +58,9 @@ def _check(mc, sc, mg, sg):
 
 
 @pytest.mark.parametrize("det", ["g0_cfar", "k_cfar", "ggd_cfar"])
-@pytest.mark.parametrize("kw", [{"pfa": 1e-3, "guard": 11, "background": 31},
-                                {"pfa": 1e-2, "guard": 7, "background": 21, "censor": 5.0},
-                                {}])
+@pytest.mark.parametrize(
+    "kw", [{"pfa": 1e-3, "guard": 11, "background": 31}, {"pfa": 1e-2, "guard": 7, "background": 21, "censor": 5.0}, {}]
+)
 def test_gpu_matches_cpu(cp, det, kw):
     x = _scene(700, 3)
     mc, sc, mg, sg = _both(cp, det, x, **kw)
@@ -100,6 +99,6 @@ def test_gpu_tiles_equal_whole_block(cp):
         for r0 in range(0, 300, t):
             for c0 in range(0, 300, t):
                 r1, c1 = min(r0 + t, 300), min(c0 + t, 300)
-                m, s = spec.detect(cp.asarray(P[r0: r1 + 2 * h, c0: c1 + 2 * h]), h, (r0 - h, c0 - h), p, prep)
+                m, s = spec.detect(cp.asarray(P[r0 : r1 + 2 * h, c0 : c1 + 2 * h]), h, (r0 - h, c0 - h), p, prep)
                 np.testing.assert_array_equal(m.get(), mw[r0:r1, c0:c1])
                 np.testing.assert_array_equal(s.get(), sw[r0:r1, c0:c1])

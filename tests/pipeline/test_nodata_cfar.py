@@ -28,10 +28,10 @@ from sarship.pipeline import detectors
 from sarship.pipeline.tiling.windows import mirror_pad, padded_block
 
 H = W = 192
-B = 30                        # border width
+B = 30  # border width
 SHIPS = [(60, 60), (130, 90), (90, 140)]
-EDGE_SHIP = (96, B + 4)       # 4 px inside the left border
-WEDGE_SHIP = (52, 150)        # a few px above the wedge's upper edge
+EDGE_SHIP = (96, B + 4)  # 4 px inside the left border
+WEDGE_SHIP = (52, 150)  # a few px above the wedge's upper edge
 PFA = 1e-3
 WIN = {"pfa": PFA, "guard": 7, "background": 15, "min_area_px": 1}
 #: detector -> (parameters, clutter, PFA factor allowed (lmm: fitted tail, calibrated approximately))
@@ -42,14 +42,14 @@ SETTINGS = {
     "lmm": ({**WIN, "method": "fast", "components": 2, "max_iter": 50, "tol": 1e-3}, "gamma", 3.0),
 }
 CASES = ["nan_border", "zero_border", "nan_wedge"]
-D = WIN["background"] // 2   # the band where the windows reach the absent region
+D = WIN["background"] // 2  # the band where the windows reach the absent region
 
 
 def _absent(case: str) -> np.ndarray:
     r, c = np.mgrid[:H, :W]
     if case in ("nan_border", "zero_border"):
         a = np.ones((H, W), bool)
-        a[B:H - B, B:W - B] = False
+        a[B : H - B, B : W - B] = False
         return a
     # a NaN wedge from the right edge: apex at (96, 110), base rows 30 .. 162 on the last column
     return (c >= 110) & (np.abs(r - 96) <= (c - 110) * 66.0 / 81.0)
@@ -64,7 +64,7 @@ def _clean(clutter: str) -> np.ndarray:
         x = 10.0 + rng.standard_normal((H, W))
         amp = 12.0
     for r, c in SHIPS + [EDGE_SHIP, WEDGE_SHIP]:
-        x[r:r + 3, c:c + 6] += amp
+        x[r : r + 3, c : c + 6] += amp
     return x.astype(np.float32)
 
 
@@ -112,7 +112,7 @@ def _near(a: np.ndarray, d: int) -> np.ndarray:
 def _ship_px(pad=2):
     m = np.zeros((H, W), bool)
     for r, c in SHIPS + [EDGE_SHIP, WEDGE_SHIP]:
-        m[max(r - pad, 0):r + 3 + pad, max(c - pad, 0):c + 6 + pad] = True
+        m[max(r - pad, 0) : r + 3 + pad, max(c - pad, 0) : c + 6 + pad] = True
     return m
 
 
@@ -154,10 +154,10 @@ def test_absent_never_detected_and_band_within_pfa(results, name, case):
 def test_ship_near_absent_region_is_found(results, name, case):
     m, _ = results[name, case]
     r, c = WEDGE_SHIP if case == "nan_wedge" else EDGE_SHIP
-    assert m[r:r + 3, c:c + 6].any()
+    assert m[r : r + 3, c : c + 6].any()
     for r, c in SHIPS:
-        if not _absent(case)[r:r + 3, c:c + 6].any():
-            assert m[r:r + 3, c:c + 6].any(), (r, c)
+        if not _absent(case)[r : r + 3, c : c + 6].any():
+            assert m[r : r + 3, c : c + 6].any(), (r, c)
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -168,8 +168,8 @@ def test_valid_part_equals_scene_without_absent_pixels(results, name, case):
     m, s = results[name, case]
     # the windows of the pixels within D of the scene edge see the mirror of the absent region
     edge = np.zeros((H, W), bool)
-    edge[D:H - D, D:W - D] = True
-    far = ~a & ~_near(a, D) & (edge | ~_near(mirror_pad(a, D), D)[D:H + D, D:W + D])
+    edge[D : H - D, D : W - D] = True
+    far = ~a & ~_near(a, D) & (edge | ~_near(mirror_pad(a, D), D)[D : H + D, D : W + D])
     assert far.sum() > 5000
     np.testing.assert_array_equal(m[far], m0[far])
     np.testing.assert_array_equal(s[far], s0[far])
@@ -205,8 +205,15 @@ def _edge_setup(name):
     i, j = 30, 22
     x[i, j] = 8.0 if clutter == "gamma" else 14.0
     g, b = kw["guard"] // 2, kw["background"] // 2
-    cells = np.array([x[r, c] for r in range(i - b, i + b + 1) for c in range(j - b, j + b + 1)
-                      if (abs(r - i) > g or abs(c - j) > g) and not np.isnan(x[r, c])], np.float64)
+    cells = np.array(
+        [
+            x[r, c]
+            for r in range(i - b, i + b + 1)
+            for c in range(j - b, j + b + 1)
+            if (abs(r - i) > g or abs(c - j) > g) and not np.isnan(x[r, c])
+        ],
+        np.float64,
+    )
     return kw, x, i, j, cells
 
 
@@ -301,8 +308,8 @@ def test_os_cfar_matches_bruteforce_with_scattered_absent_pixels():
         for j in range(30):
             ci, cj = i + halo, j + halo
             xt = block[ci, cj]
-            win = block[ci - rb: ci + rb + 1, cj - rb: cj + rb + 1].copy()
-            win[rb - rg: rb + rg + 1, rb - rg: rb + rg + 1] = np.nan
+            win = block[ci - rb : ci + rb + 1, cj - rb : cj + rb + 1].copy()
+            win[rb - rg : rb + rg + 1, rb - rg : rb + rg + 1] = np.nan
             v = np.sort(win[np.isfinite(win)])
             K = v.size
             if not np.isfinite(xt) or K < (N + 1) // 2:

@@ -14,8 +14,7 @@ import pytest
 
 from sarship.pipeline.gpu import available
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 CASES = ["nan_border", "zero_border", "nan_wedge"]
 NAMES = ["ca_cfar", "os_cfar", "two_parameter", "lmm"]

@@ -14,8 +14,7 @@ import pytest
 from sarship.pipeline import detectors
 from sarship.pipeline.gpu import available
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +43,7 @@ def _absent(X, case, halo):
     else:
         a = np.ones((H, W), bool)
         b = halo + 40
-        a[b:H - b, b + 15:W - b] = False
+        a[b : H - b, b + 15 : W - b] = False
     X[a] = np.nan if case != "zero_border" else 0
     return X, a
 

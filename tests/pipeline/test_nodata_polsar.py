@@ -33,10 +33,10 @@ from sarship.pipeline.simulate import sea_covariance
 from sarship.pipeline.tiling.windows import mirror_pad, padded_block
 
 H = W = 224
-B = 32                        # border width
+B = 32  # border width
 SHIPS = [(60, 60), (150, 90), (100, 160), (170, 150)]
-EDGE_SHIP = (112, B + 5)      # 5 px inside the left border
-WEDGE_SHIP = (62, 178)        # 6-10 px above the wedge's upper edge
+EDGE_SHIP = (112, B + 5)  # 5 px inside the left border
+WEDGE_SHIP = (62, 178)  # 6-10 px above the wedge's upper edge
 PFA = 1e-3
 #: detector -> (parameters, the band (px, Chebyshev) next to the absent region where its windows reach it,
 #: factor on the PFA allowed for its approximate scene-wide rules)
@@ -55,7 +55,7 @@ def _absent(case: str) -> np.ndarray:
     r, c = np.mgrid[:H, :W]
     if case in ("nan_border", "zero_border"):
         a = np.ones((H, W), bool)
-        a[B:H - B, B:W - B] = False
+        a[B : H - B, B : W - B] = False
         return a
     # a NaN wedge from the right edge: apex at (112, 128), base rows 40 .. 184 on the last column
     return (c >= 128) & (np.abs(r - 112) <= (c - 128) * 72.0 / 95.0)
@@ -67,7 +67,7 @@ def scenes():
     L = np.linalg.cholesky(sea_covariance())
     x = (_cn(rng, (H, W, 3)) @ L.T).astype(np.complex64)
     for r, c in SHIPS + [EDGE_SHIP, WEDGE_SHIP]:
-        x[r:r + 3, c:c + 6] += (8.0 * _cn(rng, (3, 6, 3))).astype(np.complex64)
+        x[r : r + 3, c : c + 6] += (8.0 * _cn(rng, (3, 6, 3))).astype(np.complex64)
     out = {"clean": (x, np.zeros((H, W), bool))}
     for case in ("nan_border", "zero_border", "nan_wedge"):
         a = _absent(case)
@@ -118,7 +118,7 @@ CASES = ["nan_border", "zero_border", "nan_wedge"]
 def _ship_px(pad=2):
     m = np.zeros((H, W), bool)
     for r, c in SHIPS + [EDGE_SHIP, WEDGE_SHIP]:
-        m[max(r - pad, 0):r + 3 + pad, max(c - pad, 0):c + 6 + pad] = True
+        m[max(r - pad, 0) : r + 3 + pad, max(c - pad, 0) : c + 6 + pad] = True
     return m
 
 
@@ -148,10 +148,10 @@ def test_absent_never_detected_and_band_within_pfa(results, scenes, name, case):
 def test_ship_near_absent_region_is_found(results, name, case):
     m, _, _ = results[name, case]
     r, c = WEDGE_SHIP if case == "nan_wedge" else EDGE_SHIP
-    assert m[r:r + 3, c:c + 6].any()
+    assert m[r : r + 3, c : c + 6].any()
     for r, c in SHIPS:  # ships away from the absent region
-        if not _absent(case)[r:r + 3, c:c + 6].any():
-            assert m[r:r + 3, c:c + 6].any(), (r, c)
+        if not _absent(case)[r : r + 3, c : c + 6].any():
+            assert m[r : r + 3, c : c + 6].any(), (r, c)
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -193,8 +193,10 @@ def test_tiled_equals_whole_with_absent_pixels(scenes, name):
     spec, p, prep, h, blk = _prep(name, X, kw)
     tiles = [(r0, min(r0 + 29, H), c0, min(c0 + 29, W)) for r0 in range(0, H, 29) for c0 in range(0, W, 29)]
     assert any(a[r0:r1, c0:c1].all() for r0, r1, c0, c1 in tiles)
-    blocks = [(padded_block(lambda ra, rb, ca, cb: X[ra:rb, ca:cb], (H, W), r0, r1, c0, c1, h), (r0 - h, c0 - h))
-              for r0, r1, c0, c1 in tiles]
+    blocks = [
+        (padded_block(lambda ra, rb, ca, cb: X[ra:rb, ca:cb], (H, W), r0, r1, c0, c1, h), (r0 - h, c0 - h))
+        for r0, r1, c0, c1 in tiles
+    ]
     if spec.scene_pass is not None:
         base = spec.prepare(p)
         parts = [spec.scene_pass(b, h, o, p, base) for b, o in blocks]
@@ -225,12 +227,16 @@ def test_apwf_threshold_uses_the_valid_count():
     prep = apwf.prepare(prm)
     S, K, ok = apwf.window_sums_counts(mirror_pad(x, 5), 5, (-5, -5), prm)
     N = prep["n_samples"]
-    assert K[20, 10] == N - (3 * 11 + 2 * 6)         # edge pixel: 3 ring columns and 2 half-columns lost
-    assert K[20, 20] == N and K[10, 10] < N / 2      # interior; the inner corner
+    assert K[20, 10] == N - (3 * 11 + 2 * 6)  # edge pixel: 3 ring columns and 2 half-columns lost
+    assert K[20, 20] == N and K[10, 10] < N / 2  # interior; the inner corner
     # brute force of y at the edge pixel over its valid ring cells
     i, j = 20, 10
-    cells = [(a, b) for a in range(i - 5, i + 6) for b in range(j - 5, j + 6)
-             if (abs(a - i) > 2 or abs(b - j) > 2) and not np.isnan(x[a, b]).any()]
+    cells = [
+        (a, b)
+        for a in range(i - 5, i + 6)
+        for b in range(j - 5, j + 6)
+        if (abs(a - i) > 2 or abs(b - j) > 2) and not np.isnan(x[a, b]).any()
+    ]
     assert len(cells) == K[i, j]
     Xc = np.array([x[a, b] for a, b in cells]).astype(np.complex128)
     sig = Xc.T @ Xc.conj() / len(cells)
@@ -239,13 +245,13 @@ def test_apwf_threshold_uses_the_valid_count():
     T = apwf.count_thresholds([K[i, j]], 1e-3, 3)[0]
     assert T > prep["thresholds"]["3"]
     x2 = x.copy()
-    x2[i, j] *= math.sqrt(1.02 * T / y)                # just above its own threshold T(K)
+    x2[i, j] *= math.sqrt(1.02 * T / y)  # just above its own threshold T(K)
     m, s = apwf.detect(mirror_pad(x2, 5), 5, (-5, -5), prm, prep)
     assert m[i, j] and s[i, j] > prep["thresholds"]["3"]
     x2[i, j] = x[i, j] * np.float32(math.sqrt(0.98 * T / y))  # just below: not detected
     m, s = apwf.detect(mirror_pad(x2, 5), 5, (-5, -5), prm, prep)
     assert not m[i, j]
-    x2[10, 10] = 1e3 * x[20, 20]                        # the inner corner: not tested
+    x2[10, 10] = 1e3 * x[20, 20]  # the inner corner: not tested
     m, s = apwf.detect(mirror_pad(x2, 5), 5, (-5, -5), prm, prep)
     assert not m[10, 10] and s[10, 10] == 0
 
@@ -293,7 +299,7 @@ def test_present_rule():
     x[6, 3, 1] = np.inf
     x[7, 4, 0] = complex(0, np.nan)
     x[8, 5] = 0
-    x[8, 5, 2] = 1e-30j                      # tiny but not zero: present
+    x[8, 5, 2] = 1e-30j  # tiny but not zero: present
     with np.errstate(invalid="ignore"):
         C = x[..., :, None] * x[..., None, :].conj()
     C[9, 6, 0, 1] = np.nan

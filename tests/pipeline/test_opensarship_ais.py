@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import json
 import re
-from concurrent.futures import ThreadPoolExecutor
 import xml.etree.ElementTree as ET
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +47,9 @@ GRD_PRODUCTS = sorted(OSS.glob("S1A_IW_GRDH_*")) if OSS.is_dir() else []
 
 pytestmark = [
     pytest.mark.realdata,
-    pytest.mark.skipif(not GRD_PRODUCTS, reason=f"OpenSARShip GRD products not found at {OSS} (see shared/data/README.md)"),
+    pytest.mark.skipif(
+        not GRD_PRODUCTS, reason=f"OpenSARShip GRD products not found at {OSS} (see shared/data/README.md)"
+    ),
 ]
 
 #: measured (bench/REALDATA.md): median 18.0 m, max 44.7 m over 37 chips (detection centroids are
@@ -77,8 +79,17 @@ def snap_grid(product: Path) -> tuple[int, int, list[dict]]:
     lat = np.array([[float(v) for v in r.get("value").split(",")] for r in tpg.find("latitude").findall("row")])
     lon = np.array([[float(v) for v in r.get("value").split(",")] for r in tpg.find("longitude").findall("row")])
     n, m = lat.shape
-    gcps = [{"row": 0.5 + i * H / (n - 1), "col": 0.5 + j * W / (m - 1), "x": float(lon[i, j]),
-             "y": float(lat[i, j]), "z": 0.0} for i in range(n) for j in range(m)]
+    gcps = [
+        {
+            "row": 0.5 + i * H / (n - 1),
+            "col": 0.5 + j * W / (m - 1),
+            "x": float(lon[i, j]),
+            "y": float(lat[i, j]),
+            "z": 0.0,
+        }
+        for i in range(n)
+        for j in range(m)
+    ]
     return H, W, gcps
 
 
@@ -87,8 +98,19 @@ def ships(product: Path) -> dict[tuple[int, int], dict[str, float | None]]:
     text = (product / "Ship.xml").read_text(errors="replace")
     out = {}
     for block in text.split("<ship>")[1:]:
-        rec = {t: _num(block, t) for t in ("Center_x", "Center_y", "Center_longitude", "Center_latitude",
-                                           "Projected_Longitude", "Projected_Latitude", "Distance_error", "Sog")}
+        rec = {
+            t: _num(block, t)
+            for t in (
+                "Center_x",
+                "Center_y",
+                "Center_longitude",
+                "Center_latitude",
+                "Projected_Longitude",
+                "Projected_Latitude",
+                "Distance_error",
+                "Sog",
+            )
+        }
         out[(int(rec["Center_x"]), int(rec["Center_y"]))] = rec
     return out
 
@@ -169,10 +191,12 @@ def matched(client, tmp_path_factory):
                 side = max(t.series[0].shape[:2])
             half = side // 2
             r0, c0 = cy - half, cx - half
-            scene = ingest([chip], d0 / f"{product.name[17:25]}_{i:02d}.zarr", tile=side,
-                           channels=["vh", "vv"], band="vh")
+            scene = ingest(
+                [chip], d0 / f"{product.name[17:25]}_{i:02d}.zarr", tile=side, channels=["vh", "vv"], band="vh"
+            )
             zarr.open_group(str(scene.path), mode="r+").attrs.update(
-                {"crs": "EPSG:4326", "gcps": [{**g, "row": g["row"] - r0, "col": g["col"] - c0} for g in gcps]})
+                {"crs": "EPSG:4326", "gcps": [{**g, "row": g["row"] - r0, "col": g["col"] - c0} for g in gcps]}
+            )
             chips.append((chip, scene.path, side, recs[(cx, cy)]))
 
     def detect(c):  # 4 chips at once on the session's cluster (as the service's runner threads)
@@ -187,8 +211,10 @@ def matched(client, tmp_path_factory):
     for (chip, _, side, rec), feats in zip(chips, found):
         assert feats, chip.name
         half = side // 2
-        best = min(feats, key=lambda f: np.hypot(f["properties"]["centroid_px"][0] - half,
-                                                 f["properties"]["centroid_px"][1] - half))
+        best = min(
+            feats,
+            key=lambda f: np.hypot(f["properties"]["centroid_px"][0] - half, f["properties"]["centroid_px"][1] - half),
+        )
         out.append((chip.stem, best, rec))
     return out
 
@@ -197,8 +223,12 @@ def test_detections_georeferenced_like_the_dataset(matched):
     assert len(matched) == 37
     for name, f, _ in matched:
         assert f["geometry"]["type"] == "Polygon" and f["properties"]["centroid_lonlat"] is not None, name
-    d = np.array([G.distance_m(*f["properties"]["centroid_lonlat"], r["Center_longitude"], r["Center_latitude"])
-                  for _, f, r in matched])
+    d = np.array(
+        [
+            G.distance_m(*f["properties"]["centroid_lonlat"], r["Center_longitude"], r["Center_latitude"])
+            for _, f, r in matched
+        ]
+    )
     assert np.median(d) <= CENTRE_VS_SAR_MEDIAN_M and d.max() <= CENTRE_VS_SAR_MAX_M, np.round(d, 1)
 
 

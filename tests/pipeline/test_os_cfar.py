@@ -22,7 +22,6 @@ from sarship.pipeline.detectors.os_cfar import (
     prepare,
 )
 
-
 # ---------------------------------------------------------------------------------------
 # brute-force reference: np.partition per pixel on sliding_window_view
 
@@ -32,10 +31,10 @@ def reference(block, halo, params, prep):
     rb, rg, rt = params.background // 2, params.guard // 2, params.target // 2
     size = 2 * rb + 1
     h, w = block.shape[0] - 2 * halo, block.shape[1] - 2 * halo
-    core = block[halo - rb: halo + h + rb, halo - rb: halo + w + rb]
+    core = block[halo - rb : halo + h + rb, halo - rb : halo + w + rb]
     win = sliding_window_view(core, (size, size))
     ring = np.ones((size, size), bool)
-    ring[rb - rg: rb + rg + 1, rb - rg: rb + rg + 1] = False
+    ring[rb - rg : rb + rg + 1, rb - rg : rb + rg + 1] = False
     vals = win[:, :, ring].astype(np.float64)  # NaN sorts last in np.partition
     k = prep["k"]
     xk = np.partition(vals, k - 1, axis=-1)[..., k - 1]
@@ -100,22 +99,30 @@ def test_alpha_huge_multiplier_k1():
     assert alpha == pytest.approx(n / pfa - n, rel=1e-9)
 
 
-@pytest.mark.parametrize("n,k,looks,nt,pfa", [
-    (40, 30, 2.5, 1, 1e-4), (96, 72, 4.0, 1, 1e-4), (96, 72, 4.0, 9, 1e-4),
-    (2040, 1530, 4.0, 1, 1e-5), (96, 72, 4.0, 1, 1e-8),
-])
+@pytest.mark.parametrize(
+    "n,k,looks,nt,pfa",
+    [
+        (40, 30, 2.5, 1, 1e-4),
+        (96, 72, 4.0, 1, 1e-4),
+        (96, 72, 4.0, 9, 1e-4),
+        (2040, 1530, 4.0, 1, 1e-5),
+        (96, 72, 4.0, 1, 1e-8),
+    ],
+)
 def test_alpha_gamma_independent_integration(n, k, looks, nt, pfa):
     """PFA at the solved alpha, by scipy's adaptive quad on the density of X_(k) in x."""
     alpha = os_threshold_multiplier(n, k, pfa, looks, nt)
 
     def integrand(g):
         u = special.gammainc(looks, g)
-        return (special.gammaincc(nt * looks, nt * alpha * g)
-                * stats.beta.pdf(u, k, n - k + 1) * stats.gamma.pdf(g, looks))
+        return (
+            special.gammaincc(nt * looks, nt * alpha * g) * stats.beta.pdf(u, k, n - k + 1) * stats.gamma.pdf(g, looks)
+        )
 
     med = special.gammaincinv(looks, k / (n + 1))
-    val, _ = integrate.quad(integrand, 0, 20 * med, points=[med / 4, med / 2, med, 2 * med],
-                            limit=1000, epsabs=0, epsrel=1e-12)
+    val, _ = integrate.quad(
+        integrand, 0, 20 * med, points=[med / 4, med / 2, med, 2 * med], limit=1000, epsabs=0, epsrel=1e-12
+    )
     assert val == pytest.approx(pfa, rel=1e-6)
 
 
@@ -158,9 +165,15 @@ def test_default_k_and_prepare():
         prepare(OSParams())
 
 
-@pytest.mark.parametrize("kw", [
-    {"k": 0}, {"k": -3}, {"k": 2041}, {"guard": 5, "background": 11, "k": 97},
-])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"k": 0},
+        {"k": -3},
+        {"k": 2041},
+        {"guard": 5, "background": 11, "k": 97},
+    ],
+)
 def test_invalid_k(kw):
     with pytest.raises(ValidationError) as err:
         OSParams(**kw)
@@ -227,8 +240,8 @@ def test_mask_matches_bruteforce_ties(alpha, k):
     # ties at the threshold do occur and must not be detected (strict >)
     rb, rg = 5, 2
     ring = np.ones((11, 11), bool)
-    ring[rb - rg: rb + rg + 1, rb - rg: rb + rg + 1] = False
-    win = sliding_window_view(block[halo - rb: -halo + rb, halo - rb: -halo + rb], (11, 11))
+    ring[rb - rg : rb + rg + 1, rb - rg : rb + rg + 1] = False
+    win = sliding_window_view(block[halo - rb : -halo + rb, halo - rb : -halo + rb], (11, 11))
     xk = np.partition(win[:, :, ring], k - 1, axis=-1)[..., k - 1].astype(np.float64)
     ties = np.count_nonzero(xt == alpha * xk)
     # (k = N, alpha > 1 would need a CUT above twice the ring maximum: no ties here)
@@ -332,7 +345,7 @@ def test_default_windows_match_bruteforce():
     prep = prepare(p)
     halo = 30
     block = rng.standard_exponential(size=(24 + 2 * halo, 20 + 2 * halo)).astype(np.float32)
-    block[halo + 3: halo + 8, halo + 4: halo + 15] *= 40  # a ship
+    block[halo + 3 : halo + 8, halo + 4 : halo + 15] *= 40  # a ship
     mask, stat = detect(block, halo, (0, 0), p, prep)
     rmask, rstat = reference(block, halo, p, prep)
     assert mask.sum() > 20
@@ -373,10 +386,13 @@ def test_select_fuzz():
 # tiling invariance
 
 
-@pytest.mark.parametrize("cfg", [
-    dict(guard=5, background=11, target=3, looks=2.0, pfa=1e-2),
-    dict(guard=9, background=15, target=1, looks=1.0, pfa=1e-2, k=40),
-])
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        dict(guard=5, background=11, target=3, looks=2.0, pfa=1e-2),
+        dict(guard=9, background=15, target=1, looks=1.0, pfa=1e-2, k=40),
+    ],
+)
 def test_tiling_invariance(cfg):
     rng = np.random.default_rng(99)
     p = OSParams(**cfg)
@@ -385,7 +401,7 @@ def test_tiling_invariance(cfg):
     scene = rng.standard_gamma(p.looks, size=(45, 52)).astype(np.float32)
     for _ in range(6):
         r, c = rng.integers(0, 40, 2)
-        scene[r: r + 3, c: c + 7] *= 25
+        scene[r : r + 3, c : c + 7] *= 25
     padded = _pad(scene, halo)
     whole_mask, whole_stat = detect(padded, halo, (-halo, -halo), p, prep)
     assert whole_mask.sum() > 10
@@ -395,7 +411,7 @@ def test_tiling_invariance(cfg):
     stat = np.zeros_like(whole_stat)
     for r0, r1 in zip(rows[:-1], rows[1:]):
         for c0, c1 in zip(cols[:-1], cols[1:]):
-            blk = padded[r0: r1 + 2 * halo, c0: c1 + 2 * halo]
+            blk = padded[r0 : r1 + 2 * halo, c0 : c1 + 2 * halo]
             m, s = detect(blk, halo, (r0 - halo, c0 - halo), p, prep)
             mask[r0:r1, c0:c1] = m
             stat[r0:r1, c0:c1] = s

@@ -13,8 +13,8 @@ from sarship.pipeline.detectors import pcdm
 from sarship.pipeline.products.scoring import evaluate
 from sarship.pipeline.simulate import SimConfig, simulate, simulate_array
 from sarship.pipeline.tiling.windows import mirror_pad
-from tests.conftest import write_scene
 from sarship.workers.jobs import run_detection
+from tests.conftest import write_scene
 
 
 def test_closed_form_eigenvalues_match_eigvalsh():
@@ -41,7 +41,7 @@ def _brute(X, lw):
         Cb = np.zeros_like(Cp)
         for di in range(-r, r + 1):
             for dj in range(-r, r + 1):
-                Cb[r:-r, r:-r] += Cp[r + di:Cp.shape[0] - r + di, r + dj:Cp.shape[1] - r + dj]
+                Cb[r:-r, r:-r] += Cp[r + di : Cp.shape[0] - r + di, r + dj : Cp.shape[1] - r + dj]
         Cp = Cb / lw**2
     span = np.zeros((H, W))
     psh = np.zeros((H, W))
@@ -91,11 +91,14 @@ def test_scene_wide_threshold_and_tiling(tmp_path, client, rule):
     m_whole = zarr.open_array(str(tmp_path / "w" / "mask.zarr" / "detected"))[:]
     np.testing.assert_array_equal(m_whole.astype(bool), span > whole["prepared"]["t_span"])
     for tile in (40, 97):
-        run = run_detection(scene, "pcdm", settings, out_dir=tmp_path / f"t{tile}", tile=tile, client=client,
-                            progress=False)
+        run = run_detection(
+            scene, "pcdm", settings, out_dir=tmp_path / f"t{tile}", tile=tile, client=client, progress=False
+        )
         assert run["scene_pass"]["values"] == whole["scene_pass"]["values"]
         assert run["scene_pass"]["tiles"] == run["tiles"]["count"]
-        np.testing.assert_array_equal(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "detected"))[:], m_whole)
+        np.testing.assert_array_equal(
+            zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "detected"))[:], m_whole
+        )
         a = json.loads((tmp_path / f"t{tile}" / "detections.geojson").read_text())["features"]
         b = json.loads((tmp_path / "w" / "detections.geojson").read_text())["features"]
         assert a == b
@@ -124,8 +127,9 @@ def test_detects_simulated_quadpol_and_dualpol_ships(tmp_path, client):
     s = evaluate(tmp_path / "o" / "detections.geojson", tmp_path / "q.truth.geojson")
     assert s["fom"] >= 0.9, s
     # dual-pol: the same scene's HH and HV channels only
-    run_detection(tmp_path / "q.zarr", "pcdm", {"channel": "hh,hv"}, out_dir=tmp_path / "d", client=client,
-                  progress=False)
+    run_detection(
+        tmp_path / "q.zarr", "pcdm", {"channel": "hh,hv"}, out_dir=tmp_path / "d", client=client, progress=False
+    )
     s2 = evaluate(tmp_path / "d" / "detections.geojson", tmp_path / "q.truth.geojson")
     assert s2["fom"] >= 0.8, s2
 

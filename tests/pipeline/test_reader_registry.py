@@ -12,8 +12,19 @@ import tifffile
 from PIL import Image
 
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.readers import (READERS, BaseReader, InputLimits, Probe, Reader, Source, choose, ingest,
-                                      register, registered, unregister)
+from sarship.pipeline.readers import (
+    READERS,
+    BaseReader,
+    InputLimits,
+    Probe,
+    Reader,
+    Source,
+    choose,
+    ingest,
+    register,
+    registered,
+    unregister,
+)
 from sarship.pipeline.readers.entry import _open_source
 from sarship.pipeline.scene import open_scene
 
@@ -106,8 +117,9 @@ def test_a_registered_reader_is_used_by_ingest_and_gone_after(tmp_path):
         assert READERS[-1] is reader and choose(p) is reader
         sc = ingest([p], tmp_path / "out.zarr", kind="intensity", looks=1)
         assert sc.attrs["source"] == ["a.sqr"]
-        np.testing.assert_array_equal(np.asarray(open_scene(tmp_path / "out.zarr").array("intensity")[...]),
-                                      [[1, 2, 3], [4, 5, 6]])
+        np.testing.assert_array_equal(
+            np.asarray(open_scene(tmp_path / "out.zarr").array("intensity")[...]), [[1, 2, 3], [4, 5, 6]]
+        )
         with pytest.raises(InputError, match="above the limit of 4"):  # the limits reach the reader
             _open_source(p, limits=InputLimits(max_pixels=4))
         with pytest.raises(InputError, match="--swath applies to Sentinel-1 SLC products only"):
@@ -119,8 +131,9 @@ def test_a_registered_reader_is_used_by_ingest_and_gone_after(tmp_path):
 
 def test_register_before_takes_precedence_and_names_are_unique(tmp_path):
     paths = _inputs(tmp_path)
-    npy_reader = type("NpyFirst", (SquaresReader,), {"name": "npy-first",
-                                                    "detect": lambda self, probe: probe.path.suffix == ".npy"})()
+    npy_reader = type(
+        "NpyFirst", (SquaresReader,), {"name": "npy-first", "detect": lambda self, probe: probe.path.suffix == ".npy"}
+    )()
     with registered(npy_reader, before="safe"):
         assert READERS[0] is npy_reader and choose(paths["npy"]) is npy_reader
     assert choose(paths["npy"]).name == "npy"

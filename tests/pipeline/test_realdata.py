@@ -58,16 +58,47 @@ DETECTORS = ("ca_cfar", "os_cfar", "two_parameter", "superpixel_cfar")
 #: chips have no pixel spacing (min_area_px = auto_min_area_px), the GRD chips have 10 m spacing
 #: (min_length_m = auto_min_length_m, min_area_px = the pixels of auto_min_area_m2: 2).
 ASSUMED_DEFAULTS = {
-    "ca_cfar": {"pfa": 1e-5, "guard": 41, "background": 81, "merge_px": 4, "land_mask": "texture",
-                "auto_min_area_px": 10, "auto_min_length_m": 25.0, "auto_min_area_m2": 200.0},
-    "os_cfar": {"pfa": 1e-6, "guard": 21, "background": 41, "merge_px": 4, "land_mask": "texture",
-                "auto_min_area_px": 10, "auto_min_length_m": 25.0, "auto_min_area_m2": 200.0},
-    "two_parameter": {"pfa": 1e-6, "guard": 41, "background": 81, "merge_px": 2, "land_mask": "texture",
-                      "auto_min_area_px": 10, "auto_min_length_m": 25.0, "auto_min_area_m2": 200.0},
+    "ca_cfar": {
+        "pfa": 1e-5,
+        "guard": 41,
+        "background": 81,
+        "merge_px": 4,
+        "land_mask": "texture",
+        "auto_min_area_px": 10,
+        "auto_min_length_m": 25.0,
+        "auto_min_area_m2": 200.0,
+    },
+    "os_cfar": {
+        "pfa": 1e-6,
+        "guard": 21,
+        "background": 41,
+        "merge_px": 4,
+        "land_mask": "texture",
+        "auto_min_area_px": 10,
+        "auto_min_length_m": 25.0,
+        "auto_min_area_m2": 200.0,
+    },
+    "two_parameter": {
+        "pfa": 1e-6,
+        "guard": 41,
+        "background": 81,
+        "merge_px": 2,
+        "land_mask": "texture",
+        "auto_min_area_px": 10,
+        "auto_min_length_m": 25.0,
+        "auto_min_area_m2": 200.0,
+    },
     # the paper's settings (docs/algorithms/superpixel_cfar.md) with the contrast floor (tuned on half B)
-    "superpixel_cfar": {"pfa": 1e-3, "merge_px": 4, "land_mask": "texture", "min_contrast_db": 7.0,
-                        "min_separation_db": 6.0, "auto_min_area_px": 10, "auto_min_length_m": 20.0,
-                        "auto_min_area_m2": 200.0},
+    "superpixel_cfar": {
+        "pfa": 1e-3,
+        "merge_px": 4,
+        "land_mask": "texture",
+        "min_contrast_db": 7.0,
+        "min_separation_db": 6.0,
+        "auto_min_area_px": 10,
+        "auto_min_length_m": 20.0,
+        "auto_min_area_m2": 200.0,
+    },
 }
 
 #: Measured with ASSUMED_DEFAULTS (land_mask=texture: the choice of the fold tuned on half A with
@@ -97,11 +128,25 @@ MEASURED = {
 #: The held-out half (B) of the cross-validation: the defaults never saw these chips. Its
 #: scores (FoM, pd), measured with ASSUMED_DEFAULTS:
 HALF_B = {
-    "ssdd": {"Gao_ship_hh_02017010717010109", "Gao_ship_hh_02017110638010408", "Gao_ship_vh_020170115650701803",
-             "Sen_ship_hh_0201705190105404", "Sen_ship_vv_02017091501054029", "ship050304"},
-    "hrsid": {"P0003_2400_3200_4800_5600", "P0005_1200_2000_3600_4400", "P0005_2400_3200_5400_6200",
-              "P0008_0_800_9000_9800", "P0011_1800_2600_7200_8000", "P0011_4200_5000_2400_3200",
-              "P0015_4200_5000_6000_6800", "P0017_2400_3200_4800_5600", "P0021_4200_5000_7200_8000"},
+    "ssdd": {
+        "Gao_ship_hh_02017010717010109",
+        "Gao_ship_hh_02017110638010408",
+        "Gao_ship_vh_020170115650701803",
+        "Sen_ship_hh_0201705190105404",
+        "Sen_ship_vv_02017091501054029",
+        "ship050304",
+    },
+    "hrsid": {
+        "P0003_2400_3200_4800_5600",
+        "P0005_1200_2000_3600_4400",
+        "P0005_2400_3200_5400_6200",
+        "P0008_0_800_9000_9800",
+        "P0011_1800_2600_7200_8000",
+        "P0011_4200_5000_2400_3200",
+        "P0015_4200_5000_6000_6800",
+        "P0017_2400_3200_4800_5600",
+        "P0021_4200_5000_7200_8000",
+    },
 }
 MEASURED_HELD_OUT = {
     "ca_cfar": {"ssdd": (0.610, 0.818), "hrsid": (0.536, 0.789)},
@@ -148,22 +193,29 @@ def _code_defaults(detector: str) -> dict:
 
     P = detectors.get(detector).params
     d = P()
-    out = {k: getattr(d, k) for k in ("pfa", "guard", "background", "looks", "merge_px", "land_mask",
-                                      "min_contrast_db")}
-    out.update(auto_min_area_px=P.auto_min_area_px, auto_min_length_m=P.auto_min_length_m,
-               auto_min_area_m2=P.auto_min_area_m2, min_area_px=d.min_area_px, min_length_m=d.min_length_m)
+    out = {
+        k: getattr(d, k) for k in ("pfa", "guard", "background", "looks", "merge_px", "land_mask", "min_contrast_db")
+    }
+    out.update(
+        auto_min_area_px=P.auto_min_area_px,
+        auto_min_length_m=P.auto_min_length_m,
+        auto_min_area_m2=P.auto_min_area_m2,
+        min_area_px=d.min_area_px,
+        min_length_m=d.min_length_m,
+    )
     return out
 
 
 def _why(detector: str) -> str:
-    return (f"thresholds assume defaults {ASSUMED_DEFAULTS[detector]}; "
-            f"the code's defaults are {_code_defaults(detector)}")
+    return (
+        f"thresholds assume defaults {ASSUMED_DEFAULTS[detector]}; the code's defaults are {_code_defaults(detector)}"
+    )
 
 
 def _detect(client, scene, detector: str, out: Path, **settings):
     """Default-parameter run on one chip (one tile); returns (detections as Ships, mask, run)."""
-    from sarship.pipeline.scene import open_scene
     from sarship.pipeline.products.truth import load_detections, read_mask
+    from sarship.pipeline.scene import open_scene
     from sarship.workers.jobs import run_detection
 
     shape = open_scene(scene).shape
@@ -218,8 +270,8 @@ def centre_hit(ships, shape, radius: float = CENTRE_RADIUS_PX) -> bool:
 
 @pytest.fixture(scope="module")
 def ssdd_scenes(tmp_path_factory):
-    from sarship.pipeline.readers import ingest
     from sarship.pipeline.products.truth import load_voc
+    from sarship.pipeline.readers import ingest
 
     _needs(SSDD)
     d = tmp_path_factory.mktemp("ssdd")
@@ -235,8 +287,8 @@ def ssdd_scenes(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def hrsid_scenes(tmp_path_factory):
-    from sarship.pipeline.readers import ingest
     from sarship.pipeline.products.truth import read_mask, ships_from_mask
+    from sarship.pipeline.readers import ingest
 
     _needs(HRSID)
     d = tmp_path_factory.mktemp("hrsid")
@@ -306,7 +358,7 @@ def test_hrsid_scores(client, hrsid_scenes, tmp_path, detector):
 
     per = []
     runs = _detect_all(client, [scene for _, scene, _, _ in hrsid_scenes], detector, tmp_path)
-    for (name, scene, truth, tmask), (dets, dmask, _) in zip(hrsid_scenes, runs):
+    for (_name, _scene, truth, tmask), (dets, dmask, _) in zip(hrsid_scenes, runs):
         s = score(dets, truth)
         s.update(pixel_counts(dmask, tmask))
         per.append(s)
@@ -331,14 +383,16 @@ def test_hrsid_scores(client, hrsid_scenes, tmp_path, detector):
 def test_opensarship_centre_ship(client, grd_scenes, tmp_path, detector):
     missed = []
     runs = _detect_all(client, [scene for _, scene, _ in grd_scenes], detector, tmp_path)
-    for (name, scene, shape), (dets, _, run) in zip(grd_scenes, runs):
+    for (name, _scene, shape), (dets, _, run) in zip(grd_scenes, runs):
         assert run["channel"] == "intensity"  # = intensity_vh (band chosen at ingest)
         assert run["size_rule"].startswith("metres"), run["size_rule"]  # 10 m spacing: the metre rule
         if not centre_hit(dets, shape):
             missed.append(name)
     unexpected = [m for m in missed if m.split("/")[-1] not in NO_SHIP_AT_CENTRE]
-    assert not unexpected, (f"{detector}: centre ship not found on {len(unexpected)} of {len(grd_scenes)} "
-                            f"chips: {unexpected}; {_why(detector)}")
+    assert not unexpected, (
+        f"{detector}: centre ship not found on {len(unexpected)} of {len(grd_scenes)} "
+        f"chips: {unexpected}; {_why(detector)}"
+    )
 
 
 def test_opensarship_chip_without_centre_ship():
@@ -353,6 +407,7 @@ def test_opensarship_chip_without_centre_ship():
         cx, cy = (int(v) for v in re.search(r"_x(\d+)_y(\d+)$", stem).groups())
         text = (chip.parent.parent / "Ship.xml").read_text(errors="replace")  # not well-formed XML: regex
         for block in text.split("<ship>")[1:]:
+
             def num(tag):
                 m = re.search(rf"<{tag}>\s*([-\d.eE+]+)\s*</{tag}>", block)
                 return float(m.group(1)) if m else None
@@ -389,15 +444,15 @@ def test_cli_end_to_end(client, tmp_path):
         return r
 
     sarship("ingest", str(jpg), "--out", str(scene), "--tile", "256")
-    sarship("detect", str(scene), "--detector", "ca_cfar", "--out", str(out),
-            "--scheduler", client.scheduler.address)
+    sarship("detect", str(scene), "--detector", "ca_cfar", "--out", str(out), "--scheduler", client.scheduler.address)
     r = sarship("evaluate", str(out / "detections.geojson"), "--truth", str(xml), "--json")
     s = json.loads(r.stdout)
     assert s["n_truth"] == len(load_voc(xml)) and s["n_hit"] >= 1
     # the command line and the library agree
     dets, _, _ = _detect(client, scene, "ca_cfar", tmp_path / "lib")
     ref = score(dets, load_voc(xml))
-    assert {k: s[k] for k in ("n_hit", "n_false", "n_detections", "fom")} == \
-        {k: ref[k] for k in ("n_hit", "n_false", "n_detections", "fom")}
+    assert {k: s[k] for k in ("n_hit", "n_false", "n_detections", "fom")} == {
+        k: ref[k] for k in ("n_hit", "n_false", "n_detections", "fom")
+    }
     run = json.loads((out / "run.json").read_text())
     assert run["parameters"] == json.loads((tmp_path / "lib" / "run.json").read_text())["parameters"]

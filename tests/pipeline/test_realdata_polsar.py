@@ -39,10 +39,14 @@ COV_SETTINGS = {
     "pcdm": {"pfa": "1e-3", "min_area_px": "1", "merge_px": "0"},
 }
 MEASURED = {
-    ("labrador_sentinel1", "apwf"): 9.54e-3, ("labrador_sentinel1", "pcdm"): 0.0,
-    ("sanfrancisco_airsar", "apwf"): 2.13e-2, ("sanfrancisco_airsar", "pcdm"): 7.17e-4,
-    ("shanghai_sentinel1", "apwf"): 2.06e-2, ("shanghai_sentinel1", "pcdm"): 3.43e-2,
-    ("tsukaba_pisar", "apwf"): 2.40e-2, ("tsukaba_pisar", "pcdm"): 7.57e-3,
+    ("labrador_sentinel1", "apwf"): 9.54e-3,
+    ("labrador_sentinel1", "pcdm"): 0.0,
+    ("sanfrancisco_airsar", "apwf"): 2.13e-2,
+    ("sanfrancisco_airsar", "pcdm"): 7.17e-4,
+    ("shanghai_sentinel1", "apwf"): 2.06e-2,
+    ("shanghai_sentinel1", "pcdm"): 3.43e-2,
+    ("tsukaba_pisar", "apwf"): 2.40e-2,
+    ("tsukaba_pisar", "pcdm"): 7.57e-3,
 }
 
 
@@ -58,8 +62,11 @@ def test_opensarship_slc_centre_ship(tmp_path, client, det):
         run_detection(scene.path, det, SLC_SETTINGS[det], out_dir=tmp_path / f"o{i}", client=client, progress=False)
         feats = json.loads((tmp_path / f"o{i}" / "detections.geojson").read_text())["features"]
         cy, cx = scene.shape[0] / 2, scene.shape[1] / 2
-        if not any(f["properties"]["bbox_px"][0] - 3 <= cy <= f["properties"]["bbox_px"][2] + 3
-                   and f["properties"]["bbox_px"][1] - 3 <= cx <= f["properties"]["bbox_px"][3] + 3 for f in feats):
+        if not any(
+            f["properties"]["bbox_px"][0] - 3 <= cy <= f["properties"]["bbox_px"][2] + 3
+            and f["properties"]["bbox_px"][1] - 3 <= cx <= f["properties"]["bbox_px"][3] + 3
+            for f in feats
+        ):
             missed.append(Path(chip).name)
     assert not missed, missed
 
@@ -73,8 +80,7 @@ def test_real_covariance_images_false_alarm_rate(tmp_path, client, det):
         name = Path(f).stem
         scene = ingest([f], tmp_path / f"{name}.zarr", tile=256)
         assert scene.kind == "covariance"
-        run = run_detection(scene.path, det, COV_SETTINGS[det], out_dir=tmp_path / name, client=client,
-                            progress=False)
+        run = run_detection(scene.path, det, COV_SETTINGS[det], out_dir=tmp_path / name, client=client, progress=False)
         mask = zarr.open_array(str(tmp_path / name / "mask.zarr" / "mask"))[:]
         far = float(mask.mean())
         assert far <= 1.5 * MEASURED[(name, det)] + 1e-4, (name, det, far)

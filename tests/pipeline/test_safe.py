@@ -13,7 +13,6 @@ DN^2; a zip built from the folder gives the same store; ``calibrate_sigma0`` /
 from __future__ import annotations
 
 import itertools
-import json
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -35,7 +34,6 @@ H, W = 16685, 25788
 #: they are decompression bombs (a real measurement is uncompressed, ~1:1, a few to one
 #: zipped), so the tests that read them raise the limit.
 SAMPLE_RATIO = 1e5
-
 
 
 # --------------------------------------------------------------------------------------
@@ -77,9 +75,15 @@ def test_calibrate_sigma0_hand_computation():
 def _annotation_grid(safe: Path) -> tuple[list[tuple[int, int, float, float]], dict[str, str]]:
     ann = next((safe / "annotation").glob("s1?-iw-grd-vv-*.xml"))
     root = ET.parse(ann).getroot()
-    pts = [(int(p.findtext("line")), int(p.findtext("pixel")), float(p.findtext("latitude")),
-            float(p.findtext("longitude")))
-           for p in root.iter("geolocationGridPoint")]
+    pts = [
+        (
+            int(p.findtext("line")),
+            int(p.findtext("pixel")),
+            float(p.findtext("latitude")),
+            float(p.findtext("longitude")),
+        )
+        for p in root.iter("geolocationGridPoint")
+    ]
     info = root.find(".//imageAnnotation/imageInformation")
     return pts, {e.tag: e.text for e in info}
 
@@ -95,10 +99,12 @@ def grd_store(tmp_path_factory):
     out = tmp_path_factory.mktemp("safe") / "grd.zarr"
     # VmHWM is this process's own high-water mark: ru_maxrss would carry over the peak of the
     # pytest worker that spawned it (Linux keeps the parent's high-water mark across vfork+exec)
-    code = ("import sys; from sarship.pipeline.readers import ingest; "
-            "from sarship.pipeline.readers import InputLimits; "
-            "ingest([sys.argv[1]], sys.argv[2], limits=InputLimits(max_ratio=1e5)); "
-            "print(next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith('VmHWM')))")
+    code = (
+        "import sys; from sarship.pipeline.readers import ingest; "
+        "from sarship.pipeline.readers import InputLimits; "
+        "ingest([sys.argv[1]], sys.argv[2], limits=InputLimits(max_ratio=1e5)); "
+        "print(next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith('VmHWM')))"
+    )
     r = subprocess.run([sys.executable, "-c", code, str(GRD), str(out)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     return out, int(r.stdout.split()[-1])
@@ -173,11 +179,12 @@ class TestGRD:
         sd = open_scene(grd_store[0])
         assert sz.shape == sd.shape
         assert {k: v for k, v in sz.attrs.items() if k != "source"} == {
-            k: v for k, v in sd.attrs.items() if k != "source"}
+            k: v for k, v in sd.attrs.items() if k != "source"
+        }
         a, b = sz.array("intensity"), sd.array("intensity")
         t = sd.attrs["tile"]
         for r in range(0, H, t):  # tile by tile: never both whole bands at once
-            np.testing.assert_array_equal(a[r:r + t, :], b[r:r + t, :])
+            np.testing.assert_array_equal(a[r : r + t, :], b[r : r + t, :])
 
 
 # --------------------------------------------------------------------------------------
@@ -186,8 +193,9 @@ class TestGRD:
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "sarship.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "sarship.cli", *map(str, args)], capture_output=True, text=True, timeout=120
+    )
 
 
 @pytest.mark.skipif(GRD is None, reason=f"Sentinel-1 SAFE samples not found at {SAFE_DIR}")
@@ -247,8 +255,10 @@ SLC = next(iter(sorted(SAFE_DIR.glob("S1B_IW_SLC_*.SAFE"))), None) if SAFE_DIR.i
 def test_azimuth_noise_blocks_hand_computation():
     from sarship.pipeline.readers.safe import azimuth_noise
 
-    blocks = [(0, 9, 0, 4, np.array([0.0, 9.0]), np.array([1.0, 10.0])),
-              (0, 9, 5, 9, np.array([0.0, 9.0]), np.array([2.0, 2.0]))]
+    blocks = [
+        (0, 9, 0, 4, np.array([0.0, 9.0]), np.array([1.0, 10.0])),
+        (0, 9, 5, 9, np.array([0.0, 9.0]), np.array([2.0, 2.0])),
+    ]
     got = azimuth_noise(blocks, 2, 12, 3, 8)
     assert got[0, 0] == pytest.approx(3.0) and got[0, 1] == pytest.approx(3.0)  # row 2, cols 3-4: block 1
     assert got[7, 1] == pytest.approx(10.0)  # row 9
@@ -300,8 +310,12 @@ def test_calibration_and_noise_wired_from_the_annotation(tmp_path, with_noise):
         i = np.searchsorted(L, r, side="right") - 1
         j = np.searchsorted(P, c, side="right") - 1
         t, u = (r - L[i]) / (L[i + 1] - L[i]), (c - P[j]) / (P[j + 1] - P[j])
-        return ((1 - t) * (1 - u) * V[i, j] + (1 - t) * u * V[i, j + 1]
-                + t * (1 - u) * V[i + 1, j] + t * u * V[i + 1, j + 1])
+        return (
+            (1 - t) * (1 - u) * V[i, j]
+            + (1 - t) * u * V[i, j + 1]
+            + t * (1 - u) * V[i + 1, j]
+            + t * u * V[i + 1, j + 1]
+        )
 
     for r, c in [(600, 50), (611, 77), (639, 129)]:
         A = bil(lines, pix, vals, r, c)

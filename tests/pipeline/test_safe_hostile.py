@@ -44,12 +44,24 @@ NO_RATIO = InputLimits(max_ratio=1e15)
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "sarship", *map(str, args)], capture_output=True, text=True,
-                          cwd=REPO, timeout=120, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "sarship", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=120,
+        check=False,
+    )
 
 
-def _product(tmp_path: Path, lines: int = H, samples: int = W, tiff: tuple[int, int] | None = None,
-             calibration: str | None = None, noise: str | None = None) -> Path:
+def _product(
+    tmp_path: Path,
+    lines: int = H,
+    samples: int = W,
+    tiff: tuple[int, int] | None = None,
+    calibration: str | None = None,
+    noise: str | None = None,
+) -> Path:
     """A GRD SAFE folder: the sample's manifest and VV annotation declaring ``lines x samples``,
     a sparse float32 measurement of ``tiff`` (default: the annotation's size) and optionally
     the given calibration / noise XML texts."""
@@ -199,8 +211,9 @@ def test_bad_sigma_nought_nodes_are_refused(tmp_path):
     the LUT (every rule of the check: test_check_lut_rules)."""
     from sarship.pipeline.readers.entry import _open_source
 
-    one_nan = _edit_values(_cal_text(), "sigmaNought",
-                           lambda vals, k: ["NaN" if (k == 3 and i == 7) else v for i, v in enumerate(vals)])
+    one_nan = _edit_values(
+        _cal_text(), "sigmaNought", lambda vals, k: ["NaN" if (k == 3 and i == 7) else v for i, v in enumerate(vals)]
+    )
     prod = _product(tmp_path, calibration=one_nan)
     with pytest.raises(InputError) as e:
         _open_source(prod, limits=NO_RATIO)
@@ -217,8 +230,11 @@ def test_bad_sigma_nought_nodes_are_refused(tmp_path):
 def test_bad_noise_nodes_are_refused_and_good_luts_pass(tmp_path):
     from sarship.pipeline.readers.entry import _open_source
 
-    noisy = _edit_values(_noise_text(), "noiseRangeLut",
-                         lambda vals, k: ["NaN" if (k == 0 and i == 0) else v for i, v in enumerate(vals)])
+    noisy = _edit_values(
+        _noise_text(),
+        "noiseRangeLut",
+        lambda vals, k: ["NaN" if (k == 0 and i == 0) else v for i, v in enumerate(vals)],
+    )
     prod = _product(tmp_path, calibration=_cal_text(), noise=noisy)
     with pytest.raises(InputError, match=r"noise range LUT of VV .* 1 of \d+ nodes that are not finite non-negative"):
         _open_source(prod, limits=NO_RATIO)
@@ -234,8 +250,11 @@ def test_check_lut_rules():
     lines, pixels = np.array([0.0, 10.0]), np.array([0.0, 5.0, 9.0])
     check_lut("p", "LUT", lines, pixels, np.ones((2, 3)))
     check_lut("p", "noise", lines, pixels, np.zeros((2, 3)), positive=False)
-    for vals, match in ((np.zeros((2, 3)), "finite positive"), (np.full((2, 3), np.inf), "6 of 6"),
-                        (np.ones((3, 3)), r"\(3, 3\) values for 2 lines x 3 pixels")):
+    for vals, match in (
+        (np.zeros((2, 3)), "finite positive"),
+        (np.full((2, 3), np.inf), "6 of 6"),
+        (np.ones((3, 3)), r"\(3, 3\) values for 2 lines x 3 pixels"),
+    ):
         with pytest.raises(InputError, match=match):
             check_lut("p", "LUT", lines, pixels, vals)
     with pytest.raises(InputError, match="pixel coordinates that are not finite and increasing"):

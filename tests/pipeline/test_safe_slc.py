@@ -102,9 +102,19 @@ def test_deramping_is_what_npdd_needs():
     from sarship.pipeline.stats import circular
 
     tau = 5.343e-3 + np.arange(64) / 6.4345e7
-    r = tops.burst_ramp(tau, 7600.0, 5.405e9, 1.590368784, [-2320.27, 4.5014e5, -7.9186e7], 5.343e-3,
-                        [-1.7936, 3565.0, -3.326e6], 5.351e-3, first_valid_col=0, lines_per_burst=1501,
-                        dt=2.0555563e-3)
+    r = tops.burst_ramp(
+        tau,
+        7600.0,
+        5.405e9,
+        1.590368784,
+        [-2320.27, 4.5014e5, -7.9186e7],
+        5.343e-3,
+        [-1.7936, 3565.0, -3.326e6],
+        5.351e-3,
+        first_valid_col=0,
+        lines_per_burst=1501,
+        dt=2.0555563e-3,
+    )
     rng = np.random.default_rng(2)
     w = rng.standard_normal((1501, 64)) + 1j * rng.standard_normal((1501, 64))
     F = np.fft.fft(w, axis=0)
@@ -118,7 +128,7 @@ def test_deramping_is_what_npdd_needs():
     np.testing.assert_allclose(np.abs(delivered), np.abs(sea), rtol=1e-12)
 
     def spread(z, l0):
-        return circular.npdd_spread(circular.npdd(z[l0:l0 + 100], 3, 1)[2:-2, 2:-2])[0]
+        return circular.npdd_spread(circular.npdd(z[l0 : l0 + 100], 3, 1)[2:-2, 2:-2])[0]
 
     for l0 in range(50, 1450, 200):
         base, ramped, back = spread(sea, l0), spread(delivered, l0), spread(deramped, l0)
@@ -139,32 +149,49 @@ def _sec(a: np.datetime64, b: np.datetime64) -> float:
     return float((a - b) / np.timedelta64(1, "ns")) * 1e-9
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _annotation(safe: Path, swath: str, pol: str) -> dict:
     path = next((safe / "annotation").glob(f"s1?-{swath}-slc-{pol}-*.xml"))
     r = ET.parse(path).getroot()
     info = r.find(".//imageAnnotation/imageInformation")
     pinfo = r.find(".//generalAnnotation/productInformation")
     st = r.find(".//swathTiming")
-    bursts = [(_t(b.findtext("azimuthTime")), np.array(b.findtext("firstValidSample").split(), int),
-               np.array(b.findtext("lastValidSample").split(), int)) for b in st.iter("burst")]
+    bursts = [
+        (
+            _t(b.findtext("azimuthTime")),
+            np.array(b.findtext("firstValidSample").split(), int),
+            np.array(b.findtext("lastValidSample").split(), int),
+        )
+        for b in st.iter("burst")
+    ]
 
     def records(tag, poly):
-        return [(_t(e.findtext("azimuthTime")), float(e.findtext("t0")), np.array(e.findtext(poly).split(), float))
-                for e in r.iter(tag)]
+        return [
+            (_t(e.findtext("azimuthTime")), float(e.findtext("t0")), np.array(e.findtext(poly).split(), float))
+            for e in r.iter(tag)
+        ]
 
     cal = next((safe / "annotation" / "calibration").glob(f"calibration-{path.name}"), None)
     return {
-        "path": path, "root": r,
-        "lines": int(info.findtext("numberOfLines")), "samples": int(info.findtext("numberOfSamples")),
-        "az": float(info.findtext("azimuthPixelSpacing")), "rg": float(info.findtext("rangePixelSpacing")),
-        "dt": float(info.findtext("azimuthTimeInterval")), "tau0": float(info.findtext("slantRangeTime")),
-        "fs": float(pinfo.findtext("rangeSamplingRate")), "fc": float(pinfo.findtext("radarFrequency")),
+        "path": path,
+        "root": r,
+        "lines": int(info.findtext("numberOfLines")),
+        "samples": int(info.findtext("numberOfSamples")),
+        "az": float(info.findtext("azimuthPixelSpacing")),
+        "rg": float(info.findtext("rangePixelSpacing")),
+        "dt": float(info.findtext("azimuthTimeInterval")),
+        "tau0": float(info.findtext("slantRangeTime")),
+        "fs": float(pinfo.findtext("rangeSamplingRate")),
+        "fc": float(pinfo.findtext("radarFrequency")),
         "psi": float(pinfo.findtext("azimuthSteeringRate")),
-        "lpb": int(st.findtext("linesPerBurst")), "bursts": bursts,
-        "dc": records("dcEstimate", "dataDcPolynomial"), "fm": records("azimuthFmRate", "azimuthFmRatePolynomial"),
-        "orbit": [(_t(o.findtext("time")), np.array([float(o.findtext(f"velocity/{a}")) for a in "xyz"]))
-                  for o in r.iter("orbit")],
+        "lpb": int(st.findtext("linesPerBurst")),
+        "bursts": bursts,
+        "dc": records("dcEstimate", "dataDcPolynomial"),
+        "fm": records("azimuthFmRate", "azimuthFmRatePolynomial"),
+        "orbit": [
+            (_t(o.findtext("time")), np.array([float(o.findtext(f"velocity/{a}")) for a in "xyz"]))
+            for o in r.iter("orbit")
+        ],
         "cal": cal,
     }
 
@@ -182,7 +209,7 @@ def _row_source(a: dict, row: int) -> tuple[int, int]:
     T = _sec(t_first, bs[0][0]) + (f0 + row) * dt  # seconds after burst 0's first line
     starts = [_sec(b[0], bs[0][0]) for b in bs]
     cands = []
-    for k, (tb, fv, _) in enumerate(bs):
+    for k, (_tb, fv, _) in enumerate(bs):
         f, l = _valid_lines(fv)
         if starts[k] + f * dt - dt / 2 <= T <= starts[k] + l * dt + dt / 2:
             cands.append(k)
@@ -202,7 +229,7 @@ def _rows(a: dict) -> int:
     return int(round(_sec(bs[-1][0], bs[0][0]) / dt + ln - f0)) + 1
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _lut(path: Path):
     root = ET.parse(path).getroot()
     vecs = list(root.iter("calibrationVector"))
@@ -217,8 +244,7 @@ def _bil(L, P, V, r, c):
     j = int(np.clip(np.searchsorted(P, c, side="right") - 1, 0, len(P) - 2))
     t = min(max((r - L[i]) / (L[i + 1] - L[i]), 0.0), 1.0)
     u = min(max((c - P[j]) / (P[j + 1] - P[j]), 0.0), 1.0)
-    return ((1 - t) * (1 - u) * V[i, j] + (1 - t) * u * V[i, j + 1]
-            + t * (1 - u) * V[i + 1, j] + t * u * V[i + 1, j + 1])
+    return (1 - t) * (1 - u) * V[i, j] + (1 - t) * u * V[i, j + 1] + t * (1 - u) * V[i + 1, j] + t * u * V[i + 1, j + 1]
 
 
 def _expected(a: dict, dn: complex, row: int, col: int) -> complex:
@@ -283,8 +309,7 @@ def _check_samples(read) -> None:
             t.filehandle.seek(page.dataoffsets[0])
             dn = complex(page.decode(t.filehandle.read(page.databytecounts[0]), 0)[0].ravel()[0])
         assert dn == {"vv": 2, "vh": 1}[pol]
-        for r, c in [(0, 600), (700, 10000), (1402, 20900), (1403, 3000), (6000, 15000), (12198, 20000),
-                     (12198, 600)]:
+        for r, c in [(0, 600), (700, 10000), (1402, 20900), (1403, 3000), (6000, 15000), (12198, 20000), (12198, 600)]:
             want = _expected(a, dn, r, c)
             got = complex(read(pol, r, c, c + 1)[0])
             assert abs(got - want) <= 2e-5 * abs(want), (pol, r, c, got, want)
@@ -298,8 +323,8 @@ def _check_invalid_edges(read_row) -> None:
         fv, lv = a["bursts"][b][1][line], a["bursts"][b][2][line]
         assert fv >= 0
         row = read_row(r)
-        assert np.isnan(row[:fv]).all() and np.isnan(row[lv + 1:]).all()
-        assert np.isfinite(row[fv:lv + 1]).all()
+        assert np.isnan(row[:fv]).all() and np.isnan(row[lv + 1 :]).all()
+        assert np.isfinite(row[fv : lv + 1]).all()
 
 
 @needs_slc
@@ -350,10 +375,12 @@ def iw1(tmp_path_factory):
     z = _zip(SLC, d / (SLC.stem + ".zip"))
     out = d / "iw1.zarr"
     # VmHWM: this process's own high-water mark (ru_maxrss would carry the pytest worker's over)
-    code = ("import sys; from sarship.pipeline.readers import ingest; "
-            "from sarship.pipeline.readers import InputLimits; "
-            "ingest([sys.argv[1]], sys.argv[2], swath='iw1', limits=InputLimits(max_ratio=1e5)); "
-            "print(next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith('VmHWM')))")
+    code = (
+        "import sys; from sarship.pipeline.readers import ingest; "
+        "from sarship.pipeline.readers import InputLimits; "
+        "ingest([sys.argv[1]], sys.argv[2], swath='iw1', limits=InputLimits(max_ratio=1e5)); "
+        "print(next(int(l.split()[1]) * 1024 for l in open('/proc/self/status') if l.startswith('VmHWM')))"
+    )
     r = subprocess.run([sys.executable, "-c", code, str(z), str(out)], capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr
     yield out, int(r.stdout.split()[-1]), z
@@ -403,9 +430,17 @@ class TestIW1:
         sc = open_scene(iw1[0])
         a = _annotation(SLC, "iw1", "vv")
         t_first = np.datetime64(sc.attrs["swath_first_line_time"], "ns")
-        pts = [(_t(p.findtext("azimuthTime")), int(p.findtext("line")), int(p.findtext("pixel")),
-                float(p.findtext("latitude")), float(p.findtext("longitude")), float(p.findtext("incidenceAngle")))
-               for p in a["root"].iter("geolocationGridPoint")]
+        pts = [
+            (
+                _t(p.findtext("azimuthTime")),
+                int(p.findtext("line")),
+                int(p.findtext("pixel")),
+                float(p.findtext("latitude")),
+                float(p.findtext("longitude")),
+                float(p.findtext("incidenceAngle")),
+            )
+            for p in a["root"].iter("geolocationGridPoint")
+        ]
         gcps = sc.attrs["gcps"]
         assert len(gcps) == len(pts) == 210
         lpb, bs = a["lpb"], a["bursts"]
@@ -497,8 +532,9 @@ def test_iw2_is_its_own_scene():
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "sarship.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "sarship.cli", *map(str, args)], capture_output=True, text=True, timeout=120
+    )
 
 
 @needs_slc
@@ -579,9 +615,14 @@ def _inbox_server(tmp_path):
     data, inbox = tmp_path / "data", tmp_path / "inbox"
     data.mkdir()
     inbox.mkdir()
-    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.2",
-                 SARSHIP_INBOX_SETTLE_S="0.2",  # the zips arrive by rename: complete at once
-                 SARSHIP_MAX_RATIO="1e5").start()  # the constant-pixel samples: ~53000:1 zipped
+    srv = Server(
+        data,
+        free_port(),
+        SARSHIP_INBOX=json.dumps([str(inbox)]),
+        SARSHIP_INBOX_INTERVAL_S="0.2",
+        SARSHIP_INBOX_SETTLE_S="0.2",  # the zips arrive by rename: complete at once
+        SARSHIP_MAX_RATIO="1e5",
+    ).start()  # the constant-pixel samples: ~53000:1 zipped
     return srv, data, inbox
 
 

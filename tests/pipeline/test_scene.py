@@ -11,8 +11,8 @@ import zarr
 
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.scene import atomic_store, create_scene, finalize_scene, open_scene
-from tests.conftest import blobs_scene, write_scene
 from sarship.workers.jobs import run_detection
+from tests.conftest import blobs_scene, write_scene
 
 
 def test_sharded_tiles_read_by_xarray_and_detect(tmp_path, client):
@@ -65,8 +65,10 @@ def test_a_large_scene_runs_in_doubled_tiles_with_the_same_detections(tmp_path, 
     b = run_detection(scene, "ca_cfar", settings, out_dir=tmp_path / "b", tile=64, client=client, progress=False)
     assert (a["tiles"]["size"], a["tiles"]["size_source"], a["tiles"]["count"]) == (128, "scene tile x 2", 36)
     assert (b["tiles"]["size"], b["tiles"]["size_source"]) == (64, "given")
-    np.testing.assert_array_equal(zarr.open_array(str(tmp_path / "a" / "mask.zarr" / "mask"))[:],
-                                  zarr.open_array(str(tmp_path / "b" / "mask.zarr" / "mask"))[:])
+    np.testing.assert_array_equal(
+        zarr.open_array(str(tmp_path / "a" / "mask.zarr" / "mask"))[:],
+        zarr.open_array(str(tmp_path / "b" / "mask.zarr" / "mask"))[:],
+    )
     fa = json.loads((tmp_path / "a" / "detections.geojson").read_text())["features"]
     fb = json.loads((tmp_path / "b" / "detections.geojson").read_text())["features"]
     assert fa == fb and len(fa) >= 10

@@ -279,7 +279,9 @@ def test_voc_folder_and_evaluate_scene_choice(tmp_path):
     folder = tmp_path / "voc"
     folder.mkdir()
     (folder / "a.xml").write_text(VOC_XML)
-    (folder / "b.xml").write_text(VOC_XML.replace("<xmin>1</xmin><ymin>1</ymin><xmax>10</xmax>", "<xmin>41</xmin><ymin>1</ymin><xmax>50</xmax>"))
+    (folder / "b.xml").write_text(
+        VOC_XML.replace("<xmin>1</xmin><ymin>1</ymin><xmax>10</xmax>", "<xmin>41</xmin><ymin>1</ymin><xmax>50</xmax>")
+    )
     d = load_voc_folder(folder)
     assert list(d) == ["a", "b"] and len(d["a"]) == 3
     with pytest.raises(InputError, match="no scene name"):
@@ -406,7 +408,7 @@ def test_hrsid_real_masks():
         assert sum(s.properties["area_px"] for s in ships) == int(mask.sum())
         for s in ships:
             r0, c0, r1, c1 = s.bbox
-            assert mask[int(r0):int(r1), int(c0):int(c1)].any()
+            assert mask[int(r0) : int(r1), int(c0) : int(c1)].any()
             assert r0 <= s.centroid[0] <= r1 and c0 <= s.centroid[1] <= c1
         # the truth scored against itself is perfect
         sc = score(ships, ships, det_mask=mask, truth_mask=mask)
@@ -448,14 +450,23 @@ def test_geojson_round_trip(tmp_path):
         ("a.geojson", b"{not json"),
         ("b.geojson", b'{"type": "Feature"}'),
         ("c.geojson", b'{"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}}]}'),
-        ("d.geojson", b'{"type": "FeatureCollection", "features": [{"type": "Feature", '
-                      b'"properties": {"bbox_px": [1, 2, "x", 4]}}]}'),
-        ("e.geojson", b'{"type": "FeatureCollection", "features": [{"type": "Feature", '
-                      b'"properties": {"bbox_px": [5, 5, 1, 1]}}]}'),
+        (
+            "d.geojson",
+            b'{"type": "FeatureCollection", "features": [{"type": "Feature", '
+            b'"properties": {"bbox_px": [1, 2, "x", 4]}}]}',
+        ),
+        (
+            "e.geojson",
+            b'{"type": "FeatureCollection", "features": [{"type": "Feature", '
+            b'"properties": {"bbox_px": [5, 5, 1, 1]}}]}',
+        ),
         ("f.geojson", b"\xff\xfe\x00garbage"),
         ("g.xml", b"<annotation><object><bndbox><xmin>1</xmin></bndbox></object>"),
-        ("h.xml", b"<annotation><object><bndbox><xmin>a</xmin><ymin>1</ymin><xmax>2</xmax>"
-                  b"<ymax>2</ymax></bndbox></object></annotation>"),
+        (
+            "h.xml",
+            b"<annotation><object><bndbox><xmin>a</xmin><ymin>1</ymin><xmax>2</xmax>"
+            b"<ymax>2</ymax></bndbox></object></annotation>",
+        ),
         ("i.xml", b"<html><body>hello</body></html>"),
         ("j.png", b"\x89PNG\r\n\x1a\n not really a png"),
         ("k.tif", b"II*\x00garbage"),
@@ -496,10 +507,12 @@ def test_missing_and_empty_inputs(tmp_path):
 
 def test_ignore_flagged_leaves_out_unmatched_flagged_detections_only():
     truth = [box(0, 0, 10, 10), box(50, 50, 60, 60, difficult=True), box(100, 100, 110, 110)]
-    dets = [Ship.from_bbox((1, 1, 9, 9), ambiguity_of=7),       # flagged but on a ship: a hit
-            Ship.from_bbox((51, 51, 59, 59), ambiguity_of=None),  # on the difficult ship: ignored
-            Ship.from_bbox((200, 200, 205, 205), ambiguity_of=0),  # flagged ghost: left out with the option
-            Ship.from_bbox((300, 300, 305, 305))]                  # unflagged stray: a false alarm either way
+    dets = [
+        Ship.from_bbox((1, 1, 9, 9), ambiguity_of=7),  # flagged but on a ship: a hit
+        Ship.from_bbox((51, 51, 59, 59), ambiguity_of=None),  # on the difficult ship: ignored
+        Ship.from_bbox((200, 200, 205, 205), ambiguity_of=0),  # flagged ghost: left out with the option
+        Ship.from_bbox((300, 300, 305, 305)),
+    ]  # unflagged stray: a false alarm either way
     plain = score(dets, truth)
     assert (plain["n_hit"], plain["n_false"], plain["n_detections"], plain["n_ignored"]) == (1, 2, 3, 1)
     assert "n_flagged_ignored" not in plain

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from sarship.pipeline import detectors
+from sarship.pipeline.errors import InputError
+from sarship.pipeline.simulate import SimConfig, simulate, simulate_array
 from sarship.pipeline.targets import sidelobes as S
 from sarship.pipeline.targets.components import tile_components
-from sarship.pipeline.errors import InputError
 from sarship.pipeline.targets.ship_features import features
-from sarship.pipeline.simulate import SimConfig, simulate, simulate_array
 
 
 def _line_ref(p: np.ndarray, gap: int = 0) -> np.ndarray:
@@ -46,13 +46,13 @@ def _line_ref(p: np.ndarray, gap: int = 0) -> np.ndarray:
 def test_line_response_matches_definition(gap):
     rng = np.random.default_rng(0)
     p = rng.exponential(1.0, (23, 19))
-    p[5, :] = 30.0                      # a bright row
-    p[:, 7] *= 20                       # a bright column
+    p[5, :] = 30.0  # a bright row
+    p[:, 7] *= 20  # a bright column
     p[3, 3] = np.nan
     p[10, 2:5] = np.nan
     np.testing.assert_allclose(S.line_response(p, "row", gap), _line_ref(p, gap), rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(S.line_response(p, "col", gap), _line_ref(p.T, gap).T, rtol=1e-12, atol=1e-15)
-    assert (S.line_response(p, "row", gap)[5, 10:] > 0.5).all()          # the bright row is a line
+    assert (S.line_response(p, "row", gap)[5, 10:] > 0.5).all()  # the bright row is a line
     with pytest.raises(ValueError):
         S.line_response(p, "diagonal")
 
@@ -81,13 +81,13 @@ def _planted(arms: bool, heading_row: bool = False):
     else:
         for k in range(-10, 11):
             r, c = 20 + k, 20 + k // 2
-            ship[r, c - 1:c + 2] = True
+            ship[r, c - 1 : c + 2] = True
     p[ship] = 300.0 * rng.exponential(1.0, ship.sum()) + 150.0
     sr, sc = 20, 20
     p[sr, sc] = 2e5
     if arms:
         for k in range(1, 9):
-            lvl = 2e5 * 0.036 / k ** 2 + 40.0
+            lvl = 2e5 * 0.036 / k**2 + 40.0
             for r, c in ((sr, sc - k), (sr, sc + k), (sr - k, sc), (sr + k, sc)):
                 p[r, c] += lvl
     comp = p > 30.0
@@ -99,7 +99,7 @@ def test_planted_cross_is_cut_off_the_ship():
     res = S.refine(p, comp)
     assert res["sidelobes"] and (20, 20) in res["centres"]
     core = res["core"]
-    assert core[ship].mean() > 0.97                 # the hull stays
+    assert core[ship].mean() > 0.97  # the hull stays
     from scipy import ndimage as ndi
 
     away = comp & ~ndi.binary_dilation(ship, np.ones((3, 3), bool))
@@ -132,19 +132,36 @@ def _detect(cfg: SimConfig):
     r = 2
     recs = tile_components(np.pad(mask, r), I, stat, r, (0, 0), (0, 0)).complete
     raw = features(recs, cfg.pixel_spacing_m, None)
-    ref = S.refine_features(features(recs, cfg.pixel_spacing_m, None), recs, lambda a, b, c, d: I[a:b, c:d],
-                            lambda a, b, c, d: mask[a:b, c:d], I.shape, r, cfg.pixel_spacing_m, None)
+    ref = S.refine_features(
+        features(recs, cfg.pixel_spacing_m, None),
+        recs,
+        lambda a, b, c, d: I[a:b, c:d],
+        lambda a, b, c, d: mask[a:b, c:d],
+        I.shape,
+        r,
+        cfg.pixel_spacing_m,
+        None,
+    )
     rows = []
     for tf in truth["features"]:
         t = tf["properties"]
         r0, c0, r1, c1 = t["bbox_px"]
-        inside = [i for i, f in enumerate(raw)
-                  if r0 - 2 <= f["properties"]["centroid_px"][0] <= r1 + 2
-                  and c0 - 2 <= f["properties"]["centroid_px"][1] <= c1 + 2]
+        inside = [
+            i
+            for i, f in enumerate(raw)
+            if r0 - 2 <= f["properties"]["centroid_px"][0] <= r1 + 2
+            and c0 - 2 <= f["properties"]["centroid_px"][1] <= c1 + 2
+        ]
         if inside:
             i = max(inside, key=lambda i: raw[i]["properties"]["area_px"])
-            rows.append((t["length_m"], raw[i]["properties"]["length_m"], ref[i]["properties"]["length_m"],
-                         ref[i]["properties"]["sidelobes"]))
+            rows.append(
+                (
+                    t["length_m"],
+                    raw[i]["properties"]["length_m"],
+                    ref[i]["properties"]["length_m"],
+                    ref[i]["properties"]["sidelobes"],
+                )
+            )
     return np.array(rows, float), ref
 
 
@@ -157,8 +174,17 @@ def sim_rows():
     for sl in (True, False):
         rows = []
         for seed in (3, 4, 6):
-            cfg = SimConfig(shape=(1024, 1024), ships=20, seed=seed, clutter="k", looks=1, sidelobes=sl, scr_db=25,
-                            pixel_spacing_m=(3.0, 3.0), length_m=(20.0, 200.0))
+            cfg = SimConfig(
+                shape=(1024, 1024),
+                ships=20,
+                seed=seed,
+                clutter="k",
+                looks=1,
+                sidelobes=sl,
+                scr_db=25,
+                pixel_spacing_m=(3.0, 3.0),
+                length_m=(20.0, 200.0),
+            )
             a, ref = _detect(cfg)
             rows.append(a)
             if not sl:  # no sidelobes: no detection at all is flagged
@@ -174,23 +200,40 @@ def test_core_length_within_15_percent_where_sidelobes_exist(sim_rows):
     flag = a[:, 3] > 0
     assert flag.sum() >= 15
     assert core[flag].mean() <= 0.15 and np.median(core[flag]) <= 0.10
-    assert core[flag].mean() < 0.85 * raw[flag].mean()        # suppression helps where it acts
-    assert core.mean() <= raw.mean()                          # and never hurts overall
+    assert core[flag].mean() < 0.85 * raw[flag].mean()  # suppression helps where it acts
+    assert core.mean() <= raw.mean()  # and never hurts overall
     assert (core[flag] > raw[flag] + 0.05).sum() <= 1
 
 
 def test_flag_only_with_sidelobes(sim_rows):
     a = sim_rows[False]
     assert len(a) >= 55 and not (a[:, 3] > 0).any()
-    np.testing.assert_array_equal(a[:, 1], a[:, 2])            # unflagged: values unchanged
+    np.testing.assert_array_equal(a[:, 1], a[:, 2])  # unflagged: values unchanged
 
 
-@pytest.mark.parametrize("field, value", [
-    ("line_ratio", 0.0), ("line_ratio", 1.0), ("scatterer_ratio", 0.5), ("min_half_arms", 5),
-    ("arm_max_px", 0), ("gap_px", -1), ("margin_px", 1), ("line_gap", 5), ("arm_width_px", 0),
-    ("min_arm_px", 0), ("max_scatterers", 0), ("min_half_arms", True), ("min_out_arms", 0),
-    ("oversampling", 0.5), ("oversampling", float("nan")), ("arm_factor", 0.5), ("body_margin_px", -1.0),
-    ("body_margin_px", True)])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("line_ratio", 0.0),
+        ("line_ratio", 1.0),
+        ("scatterer_ratio", 0.5),
+        ("min_half_arms", 5),
+        ("arm_max_px", 0),
+        ("gap_px", -1),
+        ("margin_px", 1),
+        ("line_gap", 5),
+        ("arm_width_px", 0),
+        ("min_arm_px", 0),
+        ("max_scatterers", 0),
+        ("min_half_arms", True),
+        ("min_out_arms", 0),
+        ("oversampling", 0.5),
+        ("oversampling", float("nan")),
+        ("arm_factor", 0.5),
+        ("body_margin_px", -1.0),
+        ("body_margin_px", True),
+    ],
+)
 def test_parameters_validated(field, value):
     with pytest.raises(InputError, match=field):
         S.SidelobeParams(**{field: value})
@@ -209,21 +252,31 @@ def test_detector_parameter_validated():
         assert JobRequest.from_inputs("os_cfar", {"scene": "s", "sidelobes": v}).detector_params().sidelobes is want
     with pytest.raises(InputError, match="sidelobes"):
         JobRequest.from_inputs("os_cfar", {"scene": "s", "sidelobes": "maybe"})
-    with pytest.raises(InputError, match="pfa"):                  # other parameters: still no booleans
+    with pytest.raises(InputError, match="pfa"):  # other parameters: still no booleans
         JobRequest.from_inputs("os_cfar", {"scene": "s", "pfa": True})
 
 
 def test_run_detection_carries_core_properties(tmp_path, client):
     from sarship.workers.jobs import run_detection
 
-    cfg = SimConfig(shape=(512, 512), ships=8, seed=6, clutter="k", looks=1, sidelobes=True, scr_db=25,
-                    pixel_spacing_m=(3.0, 3.0), length_m=(20.0, 150.0))
+    cfg = SimConfig(
+        shape=(512, 512),
+        ships=8,
+        seed=6,
+        clutter="k",
+        looks=1,
+        sidelobes=True,
+        scr_db=25,
+        pixel_spacing_m=(3.0, 3.0),
+        length_m=(20.0, 150.0),
+    )
     scene = simulate(tmp_path / "s.zarr", cfg, tile=256)
     common = {"pfa": 1e-7, "merge_px": 4, "min_area_px": 5}
     on = run_detection(scene, "os_cfar", common, out_dir=tmp_path / "on", client=client, progress=False)
     # "false" as `--set sidelobes=false` writes it (requests take numbers or strings)
-    off = run_detection(scene, "os_cfar", {**common, "sidelobes": "false"}, out_dir=tmp_path / "off",
-                        client=client, progress=False)
+    off = run_detection(
+        scene, "os_cfar", {**common, "sidelobes": "false"}, out_dir=tmp_path / "off", client=client, progress=False
+    )
     assert on["parameters"]["sidelobes"] is True and off["parameters"]["sidelobes"] is False
     f_on = json.loads((tmp_path / "on" / "detections.geojson").read_text())["features"]
     f_off = json.loads((tmp_path / "off" / "detections.geojson").read_text())["features"]
@@ -245,8 +298,17 @@ def test_run_detection_carries_core_properties(tmp_path, client):
 
 
 def test_refine_features_leaves_the_records_alone():
-    cfg = SimConfig(shape=(512, 512), ships=8, seed=6, clutter="k", looks=1, sidelobes=True, scr_db=25,
-                    pixel_spacing_m=(3.0, 3.0), length_m=(20.0, 150.0))
+    cfg = SimConfig(
+        shape=(512, 512),
+        ships=8,
+        seed=6,
+        clutter="k",
+        looks=1,
+        sidelobes=True,
+        scr_db=25,
+        pixel_spacing_m=(3.0, 3.0),
+        length_m=(20.0, 150.0),
+    )
     I = simulate_array(cfg)[0]["intensity"]
     spec = detectors.get("os_cfar")
     p = spec.params(pfa=1e-7, looks=1, merge_px=4, min_area_px=1)
@@ -254,7 +316,15 @@ def test_refine_features_leaves_the_records_alone():
     mask, stat = spec.detect(np.pad(I, halo, mode="reflect"), halo, (-halo, -halo), p, spec.prepare(p))
     recs = tile_components(np.pad(mask, 2), I, stat, 2, (0, 0), (0, 0)).complete
     before = recs.copy()
-    out = S.refine_features(features(recs, cfg.pixel_spacing_m, None), recs, lambda a, b, c, d: I[a:b, c:d],
-                            lambda a, b, c, d: mask[a:b, c:d], I.shape, 2, cfg.pixel_spacing_m, None)
+    out = S.refine_features(
+        features(recs, cfg.pixel_spacing_m, None),
+        recs,
+        lambda a, b, c, d: I[a:b, c:d],
+        lambda a, b, c, d: mask[a:b, c:d],
+        I.shape,
+        2,
+        cfg.pixel_spacing_m,
+        None,
+    )
     assert any(f["properties"]["sidelobes"] for f in out)
     assert np.array_equal(recs, before)

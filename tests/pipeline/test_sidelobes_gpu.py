@@ -8,11 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sarship.pipeline.targets import sidelobes as S
 from sarship.pipeline.gpu import available
+from sarship.pipeline.targets import sidelobes as S
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 
 @pytest.mark.parametrize("along", ["row", "col"])

@@ -39,31 +39,44 @@ import numpy as np
 import pytest
 
 from sarship.pipeline import detectors
+from sarship.pipeline.simulate import SimConfig, simulate, simulate_array
 from sarship.pipeline.targets import sidelobes as S
 from sarship.pipeline.targets.components import merge_radius, tile_components
 from sarship.pipeline.targets.ship_features import features
-from sarship.pipeline.simulate import SimConfig, simulate, simulate_array
 
-LENGTH_TOL = 0.20   # |length / truth - 1| (module doc)
+LENGTH_TOL = 0.20  # |length / truth - 1| (module doc)
 #: detectors whose components measure less of these single-look hulls (module doc): the
 #: step must not move them further from the truth than their components are
 SHORT = {"two_parameter", "ggd_cfar", "lmm"}
-HEADING_TOL = 8.0   # degrees (module doc)
+HEADING_TOL = 8.0  # degrees (module doc)
 
 #: the issue's settings (sarship simulate defaults, --spacing 5), no sidelobes; seed 13: the
 #: code before the fix flagged two of its three ships and cut them to 57 % and 2 % of their length
 NO_SIDELOBES = SimConfig(shape=(256, 256), ships=3, seed=13, pixel_spacing_m=(5.0, 5.0), length_m=(120.0, 250.0))
 #: simulated sidelobe crosses that pass the threshold (seed 0: three detections flagged by os_cfar)
-SIDELOBES = SimConfig(shape=(256, 256), ships=3, seed=0, clutter="k", looks=1, sidelobes=True, scr_db=25,
-                      pixel_spacing_m=(3.0, 3.0), length_m=(75.0, 150.0))
+SIDELOBES = SimConfig(
+    shape=(256, 256),
+    ships=3,
+    seed=0,
+    clutter="k",
+    looks=1,
+    sidelobes=True,
+    scr_db=25,
+    pixel_spacing_m=(3.0, 3.0),
+    length_m=(75.0, 150.0),
+)
 
 DIRECT = ["two_parameter", "ca_cfar", "os_cfar", "lmm", "g0_cfar", "k_cfar", "ggd_cfar"]
 #: through the whole run; the quad-pol ones are cheap on these scenes (~1.5 s for their four
 #: runs), the others slow (8-30 s on the shared 2-core machine)
-PIPELINE = [pytest.param("gamma_mrf", "intensity", marks=pytest.mark.slow),
-            pytest.param("superpixel_cfar", "intensity", marks=pytest.mark.slow),
-            pytest.param("csk", "slc", marks=pytest.mark.slow),
-            ("apwf", "quadpol"), ("pcdm", "quadpol"), ("vb_polsar", "quadpol")]
+PIPELINE = [
+    pytest.param("gamma_mrf", "intensity", marks=pytest.mark.slow),
+    pytest.param("superpixel_cfar", "intensity", marks=pytest.mark.slow),
+    pytest.param("csk", "slc", marks=pytest.mark.slow),
+    ("apwf", "quadpol"),
+    ("pcdm", "quadpol"),
+    ("vb_polsar", "quadpol"),
+]
 
 
 def _heading_error(a: float, b: float) -> float:
@@ -77,9 +90,12 @@ def _match(truth: dict, feats: list[dict]) -> list[tuple[dict, dict | None]]:
     for tf in truth["features"]:
         t = tf["properties"]
         r0, c0, r1, c1 = t["bbox_px"]
-        inside = [f["properties"] for f in feats
-                  if r0 - 2 <= f["properties"]["centroid_px"][0] <= r1 + 2
-                  and c0 - 2 <= f["properties"]["centroid_px"][1] <= c1 + 2]
+        inside = [
+            f["properties"]
+            for f in feats
+            if r0 - 2 <= f["properties"]["centroid_px"][0] <= r1 + 2
+            and c0 - 2 <= f["properties"]["centroid_px"][1] <= c1 + 2
+        ]
         out.append((t, max(inside, key=lambda p: p["area_px"]) if inside else None))
     return out
 
@@ -103,9 +119,16 @@ def _detect_and_refine(image: np.ndarray, spec, p, spacing) -> tuple[list[dict],
     mask, stat = spec.detect(np.pad(image, halo, mode="reflect"), halo, (-halo, -halo), p, spec.prepare(p))
     r = merge_radius(p.merge_px)
     recs = tile_components(np.pad(mask, r), image, stat, r, (0, 0), (0, 0)).complete
-    feats = S.refine_features(features(recs, spacing, None), recs,
-                              lambda a, b, c, d: image[a:b, c:d], lambda a, b, c, d: mask[a:b, c:d],
-                              image.shape, r, spacing, None)
+    feats = S.refine_features(
+        features(recs, spacing, None),
+        recs,
+        lambda a, b, c, d: image[a:b, c:d],
+        lambda a, b, c, d: mask[a:b, c:d],
+        image.shape,
+        r,
+        spacing,
+        None,
+    )
     return feats, features(recs, spacing, None)
 
 
@@ -125,7 +148,8 @@ def _check_truth(truth: dict, feats: list[dict], raw: list[dict] | None = None) 
             htol = max(htol, _heading_error(q["heading_deg"], t["heading_deg"]) + 3.0)
         assert err <= tol and herr <= htol, (
             f"ship {t['id']}: {p['length_m']:.0f} m heading {p['heading_deg']:.0f} deg "
-            f"(sidelobes {p.get('sidelobes')}), truth {t['length_m']:.0f} m {t['heading_deg']:.0f} deg")
+            f"(sidelobes {p.get('sidelobes')}), truth {t['length_m']:.0f} m {t['heading_deg']:.0f} deg"
+        )
 
 
 @pytest.mark.parametrize("detector", DIRECT)
@@ -159,11 +183,11 @@ def test_issue_ship_is_not_cut():
     t = next(f["properties"] for f in truth["features"] if abs(f["properties"]["length_m"] - 196) < 1)
     r0, c0, r1, c1 = t["bbox_px"]
     a, c = r0 - 64, c0 - 64
-    window = data["intensity"][a:r1 + 64, c:c1 + 64]
+    window = data["intensity"][a : r1 + 64, c : c1 + 64]
     spec = detectors.get("os_cfar")
     feats, _ = _detect_and_refine(window, spec, spec.params(looks=1), cfg.pixel_spacing_m)
     local = {"features": [{"properties": {**t, "bbox_px": [r0 - a, c0 - c, r1 - a, c1 - c]}}]}
-    (_, det), = _match(local, feats)
+    ((_, det),) = _match(local, feats)
     assert det is not None and det["sidelobes"] is False
     assert abs(det["length_m"] / 196 - 1) <= LENGTH_TOL and _heading_error(det["heading_deg"], 109) <= HEADING_TOL
 
@@ -181,8 +205,9 @@ def test_pipeline_detectors_against_truth(detector, kind, tmp_path, client):
         scene = simulate(tmp_path / f"{name}.zarr", cfg, tile=256)
         feats = {}
         for sl in ("true", "false"):
-            run = run_detection(scene, detector, {"sidelobes": sl}, out_dir=tmp_path / f"{name}-{sl}", client=client,
-                                progress=False)
+            run = run_detection(
+                scene, detector, {"sidelobes": sl}, out_dir=tmp_path / f"{name}-{sl}", client=client, progress=False
+            )
             assert run["parameters"]["sidelobes"] is (sl == "true")
             feats[sl] = json.loads((tmp_path / f"{name}-{sl}" / "detections.geojson").read_text())["features"]
         truth = json.loads((tmp_path / f"{name}.zarr.truth.geojson").read_text())

@@ -30,22 +30,33 @@ from scipy import special, stats
 
 from sarship.pipeline import simulate as sim
 from sarship.pipeline.errors import InputError
-from sarship.pipeline.simulate import (SimConfig, sea_covariance, ship_catalogue, simulate,
-                               simulate_array, simulate_tile, truth_collection, validate)
+from sarship.pipeline.simulate import (
+    SimConfig,
+    sea_covariance,
+    ship_catalogue,
+    simulate,
+    simulate_array,
+    simulate_tile,
+    truth_collection,
+    validate,
+)
 
 ALL_ON = dict(land=True, sidelobes=True, ambiguities=True, stripes=True, rfi=True)
 
 
 def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
-    return a.shape == b.shape and a.dtype == b.dtype and np.array_equal(
-        np.ascontiguousarray(a).view(np.uint8), np.ascontiguousarray(b).view(np.uint8))
+    return (
+        a.shape == b.shape
+        and a.dtype == b.dtype
+        and np.array_equal(np.ascontiguousarray(a).view(np.uint8), np.ascontiguousarray(b).view(np.uint8))
+    )
 
 
 def ship_free(truth: dict, shape: tuple[int, int], pad: int = 2) -> np.ndarray:
     keep = np.ones(shape, dtype=bool)
     for f in truth["features"]:
         r0, c0, r1, c1 = f["properties"]["bbox_px"]
-        keep[max(r0 - pad, 0):r1 + pad, max(c0 - pad, 0):c1 + pad] = False
+        keep[max(r0 - pad, 0) : r1 + pad, max(c0 - pad, 0) : c1 + pad] = False
     return keep
 
 
@@ -53,8 +64,7 @@ def ship_free(truth: dict, shape: tuple[int, int], pad: int = 2) -> np.ndarray:
 
 
 def test_deterministic_for_a_seed():
-    cfg = SimConfig(shape=(300, 333), ships=8, clutter="k", seed=7,
-                    pixel_spacing_m=(20.0, 20.0), **ALL_ON)
+    cfg = SimConfig(shape=(300, 333), ships=8, clutter="k", seed=7, pixel_spacing_m=(20.0, 20.0), **ALL_ON)
     a, ta = simulate_array(cfg)
     b, tb = simulate_array(SimConfig(**cfg.as_dict()))  # list fields, fresh object
     assert same_bits(a["intensity"], b["intensity"])
@@ -81,12 +91,19 @@ def _random_tiling(shape, rng):
         r = r1
 
 
-@pytest.mark.parametrize("kind,clutter", [("intensity", "k"), ("intensity", "gamma"),
-                                          ("slc", "k"), ("quadpol", "k")])
+@pytest.mark.parametrize("kind,clutter", [("intensity", "k"), ("intensity", "gamma"), ("slc", "k"), ("quadpol", "k")])
 def test_tiles_are_bit_identical_to_whole_scene(kind, clutter):
-    cfg = SimConfig(kind=kind, clutter=clutter, shape=(613, 541), ships=12, seed=3,
-                    looks=2.5 if kind == "intensity" and clutter == "gamma" else 1.0,
-                    pixel_spacing_m=(20.0, 20.0), scr_db=25.0, **ALL_ON)
+    cfg = SimConfig(
+        kind=kind,
+        clutter=clutter,
+        shape=(613, 541),
+        ships=12,
+        seed=3,
+        looks=2.5 if kind == "intensity" and clutter == "gamma" else 1.0,
+        pixel_spacing_m=(20.0, 20.0),
+        scr_db=25.0,
+        **ALL_ON,
+    )
     whole, truth = simulate_array(cfg)
     assert truth["ambiguities"], "the test scene should hold azimuth ghosts"
     rng = np.random.default_rng(11)
@@ -103,7 +120,9 @@ def test_tiles_are_bit_identical_to_whole_scene(kind, clutter):
 
 def test_components_have_own_streams():
     """Switching an artefact on changes only its own pixels; the sea speckle is unchanged."""
-    base = SimConfig(shape=(720, 300), ships=6, seed=5, scr_db=25.0, pixel_spacing_m=(15.0, 15.0))  # ghosts ~335 rows off
+    base = SimConfig(
+        shape=(720, 300), ships=6, seed=5, scr_db=25.0, pixel_spacing_m=(15.0, 15.0)
+    )  # ghosts ~335 rows off
     off, t_off = simulate_array(base)
     I0 = off["intensity"]
 
@@ -114,8 +133,8 @@ def test_components_have_own_streams():
     count = np.zeros(I0.shape, dtype=int)
     for s in t["sidelobes"]:
         r, c, n = s["row"], s["col"], s["extent_px"]
-        count[r, max(c - n, 0):c + n + 1] += 1
-        count[max(r - n, 0):r + n + 1, c] += 1
+        count[r, max(c - n, 0) : c + n + 1] += 1
+        count[max(r - n, 0) : r + n + 1, c] += 1
         count[r, c] -= 2
     lines = count > 0
     assert np.all(d[~lines] == 0)
@@ -125,7 +144,7 @@ def test_components_have_own_streams():
         assert d[s["row"], s["col"]] == 0  # the scatterer itself is the ship's
     # brightest first sidelobe (k = +-1..3) within a few dB of -13 dB of the scatterer
     pk = I0[s["row"], s["col"]]
-    near = d[s["row"], s["col"] - 3:s["col"] + 4]
+    near = d[s["row"], s["col"] - 3 : s["col"] + 4]
     assert 10 * np.log10(near.max() / pk) < -3
 
     on, t = simulate_array(SimConfig(**{**base.as_dict(), "ambiguities": True}))
@@ -153,9 +172,9 @@ def test_components_have_own_streams():
     d = on["intensity"] - I0
     band = np.zeros(I0.shape, dtype=bool)
     for ev in t["rfi"]:
-        band[ev["rows"][0]:ev["rows"][1], ev["cols"][0]:ev["cols"][1]] = True
+        band[ev["rows"][0] : ev["rows"][1], ev["cols"][0] : ev["cols"][1]] = True
         lvl = 10 ** (ev["level_db"] / 10)
-        m = d[ev["rows"][0]:ev["rows"][1], ev["cols"][0]:ev["cols"][1]].mean()
+        m = d[ev["rows"][0] : ev["rows"][1], ev["cols"][0] : ev["cols"][1]].mean()
         assert 0.6 * lvl < m < 1.4 * lvl
     assert np.all(d[~band] == 0) and np.all(d[band] > 0)
 
@@ -163,11 +182,11 @@ def test_components_have_own_streams():
 # --------------------------------------------------------------------------- clutter statistics
 
 
-@pytest.mark.parametrize("clutter,looks,expect_L", [("rayleigh", 3.0, 1.0), ("gamma", 1.0, 1.0),
-                                                    ("gamma", 3.5, 3.5), ("gamma", 0.7, 0.7)])
+@pytest.mark.parametrize(
+    "clutter,looks,expect_L", [("rayleigh", 3.0, 1.0), ("gamma", 1.0, 1.0), ("gamma", 3.5, 3.5), ("gamma", 0.7, 0.7)]
+)
 def test_intensity_clutter_mean_enl_tail_and_independence(clutter, looks, expect_L):
-    cfg = SimConfig(shape=(1024, 1024), ships=20, seed=21, clutter=clutter, looks=looks,
-                    clutter_mean=2.5)
+    cfg = SimConfig(shape=(1024, 1024), ships=20, seed=21, clutter=clutter, looks=looks, clutter_mean=2.5)
     assert sim.effective_looks(cfg) == expect_L
     data, truth = simulate_array(cfg)
     I = data["intensity"].astype(np.float64)
@@ -197,7 +216,7 @@ def test_slc_is_circular_gaussian():
     p = np.abs(z) ** 2 / 3.0
     assert abs(p.mean() - 1) <= 5 / math.sqrt(n)
     assert abs(p.mean() ** 2 / p.var() - 1) <= 5 * math.sqrt(4 / n)
-    assert abs((z * z).mean()) / 3.0 <= 5 * math.sqrt(1 / n)   # circular: E[z^2] = 0
+    assert abs((z * z).mean()) / 3.0 <= 5 * math.sqrt(1 / n)  # circular: E[z^2] = 0
     assert abs(z.mean()) <= 5 * math.sqrt(3.0 / n)
 
 
@@ -224,12 +243,11 @@ def test_k_texture_marginal_and_correlation():
 
 def test_k_intensity_has_the_compound_excess_variance():
     nu, L = 2.0, 1.0
-    cfg = SimConfig(shape=(1024, 1024), ships=0, seed=4, clutter="k", looks=L,
-                    texture_shape=nu, texture_corr_px=4.0)
+    cfg = SimConfig(shape=(1024, 1024), ships=0, seed=4, clutter="k", looks=L, texture_shape=nu, texture_corr_px=4.0)
     I = simulate_array(cfg)[0]["intensity"].astype(np.float64)
     m = I.mean()
     ratio = I.var() / m**2
-    expect = (1 + 1 / nu) * (1 + 1 / L) - 1   # 2.0; plain gamma speckle would give 1.0
+    expect = (1 + 1 / nu) * (1 + 1 / L) - 1  # 2.0; plain gamma speckle would give 1.0
     n_eff = I.size / (1.25 * 4.0) ** 2
     assert abs(m - 1) <= 5 * math.sqrt((1 / nu) / n_eff + 1 / I.size)
     assert abs(ratio / expect - 1) < 0.12, ratio
@@ -242,8 +260,16 @@ def test_k_intensity_has_the_compound_excess_variance():
 
 @pytest.mark.parametrize("clutter", ["gamma", "k"])
 def test_quadpol_sea_covariance_matches_sigma(clutter):
-    cfg = SimConfig(kind="quadpol", shape=(512, 512), ships=0, seed=6, clutter=clutter,
-                    clutter_mean=2.0, texture_shape=8.0, texture_corr_px=2.0)
+    cfg = SimConfig(
+        kind="quadpol",
+        shape=(512, 512),
+        ships=0,
+        seed=6,
+        clutter=clutter,
+        clutter_mean=2.0,
+        texture_shape=8.0,
+        texture_corr_px=2.0,
+    )
     d = simulate_array(cfg)[0]
     X = np.stack([d["hh"].ravel(), d["hv"].ravel(), d["vv"].ravel()]).astype(np.complex128)
     n = X.shape[1]
@@ -259,12 +285,11 @@ def test_quadpol_sea_covariance_matches_sigma(clutter):
     if clutter == "gamma":
         y = np.einsum("in,ij,jn->n", X.conj(), np.linalg.inv(S), X).real  # PWF, Gamma(3, 1)
         assert abs(y.mean() - 3) <= 5 * math.sqrt(3 / n)
-        assert abs(y.var() - 3) <= 5 * math.sqrt(30 / n)   # var of s^2: (mu4 - s^4)/n = 30/n
+        assert abs(y.var() - 3) <= 5 * math.sqrt(30 / n)  # var of s^2: (mu4 - s^4)/n = 30/n
 
 
 def test_quadpol_ships_have_their_own_signature():
-    cfg = SimConfig(kind="quadpol", shape=(768, 768), ships=40, seed=12, scr_db=20.0,
-                    length_m=(150.0, 300.0))
+    cfg = SimConfig(kind="quadpol", shape=(768, 768), ships=40, seed=12, scr_db=20.0, length_m=(150.0, 300.0))
     d, truth = simulate_array(cfg)
     cat = ship_catalogue(cfg)
     by_cls: dict[str, list[float]] = {}
@@ -289,8 +314,7 @@ def test_quadpol_ships_have_their_own_signature():
 
 def test_truth_boxes_contain_the_bright_pixels():
     L = 4.0
-    cfg = SimConfig(shape=(1024, 1024), ships=30, seed=13, looks=L, scr_db=20.0,
-                    length_m=(40.0, 400.0))
+    cfg = SimConfig(shape=(1024, 1024), ships=30, seed=13, looks=L, scr_db=20.0, length_m=(40.0, 400.0))
     data, truth = simulate_array(cfg)
     I = data["intensity"]
     H, W = I.shape
@@ -314,9 +338,9 @@ def test_truth_boxes_contain_the_bright_pixels():
         assert abs(p["scr_db"] - cfg.scr_db) <= 2
         box = I[r0:r1, c0:c1]
         assert math.isclose(float(box.max()), p["peak"], rel_tol=1e-6)
-        assert p["peak"] > T           # every ship stands out of the clutter
+        assert p["peak"] > T  # every ship stands out of the clutter
         ratio.append(p["mean"] / (cfg.clutter_mean * (1 + 10 ** (p["scr_db"] / 10))))
-        for q in boxes:                # no two ships overlap
+        for q in boxes:  # no two ships overlap
             assert r1 <= q[0] or q[2] <= r0 or c1 <= q[1] or q[3] <= c0
         boxes.append((r0, c0, r1, c1))
     # designed SCR: mean over the ship pixels = clutter + 10^(scr/10) clutter (speckled hull)
@@ -324,16 +348,16 @@ def test_truth_boxes_contain_the_bright_pixels():
 
 
 def test_catalogue_matches_truth_and_rendered_geometry():
-    cfg = SimConfig(shape=(400, 500), ships=15, seed=1, pixel_spacing_m=(5.0, 12.0),
-                    length_m=(30.0, 200.0), scr_db=30.0, looks=8.0)
+    cfg = SimConfig(
+        shape=(400, 500), ships=15, seed=1, pixel_spacing_m=(5.0, 12.0), length_m=(30.0, 200.0), scr_db=30.0, looks=8.0
+    )
     cat = ship_catalogue(cfg)
     data, truth = simulate_array(cfg)
     assert len(cat) == 15 and json.loads(json.dumps(cat)) == cat
     m = sim._model(validate(cfg))
     for c, f in zip(cat, truth["features"]):
         p = f["properties"]
-        for k in ("bbox_px", "centroid_px", "area_px", "length_px", "width_px", "heading_deg",
-                  "length_m", "width_m"):
+        for k in ("bbox_px", "centroid_px", "area_px", "length_px", "width_px", "heading_deg", "length_m", "width_m"):
             assert c[k] == p[k], k
         s = m.ships[c["id"]]
         rr, cc = np.nonzero(s.mask)
@@ -364,9 +388,12 @@ def test_ships_avoid_land_and_land_is_bright():
     dil = land.copy()  # land dilated by the margin: no ship pixel inside
     k = sim.LAND_MARGIN_PX - 1
     for _ in range(k):
-        dil[1:] |= dil[:-1]; dil[:-1] |= dil[1:]; dil[:, 1:] |= dil[:, :-1]; dil[:, :-1] |= dil[:, 1:]
+        dil[1:] |= dil[:-1]
+        dil[:-1] |= dil[1:]
+        dil[:, 1:] |= dil[:, :-1]
+        dil[:, :-1] |= dil[:, 1:]
     for s in m.ships:
-        assert not dil[s.r0:s.r1, s.c0:s.c1][s.mask].any()
+        assert not dil[s.r0 : s.r1, s.c0 : s.c1][s.mask].any()
     I = data["intensity"]
     sea = ~dil & ship_free(truth, I.shape)
     # land median (robust to the urban points) 8..12 dB above the sea median
@@ -380,7 +407,7 @@ def test_ships_avoid_land_and_land_is_bright():
 def test_too_many_ships_and_bad_configs(monkeypatch):
     with pytest.raises(InputError, match="ships"):
         validate(SimConfig(shape=(64, 64), ships=50))
-    with pytest.raises(InputError, match="length_m"):   # a 400 px ship in a 100 px scene
+    with pytest.raises(InputError, match="length_m"):  # a 400 px ship in a 100 px scene
         validate(SimConfig(shape=(100, 100), length_m=(20.0, 4000.0)))
     # past the cheap bound of validate(), placement itself reports that ships do not fit
     monkeypatch.setattr(sim.config, "max_ships", lambda cfg: 10**6)
@@ -388,14 +415,32 @@ def test_too_many_ships_and_bad_configs(monkeypatch):
         ship_catalogue(SimConfig(shape=(120, 120), ships=30, length_m=(300.0, 400.0)))
 
 
-@pytest.mark.parametrize("field,value", [
-    ("kind", "grd"), ("clutter", "weibull"), ("shape", (8, 100)), ("shape", (100, 70000)),
-    ("shape", (100,)), ("ships", -1), ("ships", 2.5), ("looks", 0.0), ("looks", -1.0),
-    ("looks", float("nan")), ("scr_db", 41.0), ("scr_db", -11.0), ("seed", -1),
-    ("pixel_spacing_m", (0.0, 10.0)), ("length_m", (50.0, 10.0)), ("length_m", (0.0, 10.0)),
-    ("texture_shape", 0.0), ("texture_corr_px", 0.5), ("clutter_mean", -1.0),
-    ("land", "yes"), ("length_m", (20.0, 40000.0)),
-])
+@pytest.mark.parametrize(
+    "field,value",
+    [
+        ("kind", "grd"),
+        ("clutter", "weibull"),
+        ("shape", (8, 100)),
+        ("shape", (100, 70000)),
+        ("shape", (100,)),
+        ("ships", -1),
+        ("ships", 2.5),
+        ("looks", 0.0),
+        ("looks", -1.0),
+        ("looks", float("nan")),
+        ("scr_db", 41.0),
+        ("scr_db", -11.0),
+        ("seed", -1),
+        ("pixel_spacing_m", (0.0, 10.0)),
+        ("length_m", (50.0, 10.0)),
+        ("length_m", (0.0, 10.0)),
+        ("texture_shape", 0.0),
+        ("texture_corr_px", 0.5),
+        ("clutter_mean", -1.0),
+        ("land", "yes"),
+        ("length_m", (20.0, 40000.0)),
+    ],
+)
 def test_validate_names_the_field(field, value):
     with pytest.raises(InputError) as e:
         validate(SimConfig(**{field: value}))
@@ -404,8 +449,7 @@ def test_validate_names_the_field(field, value):
 
 
 def test_validate_normalises():
-    c = validate(SimConfig(shape=[100, 120], pixel_spacing_m=[5, 5], length_m=[10, 20],
-                           ships=np.int64(3), looks=2))
+    c = validate(SimConfig(shape=[100, 120], pixel_spacing_m=[5, 5], length_m=[10, 20], ships=np.int64(3), looks=2))
     assert c.shape == (100, 120) and isinstance(c.shape[0], int)
     assert c.pixel_spacing_m == (5.0, 5.0) and c.ships == 3 and c.looks == 2.0
     hash(c)
@@ -421,8 +465,9 @@ def test_simulate_writes_store_and_truth(tmp_path):
 
     from sarship.pipeline.scene import open_scene
 
-    cfg = SimConfig(shape=(300, 200), ships=5, seed=4, clutter="rayleigh", looks=3.0,
-                    pixel_spacing_m=(20.0, 20.0), **ALL_ON)
+    cfg = SimConfig(
+        shape=(300, 200), ships=5, seed=4, clutter="rayleigh", looks=3.0, pixel_spacing_m=(20.0, 20.0), **ALL_ON
+    )
     calls = []
     out = simulate(tmp_path / "s.zarr", cfg, tile=128, progress=lambda d, t: calls.append((d, t)))
     assert out == tmp_path / "s.zarr"
@@ -493,4 +538,5 @@ def test_simulate_leaves_nothing_on_failure(tmp_path):
     assert (tmp_path / "s.zarr.truth.geojson").read_text() == before
     assert sorted(os.listdir(tmp_path)) == ["f", "s.zarr", "s.zarr.truth.geojson"]
     import xarray as xr
+
     assert xr.open_zarr(tmp_path / "s.zarr").attrs["simulation"]["seed"] == 2

@@ -22,7 +22,7 @@ def _scene(tmp_path, name, ship_px: int, **attrs):
     rng = np.random.default_rng(3)
     x = rng.gamma(4.0, 0.25, (96, 96)).astype(np.float32)
     w = ship_px // 2
-    x[47:49, 48 - w // 2: 48 - w // 2 + w] += 80.0
+    x[47:49, 48 - w // 2 : 48 - w // 2 + w] += 80.0
     assert int((x > 20).sum()) == ship_px
     return write_scene(tmp_path / f"{name}.zarr", {"intensity": x}, tile=96, looks=4.0, **attrs)
 
@@ -83,9 +83,9 @@ def test_resolve_size_defaults(detector):
 
 def test_keep_mask_metres_and_pixels():
     """keep_mask applies the rule itself for unresolved parameters; lengths_m == shape_from_moments."""
-    from sarship.pipeline.targets.components import MOMENT_DTYPE, shape_from_moments
     from sarship.pipeline.detectors.base import area_px
     from sarship.pipeline.detectors.ca_cfar import CAParams
+    from sarship.pipeline.targets.components import MOMENT_DTYPE, shape_from_moments
     from sarship.pipeline.targets.ship_features import keep_mask, lengths_m
 
     rng = np.random.default_rng(0)
@@ -135,8 +135,11 @@ def test_detectors_json_states_the_rule():
         assert sd["spacing_known"]["min_length_m"] == P.auto_min_length_m
         assert sd["spacing_known"]["min_area_m2"] == P.auto_min_area_m2
         assert sd["spacing_known"]["min_area_px"] == area_px(P.auto_min_area_m2, (10.0, 10.0))
-        assert sd["spacing_unknown"] == {"min_area_px": P.auto_min_area_px, "min_length_m": None,
-                                         "rule": sd["spacing_unknown"]["rule"]}
+        assert sd["spacing_unknown"] == {
+            "min_area_px": P.auto_min_area_px,
+            "min_length_m": None,
+            "rule": sd["spacing_unknown"]["rule"],
+        }
         assert f"{P.auto_min_area_px} px" in d["parameters"]["min_area_px"]["description"]
         assert f"{P.auto_min_length_m:g} m" in d["parameters"]["min_length_m"]["description"]
         assert f"{P.auto_min_area_m2:g} m^2" in d["parameters"]["min_area_px"]["description"]

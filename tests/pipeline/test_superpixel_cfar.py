@@ -13,12 +13,11 @@ import pytest
 from scipy import ndimage, stats
 
 from sarship.pipeline import detectors
-from sarship.pipeline.image import superpixels as spx
-from sarship.pipeline.targets.components import merge_radius
 from sarship.pipeline.detectors import superpixel_cfar as D
-from sarship.pipeline.stats.rayleigh_mixture import (fit_rayleigh_mixture, mixture_threshold, mixture_threshold_brentq)
+from sarship.pipeline.image import superpixels as spx
+from sarship.pipeline.stats.rayleigh_mixture import fit_rayleigh_mixture, mixture_threshold, mixture_threshold_brentq
+from sarship.pipeline.targets.components import merge_radius
 from sarship.pipeline.tiling.windows import mirror_pad
-
 
 # --------------------------------------------------------------------------- simulated scenes
 
@@ -55,7 +54,9 @@ def hires_scene(seed: int, shape=(600, 600), n_ships: int = 5, scr: float = 20.0
         v = -(rr - r0) * np.sin(th) + (cc - c0) * np.cos(th)
         if (truth[(np.abs(u) <= L / 2 + 10) & (np.abs(v) <= wd / 2 + 10)] > 0).any():
             continue
-        inside = (np.abs(u) <= L / 2) & (np.abs(v) <= wd / 2 * np.clip(1.0 - np.maximum(u - 0.3 * L, 0) / (0.2 * L), 0.3, 1))
+        inside = (np.abs(u) <= L / 2) & (
+            np.abs(v) <= wd / 2 * np.clip(1.0 - np.maximum(u - 0.3 * L, 0) / (0.2 * L), 0.3, 1)
+        )
         k += 1
         truth[inside] = k
         gain = np.full(int(inside.sum()), scr)
@@ -246,7 +247,7 @@ def _tiled(x, p, prep, tile, halo=None):
     for r in range(0, H, tile):
         for c in range(0, W, tile):
             r1, c1 = min(r + tile, H), min(c + tile, W)
-            blk = P[r:r1 + 2 * h, c:c1 + 2 * h]
+            blk = P[r : r1 + 2 * h, c : c1 + 2 * h]
             m, s = D.detect(blk, h, (r - h, c - h), p, prep)
             mask[r:r1, c:c1], stat[r:r1, c:c1] = m, s
             lab[r:r1, c:c1] = D.superpixel_labels(blk, h, (r - h, c - h), p, prep)
@@ -319,8 +320,8 @@ def _growth_reference(m5, h5, ok, seeds_rc, reach, eps, ml):
         region, front = {(r0, c0)}, [(r0, c0)]
         while front:
             nxt = []
-            for (i, j) in front:
-                for (a, b) in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
+            for i, j in front:
+                for a, b in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
                     if not (0 <= a < H and 0 <= b < W) or (a, b) in region:
                         continue
                     if abs(a - r0) > reach or abs(b - c0) > reach or not ok[a, b] or not np.isfinite(m5[a, b]):
@@ -330,7 +331,7 @@ def _growth_reference(m5, h5, ok, seeds_rc, reach, eps, ml):
                         region.add((a, b))
                         nxt.append((a, b))
             front = nxt
-        for (i, j) in region:
+        for i, j in region:
             d = (i - r0) ** 2 + (j - c0) ** 2
             if (i, j) not in best or d < best[(i, j)][0]:
                 best[(i, j)] = (d, k)
@@ -385,8 +386,8 @@ def test_merge_matches_eq_9_10_written_plainly():
     pairs = set()
     H, W = raw.shape
     for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        a = raw[max(0, -di):H - max(0, di), max(0, -dj):W - max(0, dj)]
-        b = raw[max(0, di):, max(0, dj):][:a.shape[0], :a.shape[1]]
+        a = raw[max(0, -di) : H - max(0, di), max(0, -dj) : W - max(0, dj)]
+        b = raw[max(0, di) :, max(0, dj) :][: a.shape[0], : a.shape[1]]
         keep = (a >= 0) & (b >= 0) & (a != b)
         pairs |= {(int(min(u, v)), int(max(u, v))) for u, v in zip(a[keep], b[keep])}
     target = np.arange(n_raw)
@@ -400,8 +401,9 @@ def test_merge_matches_eq_9_10_written_plainly():
             o = v if u == l else u
             if size[o] < min_size:
                 continue
-            om = (2 * min(size[l], size[o]) * L * math.log((mean[l] + mean[o]) / (2 * math.sqrt(mean[l] * mean[o])))
-                  + abs(cov[l] - cov[o]))
+            om = 2 * min(size[l], size[o]) * L * math.log(
+                (mean[l] + mean[o]) / (2 * math.sqrt(mean[l] * mean[o]))
+            ) + abs(cov[l] - cov[o])
             if best < 0 or om < bo - 1e-9 * bo or (abs(om - bo) <= 1e-9 * bo and o < best):
                 best, bo = o, om
         if best >= 0:
@@ -432,21 +434,40 @@ def test_decisions_match_a_plain_reference():
         out = np.empty(p.max_clutter, np.int64)
         mark = np.full(sp.size.size, -1, np.int64)
         queue = np.empty(sp.size.size + 1, np.int64)
-        m = spx.select_clutter(int(t), res["background"], res["target"], sp.size, sp.mean, sp.cov, sp.ptr, sp.idx,
-                               sp.anchor[:, 0].copy(), sp.anchor[:, 1].copy(), p.clutter_radius, p.th_clu,
-                               p.tl_clu, p.max_clutter, 1.0, out, mark, queue, p.rings)
+        m = spx.select_clutter(
+            int(t),
+            res["background"],
+            res["target"],
+            sp.size,
+            sp.mean,
+            sp.cov,
+            sp.ptr,
+            sp.idx,
+            sp.anchor[:, 0].copy(),
+            sp.anchor[:, 1].copy(),
+            p.clutter_radius,
+            p.th_clu,
+            p.tl_clu,
+            p.max_clutter,
+            1.0,
+            out,
+            mark,
+            queue,
+            p.rings,
+        )
         assert m == nc and (mark == -1).all()
         cl = out[:m]
         assert res["background"][cl].all() and t not in cl
         fit = fit_rayleigh_mixture(amp[np.isin(lab, cl)], p.components, p.em_iter)
         T = mixture_threshold_brentq(fit.weights, fit.scales, p.pfa)
         assert abs(T / res["threshold"][t] - 1) < 1e-6
-        somega = sum(spx.sp_dissimilarity(sp.size[t], sp.mean[t], sp.cov[t], sp.size[c], sp.mean[c], sp.cov[c], 1.0)
-                     for c in cl)
+        somega = sum(
+            spx.sp_dissimilarity(sp.size[t], sp.mean[t], sp.cov[t], sp.size[c], sp.mean[c], sp.cov[c], 1.0) for c in cl
+        )
         rr, cc = np.nonzero(lab == t)
         det = 0
         for i, j in zip(rr, cc):
-            win = amp[i - 3:i + 4, j - 3:j + 4]
+            win = amp[i - 3 : i + 4, j - 3 : j + 4]
             cov = win.std() / win.mean()
             det += amp[i, j] * math.exp(-cov / p.kappa) * somega > T
         assert abs(det / rr.size - res["frac"][t]) <= 2.0 / rr.size
@@ -457,21 +478,24 @@ def test_decisions_match_a_plain_reference():
 # --------------------------------------------------------------------------- parameters, absent pixels
 
 
-@pytest.mark.parametrize("bad,name", [
-    ({"reach": 2, "spacing": 12}, "reach"),
-    ({"reach": 30, "spacing": 12}, "reach"),
-    ({"tl_clu": 5.0, "th_clu": 4.0}, "tl_clu"),
-    ({"cov_window": 6}, "cov_window"),
-    ({"fraction": 1.0}, "fraction"),
-    ({"kappa": 0.0}, "kappa"),
-    ({"components": 0}, "components"),
-    ({"spacing": 2}, "spacing"),
-    ({"contrast": "lots"}, "contrast"),
-    ({"shadow_ratio": -1}, "shadow_ratio"),
-    ({"rings": -1}, "rings"),
-    ({"contrast": "none"}, "contrast"),
-    ({"bogus": 1}, "bogus"),
-])
+@pytest.mark.parametrize(
+    "bad,name",
+    [
+        ({"reach": 2, "spacing": 12}, "reach"),
+        ({"reach": 30, "spacing": 12}, "reach"),
+        ({"tl_clu": 5.0, "th_clu": 4.0}, "tl_clu"),
+        ({"cov_window": 6}, "cov_window"),
+        ({"fraction": 1.0}, "fraction"),
+        ({"kappa": 0.0}, "kappa"),
+        ({"components": 0}, "components"),
+        ({"spacing": 2}, "spacing"),
+        ({"contrast": "lots"}, "contrast"),
+        ({"shadow_ratio": -1}, "shadow_ratio"),
+        ({"rings": -1}, "rings"),
+        ({"contrast": "none"}, "contrast"),
+        ({"bogus": 1}, "bogus"),
+    ],
+)
 def test_bad_parameters_raise_naming_them(bad, name):
     with pytest.raises(ValueError, match=name):
         D.SuperpixelCFARParams(**bad)
@@ -489,7 +513,7 @@ def test_registered_with_its_halo_and_a_too_small_halo_refused():
 
 def test_absent_pixels_never_detected_nor_labelled():
     x, truth = hires_scene(9, shape=(300, 300), n_ships=2, lengths=(60.0, 120.0))
-    x[:, :40] = np.nan                      # a no-data border
+    x[:, :40] = np.nan  # a no-data border
     x[truth == 1] = np.where(np.arange((truth == 1).sum()) % 3 == 0, np.nan, x[truth == 1])  # holes in a ship
     p = D.SuperpixelCFARParams(looks=1.0)
     (mask, stat), prep = whole(x, p)
@@ -518,8 +542,8 @@ def small_ships_scene(seed: int = 0, scr_db: float = 15.0, shape=(192, 192), loo
     sizes = [(1, 2), (2, 2), (2, 1), (1, 3), (2, 2), (2, 3), (1, 2), (2, 2), (1, 4)]
     for k, ((r, c), (h, w)) in enumerate(zip([(a, b) for a in (30, 90, 150) for b in (30, 90, 150)], sizes)):
         r, c = r + k % 5, c + 2 * (k % 4)
-        x[r:r + h, c:c + w] = 10 ** (scr_db / 10)
-        truth[r:r + h, c:c + w] = k + 1
+        x[r : r + h, c : c + w] = 10 ** (scr_db / 10)
+        truth[r : r + h, c : c + w] = k + 1
     return x, truth
 
 
@@ -574,8 +598,8 @@ def land_with_ships_scene(seed: int = 0):
     x[10:90, 10:90] *= 16.0 * rng.gamma(2.0, 0.5, (80, 80)).astype(np.float32)
     truth = np.zeros(x.shape, np.int32)
     for k, (r, c) in enumerate([(15, 90), (42, 90), (70, 90)], 1):  # moored: their bow on the quay
-        x[r:r + 8, c:c + 30] = 40.0
-        truth[r:r + 8, c:c + 30] = k
+        x[r : r + 8, c : c + 30] = 40.0
+        truth[r : r + 8, c : c + 30] = k
     x[170:178, 150:180] = 40.0
     truth[170:178, 150:180] = 4
     return x, truth
@@ -593,8 +617,9 @@ def test_land_with_moored_ships_is_not_one_ship(tmp_path, client):
 
     x, truth = land_with_ships_scene()
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=512, looks=4.0)
-    run = run_detection(scene, "superpixel_cfar", {"land_mask": "none"}, out_dir=tmp_path / "o", client=client,
-                        progress=False)
+    run = run_detection(
+        scene, "superpixel_cfar", {"land_mask": "none"}, out_dir=tmp_path / "o", client=client, progress=False
+    )
     # the decision (mask.zarr/detected) marks land and the moored ships as one piece; the kept
     # detections' pixels (mask.zarr/mask) do not hold it
     decided = zarr.open_array(str(tmp_path / "o" / "mask.zarr" / "detected"), mode="r")[:] > 0
@@ -636,8 +661,14 @@ def test_real_harbour_chip_land_not_merged_with_ships(tmp_path, client):
     sc = ingest([chip], tmp_path / "g.zarr", tile=256)
     areas = {}
     for name, extra in (("off", {"max_ship_px": "none"}), ("default", {})):
-        run_detection(sc.path, "superpixel_cfar", {"land_mask": "none", **extra}, out_dir=tmp_path / name,
-                      client=client, progress=False)
+        run_detection(
+            sc.path,
+            "superpixel_cfar",
+            {"land_mask": "none", **extra},
+            out_dir=tmp_path / name,
+            client=client,
+            progress=False,
+        )
         feats = json.loads((tmp_path / name / "detections.geojson").read_text())["features"]
         areas[name] = sorted(f["properties"]["area_px"] for f in feats)
     assert areas["off"][-1] > 5000, areas

@@ -24,8 +24,7 @@ from sarship.pipeline.gpu import available
 from sarship.pipeline.tiling.windows import mirror_pad
 from tests.pipeline.test_superpixel_cfar import SMALL, hires_scene
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 
 @pytest.fixture(scope="module")
@@ -123,12 +122,12 @@ def test_gpu_tiles_equal_whole_block_and_cpu(cp):
         for r0 in range(0, H, t):
             for c0 in range(0, W, t):
                 r1, c1 = min(r0 + t, H), min(c0 + t, W)
-                blk = P[r0: r1 + 2 * h, c0: c1 + 2 * h]
+                blk = P[r0 : r1 + 2 * h, c0 : c1 + 2 * h]
                 m, s = D.detect(cp.asarray(blk), h, (r0 - h, c0 - h), p, prep)
                 np.testing.assert_array_equal(m.get(), mw[r0:r1, c0:c1])
                 np.testing.assert_array_equal(s.get(), sw[r0:r1, c0:c1])
-    a = D.scene_pass(P[:120 + 2 * h, :100 + 2 * h], h, (-h, -h), p, D.prepare(p))
-    b = D.scene_pass(cp.asarray(P[:120 + 2 * h, :100 + 2 * h]), h, (-h, -h), p, D.prepare(p))
+    a = D.scene_pass(P[: 120 + 2 * h, : 100 + 2 * h], h, (-h, -h), p, D.prepare(p))
+    b = D.scene_pass(cp.asarray(P[: 120 + 2 * h, : 100 + 2 * h]), h, (-h, -h), p, D.prepare(p))
     np.testing.assert_array_equal(a["counts"], b["counts"])
 
 

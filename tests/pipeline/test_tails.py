@@ -47,9 +47,11 @@ def test_agree_with_scipy_stats(p):
 
 
 def test_command_path_does_not_import_scipy_stats():
-    code = ("import sys, sarship.cli, sarship.workers.jobs, sarship.pipeline.detectors as d; "
-            "[d.get(n) for n in d.names()]; "
-            "print(sorted(m for m in ('scipy.stats', 'scipy.optimize', 'scipy.interpolate') if m in sys.modules))")
+    code = (
+        "import sys, sarship.cli, sarship.workers.jobs, sarship.pipeline.detectors as d; "
+        "[d.get(n) for n in d.names()]; "
+        "print(sorted(m for m in ('scipy.stats', 'scipy.optimize', 'scipy.interpolate') if m in sys.modules))"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]", r.stdout

@@ -21,8 +21,8 @@ from boxsum_helpers import SPECIAL, assert_bits, box_sum_ref, cfar_cases, tiles,
 from numba import njit, uint64
 
 from sarship.pipeline.detectors import simd
-from sarship.pipeline.tiling.boxsum import centered_box_sum
 from sarship.pipeline.detectors import two_parameter as tp
+from sarship.pipeline.tiling.boxsum import centered_box_sum
 from sarship.pipeline.tiling.windows import mirror_pad
 
 
@@ -56,7 +56,7 @@ def two_parameter_ref(block, halo, origin, p, prep, box=box_sum_ref):
     s1b, s1g = box(y, p.background, halo, origin), box(y, p.guard, halo, origin)
     s2b, s2g = box(y2, p.background, halo, origin), box(y2, p.guard, halo, origin)
     if p.target == 1:
-        xt = y[halo: y.shape[0] - halo, halo: y.shape[1] - halo]
+        xt = y[halo : y.shape[0] - halo, halo : y.shape[1] - halo]
     else:
         xt = box(y, p.target, halo, origin) / float(p.target**2)
     return _decide(xt, s1b, s1g, s2b, s2g, prep)
@@ -66,19 +66,35 @@ def two_parameter_ref(block, halo, origin, p, prep, box=box_sum_ref):
 #: fewer infinities and NaNs than in tests/pipeline/test_boxsum.py
 _SPECIAL = SPECIAL + ((0.095, 0.097, 1e-35),)
 _NONFINITE = ((0.097, 0.098, np.inf), (0.098, 0.099, -np.inf), (0.099, 0.0995, np.nan))
-KINDS = [("gamma", np.float32), ("wide", np.float64), ("special", np.float32), ("nonfinite", np.float64),
-         ("decades", np.float64), ("wide", np.float32), ("special", np.float64), ("nonfinite", np.float32),
-         ("flat", np.float32), ("int16", None)]
+KINDS = [
+    ("gamma", np.float32),
+    ("wide", np.float64),
+    ("special", np.float32),
+    ("nonfinite", np.float64),
+    ("decades", np.float64),
+    ("wide", np.float32),
+    ("special", np.float64),
+    ("nonfinite", np.float32),
+    ("flat", np.float32),
+    ("int16", None),
+]
 DOMAINS = ["intensity", "amplitude", "db"]
 
 
 def _cases(seed, n):
     fixed = {0: (1, 21, 41), 3: (3, 21, 41)}  # the defaults, and with a target window
-    for rng, k, block, halo, origin, (t, g, b) in cfar_cases(seed, n, KINDS, fixed, special=_SPECIAL,
-                                                             nonfinite=_NONFINITE):
-        p = tp.TwoParameterParams(pfa=float(rng.choice([1e-1, 1e-2, 1e-5])), target=t, guard=g, background=b,
-                                  domain=DOMAINS[(k // len(KINDS)) % 3 if k % 2 else k % 3],
-                                  threshold=str(rng.choice(["student", "gaussian"])), min_area_px=1)
+    for rng, k, block, halo, origin, (t, g, b) in cfar_cases(
+        seed, n, KINDS, fixed, special=_SPECIAL, nonfinite=_NONFINITE
+    ):
+        p = tp.TwoParameterParams(
+            pfa=float(rng.choice([1e-1, 1e-2, 1e-5])),
+            target=t,
+            guard=g,
+            background=b,
+            domain=DOMAINS[(k // len(KINDS)) % 3 if k % 2 else k % 3],
+            threshold=str(rng.choice(["student", "gaussian"])),
+            min_area_px=1,
+        )
         yield block, halo, origin, p
 
 
@@ -124,7 +140,7 @@ def test_kernel_default_windows_on_a_large_tile(domain, target):
     block = rng.gamma(2.0, 0.5, (170 + 2 * halo, 1700 + 2 * halo)).astype(np.float32)
     block[100:104, 500:506] = 40.0
     mask, _ = _check(block, halo, (1234, -30), p)
-    assert mask[100 - halo:104 - halo, 500 - halo:506 - halo].any()
+    assert mask[100 - halo : 104 - halo, 500 - halo : 506 - halo].any()
 
 
 def test_kernel_non_contiguous_input():
@@ -174,17 +190,29 @@ def test_division_by_integer_is_correctly_rounded():
     near rounding boundaries, for the divisors the kernel uses (ring sizes, N - 1, t^2)."""
     rng = np.random.default_rng(11)
     N = 1 << 16
-    for n in [8.0, 7.0, 9.0, 1240.0, 1239.0, 48.0, 47.0, 65025.0, 1023**2 - 1021**2 - 1.0,
-              *rng.integers(7, 1 << 20, 6).astype(float)]:
+    for n in [
+        8.0,
+        7.0,
+        9.0,
+        1240.0,
+        1239.0,
+        48.0,
+        47.0,
+        65025.0,
+        1023**2 - 1021**2 - 1.0,
+        *rng.integers(7, 1 << 20, 6).astype(float),
+    ]:
         q = rng.uniform(1, 2, N) * 2.0 ** rng.integers(-60, 60, N)
         with np.errstate(all="ignore"):
-            a = np.concatenate([
-                rng.standard_normal(N) * 10.0 ** rng.uniform(-300, 300, N),
-                np.nextafter(q * n, rng.choice([-np.inf, np.inf], N)),  # near exact quotients
-                (rng.integers(-2**52, 2**52, N) * 0.5) * n,  # quotients at half-integers
-                rng.standard_normal(N) * 2.0 ** rng.integers(-1075, 1024, N),  # subnormal to huge
-                np.array([0.0, -0.0, np.inf, -np.inf, np.nan, 5e-324, -5e-324, 1.7e308] * 4),
-            ])
+            a = np.concatenate(
+                [
+                    rng.standard_normal(N) * 10.0 ** rng.uniform(-300, 300, N),
+                    np.nextafter(q * n, rng.choice([-np.inf, np.inf], N)),  # near exact quotients
+                    (rng.integers(-(2**52), 2**52, N) * 0.5) * n,  # quotients at half-integers
+                    rng.standard_normal(N) * 2.0 ** rng.integers(-1075, 1024, N),  # subnormal to huge
+                    np.array([0.0, -0.0, np.inf, -np.inf, np.nan, 5e-324, -5e-324, 1.7e308] * 4),
+                ]
+            )
         out = np.empty_like(a)
         with np.errstate(all="ignore"):
             _divn(a, n, out)
@@ -214,12 +242,13 @@ def test_transform_matches_numpy_bit_for_bit(dtype):
     """y of each domain, as the kernel forms it (the logarithm of ``db`` by numpy in bands),
     against the numpy transform, on special values and over the whole exponent range."""
     rng = np.random.default_rng(12)
-    x = np.concatenate([
-        np.array([0.0, -0.0, -1.0, 1e-30, 1e-31, 1.0, np.inf, -np.inf, np.nan, -np.nan,
-                  5e-324, 1e-45, 3.4e38]),
-        rng.standard_normal(4000) * 10.0 ** rng.uniform(-45, 38, 4000),
-        rng.gamma(1.5, 1.0, 4000),
-    ]).astype(dtype)
+    x = np.concatenate(
+        [
+            np.array([0.0, -0.0, -1.0, 1e-30, 1e-31, 1.0, np.inf, -np.inf, np.nan, -np.nan, 5e-324, 1e-45, 3.4e38]),
+            rng.standard_normal(4000) * 10.0 ** rng.uniform(-45, 38, 4000),
+            rng.gamma(1.5, 1.0, 4000),
+        ]
+    ).astype(dtype)
     src = np.ascontiguousarray(np.tile(x, (3, 1)))
     n = x.size
     Y = np.empty((2, n + 5))

@@ -12,8 +12,8 @@ from scipy import integrate, stats
 from sarship.pipeline.detectors import vb_polsar as V
 from sarship.pipeline.products.scoring import evaluate
 from sarship.pipeline.simulate import SimConfig, simulate, simulate_array
-from tests.conftest import write_scene
 from sarship.workers.jobs import run_detection
+from tests.conftest import write_scene
 
 
 def _hyper(x, **kw):
@@ -29,8 +29,7 @@ def test_vbgmm_recovers_scale_mixture():
     C2 = 12.0 * C1
     n = 40000
     lab = rng.random(n) < 0.3
-    x = np.where(lab[:, None], rng.multivariate_normal(np.zeros(D), C2, n),
-                 rng.multivariate_normal(np.zeros(D), C1, n))
+    x = np.where(lab[:, None], rng.multivariate_normal(np.zeros(D), C2, n), rng.multivariate_normal(np.zeros(D), C1, n))
     mix = V.fit_vbgmm(x, 2, _hyper(x), max_iter=500)
     w = mix["eta"] / mix["eta"].sum()
     cov = [np.linalg.inv(mix["nu"][k] * mix["W"][k]) for k in range(2)]
@@ -60,6 +59,7 @@ def test_vbgmm_recovers_separated_means_and_prunes():
     def ll(m):
         t = V.mixture_terms(m)
         return V._lse(V.log_terms(x, t)).mean()
+
     assert ll(mix5) >= ll(mix) - 0.01
 
 
@@ -81,7 +81,7 @@ def test_indicator_update_ships_vs_clutter(coupling):
     a0, b0 = 1e-3, 1 - 1e-3
     x = np.concatenate([rng.normal(size=(2000, 6)), 8.0 * rng.normal(size=(200, 6)) / np.sqrt(6) * 3])
     far = np.r_[np.zeros(2000, bool), np.ones(200, bool)]
-    far &= (x ** 2).sum(1) > 100  # Mahalanobis energy > 100: far from the mixture
+    far &= (x**2).sum(1) > 100  # Mahalanobis energy > 100: far from the mixture
     g0 = V.log_terms(x, t)
     ea = np.ones(len(x))  # everyone starts as a ship: the update must separate them
     ab = np.zeros(len(x))
@@ -90,7 +90,7 @@ def test_indicator_update_ships_vs_clutter(coupling):
         ea, ab, lam = V._ea_update(lam0, ea, ab, a0, b0)
     Ee = (ea + a0) / (a0 + b0 + 1.0)
     assert (Ee[far] >= 0.5).all()
-    clutter = (x ** 2).sum(1) < 6.0  # inside the clutter bulk
+    clutter = (x**2).sum(1) < 6.0  # inside the clutter bulk
     assert clutter[:2000].mean() > 0.5
     assert (Ee[clutter] < 0.5).all()
     # numba kernel (pass 2) agrees: started as ships (t_init = -1), same decisions
@@ -112,6 +112,7 @@ def test_indicator_update_ships_vs_clutter(coupling):
 
 def test_digamma_kernel_matches_scipy():
     from scipy import special
+
     for v in [1e-9, 1e-3, 0.5, 1.0, 1.999, 3.7, 40.0, 1e6]:
         assert V._digamma(v) == pytest.approx(float(special.digamma(v)), rel=1e-10, abs=1e-10)
 
@@ -121,8 +122,9 @@ def test_grid_sample_is_tiling_independent():
     X = (rng.normal(size=(50, 41, 3)) + 1j * rng.normal(size=(50, 41, 3))).astype(np.complex64)
     prm = V.VBPolSARParams(sample_stride=4)
     whole = V.scene_pass(X, 0, (0, 0), prm, {})
-    parts = [V.scene_pass(X[r:r + 13, c:c + 9], 0, (r, c), prm, {})
-             for r in range(0, 50, 13) for c in range(0, 41, 9)]
+    parts = [
+        V.scene_pass(X[r : r + 13, c : c + 9], 0, (r, c), prm, {}) for r in range(0, 50, 13) for c in range(0, 41, 9)
+    ]
     rc = np.concatenate([p["rc"] for p in parts])
     d = np.concatenate([p["d"] for p in parts])
     o = np.lexsort((rc[:, 1], rc[:, 0]))
@@ -136,8 +138,9 @@ def test_tiled_equals_untiled(tmp_path, client):
     arrs, _ = simulate_array(cfg)
     scene = write_scene(tmp_path / "q.zarr", arrs, tile=64, looks=1.0)
     settings = {"min_area_px": "1", "sample_stride": "3"}
-    whole = run_detection(scene, "vb_polsar", settings, out_dir=tmp_path / "w", tile=4096, client=client,
-                          progress=False)
+    whole = run_detection(
+        scene, "vb_polsar", settings, out_dir=tmp_path / "w", tile=4096, client=client, progress=False
+    )
     m_whole = zarr.open_array(str(tmp_path / "w" / "mask.zarr" / "detected"))[:]
     assert 0 < m_whole.sum() < 0.01 * m_whole.size
     assert whole["scene_pass"]["values"]["calibration"] == "tail"  # the calibrated threshold is compared
@@ -149,11 +152,13 @@ def test_tiled_equals_untiled(tmp_path, client):
     m_mem, _ = V.detect(X, 0, (0, 0), prm, red)
     np.testing.assert_array_equal(m_whole.astype(bool), m_mem)
     for tile in (40, 97):
-        run = run_detection(scene, "vb_polsar", settings, out_dir=tmp_path / f"t{tile}", tile=tile,
-                            client=client, progress=False)
+        run = run_detection(
+            scene, "vb_polsar", settings, out_dir=tmp_path / f"t{tile}", tile=tile, client=client, progress=False
+        )
         assert run["scene_pass"]["values"] == whole["scene_pass"]["values"]
-        np.testing.assert_array_equal(zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "detected"))[:],
-                                      m_whole)
+        np.testing.assert_array_equal(
+            zarr.open_array(str(tmp_path / f"t{tile}" / "mask.zarr" / "detected"))[:], m_whole
+        )
         a = json.loads((tmp_path / f"t{tile}" / "detections.geojson").read_text())["features"]
         b = json.loads((tmp_path / "w" / "detections.geojson").read_text())["features"]
         assert a == b
@@ -161,13 +166,20 @@ def test_tiled_equals_untiled(tmp_path, client):
 
 def _detect_and_score(tmp_path, client, clutter, settings=None, seed=5):
     """Defaults on a 1024 x 1024 quad-pol scene, 12 ships, SCR 10 dB: scores, quad-pol and dual-pol."""
-    cfg = SimConfig(kind="quadpol", shape=(1024, 1024), ships=12, seed=seed, clutter=clutter, texture_shape=4,
-                    scr_db=10.0)
+    cfg = SimConfig(
+        kind="quadpol", shape=(1024, 1024), ships=12, seed=seed, clutter=clutter, texture_shape=4, scr_db=10.0
+    )
     simulate(tmp_path / "q.zarr", cfg, tile=512, truth_path=tmp_path / "q.truth.geojson")
     out = {}
     for name, extra in (("quad", {}), ("dual", {"channel": "hh,hv"})):
-        run = run_detection(tmp_path / "q.zarr", "vb_polsar", {**(settings or {}), **extra},
-                            out_dir=tmp_path / name, client=client, progress=False)
+        run = run_detection(
+            tmp_path / "q.zarr",
+            "vb_polsar",
+            {**(settings or {}), **extra},
+            out_dir=tmp_path / name,
+            client=client,
+            progress=False,
+        )
         out[name] = evaluate(tmp_path / name / "detections.geojson", tmp_path / "q.truth.geojson")
         out[name]["values"] = run["scene_pass"]["values"]
     return out
@@ -193,15 +205,22 @@ def test_detects_ships_in_k_clutter(tmp_path, client):
     for name in ("quad", "dual"):
         assert s[name]["values"]["calibration"] == "tail"
         assert s[name]["fom"] >= 0.9, (name, s[name])
-    run_detection(tmp_path / "q.zarr", "vb_polsar", {"calibration": "gaussian"}, out_dir=tmp_path / "g",
-                  client=client, progress=False)
+    run_detection(
+        tmp_path / "q.zarr",
+        "vb_polsar",
+        {"calibration": "gaussian"},
+        out_dir=tmp_path / "g",
+        client=client,
+        progress=False,
+    )
     g = evaluate(tmp_path / "g" / "detections.geojson", tmp_path / "q.truth.geojson")
     assert g["fom"] < 0.2 and g["n_false"] > 50, g
 
 
 def _k_clutter(seed, shape=(1024, 1024), clutter="k"):
-    arrs, _ = simulate_array(SimConfig(kind="quadpol", shape=shape, ships=0, seed=seed, clutter=clutter,
-                                       texture_shape=4))
+    arrs, _ = simulate_array(
+        SimConfig(kind="quadpol", shape=shape, ships=0, seed=seed, clutter=clutter, texture_shape=4)
+    )
     return np.stack([arrs["hh"], arrs["hv"], arrs["vv"]], -1)
 
 
@@ -239,7 +258,10 @@ def test_false_alarm_rate_on_pure_clutter():
 
 def _k_survival(x, nu=4.0):
     """P(T G > x), T ~ Gamma(nu, 1/nu), G ~ Gamma(3, 1): the quadratic form of K clutter."""
-    f = lambda t: stats.gamma.pdf(t, nu, scale=1.0 / nu) * stats.gamma.sf(x / t, 3)
+
+    def f(t):
+        return stats.gamma.pdf(t, nu, scale=1.0 / nu) * stats.gamma.sf(x / t, 3)
+
     return integrate.quad(f, 0.0, np.inf, limit=200)[0]
 
 
@@ -251,8 +273,10 @@ def test_tail_threshold_on_known_tails(monkeypatch):
     at 1e-6 (two decades beyond the sample)."""
     n = 65536
     rng = np.random.default_rng(0)
-    cases = (("gauss", 0.5 * rng.chisquare(6, n), lambda L: stats.chi2.sf(2.0 * L, 6)),
-             ("k", rng.gamma(4.0, 0.25, n) * rng.gamma(3.0, 1.0, n), _k_survival))
+    cases = (
+        ("gauss", 0.5 * rng.chisquare(6, n), lambda L: stats.chi2.sf(2.0 * L, 6)),
+        ("k", rng.gamma(4.0, 0.25, n) * rng.gamma(3.0, 1.0, n), _k_survival),
+    )
     for name, s, sf in cases:
         s[s < np.quantile(s, 0.85)] = -np.inf
         q3 = np.sort(s)[::-1][int(1e-3 * n)]
@@ -289,8 +313,9 @@ def test_decision_is_the_calibrated_log_odds_threshold():
             assert red["calibration"] == "tail"
             assert red["alpha0"] == V.alpha0_of_threshold(red["tail"]["threshold"])
             mask, stat = V.detect(X, 0, (0, 0), prm, red)
-            s = V.ship_log_odds(d, (d ** 2).sum(1), V.mixture_terms(red["mixture"]), red["t_init"],
-                                coupling == "joint").reshape(mask.shape)
+            s = V.ship_log_odds(
+                d, (d**2).sum(1), V.mixture_terms(red["mixture"]), red["t_init"], coupling == "joint"
+            ).reshape(mask.shape)
             assert mask.sum() > 5
             np.testing.assert_array_equal(mask, s >= red["threshold"])
             np.testing.assert_allclose(stat[mask], s[mask], rtol=1e-5, atol=1e-3)
@@ -305,14 +330,20 @@ def test_alpha0_from_pfa_and_parameters():
     prm = V.VBPolSARParams(pfa=1e-6)
     a0 = V.alpha0_of(prm, 6)
     from scipy import stats
+
     assert np.log((1 - a0) / a0) == pytest.approx(stats.chi2.isf(1e-6, 6) / 2)
     assert V.alpha0_of(V.VBPolSARParams(alpha0=1e-3), 6) == 1e-3
     for L in (6.9, 30.0, 120.0):
         a0 = V.alpha0_of_threshold(L)
         assert np.log1p(-a0) - np.log(a0) == pytest.approx(L, rel=1e-12)
     assert 0.0 < V.alpha0_of_threshold(1e6) and V.alpha0_of_threshold(-5.0) < 0.5
-    for bad in ({"coupling": "other"}, {"sample_stride": 0}, {"calibration": "other"}, {"tail_trim": 0.05},
-                {"calibration_stride": 0}):
+    for bad in (
+        {"coupling": "other"},
+        {"sample_stride": 0},
+        {"calibration": "other"},
+        {"tail_trim": 0.05},
+        {"calibration_stride": 0},
+    ):
         with pytest.raises(ValueError):
             V.VBPolSARParams(**bad)
     # a calibration sample too small for the tail fit: the Gaussian rule, recorded

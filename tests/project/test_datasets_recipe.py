@@ -43,9 +43,13 @@ OFFSHORE = ["000009", "000019"]
 def _voc(path: Path, boxes: list[tuple[int, int, int, int]], size=(40, 30)) -> None:
     objs = "".join(
         f"<object><name>ship</name><difficult>0</difficult><bndbox><xmin>{x0}</xmin><ymin>{y0}</ymin>"
-        f"<xmax>{x1}</xmax><ymax>{y1}</ymax></bndbox></object>" for x0, y0, x1, y1 in boxes)
-    path.write_text(f"<annotation><size><width>{size[0]}</width><height>{size[1]}</height><depth>3</depth></size>"
-                    f"{objs}</annotation>")
+        f"<xmax>{x1}</xmax><ymax>{y1}</ymax></bndbox></object>"
+        for x0, y0, x1, y1 in boxes
+    )
+    path.write_text(
+        f"<annotation><size><width>{size[0]}</width><height>{size[1]}</height><depth>3</depth></size>"
+        f"{objs}</annotation>"
+    )
 
 
 def _img(path: Path, seed: int, shape=(30, 40)) -> None:
@@ -69,9 +73,11 @@ def make_ssdd(root: Path, test=TEST, inshore=INSHORE, offshore=OFFSHORE) -> Path
 @pytest.fixture()
 def tiny_ssdd():
     """The ssdd_official recipe with the tiny copy's counts in place of the published ones."""
-    return dataclasses.replace(ds_mod.DATASETS["ssdd_official"],
-                               counts={"train": 16, "test": 4, "test_inshore": 2, "test_offshore": 2},
-                               total_images=20)
+    return dataclasses.replace(
+        ds_mod.DATASETS["ssdd_official"],
+        counts={"train": 16, "test": 4, "test_inshore": 2, "test_offshore": 2},
+        total_images=20,
+    )
 
 
 # -------------------------------------------------------------------------------- split rules
@@ -102,8 +108,12 @@ def test_ssdd_layout_and_checks(tmp_path, tiny_ssdd):
 
 def test_ssdd_rules_catch_a_wrong_division(tmp_path, tiny_ssdd):
     # 000005 in the test set, 000009 missing from it; inshore and offshore share 000001
-    bad = make_ssdd(tmp_path, test=["000001", "000005", "000011", "000019"],
-                    inshore=["000001", "000011"], offshore=["000001", "000019"])
+    bad = make_ssdd(
+        tmp_path,
+        test=["000001", "000005", "000011", "000019"],
+        inshore=["000001", "000011"],
+        offshore=["000001", "000019"],
+    )
     with pytest.raises(ds_mod.DatasetError) as exc:
         ds_mod.verify(tiny_ssdd, bad, use_manifest=False)
     msg = str(exc.value)
@@ -253,8 +263,20 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "unknown dataset 'nosuch' (known: dssdd, ssdd_official)" in err
     make_ssdd(tmp_path / "raw")
-    assert ds_mod.main(["convert", "ssdd_official", "--data", str(tmp_path / "raw"), "--to",
-                        str(tmp_path / "data"), "--no-manifest"]) == 2
+    assert (
+        ds_mod.main(
+            [
+                "convert",
+                "ssdd_official",
+                "--data",
+                str(tmp_path / "raw"),
+                "--to",
+                str(tmp_path / "data"),
+                "--no-manifest",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "the release publishes 928" in err
     assert not (tmp_path / "data" / "ssdd_official").exists()
@@ -268,10 +290,15 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
 
 def test_iou_matching_is_one_to_one_at_half():
     t = np.array([[0, 0, 10, 10], [20, 20, 30, 30]], float)
-    d = np.array([[0, 0, 10, 10],      # IoU 1 with ship 0
-                  [0, 0, 10, 6],       # IoU 0.6 with ship 0: taken already -> false alarm
-                  [20, 20, 30, 25],    # IoU exactly 0.5 with ship 1 -> hit
-                  [50, 50, 60, 60]], float)
+    d = np.array(
+        [
+            [0, 0, 10, 10],  # IoU 1 with ship 0
+            [0, 0, 10, 6],  # IoU 0.6 with ship 0: taken already -> false alarm
+            [20, 20, 30, 25],  # IoU exactly 0.5 with ship 1 -> hit
+            [50, 50, 60, 60],
+        ],
+        float,
+    )
     assert ev.match_iou(d, t) == [(0, 0), (2, 1)]
     c = ev.iou_counts(d, t)
     assert c == {"n_truth": 2, "n_detections": 4, "n_hit": 2}
@@ -286,8 +313,11 @@ def test_subsets_every_and_bad_folder(tmp_path, tiny_ssdd):
     out = ds_mod.convert(tiny_ssdd, parsed, tmp_path / "data")
     s = ev.load_subsets(out)
     assert s == {"test_offshore": OFFSHORE, "test_inshore": INSHORE, "test": TEST}
-    assert ev.load_subsets(out, every=2) == {"test_offshore": ["000009"], "test_inshore": ["000001"],
-                                             "test": ["000001", "000011"]}
+    assert ev.load_subsets(out, every=2) == {
+        "test_offshore": ["000009"],
+        "test_inshore": ["000001"],
+        "test": ["000001", "000011"],
+    }
     with pytest.raises(ev.EvalError, match="not a dataset converted by bench/datasets.py"):
         ev.load_subsets(tmp_path)
     (out / "truth" / "000019.geojson").unlink()
@@ -307,11 +337,18 @@ def _ship_chip(path: Path, seed: int, boxes) -> None:
 
 def test_report_and_table_per_subset():
     """Summed counts per subset, both matchers, and one table row per detector and subset."""
-    rows = {"ca_cfar": {
-        "000001": {"iou50": {"n_truth": 3, "n_detections": 4, "n_hit": 2},
-                   "ours": {"n_truth": 3, "n_detections": 4, "n_hit": 3}},
-        "000009": {"iou50": {"n_truth": 1, "n_detections": 1, "n_hit": 1},
-                   "ours": {"n_truth": 1, "n_detections": 1, "n_hit": 1}}}}
+    rows = {
+        "ca_cfar": {
+            "000001": {
+                "iou50": {"n_truth": 3, "n_detections": 4, "n_hit": 2},
+                "ours": {"n_truth": 3, "n_detections": 4, "n_hit": 3},
+            },
+            "000009": {
+                "iou50": {"n_truth": 1, "n_detections": 1, "n_hit": 1},
+                "ours": {"n_truth": 1, "n_detections": 1, "n_hit": 1},
+            },
+        }
+    }
     subsets = {"test_offshore": ["000009"], "test_inshore": ["000001"], "test": ["000001", "000009"]}
     rep = ev.report(rows, subsets)
     assert rep["ca_cfar"]["test_offshore"]["iou50"]["f1"] == 1.0

@@ -92,7 +92,7 @@ def test_systemd_units_parse_with_the_cli():
         text = unit.read_text()
         assert "[Service]" in text and "[Install]" in text, unit
         exec_line = next(ln for ln in text.splitlines() if ln.startswith("ExecStart="))
-        argv = shlex.split(exec_line[len("ExecStart="):])
+        argv = shlex.split(exec_line[len("ExecStart=") :])
         for k, v in env.items():
             argv = [a.replace("${" + k + "}", v) for a in argv]
         assert not any("${" in a for a in argv), (unit.name, argv)
@@ -123,20 +123,55 @@ def test_compose_topology_as_processes(tmp_path):
     addr = f"tcp://127.0.0.1:{port}"
     env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
     data = tmp_path / "data"
-    write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene((260, 240), looks=2.0, seed=4)},
-                tile=128, looks=2.0)
-    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                               "--port", str(port), "--dashboard-address", ":0"],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    write_scene(
+        data / "scenes" / "s1.zarr", {"intensity": blobs_scene((260, 240), looks=2.0, seed=4)}, tile=128, looks=2.0
+    )
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "distributed.cli.dask_scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--dashboard-address",
+                ":0",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=env,
+        )
+    ]
     srv = None
     try:
         _wait_listening(port, procs[0])  # `sarship worker` refuses an address where nothing listens yet
-        procs.append(subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler", addr,
-                                       "--gpus", "none", "--cpus", "1", "--name", "box"],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
+        procs.append(
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "sarship",
+                    "worker",
+                    "--scheduler",
+                    addr,
+                    "--gpus",
+                    "none",
+                    "--cpus",
+                    "1",
+                    "--name",
+                    "box",
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                env=env,
+            )
+        )
         srv = Server(data, free_port(), SARSHIP_SCHEDULER=addr).start()
-        r = httpx.post(srv.url + "/processes/ca_cfar/execution",
-                       json={"inputs": {"scene": "s1", "pfa": 1e-4, "min_area_px": 1}})
+        r = httpx.post(
+            srv.url + "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1", "pfa": 1e-4, "min_area_px": 1}}
+        )
         assert r.status_code == 201, r.text
         st = wait_job(srv.url, r.json()["jobID"])
         assert st["status"] == "successful", st
@@ -185,8 +220,12 @@ def test_compose_api_environment_is_valid_settings(tmp_path, monkeypatch):
 FEATURE_EXTRAS = {"safe", "gis", "coastline", "dashboard"}
 IMAGES = {"Dockerfile": FEATURE_EXTRAS, "Dockerfile.gpu": FEATURE_EXTRAS | {"gpu"}}
 #: the optional modules those features import, the distribution that brings each and its extra
-FEATURE_MODULES = {"xarray_sentinel": ("xarray-sentinel", "safe"), "pyogrio": ("pyogrio", "gis"),
-                   "roaring_landmask": ("roaring-landmask", "coastline"), "bokeh": ("bokeh", "dashboard")}
+FEATURE_MODULES = {
+    "xarray_sentinel": ("xarray-sentinel", "safe"),
+    "pyogrio": ("pyogrio", "gis"),
+    "roaring_landmask": ("roaring-landmask", "coastline"),
+    "bokeh": ("bokeh", "dashboard"),
+}
 
 
 def _pyproject() -> dict:
@@ -289,8 +328,10 @@ def test_dockerfiles_pass_the_lint_rules():
     unseen); and every COPY source exists, covering the package folders and the readme.
     (hadolint 2.15 itself passes both files, with the DL3008/DL3013 ignores they explain.)"""
     pyproject = _pyproject()
-    package = set(pyproject["tool"]["setuptools"]["package-dir"].values()) | {"pyproject.toml",
-                                                                             pyproject["project"]["readme"]}
+    package = set(pyproject["tool"]["setuptools"]["package-dir"].values()) | {
+        "pyproject.toml",
+        pyproject["project"]["readme"],
+    }
     for dockerfile in IMAGES:
         ins = _instructions(dockerfile)
         base = [a for i, a in ins if i == "FROM"]
@@ -326,8 +367,9 @@ def _engine() -> str | None:
     if not shutil.which("docker"):
         return "no docker client"
     try:
-        r = subprocess.run(["docker", "info", "--format", "{{.ServerVersion}}"], capture_output=True, text=True,
-                           timeout=30)
+        r = subprocess.run(
+            ["docker", "info", "--format", "{{.ServerVersion}}"], capture_output=True, text=True, timeout=30
+        )
     except subprocess.TimeoutExpired:
         return "docker info did not answer in 30 s"
     if r.returncode != 0:
@@ -345,14 +387,24 @@ def test_image_builds_with_its_extras_and_user(dockerfile):
     if why:
         pytest.skip(why)
     tag = f"sarship-test-{dockerfile.lower().replace('.', '-')}:{os.getpid()}"
-    built = subprocess.run(["docker", "build", "-f", str(DEPLOY / dockerfile), "-t", tag, str(REPO)],
-                           capture_output=True, text=True, timeout=3600)
+    built = subprocess.run(
+        ["docker", "build", "-f", str(DEPLOY / dockerfile), "-t", tag, str(REPO)],
+        capture_output=True,
+        text=True,
+        timeout=3600,
+    )
     assert built.returncode == 0, built.stderr[-4000:]
     try:
-        probe = (f"import os, {', '.join(FEATURE_MODULES)}; "
-                 "print(os.getuid(), os.getgid(), os.access('/data', os.W_OK), os.access('/inbox', os.W_OK))")
-        r = subprocess.run(["docker", "run", "--rm", "--entrypoint", "python", tag, "-c", probe],
-                           capture_output=True, text=True, timeout=600)
+        probe = (
+            f"import os, {', '.join(FEATURE_MODULES)}; "
+            "print(os.getuid(), os.getgid(), os.access('/data', os.W_OK), os.access('/inbox', os.W_OK))"
+        )
+        r = subprocess.run(
+            ["docker", "run", "--rm", "--entrypoint", "python", tag, "-c", probe],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert r.stdout.split() == ["1000", "1000", "True", "True"], (r.stdout, r.stderr[-2000:])
         if dockerfile == "Dockerfile":
             r = subprocess.run(["docker", "run", "--rm", tag, "serve"], capture_output=True, text=True, timeout=600)
@@ -375,11 +427,19 @@ def _settings(monkeypatch, **env):
     return Settings()
 
 
-@pytest.mark.parametrize("host,env,exposed", [
-    ("0.0.0.0", {}, True), ("::", {}, True), ("127.0.0.1", {}, False), ("::1", {}, False),
-    ("localhost", {}, False), ("0.0.0.0", {"SARSHIP_TOKENS": '["t"]'}, False),
-    ("0.0.0.0", {"SARSHIP_ALLOW_UNAUTHENTICATED": "1"}, False), ("::", {"SARSHIP_ALLOW_UNAUTHENTICATED": "true"}, False),
-])
+@pytest.mark.parametrize(
+    "host,env,exposed",
+    [
+        ("0.0.0.0", {}, True),
+        ("::", {}, True),
+        ("127.0.0.1", {}, False),
+        ("::1", {}, False),
+        ("localhost", {}, False),
+        ("0.0.0.0", {"SARSHIP_TOKENS": '["t"]'}, False),
+        ("0.0.0.0", {"SARSHIP_ALLOW_UNAUTHENTICATED": "1"}, False),
+        ("::", {"SARSHIP_ALLOW_UNAUTHENTICATED": "true"}, False),
+    ],
+)
 def test_exposed_address_without_tokens_is_refused(monkeypatch, host, env, exposed):
     from sarship.pipeline.errors import InputError
     from sarship.service.preflight import check_exposure
@@ -406,8 +466,9 @@ def test_serve_on_every_interface_without_tokens_exits_2(tmp_path):
     assert not data.exists()
     a_file = tmp_path / "a-file"
     a_file.write_text("")
-    res = subprocess.run([*argv, "--allow-unauthenticated", "--data", str(a_file)], capture_output=True, text=True,
-                         env=env, timeout=120)
+    res = subprocess.run(
+        [*argv, "--allow-unauthenticated", "--data", str(a_file)], capture_output=True, text=True, env=env, timeout=120
+    )
     assert res.returncode == 2 and "is not a folder" in res.stderr and "SARSHIP_TOKENS" not in res.stderr, res.stderr
 
 
@@ -429,8 +490,11 @@ def test_compose_and_systemd_are_safe_by_default(monkeypatch):
     check_exposure(_settings(monkeypatch, SARSHIP_HOST=host, SARSHIP_TOKENS='["t"]'))
     assert all(str(p).startswith("127.0.0.1:") for p in doc["services"]["scheduler"]["ports"])
 
-    env = dict(line.split("=", 1) for line in (DEPLOY / "systemd" / "sarship.env").read_text().splitlines()
-               if line and not line.startswith("#"))
+    env = dict(
+        line.split("=", 1)
+        for line in (DEPLOY / "systemd" / "sarship.env").read_text().splitlines()
+        if line and not line.startswith("#")
+    )
     unit = (DEPLOY / "systemd" / "sarship-api.service").read_text()
     assert "--host" not in unit and "SARSHIP_TOKENS" not in env
     check_exposure(_settings(monkeypatch, **env))  # loopback: no tokens needed
@@ -490,8 +554,13 @@ def test_serve_without_bokeh_offers_no_dashboard(tmp_path):
     lets it serve on 0.0.0.0): no dashboard link on the landing page, GET /dashboard a 404
     problem saying how to enable it (no server path), and the start-up line (the one
     ``sarship detect`` prints) gives no link but the same hint."""
-    srv = Server(tmp_path / "data", free_port(), SARSHIP_HOST="0.0.0.0", SARSHIP_ALLOW_UNAUTHENTICATED="1",
-                 **_without_bokeh(tmp_path)).start()
+    srv = Server(
+        tmp_path / "data",
+        free_port(),
+        SARSHIP_HOST="0.0.0.0",
+        SARSHIP_ALLOW_UNAUTHENTICATED="1",
+        **_without_bokeh(tmp_path),
+    ).start()
     try:
         links = [x["href"] for x in httpx.get(srv.url + "/").json()["links"]]
         assert not [h for h in links if "dashboard" in h], links
@@ -514,8 +583,23 @@ def test_detect_without_bokeh_prints_no_dashboard_link(tmp_path):
     scene = tmp_path / "s.zarr"
     write_scene(scene, {"intensity": blobs_scene((96, 96), looks=2.0, seed=2, n=2)}, tile=96, looks=2.0)
     env = {**os.environ, "CUDA_VISIBLE_DEVICES": "", **_without_bokeh(tmp_path)}
-    res = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
-                          "--out", str(tmp_path / "out")], capture_output=True, text=True, env=env, timeout=300)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "detect",
+            str(scene),
+            "--detector",
+            "ca_cfar",
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert res.returncode == 0, res.stderr
     line = [ln for ln in res.stderr.splitlines() if "Dask cluster" in ln]
     assert len(line) == 1 and "no dashboard" in line[0] and "sarship[dashboard]" in line[0], res.stderr

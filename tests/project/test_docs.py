@@ -57,16 +57,18 @@ def test_relative_links_resolve(md):
     assert not broken, f"{md.relative_to(REPO)} links to paths that do not exist: {broken}"
 
 
-@pytest.mark.skipif(sys.version_info[:2] != (3, 11),
-                    reason="the page is generated with Python 3.11 (CI's); argparse lays help out "
-                           "differently in other versions")
+@pytest.mark.skipif(
+    sys.version_info[:2] != (3, 11),
+    reason="the page is generated with Python 3.11 (CI's); argparse lays help out differently in other versions",
+)
 def test_cli_reference_is_generated_from_the_parser():
     from sarship.docs_cli import PAGE, REGENERATE, help_texts, rewrite
 
     page = (REPO / PAGE).read_text(encoding="utf-8")
     texts = help_texts()
-    assert rewrite(page, texts) == page, \
+    assert rewrite(page, texts) == page, (
         f"{PAGE} differs from `sarship ... --help`: run `{REGENERATE}` in the repository and commit the page"
+    )
     # every command has its block, so that a new option or setting cannot stay undocumented
     for cmd in texts:
         assert f"<!-- BEGIN GENERATED: {cmd} --help -->" in page, cmd
@@ -76,8 +78,13 @@ def test_cli_reference_generator_rewrites_only_its_blocks():
     from sarship.docs_cli import block, rewrite
 
     texts = {"sarship": "usage: sarship\n", "sarship new": "usage: sarship new\n"}
-    page = "# title\n\nprose\n\n" + block("sarship", "usage: old\n") + "\n\nmore prose\n\n" \
-        + block("sarship gone", "usage: gone\n") + "\n"
+    page = (
+        "# title\n\nprose\n\n"
+        + block("sarship", "usage: old\n")
+        + "\n\nmore prose\n\n"
+        + block("sarship gone", "usage: gone\n")
+        + "\n"
+    )
     out = rewrite(page, texts)
     assert out.startswith("# title\n\nprose\n\n" + block("sarship", "usage: sarship\n") + "\n\nmore prose\n")
     assert "gone" not in out  # a command the parser no longer has loses its block
@@ -86,12 +93,17 @@ def test_cli_reference_generator_rewrites_only_its_blocks():
 
 
 def test_every_environment_setting_is_documented():
-    code = "\n".join(p.read_text(encoding="utf-8") for folder in ("pipeline", "workers", "service", "sarship")
-                     for p in (REPO / folder).rglob("*.py"))
+    code = "\n".join(
+        p.read_text(encoding="utf-8")
+        for folder in ("pipeline", "workers", "service", "sarship")
+        for p in (REPO / folder).rglob("*.py")
+    )
     names = set(re.findall(r"\bSARSHIP_[A-Z0-9][A-Z0-9_]*[A-Z0-9]\b", code))
     from sarship.service.settings import Settings
 
     names |= {f"SARSHIP_{n.upper()}" for n in Settings.model_fields}
-    docs = "\n".join(p.read_text(encoding="utf-8") for p in [*pages(), REPO / "README.md", REPO / "deploy" / "README.md"])
+    docs = "\n".join(
+        p.read_text(encoding="utf-8") for p in [*pages(), REPO / "README.md", REPO / "deploy" / "README.md"]
+    )
     missing = sorted(n for n in names if not re.search(rf"\b{n}\b", docs))
     assert not missing, f"environment variables the code reads that no page of docs/ names: {missing}"

@@ -53,8 +53,12 @@ def _new_venv(root: Path) -> tuple[Path, Path]:
     venv.EnvBuilder(with_pip=False).create(root)
     py = root / "bin" / "python"
     purelib = Path(_run([py, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"]).stdout.strip())
-    ours = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"], *site.getsitepackages(),
-            *(p for p in sys.path if Path(p).name == "site-packages")}  # and those this one borrows
+    ours = {
+        sysconfig.get_paths()["purelib"],
+        sysconfig.get_paths()["platlib"],
+        *site.getsitepackages(),
+        *(p for p in sys.path if Path(p).name == "site-packages"),
+    }  # and those this one borrows
     (purelib / "_borrowed_deps.pth").write_text("\n".join(sorted(ours)) + "\n")
     return py, purelib
 
@@ -98,8 +102,12 @@ def test_wheel_has_one_top_level_package(wheel):
     tops = {n.split("/")[0] for n in names}
     assert {t for t in tops if not t.endswith(".dist-info")} == {"sarship"}, sorted(tops)
     files = set(names)
-    for folder, pkg in (("pipeline", "sarship/pipeline"), ("workers", "sarship/workers"),
-                        ("service", "sarship/service"), ("sarship", "sarship")):
+    for folder, pkg in (
+        ("pipeline", "sarship/pipeline"),
+        ("workers", "sarship/workers"),
+        ("service", "sarship/service"),
+        ("sarship", "sarship"),
+    ):
         for path in (REPO / folder).rglob("*.py"):
             rel = path.relative_to(REPO / folder).as_posix()
             assert f"{pkg}/{rel}" in files, f"{folder}/{rel} is not installed (add its package to pyproject.toml)"
@@ -171,8 +179,11 @@ def _readme_order(wheel: Path, tmp_path: Path, job: list[list[str]]) -> tuple[Pa
     r = _run([root / "bin" / "sarship", "detectors", "--json"], cwd=work, env=env)
     assert r.returncode == 0, r.stderr[-3000:]
     assert {d["name"] for d in json.loads(r.stdout)} >= {"ca_cfar", "os_cfar", "k_cfar"}
-    r = _run([py, "-c", "import sarship.pipeline.detectors.base, sarship.cli; print(sarship.pipeline.__file__)"],
-             cwd=work, env=env)
+    r = _run(
+        [py, "-c", "import sarship.pipeline.detectors.base, sarship.cli; print(sarship.pipeline.__file__)"],
+        cwd=work,
+        env=env,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stdout.strip().startswith(str(src)), r.stdout  # the editable checkout, nothing else
     return root, purelib, env
@@ -192,11 +203,26 @@ def test_readme_install_order_with_a_detect_before_and_after(wheel, tmp_path):
     """The README's three commands in order, with a small job: simulate + detect (land mask and
     ca_cfar kernels compiled and cached) on the installed wheel, then the editable install, then
     a detect again on it."""
-    job = [["sarship", "simulate", "s.zarr", "--shape", "256x256", "--ships", "2", "--tile", "256"],
-           ["sarship", "detect", "s.zarr", "--detector", "ca_cfar", "--out", "run1", "--scheduler", "local"]]
+    job = [
+        ["sarship", "simulate", "s.zarr", "--shape", "256x256", "--ships", "2", "--tile", "256"],
+        ["sarship", "detect", "s.zarr", "--detector", "ca_cfar", "--out", "run1", "--scheduler", "local"],
+    ]
     root, _, env = _readme_order(wheel, tmp_path, job)
-    r = _run([root / "bin" / "sarship", "detect", "s.zarr", "--detector", "ca_cfar", "--out", "run2",
-              "--scheduler", "local"], cwd=tmp_path / "work", env=env)
+    r = _run(
+        [
+            root / "bin" / "sarship",
+            "detect",
+            "s.zarr",
+            "--detector",
+            "ca_cfar",
+            "--out",
+            "run2",
+            "--scheduler",
+            "local",
+        ],
+        cwd=tmp_path / "work",
+        env=env,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     run = json.loads((tmp_path / "work" / "run2" / "run.json").read_text())
     assert run["detector"] == "ca_cfar"
@@ -219,8 +245,9 @@ def test_numba_cache_dir_is_the_first_writable_user_cache_folder(tmp_path):
 def test_sarship_processes_cache_numba_in_the_user_folder(tmp_path, numba_first):
     """Importing sarship sets NUMBA_CACHE_DIR (and Numba's configuration, if Numba was imported
     first); a value the user set wins."""
-    code = ("import numba; " if numba_first else "") + \
-        "import sarship, os, numba.core.config as c; print(os.environ['NUMBA_CACHE_DIR']); print(c.CACHE_DIR)"
+    code = (
+        "import numba; " if numba_first else ""
+    ) + "import sarship, os, numba.core.config as c; print(os.environ['NUMBA_CACHE_DIR']); print(c.CACHE_DIR)"
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     r = _run([sys.executable, "-c", code], cwd=tmp_path, env={**env, "XDG_CACHE_HOME": str(tmp_path / "xdg")})
     assert r.returncode == 0, r.stderr[-2000:]

@@ -17,8 +17,12 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 #: repository folder -> the package it installs as (pyproject.toml's package-dir)
-ROOTS = {"pipeline": "sarship.pipeline", "workers": "sarship.workers", "service": "sarship.service",
-         "sarship": "sarship"}
+ROOTS = {
+    "pipeline": "sarship.pipeline",
+    "workers": "sarship.workers",
+    "service": "sarship.service",
+    "sarship": "sarship",
+}
 #: what each layer may import of the project
 ALLOWED = {
     "sarship.pipeline": {"sarship.pipeline"},
@@ -127,13 +131,14 @@ def test_lower_layers_import_alone(layer):
     import importlib
 
     names = [n for _, n, _ in MODULES if _layer(n) == layer and ".gpu" not in n]
-    code = ("import importlib, sys\n"
-            f"for n in {names!r}:\n    importlib.import_module(n)\n"
-            "print(sorted({m for m in sys.modules if m.startswith('sarship.')}))\n")
+    code = (
+        "import importlib, sys\n"
+        f"for n in {names!r}:\n    importlib.import_module(n)\n"
+        "print(sorted({m for m in sys.modules if m.startswith('sarship.')}))\n"
+    )
     import subprocess
 
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO.parent,
-                         timeout=300)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO.parent, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     loaded = ast.literal_eval(out.stdout.strip().splitlines()[-1])
     above = [m for m in loaded if _layer(m) not in ALLOWED[layer] and m != "sarship"]
@@ -215,8 +220,11 @@ def test_circle_checker_finds_one(tmp_path):
     (tmp_path / "c.py").write_text("from sarship.pipeline.b import f\n")
     mods = [(tmp_path / f"{n}.py", f"sarship.pipeline.{n}", False) for n in "abc"]
     g = _module_graph(mods)
-    assert g == {"sarship.pipeline.a": {"sarship.pipeline.b"}, "sarship.pipeline.b": {"sarship.pipeline.a"},
-                 "sarship.pipeline.c": {"sarship.pipeline.b"}}
+    assert g == {
+        "sarship.pipeline.a": {"sarship.pipeline.b"},
+        "sarship.pipeline.b": {"sarship.pipeline.a"},
+        "sarship.pipeline.c": {"sarship.pipeline.b"},
+    }
     assert _circles(g) == [["sarship.pipeline.a", "sarship.pipeline.b"]]
     del g["sarship.pipeline.b"]
     assert _circles({**g, "sarship.pipeline.b": set()}) == []

@@ -60,8 +60,13 @@ def test_the_walkthrough_commands_are_found():
 
 def test_readme_service_walkthrough_runs_as_written(tmp_path):
     bindir = Path(sys.executable).parent
-    env = {**os.environ, "PATH": f"{bindir}{os.pathsep}{os.environ.get('PATH', '')}",
-           "SARSHIP_PORT": str(free_port()), "CUDA_VISIBLE_DEVICES": "", "SARSHIP_WORKERS": "2"}
+    env = {
+        **os.environ,
+        "PATH": f"{bindir}{os.pathsep}{os.environ.get('PATH', '')}",
+        "SARSHIP_PORT": str(free_port()),
+        "CUDA_VISIBLE_DEVICES": "",
+        "SARSHIP_WORKERS": "2",
+    }
     for k in ("SARSHIP_DATA", "SARSHIP_TOKENS", "SARSHIP_PROTECT_READS", "SARSHIP_SCHEDULER", "SARSHIP_INBOX"):
         env.pop(k, None)  # the walk-through is for the defaults
     if not shutil.which("sarship", path=env["PATH"]):
@@ -77,8 +82,14 @@ def test_readme_service_walkthrough_runs_as_written(tmp_path):
     out_p, err_p = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
     with open(out_p, "w") as out, open(err_p, "w") as err:
         # files, not pipes: the background server keeps its copies of stdout/stderr while it stops
-        proc = subprocess.Popen(["bash", str(tmp_path / "walkthrough.sh")], cwd=work, env=env, stdout=out,
-                                stderr=err, start_new_session=True)
+        proc = subprocess.Popen(
+            ["bash", str(tmp_path / "walkthrough.sh")],
+            cwd=work,
+            env=env,
+            stdout=out,
+            stderr=err,
+            start_new_session=True,
+        )
         try:
             rc = proc.wait(timeout=TIMEOUT_S)
         except subprocess.TimeoutExpired:
@@ -103,8 +114,10 @@ def test_readme_service_walkthrough_runs_as_written(tmp_path):
     assert rc is not None, f"the walk-through did not finish in {TIMEOUT_S} s{why}"
     parts = re.split(rf"^{MARK} (\d+)$", stdout, flags=re.M)
     outputs = {int(parts[i]): parts[i + 1].strip() for i in range(1, len(parts), 2)}
-    assert rc == 0 and len(outputs) == len(cmds), f"a command failed (exit {rc}) after {len(outputs)} of " \
-                                                  f"{len(cmds)}: {cmds[len(outputs) - 1] if outputs else ''}{why}"
+    assert rc == 0 and len(outputs) == len(cmds), (
+        f"a command failed (exit {rc}) after {len(outputs)} of "
+        f"{len(cmds)}: {cmds[len(outputs) - 1] if outputs else ''}{why}"
+    )
 
     def output_of(pred) -> str:
         i = next(i for i, c in enumerate(cmds) if pred(c))

@@ -28,8 +28,9 @@ def _product_files():
 
 def _is_environ(node: ast.AST) -> bool:
     """``os.environ`` or a bare ``environ``."""
-    return ((isinstance(node, ast.Attribute) and node.attr == "environ")
-            or (isinstance(node, ast.Name) and node.id == "environ"))
+    return (isinstance(node, ast.Attribute) and node.attr == "environ") or (
+        isinstance(node, ast.Name) and node.id == "environ"
+    )
 
 
 def _variable(node: ast.AST) -> str | None:
@@ -45,23 +46,34 @@ def direct_reads(source: str) -> list[tuple[int, str]]:
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Call) and node.args and (name := _variable(node.args[0])):
             f = node.func
-            if (isinstance(f, ast.Attribute) and ((f.attr == "get" and _is_environ(f.value)) or f.attr == "getenv")) \
-                    or (isinstance(f, ast.Name) and f.id == "getenv"):
+            if (
+                isinstance(f, ast.Attribute) and ((f.attr == "get" and _is_environ(f.value)) or f.attr == "getenv")
+            ) or (isinstance(f, ast.Name) and f.id == "getenv"):
                 out.append((node.lineno, name))
-        elif isinstance(node, ast.Subscript) and isinstance(node.ctx, ast.Load) and _is_environ(node.value) \
-                and (name := _variable(node.slice)):
+        elif (
+            isinstance(node, ast.Subscript)
+            and isinstance(node.ctx, ast.Load)
+            and _is_environ(node.value)
+            and (name := _variable(node.slice))
+        ):
             out.append((node.lineno, name))
-        elif isinstance(node, ast.Compare) and (name := _variable(node.left)) \
-                and any(isinstance(op, (ast.In, ast.NotIn)) for op in node.ops) and any(map(_is_environ, node.comparators)):
+        elif (
+            isinstance(node, ast.Compare)
+            and (name := _variable(node.left))
+            and any(isinstance(op, (ast.In, ast.NotIn)) for op in node.ops)
+            and any(map(_is_environ, node.comparators))
+        ):
             out.append((node.lineno, name))
     return out
 
 
 def test_the_checker_sees_every_form():
-    src = ("import os\nfrom os import environ, getenv\n"
-           "a = os.environ.get('SARSHIP_A', '')\nb = os.getenv('SARSHIP_B')\nc = os.environ['SARSHIP_C']\n"
-           "d = 'SARSHIP_D' in os.environ\ne = getenv('SARSHIP_E')\n"
-           "os.environ['SARSHIP_W'] = '1'\nos.environ.setdefault('SARSHIP_S', '1')\nx = os.environ.get('HOME')\n")
+    src = (
+        "import os\nfrom os import environ, getenv\n"
+        "a = os.environ.get('SARSHIP_A', '')\nb = os.getenv('SARSHIP_B')\nc = os.environ['SARSHIP_C']\n"
+        "d = 'SARSHIP_D' in os.environ\ne = getenv('SARSHIP_E')\n"
+        "os.environ['SARSHIP_W'] = '1'\nos.environ.setdefault('SARSHIP_S', '1')\nx = os.environ.get('HOME')\n"
+    )
     assert [n for _, n in direct_reads(src)] == ["SARSHIP_A", "SARSHIP_B", "SARSHIP_C", "SARSHIP_D", "SARSHIP_E"]
 
 
@@ -70,8 +82,10 @@ def test_no_module_reads_a_variable_but_through_the_settings():
     for path in _product_files():
         if path == READER:
             continue
-        bad += [f"{path.relative_to(REPO)}:{line}: reads {name} from the environment: use "
-                f"sarship.pipeline.settings.read" for line, name in direct_reads(path.read_text())]
+        bad += [
+            f"{path.relative_to(REPO)}:{line}: reads {name} from the environment: use sarship.pipeline.settings.read"
+            for line, name in direct_reads(path.read_text())
+        ]
     assert not bad, "\n".join(bad)
 
 
@@ -83,16 +97,28 @@ def _known() -> set[str]:
 
 #: Names that are no setting of sarship (docs/interfaces/settings.md says so): the docs' placeholder,
 #: the deployment's own build arguments and unit substitutions, the tests' and benchmarks' knobs.
-NOT_SETTINGS = {"SARSHIP_NAME", "SARSHIP_UID", "SARSHIP_GID", "SARSHIP_CPU_WORKERS", "SARSHIP_SCHEDULER_ADDRESS",
-                "SARSHIP_DASHBOARD_ADDRESS", "SARSHIP_FUZZ_EXAMPLES", "SARSHIP_BENCH_TMP"}
+NOT_SETTINGS = {
+    "SARSHIP_NAME",
+    "SARSHIP_UID",
+    "SARSHIP_GID",
+    "SARSHIP_CPU_WORKERS",
+    "SARSHIP_SCHEDULER_ADDRESS",
+    "SARSHIP_DASHBOARD_ADDRESS",
+    "SARSHIP_FUZZ_EXAMPLES",
+    "SARSHIP_BENCH_TMP",
+}
 
 
 def test_every_variable_named_is_defined():
     """A ``SARSHIP_*`` name in the product's code or docs is a defined variable (no stale name)."""
     names = re.compile(r"\bSARSHIP_[A-Z0-9][A-Z0-9_]*[A-Z0-9]\b")
-    files = [*_product_files(), REPO / "README.md", *sorted((REPO / "docs").rglob("*.md")),
-             *sorted(p for p in (REPO / "deploy").rglob("*") if p.is_file() and "static" not in p.parts),
-             REPO / "docker-compose.yml"]
+    files = [
+        *_product_files(),
+        REPO / "README.md",
+        *sorted((REPO / "docs").rglob("*.md")),
+        *sorted(p for p in (REPO / "deploy").rglob("*") if p.is_file() and "static" not in p.parts),
+        REPO / "docker-compose.yml",
+    ]
     unknown = {}
     known = _known() | NOT_SETTINGS
     for path in files:
@@ -110,8 +136,12 @@ def test_shared_variables_are_defined_once():
     model = settings.model()
     for name in shared:
         mine, theirs = Settings.model_fields[name], model.model_fields[name]
-        assert (mine.annotation, mine.default, mine.description, mine.metadata) == \
-            (theirs.annotation, theirs.default, theirs.description, theirs.metadata), name
+        assert (mine.annotation, mine.default, mine.description, mine.metadata) == (
+            theirs.annotation,
+            theirs.default,
+            theirs.description,
+            theirs.metadata,
+        ), name
 
 
 def test_the_table_is_the_models():
@@ -130,13 +160,28 @@ def test_the_table_is_linked():
 
 #: (variable, text, value) read at call time; None: the default.
 GOOD = [
-    ("reader", " ZARR ", "zarr"), ("reader", "", None), ("ingest_writers", "3", 3),
-    ("land_max_mb", "0.5", 0.5), ("threads_max_px", "1e3", 1000), ("cluster_host", "[::1]", "::1"),
-    ("cluster_host", "node-1.local", "node-1.local"), ("worker_start", "Spawn", "spawn"), ("gpu_procs", "0", 1),
-    ("gpu_threads", "4", 4), ("block_cache_mb", "0", 0.0), ("cuda_warmup", "0", False), ("cuda_warmup", "no", True),
-    ("fast_exit", "0", False), ("debug", " ", True), ("debug", "", False), ("warm", " Off ", False),
-    ("warm", "1", True), ("scheduler", " tcp://h:8786 ", "tcp://h:8786"), ("scheduler", "  ", None),
-    ("warm_socket", "/tmp/w.sock", Path("/tmp/w.sock")), ("gpu_hsum", "direct", "direct"),
+    ("reader", " ZARR ", "zarr"),
+    ("reader", "", None),
+    ("ingest_writers", "3", 3),
+    ("land_max_mb", "0.5", 0.5),
+    ("threads_max_px", "1e3", 1000),
+    ("cluster_host", "[::1]", "::1"),
+    ("cluster_host", "node-1.local", "node-1.local"),
+    ("worker_start", "Spawn", "spawn"),
+    ("gpu_procs", "0", 1),
+    ("gpu_threads", "4", 4),
+    ("block_cache_mb", "0", 0.0),
+    ("cuda_warmup", "0", False),
+    ("cuda_warmup", "no", True),
+    ("fast_exit", "0", False),
+    ("debug", " ", True),
+    ("debug", "", False),
+    ("warm", " Off ", False),
+    ("warm", "1", True),
+    ("scheduler", " tcp://h:8786 ", "tcp://h:8786"),
+    ("scheduler", "  ", None),
+    ("warm_socket", "/tmp/w.sock", Path("/tmp/w.sock")),
+    ("gpu_hsum", "direct", "direct"),
     ("gpu_pool_fraction", "0.5", 0.5),
 ]
 #: (variable, text, message) of a bad value: the messages the tests of each reader assert.
@@ -179,26 +224,43 @@ def test_a_bad_value_is_one_line(monkeypatch, name, text, message):
 
 
 def test_the_readers_take_their_values_from_it(monkeypatch):
-    from sarship.pipeline.tiling.inputs import reader_backend
     from sarship.pipeline.land.landmask_files import land_max_bytes
     from sarship.pipeline.readers.writing import ingest_writers
+    from sarship.pipeline.tiling.inputs import reader_backend
     from sarship.workers import blockcache, cluster
 
-    for env, text in (("SARSHIP_READER", "zarr"), ("SARSHIP_LAND_MAX_MB", "2"), ("SARSHIP_INGEST_WRITERS", "5"),
-                      ("SARSHIP_BLOCK_CACHE_MB", "1"), ("SARSHIP_THREADS_MAX_PX", "7"),
-                      ("SARSHIP_WORKER_START", "forkserver"), ("SARSHIP_GPU_PROCS", "3")):
+    for env, text in (
+        ("SARSHIP_READER", "zarr"),
+        ("SARSHIP_LAND_MAX_MB", "2"),
+        ("SARSHIP_INGEST_WRITERS", "5"),
+        ("SARSHIP_BLOCK_CACHE_MB", "1"),
+        ("SARSHIP_THREADS_MAX_PX", "7"),
+        ("SARSHIP_WORKER_START", "forkserver"),
+        ("SARSHIP_GPU_PROCS", "3"),
+    ):
         monkeypatch.setenv(env, text)
-    assert (reader_backend(), land_max_bytes(), ingest_writers(), blockcache.limit_bytes()) == \
-        ("zarr", 2 * 2**20, 5, 2**20)
+    assert (reader_backend(), land_max_bytes(), ingest_writers(), blockcache.limit_bytes()) == (
+        "zarr",
+        2 * 2**20,
+        5,
+        2**20,
+    )
     assert (cluster.threads_max_px(), cluster.worker_start_method(), cluster.gpu_procs(2)) == (7, "forkserver", 3)
 
 
 def test_reading_imports_only_the_standard_library():
     """The command's end of the warm cluster reads its variables before anything heavy loads."""
-    code = ("import sys\nfrom sarship.pipeline import settings\n"
-            "[settings.read(n) for n in settings.VARIABLES]\n"
-            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('pydantic', 'pydantic_settings', 'numpy')))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
-                         env={"PATH": "/usr/bin:/bin", "SARSHIP_WARM": "0", "SARSHIP_READER": "zarr"})
+    code = (
+        "import sys\nfrom sarship.pipeline import settings\n"
+        "[settings.read(n) for n in settings.VARIABLES]\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('pydantic', 'pydantic_settings', 'numpy')))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={"PATH": "/usr/bin:/bin", "SARSHIP_WARM": "0", "SARSHIP_READER": "zarr"},
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"

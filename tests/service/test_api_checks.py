@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 import pytest
-
 from conftest import blobs_scene, cov_scene, write_scene
+
 from sarship.pipeline.errors import InputError
 
 NON_FINITE = ("nan", "-Infinity", "1e999", float("inf"))
@@ -48,11 +48,14 @@ def test_channel_is_a_variable_name_never_a_path():
     assert JobRequest.from_inputs("apwf", {"scene": "x", "channel": "hh, vv"}).channel == "hh, vv"
 
 
-
-
 def sarship(*args, timeout=60, **env):
-    return subprocess.run([sys.executable, "-m", "sarship", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, env={**os.environ, **env})
+    return subprocess.run(
+        [sys.executable, "-m", "sarship", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**os.environ, **env},
+    )
 
 
 def one_line_exit_2(r, *words):
@@ -68,8 +71,8 @@ def test_detector_scene_mismatch_is_one_check(tmp_path):
     (``detector_source``) refuses it with one line, and ``sarship detect`` exits 2 before any
     cluster starts; apwf and pcdm read the same scene."""
     from sarship.pipeline import detectors
-    from sarship.pipeline.tiling.inputs import detector_source
     from sarship.pipeline.scene import open_scene
+    from sarship.pipeline.tiling.inputs import detector_source
 
     sc = open_scene(cov_scene(tmp_path / "cov.zarr", shape=(48, 40)))
     with pytest.raises(InputError, match="vb_polsar.*covariance"):
@@ -107,13 +110,23 @@ def test_land_mask_fifo_deep_and_oversize(tmp_path, monkeypatch):
     monkeypatch.delenv("SARSHIP_LAND_MAX_MB")
     # a small valid GeoJSON (pixel coordinates) still reads
     ok = tmp_path / "ok.geojson"
-    ok.write_text(json.dumps({"type": "Polygon", "coordinates": [[[0, 0], [5, 0], [5, 5], [0, 5]]],
-                              "pixel_coordinates": True}))
+    ok.write_text(
+        json.dumps({"type": "Polygon", "coordinates": [[[0, 0], [5, 0], [5, 5], [0, 5]]], "pixel_coordinates": True})
+    )
     assert open_land_file(str(ok), (10, 10), {}).read(0, 10, 0, 10).sum() == 25
     write_scene(tmp_path / "s.zarr", {"intensity": blobs_scene((40, 40))}, tile=64, looks=2.0)
     t0 = time.monotonic()
-    r = sarship("detect", tmp_path / "s.zarr", "--detector", "ca_cfar", "--set", f"land_mask={fifo}",
-                "--out", tmp_path / "o", timeout=30)
+    r = sarship(
+        "detect",
+        tmp_path / "s.zarr",
+        "--detector",
+        "ca_cfar",
+        "--set",
+        f"land_mask={fifo}",
+        "--out",
+        tmp_path / "o",
+        timeout=30,
+    )
     one_line_exit_2(r, "land_mask", "not a regular file")
     assert time.monotonic() - t0 < 30
 
@@ -124,8 +137,11 @@ def test_json_depth_streams_in_chunks():
     from sarship.pipeline.land.landmask_files import json_depth
     from sarship.service.common import json_depth as whole
 
-    docs = [b'{"a": [1, "[\\\\", {"b": "\\"[["}], "c": [[[]]]}', b'["\\\\\\"[", [[{"x": "}}"}]]]',
-            json.dumps({"k": [["\\" * n + "[" for n in range(6)], {"q": '"[{'}]}).encode()]
+    docs = [
+        b'{"a": [1, "[\\\\", {"b": "\\"[["}], "c": [[[]]]}',
+        b'["\\\\\\"[", [[{"x": "}}"}]]]',
+        json.dumps({"k": [["\\" * n + "[" for n in range(6)], {"q": '"[{'}]}).encode(),
+    ]
     for raw in docs:
         for chunk in (1, 2, 3, 5, 8, 1 << 22):
             assert json_depth(raw, chunk) == whole(raw), (raw, chunk)
@@ -137,10 +153,13 @@ def test_hide_paths(tmp_path):
     data = tmp_path / "d"
     (tmp_path / "link").symlink_to(tmp_path, target_is_directory=True)
     s = Settings(data=tmp_path / "link" / "d")
-    text = (f"scene '{data}/scenes/s1.zarr' has no hh; '{s.data}/uploads/a.tif' bad; {data}: full; "
-            f"{data}x stays; {s.data}/scenes")
-    assert s.hide_paths(text) == ("scene 's1.zarr' has no hh; 'uploads/a.tif' bad; the data folder: full; "
-                                  f"{data}x stays; the scene folder")
+    text = (
+        f"scene '{data}/scenes/s1.zarr' has no hh; '{s.data}/uploads/a.tif' bad; {data}: full; "
+        f"{data}x stays; {s.data}/scenes"
+    )
+    assert s.hide_paths(text) == (
+        f"scene 's1.zarr' has no hh; 'uploads/a.tif' bad; the data folder: full; {data}x stays; the scene folder"
+    )
 
 
 def test_scene_retention_and_deletion(tmp_path):
@@ -188,22 +207,45 @@ def test_land_file_is_parsed_in_a_capped_child(tmp_path):
     from sarship.service.ingest_proc import land_in_child
 
     small = tmp_path / "small.geojson"
-    small.write_text(json.dumps({"type": "Polygon", "coordinates": [[[0, 0], [8, 0], [8, 4], [0, 4]]],
-                                 "pixel_coordinates": True}))
+    small.write_text(
+        json.dumps({"type": "Polygon", "coordinates": [[[0, 0], [8, 0], [8, 4], [0, 4]]], "pixel_coordinates": True})
+    )
     out = tmp_path / "land.zarr"
     seen = []
     # the small file under a roomier cap: writing the raster starts zarr's and the codecs' threads,
     # whose stacks count in the address space (350 MiB once failed there: "can't start new thread")
-    answer = land_in_child(small, out, shape=(16, 20), attrs={}, tile=8, max_bytes=2**30, memory_mb=1024.0,
-                           progress=lambda done, total: seen.append((done, total)))
-    assert answer == {"kind": "vector", "format": "geojson",
-                      "info": {"polygons": 1, "coordinates": "pixel", "overlaps_scene": True}}
+    answer = land_in_child(
+        small,
+        out,
+        shape=(16, 20),
+        attrs={},
+        tile=8,
+        max_bytes=2**30,
+        memory_mb=1024.0,
+        progress=lambda done, total: seen.append((done, total)),
+    )
+    assert answer == {
+        "kind": "vector",
+        "format": "geojson",
+        "info": {"polygons": 1, "coordinates": "pixel", "overlaps_scene": True},
+    }
     land = np.asarray(zarr.open_group(str(out), mode="r")["land"][...])
     assert land.shape == (16, 20) and land[:4, :8].all() and land.sum() == 32
     assert seen[-1] == (16, 16)
     big = tmp_path / "big.geojson"  # two million positions
-    big.write_bytes(b'{"type": "Polygon", "pixel_coordinates": true, "coordinates": [[[0, 0], '
-                    + b"[12.5, 3.25], " * 2_000_000 + b"[0, 0]]]}")
+    big.write_bytes(
+        b'{"type": "Polygon", "pixel_coordinates": true, "coordinates": [[[0, 0], '
+        + b"[12.5, 3.25], " * 2_000_000
+        + b"[0, 0]]]}"
+    )
     with pytest.raises(InputError, match="needs more memory than the cap of 350 MiB"):
-        land_in_child(big, tmp_path / "big.zarr", shape=(16, 20), attrs={}, tile=8, max_bytes=2**30,
-                      memory_mb=350.0, progress=lambda done, total: None)
+        land_in_child(
+            big,
+            tmp_path / "big.zarr",
+            shape=(16, 20),
+            attrs={},
+            tile=8,
+            max_bytes=2**30,
+            memory_mb=350.0,
+            progress=lambda done, total: None,
+        )

@@ -25,18 +25,40 @@ def env(tmp_path_factory):
     root = tmp_path_factory.mktemp("coastsvc")
     data = root / "data"
     (data / "scenes").mkdir(parents=True)
-    cfg = SimConfig(shape=(320, 288), ships=3, seed=3, looks=4.0, clutter="k", land=True, scr_db=20.0,
-                    length_m=(60.0, 150.0), geo=(10.6, 59.8))
+    cfg = SimConfig(
+        shape=(320, 288),
+        ships=3,
+        seed=3,
+        looks=4.0,
+        clutter="k",
+        land=True,
+        scr_db=20.0,
+        length_m=(60.0, 150.0),
+        geo=(10.6, 59.8),
+    )
     simulate(data / "scenes" / "fjord.zarr", cfg, tile=128)
     truth = _land_mask(cfg, _model(cfg).land, 0, 320, 0, 288)
     rng = np.random.default_rng(1)
-    write_scene(data / "scenes" / "plain.zarr", {"intensity": rng.gamma(4.0, 0.25, (64, 64)).astype(np.float32)},
-                tile=64, looks=4.0)
+    write_scene(
+        data / "scenes" / "plain.zarr",
+        {"intensity": rng.gamma(4.0, 0.25, (64, 64)).astype(np.float32)},
+        tile=64,
+        looks=4.0,
+    )
     srv = Server(data, free_port()).start()
     try:
-        r = httpx.post(srv.url + "/processes/ca_cfar/execution",
-                       json={"inputs": {"scene": "fjord", "guard": 21, "background": 41, "land_mask": "coastline",
-                                        "land_buffer_m": 100}})
+        r = httpx.post(
+            srv.url + "/processes/ca_cfar/execution",
+            json={
+                "inputs": {
+                    "scene": "fjord",
+                    "guard": 21,
+                    "background": 41,
+                    "land_mask": "coastline",
+                    "land_buffer_m": 100,
+                }
+            },
+        )
         assert r.status_code == 201, r.text
         job = r.json()["jobID"]
         assert wait_job(srv.url, job, timeout=240)["status"] == "successful"
@@ -72,6 +94,12 @@ def test_coastline_job_quicklook_shows_the_shoreline_land(env):
 
 def test_coastline_on_a_scene_without_georeference_is_a_400(env):
     srv, *_ = env
-    check_problem(httpx.post(srv.url + "/processes/ca_cfar/execution",
-                             json={"inputs": {"scene": "plain", "land_mask": "coastline+texture"}}),
-                  400, "land_mask", "georeferenced")
+    check_problem(
+        httpx.post(
+            srv.url + "/processes/ca_cfar/execution",
+            json={"inputs": {"scene": "plain", "land_mask": "coastline+texture"}},
+        ),
+        400,
+        "land_mask",
+        "georeferenced",
+    )

@@ -54,9 +54,14 @@ def start_live(srv: Server, preexec=None, timeout: float = 120.0) -> Server:
     """Start ``srv`` (optionally with a ``preexec_fn``) and wait until it answers with its
     workers up, whatever ``/readyz`` says about the disk."""
     srv.log = open(srv.data.parent / f"server-{srv.port}-{time.time_ns()}.log", "w")
-    srv.proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(srv.data),
-                                 "--port", str(srv.port)], stdout=srv.log, stderr=subprocess.STDOUT, env=srv.env,
-                                start_new_session=True, preexec_fn=preexec)
+    srv.proc = subprocess.Popen(
+        [sys.executable, "-m", "sarship", "serve", "--data", str(srv.data), "--port", str(srv.port)],
+        stdout=srv.log,
+        stderr=subprocess.STDOUT,
+        env=srv.env,
+        start_new_session=True,
+        preexec_fn=preexec,
+    )
     t_end = time.time() + timeout
     while time.time() < t_end:
         assert srv.proc.poll() is None, Path(srv.log.name).read_text()[-2000:]
@@ -70,7 +75,6 @@ def start_live(srv: Server, preexec=None, timeout: float = 120.0) -> Server:
     raise RuntimeError("server did not come up")
 
 
-
 def test_a_full_disk_is_retried_not_quarantined_and_readyz_says_so(tmp_path):
     data, inbox = tmp_path / "data", tmp_path / "inbox"
     data.mkdir()
@@ -79,8 +83,14 @@ def test_a_full_disk_is_retried_not_quarantined_and_readyz_says_so(tmp_path):
     img = np.random.default_rng(1).gamma(2.0, 0.5, (2048, 2048)).astype(np.float32)
     (inbox / "big.npy").write_bytes(npy_bytes(img))
     marker(inbox / "big.npy").touch()
-    env = dict(SARSHIP_WORKERS="1", SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.5",
-               SARSHIP_INBOX_SETTLE_S="1", SARSHIP_RETRY_S="0.5", SARSHIP_RETRY_MAX_S="1")
+    env = dict(
+        SARSHIP_WORKERS="1",
+        SARSHIP_INBOX=json.dumps([str(inbox)]),
+        SARSHIP_INBOX_INTERVAL_S="0.5",
+        SARSHIP_INBOX_SETTLE_S="1",
+        SARSHIP_RETRY_S="0.5",
+        SARSHIP_RETRY_MAX_S="1",
+    )
     full = Server(data, free_port(), SARSHIP_MIN_FREE_MB=str(2**40), **env)  # "less free than 1 EiB"
     try:
         start_live(full, preexec=fsize_limit(8 << 20))
@@ -123,8 +133,13 @@ def inbox_server(tmp_path_factory):
     data, inbox = root / "data", root / "inbox"
     data.mkdir()
     inbox.mkdir()
-    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.3",
-                 SARSHIP_INBOX_SETTLE_S="4").start()  # 4 s: appends 0.25 s apart (plus a status request each,
+    srv = Server(
+        data,
+        free_port(),
+        SARSHIP_INBOX=json.dumps([str(inbox)]),
+        SARSHIP_INBOX_INTERVAL_S="0.3",
+        SARSHIP_INBOX_SETTLE_S="4",
+    ).start()  # 4 s: appends 0.25 s apart (plus a status request each,
     # which a loaded 2-core CI machine can take a second to answer) never look settled
     srv.inbox = inbox
     yield srv
@@ -153,7 +168,7 @@ def test_a_done_marker_is_consumed_with_its_pass(inbox_server):
         with open(f, "ab") as fh:
             fh.write(raw[a:b])
     with open(f, "ab") as fh:
-        fh.write(raw[pieces[-2]:])
+        fh.write(raw[pieces[-2] :])
     t_end = time.time() + 30
     while True:  # the newest record of same.tif is the new content's, taken once complete
         p = passes(u)["same.tif"]
@@ -178,8 +193,11 @@ def test_sigterm_of_sarship_ingest_leaves_no_partial(tmp_path):
     np.save(src, np.random.default_rng(2).gamma(2.0, 0.5, (4000, 4000)).astype(np.float32))
     out = tmp_path / "out" / "big.zarr"
     out.parent.mkdir()
-    p = subprocess.Popen([sys.executable, "-m", "sarship", "ingest", str(src), "--out", str(out), "--tile", "256"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "sarship", "ingest", str(src), "--out", str(out), "--tile", "256"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         err = b""
         t_end = time.time() + 60
@@ -276,8 +294,9 @@ def test_a_runner_stopped_past_its_lease_cannot_publish(tmp_path):
     and publishes; the stopped one, continued, finishes its run but publishes nothing."""
     data = tmp_path / "data"
     (data / "scenes").mkdir(parents=True)
-    write_scene(data / "scenes" / "many.zarr", {"intensity": many_blobs((2000, 2000), n=100_000, seed=1)}, tile=512,
-                looks=2.0)
+    write_scene(
+        data / "scenes" / "many.zarr", {"intensity": many_blobs((2000, 2000), n=100_000, seed=1)}, tile=512, looks=2.0
+    )
     env = dict(SARSHIP_WORKERS="1", SARSHIP_LEASE_S="2", SARSHIP_CONCURRENCY="1")
     make_store(data)  # (before the two start at once)
     servers = [Server(data, free_port(), **env), Server(data, free_port(), **env)]
@@ -288,8 +307,10 @@ def test_a_runner_stopped_past_its_lease_cannot_publish(tmp_path):
         with ThreadPoolExecutor(2) as pool:
             list(pool.map(Server.start, servers))
         u = servers[0].url
-        r = httpx.post(u + "/processes/ca_cfar/execution",
-                       json={"inputs": {"scene": "many", "guard": 5, "background": 15, "min_area_px": 1}})
+        r = httpx.post(
+            u + "/processes/ca_cfar/execution",
+            json={"inputs": {"scene": "many", "guard": 5, "background": 15, "min_area_px": 1}},
+        )
         job_id = r.json()["jobID"]
         t_end = time.time() + 120
         while True:  # every tile done: the runner merges and writes its outputs now
@@ -342,8 +363,9 @@ def test_the_store_fences_a_stale_attempt_of_the_same_owner(tmp_path):
     assert second["id"] == job["id"] and second["attempts"] == 2
     published = []
     assert not store.renew(job["id"], "host-1-abc", 30, attempt=1)
-    assert not store.finish(job["id"], "host-1-abc", "successful", "stale", attempt=1,
-                            publish=lambda: published.append(1))
+    assert not store.finish(
+        job["id"], "host-1-abc", "successful", "stale", attempt=1, publish=lambda: published.append(1)
+    )
     assert published == [] and store.get(job["id"])["status"] == "running"
     assert store.renew(job["id"], "host-1-abc", 30, attempt=2)
     assert store.finish(job["id"], "host-1-abc", "successful", "done", attempt=2, publish=lambda: published.append(2))

@@ -80,8 +80,9 @@ def real_ids(server) -> dict[str, str]:
     u = server.url
     inputs = {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1}
     # submitted together (the server runs two jobs at once); the third is dismissed at once
-    ok, victim, gone = (httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": inputs}).json()["jobID"]
-                        for _ in range(3))
+    ok, victim, gone = (
+        httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": inputs}).json()["jobID"] for _ in range(3)
+    )
     httpx.delete(f"{u}/jobs/{gone}")
     assert wait_job(u, gone)["status"] == "dismissed"
     assert wait_job(u, ok)["status"] == "successful"
@@ -112,13 +113,15 @@ def steer(doc: dict[str, Any], ids: dict[str, str]) -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def api_schema(server, real_ids):
     live = httpx.get(server.url + "/openapi.json").json()
-    config = schemathesis.Config.from_dict({
-        "seed": SEED,
-        "base-url": server.url,
-        "request-timeout": 60,
-        "generation": {"mode": "all", "max-examples": MAX_EXAMPLES, "deterministic": True, "database": "none"},
-        "phases": {"stateful": {"enabled": False}},
-    })
+    config = schemathesis.Config.from_dict(
+        {
+            "seed": SEED,
+            "base-url": server.url,
+            "request-timeout": 60,
+            "generation": {"mode": "all", "max-examples": MAX_EXAMPLES, "deterministic": True, "database": "none"},
+            "phases": {"stateful": {"enabled": False}},
+        }
+    )
     return schemathesis.openapi.from_dict(steer(live, real_ids), config=config)
 
 
@@ -140,8 +143,13 @@ def test_fuzzing_reached_the_real_data():
     if not SEEN:
         pytest.skip("runs after test_api_fuzz in the same session")
     ok = {op for (op, code), n in SEEN.items() if code < 300}
-    assert {"GET /jobs/{job_id}", "GET /jobs/{job_id}/results", "GET /jobs/{job_id}/results/detections",
-            "POST /processes/{process_id}/execution", "DELETE /jobs/{job_id}"} <= ok, sorted(SEEN.items())
+    assert {
+        "GET /jobs/{job_id}",
+        "GET /jobs/{job_id}/results",
+        "GET /jobs/{job_id}/results/detections",
+        "POST /processes/{process_id}/execution",
+        "DELETE /jobs/{job_id}",
+    } <= ok, sorted(SEEN.items())
     assert sum(SEEN.values()) >= 300, sum(SEEN.values())
 
 
@@ -159,7 +167,8 @@ def test_schema_declares_the_api(server):
             assert "422" not in op["responses"], (method, path)  # validation errors are 400 problems here
             assert "application/problem+json" in op["responses"]["4XX"]["content"], (method, path)
     assert doc["paths"]["/jobs/{job_id}"]["get"]["responses"]["200"]["content"]["application/json"]["schema"] == {
-        "$ref": "#/components/schemas/StatusInfo"}
+        "$ref": "#/components/schemas/StatusInfo"
+    }
     assert set(doc["components"]["schemas"]["Problem"]["required"]) >= {"type", "title", "detail"}
 
 
@@ -177,8 +186,14 @@ def test_tokens_in_schema_and_odd_authorization_headers(tmp_path):
         assert "security" not in doc["paths"]["/jobs"]["get"]  # reads stay open without protect_reads
         assert httpx.get(srv.url + "/jobs").status_code == 200  # (test_service.py::test_tokens: protect_reads)
         url = srv.url + "/jobs/nosuchjob"
-        for header, status in ((b"Bearer t\xe9st", 403), (b"Bearer \xff\xfe", 403), (b"Basic dDow", 401),
-                               (b"Bearer", 401), (b"Bearer  t0ken2", 403), (b"bearer t0ken", 404)):
+        for header, status in (
+            (b"Bearer t\xe9st", 403),
+            (b"Bearer \xff\xfe", 403),
+            (b"Basic dDow", 401),
+            (b"Bearer", 401),
+            (b"Bearer  t0ken2", 403),
+            (b"bearer t0ken", 404),
+        ):
             r = httpx.delete(url, headers={"Authorization": header})
             assert r.status_code == status, (header, r.status_code, r.text)
             assert {"type", "title", "detail"} <= set(r.json()), r.text

@@ -37,11 +37,21 @@ http = httpx.Client(timeout=60)
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     data = data_with_scene(tmp_path_factory.mktemp("hostile"))
-    write_scene(data / "scenes" / "s1_tiles32.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
-                tile=32, looks=2.0)
-    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_CONCURRENCY="1",
-                 SARSHIP_PREVIEW_CACHE_MB=str(PREVIEW_CACHE_MB), SARSHIP_MAX_SYNC_WAITS=str(MAX_SYNC_WAITS),
-                 SARSHIP_SYNC_TIMEOUT_S=str(SYNC_TIMEOUT_S)).start()
+    write_scene(
+        data / "scenes" / "s1_tiles32.zarr",
+        {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
+        tile=32,
+        looks=2.0,
+    )
+    srv = Server(
+        data,
+        free_port(),
+        SARSHIP_WORKERS="1",
+        SARSHIP_CONCURRENCY="1",
+        SARSHIP_PREVIEW_CACHE_MB=str(PREVIEW_CACHE_MB),
+        SARSHIP_MAX_SYNC_WAITS=str(MAX_SYNC_WAITS),
+        SARSHIP_SYNC_TIMEOUT_S=str(SYNC_TIMEOUT_S),
+    ).start()
     yield srv
     srv.kill()
 
@@ -77,8 +87,7 @@ def test_preview_sizes_and_cache_are_bounded(server, done_job):
         assert max(img.size) <= size and r.headers["content-type"] == "image/png"
     files = list(jobs.glob("*/preview-*.png"))
     assert len(list((jobs / done_job).glob("preview-*.png"))) <= 6, sorted(p.name for p in files)
-    assert sum(p.stat().st_size for p in files) <= PREVIEW_CACHE_MB * 2**20, [(p.name, p.stat().st_size)
-                                                                               for p in files]
+    assert sum(p.stat().st_size for p in files) <= PREVIEW_CACHE_MB * 2**20, [(p.name, p.stat().st_size) for p in files]
     # the same level, the same picture (and ETag); a cached preview is served after eviction too
     a = http.get(f"{u}/jobs/{done_job}/preview.png?size=4096")
     b = http.get(f"{u}/jobs/{done_job}/preview.png?size=3000")
@@ -99,7 +108,7 @@ def test_large_bodies_are_refused_before_reading(server):
 
     def chunks():  # no Content-Length: chunked transfer, counted as it arrives
         for k in range(0, len(big), 1 << 16):
-            yield big[k:k + (1 << 16)]
+            yield big[k : k + (1 << 16)]
 
     r = http.post(ex, content=chunks(), headers={"content-type": "application/json"})
     assert "content-length" not in r.request.headers
@@ -115,9 +124,11 @@ def test_large_bodies_are_refused_before_reading(server):
 
 def test_deep_json_is_a_400(server):
     ex = server.url + "/processes/ca_cfar/execution"
-    for body in (b"[" * 100000 + b"]" * 100000,
-                 b'{"inputs": {"scene": "s1", "x": ' + b"[" * 50000 + b"1" + b"]" * 50000 + b"}}",
-                 b'{"inputs": ' + b'{"a": ' * 20000 + b"1" + b"}" * 20000 + b"}"):
+    for body in (
+        b"[" * 100000 + b"]" * 100000,
+        b'{"inputs": {"scene": "s1", "x": ' + b"[" * 50000 + b"1" + b"]" * 50000 + b"}}",
+        b'{"inputs": ' + b'{"a": ' * 20000 + b"1" + b"}" * 20000 + b"}",
+    ):
         check_problem(http.post(ex, content=body, headers={"content-type": "application/json"}), 400, "nested")
     # brackets inside strings are not nesting ('outputs' is accepted and ignored)
     r = http.post(ex, json={"inputs": {"scene": "s1", **FAST}, "outputs": {"mask": {"note": "[" * 100}}})
@@ -141,8 +152,9 @@ def test_sync_waits_are_capped_and_leave_the_server_responsive(server):
         body = {"inputs": {"scene": "s1", **FAST}}
         with ThreadPoolExecutor(MAX_SYNC_WAITS) as pool:
             # clients that wait WAIT_S, then leave (their jobs stay queued behind the slow one)
-            waiting = [pool.submit(http.post, ex, json=body, headers=sync, timeout=WAIT_S)
-                       for _ in range(MAX_SYNC_WAITS)]
+            waiting = [
+                pool.submit(http.post, ex, json=body, headers=sync, timeout=WAIT_S) for _ in range(MAX_SYNC_WAITS)
+            ]
             t0 = time.time()
             while len(http.get(f"{u}/jobs?status=accepted").json()["jobs"]) < MAX_SYNC_WAITS:
                 assert time.time() < t0 + WAIT_S / 2
@@ -164,8 +176,7 @@ def test_sync_waits_are_capped_and_leave_the_server_responsive(server):
         # the clients left: their slots are free again (new waits are taken, not refused)
         time.sleep(1.0)
         with ThreadPoolExecutor(MAX_SYNC_WAITS) as pool:
-            again = [pool.submit(http.post, ex, json=body, headers=sync, timeout=2.5)
-                     for _ in range(MAX_SYNC_WAITS)]
+            again = [pool.submit(http.post, ex, json=body, headers=sync, timeout=2.5) for _ in range(MAX_SYNC_WAITS)]
             for f in again:
                 with pytest.raises(httpx.TimeoutException):
                     f.result()
@@ -176,8 +187,12 @@ def test_sync_waits_are_capped_and_leave_the_server_responsive(server):
 
 def test_sigterm_is_prompt_with_sync_waiters(tmp_path):
     data = data_with_scene(tmp_path)
-    write_scene(data / "scenes" / "s1_tiles32.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
-                tile=32, looks=2.0)
+    write_scene(
+        data / "scenes" / "s1_tiles32.zarr",
+        {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
+        tile=32,
+        looks=2.0,
+    )
     # worker processes (the default deployment): threads of the API process cannot be cut short
     srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_CONCURRENCY="1", SARSHIP_WORKER_THREADS="0").start()
     try:
@@ -186,8 +201,7 @@ def test_sigterm_is_prompt_with_sync_waiters(tmp_path):
 
         def wait_sync():
             try:
-                answers.append(http.post(ex, json={"inputs": SLOW}, headers={"Prefer": "respond-sync"},
-                                          timeout=60))
+                answers.append(http.post(ex, json={"inputs": SLOW}, headers={"Prefer": "respond-sync"}, timeout=60))
             except httpx.HTTPError as exc:
                 answers.append(exc)
 
@@ -206,8 +220,9 @@ def test_sigterm_is_prompt_with_sync_waiters(tmp_path):
             t.join(timeout=5)
         assert took < 20, took
         # each waiting client got an answer: the job's status (it stays in the store)
-        assert len(answers) == 3 and all(isinstance(a, httpx.Response) and a.status_code == 201 for a in answers), \
+        assert len(answers) == 3 and all(isinstance(a, httpx.Response) and a.status_code == 201 for a in answers), (
             answers
+        )
     finally:
         srv.kill()
 
@@ -219,16 +234,35 @@ def test_nul_and_lone_surrogates_are_400(server, done_job):
     u = server.url
     ex = u + "/processes/ca_cfar/execution"
     js = {"content-type": "application/json"}
-    for raw in (b'{"inputs": {"scene": "a\\u0000b"}}', b'{"inputs": {"scene": "\\ud800"}}',
-                b'{"inputs": {"scene": "s1\\udfff.zarr"}}', b'{"inputs": {"scene": "/tmp/\\u0000"}}',
-                b'{"inputs": {"scene": "s1", "method": "\\ud800"}}', b'{"inputs": {"scene": "s1", "\\ud800": 1}}',
-                b'{"inputs": {"scene": "s1", "channel": "a\\u0000"}}'):
+    for raw in (
+        b'{"inputs": {"scene": "a\\u0000b"}}',
+        b'{"inputs": {"scene": "\\ud800"}}',
+        b'{"inputs": {"scene": "s1\\udfff.zarr"}}',
+        b'{"inputs": {"scene": "/tmp/\\u0000"}}',
+        b'{"inputs": {"scene": "s1", "method": "\\ud800"}}',
+        b'{"inputs": {"scene": "s1", "\\ud800": 1}}',
+        b'{"inputs": {"scene": "s1", "channel": "a\\u0000"}}',
+    ):
         check_problem(http.post(ex, content=raw, headers=js), 400)
-    check_problem(http.post(u + "/processes/lmm/execution", content=b'{"inputs": {"scene": "s1", "method": '
-                                                                     b'"\\ud800"}}', headers=js), 400)
-    for path in ("/scenes/a%00b", "/scenes/%00", "/jobs/a%00b", "/jobs/a%00b/results", "/jobs/%00/preview.png",
-                 "/jobs/a%00b/results/detections", f"/jobs/{done_job}%00", "/processes/ca%00cfar",
-                 "/jobs/a%00b/tiles/0/0/0.png", "/scenes/%ED%A0%80", "/jobs/%ED%A0%80"):
+    check_problem(
+        http.post(
+            u + "/processes/lmm/execution", content=b'{"inputs": {"scene": "s1", "method": "\\ud800"}}', headers=js
+        ),
+        400,
+    )
+    for path in (
+        "/scenes/a%00b",
+        "/scenes/%00",
+        "/jobs/a%00b",
+        "/jobs/a%00b/results",
+        "/jobs/%00/preview.png",
+        "/jobs/a%00b/results/detections",
+        f"/jobs/{done_job}%00",
+        "/processes/ca%00cfar",
+        "/jobs/a%00b/tiles/0/0/0.png",
+        "/scenes/%ED%A0%80",
+        "/jobs/%ED%A0%80",
+    ):
         r = http.get(u + path)
         assert 400 <= r.status_code < 500, (path, r.status_code, r.text)
         check_problem(r, r.status_code)
@@ -241,7 +275,6 @@ def test_nul_and_lone_surrogates_are_400(server, done_job):
 # ----------------------------------------------------------------------------- 5. disk full
 
 
-
 def test_full_disk_is_507(tmp_path):
     """The server process may write no file past 2 MiB (RLIMIT_FSIZE, a real limit of the
     kernel: writes fail with EFBIG as they would with ENOSPC on a full disk): an upload past
@@ -251,9 +284,14 @@ def test_full_disk_is_507(tmp_path):
     srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_MAX_UPLOAD_MB="8")
     log = open(tmp_path / "server.log", "w")
     srv.log = log
-    srv.proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", "--data", str(data), "--port",
-                                 str(srv.port)], stdout=log, stderr=subprocess.STDOUT, env=srv.env,
-                                start_new_session=True, preexec_fn=fsize_limit(limit))
+    srv.proc = subprocess.Popen(
+        [sys.executable, "-m", "sarship", "serve", "--data", str(data), "--port", str(srv.port)],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=srv.env,
+        start_new_session=True,
+        preexec_fn=fsize_limit(limit),
+    )
     try:
         t_end = time.time() + 120
         while True:
@@ -317,8 +355,7 @@ def test_scene_symlinked_outside_is_not_listed(server, tmp_path):
         listed = {s["sceneID"] for s in http.get(u + "/scenes").json()["scenes"]}
         assert "s1" in listed and "outx" not in listed, listed
         check_problem(http.get(u + "/scenes/outx"), 404, "outx")
-        check_problem(http.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "outx"}}),
-                      400, "outside")
+        check_problem(http.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "outx"}}), 400, "outside")
         # a symlink inside the scene folder stays a scene
         inside = server.data / "scenes" / "inx.zarr"
         inside.symlink_to(server.data / "scenes" / "s1.zarr")

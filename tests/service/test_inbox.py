@@ -23,8 +23,18 @@ from conftest import blobs_scene  # noqa: E402
 from svc import Server, check_problem, free_port, passes, tif_bytes, wait_job, wait_pass  # noqa: E402
 
 from sarship.service.inbox import Schedule  # noqa: E402
-from sarship.service.inbox_files import (Signature, list_passes, marker, move_into, quarantine_target,  # noqa: E402
-                                 scene_key, settled, sha256_of, signature, write_reason)
+from sarship.service.inbox_files import (  # noqa: E402
+    Signature,
+    list_passes,
+    marker,
+    move_into,
+    quarantine_target,
+    scene_key,
+    settled,
+    sha256_of,
+    signature,
+    write_reason,
+)
 
 DETECTOR = [{"detector": "os_cfar", "guard": 11, "background": 31}]
 
@@ -74,8 +84,22 @@ def test_hash_is_streamed_and_is_the_upload_scheme(tmp_path):
 
 
 def test_which_files_are_passes(tmp_path):
-    for name in ["a.tif", "B.TIFF", "c.npy", "d.png", "e.jpeg", "f.jpg", ".hidden.tif", "g.tif.part", "h.tif~",
-                 "a.tif.done", "notes.txt", "x.tif.reason.txt", "~lock.tif", "k.tmp"]:
+    for name in [
+        "a.tif",
+        "B.TIFF",
+        "c.npy",
+        "d.png",
+        "e.jpeg",
+        "f.jpg",
+        ".hidden.tif",
+        "g.tif.part",
+        "h.tif~",
+        "a.tif.done",
+        "notes.txt",
+        "x.tif.reason.txt",
+        "~lock.tif",
+        "k.tmp",
+    ]:
         (tmp_path / name).write_bytes(b"x")
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "i.tif").write_bytes(b"x")
@@ -172,9 +196,11 @@ def test_serve_exits_2_on_bad_inbox_settings(tmp_path, monkeypatch, capsys):
 
     inbox = tmp_path / "in"
     inbox.mkdir()
-    cases = {"cron": ({"SARSHIP_INBOX_CRON": "61 * * * *"}, "inbox_cron"),
-             "detector": ({"SARSHIP_INBOX_DETECTORS": "os_cfar,nope"}, "nope"),
-             "parameter": ({"SARSHIP_INBOX_DETECTORS": '[{"detector": "os_cfar", "pfa": 2}]'}, "'pfa'")}
+    cases = {
+        "cron": ({"SARSHIP_INBOX_CRON": "61 * * * *"}, "inbox_cron"),
+        "detector": ({"SARSHIP_INBOX_DETECTORS": "os_cfar,nope"}, "nope"),
+        "parameter": ({"SARSHIP_INBOX_DETECTORS": '[{"detector": "os_cfar", "pfa": 2}]'}, "'pfa'"),
+    }
     env = {k: v for k, v in os.environ.items() if not k.startswith("SARSHIP_")}
     args = ["serve", "--data", str(tmp_path / "d"), "--port", str(free_port()), "--inbox", str(inbox)]
     for k in list(os.environ):
@@ -182,8 +208,13 @@ def test_serve_exits_2_on_bad_inbox_settings(tmp_path, monkeypatch, capsys):
             monkeypatch.delenv(k)
     for k, (name, (extra, word)) in enumerate(cases.items()):
         if k == 0:
-            p = subprocess.run([sys.executable, "-m", "sarship", *args], env={**env, **extra}, capture_output=True,
-                               text=True, timeout=60)
+            p = subprocess.run(
+                [sys.executable, "-m", "sarship", *args],
+                env={**env, **extra},
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
             rc, err = p.returncode, p.stderr
         else:
             with monkeypatch.context() as m:
@@ -237,7 +268,7 @@ def test_scene_lookups_use_the_ingest_indexes(tmp_path):
     from sarship.service.store import JobStore
 
     jobs = JobStore(tmp_path / "jobs.sqlite")
-    for k in range(50):
+    for _k in range(50):
         jobs.create("os_cfar", {"scene": "s1"})
     first, new = jobs.create_ingest({"scene_id": "abc", "upload": "/u/abc.tif"})
     again, new2 = jobs.create_ingest({"scene_id": "abc", "upload": "/u/abc.tif"})
@@ -245,13 +276,22 @@ def test_scene_lookups_use_the_ingest_indexes(tmp_path):
     assert jobs.ingest_job_for_scene("abc")["id"] == first["id"] and jobs.ingest_job_for_scene("x") is None
     assert [j["id"] for j in jobs.ingest_jobs(("accepted",))] == [first["id"]]
     c = jobs._conn()
-    plan = " ".join(str(tuple(r)) for r in c.execute(
-        "EXPLAIN QUERY PLAN SELECT * FROM jobs WHERE process = 'ingest' AND json_extract(inputs, '$.scene_id') = ? "
-        "ORDER BY created DESC LIMIT 1", ("abc",)))
+    plan = " ".join(
+        str(tuple(r))
+        for r in c.execute(
+            "EXPLAIN QUERY PLAN SELECT * FROM jobs WHERE process = 'ingest' AND json_extract(inputs, '$.scene_id') = ? "
+            "ORDER BY created DESC LIMIT 1",
+            ("abc",),
+        )
+    )
     assert "jobs_ingest_scene" in plan, plan
-    plan = " ".join(str(tuple(r)) for r in c.execute(
-        "EXPLAIN QUERY PLAN SELECT * FROM jobs WHERE process = 'ingest' AND status IN (?, ?) ORDER BY created DESC",
-        ("accepted", "failed")))
+    plan = " ".join(
+        str(tuple(r))
+        for r in c.execute(
+            "EXPLAIN QUERY PLAN SELECT * FROM jobs WHERE process = 'ingest' AND status IN (?, ?) ORDER BY created DESC",
+            ("accepted", "failed"),
+        )
+    )
     assert "jobs_ingest_status" in plan, plan
 
 
@@ -264,8 +304,14 @@ def server(tmp_path_factory):
     data, inbox = root / "data", root / "inbox"
     data.mkdir()
     inbox.mkdir()
-    srv = Server(data, free_port(), SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.2",
-                 SARSHIP_INBOX_SETTLE_S="2", SARSHIP_INBOX_DETECTORS=json.dumps(DETECTOR)).start()
+    srv = Server(
+        data,
+        free_port(),
+        SARSHIP_INBOX=json.dumps([str(inbox)]),
+        SARSHIP_INBOX_INTERVAL_S="0.2",
+        SARSHIP_INBOX_SETTLE_S="2",
+        SARSHIP_INBOX_DETECTORS=json.dumps(DETECTOR),
+    ).start()
     srv.inbox = inbox
     yield srv
     srv.stop()
@@ -341,7 +387,7 @@ def test_a_file_still_being_written_is_not_taken(server):
             fh.write(raw[a:b])
     assert passes(u)["growing.tif"]["status"] == "waiting"
     with open(f, "ab") as fh:
-        fh.write(raw[pieces[-2]:])
+        fh.write(raw[pieces[-2] :])
     p = wait_pass(u, "growing.tif", ("submitted", "quarantined", "failed"))
     assert p["status"] == "submitted" and p["key"] == hashlib.sha256(raw).hexdigest()[:16], p
     assert wait_job(u, p["jobs"][0])["status"] == "successful"
@@ -376,8 +422,9 @@ def test_a_zarr_scene_folder_is_one_pass(server, tmp_path):
 
     from sarship.pipeline.scene import open_scene
 
-    z = write_scene(tmp_path / "pass.zarr", {"intensity": blobs_scene((180, 170), looks=2.0, seed=15)}, tile=64,
-                    looks=2.0)
+    z = write_scene(
+        tmp_path / "pass.zarr", {"intensity": blobs_scene((180, 170), looks=2.0, seed=15)}, tile=64, looks=2.0
+    )
     key = scene_key(sha256_of(z))
     z.rename(server.inbox / "pass.zarr")  # complete when it arrives; the marker says so at once
     marker(server.inbox / "pass.zarr").touch()
@@ -390,8 +437,17 @@ def test_a_zarr_scene_folder_is_one_pass(server, tmp_path):
 def test_ingest_document_scan_request_and_metrics(server):
     u = server.url
     doc = httpx.get(u + "/ingest").json()
-    assert set(doc) == {"enabled", "inboxes", "schedule", "leader", "last_scan", "next_scan", "backlog", "counts",
-                        "passes"}
+    assert set(doc) == {
+        "enabled",
+        "inboxes",
+        "schedule",
+        "leader",
+        "last_scan",
+        "next_scan",
+        "backlog",
+        "counts",
+        "passes",
+    }
     assert doc["enabled"] and doc["inboxes"] == [str(server.inbox.resolve())]
     assert doc["schedule"] == {"interval_s": 0.2, "cron": None} and doc["leader"] and doc["backlog"] == 0
     assert doc["counts"]["submitted"] >= 4 and doc["counts"]["quarantined"] >= 2 and doc["counts"]["duplicate"] >= 1
@@ -445,8 +501,13 @@ def test_two_processes_one_store_kill_9_and_restart(tmp_path):
     data, inbox = tmp_path / "data", tmp_path / "inbox"
     data.mkdir()
     inbox.mkdir()
-    env = dict(SARSHIP_WORKERS="1", SARSHIP_INBOX=json.dumps([str(inbox)]), SARSHIP_INBOX_INTERVAL_S="0.5",
-               SARSHIP_INBOX_SETTLE_S="60", SARSHIP_INBOX_DETECTORS=json.dumps(DETECTOR))
+    env = dict(
+        SARSHIP_WORKERS="1",
+        SARSHIP_INBOX=json.dumps([str(inbox)]),
+        SARSHIP_INBOX_INTERVAL_S="0.5",
+        SARSHIP_INBOX_SETTLE_S="60",
+        SARSHIP_INBOX_DETECTORS=json.dumps(DETECTOR),
+    )
     servers = [Server(data, free_port(), **env), Server(data, free_port(), **env)]
     try:
         from concurrent.futures import ThreadPoolExecutor
@@ -490,8 +551,12 @@ def test_two_processes_one_store_kill_9_and_restart(tmp_path):
         t_end = time.time() + 60
         while time.time() < t_end:
             doc = httpx.get(fresh.url + "/ingest").json()
-            if doc["leader"] and _pid(doc["leader"]) == fresh.proc.pid and doc["last_scan"] and \
-                    doc["last_scan"] > _iso(started):
+            if (
+                doc["leader"]
+                and _pid(doc["leader"]) == fresh.proc.pid
+                and doc["last_scan"]
+                and doc["last_scan"] > _iso(started)
+            ):
                 break
             time.sleep(0.2)
         else:
@@ -499,8 +564,9 @@ def test_two_processes_one_store_kill_9_and_restart(tmp_path):
         time.sleep(1.5)  # a few more rounds
         assert jobs_by_process(fresh.url) == jobs
         after = passes(fresh.url)
-        assert {n: (after[n]["status"], after[n]["jobs"]) for n in raws} == \
-               {n: (p["status"], p["jobs"]) for n, p in done.items()}
+        assert {n: (after[n]["status"], after[n]["jobs"]) for n in raws} == {
+            n: (p["status"], p["jobs"]) for n, p in done.items()
+        }
         assert after["slow.tif"]["status"] == "waiting"
     finally:
         for s in servers:

@@ -5,7 +5,6 @@ scene folder, and FILE paths outside the allowed folders refused with a 400."""
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -24,22 +23,30 @@ def env(tmp_path_factory):
     # the test process's shared server, with this module's scene and mask (names of its own) in its folder
     srv = shared_server(tmp_path_factory.getbasetemp())
     data = srv.data
-    cfg = SimConfig(shape=(320, 288), ships=3, seed=3, looks=4.0, clutter="k", land=True, scr_db=20.0,
-                    length_m=(60.0, 150.0))
+    cfg = SimConfig(
+        shape=(320, 288), ships=3, seed=3, looks=4.0, clutter="k", land=True, scr_db=20.0, length_m=(60.0, 150.0)
+    )
     simulate(data / "scenes" / "coast.zarr", cfg, tile=128)
     truth = _land_mask(cfg, _model(cfg).land, 0, 320, 0, 288)
     np.save(data / "scenes" / "land.npy", truth.astype(np.uint8))
     np.save(root / "outside.npy", truth.astype(np.uint8))
     u = srv.url + "/processes/ca_cfar/execution"
     jobs = {}
-    for name, extra in (("texture", {"land_mask": "texture"}), ("none", {"land_mask": "none"}), ("file", {"land_mask": "land.npy"})):
+    for name, extra in (
+        ("texture", {"land_mask": "texture"}),
+        ("none", {"land_mask": "none"}),
+        ("file", {"land_mask": "land.npy"}),
+    ):
         r = httpx.post(u, json={"inputs": {"scene": "coast", "guard": 21, "background": 41, **extra}})
         assert r.status_code == 201, r.text
         jobs[name] = r.json()["jobID"]
     for j in jobs.values():
         assert wait_job(srv.url, j, timeout=240)["status"] == "successful"
-    stored = {k: np.asarray(zarr.open_group(str(data / "jobs" / j / "land.zarr"), mode="r")["land"][...]) > 0
-              for k, j in jobs.items() if k != "none"}
+    stored = {
+        k: np.asarray(zarr.open_group(str(data / "jobs" / j / "land.zarr"), mode="r")["land"][...]) > 0
+        for k, j in jobs.items()
+        if k != "none"
+    }
     return srv, jobs, truth, stored, root
 
 
@@ -86,8 +93,13 @@ def test_file_mask_and_refusals(env):
     srv, jobs, truth, stored, root = env
     assert np.array_equal(stored["file"], truth)
     u = srv.url + "/processes/ca_cfar/execution"
-    check_problem(httpx.post(u, json={"inputs": {"scene": "coast", "land_mask": str(root / "outside.npy")}}),
-                  400, "land_mask", "outside the allowed scene folders")
-    check_problem(httpx.post(u, json={"inputs": {"scene": "coast", "land_mask": "nope.npy"}}), 400,
-                  "land_mask", "no file")
+    check_problem(
+        httpx.post(u, json={"inputs": {"scene": "coast", "land_mask": str(root / "outside.npy")}}),
+        400,
+        "land_mask",
+        "outside the allowed scene folders",
+    )
+    check_problem(
+        httpx.post(u, json={"inputs": {"scene": "coast", "land_mask": "nope.npy"}}), 400, "land_mask", "no file"
+    )
     check_problem(httpx.post(u, json={"inputs": {"scene": "coast", "land_window": 8}}), 400, "land_window")

@@ -11,6 +11,7 @@ import sys
 
 import pytest
 from pydantic import ValidationError
+
 from sarship.pipeline import detectors
 from sarship.pipeline.detectors.base import PFA_MIN
 
@@ -35,8 +36,23 @@ def test_cli_refuses_tiny_pfa_in_one_line(tmp_path):
     from conftest import write_scene
 
     scene = write_scene(tmp_path / "s.zarr", {"intensity": np.ones((32, 32), np.float32)}, tile=32, looks=1.0)
-    res = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
-                          "--out", str(tmp_path / "o"), "--set", "pfa=1e-320"], capture_output=True, text=True,
-                         timeout=120)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "detect",
+            str(scene),
+            "--detector",
+            "ca_cfar",
+            "--out",
+            str(tmp_path / "o"),
+            "--set",
+            "pfa=1e-320",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 2 and "pfa" in res.stderr and "1e-15" in res.stderr, res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / "o").exists()

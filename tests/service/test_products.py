@@ -20,8 +20,15 @@ from conftest import blobs_scene, write_scene  # noqa: E402
 from sarship.service import cog, render, stac, tiles  # noqa: E402
 
 
-def make_job(tmp: Path, scene_arrays: dict, mask: np.ndarray, tile: int = 128, attrs: dict | None = None,
-             channel="intensity", mask_attrs: dict | None = None) -> Path:
+def make_job(
+    tmp: Path,
+    scene_arrays: dict,
+    mask: np.ndarray,
+    tile: int = 128,
+    attrs: dict | None = None,
+    channel="intensity",
+    mask_attrs: dict | None = None,
+) -> Path:
     """A finished job's folder as the runner leaves it: run.json, mask.zarr (group + 'mask')."""
     import zarr
 
@@ -33,8 +40,16 @@ def make_job(tmp: Path, scene_arrays: dict, mask: np.ndarray, tile: int = 128, a
     g["mask"][:] = mask
     g.attrs.update(mask_attrs or {})
     H, W = mask.shape
-    (job / "run.json").write_text(json.dumps({"scene": {"path": str(scene), "shape": [H, W], "attrs": attrs or {}},
-                                              "channel": channel, "detector": "ca_cfar", "parameters": {}}))
+    (job / "run.json").write_text(
+        json.dumps(
+            {
+                "scene": {"path": str(scene), "shape": [H, W], "attrs": attrs or {}},
+                "channel": channel,
+                "detector": "ca_cfar",
+                "parameters": {},
+            }
+        )
+    )
     (job / "detections.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": []}))
     return job
 
@@ -51,7 +66,7 @@ def test_maxpool_matches_a_loop_and_keeps_single_pixels():
     a = (rng.random((37, 23)) < 0.05).astype(np.uint8) * rng.integers(1, 255, (37, 23)).astype(np.uint8)
     for f in (1, 2, 3, 4, 8, 64):
         got = cog.maxpool(a, f)
-        want = np.array([[a[i:i + f, j:j + f].max() for j in range(0, 23, f)] for i in range(0, 37, f)])
+        want = np.array([[a[i : i + f, j : j + f].max() for j in range(0, 23, f)] for i in range(0, 37, f)])
         assert np.array_equal(got, want), f
     one = np.zeros((513, 300), np.uint8)
     one[512, 299] = 1  # the last pixel, in the partial edge block of every level
@@ -122,8 +137,8 @@ def cog_layout_errors(path: Path) -> list[str]:
             errors.append("NewSubfileType: main must be 0, overviews 1")
     head = 16 if big else 8
     pattern = b"GDAL_STRUCTURAL_METADATA_SIZE="
-    if raw[head:head + len(pattern)] == pattern:
-        size = int(raw[head + len(pattern):head + len(pattern) + 6])
+    if raw[head : head + len(pattern)] == pattern:
+        size = int(raw[head + len(pattern) : head + len(pattern) + 6])
         expected = head + len(pattern) + 6 + len(" bytes\n") + size
         expected += expected % 2
     else:
@@ -144,10 +159,10 @@ def cog_layout_errors(path: Path) -> list[str]:
         if ghost.get("BLOCK_ORDER") == "ROW_MAJOR" and np.any(np.diff(o) <= 0):
             errors.append(f"level {k}: tile offsets not increasing row-major")
         for off, n in zip(o, counts[k]):
-            if ghost.get("BLOCK_LEADER") == "SIZE_AS_UINT4" and struct.unpack("<I", raw[off - 4:off])[0] != n:
+            if ghost.get("BLOCK_LEADER") == "SIZE_AS_UINT4" and struct.unpack("<I", raw[off - 4 : off])[0] != n:
                 errors.append(f"level {k}: bad leader at {off}")
                 break
-            trailer_ok = raw[off + n - 4:off + n] == raw[off + n:off + n + 4]
+            trailer_ok = raw[off + n - 4 : off + n] == raw[off + n : off + n + 4]
             if ghost.get("BLOCK_TRAILER") == "LAST_4_BYTES_REPEATED" and not trailer_ok:
                 errors.append(f"level {k}: bad trailer at {off}")
                 break
@@ -202,8 +217,13 @@ def test_cog_reads_in_bounded_strips_and_rotated_or_bigtiff_variants(tmp_path):
         return mask[r0:r1]
 
     out = tmp_path / "m.tif"
-    cog.write_cog(read_rows, (H, W), out, strip=512,
-                  attrs={"crs": "EPSG:4326", "transform": [10.0, 0.001, 0.0002, 50.0, 0.0001, -0.001]})
+    cog.write_cog(
+        read_rows,
+        (H, W),
+        out,
+        strip=512,
+        attrs={"crs": "EPSG:4326", "transform": [10.0, 0.001, 0.0002, 50.0, 0.0001, -0.001]},
+    )
     assert calls == [(0, 512), (512, 1024), (1024, 1300)]  # one pass, strips of tile rows, never whole
     with tifffile.TiffFile(out) as tif:
         assert np.array_equal(tif.asarray(), mask)
@@ -274,12 +294,13 @@ def test_stretch_is_cached_once_per_job_and_tiles_match_the_scene(tmp_path):
         for ty in range(ny):
             for tx in range(nx):
                 w = tiles.tile_window((H, W), z, tx, ty)
-                want = grey[w.r0:w.r1:w.f, w.c0:w.c1:w.f]
+                want = grey[w.r0 : w.r1 : w.f, w.c0 : w.c1 : w.f]
                 assert np.array_equal(tiles.scene_grey(job, w), want)  # from the cached base
                 assert np.array_equal(tiles.scene_grey(job, w, base_max=128), want)  # via the Zarr (fine zooms)
                 assert np.array_equal(tiles.scene_grey(job, w, base_max=300), want)  # base of step 4, or Zarr
-                assert np.array_equal(tiles.mask_tile(job, w, tx, ty),
-                                      cog.maxpool(mask[w.r0:w.r1, w.c0:w.c1], w.f) > 0)
+                assert np.array_equal(
+                    tiles.mask_tile(job, w, tx, ty), cog.maxpool(mask[w.r0 : w.r1, w.c0 : w.c1], w.f) > 0
+                )
 
 
 def test_rendered_tile_pixels(tmp_path):
@@ -311,17 +332,23 @@ def test_polarimetric_scenes_use_intensity_source(tmp_path):
     hh, hv, vv = cplx(), cplx(), cplx()
     mask = random_mask((H, W), seed=8)
     (tmp_path / "q").mkdir()
-    quad = make_job(tmp_path / "q", {"hh": hh, "hv": hv, "vv": vv}, mask, attrs={"kind": "quadpol"},
-                    channel=["hh", "hv", "vv"])
+    quad = make_job(
+        tmp_path / "q", {"hh": hh, "hv": hv, "vv": vv}, mask, attrs={"kind": "quadpol"}, channel=["hh", "hv", "vv"]
+    )
     meta = render.job_stretch(quad)
     assert (meta["var"], meta["transform"]) == ("hh", "abs2")
     w = tiles.tile_window((H, W), 0, 0, 0)
     want = render.stretch(render.to_db(np.abs(hh) ** 2), meta["lo"], meta["hi"])
     assert np.array_equal(tiles.scene_grey(quad, w), want)
     c11 = (np.abs(hh) ** 2).astype(np.float32)
-    cov = {"c11": c11, "c12": (hh * np.conj(hv)).astype(np.complex64), "c13": (hh * np.conj(vv)).astype(np.complex64),
-           "c22": (np.abs(hv) ** 2).astype(np.float32), "c23": (hv * np.conj(vv)).astype(np.complex64),
-           "c33": (np.abs(vv) ** 2).astype(np.float32)}
+    cov = {
+        "c11": c11,
+        "c12": (hh * np.conj(hv)).astype(np.complex64),
+        "c13": (hh * np.conj(vv)).astype(np.complex64),
+        "c22": (np.abs(hv) ** 2).astype(np.float32),
+        "c23": (hv * np.conj(vv)).astype(np.complex64),
+        "c33": (np.abs(vv) ** 2).astype(np.float32),
+    }
     (tmp_path / "c").mkdir()
     cj = make_job(tmp_path / "c", cov, mask, attrs={"kind": "covariance"}, channel=list(cov))
     m2 = render.job_stretch(cj)
@@ -333,8 +360,9 @@ def test_polarimetric_scenes_use_intensity_source(tmp_path):
 
 
 def test_footprint_is_a_counterclockwise_wgs84_ring():
-    geom, bbox = stac.footprint({"crs": "EPSG:32631", "transform": [500000.0, 10.0, 0.0, 5000000.0, 0.0, -10.0]},
-                                (300, 260))
+    geom, bbox = stac.footprint(
+        {"crs": "EPSG:32631", "transform": [500000.0, 10.0, 0.0, 5000000.0, 0.0, -10.0]}, (300, 260)
+    )
     ring = geom["coordinates"][0]
     assert ring[0] == ring[-1] and len(ring) == 65
     area = sum(ring[i][0] * ring[i - 1][1] - ring[i - 1][0] * ring[i][1] for i in range(1, len(ring)))
@@ -346,15 +374,23 @@ def test_footprint_is_a_counterclockwise_wgs84_ring():
 
 
 def test_sar_fields_only_when_known():
-    s1 = {"sensor": "SENTINEL-1A IW", "product": "S1A_IW_GRDH_1SDV_20200101T000000", "polarisations": ["vh", "vv"],
-          "looks": 4.4, "looks_source": "estimated", "pixel_spacing_m": [10.0, 10.0],
-          "pixel_spacing_source": "GeoTIFF pixel size in projected EPSG:32631 ([row, column] ground spacing)"}
+    s1 = {
+        "sensor": "SENTINEL-1A IW",
+        "product": "S1A_IW_GRDH_1SDV_20200101T000000",
+        "polarisations": ["vh", "vv"],
+        "looks": 4.4,
+        "looks_source": "estimated",
+        "pixel_spacing_m": [10.0, 10.0],
+        "pixel_spacing_source": "GeoTIFF pixel size in projected EPSG:32631 ([row, column] ground spacing)",
+    }
     f = stac.sar_fields(s1, {"intensity": "float32"})
     assert f["sar:instrument_mode"] == "IW" and f["sar:frequency_band"] == "C"
     assert f["sar:polarizations"] == ["VH", "VV"] and f["sar:product_type"] == "GRD"
     assert f["sar:looks_equivalent_number"] == 4.4 and "sar:pixel_spacing_range" not in f  # a map grid's spacing
-    quad = stac.sar_fields({"sensor": "RADARSAT-2 FQ", "looks_source": "single-look complex", "looks": 1.0},
-                           {"hh": "complex64", "hv": "complex64", "vv": "complex64"})
+    quad = stac.sar_fields(
+        {"sensor": "RADARSAT-2 FQ", "looks_source": "single-look complex", "looks": 1.0},
+        {"hh": "complex64", "hv": "complex64", "vv": "complex64"},
+    )
     assert quad["sar:polarizations"] == ["HH", "HV", "VH", "VV"] and quad["sar:looks_range"] == 1
     assert stac.sar_fields({"sensor": "sarship-simulator", "polarizations": ["hh", "hv", "vv"]}, {}) == {}
     assert stac.sar_fields({"sensor": "SENTINEL-1A IW"}, {"intensity": "float32"}) == {}  # no polarization known

@@ -32,8 +32,16 @@ def job_on(scene: Path, tmp: Path) -> Path:
     job.mkdir()
     g = zarr.open_group(str(job / "mask.zarr"), mode="w", zarr_format=3)
     g.create_array("mask", shape=(H, W), chunks=(128, 128), dtype="uint8", fill_value=0)
-    (job / "run.json").write_text(json.dumps({"scene": {"path": str(scene), "shape": [H, W], "attrs": dict(sc.attrs)},
-                                              "channel": "intensity", "detector": "ca_cfar", "parameters": {}}))
+    (job / "run.json").write_text(
+        json.dumps(
+            {
+                "scene": {"path": str(scene), "shape": [H, W], "attrs": dict(sc.attrs)},
+                "channel": "intensity",
+                "detector": "ca_cfar",
+                "parameters": {},
+            }
+        )
+    )
     (job / "detections.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": []}))
     return job
 
@@ -53,7 +61,9 @@ def chip_png(path: Path, seed: int = 0) -> np.ndarray:
 
 def test_8bit_amplitude_chip_is_shown_with_contrast(tmp_path):
     ship = chip_png(tmp_path / "chip.png")
-    ingest([tmp_path / "chip.png"], tmp_path / "chip.zarr", looks=1.0, codec="none")  # no estimate, no codec trial: cheap
+    ingest(
+        [tmp_path / "chip.png"], tmp_path / "chip.zarr", looks=1.0, codec="none"
+    )  # no estimate, no codec trial: cheap
     job = job_on(tmp_path / "chip.zarr", tmp_path)
     g = render.grey_base(job)[1]  # the grey every tile and the preview are cut from
     assert g.shape == ship.shape
@@ -81,20 +91,25 @@ def test_real_hrsid_chip_ships_stand_out(tmp_path):
 
 def test_float_intensity_keeps_the_db_stretch(tmp_path):
     x = blobs_scene((200, 180), seed=3)
-    scene = write_scene(tmp_path / "f.zarr", {"intensity": x}, tile=128, sample_dtype="float32",
-                        quantity="intensity")
+    scene = write_scene(tmp_path / "f.zarr", {"intensity": x}, tile=128, sample_dtype="float32", quantity="intensity")
     meta = render.job_stretch(job_on(scene, tmp_path))
     assert meta["scale"] == "db" and meta["percentiles"] == [2.0, 98.0]
     assert (meta["lo"], meta["hi"]) == pytest.approx(render.percentile_range(render.to_db(x)))
 
 
-@pytest.mark.parametrize("attrs, scale", [
-    ({"sample_dtype": "uint8", "quantity": "amplitude (squared to intensity)"}, "amplitude"),
-    ({"sample_dtype": "float32", "quantity": "amplitude (squared to intensity)", "source": ["P0001.JPG"]}, "amplitude"),
-    ({"sample_dtype": "uint8", "quantity": "intensity"}, "linear"),
-    ({"sample_dtype": "uint16", "quantity": "amplitude (squared to intensity)", "source": ["s1.tiff"]}, "db"),
-    ({}, "db"),
-])
+@pytest.mark.parametrize(
+    "attrs, scale",
+    [
+        ({"sample_dtype": "uint8", "quantity": "amplitude (squared to intensity)"}, "amplitude"),
+        (
+            {"sample_dtype": "float32", "quantity": "amplitude (squared to intensity)", "source": ["P0001.JPG"]},
+            "amplitude",
+        ),
+        ({"sample_dtype": "uint8", "quantity": "intensity"}, "linear"),
+        ({"sample_dtype": "uint16", "quantity": "amplitude (squared to intensity)", "source": ["s1.tiff"]}, "db"),
+        ({}, "db"),
+    ],
+)
 def test_display_scale_from_the_scene_attributes(attrs, scale):
     assert render.display_scale(attrs) == scale
 
@@ -121,8 +136,11 @@ def test_tilejson_lonlat_grid_of_a_georeferenced_scene():
     assert np.allclose(got, np.c_[want_lon, want_lat], atol=1e-6)
     assert g["method"] == "affine transform"
     # GCPs (a 3 x 3 geolocation grid) give their own positions at the nodes they share
-    gcps = [{"row": r, "col": c, "x": 3.0 + c * 1e-4, "y": 45.0 - r * 1e-4, "z": 0.0}
-            for r in (0, H / 2, H) for c in (0, W / 2, W)]
+    gcps = [
+        {"row": r, "col": c, "x": 3.0 + c * 1e-4, "y": 45.0 - r * 1e-4, "z": 0.0}
+        for r in (0, H / 2, H)
+        for c in (0, W / 2, W)
+    ]
     g2 = tiles.lonlat_grid({"gcps": gcps}, (H, W))
     assert g2["lon"][n][n] == pytest.approx(3.0 + W * 1e-4) and g2["lat"][n][0] == pytest.approx(45.0 - H * 1e-4)
     # across the antimeridian the grid stays continuous (no jump of 360 degrees between nodes)

@@ -21,9 +21,23 @@ ENV = {**os.environ, "CUDA_VISIBLE_DEVICES": "", "PYTHONUNBUFFERED": "1"}
 
 
 def scheduler(port: int) -> subprocess.Popen:
-    p = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                          "--port", str(port), "--dashboard-address", "127.0.0.1:0", "--no-show"],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV)
+    p = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "distributed.cli.dask_scheduler",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--dashboard-address",
+            "127.0.0.1:0",
+            "--no-show",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=ENV,
+    )
     _wait_port(port, p)
     return p
 
@@ -42,9 +56,26 @@ def _wait_port(port: int, proc: subprocess.Popen, timeout: float = 60.0) -> None
 
 
 def worker(address: str, name: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler", address, "--gpus", "none",
-                             "--cpus", "1", "--name", name], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True, env=ENV)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "worker",
+            "--scheduler",
+            address,
+            "--gpus",
+            "none",
+            "--cpus",
+            "1",
+            "--name",
+            name,
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=ENV,
+    )
 
 
 def _wait_line(proc: subprocess.Popen, text: str, timeout: float = 60.0) -> list[str]:
@@ -131,8 +162,9 @@ def test_service_reconnects_after_the_scheduler_restarts(tmp_path):
     try:
         w = worker(addr, "one")
         _wait_line(w, "sarship: worker one-cpu0")
-        srv = Server(data, free_port(), SARSHIP_SCHEDULER=addr, SARSHIP_RECONNECT_S="0.5",
-                     SARSHIP_RECONNECT_MAX_S="2").start()
+        srv = Server(
+            data, free_port(), SARSHIP_SCHEDULER=addr, SARSHIP_RECONNECT_S="0.5", SARSHIP_RECONNECT_MAX_S="2"
+        ).start()
         sched.kill()
         sched.wait(timeout=30)
         assert w.wait(timeout=60) == 1
@@ -146,8 +178,9 @@ def test_service_reconnects_after_the_scheduler_restarts(tmp_path):
         code, body = _ready(srv.url)
         assert code == 503 and f"Dask scheduler at '{addr}' is unreachable (reconnecting" in json.dumps(body), body
         # a job posted meanwhile waits in the store (not claimed, so not failed over to the retry)
-        r = httpx.post(srv.url + "/processes/ca_cfar/execution",
-                       json={"inputs": {"scene": "s1", "pfa": 1e-4, "min_area_px": 1}})
+        r = httpx.post(
+            srv.url + "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1", "pfa": 1e-4, "min_area_px": 1}}
+        )
         assert r.status_code == 201, r.text
         waiting = r.json()["jobID"]
         time.sleep(2)
@@ -158,8 +191,9 @@ def test_service_reconnects_after_the_scheduler_restarts(tmp_path):
         _wait_line(w, "sarship: worker two-cpu0")
         up = _wait_ready(srv.url, 200, 60)
         assert up["checks"]["workers"] == 1, up
-        r = httpx.post(srv.url + "/processes/ca_cfar/execution",
-                       json={"inputs": {"scene": "s1", "pfa": 1e-4, "min_area_px": 1}})
+        r = httpx.post(
+            srv.url + "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1", "pfa": 1e-4, "min_area_px": 1}}
+        )
         assert r.status_code == 201, r.text
         st = wait_job(srv.url, r.json()["jobID"], timeout=120)
         assert st["status"] == "successful", st
@@ -191,8 +225,15 @@ def test_link_reconnects_to_a_restarted_scheduler():
     addr = f"tcp://127.0.0.1:{port}"
 
     def cluster():
-        return LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
-                            host="127.0.0.1", scheduler_port=port, dashboard_address=None)
+        return LocalCluster(
+            n_workers=1,
+            threads_per_worker=1,
+            processes=False,
+            protocol="tcp://",
+            host="127.0.0.1",
+            scheduler_port=port,
+            dashboard_address=None,
+        )
 
     first = cluster()
     link = SchedulerLink(addr, first_s=0.2, max_s=1.0, connect=lambda: _client(addr, timeout_s=1.0))

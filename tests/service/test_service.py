@@ -24,8 +24,9 @@ def server(tmp_path_factory):
     t = time.time() - 400 * 86400
     for f in (old, old / "zarr.json"):
         os.utime(f, (t, t))
-    srv = Server(data, free_port(), SARSHIP_MAX_UPLOAD_MB="1", SARSHIP_LAND_MAX_MB="1",
-                 SARSHIP_SCENE_RETENTION_DAYS="365").start()
+    srv = Server(
+        data, free_port(), SARSHIP_MAX_UPLOAD_MB="1", SARSHIP_LAND_MAX_MB="1", SARSHIP_SCENE_RETENTION_DAYS="365"
+    ).start()
     yield srv
     srv.stop()
 
@@ -39,8 +40,11 @@ def test_ogc_state_machine_and_results(server):
     assert {"ca_cfar", "os_cfar", "two_parameter", "apwf", "lmm", "pcdm", "vb_polsar"} <= procs
     desc = httpx.get(u + "/processes/ca_cfar").json()
     assert desc["inputs"]["pfa"]["schema"]["exclusiveMaximum"] == 0.5 and "scene" in desc["inputs"]
-    r = httpx.post(u + "/processes/ca_cfar/execution", headers={"Prefer": "respond-async"},
-                   json={"inputs": {"scene": "s1", "pfa": 1e-4, "guard": 11, "background": 31, "min_area_px": 1}})
+    r = httpx.post(
+        u + "/processes/ca_cfar/execution",
+        headers={"Prefer": "respond-async"},
+        json={"inputs": {"scene": "s1", "pfa": 1e-4, "guard": 11, "background": 31, "min_area_px": 1}},
+    )
     assert r.status_code == 201, r.text
     job_id = r.json()["jobID"]
     assert r.headers["location"].endswith(f"/jobs/{job_id}") and r.json()["status"] in ("accepted", "running")
@@ -67,8 +71,12 @@ def test_ogc_state_machine_and_results(server):
 
 
 def test_sync_execution_returns_results(server):
-    r = httpx.post(server.url + "/processes/os_cfar/execution", headers={"Prefer": "respond-sync"},
-                   json={"inputs": {"scene": "s1", "guard": 11, "background": 31}}, timeout=120)
+    r = httpx.post(
+        server.url + "/processes/os_cfar/execution",
+        headers={"Prefer": "respond-sync"},
+        json={"inputs": {"scene": "s1", "guard": 11, "background": 31}},
+        timeout=120,
+    )
     assert r.status_code == 200, r.text
     assert set(r.json()) == {"detections", "mask", "metrics", "stac"}
 
@@ -105,8 +113,12 @@ def test_dismiss(server):
     u = server.url
     # many short tasks (lmm exact, ~0.6 s per 32^2 tile, ~25 s per job): a job is still running
     # when it is dismissed, and what it already sent to the workers ends within a second
-    write_scene(server.data / "scenes" / "s1_tiles32.zarr",
-                {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)}, tile=32, looks=2.0)
+    write_scene(
+        server.data / "scenes" / "s1_tiles32.zarr",
+        {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
+        tile=32,
+        looks=2.0,
+    )
     slow = {"scene": "s1_tiles32", "method": "exact", "guard": 5, "background": 13}
     ids = [httpx.post(u + "/processes/lmm/execution", json={"inputs": slow}).json()["jobID"] for _ in range(3)]
     last = httpx.delete(f"{u}/jobs/{ids[-1]}")
@@ -125,16 +137,22 @@ def test_jobs_survive_kill_9(tmp_path):
     each job runs to success exactly once in the job list, and no output is half-written."""
     data = tmp_path / "data"
     (data / "scenes").mkdir(parents=True)
-    write_scene(data / "scenes" / "s2.zarr", {"intensity": blobs_scene((256, 256), looks=2.0, seed=5)},
-                tile=64, looks=2.0)
+    write_scene(
+        data / "scenes" / "s2.zarr", {"intensity": blobs_scene((256, 256), looks=2.0, seed=5)}, tile=64, looks=2.0
+    )
     # a 2 s lease (the least allowed is above 1 s): the restarted server re-runs the killed job that much sooner
     srv = Server(data, free_port(), SARSHIP_CONCURRENCY="1", SARSHIP_LEASE_S="2").start()
     try:
         # the first (lmm defaults: ~2 s on 2 workers) runs, the two behind it (short ca_cfar jobs) wait
         ex = srv.url + "/processes/{}/execution"
-        ids = [httpx.post(ex.format(p), json={"inputs": {"scene": "s2", **extra}}).json()["jobID"]
-               for p, extra in (("lmm", {}), ("ca_cfar", {"guard": 11, "background": 31}),
-                                ("ca_cfar", {"guard": 11, "background": 31}))]
+        ids = [
+            httpx.post(ex.format(p), json={"inputs": {"scene": "s2", **extra}}).json()["jobID"]
+            for p, extra in (
+                ("lmm", {}),
+                ("ca_cfar", {"guard": 11, "background": 31}),
+                ("ca_cfar", {"guard": 11, "background": 31}),
+            )
+        ]
         t_end = time.time() + 60
         while httpx.get(f"{srv.url}/jobs/{ids[0]}").json()["status"] != "running" and time.time() < t_end:
             time.sleep(0.1)
@@ -184,10 +202,15 @@ def test_two_processes_on_one_store_never_claim_a_job_twice(tmp_path):
     store = JobStore(tmp_path / "jobs.sqlite")
     ids = [store.create("os_cfar", {"scene": "s3"})["id"] for _ in range(200)]
     start = time.time() + 1.0  # both processes start claiming at this moment (once imported)
-    args = [sys.executable, "-c", f"import time; time.sleep(max(0, {start} - time.time()))\n{CLAIMER}",
-            str(tmp_path / "jobs.sqlite")]
-    procs = [subprocess.Popen([*args, f"host-{k}-x", str(start + 60)], stdout=subprocess.PIPE, text=True)
-             for k in range(2)]
+    args = [
+        sys.executable,
+        "-c",
+        f"import time; time.sleep(max(0, {start} - time.time()))\n{CLAIMER}",
+        str(tmp_path / "jobs.sqlite"),
+    ]
+    procs = [
+        subprocess.Popen([*args, f"host-{k}-x", str(start + 60)], stdout=subprocess.PIPE, text=True) for k in range(2)
+    ]
     ran = [p.communicate(timeout=120)[0].split() for p in procs]
     assert all(p.returncode == 0 for p in procs)
     assert sorted(ran[0] + ran[1]) == sorted(ids)  # each job once, by one of the two
@@ -198,8 +221,9 @@ def test_two_processes_on_one_store_never_claim_a_job_twice(tmp_path):
 def test_two_api_processes_share_a_store_without_running_a_job_twice(tmp_path):
     data = tmp_path / "data"
     (data / "scenes").mkdir(parents=True)
-    write_scene(data / "scenes" / "s3.zarr", {"intensity": blobs_scene((200, 180), looks=2.0, seed=6)},
-                tile=64, looks=2.0)
+    write_scene(
+        data / "scenes" / "s3.zarr", {"intensity": blobs_scene((200, 180), looks=2.0, seed=6)}, tile=64, looks=2.0
+    )
     make_store(data)  # (before the two start at once)
     a = Server(data, free_port(), SARSHIP_WORKERS="1")
     b = Server(data, free_port(), SARSHIP_WORKERS="1")
@@ -211,8 +235,10 @@ def test_two_api_processes_share_a_store_without_running_a_job_twice(tmp_path):
         ids = []
         for k in range(8):
             srv = a if k % 2 == 0 else b
-            r = httpx.post(srv.url + "/processes/os_cfar/execution",
-                           json={"inputs": {"scene": "s3", "guard": 11, "background": 31}})
+            r = httpx.post(
+                srv.url + "/processes/os_cfar/execution",
+                json={"inputs": {"scene": "s3", "guard": 11, "background": 31}},
+            )
             assert r.status_code == 201
             ids.append(r.json()["jobID"])
         for i in ids:
@@ -251,10 +277,12 @@ def test_tokens(tmp_path):
     server has tokens only.)"""
     data = tmp_path / "data"
     (data / "scenes").mkdir(parents=True)
-    write_scene(data / "scenes" / "s4.zarr", {"intensity": blobs_scene((100, 90), looks=2.0, seed=7)},
-                tile=64, looks=2.0)
-    srv = Server(data, free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a", "t0ken-b"]',
-                 SARSHIP_PROTECT_READS="true").start()
+    write_scene(
+        data / "scenes" / "s4.zarr", {"intensity": blobs_scene((100, 90), looks=2.0, seed=7)}, tile=64, looks=2.0
+    )
+    srv = Server(
+        data, free_port(), SARSHIP_WORKERS="1", SARSHIP_TOKENS='["t0ken-a", "t0ken-b"]', SARSHIP_PROTECT_READS="true"
+    ).start()
     try:
         ex = srv.url + "/processes/ca_cfar/execution"
         body = {"inputs": {"scene": "s4", "guard": 5, "background": 15}}
@@ -303,8 +331,9 @@ def test_scene_upload_ingest_and_detect(server, tmp_path):
     # the same content again (multipart this time): the same scene, no new ingest
     again = httpx.post(u + "/scenes", files={"file": ("copy.tif", raw, "image/tiff")})
     assert again.status_code == 200 and again.json()["sceneID"] == doc["sceneID"]
-    job = httpx.post(u + "/processes/ca_cfar/execution",
-                     json={"inputs": {"scene": doc["sceneID"], "guard": 11, "background": 31}}).json()
+    job = httpx.post(
+        u + "/processes/ca_cfar/execution", json={"inputs": {"scene": doc["sceneID"], "guard": 11, "background": 31}}
+    ).json()
     assert wait_job(u, job["jobID"])["status"] == "successful"
     # garbage: accepted as bytes, its ingest fails with the reader's message, and is listed as failed
     bad = httpx.post(u + "/scenes?filename=junk.tif", content=b"not a tiff at all" * 10)
@@ -328,8 +357,10 @@ def test_preview_png(server):
     from PIL import Image
 
     u = server.url
-    r = httpx.post(u + "/processes/ca_cfar/execution",
-                   json={"inputs": {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1}})
+    r = httpx.post(
+        u + "/processes/ca_cfar/execution",
+        json={"inputs": {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1}},
+    )
     job_id = r.json()["jobID"]
     assert wait_job(u, job_id)["status"] == "successful"
     png = httpx.get(f"{u}/jobs/{job_id}/preview.png?size=128")
@@ -363,14 +394,18 @@ def test_serve_start_problems_are_one_line(tmp_path, monkeypatch, capsys):
     busy = socket.socket()
     busy.bind(("127.0.0.1", 0))
     busy.listen()
-    cases = [(["--data", str(tmp_path / "afile")], "is not a folder"),
-             (["--data", str(tmp_path / "afile" / "sub")], "Not a directory"),
-             (["--data", str(tmp_path / "bad")], "not a database"),
-             (["--data", str(tmp_path / "ok"), "--port", str(busy.getsockname()[1])], "Address already in use"),
-             (["--data", str(tmp_path / "ok"), "--host", "no-such-host.invalid"], "cannot resolve"),
-             (["--data", str(tmp_path / "ok"), "--scheduler", f"tcp://127.0.0.1:{free_port()}"],
-              "cannot reach Dask scheduler"),
-             (["--data", str(tmp_path / "ok"), "--gpus", "0"], "no GPU is visible")]  # (GPUs hidden below)
+    cases = [
+        (["--data", str(tmp_path / "afile")], "is not a folder"),
+        (["--data", str(tmp_path / "afile" / "sub")], "Not a directory"),
+        (["--data", str(tmp_path / "bad")], "not a database"),
+        (["--data", str(tmp_path / "ok"), "--port", str(busy.getsockname()[1])], "Address already in use"),
+        (["--data", str(tmp_path / "ok"), "--host", "no-such-host.invalid"], "cannot resolve"),
+        (
+            ["--data", str(tmp_path / "ok"), "--scheduler", f"tcp://127.0.0.1:{free_port()}"],
+            "cannot reach Dask scheduler",
+        ),
+        (["--data", str(tmp_path / "ok"), "--gpus", "0"], "no GPU is visible"),
+    ]  # (GPUs hidden below)
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
     for k in list(os.environ):  # (the test process's own settings, if any, are not the operator's)
         if k.startswith("SARSHIP_"):
@@ -382,8 +417,13 @@ def test_serve_start_problems_are_one_line(tmp_path, monkeypatch, capsys):
         assert lines[0].startswith("sarship serve: error: ") and "Traceback" not in err
 
     remote = next(c for c in cases if "--scheduler" in c[0])
-    proc = subprocess.Popen([sys.executable, "-m", "sarship", "serve", *remote[0]], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=dict(os.environ))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sarship", "serve", *remote[0]],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ),
+    )
     try:
         for args, words in cases:
             if (args, words) != remote:
@@ -405,8 +445,6 @@ def no_server_path(server, text: str) -> None:
         assert form not in text, text
 
 
-
-
 def test_submission_checks_and_no_server_paths(server):
     """A detector that cannot read the scene (vb_polsar on a covariance scene, csk on intensity),
     a channel that is a path or a variable the scene lacks, non-finite parameters (NaN,
@@ -422,8 +460,11 @@ def test_submission_checks_and_no_server_paths(server):
     bodies = []
 
     def refused(detector, inputs, *words, raw=None):
-        r = (httpx.post(ex.format(detector), content=raw, headers={"content-type": "application/json"}) if raw
-             else httpx.post(ex.format(detector), json={"inputs": inputs}))
+        r = (
+            httpx.post(ex.format(detector), content=raw, headers={"content-type": "application/json"})
+            if raw
+            else httpx.post(ex.format(detector), json={"inputs": inputs})
+        )
         check_problem(r, 400, *words)
         bodies.append(r.text)
 
@@ -455,8 +496,15 @@ def test_submission_checks_and_no_server_paths(server):
     assert st["status"] == "failed" and "nested deeper than" in st["message"], st
     assert "'deep.geojson'" in st["message"] and "\n" not in st["message"], st
     no_server_path(server, st["message"])
-    assert wait_job(u, httpx.post(ex.format("apwf"), json={"inputs": {"scene": "cov", "guard": 5, "background": 9}}
-                                  ).json()["jobID"])["status"] == "successful"
+    assert (
+        wait_job(
+            u,
+            httpx.post(ex.format("apwf"), json={"inputs": {"scene": "cov", "guard": 5, "background": 9}}).json()[
+                "jobID"
+            ],
+        )["status"]
+        == "successful"
+    )
 
 
 def test_scene_retention_at_start_up(server):

@@ -49,13 +49,16 @@ def test_job_on_a_scene_still_ingesting_waits_for_it_and_survives_kill_9(tmp_pat
     accepted (not a 400), waits (also across kill -9 and a restart with two runner threads),
     runs after a successful ingest, and fails with the ingest's error after a failed one."""
     data = data_with_scene(tmp_path)
-    write_scene(data / "scenes" / "slow.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
-                tile=32, looks=2.0)
+    write_scene(
+        data / "scenes" / "slow.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)}, tile=32, looks=2.0
+    )
     srv = Server(data, free_port(), SARSHIP_CONCURRENCY="1").start()
     try:
         u = srv.url
-        slow = http.post(u + "/processes/lmm/execution", json={"inputs": {
-            "scene": "slow", "method": "exact", "guard": 5, "background": 13}}).json()["jobID"]
+        slow = http.post(
+            u + "/processes/lmm/execution",
+            json={"inputs": {"scene": "slow", "method": "exact", "guard": 5, "background": 13}},
+        ).json()["jobID"]
         wait_status(u, slow, "running")
         good = http.post(u + "/scenes?filename=good.tif", content=tiff_bytes()).json()
         bad = http.post(u + "/scenes?filename=notes.txt", content=b"not a scene at all\n" * 20).json()
@@ -72,8 +75,7 @@ def test_job_on_a_scene_still_ingesting_waits_for_it_and_survives_kill_9(tmp_pat
         j2 = r2.json()
         assert j2["status"] == "accepted" and bad["jobID"] in j2["message"], j2
         # an id with no ingest accepted or running is still a 400
-        check_problem(http.post(ex, json={"inputs": {"scene": "0123456789abcdef", **CFAR}}), 400,
-                      "0123456789abcdef")
+        check_problem(http.post(ex, json={"inputs": {"scene": "0123456789abcdef", **CFAR}}), 400, "0123456789abcdef")
         for ingest in (good, bad):  # the runner is still on the long job
             assert http.get(f"{u}/jobs/{ingest['jobID']}").json()["status"] == "accepted"
         srv.kill()  # kill -9: what the waiting jobs wait for must be in the store
@@ -93,8 +95,12 @@ def test_job_on_a_scene_still_ingesting_waits_for_it_and_survives_kill_9(tmp_pat
         assert bad_ing["message"] in st2["message"] and bad["jobID"] in st2["message"], st2
         assert "internal error" not in st2["message"], st2
         # once the ingest has failed, a new job naming that scene is a 400 that says why
-        check_problem(http.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": bad["sceneID"]}}),
-                      400, bad["sceneID"], "failed")
+        check_problem(
+            http.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": bad["sceneID"]}}),
+            400,
+            bad["sceneID"],
+            "failed",
+        )
     finally:
         srv.stop()
 
@@ -134,8 +140,15 @@ def test_dismiss_a_finished_job_removes_its_results(server):
     assert not any(lk["rel"].endswith("/results") for lk in st["links"]), st
     assert not out.exists() and not list((server.data / "jobs").glob(f".dismissed-{job_id}*"))
     assert http.get(f"{u}/jobs/{job_id}").json()["status"] == "dismissed"
-    for path in ("results", "results/detections", "results/mask", "results/metrics", "results/stac",
-                 "preview.png", "tiles.json"):
+    for path in (
+        "results",
+        "results/detections",
+        "results/mask",
+        "results/metrics",
+        "results/stac",
+        "preview.png",
+        "tiles.json",
+    ):
         check_problem(http.get(f"{u}/jobs/{job_id}/{path}"), 404, "dismissed")
     listed = {j["jobID"]: j for j in http.get(u + "/jobs?status=dismissed").json()["jobs"]}
     assert listed[job_id]["status"] == "dismissed"
@@ -164,8 +177,9 @@ def test_an_upload_never_takes_metadata_from_files_around_it(server):
 
     (server.data / "uploads").mkdir(exist_ok=True)
     for folder in (server.data, server.data / "uploads"):
-        (folder / "Metadata.xml").write_text(snap_xml(pols=("VV",), sample_type="DETECTED", az=13.9, rg=2.33,
-                                                      az_looks=4, rg_looks=1))
+        (folder / "Metadata.xml").write_text(
+            snap_xml(pols=("VV",), sample_type="DETECTED", az=13.9, rg=2.33, az_looks=4, rg_looks=1)
+        )
     try:
         up = http.post(server.url + "/scenes?filename=chip.tif", content=tiff_bytes(seed=21)).json()
         assert wait_job(server.url, up["jobID"])["status"] == "successful"

@@ -11,9 +11,7 @@ import collections
 import threading
 import time
 
-import numpy as np
 import pytest
-
 from conftest import blobs_scene, write_scene
 
 
@@ -39,13 +37,16 @@ def counted(monkeypatch):
             if when(*args):
                 counts[role(), key] += 1
             return f(*args, **kwargs)
+
         monkeypatch.setattr(mod, name, counting)
 
     wrap(request, "parse_params", "parse")
     from_inputs = request.JobRequest.from_inputs.__func__
-    monkeypatch.setattr(request.JobRequest, "from_inputs",
-                        classmethod(lambda cls, *a, **k: (counts.update([(role(), "validate")]),
-                                                          from_inputs(cls, *a, **k))[1]))
+    monkeypatch.setattr(
+        request.JobRequest,
+        "from_inputs",
+        classmethod(lambda cls, *a, **k: (counts.update([(role(), "validate")]), from_inputs(cls, *a, **k))[1]),
+    )
     wrap(jobs, "prepare_out", "stage")
     wrap(outputs, "publish", "publish")
     for mod in (jobs, ship_features):
@@ -63,13 +64,15 @@ def test_rest_job_is_validated_parsed_staged_and_published_once(tmp_path, client
     write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene((96, 96), seed=5, n=4)}, tile=64, looks=2.0)
     settings = Settings(data=data, workers=1)
     with TestClient(create_app(settings, client=client)) as http:
-        r = http.post("/processes/ca_cfar/execution",
-                      json={"inputs": {"scene": "s1", "pfa": "1e-6", "land_mask": "none"}})
+        r = http.post(
+            "/processes/ca_cfar/execution", json={"inputs": {"scene": "s1", "pfa": "1e-6", "land_mask": "none"}}
+        )
         assert r.status_code == 201, r.text
         job_id = r.json()["jobID"]
         # the API's part, once the POST has answered (the runner may have started the job already)
-        assert {k: n for k, n in counted.items() if k[0] == "api"} == {("api", "validate"): 1, ("api", "parse"): 1}, \
+        assert {k: n for k, n in counted.items() if k[0] == "api"} == {("api", "validate"): 1, ("api", "parse"): 1}, (
             counted
+        )
         stored = http.app.state.store.get(job_id)["inputs"]
         assert stored == {"scene": "s1", "device": "auto", "pfa": "1e-6", "land_mask": "none"}  # normalized
         t_end = time.monotonic() + 60
@@ -77,8 +80,14 @@ def test_rest_job_is_validated_parsed_staged_and_published_once(tmp_path, client
             assert time.monotonic() < t_end, job
             time.sleep(0.05)
     assert job["status"] == "successful", job
-    assert counted == {("api", "validate"): 1, ("api", "parse"): 1, ("runner", "parse"): 1,
-                       ("runner", "stage"): 1, ("runner", "run.json"): 1, ("runner", "publish"): 1}, counted
+    assert counted == {
+        ("api", "validate"): 1,
+        ("api", "parse"): 1,
+        ("runner", "parse"): 1,
+        ("runner", "stage"): 1,
+        ("runner", "run.json"): 1,
+        ("runner", "publish"): 1,
+    }, counted
     out = data / "jobs" / job_id
     assert sorted(p.name for p in out.iterdir()) == ["detections.geojson", "mask.zarr", "run.json"]
 

@@ -18,9 +18,15 @@ tifffile = pytest.importorskip("tifffile")
 from conftest import blobs_scene, write_scene  # noqa: E402
 from svc import check_problem, shared_server, wait_job  # noqa: E402
 
-GEO_ATTRS = {"sensor": "SENTINEL-1A IW", "product": "S1A_IW_GRDH_1SDV_20210601T102030_20210601T102055_000000",
-             "polarisations": ["vv"], "acquired": "2021-06-01T10:20:30", "crs": "EPSG:32631",
-             "transform": [500000.0, 10.0, 0.0, 5000000.0, 0.0, -10.0], "pixel_spacing_m": [10.0, 10.0]}
+GEO_ATTRS = {
+    "sensor": "SENTINEL-1A IW",
+    "product": "S1A_IW_GRDH_1SDV_20210601T102030_20210601T102055_000000",
+    "polarisations": ["vv"],
+    "acquired": "2021-06-01T10:20:30",
+    "crs": "EPSG:32631",
+    "transform": [500000.0, 10.0, 0.0, 5000000.0, 0.0, -10.0],
+    "pixel_spacing_m": [10.0, 10.0],
+}
 
 
 @pytest.fixture(scope="module")
@@ -30,10 +36,25 @@ def env(tmp_path_factory):
     # the test process's shared server, with this module's scenes (names of its own) in its folder
     srv = shared_server(tmp_path_factory.getbasetemp())
     data = srv.data
-    write_scene(data / "scenes" / "res_geo.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
-                tile=128, looks=2.0, **GEO_ATTRS)
-    cfg = validate(SimConfig(shape=(300, 260), ships=5, seed=1, looks=4, clutter="gamma", scr_db=20,
-                             length_m=(60, 150), pixel_spacing_m=(5.0, 5.0)))
+    write_scene(
+        data / "scenes" / "res_geo.zarr",
+        {"intensity": blobs_scene((300, 260), looks=2.0, seed=3)},
+        tile=128,
+        looks=2.0,
+        **GEO_ATTRS,
+    )
+    cfg = validate(
+        SimConfig(
+            shape=(300, 260),
+            ships=5,
+            seed=1,
+            looks=4,
+            clutter="gamma",
+            scr_db=20,
+            length_m=(60, 150),
+            pixel_spacing_m=(5.0, 5.0),
+        )
+    )
     simulate(data / "scenes" / "sim.zarr", cfg, tile=128)  # truth: scenes/sim.zarr.truth.geojson
     u = srv.url + "/processes/ca_cfar/execution"
     geo = httpx.post(u, json={"inputs": {"scene": "res_geo", "guard": 11, "background": 31, "min_area_px": 1}})
@@ -122,10 +143,19 @@ def test_tiles_and_tilejson(env):
     jid = jobs["geo"]
     tj = httpx.get(f"{srv.url}/jobs/{jid}/tiles.json").json()
     Z = max(0, math.ceil(math.log2(300 / 256)))
-    grid = tj.pop("lonlat")  # the scene is georeferenced: the lon/lat of its pixel grid (tests/service/test_quicklook.py)
+    grid = tj.pop(
+        "lonlat"
+    )  # the scene is georeferenced: the lon/lat of its pixel grid (tests/service/test_quicklook.py)
     assert grid["rows"][-1] == 300 and grid["cols"][-1] == 260 and len(grid["lon"]) == len(grid["rows"])
-    assert tj == {"tilejson": "3.0.0", "tiles": [f"{srv.url}/jobs/{jid}/tiles/{{z}}/{{x}}/{{y}}.png"],
-                  "minzoom": 0, "maxzoom": Z, "tileSize": 256, "width": 260, "height": 300}
+    assert tj == {
+        "tilejson": "3.0.0",
+        "tiles": [f"{srv.url}/jobs/{jid}/tiles/{{z}}/{{x}}/{{y}}.png"],
+        "minzoom": 0,
+        "maxzoom": Z,
+        "tileSize": 256,
+        "width": 260,
+        "height": 300,
+    }
     tile_url = tj["tiles"][0]
     mask = stored_mask(srv, jid) > 0
     red = np.array([255, 40, 40, 255], np.uint8)
@@ -133,7 +163,7 @@ def test_tiles_and_tilejson(env):
     for y in range(2):
         for x in range(2):
             r = httpx.get(tile_url.format(z=1, x=x, y=y))
-            full[y * 256:(y + 1) * 256, x * 256:(x + 1) * 256] = rgba(r)
+            full[y * 256 : (y + 1) * 256, x * 256 : (x + 1) * 256] = rgba(r)
     assert (full[:300, :260, 3] == 255).all() and (full[300:, :, 3] == 0).all() and (full[:, 260:, 3] == 0).all()
     assert np.array_equal((full[:300, :260] == red).all(-1), mask)
     z0 = rgba(httpx.get(tile_url.format(z=0, x=0, y=0)))

@@ -32,8 +32,16 @@ from svc import Server, free_port, wait_job  # noqa: E402
 
 CHROMIUM = Path("/usr/bin/chromium")
 TOKEN = "web-test-token"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 TILE_RE = re.compile(r"/jobs/[0-9a-f]+/tiles/\d+/\d+/\d+\.png$")
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
@@ -44,15 +52,24 @@ def server(tmp_path_factory):
     (data / "scenes").mkdir(parents=True)
     # wider than tall, 2 rows x 3 columns of map tiles at full resolution: rows and columns cannot be
     # mixed up unseen
-    write_scene(data / "scenes" / "s1.zarr", {"intensity": blobs_scene((300, 600), looks=2.0, seed=3, n=24)},
-                tile=128, looks=2.0)
+    write_scene(
+        data / "scenes" / "s1.zarr",
+        {"intensity": blobs_scene((300, 600), looks=2.0, seed=3, n=24)},
+        tile=128,
+        looks=2.0,
+    )
     # small tiles: a job of many short tasks, so a dismissed job does not hold the workers long
-    write_scene(data / "scenes" / "small_tiles.zarr", {"intensity": blobs_scene((300, 260), looks=2.0, seed=4)},
-                tile=32, looks=2.0)
+    write_scene(
+        data / "scenes" / "small_tiles.zarr",
+        {"intensity": blobs_scene((300, 260), looks=2.0, seed=4)},
+        tile=32,
+        looks=2.0,
+    )
     inbox = data.parent / "inbox"
     inbox.mkdir()
-    srv = Server(data, free_port(), SARSHIP_TOKENS=f'["{TOKEN}"]', SARSHIP_INBOX=str(inbox),
-                 SARSHIP_INBOX_INTERVAL_S="600").start()
+    srv = Server(
+        data, free_port(), SARSHIP_TOKENS=f'["{TOKEN}"]', SARSHIP_INBOX=str(inbox), SARSHIP_INBOX_INTERVAL_S="600"
+    ).start()
     srv.inbox = inbox
     yield srv
     srv.stop()
@@ -86,8 +103,13 @@ def browser(tmp_path_factory):
         pytest.skip(f"{CHROMIUM} is absent (Debian's chromium package drives these tests)")
     profile = tmp_path_factory.mktemp("chromium-profile")
     with sync_api.sync_playwright() as p:
-        ctx = p.chromium.launch_persistent_context(str(profile), executable_path=str(CHROMIUM), headless=True,
-                                                   args=ARGS, viewport={"width": 1280, "height": 900})
+        ctx = p.chromium.launch_persistent_context(
+            str(profile),
+            executable_path=str(CHROMIUM),
+            headless=True,
+            args=ARGS,
+            viewport={"width": 1280, "height": 900},
+        )
         ctx.set_default_timeout(20_000)
         yield ctx
         ctx.close()
@@ -198,17 +220,25 @@ def test_submit_see_it_finish_and_its_detections(server, page, tmp_path):
     # there show its mask pixels in red right under the box (tiles and boxes line up)
     zoom0 = float(pg.get_attribute("#map", "data-zoom"))
     # the largest ship in the top row of tiles, right of the first column (tile x > y)
-    big = max((i for i in range(n) if fc["features"][i]["properties"]["centroid_px"][1] > 300
-               and fc["features"][i]["properties"]["centroid_px"][0] < 250),
-              key=lambda i: fc["features"][i]["properties"]["area_px"])
+    big = max(
+        (
+            i
+            for i in range(n)
+            if fc["features"][i]["properties"]["centroid_px"][1] > 300
+            and fc["features"][i]["properties"]["centroid_px"][0] < 250
+        ),
+        key=lambda i: fc["features"][i]["properties"]["area_px"],
+    )
     pg.click(f"#det-table tbody tr:nth-child({big + 1}) button.det-go")
     pg.wait_for_selector(f"#det-table tbody tr.selected[aria-current=true][data-det='{big}']")
     box = pg.locator("#map path.det-box[stroke='#00e5ff']")
     assert box.count() == 1
     pg.wait_for_function("z => Number(document.querySelector('#map').dataset.zoom) > z", arg=zoom0)
-    pg.wait_for_function("() => !document.querySelector('#map .leaflet-zoom-anim') && "
-                         "[...document.querySelectorAll('#map img.leaflet-tile')].every(t => "
-                         "t.classList.contains('leaflet-tile-loaded'))")
+    pg.wait_for_function(
+        "() => !document.querySelector('#map .leaflet-zoom-anim') && "
+        "[...document.querySelectorAll('#map img.leaflet-tile')].every(t => "
+        "t.classList.contains('leaflet-tile-loaded'))"
+    )
     pg.wait_for_timeout(300)  # the tiles' fade-in
     b, m = box.bounding_box(), pg.locator("#map").bounding_box()
     shot = Image.open(io.BytesIO(pg.locator("#map").screenshot())).convert("RGB")
@@ -243,7 +273,10 @@ def test_bad_parameter_shows_the_problem(server, page):
     assert pg.locator("#param-land_window").is_hidden()
     pg.click("#submit-btn")
     pg.wait_for_function("() => document.querySelector('#submit-error').innerText.includes('land_window')")
-    assert pg.get_attribute("#param-land_window", "aria-invalid") == "true" and pg.locator("#param-land_window").is_visible()
+    assert (
+        pg.get_attribute("#param-land_window", "aria-invalid") == "true"
+        and pg.locator("#param-land_window").is_visible()
+    )
     pg.fill("#param-land_window", "15")
     # a scene outside the allowed folders: the API's detail again
     pg.fill("#param-guard", "41")
@@ -333,8 +366,9 @@ def test_page_caching_and_landing_redirect(server):
     forced = httpx.get(u + "/?f=json", headers={"Accept": "text/html"})
     assert forced.status_code == 200 and forced.json()["title"] == "sarship"
     land = httpx.get(u + "/").json()
-    assert any(x["rel"] == "alternate" and x["type"] == "text/html" and x["href"].endswith("/ui/")
-               for x in land["links"])
+    assert any(
+        x["rel"] == "alternate" and x["type"] == "text/html" and x["href"].endswith("/ui/") for x in land["links"]
+    )
     assert httpx.get(u + "/", headers={"Accept": "application/json"}).status_code == 200
 
 
@@ -424,8 +458,10 @@ def test_job_view_shows_scores_and_lonlat_of_a_georeferenced_scene(server, page,
     u, pg = server.url, page.page
     scene = server.data / "scenes" / "truthy.zarr"
     if not scene.exists():  # `sarship simulate`, in this process (a process start-up costs seconds)
-        assert main(["simulate", str(scene), "--shape", "512x512", "--ships", "5", "--seed", "2",
-                     "--geo", "10.5,55.2"]) == 0
+        assert (
+            main(["simulate", str(scene), "--shape", "512x512", "--ships", "5", "--seed", "2", "--geo", "10.5,55.2"])
+            == 0
+        )
     assert Path(f"{scene}.truth.geojson").is_file()
     r = httpx.post(u + "/processes/os_cfar/execution", json={"inputs": {"scene": "truthy"}}, headers=AUTH)
     assert r.status_code == 201, r.text
@@ -434,8 +470,10 @@ def test_job_view_shows_scores_and_lonlat_of_a_georeferenced_scene(server, page,
     scores = httpx.get(f"{u}/jobs/{job_id}/results/metrics").json()["scores"]
     pg.goto(f"{u}/ui/#/jobs/{job_id}")
     pg.wait_for_selector("#scores")
-    shown = {pg.locator("#scores dt").nth(i).inner_text(): pg.locator("#scores dd").nth(i).inner_text()
-             for i in range(pg.locator("#scores dt").count())}
+    shown = {
+        pg.locator("#scores dt").nth(i).inner_text(): pg.locator("#scores dd").nth(i).inner_text()
+        for i in range(pg.locator("#scores dt").count())
+    }
     assert shown["n_truth"] == "5" == str(scores["n_truth"])
     for k in ("pd", "precision"):
         assert k in shown and abs(float(shown[k]) - scores[k]) < 1e-3, (k, shown, scores)
@@ -464,8 +502,10 @@ def test_job_view_shows_scores_and_lonlat_of_a_georeferenced_scene(server, page,
     # the pointer in the middle of the scene reads the scene centre's lon/lat
     pg.locator("#map").scroll_into_view_if_needed()
     m = pg.locator("#map").bounding_box()
-    ctr = pg.evaluate("() => { const c = document.querySelector('#map .scene-outline').getBoundingClientRect(); "
-                      "return [c.x + c.width / 2, c.y + c.height / 2]; }")
+    ctr = pg.evaluate(
+        "() => { const c = document.querySelector('#map .scene-outline').getBoundingClientRect(); "
+        "return [c.x + c.width / 2, c.y + c.height / 2]; }"
+    )
     assert m["x"] < ctr[0] < m["x"] + m["width"] and m["y"] < ctr[1] < m["y"] + m["height"]
     pg.mouse.move(*ctr)
     pg.wait_for_function("() => document.querySelector('#map-cursor').textContent.includes('°')")

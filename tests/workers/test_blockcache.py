@@ -42,18 +42,29 @@ def test_a_bad_budget_is_one_line_and_leaves_nothing(tmp_path):
 
     cfg = SimConfig(shape=(200, 180), ships=2, seed=3, looks=4.0, clutter="k", scr_db=20.0)
     simulate(tmp_path / "s.zarr", cfg, tile=128)
-    res = sarship("detect", tmp_path / "s.zarr", "--detector", "ca_cfar", "--out", tmp_path / "o",
-                  env={"SARSHIP_BLOCK_CACHE_MB": "lots"})
+    res = sarship(
+        "detect",
+        tmp_path / "s.zarr",
+        "--detector",
+        "ca_cfar",
+        "--out",
+        tmp_path / "o",
+        env={"SARSHIP_BLOCK_CACHE_MB": "lots"},
+    )
     assert_clean_error(res, "SARSHIP_BLOCK_CACHE_MB", "lots")
     assert not (tmp_path / "o").exists()
 
 
 def _outputs(d):
     g = json.loads((d / "detections.geojson").read_text())
-    feats = sorted((f["properties"]["bbox_px"], f["properties"]["area_px"], f["properties"]["peak"])
-                   for f in g["features"])
-    return (np.asarray(zarr.open_array(str(d / "mask.zarr" / "mask"), mode="r")[:]),
-            np.asarray(zarr.open_array(str(d / "land.zarr" / "land"), mode="r")[:]), feats)
+    feats = sorted(
+        (f["properties"]["bbox_px"], f["properties"]["area_px"], f["properties"]["peak"]) for f in g["features"]
+    )
+    return (
+        np.asarray(zarr.open_array(str(d / "mask.zarr" / "mask"), mode="r")[:]),
+        np.asarray(zarr.open_array(str(d / "land.zarr" / "land"), mode="r")[:]),
+        feats,
+    )
 
 
 def _same_outputs(a, b) -> np.ndarray:
@@ -95,22 +106,23 @@ def test_worker_processes_take_their_reads_and_release_them(tmp_path, monkeypatc
     settings = {"land_mask": "texture", "pfa": 1e-5, "guard": 15, "background": 31}
     monkeypatch.delenv("SARSHIP_BLOCK_CACHE_MB", raising=False)
     held = _worker_keys(client)  # what other tests of this process left there (nothing, normally)
-    on = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "on", client=client,
-                       progress=False)
+    on = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "on", client=client, progress=False)
     per = on["tiles"]["per_tile"]
     assert [t["block_from"] for t in per] == ["land pass"] * on["tiles"]["count"] == ["land pass"] * 9
     assert _worker_keys(client) <= held
     monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "0")
-    off = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "off", client=client,
-                        progress=False)
+    off = run_detection(
+        tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "off", client=client, progress=False
+    )
     assert {t["block_from"] for t in off["tiles"]["per_tile"]} == {"scene"}
     # one read is about 390 px a side at 8 bytes (1.2 MiB): 2 workers x 2.2 MiB keep a few
     monkeypatch.setenv("SARSHIP_BLOCK_CACHE_MB", "2.2")
-    part = run_detection(tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "part", client=client,
-                         progress=False)
+    part = run_detection(
+        tmp_path / "s.zarr", "ca_cfar", settings, out_dir=tmp_path / "part", client=client, progress=False
+    )
     got = {tuple(t["index"]): t["block_from"] for t in part["tiles"]["per_tile"]}
     kept = sorted(k for k, v in got.items() if v == "land pass")
-    assert 0 < len(kept) < 9 and kept == sorted(got)[:len(kept)]  # the first tiles in row order
+    assert 0 < len(kept) < 9 and kept == sorted(got)[: len(kept)]  # the first tiles in row order
     assert _worker_keys(client) <= held
     _same_outputs(tmp_path / "on", tmp_path / "off")
     _same_outputs(tmp_path / "on", tmp_path / "part")

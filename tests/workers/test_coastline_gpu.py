@@ -10,14 +10,16 @@ import numpy as np
 import pytest
 import zarr
 
-from sarship.pipeline.land import coastline
 from sarship.pipeline.gpu import available
+from sarship.pipeline.land import coastline
 from sarship.pipeline.simulate import SimConfig, simulate
 from sarship.workers.jobs import run_detection
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)"),
-              pytest.mark.skipif(not coastline.available(), reason="needs pip install 'sarship[coastline]'")]
+pytestmark = [
+    pytest.mark.gpu,
+    pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)"),
+    pytest.mark.skipif(not coastline.available(), reason="needs pip install 'sarship[coastline]'"),
+]
 
 
 def _arr(d, store, name):
@@ -26,8 +28,17 @@ def _arr(d, store, name):
 
 @pytest.mark.parametrize("land_mask", ["coastline", "coastline+texture"])
 def test_gpu_run_equals_cpu_run_with_coastline(tmp_path, land_mask):
-    cfg = SimConfig(shape=(384, 384), ships=4, seed=3, looks=4.0, clutter="k", land=True, scr_db=22.0,
-                    length_m=(60.0, 150.0), geo=(10.6, 59.8))
+    cfg = SimConfig(
+        shape=(384, 384),
+        ships=4,
+        seed=3,
+        looks=4.0,
+        clutter="k",
+        land=True,
+        scr_db=22.0,
+        length_m=(60.0, 150.0),
+        geo=(10.6, 59.8),
+    )
     scene = simulate(tmp_path / "s.zarr", cfg, tile=128)
     st = {"land_mask": land_mask, "guard": 11, "background": 21}
     for device in ("cpu", "gpu"):

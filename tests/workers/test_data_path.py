@@ -7,15 +7,15 @@ import importlib.util
 
 import numpy as np
 import pytest
-
 from scipy import ndimage
 
 from sarship.pipeline.land import landmask as lm
 from sarship.pipeline.tiling.windows import mirror_pad, padded_block
 
 
-@pytest.mark.parametrize("kind, stride, window", [("float32", 7, 15), ("float64", 23, 15), ("float32", 5, 9),
-                                                  ("complex", 17, 15)])
+@pytest.mark.parametrize(
+    "kind, stride, window", [("float32", 7, 15), ("float64", 23, 15), ("float32", 5, 9), ("complex", 17, 15)]
+)
 def test_texture_sample_is_the_texture_of_the_grid_pixels_bit_for_bit(kind, stride, window):
     """The sample's window sums are formed at the grid pixels alone (landmask._grid_sums), in the
     order of the tiling-invariant box sums: equal to the whole-scene texture bit for bit, for
@@ -68,25 +68,41 @@ def test_mask_stores_only_chunks_with_detections(tmp_path):
     """The mask costs what it holds: a tile without a detection stores no chunk (zarr's
     write_empty_chunks off), and the store still reads back 0 there."""
     import zarr
-
     from conftest import write_scene
+
     from sarship.workers.jobs import run_detection
 
     rng = np.random.default_rng(5)
     x = rng.gamma(4.0, 0.25, (128, 128)).astype(np.float32)
     x[20:24, 20:30] += 80.0  # one ship, in tile (0, 0)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=64, looks=4.0)
-    run = run_detection(scene, "ca_cfar", {"pfa": 1e-9, "guard": 9, "background": 17, "land_mask": None},
-                        out_dir=tmp_path / "out", progress=False)
+    run = run_detection(
+        scene,
+        "ca_cfar",
+        {"pfa": 1e-9, "guard": 9, "background": 17, "land_mask": None},
+        out_dir=tmp_path / "out",
+        progress=False,
+    )
     assert run["detections"] == 1
-    chunks = sorted(p.relative_to(tmp_path / "out" / "mask.zarr" / "mask").as_posix()
-                    for p in (tmp_path / "out" / "mask.zarr" / "mask" / "c").rglob("*") if p.is_file())
+    chunks = sorted(
+        p.relative_to(tmp_path / "out" / "mask.zarr" / "mask").as_posix()
+        for p in (tmp_path / "out" / "mask.zarr" / "mask" / "c").rglob("*")
+        if p.is_file()
+    )
     assert chunks == ["c/0/0"]
     m = zarr.open_array(str(tmp_path / "out" / "mask.zarr" / "mask"), mode="r")[:]
     assert m.shape == (128, 128) and m[20:24, 20:30].all() and m.sum() == m[:64, :64].sum()
     t = run["timings"]
-    for key in ("prepare_s", "cluster_start_s", "tiles_s", "cluster_close_s", "consolidate_s", "merge_s",
-                "geojson_s", "total_s"):
+    for key in (
+        "prepare_s",
+        "cluster_start_s",
+        "tiles_s",
+        "cluster_close_s",
+        "consolidate_s",
+        "merge_s",
+        "geojson_s",
+        "total_s",
+    ):
         assert t[key] is not None and t[key] >= 0, key
     assert t["cluster_start_s"] <= t["prepare_s"] <= t["total_s"]
     assert all("land_s" in p for p in run["tiles"]["per_tile"])
@@ -124,8 +140,11 @@ def test_write_sparse_writes_only_the_chunks_that_hold_marks(tmp_path, monkeypat
     want[0:1024, 1024:2048] = edge
     assert np.array_equal(got, want)
     # only the shards of the two written tiles exist
-    shards = sorted(p.relative_to(tmp_path / "m.zarr" / "mask" / "c").as_posix()
-                    for p in (tmp_path / "m.zarr" / "mask" / "c").rglob("*") if p.is_file())
+    shards = sorted(
+        p.relative_to(tmp_path / "m.zarr" / "mask" / "c").as_posix()
+        for p in (tmp_path / "m.zarr" / "mask" / "c").rglob("*")
+        if p.is_file()
+    )
     assert shards == ["0/1", "1/2"]
 
 
@@ -148,7 +167,7 @@ def test_write_points_writes_what_write_sparse_writes(tmp_path, monkeypatch, bac
         if k:  # tile 0 stays empty
             for _ in range(3 * k):
                 r, c = rng.integers(0, 1024 - 8, 2)
-                core[r: r + int(rng.integers(1, 8)), c: c + int(rng.integers(1, 8))] = True
+                core[r : r + int(rng.integers(1, 8)), c : c + int(rng.integers(1, 8))] = True
         rows, cols = np.nonzero(core)
         box_a = write_sparse(str(tmp_path / "a.zarr" / "mask"), r0, c0, core)
         box_b = write_points(str(tmp_path / "b.zarr" / "mask"), r0, c0, rows, cols, core.shape)
@@ -172,7 +191,7 @@ def test_points_components_equal_the_dense_labelling():
         mext = np.zeros((h + 2 * r, w + 2 * r), bool)
         for _ in range(int(rng.integers(0, 12))):
             a, b = rng.integers(0, h + 2 * r - 4), rng.integers(0, w + 2 * r - 4)
-            mext[a: a + int(rng.integers(1, 5)), b: b + int(rng.integers(1, 5))] = True
+            mext[a : a + int(rng.integers(1, 5)), b : b + int(rng.integers(1, 5))] = True
         values = rng.gamma(1.0, 1.0, (h, w)).astype(np.float32)
         stat = rng.normal(size=(h, w)).astype(np.float32)
         dense = tile_components(mext, values, stat, r, (1000, 2000), (4, 7))
@@ -194,9 +213,8 @@ def test_readers_agree_bit_for_bit(tmp_path, monkeypatch, tile):
     chunks and clipped at the edges (sharded tiles of 512 inner chunks, and plain chunks)."""
     if "tensorstore" not in BACKENDS:
         pytest.skip("tensorstore is not installed")
-    from conftest import write_scene
-    from sarship.pipeline.tiling.inputs import make_reader
     from sarship.pipeline.scene import create_scene, finalize_scene
+    from sarship.pipeline.tiling.inputs import make_reader
 
     rng = np.random.default_rng(11)
     # sharded tiles need a scene past one 1024 shard; plain 64 px chunks are crossed and clipped by a
@@ -206,13 +224,22 @@ def test_readers_agree_bit_for_bit(tmp_path, monkeypatch, tile):
     x[5:9, 7:11] = np.nan
     hh = (rng.normal(size=(H, W)) + 1j * rng.normal(size=(H, W))).astype(np.complex64)
     vv = (rng.normal(size=(H, W)) + 1j * rng.normal(size=(H, W))).astype(np.complex64)
-    cov = {f"c{i}{j}": (rng.normal(size=(H, W)) + (1j * rng.normal(size=(H, W)) if i != j else 0)).astype(
-        np.complex64 if i != j else np.float32) for i, j in ((1, 1), (1, 2), (2, 2))}
+    cov = {
+        f"c{i}{j}": (rng.normal(size=(H, W)) + (1j * rng.normal(size=(H, W)) if i != j else 0)).astype(
+            np.complex64 if i != j else np.float32
+        )
+        for i, j in ((1, 1), (1, 2), (2, 2))
+    }
     stores = []
     for codec in ("lz4", "zstd", "none"):
-        g = create_scene(tmp_path / f"{codec}.zarr", (H, W), {"intensity": np.float32, "hh": np.complex64,
-                                                               "vv": np.complex64, **{k: v.dtype for k, v in cov.items()}},
-                         tile=tile, attrs={"kind": "intensity"}, codec=codec)
+        g = create_scene(
+            tmp_path / f"{codec}.zarr",
+            (H, W),
+            {"intensity": np.float32, "hh": np.complex64, "vv": np.complex64, **{k: v.dtype for k, v in cov.items()}},
+            tile=tile,
+            attrs={"kind": "intensity"},
+            codec=codec,
+        )
         g["intensity"][:] = x
         g["hh"][:] = hh
         g["vv"][:] = vv
@@ -220,11 +247,21 @@ def test_readers_agree_bit_for_bit(tmp_path, monkeypatch, tile):
             g[k][:] = v
         finalize_scene(tmp_path / f"{codec}.zarr")
         stores.append(str(tmp_path / f"{codec}.zarr"))
-    rects = [(0, 10, 0, 10), (H // 2 - 50, H, 20, W), (H - 100, H, W - 50, W), (3, 4, W - 1, W),
-             (H // 2 + 50, H // 2 + 50, 0, 5)]  # for 1100 x 1300: (500, 1100, 20, 1300), ...
+    rects = [
+        (0, 10, 0, 10),
+        (H // 2 - 50, H, 20, W),
+        (H - 100, H, W - 50, W),
+        (3, 4, W - 1, W),
+        (H // 2 + 50, H // 2 + 50, 0, 5),
+    ]  # for 1100 x 1300: (500, 1100, 20, 1300), ...
     for path in stores:
-        for var, transform in (("intensity", "real"), ("hh", "abs2"), ("hh", "complex"), (("hh", "vv"), "stack"),
-                               (("c11", "c12", "c22"), "covariance")):
+        for var, transform in (
+            ("intensity", "real"),
+            ("hh", "abs2"),
+            ("hh", "complex"),
+            (("hh", "vv"), "stack"),
+            (("c11", "c12", "c22"), "covariance"),
+        ):
             got = {}
             for backend in ("zarr", "tensorstore"):
                 monkeypatch.setenv("SARSHIP_READER", backend)
@@ -241,9 +278,12 @@ def test_readers_agree_bit_for_bit(tmp_path, monkeypatch, tile):
     monkeypatch.setenv("SARSHIP_READER", "zarr")
     z_arr = open_array(stores[0] + "/intensity")
     assert type(ts_arr).__name__ == "_TensorStoreArray" and ts_arr.shape == (H, W)
-    for key in ((slice(H - 100, H + 300), slice(-20, None)), (slice(3, 40, 7), slice(90, 1000, 3)),
-                (slice(900, 50), slice(0, 3)),
-                (slice(None), slice(10, 11))):
+    for key in (
+        (slice(H - 100, H + 300), slice(-20, None)),
+        (slice(3, 40, 7), slice(90, 1000, 3)),
+        (slice(900, 50), slice(0, 3)),
+        (slice(None), slice(10, 11)),
+    ):
         np.testing.assert_array_equal(ts_arr[key], z_arr[key])
 
 

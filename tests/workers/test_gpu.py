@@ -23,8 +23,7 @@ import pytest
 from sarship.pipeline import detectors
 from sarship.pipeline.gpu import available
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 
 @pytest.fixture(scope="module")
@@ -55,12 +54,13 @@ def _run_both(name, block, halo, origin, **kw):
 
 @pytest.mark.parametrize("hsum", ["direct", "transpose"])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("m,halo,origin", [(3, 1, (0, 0)), (41, 20, (-20, -20)), (81, 40, (1234, 567)),
-                                           (61, 45, (-7, 999)), (5, 2, (13, 4))])
+@pytest.mark.parametrize(
+    "m,halo,origin", [(3, 1, (0, 0)), (41, 20, (-20, -20)), (81, 40, (1234, 567)), (61, 45, (-7, 999)), (5, 2, (13, 4))]
+)
 def test_box_sum_bit_identical(cp, dtype, m, halo, origin, hsum, monkeypatch):
-    from sarship.pipeline.tiling.boxsum import centered_box_sum as cpu
     from sarship.pipeline.gpu import box
     from sarship.pipeline.gpu.box import centered_box_sum as gpu
+    from sarship.pipeline.tiling.boxsum import centered_box_sum as cpu
 
     monkeypatch.setattr(box, "HSUM", hsum)
     rng = np.random.default_rng(m)
@@ -75,9 +75,9 @@ def _gamma_scene(shape, seed=0, looks=1.0):
     rng = np.random.default_rng(seed)
     x = rng.gamma(looks, 1.0 / looks, shape).astype(np.float32)
     # a few bright targets
-    for k in range(12):
+    for _k in range(12):
         i, j = rng.integers(50, shape[0] - 50), rng.integers(50, shape[1] - 50)
-        x[i: i + 4, j: j + 9] *= 60.0
+        x[i : i + 4, j : j + 9] *= 60.0
     return x
 
 
@@ -213,19 +213,35 @@ def test_gpu_tiles_send_back_detected_pixels_that_give_the_cpu_detections(tmp_pa
     value) instead of the whole mask and statistic: the detections, their properties (peak and
     mean of the input: intensity, or the span of stacked channels) and the mask equal the CPU
     run's, with 256 px tiles so that ships cross tile edges."""
-    from sarship.pipeline.simulate import SimConfig, simulate
-    from sarship.workers.jobs import run_detection
     import zarr
 
-    cfg = SimConfig(kind=kind, shape=(1024, 1024), ships=12, seed=21, clutter="rayleigh" if kind != "intensity"
-                    else "gamma", looks=1)
+    from sarship.pipeline.simulate import SimConfig, simulate
+    from sarship.workers.jobs import run_detection
+
+    cfg = SimConfig(
+        kind=kind,
+        shape=(1024, 1024),
+        ships=12,
+        seed=21,
+        clutter="rayleigh" if kind != "intensity" else "gamma",
+        looks=1,
+    )
     simulate(tmp_path / "s.zarr", cfg, tile=256)
     runs, feats = {}, {}
     for device in ("gpu", "cpu"):
-        runs[device] = run_detection(tmp_path / "s.zarr", detector, {"land_mask": "none"}, out_dir=tmp_path / device,
-                                     tile=256, device=device, progress=False)
-        feats[device] = sorted((f["properties"] for f in json.loads(
-            (tmp_path / device / "detections.geojson").read_text())["features"]), key=lambda p: p["bbox_px"])
+        runs[device] = run_detection(
+            tmp_path / "s.zarr",
+            detector,
+            {"land_mask": "none"},
+            out_dir=tmp_path / device,
+            tile=256,
+            device=device,
+            progress=False,
+        )
+        feats[device] = sorted(
+            (f["properties"] for f in json.loads((tmp_path / device / "detections.geojson").read_text())["features"]),
+            key=lambda p: p["bbox_px"],
+        )
     assert {t["device"] for t in runs["gpu"]["tiles"]["per_tile"]} == {"gpu"}
     mg = zarr.open_group(str(tmp_path / "gpu" / "mask.zarr"), mode="r")["mask"][:]
     mc = zarr.open_group(str(tmp_path / "cpu" / "mask.zarr"), mode="r")["mask"][:]
@@ -239,11 +255,13 @@ def test_gpu_tiles_send_back_detected_pixels_that_give_the_cpu_detections(tmp_pa
 def test_cuda_initialised_is_told_apart_from_an_import():
     """Zarr imports CuPy whenever it is installed; only CUDA's own initialisation keeps the
     command's workers from being forked (workers/cluster.cuda_initialised)."""
-    code = ("import zarr, cupy\n"
-            "from sarship.workers.cluster import cuda_initialised, worker_start_method\n"
-            "a, m = cuda_initialised(), worker_start_method()\n"
-            "cupy.zeros(1)\n"
-            "print(a, m, cuda_initialised(), worker_start_method())\n")
+    code = (
+        "import zarr, cupy\n"
+        "from sarship.workers.cluster import cuda_initialised, worker_start_method\n"
+        "a, m = cuda_initialised(), worker_start_method()\n"
+        "cupy.zeros(1)\n"
+        "print(a, m, cuda_initialised(), worker_start_method())\n"
+    )
     env = {k: v for k, v in os.environ.items() if k != "SARSHIP_WORKER_START"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 0, out.stderr
@@ -257,9 +275,25 @@ def test_sarship_detect_forks_its_gpu_workers_and_they_use_the_gpu(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "SARSHIP_WORKER_START"}
     runs = {}
     for device in ("gpu", "cpu"):
-        out = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
-                              "--out", str(tmp_path / device), "--device", device], capture_output=True,
-                             text=True, env=env, timeout=300)
+        out = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "sarship",
+                "detect",
+                str(scene),
+                "--detector",
+                "ca_cfar",
+                "--out",
+                str(tmp_path / device),
+                "--device",
+                device,
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+        )
         assert out.returncode == 0, out.stderr
         if device == "gpu":
             assert "GPU worker processes (fork)" in out.stderr, out.stderr
@@ -279,16 +313,25 @@ def test_mixed_cluster_routes_each_tile(tmp_path):
 
     scene = _scene(tmp_path)
     specs = worker_specs(visible_gpus()[:1], 1, prefix="mix-", silence_logs=logging.ERROR)
-    with SpecCluster(workers=specs, scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
-                     silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    with (
+        SpecCluster(
+            workers=specs,
+            scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
+            silence_logs=logging.ERROR,
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         client.wait_for_workers(2, timeout=120)
         runs = {
-            ("ca_cfar", "gpu"): run_detection(scene, "ca_cfar", out_dir=tmp_path / "a", client=client,
-                                              device="gpu", progress=False),
-            ("ca_cfar", "auto"): run_detection(scene, "ca_cfar", out_dir=tmp_path / "b", client=client,
-                                               device="auto", progress=False),
-            ("ca_cfar", "cpu"): run_detection(scene, "ca_cfar", out_dir=tmp_path / "c", client=client,
-                                              device="cpu", progress=False),
+            ("ca_cfar", "gpu"): run_detection(
+                scene, "ca_cfar", out_dir=tmp_path / "a", client=client, device="gpu", progress=False
+            ),
+            ("ca_cfar", "auto"): run_detection(
+                scene, "ca_cfar", out_dir=tmp_path / "b", client=client, device="auto", progress=False
+            ),
+            ("ca_cfar", "cpu"): run_detection(
+                scene, "ca_cfar", out_dir=tmp_path / "c", client=client, device="cpu", progress=False
+            ),
         }
     for (det, dev), run in runs.items():
         workers = {t["worker"] for t in run["tiles"]["per_tile"]}
@@ -305,15 +348,35 @@ def test_sarship_worker_processes_with_dask_scheduler(tmp_path):
     scene = _scene(tmp_path, shape=(1024, 1024))
     port = 8790 + os.getpid() % 100
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--port", str(port),
-                              "--dashboard-address", ":0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                             env=env)
+    sched = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--port", str(port), "--dashboard-address", ":0"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+    )
     work = None
     try:
         time.sleep(3)
-        work = subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler",
-                                 f"tcp://127.0.0.1:{port}", "--gpus", "all", "--cpus", "1", "--name", "w"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
+        work = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "sarship",
+                "worker",
+                "--scheduler",
+                f"tcp://127.0.0.1:{port}",
+                "--gpus",
+                "all",
+                "--cpus",
+                "1",
+                "--name",
+                "w",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            env=env,
+            text=True,
+        )
         from distributed import Client
 
         with Client(f"tcp://127.0.0.1:{port}", timeout="30s") as client:
@@ -330,9 +393,27 @@ def test_sarship_worker_processes_with_dask_scheduler(tmp_path):
             res = sorted((w["name"], tuple(sorted(w["resources"].items()))) for w in info.values())
             assert ("w-cpu0", (("CPU", 1.0),)) in res or ("w-cpu0", (("CPU", 1),)) in res
             assert sum(name.startswith("w-gpu") for name, _ in res) == n_gpu * gpu_procs(n_gpu)
-        out = subprocess.run([sys.executable, "-m", "sarship", "detect", str(scene), "--detector", "ca_cfar",
-                              "--out", str(tmp_path / "o"), "--scheduler", f"tcp://127.0.0.1:{port}",
-                              "--device", "gpu"], capture_output=True, text=True, env=env, timeout=300)
+        out = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "sarship",
+                "detect",
+                str(scene),
+                "--detector",
+                "ca_cfar",
+                "--out",
+                str(tmp_path / "o"),
+                "--scheduler",
+                f"tcp://127.0.0.1:{port}",
+                "--device",
+                "gpu",
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+        )
         assert out.returncode == 0, out.stderr
         run = json.loads((tmp_path / "o" / "run.json").read_text())
         assert {t["device"] for t in run["tiles"]["per_tile"]} == {"gpu"}
@@ -348,8 +429,9 @@ def test_sarship_worker_processes_with_dask_scheduler(tmp_path):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("kw", [{"looks": 1.0}, {"looks": 1.0, "target": 3, "guard": 11, "background": 31,
-                                                   "pfa": 1e-4}])
+@pytest.mark.parametrize(
+    "kw", [{"looks": 1.0}, {"looks": 1.0, "target": 3, "guard": 11, "background": 31, "pfa": 1e-4}]
+)
 def test_os_cfar_matches_cpu(cp, dtype, kw):
     p = detectors.get("os_cfar").params(**kw)
     halo = p.background // 2
@@ -387,18 +469,21 @@ def _lmm_scene(n, seed=12):
     x = np.exp(y).astype(np.float32)
     for _ in range(max(4, n // 25)):
         i, j = rng.integers(8, n - 12, 2)
-        x[i: i + 3, j: j + 5] *= 80.0
+        x[i : i + 3, j : j + 5] *= 80.0
     x[5, 5] = 0.0  # an unusable sample (ignored in rings, never detected)
     return x
 
 
-@pytest.mark.parametrize("method,n,kw", [
-    ("exact", 48, {"guard": 5, "background": 13}),
-    ("fast", 96, {"guard": 5, "background": 13}),
-    ("fast", 96, {"guard": 5, "background": 13, "select": "fixed", "tail": "plugin"}),
-    ("grid", 160, {}),
-    ("grid", 120, {"guard": 11, "background": 31, "components": 2}),
-])
+@pytest.mark.parametrize(
+    "method,n,kw",
+    [
+        ("exact", 48, {"guard": 5, "background": 13}),
+        ("fast", 96, {"guard": 5, "background": 13}),
+        ("fast", 96, {"guard": 5, "background": 13, "select": "fixed", "tail": "plugin"}),
+        ("grid", 160, {}),
+        ("grid", 120, {"guard": 11, "background": 31, "components": 2}),
+    ],
+)
 def test_lmm_matches_cpu(cp, method, n, kw):
     from sarship.pipeline.tiling.windows import mirror_pad
 
@@ -441,9 +526,10 @@ def test_service_local_cluster_has_gpu_workers(tmp_path):
         assert httpx.get(srv.url + "/readyz").json()["checks"]["workers"] == n_gpu + 2
         runs = {}
         for device in ("auto", "cpu"):
-            r = httpx.post(srv.url + "/processes/ca_cfar/execution",
-                           json={"inputs": {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1,
-                                            "device": device}})
+            r = httpx.post(
+                srv.url + "/processes/ca_cfar/execution",
+                json={"inputs": {"scene": "s1", "guard": 11, "background": 31, "min_area_px": 1, "device": device}},
+            )
             st = wait_job(srv.url, r.json()["jobID"])
             assert st["status"] == "successful", st
             run = httpx.get(f"{srv.url}/jobs/{st['jobID']}/results/metrics").json()

@@ -6,9 +6,8 @@ import json
 
 import numpy as np
 import zarr
-from scipy import ndimage
-
 from conftest import write_scene
+from scipy import ndimage
 
 
 def _scene(tmp_path, tile):
@@ -37,14 +36,15 @@ def test_mask_holds_the_kept_detections_pixels_for_any_tiling(client, tmp_path):
     masks = {}
     for tile in (200, 48):
         out = tmp_path / f"t{tile}"
-        run = run_detection(_scene(tmp_path, tile), "ca_cfar", settings, out_dir=out, tile=tile, client=client,
-                            progress=False)
+        run = run_detection(
+            _scene(tmp_path, tile), "ca_cfar", settings, out_dir=out, tile=tile, client=client, progress=False
+        )
         feats = json.loads((out / "detections.geojson").read_text())["features"]
         g = zarr.open_group(str(out / "mask.zarr"), mode="r")
         mask, det = np.asarray(g["mask"][...]) != 0, np.asarray(g["detected"][...]) != 0
-        assert [f["properties"]["bbox_px"][:2] for f in feats] == [[40, 40]]   # the bright ship only
+        assert [f["properties"]["bbox_px"][:2] for f in feats] == [[40, 40]]  # the bright ship only
         assert run["discarded"]["contrast"] == 1 and run["discarded"]["size"] >= 1, run["discarded"]
-        assert det[110:114, 140:150].any() and det[120:122, 30:32].all()     # both dropped ones were detected
+        assert det[110:114, 140:150].any() and det[120:122, 30:32].all()  # both dropped ones were detected
         lab = _components(det, run["parameters"]["merge_px"])
         kept = {int(lab[tuple(f["properties"]["peak_px"])]) for f in feats}
         assert np.array_equal(mask, np.isin(lab, sorted(kept)) & det)
@@ -61,8 +61,15 @@ def test_pixel_scores_read_the_kept_mask(client, tmp_path):
     from sarship.workers.jobs import run_detection
 
     out = tmp_path / "o"
-    run_detection(_scene(tmp_path, 200), "ca_cfar", {"land_mask": "none", "min_area_px": 8, "pfa": 1e-6},
-                  out_dir=out, tile=200, client=client, progress=False)
+    run_detection(
+        _scene(tmp_path, 200),
+        "ca_cfar",
+        {"land_mask": "none", "min_area_px": 8, "pfa": 1e-6},
+        out_dir=out,
+        tile=200,
+        client=client,
+        progress=False,
+    )
     truth = np.zeros((160, 200), np.uint8)
     truth[40:44, 40:50] = 1
     truth[110:114, 140:150] = 1
@@ -79,7 +86,14 @@ def test_merge_members_give_each_record_its_pixels_tile_by_tile():
     """``merge_tiles(members=True)``: the tiles' component ids of each merged record, picked from
     the tiles' own labels (as ``run_tile_keep`` picks them), are exactly that component's pixels."""
     from conftest import blobs_scene
-    from sarship.pipeline.targets.components import mask_points, merge_radius, merge_tiles, point_labels, tile_components
+
+    from sarship.pipeline.targets.components import (
+        mask_points,
+        merge_radius,
+        merge_tiles,
+        point_labels,
+        tile_components,
+    )
 
     m = blobs_scene((150, 130), seed=4, n=30) > 4.0
     r, t = merge_radius(2), 32
@@ -90,7 +104,7 @@ def test_merge_members_give_each_record_its_pixels_tile_by_tile():
     for i in range(0, H, t):
         for j in range(0, W, t):
             h, w = min(t, H - i), min(t, W - j)
-            ext = pad[i:i + h + 2 * r, j:j + w + 2 * r]
+            ext = pad[i : i + h + 2 * r, j : j + w + 2 * r]
             v = np.ones((h, w), np.float32)
             tiles[(i // t, j // t)] = tile_components(ext, v, v, r, (i, j), (i // t, j // t))
             rr, cc = mask_points(ext)
@@ -109,5 +123,9 @@ def test_merge_members_give_each_record_its_pixels_tile_by_tile():
     assert (got[m] >= 0).all() and (got[~m] == -1).all()
     for k, rec in enumerate(recs):
         rows, cols = np.nonzero(got == k)
-        assert len(rows) == rec["n"] and (rows.min(), cols.min(), rows.max() + 1, cols.max() + 1) == \
-            (rec["r0"], rec["c0"], rec["r1"], rec["c1"])
+        assert len(rows) == rec["n"] and (rows.min(), cols.min(), rows.max() + 1, cols.max() + 1) == (
+            rec["r0"],
+            rec["c0"],
+            rec["r1"],
+            rec["c1"],
+        )

@@ -9,21 +9,21 @@ import numpy as np
 import pytest
 
 from sarship.pipeline import detectors
-from sarship.pipeline.land import landmask as lm
 from sarship.pipeline.gpu import available
+from sarship.pipeline.land import landmask as lm
 from sarship.pipeline.simulate import SimConfig, simulate_array
 from sarship.pipeline.tiling.windows import mirror_pad
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not available(), reason="needs CuPy and a CUDA GPU (none here)")]
 
 
 @pytest.mark.parametrize("detector", ["ca_cfar", "os_cfar", "two_parameter", "lmm"])
 def test_gpu_detectors_on_land_masked_block(detector):
     import cupy
 
-    cfg = SimConfig(shape=(256, 256), ships=3, seed=3, looks=4.0, clutter="k", land=True, scr_db=20.0,
-                    length_m=(60.0, 150.0))
+    cfg = SimConfig(
+        shape=(256, 256), ships=3, seed=3, looks=4.0, clutter="k", land=True, scr_db=20.0, length_m=(60.0, 150.0)
+    )
     I = simulate_array(cfg)[0]["intensity"]
     tc = lm.TextureConfig()
     r = tc.window // 2

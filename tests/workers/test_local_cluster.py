@@ -12,8 +12,8 @@ import sys
 import numpy as np
 import pytest
 
-from tests.conftest import write_scene
 from tests.cli.test_cli import assert_clean_error, sarship, sarship_here
+from tests.conftest import write_scene
 
 
 @pytest.fixture()
@@ -37,7 +37,7 @@ def _detect(scene, out, **env):
 def _nolooks_scene(tmp_path, shape, ship_row, tile):
     rng = np.random.default_rng(4)
     x = rng.gamma(2.0, 0.5, shape).astype(np.float32)
-    x[ship_row:ship_row + 6, 200:230] += 80.0
+    x[ship_row : ship_row + 6, 200:230] += 80.0
     return write_scene(tmp_path / "nolooks.zarr", {"intensity": x}, tile=tile)  # no looks attribute
 
 
@@ -54,8 +54,9 @@ def test_small_scene_runs_on_threads_and_the_setting_switches_to_processes(tmp_p
     (tensorstore's threads do not survive a fork; its state must not hang the children)."""
     scene = _nolooks_scene(tmp_path, (300, 280), 150, 128)
     # the threaded cluster in this process (tests/cli/test_cli.py sarship_here), the forked one below as a command
-    threaded = sarship_here("detect", scene, "--detector", "ca_cfar", "--out", tmp_path / "a",
-                            env={"SARSHIP_THREADS_MAX_PX": ""})
+    threaded = sarship_here(
+        "detect", scene, "--detector", "ca_cfar", "--out", tmp_path / "a", env={"SARSHIP_THREADS_MAX_PX": ""}
+    )
     assert threaded.returncode == 0, threaded.stderr
     assert "threads in this process" in _cluster_line(threaded.stderr)
     procs = _detect(scene, tmp_path / "b", SARSHIP_THREADS_MAX_PX="0", SARSHIP_READER="tensorstore")
@@ -93,8 +94,15 @@ def test_a_bad_setting_is_one_line_and_leaves_nothing(scene, tmp_path):
 
 def test_a_bad_start_method_is_one_line_and_leaves_nothing(scene, tmp_path):
     # in this process (tests/cli/test_cli.py sarship_here); a real process's refusal of a setting: above
-    res = sarship_here("detect", scene, "--detector", "ca_cfar", "--out", tmp_path / "c",
-                       env={"SARSHIP_THREADS_MAX_PX": "0", "SARSHIP_WORKER_START": "vfork"})
+    res = sarship_here(
+        "detect",
+        scene,
+        "--detector",
+        "ca_cfar",
+        "--out",
+        tmp_path / "c",
+        env={"SARSHIP_THREADS_MAX_PX": "0", "SARSHIP_WORKER_START": "vfork"},
+    )
     assert_clean_error(res, "SARSHIP_WORKER_START", "vfork")
     assert not (tmp_path / "c").exists()
 
@@ -174,8 +182,12 @@ def test_cluster_host_setting(monkeypatch):
 
     monkeypatch.delenv("SARSHIP_CLUSTER_HOST", raising=False)
     assert cluster_host() == "127.0.0.1"
-    for value, want in (("10.0.0.5", "10.0.0.5"), ("[::1]", "::1"), ("gpu-host.example", "gpu-host.example"),
-                        ("0.0.0.0", "0.0.0.0")):
+    for value, want in (
+        ("10.0.0.5", "10.0.0.5"),
+        ("[::1]", "::1"),
+        ("gpu-host.example", "gpu-host.example"),
+        ("0.0.0.0", "0.0.0.0"),
+    ):
         monkeypatch.setenv("SARSHIP_CLUSTER_HOST", value)
         assert cluster_host() == want
     monkeypatch.setenv("SARSHIP_CLUSTER_HOST", "tcp://x:1")

@@ -14,12 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import dask_processes, fsize_limit, write_scene
 from tests.cli.test_cli import assert_clean_error, listing, sarship, sarship_here
+from tests.conftest import dask_processes, fsize_limit, write_scene
 
 # Each test runs one refusal (and each success) as a real ``sarship`` process; its further refusals
 # run in this process (tests/cli/test_cli.py ``sarship_here``: no interpreter start-up per command).
-
 
 
 @pytest.fixture()
@@ -208,8 +207,11 @@ def test_local_cluster_dashboard_listens_on_loopback_only():
         listening = set()
         for p in [me, *me.children(recursive=True)]:
             try:
-                listening |= {c.laddr.ip for c in p.net_connections(kind="inet")
-                              if c.status == psutil.CONN_LISTEN and c.laddr.port == port}
+                listening |= {
+                    c.laddr.ip
+                    for c in p.net_connections(kind="inet")
+                    if c.status == psutil.CONN_LISTEN and c.laddr.port == port
+                }
             except (psutil.NoSuchProcess, psutil.AccessDenied):
                 continue
     assert listening == {"127.0.0.1"}, listening
@@ -224,9 +226,25 @@ def remote_cluster(tmp_path):
 
 
 def test_relative_scene_with_workers_in_another_folder(scene, tmp_path, remote_cluster):
-    res = subprocess.run([sys.executable, "-m", "sarship", "detect", scene.name, "--detector", "ca_cfar",
-                          "--scheduler", remote_cluster, "--out", "o"], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=300)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "detect",
+            scene.name,
+            "--detector",
+            "ca_cfar",
+            "--scheduler",
+            remote_cluster,
+            "--out",
+            "o",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+    )
     assert res.returncode == 0, res.stderr
     run = json.loads((tmp_path / "o" / "run.json").read_text())
     assert run["detections"] >= 1 and run["tiles"]["count"] == 4
@@ -242,9 +260,23 @@ def test_no_space_to_write_is_exit_3_in_one_line_and_leaves_nothing(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
 
-    res = subprocess.run([sys.executable, "-m", "sarship", "ingest", str(tmp_path / "x.npy"), "--out",
-                          str(out / "x.zarr"), "--tile", "1024"], capture_output=True, text=True,
-                         timeout=120, preexec_fn=fsize_limit(2**20))  # writes past 1 MiB fail
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sarship",
+            "ingest",
+            str(tmp_path / "x.npy"),
+            "--out",
+            str(out / "x.zarr"),
+            "--tile",
+            "1024",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        preexec_fn=fsize_limit(2**20),
+    )  # writes past 1 MiB fail
     assert res.returncode == 3, (res.returncode, res.stderr)
     assert len(res.stderr.strip().splitlines()) == 1 and "no space to write" in res.stderr, res.stderr
     assert "Traceback" not in res.stderr and os.listdir(out) == [], os.listdir(out)
@@ -294,12 +326,23 @@ def test_two_commands_to_one_new_out_never_both_succeed(command, scene, tmp_path
     ``--overwrite``: exactly one succeeds; the other exits 2 with one line (refused while the
     first holds the output, or finding its outputs), and the winner's outputs are intact."""
     out = tmp_path / ("both.zarr" if command == "ingest" else "both")
-    args = ["ingest", scene, "--out", out] if command == "ingest" else \
-        ["detect", scene, "--detector", "ca_cfar", "--out", out]
+    args = (
+        ["ingest", scene, "--out", out]
+        if command == "ingest"
+        else ["detect", scene, "--detector", "ca_cfar", "--out", out]
+    )
     from tests.cli.test_cli import ENV
 
-    procs = [subprocess.Popen([sys.executable, "-m", "sarship", *map(str, args)], stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True, env=ENV) for _ in range(2)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "sarship", *map(str, args)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=ENV,
+        )
+        for _ in range(2)
+    ]
     results = [(p.wait(timeout=240), *p.communicate()) for p in procs]
     codes = sorted(r[0] for r in results)
     assert codes == [0, 2], results

@@ -15,7 +15,8 @@ import sys
 import time
 
 import pytest
-from conftest import blobs_scene as _blobs, write_scene
+from conftest import blobs_scene as _blobs
+from conftest import write_scene
 
 from sarship.pipeline.errors import InputError
 from sarship.workers.gpus import parse_gpus, worker_specs
@@ -109,8 +110,13 @@ def _free_port() -> int:
 
 
 def _cli(*args, timeout=300):
-    return subprocess.run([sys.executable, "-m", "sarship", *args], capture_output=True, text=True,
-                          timeout=timeout, env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})
+    return subprocess.run(
+        [sys.executable, "-m", "sarship", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**os.environ, "CUDA_VISIBLE_DEVICES": ""},
+    )
 
 
 @pytest.mark.slow  # ~30 s of worker processes; the placement rules are tested without them above
@@ -122,25 +128,85 @@ def test_mixed_cluster_cpu_tiles_avoid_gpu_worker(tmp_path, blobs_scene):
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
     env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}  # "" hides GPUs ("-1" fails Dask's NVML monitor on GPU hosts)
-    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                               "--port", str(port), "--dashboard-address", ":0"],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "distributed.cli.dask_scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--dashboard-address",
+                ":0",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=env,
+        )
+    ]
     try:
         time.sleep(2)
-        procs.append(subprocess.Popen([sys.executable, "-m", "sarship", "worker", "--scheduler", addr,
-                                       "--gpus", "none", "--cpus", "2", "--name", "cpuhost"],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
-        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
-                                       "--resources", "GPU=1", "--name", "gpuhost-gpu0", "--no-dashboard"],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
+        procs.append(
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "sarship",
+                    "worker",
+                    "--scheduler",
+                    addr,
+                    "--gpus",
+                    "none",
+                    "--cpus",
+                    "2",
+                    "--name",
+                    "cpuhost",
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                env=env,
+            )
+        )
+        procs.append(
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "distributed.cli.dask_worker",
+                    addr,
+                    "--nthreads",
+                    "1",
+                    "--resources",
+                    "GPU=1",
+                    "--name",
+                    "gpuhost-gpu0",
+                    "--no-dashboard",
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                env=env,
+            )
+        )
         from distributed import Client
 
         with Client(addr, timeout="30s") as client:
             client.wait_for_workers(3, timeout=120)
             names = {w["name"]: w["resources"] for w in client.scheduler_info(n_workers=-1)["workers"].values()}
         assert names["cpuhost-cpu0"] == {"CPU": 1} and names["gpuhost-gpu0"] == {"GPU": 1}
-        out = _cli("detect", str(blobs_scene), "--detector", "ca_cfar", "--out", str(tmp_path / "o"),
-                   "--scheduler", addr, "--device", "cpu")
+        out = _cli(
+            "detect",
+            str(blobs_scene),
+            "--detector",
+            "ca_cfar",
+            "--out",
+            str(tmp_path / "o"),
+            "--scheduler",
+            addr,
+            "--device",
+            "cpu",
+        )
         assert out.returncode == 0, out.stderr
         run = json.loads((tmp_path / "o" / "run.json").read_text())
         per = run["tiles"]["per_tile"]
@@ -205,8 +271,7 @@ def test_worker_cli_errors():
 
 @pytest.mark.slow  # waits out the command's 10 s connection timeout; its check, sooner: test_worker_cli_errors
 def test_worker_cli_without_a_scheduler_is_one_line():
-    out = _cli("worker", "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--gpus", "none", "--cpus", "1",
-               timeout=60)
+    out = _cli("worker", "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--gpus", "none", "--cpus", "1", timeout=60)
     assert out.returncode == 2 and "cannot reach Dask scheduler" in out.stderr and "Traceback" not in out.stderr
 
 
@@ -230,17 +295,33 @@ def test_kept_blocks_never_pull_tiles_onto_workers_the_placement_excludes(tmp_pa
     rng = np.random.default_rng(11)
     x = rng.gamma(4.0, 0.25, (1536, 1536)).astype(np.float32)
     for r, c in ((40, 40), (700, 900), (1400, 100)):
-        x[r:r + 4, c:c + 8] += 60.0
+        x[r : r + 4, c : c + 8] += 60.0
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=128, looks=4.0)
-    workers = {"cpu0": {"cls": Worker, "options": {"name": "cpu0", "nthreads": 1, "resources": {"CPU": 1}}},
-               "gpu0": {"cls": Worker, "options": {"name": "gpu0", "nthreads": 2, "resources": {"GPU": 1}}}}
+    workers = {
+        "cpu0": {"cls": Worker, "options": {"name": "cpu0", "nthreads": 1, "resources": {"CPU": 1}}},
+        "gpu0": {"cls": Worker, "options": {"name": "gpu0", "nthreads": 2, "resources": {"GPU": 1}}},
+    }
     # stealing rebalances every 5 ms instead of 100 (the tiles take milliseconds here, seconds on a band)
-    with dask.config.set({"distributed.scheduler.work-stealing-interval": "5ms"}), \
-            SpecCluster(workers=workers, scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
-                        silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
+    with (
+        dask.config.set({"distributed.scheduler.work-stealing-interval": "5ms"}),
+        SpecCluster(
+            workers=workers,
+            scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
+            silence_logs=logging.CRITICAL,
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         client.wait_for_workers(2, timeout=60)
-        run = run_detection(scene, "ca_cfar", {"land_mask": "texture", "guard": 41, "background": 81},
-                            out_dir=tmp_path / "o", client=client, device="cpu", progress=False, tile=128)
+        run = run_detection(
+            scene,
+            "ca_cfar",
+            {"land_mask": "texture", "guard": 41, "background": 81},
+            out_dir=tmp_path / "o",
+            client=client,
+            device="cpu",
+            progress=False,
+            tile=128,
+        )
         time.sleep(1.0)  # a worker whose task state failed is gone by now
         names = sorted(w["name"] for w in client.scheduler_info(n_workers=-1)["workers"].values())
     assert names == ["cpu0", "gpu0"]
@@ -250,15 +331,15 @@ def test_kept_blocks_never_pull_tiles_onto_workers_the_placement_excludes(tmp_pa
     assert run["detections"] >= 3
 
 
-
 def _plugins_and_warmup(dask_worker):
     import threading
 
     for t in threading.enumerate():
         if t.name == "sarship-cuda-warmup":
             t.join(timeout=60)
-    return sorted(dask_worker.plugins), any(t.name == "sarship-cuda-warmup" and t.is_alive()
-                                             for t in threading.enumerate())
+    return sorted(dask_worker.plugins), any(
+        t.name == "sarship-cuda-warmup" and t.is_alive() for t in threading.enumerate()
+    )
 
 
 def test_gpu_worker_spec_starts_with_its_cuda_warmup():
@@ -272,8 +353,12 @@ def test_gpu_worker_spec_starts_with_its_cuda_warmup():
 
     specs = worker_specs(["0"], 0, prefix="w-", gpu_procs=1, gpu_threads=1, silence_logs=50)
     assert any(isinstance(p, CudaWarmup) for p in specs["w-gpu0"]["options"]["plugins"])
-    with SpecCluster(workers=specs, scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
-                     silence_logs=50) as cluster, Client(cluster) as client:
+    with (
+        SpecCluster(
+            workers=specs, scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}}, silence_logs=50
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         client.wait_for_workers(1, timeout=60)
-        (plugins, alive), = client.run(_plugins_and_warmup).values()
+        ((plugins, alive),) = client.run(_plugins_and_warmup).values()
     assert "sarship-cuda-warmup" in plugins and not alive

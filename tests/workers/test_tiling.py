@@ -17,8 +17,8 @@ from scipy import ndimage
 from sarship.pipeline import detectors
 from sarship.pipeline.targets.components import merge_radius
 from sarship.pipeline.tiling.windows import mirror_pad, padded_block, reflect_index
-from tests.conftest import blobs_scene, write_scene
 from sarship.workers.jobs import run_detection
+from tests.conftest import blobs_scene, write_scene
 
 SETTINGS = {
     "two_parameter": {"pfa": "1e-3", "guard": "11", "background": "31", "domain": "db"},
@@ -35,7 +35,9 @@ def test_reflect_index_matches_numpy_pad():
     for n in (1, 2, 5, 17):
         x = np.arange(n)
         for h in (0, 1, 4, 23, 60):
-            np.testing.assert_array_equal(x[reflect_index(-h, n + h, n)], np.pad(x, h, mode="reflect") if n > 1 else np.zeros(n + 2 * h, int))
+            np.testing.assert_array_equal(
+                x[reflect_index(-h, n + h, n)], np.pad(x, h, mode="reflect") if n > 1 else np.zeros(n + 2 * h, int)
+            )
 
 
 def test_padded_block_is_a_slice_of_the_mirrored_scene():
@@ -45,7 +47,7 @@ def test_padded_block_is_a_slice_of_the_mirrored_scene():
     P = mirror_pad(x, h)
     for r0, r1, c0, c1 in [(0, 5, 0, 3), (20, 23, 6, 9), (7, 8, 4, 5)]:
         blk = padded_block(lambda a, b, c, d: x[a:b, c:d], x.shape, r0, r1, c0, c1, h)
-        np.testing.assert_array_equal(blk, P[r0:r1 + 2 * h, c0:c1 + 2 * h])
+        np.testing.assert_array_equal(blk, P[r0 : r1 + 2 * h, c0 : c1 + 2 * h])
 
 
 def test_padded_block_random_cuts_any_halo():
@@ -55,10 +57,12 @@ def test_padded_block_random_cuts_any_halo():
         for h in (0, 1, 3, 15, 60):
             P = mirror_pad(x, h)
             for _ in range(15):
-                r0 = int(rng.integers(0, H)); r1 = int(rng.integers(r0 + 1, H + 1))
-                c0 = int(rng.integers(0, W)); c1 = int(rng.integers(c0 + 1, W + 1))
+                r0 = int(rng.integers(0, H))
+                r1 = int(rng.integers(r0 + 1, H + 1))
+                c0 = int(rng.integers(0, W))
+                c1 = int(rng.integers(c0 + 1, W + 1))
                 blk = padded_block(lambda a, b, c, d: x[a:b, c:d], x.shape, r0, r1, c0, c1, h)
-                np.testing.assert_array_equal(blk, P[r0:r1 + 2 * h, c0:c1 + 2 * h])
+                np.testing.assert_array_equal(blk, P[r0 : r1 + 2 * h, c0 : c1 + 2 * h])
 
 
 def _run(tmp_path, client, scene, det, tile, settings, tag):
@@ -84,8 +88,9 @@ SMALL_SHAPE = (127, 113)  # odd sizes, not divided by 13
 SLOW_DETECTORS = {"superpixel_cfar"}
 
 
-@pytest.mark.parametrize("det", [pytest.param(d, marks=pytest.mark.slow) if d in SLOW_DETECTORS else d
-                                 for d in SETTINGS])
+@pytest.mark.parametrize(
+    "det", [pytest.param(d, marks=pytest.mark.slow) if d in SLOW_DETECTORS else d for d in SETTINGS]
+)
 def test_tiled_equals_untiled(tmp_path, client, det):
     _tiled_equals_untiled(tmp_path, client, det, DEFAULT_TILES, shape=DEFAULT_SHAPE)
     if det == "ca_cfar":
@@ -128,8 +133,14 @@ def test_components_equal_global_labelling(tmp_path, client, merge_px):
     x = blobs_scene((139, 127), looks=1.0, seed=5, n=20, amp=30.0)
     scene = write_scene(tmp_path / "s.zarr", {"intensity": x}, tile=32, looks=1.0)
     # every component kept (no line rule: chance-collinear false alarms at pfa 1e-2 would be joined)
-    settings = {"pfa": "1e-2", "guard": "7", "background": "15", "min_area_px": "1", "merge_px": str(merge_px),
-                "line_gap_px": "none"}
+    settings = {
+        "pfa": "1e-2",
+        "guard": "7",
+        "background": "15",
+        "min_area_px": "1",
+        "merge_px": str(merge_px),
+        "line_gap_px": "none",
+    }
     run, feats, mask = _run(tmp_path, client, scene, "ca_cfar", 23, settings, f"m{merge_px}")
     m = mask.astype(bool)
     r = merge_radius(merge_px)
@@ -138,7 +149,9 @@ def test_components_equal_global_labelling(tmp_path, client, merge_px):
     lab = np.where(m, lab, 0)
     ids = np.unique(lab[lab > 0])
     assert len(feats) == len(ids)
-    ref = sorted((int((lab == i).sum()), *[round(float(v) + 0.5, 6) for v in ndimage.center_of_mass(lab == i)]) for i in ids)
+    ref = sorted(
+        (int((lab == i).sum()), *[round(float(v) + 0.5, 6) for v in ndimage.center_of_mass(lab == i)]) for i in ids
+    )
     got = sorted((f["properties"]["area_px"], *[round(v, 6) for v in f["properties"]["centroid_px"]]) for f in feats)
     assert got == ref
 
