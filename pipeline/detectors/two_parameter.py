@@ -418,7 +418,8 @@ def _decide_row(
                 mask[i, c0 + j + c] = tmp_m[c]
 
 
-# fmt: off (argument lists laid out by hand)
+# argument lists laid out by hand, kept from the formatter
+# fmt: off
 def _make_detect_strip(stamp: str):
     """The fused kernel. Its machine code includes code of :mod:`sarship.pipeline.detectors.simd` and
     :mod:`sarship.pipeline.tiling.boxsum`, but numba's on-disk cache only watches this file:
@@ -429,7 +430,8 @@ def _make_detect_strip(stamp: str):
     """
 
     @njit(nogil=True, cache=True)
-    def detect_strip(src, mode, halo, g0r, g0c, target, guard, background, n_ring, thr, c0, c1, mask, stat):
+    def detect_strip(src, mode, halo, g0r, g0c, target, guard, background, n_ring, thr, c0, c1,
+                     mask, stat):
         """Columns [c0, c1) of the core: all window sums streamed row by row, and the decision."""
         stamp  # noqa: B018 (keeps the stamp in the closure, hence in the cache key)
         h = mask.shape[0]
@@ -492,7 +494,8 @@ def _make_detect_strip(stamp: str):
                 _fill(Y, ys, k, F - ob, 0, b, g0c + ob + c0, h + b - 1, Hb1, Hb2, sb1, su, sw)
                 _fill(Y, ys, k, F - og, og - ob, g, g0c + og + c0, h + g - 1, Hg1, Hg2, sg1, su, sw)
                 if t > 1:
-                    _fill(Y, ys, k, F - ot, ot - ob, t, g0c + ot + c0, h + t - 1, Ht, None, stt, su, sw)
+                    _fill(Y, ys, k, F - ot, ot - ob, t, g0c + ot + c0, h + t - 1, Ht, None, stt, su,
+                          sw)
                 F += k
             steady_b = vertical_row(Hb1, sb1, b, i, Pb1, Db1)
             vertical_row(Hb2, sb2, b, i, Pb2, Db2)
@@ -508,40 +511,12 @@ def _make_detect_strip(stamp: str):
             pf = F + 4 + (i & 3) if mode != 2 else band0 + DB_BAND + i % DB_BAND
             if pf >= src.shape[0]:
                 pf = -1
-            _decide_row(
-                w,
-                steady_b,
-                steady_g,
-                Hb1,
-                Hb2,
-                ring_slot(sb1, i, Rb),
-                ring_slot(sb1, i + b - 1, Rb),
-                Hg1,
-                Hg2,
-                ring_slot(sg1, i, Rg),
-                ring_slot(sg1, i + g - 1, Rg),
-                P,
-                D,
-                Y,
-                xo,
-                tt,
-                n_ring,
-                thr,
-                mask,
-                stat,
-                i,
-                c0,
-                tmp_s,
-                tmp_m,
-                src,
-                pf,
-                xc,
-                win,
-            )
+            _decide_row(w, steady_b, steady_g, Hb1, Hb2, ring_slot(sb1, i, Rb),
+                        ring_slot(sb1, i + b - 1, Rb), Hg1, Hg2, ring_slot(sg1, i, Rg),
+                        ring_slot(sg1, i + g - 1, Rg), P, D, Y, xo, tt, n_ring, thr, mask, stat, i,
+                        c0, tmp_s, tmp_m, src, pf, xc, win)
 
     return detect_strip
-
-
 # fmt: on
 
 

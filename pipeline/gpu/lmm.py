@@ -604,10 +604,10 @@ def _hist_fits(cp, B, ld, cells, w2, r0, c0, step, rb, rg, nb, bmin, off, bw, co
         del scratch
 
 
-# fmt: off (argument lists laid out by hand)
-def detect(
-    block, halo: int, origin, rb: int, rg: int, rt: int, K: int, prep: dict, method: str, step: int, refine: float
-):
+# argument lists laid out by hand, kept from the formatter
+# fmt: off
+def detect(block, halo: int, origin, rb: int, rg: int, rt: int, K: int, prep: dict, method: str,
+           step: int, refine: float):
     """``lmm`` on a CuPy block (same arguments as the CPU kernels; see the module docstring)."""
     import cupy as cp
 
@@ -619,17 +619,10 @@ def detect(
     if h <= 0 or w <= 0:
         return mask, stat
     init_zs = cp.asarray(_init_zs(K))
-    common = (
-        np.int32(K),
-        init_zs,
-        np.int32(int(prep["max_iter"])),
-        np.float64(float(prep["tol"])),
-        np.int32(prep.get("select", "bic") == "bic"),
-        np.int32(prep.get("tail", "predictive") == "predictive"),
-        np.float64(float(prep["z"])),
-        np.float64(float(prep["log_pfa"])),
-        np.int32(max(8, 3 * K, ((2 * rb + 1) ** 2 - (2 * rg + 1) ** 2 + 1) // 2)),
-    )  # lmm.min_usable
+    common = (np.int32(K), init_zs, np.int32(int(prep["max_iter"])), np.float64(float(prep["tol"])),
+              np.int32(prep.get("select", "bic") == "bic"), np.int32(prep.get("tail", "predictive") == "predictive"),
+              np.float64(float(prep["z"])), np.float64(float(prep["log_pfa"])),
+              np.int32(max(8, 3 * K, ((2 * rb + 1) ** 2 - (2 * rg + 1) ** 2 + 1) // 2)))  # lmm.min_usable
     if method == "exact":
         ok = (X64 > 0.0) & (X64 < np.inf)
         Y = cp.where(ok, cp.log(cp.where(ok, X64, 1.0)), cp.nan)
@@ -637,26 +630,8 @@ def detect(
         chunk = 1 << 18
         for t0 in range(0, total, chunk):
             nt = min(chunk, total - t0)
-            _launch(
-                "lmm_exact",
-                nt,
-                (
-                    X64,
-                    Y,
-                    np.int64(ld),
-                    np.int64(h),
-                    np.int64(w),
-                    np.int64(t0),
-                    np.int64(nt),
-                    np.int32(halo),
-                    np.int32(rb),
-                    np.int32(rg),
-                    np.int32(rt),
-                    *common,
-                    mask,
-                    stat,
-                ),
-            )
+            _launch("lmm_exact", nt, (X64, Y, np.int64(ld), np.int64(h), np.int64(w), np.int64(t0), np.int64(nt),
+                                      np.int32(halo), np.int32(rb), np.int32(rg), np.int32(rt), *common, mask, stat))
         return mask, stat
     bw = float(prep["bin_width"])
     B, off, bmin, bmax = _bins(cp, X64, bw)
@@ -665,12 +640,10 @@ def detect(
     nb = bmax - bmin + 1
     if method == "fast":
         T = cp.full(h * w, cp.nan, cp.float64)
-        _hist_fits(cp, B, ld, cp.arange(h * w, dtype=cp.int64), w, halo, halo, 1, rb, rg, nb, bmin, off, bw, common, T)
-        _launch(
-            "lmm_decide",
-            h * w,
-            (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt), T, mask, stat),
-        )
+        _hist_fits(cp, B, ld, cp.arange(h * w, dtype=cp.int64), w, halo, halo, 1, rb, rg, nb, bmin, off, bw,
+                   common, T)
+        _launch("lmm_decide", h * w, (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt),
+                                      T, mask, stat))
         return mask, stat
     # grid: node fits, interpolation, candidates refitted at their own pixel
     g0r, g0c = int(origin[0]) + halo, int(origin[1]) + halo
@@ -678,58 +651,17 @@ def detect(
     kc0, kc1 = g0c // step, (g0c + w - 1) // step + 1
     nr, nc = kr1 - kr0 + 1, kc1 - kc0 + 1
     Tn = cp.full(nr * nc, cp.nan, cp.float64)
-    _hist_fits(
-        cp,
-        B,
-        ld,
-        cp.arange(nr * nc, dtype=cp.int64),
-        nc,
-        kr0 * step - g0r + halo,
-        kc0 * step - g0c + halo,
-        step,
-        rb,
-        rg,
-        nb,
-        bmin,
-        off,
-        bw,
-        common,
-        Tn,
-    )
+    _hist_fits(cp, B, ld, cp.arange(nr * nc, dtype=cp.int64), nc, kr0 * step - g0r + halo, kc0 * step - g0c + halo,
+               step, rb, rg, nb, bmin, off, bw, common, Tn)
     cand = cp.empty((h, w), cp.uint8)
-    _launch(
-        "lmm_grid_pixels",
-        h * w,
-        (
-            X64,
-            np.int64(ld),
-            np.int64(h),
-            np.int64(w),
-            np.int32(halo),
-            np.int32(rt),
-            Tn,
-            np.int64(nc),
-            np.int64(kr0),
-            np.int64(kc0),
-            np.int64(g0r),
-            np.int64(g0c),
-            np.int32(step),
-            np.float64(refine),
-            cand,
-            mask,
-            stat,
-        ),
-    )
+    _launch("lmm_grid_pixels", h * w, (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt),
+                                       Tn, np.int64(nc), np.int64(kr0), np.int64(kc0), np.int64(g0r), np.int64(g0c),
+                                       np.int32(step), np.float64(refine), cand, mask, stat))
     cells = cp.flatnonzero(cand).astype(cp.int64)
     if cells.size:
         T = cp.full(h * w, cp.nan, cp.float64)
         _hist_fits(cp, B, ld, cells, w, halo, halo, 1, rb, rg, nb, bmin, off, bw, common, T)
-        _launch(
-            "lmm_decide",
-            h * w,
-            (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt), T, mask, stat),
-        )
+        _launch("lmm_decide", h * w, (X64, np.int64(ld), np.int64(h), np.int64(w), np.int32(halo), np.int32(rt),
+                                      T, mask, stat))
     return mask, stat
-
-
 # fmt: on

@@ -690,29 +690,11 @@ def _resolved(K, s, res):
     return True
 
 
-# fmt: off (argument lists laid out by hand)
+# argument lists laid out by hand, kept from the formatter
+# fmt: off
 @njit(nogil=True, cache=True)
-def fit_threshold(
-    y,
-    wt,
-    n_pts,
-    K,
-    init_zs,
-    max_iter,
-    tol,
-    shep,
-    select,
-    predictive,
-    z,
-    log_pfa,
-    a,
-    mu,
-    s,
-    cens=0.0,
-    cens_q=0.0,
-    lcens=0.0,
-    refuse=0.0,
-):
+def fit_threshold(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+                  a, mu, s, cens=0.0, cens_q=0.0, lcens=0.0, refuse=0.0):
     """The threshold t = ln T for one ring (weighted points y, wt); returns (t, work, K').
 
     1. EM (:func:`em_fit_points`) for K' = 1..K (``select``), or K' = K only; components
@@ -752,9 +734,8 @@ def fit_threshold(
     ``cens = lcens = refuse = 0``: bit for bit the uncensored fit.
     """
     if not (cens > 0.0 or lcens > 0.0 or refuse > 0.0):
-        return _fit_core(
-            y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, np.inf, 0.0
-        )
+        return _fit_core(y, wt, n_pts, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s,
+                         np.inf, 0.0)
     hb = math.sqrt(3.0 * shep)  # half a bin (0 for raw samples)
     Wall = 0.0
     for j in range(n_pts):
@@ -791,76 +772,17 @@ def fit_threshold(
             n1 += 1
         if nc > 0.0:
             q = cens_q if cens_q > 0.0 else 1.0 / Wall
-            c2, work, _ = _fit_core(
-                ys,
-                ws,
-                n1,
-                K,
-                init_zs,
-                max_iter,
-                tol,
-                shep,
-                select,
-                predictive,
-                _z_of(q),
-                math.log(q),
-                a,
-                mu,
-                s,
-                ys[n1 - 1] + hb,
-                nc,
-                cl,
-                nl,
-            )
-            t, w2, m = _fit_right(
-                ys,
-                ws,
-                npk,
-                n1,
-                c2,
-                hb,
-                K,
-                init_zs,
-                max_iter,
-                tol,
-                shep,
-                select,
-                predictive,
-                z,
-                log_pfa,
-                a,
-                mu,
-                s,
-                cl,
-                nl,
-            )
+            c2, work, _ = _fit_core(ys, ws, n1, K, init_zs, max_iter, tol, shep, select, predictive,
+                                    _z_of(q), math.log(q), a, mu, s, ys[n1 - 1] + hb, nc, cl, nl)
+            t, w2, m = _fit_right(ys, ws, npk, n1, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive,
+                                  z, log_pfa, a, mu, s, cl, nl)
         else:
-            t, w2, m = _fit_core(
-                ys,
-                ws,
-                npk,
-                K,
-                init_zs,
-                max_iter,
-                tol,
-                shep,
-                select,
-                predictive,
-                z,
-                log_pfa,
-                a,
-                mu,
-                s,
-                np.inf,
-                0.0,
-                cl,
-                nl,
-            )
+            t, w2, m = _fit_core(ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+                                 a, mu, s, np.inf, 0.0, cl, nl)
         work += w2
     else:
-        t, work, m = _fit_core(
-            ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, np.inf, 0.0, cl, nl
-        )
+        t, work, m = _fit_core(ys, ws, npk, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa,
+                               a, mu, s, np.inf, 0.0, cl, nl)
     cprev = np.inf
     for _ in range(3 if refuse > 0.0 else 0):
         if m < 2:
@@ -869,17 +791,14 @@ def fit_threshold(
         if not (c2 < cprev):
             break
         cprev = c2
-        t2, w2, m2 = _fit_right(
-            ys, ws, npk, 0, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive, z, log_pfa, a, mu, s, cl, nl
-        )
+        t2, w2, m2 = _fit_right(ys, ws, npk, 0, c2, hb, K, init_zs, max_iter, tol, shep, select, predictive,
+                                z, log_pfa, a, mu, s, cl, nl)
         work += w2
         if not (t2 == t2):
             break
         t = t2
         m = m2
     return t, work, m
-
-
 # fmt: on
 
 
