@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import AsyncIterator, Callable
+from typing import TYPE_CHECKING
 
 from fastapi import FastAPI
 
@@ -24,6 +25,11 @@ from sarship.service.openapi import install as install_openapi
 from sarship.service.runner import Runner
 from sarship.service.settings import Settings
 from sarship.service.store import JobStore
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+    from sarship.service.scheduler_link import SchedulerLink
 
 #: The routers, in the order their routes are matched and listed in the OpenAPI document.
 ROUTERS = (
@@ -38,7 +44,7 @@ ROUTERS = (
 )
 
 
-def connect_cluster(settings: Settings, stack: contextlib.ExitStack):
+def connect_cluster(settings: Settings, stack: contextlib.ExitStack[bool | None]) -> Client | SchedulerLink:
     """The Dask client of the service: to ``settings.scheduler`` (made again when the scheduler
     restarts), else a local cluster of CPU workers and one pinned worker per GPU
     (``SARSHIP_GPUS``), closed with ``stack``."""
@@ -54,7 +60,7 @@ def connect_cluster(settings: Settings, stack: contextlib.ExitStack):
     # on any free port; GET /dashboard redirects to it
     dash = dashboard_address_on(settings.host)
     gpu_ids, n_cpu = settings.local_workers()
-    return stack.enter_context(
+    local: Client = stack.enter_context(
         connect(
             None,
             n_workers=n_cpu,
@@ -65,9 +71,12 @@ def connect_cluster(settings: Settings, stack: contextlib.ExitStack):
             threads=settings.worker_threads,
         )
     )
+    return local
 
 
-def lifespan_of(settings: Settings, client=None) -> Callable[[FastAPI], contextlib.AbstractAsyncContextManager]:
+def lifespan_of(
+    settings: Settings, client: Client | None = None
+) -> Callable[[FastAPI], contextlib.AbstractAsyncContextManager[None]]:
     """The application's lifespan: data folders, job store, metrics, Dask client, runner, inbox
     (scheduled ingest, idle without ``SARSHIP_INBOX``) and scene retention
     (``SARSHIP_SCENE_RETENTION_DAYS``), all stopped when the application stops."""
@@ -99,7 +108,7 @@ def lifespan_of(settings: Settings, client=None) -> Callable[[FastAPI], contextl
     return lifespan
 
 
-def create_app(settings: Settings | None = None, client=None) -> FastAPI:
+def create_app(settings: Settings | None = None, client: Client | None = None) -> FastAPI:
     """The service's application for ``settings`` (default: from the environment); ``client``:
     a connected Dask client to use instead of the one the lifespan makes."""
     settings = settings or Settings()

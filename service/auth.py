@@ -13,13 +13,10 @@ about a third of the server's CPU time per request (measured with bench/bench_se
 from __future__ import annotations
 
 import hmac
-from collections.abc import Awaitable, Callable
-from typing import Any
+
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from sarship.service.common import problem
-
-Scope = dict[str, Any]
-ASGIApp = Callable[[Scope, Callable, Callable], Awaitable[None]]
 
 
 class BearerAuth:
@@ -37,7 +34,7 @@ class BearerAuth:
             and (self.protect_reads or scope["method"] not in ("GET", "HEAD", "OPTIONS"))
         )
 
-    async def __call__(self, scope: Scope, receive: Callable, send: Callable) -> None:
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if not self._needs_token(scope):
             await self.app(scope, receive, send)
             return

@@ -28,11 +28,11 @@ def _thread_lock(key: str) -> threading.Lock:
         return _locks.setdefault(key, threading.Lock())
 
 
-def build_once(out: Path, build: Callable[[Path], None]) -> Path:
+def build_once(out: Path, build: Callable[[Path], object]) -> Path:
     """``out``, built by ``build(tmp)`` into a temporary sibling and renamed, unless it exists.
 
-    ``build`` must write the whole product at ``tmp`` (a file or a folder); on any exception the
-    temporary path is removed and nothing is left at ``out``.
+    ``build`` must write the whole product at ``tmp`` (a file or a folder; what it returns is
+    ignored); on any exception the temporary path is removed and nothing is left at ``out``.
     """
     if out.exists():
         return out

@@ -44,14 +44,19 @@ import tempfile
 import threading
 import zlib
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from sarship.pipeline import __version__
 from sarship.service.cache import build_once
+
+if TYPE_CHECKING:
+    import zarr
 
 #: Tile side of every level (and of the XYZ tiles, so that the two pyramids coincide).
 TILE = 256
@@ -69,6 +74,8 @@ GHOST = (f"GDAL_STRUCTURAL_METADATA_SIZE={len(_GHOST_BODY):06d} bytes\n" + _GHOS
 _ASCII, _SHORT, _LONG, _DOUBLE, _LONG8 = 2, 3, 4, 12, 16
 _FMT = {_ASCII: "s", _SHORT: "H", _LONG: "I", _DOUBLE: "d", _LONG8: "Q"}
 _SIZE = {_ASCII: 1, _SHORT: 2, _LONG: 4, _DOUBLE: 8, _LONG8: 8}
+#: A TIFF tag: ``(code, field type, values)``, the values a str for an ASCII tag.
+_Tag = tuple[int, int, list[Any] | str]
 
 
 def maxpool(a: np.ndarray, f: int) -> np.ndarray:
@@ -83,9 +90,12 @@ def maxpool(a: np.ndarray, f: int) -> np.ndarray:
         p = np.full((h * f, w * f), fill, a.dtype)
         p[:H, :W] = a
         a = p
+    pooled: np.ndarray
     if f == 2:  # the pyramid's step: four strided views, ~10x faster than a 4-D reduction
-        return np.maximum(np.maximum(a[0::2, 0::2], a[0::2, 1::2]), np.maximum(a[1::2, 0::2], a[1::2, 1::2]))
-    return a.reshape(h, f, w * f).max(axis=1).reshape(h, w, f).max(axis=2)
+        pooled = np.maximum(np.maximum(a[0::2, 0::2], a[0::2, 1::2]), np.maximum(a[1::2, 0::2], a[1::2, 1::2]))
+    else:
+        pooled = a.reshape(h, f, w * f).max(axis=1).reshape(h, w, f).max(axis=2)
+    return pooled
 
 
 def level_shapes(shape: tuple[int, int], tile: int = TILE) -> list[tuple[int, int]]:
@@ -103,12 +113,12 @@ def level_shapes(shape: tuple[int, int], tile: int = TILE) -> list[tuple[int, in
 # --------------------------------------------------------------------------- georeference
 
 
-def geotiff_tags(attrs: dict) -> list[tuple[int, int, list]]:
+def geotiff_tags(attrs: dict[str, Any]) -> list[_Tag]:
     """GeoTIFF tags ``(code, type, values)`` for the ``crs`` / ``transform`` attributes the
     pipeline stores (``transform`` in GDAL order ``[c, a, b, f, d, e]``: x = c + a*col + b*row,
     y = f + d*col + e*row, PixelIsArea; ``crs`` as ``"EPSG:n"``). Empty without a transform."""
     tr = attrs.get("transform")
-    tags: list[tuple[int, int, list]] = []
+    tags: list[_Tag] = []
     if not tr or len(tr) < 6:
         return tags
     c, a, b, f, d, e = (float(v) for v in tr[:6])
@@ -157,11 +167,11 @@ def geokeys(crs: Any) -> list[int] | None:
 class _Level:
     shape: tuple[int, int]
     spool: BinaryIO
-    pending: list = field(default_factory=list)
+    pending: list[np.ndarray] = field(default_factory=list)
     npending: int = 0
     rows_done: int = 0
     carry: np.ndarray | None = None
-    counts: list = field(default_factory=list)
+    counts: list[int] = field(default_factory=list)
     nbytes: int = 0
 
 
@@ -210,7 +220,7 @@ class _Pyramid:
         lv.rows_done += rows.shape[0]
 
 
-def _ifd(entries: list[tuple[int, int, list]], at: int, bigtiff: bool, next_ifd: int = 0) -> bytes:
+def _ifd(entries: list[_Tag], at: int, bigtiff: bool, next_ifd: int = 0) -> bytes:
     """One IFD at file offset ``at``, pointing to the IFD at ``next_ifd`` (0: the last), followed
     by its out-of-line values. Entries must be sorted by tag."""
     n = len(entries)
@@ -237,16 +247,14 @@ def _ifd(entries: list[tuple[int, int, list]], at: int, bigtiff: bool, next_ifd:
     return b"".join(body + extra)
 
 
-def _ifd_size(entries: list[tuple[int, int, list]], bigtiff: bool) -> int:
+def _ifd_size(entries: list[_Tag], bigtiff: bool) -> int:
     return len(_ifd(entries, 0, bigtiff))
 
 
-def _entries(
-    k: int, lv: _Level, offsets: list[int], tile: int, bigtiff: bool, geotags: list[tuple[int, int, list]]
-) -> list[tuple[int, int, list]]:
+def _entries(k: int, lv: _Level, offsets: list[int], tile: int, bigtiff: bool, geotags: list[_Tag]) -> list[_Tag]:
     h, w = lv.shape
     off_t = _LONG8 if bigtiff else _LONG
-    e = [
+    e: list[_Tag] = [
         (254, _LONG, [0 if k == 0 else 1]),
         (256, _LONG, [w]),
         (257, _LONG, [h]),
@@ -268,10 +276,10 @@ def _entries(
 
 
 def write_cog(
-    read_rows,
-    shape: tuple[int, int],
+    read_rows: Callable[[int, int], npt.ArrayLike],
+    shape: tuple[int, ...],
     out: Path,
-    attrs: dict | None = None,
+    attrs: dict[str, Any] | None = None,
     tile: int = TILE,
     strip: int = TILE,
     bigtiff: bool | None = None,
@@ -356,7 +364,7 @@ def mask_cog(job_dir: Path) -> Path:
         import zarr
 
         g = zarr.open_group(str(job_dir / "mask.zarr"), mode="r")
-        arr = g["mask"]
+        arr = cast("zarr.Array[Any]", g["mask"])  # the job wrote "mask" as an array, never a group
         ch = int(arr.chunks[0])
         strip = TILE * max(1, -(-ch // TILE))
         write_cog(lambda r0, r1: arr[r0:r1, :], arr.shape, tmp, attrs=dict(g.attrs), strip=strip)
@@ -368,10 +376,12 @@ def mask_cog(job_dir: Path) -> Path:
 
 
 _index_lock = threading.Lock()
-_index: OrderedDict[tuple, list] = OrderedDict()
+#: Per level of a COG: its shape, tile offsets and tile byte counts.
+_LevelIndex = tuple[tuple[int, int], np.ndarray, np.ndarray]
+_index: OrderedDict[tuple[str, int, int], list[_LevelIndex]] = OrderedDict()
 
 
-def _levels_index(path: Path) -> list[tuple[tuple[int, int], np.ndarray, np.ndarray]]:
+def _levels_index(path: Path) -> list[_LevelIndex]:
     """Per level (IFD chain order): shape, tile offsets, tile byte counts, parsed by tifffile;
     cached per file (a few small arrays per job)."""
     st = path.stat()
@@ -382,9 +392,10 @@ def _levels_index(path: Path) -> list[tuple[tuple[int, int], np.ndarray, np.ndar
             return _index[key]
     import tifffile
 
-    out = []
+    out: list[_LevelIndex] = []
     with tifffile.TiffFile(path) as tif:
-        for page in tif.pages:
+        for item in tif.pages:
+            page = cast(tifffile.TiffPage, item)  # TiffPages yields frames only with useframes (never set here)
             out.append(
                 (
                     (int(page.imagelength), int(page.imagewidth)),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import errno
 import json
+from typing import Any
 
 from fastapi import Request
 from fastapi.responses import JSONResponse
@@ -14,12 +15,12 @@ from sarship.service.store import JobStore, iso
 
 
 class Problem(Exception):
-    def __init__(self, status: int, title: str, detail: str, headers: dict | None = None):
+    def __init__(self, status: int, title: str, detail: str, headers: dict[str, str] | None = None):
         self.status, self.title, self.detail = status, title, detail
         self.headers = headers
 
 
-def problem(status: int, title: str, detail: str, headers: dict | None = None) -> JSONResponse:
+def problem(status: int, title: str, detail: str, headers: dict[str, str] | None = None) -> JSONResponse:
     # a detail may quote the request (a lone surrogate in a JSON string): always encodable as UTF-8
     detail = str(detail).encode("utf-8", "backslashreplace").decode("utf-8")
     return JSONResponse(
@@ -57,7 +58,7 @@ def json_depth(raw: bytes) -> int:
     return int(max(np.cumsum(np.where(inside, 0, step[b])).max(), 0))
 
 
-def parse_json_body(raw: bytes):
+def parse_json_body(raw: bytes) -> Any:
     """The JSON document of a request body (empty: ``None``); a 400 problem when it is not JSON,
     is nested deeper than :data:`MAX_JSON_DEPTH`, or holds a string that cannot be a name
     (:func:`check_text`)."""
@@ -84,7 +85,7 @@ def check_text(value: str, what: str) -> None:
         raise Problem(400, "invalid input", f"{what} contains an unpaired surrogate (not valid Unicode text)") from None
 
 
-def _check_strings(doc, where: str) -> None:
+def _check_strings(doc: Any, where: str) -> None:
     if isinstance(doc, str):
         check_text(doc, where)
     elif isinstance(doc, dict):
@@ -129,7 +130,7 @@ def base_url(request: Request) -> str:
     return str(request.base_url).rstrip("/")
 
 
-def status_doc(job: dict, base: str) -> dict:
+def status_doc(job: dict[str, Any], base: str) -> dict[str, Any]:
     links = [{"href": f"{base}/jobs/{job['id']}", "rel": "self", "type": "application/json", "title": "status"}]
     if job["status"] == "accepted" and job.get("waits_for"):
         links.append(
@@ -165,7 +166,7 @@ def status_doc(job: dict, base: str) -> dict:
     }
 
 
-def results_doc(job: dict, base: str) -> dict:
+def results_doc(job: dict[str, Any], base: str) -> dict[str, Any]:
     u = f"{base}/jobs/{job['id']}/results"
     return {
         "detections": {"href": f"{u}/detections", "type": "application/geo+json"},
@@ -176,21 +177,23 @@ def results_doc(job: dict, base: str) -> dict:
 
 
 def settings_of(request: Request) -> Settings:
-    return request.app.state.settings
+    settings: Settings = request.app.state.settings  # set by create_app
+    return settings
 
 
 def store_of(request: Request) -> JobStore:
-    return request.app.state.store
+    store: JobStore = request.app.state.store  # set by the lifespan
+    return store
 
 
-def job_or_404(request: Request, job_id: str) -> dict:
+def job_or_404(request: Request, job_id: str) -> dict[str, Any]:
     job = store_of(request).get(job_id)
     if job is None:
         raise Problem(404, "no such job", f"no job '{job_id}'")
     return job
 
 
-def finished(request: Request, job_id: str, ingest_ok: bool = False) -> dict:
+def finished(request: Request, job_id: str, ingest_ok: bool = False) -> dict[str, Any]:
     """The job if it finished successfully; else a 404 problem saying why there is no result.
     An ``ingest`` job's only result is its scene: without ``ingest_ok`` it is a 404 too."""
     job = job_or_404(request, job_id)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import shutil
+from typing import Any
 
 import anyio
 from fastapi import APIRouter, Request
@@ -29,17 +30,17 @@ def dashboard_link(request: Request) -> str | None:
 
 
 @router.get("/metrics", responses=media("text/plain; version=0.0.4", "Prometheus text format"))
-def prometheus(request: Request):
+def prometheus(request: Request) -> Response:
     return Response(request.app.state.metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
 
 
-@router.get("/livez")
-async def livez():  # on the event loop: answers however busy the worker threads are
+@router.get("/livez", response_model=None)
+async def livez() -> dict[str, str]:  # on the event loop: answers however busy the worker threads are
     return {"status": "ok"}
 
 
 @router.get("/readyz")
-async def readyz(request: Request):
+async def readyz(request: Request) -> JSONResponse:
     state = request.app.state
     if getattr(state, "probe_threads", None) is None:  # readyz's own threads, not the routes' shared pool
         state.probe_threads = anyio.CapacityLimiter(2)
@@ -48,7 +49,7 @@ async def readyz(request: Request):
 
 def ready_check(request: Request) -> JSONResponse:
     """The readiness document: the store answers, the cluster has workers, the disk has room."""
-    checks: dict = {}
+    checks: dict[str, Any] = {}
     try:
         store_of(request).counts()
         checks["store"] = "ok"
@@ -85,7 +86,7 @@ def disk_check(settings: Settings) -> str:
 
 
 @router.get("/dashboard", responses={307: {"description": "redirect to the Dask dashboard"}, **problems(404)})
-def dashboard(request: Request):
+def dashboard(request: Request) -> RedirectResponse:
     link = dashboard_link(request)
     if not link:
         from sarship.workers.cluster import DASHBOARD_HINT

@@ -41,7 +41,7 @@ def scene_path(settings: Settings, scene: str) -> Path:
     return real
 
 
-def land_file_path(settings: Settings, request) -> Path | None:
+def land_file_path(settings: Settings, request: JobRequest) -> Path | None:
     """The ``land_mask`` FILE a job names, resolved and required to lie inside an allowed scene
     folder (the service reads no other file of its host); None for none/texture. InputError
     (a 4xx for the API) otherwise."""
@@ -73,7 +73,7 @@ def land_file_path(settings: Settings, request) -> Path | None:
     return real
 
 
-def check_coastline(request, path: Path | None) -> None:
+def check_coastline(request: JobRequest, path: Path | None) -> None:
     """``land_mask=coastline`` needs its package and a georeferenced scene: an InputError (a 400)
     when the job is posted rather than a failed job (``path``: the scene, None while it is still
     being ingested: then only the package is checked)."""
@@ -87,7 +87,7 @@ def check_coastline(request, path: Path | None) -> None:
     check_scene(open_scene(path).attrs if path is not None else None)
 
 
-def validate_inputs(settings: Settings, name: str, body: Any, store: JobStore | None = None) -> dict:
+def validate_inputs(settings: Settings, name: str, body: Any, store: JobStore | None = None) -> dict[str, Any]:
     """The job's normalized inputs (:meth:`JobRequest.inputs`: what the job store keeps),
     validated now, once (so that bad input is a 400, not a failed job): the execution body's
     envelope here, the inputs by :class:`~sarship.workers.request.JobRequest` (the same model
@@ -145,7 +145,7 @@ def check_scene_input(path: Path, request: JobRequest) -> None:
         request.spec.for_scene(request.detector_params(), scene.shape, scene.ground_spacing_m)
 
 
-def request_scene(body: dict) -> str:
+def request_scene(body: dict[str, Any]) -> str:
     """The execution body's ``scene`` input when it is a string, else ``""``."""
     s = body["inputs"].get("scene")
     return s if isinstance(s, str) else ""
@@ -157,7 +157,7 @@ def scene_id_like(s: str) -> bool:
     return bool(s) and s.replace("_", "").replace("-", "").isalnum()
 
 
-def pending_ingest(settings: Settings, store: JobStore, scene: str) -> dict | None:
+def pending_ingest(settings: Settings, store: JobStore, scene: str) -> dict[str, Any] | None:
     """The accepted or running ingest job of scene id ``scene`` (an upload being ingested,
     ``POST /scenes``, or an inbox pass), if the scene is not in the scene store yet."""
     if not scene_id_like(scene):

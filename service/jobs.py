@@ -5,23 +5,23 @@ from __future__ import annotations
 
 import shutil
 import uuid
-from typing import Literal
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 
 from sarship.service.common import Problem, base_url, job_or_404, settings_of, status_doc, store_of
-from sarship.service.openapi import JOB_STATUSES, JobList, StatusInfo, problems
+from sarship.service.openapi import JobList, JobStatus, StatusInfo, problems
 from sarship.service.settings import Settings
 
 router = APIRouter()
 
 
-@router.get("/jobs", responses={200: {"model": JobList}})
+@router.get("/jobs", response_model=None, responses={200: {"model": JobList}})
 def jobs(
     request: Request,
     limit: int = Query(1000, ge=1, le=10000, description="most jobs listed, newest first"),
-    status: Literal[JOB_STATUSES] | None = Query(None, description="only jobs in this status"),
-):
+    status: Annotated[JobStatus | None, Query(description="only jobs in this status")] = None,
+) -> dict[str, Any]:
     b = base_url(request)
     return {
         "jobs": [status_doc(j, b) for j in store_of(request).list(limit=limit, status=status)],
@@ -29,8 +29,8 @@ def jobs(
     }
 
 
-@router.get("/jobs/{job_id}", responses={200: {"model": StatusInfo}})
-async def job(request: Request, job_id: str):
+@router.get("/jobs/{job_id}", response_model=None, responses={200: {"model": StatusInfo}})
+async def job(request: Request, job_id: str) -> dict[str, Any]:
     # the route clients poll: on the event loop, no threadpool hop (a primary-key read of
     # the WAL-mode store, ~40 us, never waits for writers)
     return status_doc(job_or_404(request, job_id), base_url(request))
@@ -38,6 +38,7 @@ async def job(request: Request, job_id: str):
 
 @router.delete(
     "/jobs/{job_id}",
+    response_model=None,
     responses={
         200: {
             "model": StatusInfo,
@@ -50,7 +51,7 @@ async def job(request: Request, job_id: str):
         **problems(404),
     },
 )
-def dismiss(request: Request, job_id: str):
+def dismiss(request: Request, job_id: str) -> dict[str, Any]:
     job, before = store_of(request).dismiss(job_id)
     if job is None:
         raise Problem(404, "no such job", f"no job '{job_id}'")

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter, Request
 from fastapi.responses import RedirectResponse
 
@@ -17,8 +19,8 @@ OGC = "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/"
 CONFORMANCE = [OGC + c for c in ("core", "json", "job-list", "dismiss", "oas30")]
 
 
-@router.get("/", responses={200: {"model": Landing}})
-def landing(request: Request):
+@router.get("/", response_model=None, responses={200: {"model": Landing}})
+def landing(request: Request) -> dict[str, Any] | RedirectResponse:
     b = base_url(request)
     if "text/html" in request.headers.get("accept", "") and request.query_params.get("f") != "json":
         return RedirectResponse(f"{b}/ui/", status_code=303)  # a browser: the web page (?f=json: this)
@@ -55,6 +57,6 @@ def landing(request: Request):
     }
 
 
-@router.get("/conformance", responses={200: {"model": Conformance}})
-def conformance():
+@router.get("/conformance", response_model=None, responses={200: {"model": Conformance}})
+def conformance() -> dict[str, list[str]]:
     return {"conformsTo": CONFORMANCE}

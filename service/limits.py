@@ -11,13 +11,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable
-from typing import Any
+from fastapi.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from sarship.service.common import problem
-
-Scope = dict[str, Any]
-ASGIApp = Callable[[Scope, Callable, Callable], Awaitable[None]]
 
 #: (method, path) of the routes that take large bodies under their own limit.
 OWN_LIMIT = {("POST", "/scenes"), ("POST", "/scenes/")}
@@ -28,13 +25,13 @@ class RequestLimits:
         self.app = app
         self.max_body = max_body
 
-    def _too_large(self, n: int | None = None):
+    def _too_large(self, n: int | None = None) -> JSONResponse:
         said = f"of {n} bytes " if n is not None else ""
         return problem(
             413, "too large", f"the request body {said}exceeds the limit of {self.max_body} bytes (setting max_body_kb)"
         )
 
-    async def __call__(self, scope: Scope, receive: Callable, send: Callable) -> None:
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
@@ -51,11 +48,12 @@ class RequestLimits:
                     return
                 break
         # read the body here, counting (a chunked body has no Content-Length), then replay it
-        chunks, n = [], 0
+        chunks: list[bytes] = []
+        n = 0
         while True:
             message = await receive()
             if message["type"] != "http.request":  # the client left: let the app see it
-                chunks = None
+                chunks.clear()  # (nothing is replayed but this message: the partial body is freed)
                 first = message
                 break
             body = message.get("body", b"")
@@ -69,7 +67,7 @@ class RequestLimits:
                 break
         replayed = False
 
-        async def replay() -> dict:
+        async def replay() -> Message:
             nonlocal replayed
             if not replayed:
                 replayed = True

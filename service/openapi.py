@@ -16,7 +16,7 @@ The API as users see it is described in ``docs/interfaces/rest.md``.
 from __future__ import annotations
 
 import json
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
@@ -26,7 +26,9 @@ from sarship.workers.request import DEVICES
 
 PROBLEM_MEDIA = "application/problem+json"
 PROBLEM_REF = "#/components/schemas/Problem"
-JOB_STATUSES = ("accepted", "running", "successful", "failed", "dismissed")
+#: A job's status (the store's ``status`` column), as a type and as its values in order.
+JobStatus = Literal["accepted", "running", "successful", "failed", "dismissed"]
+JOB_STATUSES: tuple[str, ...] = get_args(JobStatus)
 
 
 class Problem(BaseModel):
@@ -89,7 +91,7 @@ class StatusInfo(BaseModel):
     jobID: str
     processID: str
     type: Literal["process"]
-    status: Literal[JOB_STATUSES]  # type: ignore[valid-type]
+    status: JobStatus
     message: str = Field(
         description="the failure reason or other news, one line; an accepted job whose scene "
         "is still being ingested says 'waiting for scene ID (ingest job JOBID)'"
@@ -179,7 +181,9 @@ def problems(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {c: _problem_response(text.get(c, "problem")) for c in codes}
 
 
-def media(media_type: str, description: str, status: int = 200, schema: dict | None = None) -> dict[int, Any]:
+def media(
+    media_type: str, description: str, status: int = 200, schema: dict[str, Any] | None = None
+) -> dict[int | str, dict[str, Any]]:
     """``responses=`` entry of a route that answers something other than JSON (a file, an
     image, Prometheus text): its media type replaces FastAPI's default ``application/json``."""
     return {

@@ -55,7 +55,7 @@ PROCESS_PARAM = Path(description="the process (detector) id", json_schema_extra=
 LOCATION_HEADER = {"description": "the job's status URL", "schema": {"type": "string"}}
 
 
-def process_summary(name: str, base: str) -> dict:
+def process_summary(name: str, base: str) -> dict[str, Any]:
     """The process list's entry of detector ``name``."""
     spec = detectors.get(name)
     return {
@@ -69,7 +69,7 @@ def process_summary(name: str, base: str) -> dict:
     }
 
 
-def process_description(name: str, base: str) -> dict:
+def process_description(name: str, base: str) -> dict[str, Any]:
     """The process description of detector ``name``: its inputs (the common ones and its
     parameter model's JSON schema) and outputs."""
     spec = detectors.get(name)
@@ -104,8 +104,8 @@ def known_process(name: str) -> None:
         raise Problem(404, "no such process", f"no process '{name}' (known: {', '.join(detectors.names())})")
 
 
-@router.get("/processes", responses={200: {"model": ProcessList}})
-def processes(request: Request):
+@router.get("/processes", response_model=None, responses={200: {"model": ProcessList}})
+def processes(request: Request) -> dict[str, Any]:
     b = base_url(request)
     return {
         "processes": [process_summary(n, b) for n in detectors.names()],
@@ -113,8 +113,10 @@ def processes(request: Request):
     }
 
 
-@router.get("/processes/{process_id}", responses={200: {"model": ProcessDescription}, **problems(404)})
-def process(request: Request, process_id: str = PROCESS_PARAM):
+@router.get(
+    "/processes/{process_id}", response_model=None, responses={200: {"model": ProcessDescription}, **problems(404)}
+)
+def process(request: Request, process_id: str = PROCESS_PARAM) -> dict[str, Any]:
     known_process(process_id)
     return process_description(process_id, base_url(request))
 
@@ -145,7 +147,7 @@ async def execute(
     prefer: str | None = Header(
         None, alias="Prefer", description=PREFER_DOC, examples=["respond-async", "respond-sync"]
     ),
-):
+) -> JSONResponse:
     known_process(process_id)
     settings = settings_of(request)
     # (the body is at most max_body_kb here: service/limits.py); nesting depth checked before parsing
@@ -182,7 +184,7 @@ async def execute(
     return JSONResponse(status_doc(job, b), status_code=201, headers={"Location": f"{b}/jobs/{job['id']}"})
 
 
-async def create_job(request: Request, st: JobStore, process_id: str, inputs: dict) -> dict:
+async def create_job(request: Request, st: JobStore, process_id: str, inputs: dict[str, Any]) -> dict[str, Any]:
     """The new job of the validated ``inputs``, committed to the store (waiting for its scene's
     ingest job when that still runs); the runner is woken."""
     settings = settings_of(request)
@@ -199,7 +201,7 @@ async def create_job(request: Request, st: JobStore, process_id: str, inputs: di
     return job
 
 
-async def submit(request: Request, st: JobStore, process_id: str, inputs: dict, prefer: str) -> JSONResponse:
+async def submit(request: Request, st: JobStore, process_id: str, inputs: dict[str, Any], prefer: str) -> JSONResponse:
     """An asynchronous execution: the job created, its status document (201, ``Location``)."""
     job = await create_job(request, st, process_id, inputs)
     b = base_url(request)
@@ -209,7 +211,7 @@ async def submit(request: Request, st: JobStore, process_id: str, inputs: dict, 
     return JSONResponse(status_doc(job, b), status_code=201, headers=headers)
 
 
-async def wait_sync(request: Request, store: JobStore, job: dict, timeout: float) -> dict:
+async def wait_sync(request: Request, store: JobStore, job: dict[str, Any], timeout: float) -> dict[str, Any]:
     """Wait for a job of a ``Prefer: respond-sync`` execution on the event loop (no worker
     thread is held): polls the store (a primary-key read) until the job is final, ``timeout``
     has passed, the client has gone, or the server is shutting down (SIGTERM); the job row

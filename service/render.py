@@ -33,10 +33,14 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from sarship.service.cache import build_once
+
+if TYPE_CHECKING:
+    import zarr
 
 #: Longest side of the cached decimated grey image that serves the coarse zooms (and gives the
 #: stretch): 2048 px = 4 MiB of uint8 at most, ~4 M samples for the percentiles.
@@ -62,7 +66,7 @@ class Source:
     scale: str = "db"
 
 
-def display_scale(attrs: dict) -> str:
+def display_scale(attrs: dict[str, Any]) -> str:
     """How a scene's quicklook maps its intensity to grey (see the module doc).
 
     Parameters
@@ -88,8 +92,9 @@ def display_scale(attrs: dict) -> str:
     return "amplitude" if str(attrs.get("quantity", "")).lower().startswith("amplitude") else "linear"
 
 
-def job_run(job_dir: Path) -> dict:
-    return json.loads((job_dir / "run.json").read_text())
+def job_run(job_dir: Path) -> dict[str, Any]:
+    run: dict[str, Any] = json.loads((job_dir / "run.json").read_text())
+    return run
 
 
 def scene_source(job_dir: Path) -> Source:
@@ -103,7 +108,7 @@ def scene_source(job_dir: Path) -> Source:
     var, transform = intensity_source(scene, ch if isinstance(ch, str) and ch in scene.variables else None)
     # the 8-bit rule concerns the stored samples: a complex channel's |z|^2 is always shown in dB
     scale = display_scale(scene.attrs) if transform == "real" else "db"
-    return Source(str(scene.path), var, transform, tuple(scene.shape), scale)
+    return Source(str(scene.path), var, transform, scene.shape, scale)
 
 
 def strided_reader(src: Source) -> Callable[[int, int, int, int, int], np.ndarray]:
@@ -115,7 +120,7 @@ def strided_reader(src: Source) -> Callable[[int, int, int, int, int], np.ndarra
     arr = zarr.open_array(f"{src.path}/{src.var}", mode="r")
 
     def read(r0: int, r1: int, c0: int, c1: int, step: int = 1) -> np.ndarray:
-        a = arr[r0:r1:step, c0:c1:step]
+        a = cast(np.ndarray, arr[r0:r1:step, c0:c1:step])  # a slice of an array: an array, never a scalar
         if src.transform == "abs2":
             return (a.real.astype(np.float32) ** 2 + a.imag.astype(np.float32) ** 2).astype(np.float32)
         return np.asarray(a, dtype=np.float32)
@@ -156,7 +161,8 @@ def stretch(db: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Levels (dB, or :func:`to_level`'s) to uint8 grey, linear between ``lo`` (0) and ``hi`` (255);
     NaN (no signal) is black."""
     g = (np.nan_to_num(db, nan=lo) - lo) * (255.0 / (hi - lo))
-    return np.clip(g + 0.5, 0, 255).astype(np.uint8)
+    out: np.ndarray = np.clip(g + 0.5, 0, 255).astype(np.uint8)
+    return out
 
 
 def base_step(shape: tuple[int, int], base_max: int = BASE_MAX) -> int:
@@ -167,17 +173,17 @@ def base_step(shape: tuple[int, int], base_max: int = BASE_MAX) -> int:
     return step
 
 
-def _decimate(read, shape: tuple[int, int], step: int) -> np.ndarray:
+def _decimate(read: Callable[[int, int, int, int, int], np.ndarray], shape: tuple[int, int], step: int) -> np.ndarray:
     H, W = shape
     rows = STRIP_OUT * step
     return np.concatenate([read(r0, min(r0 + rows, H), 0, W, step) for r0 in range(0, H, rows)])
 
 
 _mem_lock = threading.Lock()
-_mem: OrderedDict[tuple, object] = OrderedDict()
+_mem: OrderedDict[tuple[str, str], Any] = OrderedDict()
 
 
-def _memo(key: tuple, make: Callable[[], object], size: int = 32):
+def _memo(key: tuple[str, str], make: Callable[[], Any], size: int = 32) -> Any:
     """A small in-process LRU over products already on disk (saves re-reading them per tile)."""
     with _mem_lock:
         if key in _mem:
@@ -195,7 +201,7 @@ def _base_path(job_dir: Path, base_max: int) -> Path:
     return job_dir / f"quicklook-base-{base_max}.npy"
 
 
-def job_stretch(job_dir: Path) -> dict:
+def job_stretch(job_dir: Path) -> dict[str, Any]:
     """The job's quicklook settings, made once (``JOB/quicklook.json``): the band (``path``,
     ``var``, ``transform``, ``shape``), its ``scale`` (:func:`display_scale`) and the scene-wide
     percentile range ``lo``, ``hi`` of that scale (:data:`PERCENTILES`: 2-98 % of the dB, 2-99 %
@@ -227,10 +233,11 @@ def job_stretch(job_dir: Path) -> dict:
             )
         )
 
-    return _memo(("stretch", str(out)), lambda: json.loads(build_once(out, build).read_text()))
+    meta: dict[str, Any] = _memo(("stretch", str(out)), lambda: json.loads(build_once(out, build).read_text()))
+    return meta
 
 
-def source_of(meta: dict) -> Source:
+def source_of(meta: dict[str, Any]) -> Source:
     return Source(
         meta["path"],
         meta["var"],
@@ -240,7 +247,7 @@ def source_of(meta: dict) -> Source:
     )
 
 
-def grey(src: Source, x: np.ndarray, meta: dict) -> np.ndarray:
+def grey(src: Source, x: np.ndarray, meta: dict[str, Any]) -> np.ndarray:
     """The job's grey of the intensity ``x`` read from ``src``: its level in the job's scale,
     stretched over the job's range."""
     return stretch(to_level(x, src.scale), meta["lo"], meta["hi"])
@@ -270,13 +277,14 @@ LAND_RGB = (40, 110, 255)
 LAND_ALPHA = 0.45
 
 
-def land_array(job_dir: Path):
+def land_array(job_dir: Path) -> zarr.Array[Any] | None:
     """The job's land mask array (``land.zarr``, written when the job ran with ``land_mask``), or None."""
     import zarr
 
     if not (job_dir / "land.zarr").is_dir():
         return None
-    return zarr.open_group(str(job_dir / "land.zarr"), mode="r")["land"]
+    # "land" is the array the job wrote (workers/jobs.py), never a group
+    return cast("zarr.Array[Any]", zarr.open_group(str(job_dir / "land.zarr"), mode="r")["land"])
 
 
 def tint_land(rgb: np.ndarray, land: np.ndarray) -> np.ndarray:
@@ -304,7 +312,7 @@ def preview_png(job_dir: Path, size: int) -> Path:
         H, W = src.shape
         step = max(1, -(-max(H, W) // size))
         read = strided_reader(src)
-        m = zarr.open_group(str(job_dir / "mask.zarr"), mode="r")["mask"]
+        m = cast("zarr.Array[Any]", zarr.open_group(str(job_dir / "mask.zarr"), mode="r")["mask"])  # an array
         land = land_array(job_dir)
         rows = step * max(1, 512 // step)
         greys, marks, lands = [], [], []

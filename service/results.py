@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, Request
@@ -27,7 +28,7 @@ _IMMUTABLE = {
     "Cache-Control": {"description": "immutable: job outputs never change", "schema": {"type": "string"}},
     "ETag": {"description": "job and product", "schema": {"type": "string"}},
 }
-_MASK_DOC = {
+_MASK_DOC: dict[int | str, dict[str, Any]] = {
     200: {
         "description": "the mask: a Cloud-Optimized GeoTIFF (f=tif, default) or a zipped Zarr v3 store (f=zarr)",
         "headers": _IMMUTABLE,
@@ -37,18 +38,18 @@ _MASK_DOC = {
         },
     }
 }
-_PNG_DOC = {200: {**media("image/png", "PNG image")[200], "headers": _IMMUTABLE}}
+_PNG_DOC: dict[int | str, dict[str, Any]] = {200: {**media("image/png", "PNG image")[200], "headers": _IMMUTABLE}}
 
 #: ``f`` values of GET /jobs/{id}/results/mask (the OGC API convention for a format choice:
 #: a plain link picks the format, caches key on the URL; no Accept negotiation).
 MASK_FORMATS = {"tif": "cog", "tiff": "cog", "geotiff": "cog", "cog": "cog", "zarr": "zarr"}
 
 
-def _job_dir(request: Request, job_id: str):
+def _job_dir(request: Request, job_id: str) -> Path:
     return settings_of(request).jobs_dir / job_id
 
 
-def _cache_headers(request: Request, job: dict, tag: str) -> dict:
+def _cache_headers(request: Request, job: dict[str, Any], tag: str) -> dict[str, str]:
     scope = "private" if settings_of(request).protect_reads else "public"
     return {
         "Cache-Control": f"{scope}, max-age=31536000, immutable",
@@ -56,7 +57,7 @@ def _cache_headers(request: Request, job: dict, tag: str) -> dict:
     }
 
 
-def _not_modified(request: Request, headers: dict) -> Response | None:
+def _not_modified(request: Request, headers: dict[str, str]) -> Response | None:
     inm = request.headers.get("if-none-match")
     if inm and (inm.strip() == "*" or headers["ETag"] in [t.strip().removeprefix("W/") for t in inm.split(",")]):
         return Response(status_code=304, headers=headers)
@@ -74,8 +75,12 @@ def _scene_readable(job_id: str) -> Iterator[None]:
         raise Problem(404, "scene unavailable", f"job '{job_id}': its scene can no longer be read ({exc})") from None
 
 
-@router.get("/jobs/{job_id}/results", responses={200: {"model": Results, "description": "the results document"}})
-def results(request: Request, job_id: str):
+@router.get(
+    "/jobs/{job_id}/results",
+    response_model=None,
+    responses={200: {"model": Results, "description": "the results document"}},
+)
+def results(request: Request, job_id: str) -> dict[str, Any]:
     job = finished(request, job_id, ingest_ok=True)
     b = base_url(request)
     if job["process"] == "ingest":  # an ingest job's result is its scene
@@ -111,7 +116,7 @@ def _map_formats(request: Request, job_id: str) -> bool:
     return bool(attrs.get("gcps") or (attrs.get("crs") and attrs.get("transform") is not None))
 
 
-_DETECTIONS_DOC = {
+_DETECTIONS_DOC: dict[int | str, dict[str, Any]] = {
     200: {
         "description": "detected ships: a GeoJSON FeatureCollection (f=geojson, default), a "
         "GeoPackage (f=gpkg) or KML (f=kml) of their WGS84 outlines",
@@ -125,7 +130,7 @@ _DETECTIONS_DOC = {
 
 
 @router.get("/jobs/{job_id}/results/detections", responses=_DETECTIONS_DOC)
-def detections_out(request: Request, job_id: str, f: str = "geojson"):
+def detections_out(request: Request, job_id: str, f: str = "geojson") -> Response:
     """The detections as GeoJSON (default), or with ``f=gpkg`` / ``f=kml`` as a GeoPackage / KML
     (:mod:`sarship.pipeline.products.export`, built once and cached in the job folder) when the scene was
     georeferenced and the ``gis`` extra is installed."""
@@ -163,8 +168,8 @@ def detections_out(request: Request, job_id: str, f: str = "geojson"):
     return FileResponse(out, media_type=DETECTION_MEDIA[fmt], filename=f"{job_id}-detections.{fmt}", headers=headers)
 
 
-@router.get("/jobs/{job_id}/results/metrics")
-def metrics_out(request: Request, job_id: str):
+@router.get("/jobs/{job_id}/results/metrics", response_model=None)
+def metrics_out(request: Request, job_id: str) -> dict[str, Any]:
     """run.json, plus ``scores`` (``sarship evaluate``'s) when the scene has ground truth."""
     from sarship.service.scores import job_scores
 
@@ -174,7 +179,8 @@ def metrics_out(request: Request, job_id: str):
     scores = job_scores(d, run)
     if scores is not None:
         run["scores"] = scores
-    return _without_paths(run, settings_of(request).hide_paths)
+    doc: dict[str, Any] = _without_paths(run, settings_of(request).hide_paths)  # a dict, as run is
+    return doc
 
 
 def _without_paths(doc: Any, hide: Callable[[str], str]) -> Any:
@@ -191,7 +197,7 @@ def _without_paths(doc: Any, hide: Callable[[str], str]) -> Any:
 
 
 @router.get("/jobs/{job_id}/results/mask", responses=_MASK_DOC)
-def mask_out(request: Request, job_id: str, f: str = "tif"):
+def mask_out(request: Request, job_id: str, f: str = "tif") -> Response:
     """The mask as a Cloud-Optimized GeoTIFF (default; ``f=tif|tiff|geotiff|cog``) or, with
     ``f=zarr``, the mask's Zarr v3 store as a zip (``application/zip``)."""
     from sarship.service.cog import mask_cog, mask_zarr_zip
@@ -216,7 +222,7 @@ def mask_out(request: Request, job_id: str, f: str = "tif"):
     "/jobs/{job_id}/results/stac",
     responses=media("application/geo+json", "the job's STAC 1.0.0 Item", schema={"type": "object"}),
 )
-def stac_out(request: Request, job_id: str):
+def stac_out(request: Request, job_id: str) -> JSONResponse:
     """The job's STAC Item (application/geo+json), see :mod:`sarship.service.stac`."""
     from sarship.service.stac import stac_item
 
@@ -239,7 +245,7 @@ def preview_level(size: int) -> int:
 
 
 @router.get("/jobs/{job_id}/preview.png", responses=_PNG_DOC)
-def preview(request: Request, job_id: str, size: int = 1024):
+def preview(request: Request, job_id: str, size: int = 1024) -> Response:
     """Quicklook PNG, at most ``size`` pixels a side, rendered at a few fixed sizes
     (:data:`PREVIEW_LEVELS`: ``size`` is rounded down to one) and cached in the job folder; the
     cached previews of all jobs together take at most ``preview_cache_mb`` (the oldest are
@@ -277,8 +283,8 @@ def _shape(request: Request, job_id: str) -> tuple[int, int]:
     return int(run["scene"]["shape"][0]), int(run["scene"]["shape"][1])
 
 
-@router.get("/jobs/{job_id}/tiles.json")
-def tiles_json(request: Request, job_id: str):
+@router.get("/jobs/{job_id}/tiles.json", response_model=None)
+def tiles_json(request: Request, job_id: str) -> dict[str, Any]:
     """TileJSON 3.0.0 of the job's XYZ quicklook tiles (see :mod:`sarship.service.tiles`)."""
     from sarship.service.tiles import tilejson
 
@@ -288,7 +294,7 @@ def tiles_json(request: Request, job_id: str):
 
 
 @router.get("/jobs/{job_id}/tiles/{z}/{x}/{y}.png", responses=_PNG_DOC)
-def tile(request: Request, job_id: str, z: int, x: int, y: int, layers: str | None = None):
+def tile(request: Request, job_id: str, z: int, x: int, y: int, layers: str | None = None) -> Response:
     """XYZ tile (z, x, y) of the job's quicklook: 256 x 256 RGBA PNG, ``layers`` a comma list of
     ``scene``, ``mask`` (default both)."""
     from sarship.service.tiles import cached_tile, max_zoom, parse_layers, tile_counts

@@ -10,6 +10,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from typing import Any, BinaryIO
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
@@ -30,7 +31,7 @@ RETENTION_PERIOD_S = 3600.0
 
 
 @router.post("/scenes", responses=problems(400, 413, 507))
-async def upload(request: Request, filename: str | None = None):
+async def upload(request: Request, filename: str | None = None) -> JSONResponse:
     """A scene file, streamed to disk (raw body with ``?filename=``, or multipart field
     ``file``), checked against the size limit as it arrives, named by its SHA-256, and
     ingested to ``DATA/scenes/ID.zarr`` by an ``ingest`` job. The same content uploaded
@@ -50,7 +51,7 @@ async def upload(request: Request, filename: str | None = None):
     h = hashlib.sha256()
     n = 0
 
-    def take(chunk: bytes, out) -> None:
+    def take(chunk: bytes, out: BinaryIO) -> None:
         nonlocal n
         n += len(chunk)
         if n > limit:
@@ -93,7 +94,7 @@ async def upload(request: Request, filename: str | None = None):
         tmp.unlink(missing_ok=True)
         raise
     b = base_url(request)
-    doc = {
+    doc: dict[str, Any] = {
         "sceneID": scene_id,
         "sha256": h.hexdigest(),
         "bytes": n,
@@ -130,7 +131,7 @@ def inside_roots(settings: Settings, p: Path) -> bool:
     return any(real == r or r in real.parents for r in settings.roots())
 
 
-def scene_doc(settings: Settings, scene_id: str, b: str) -> dict | None:
+def scene_doc(settings: Settings, scene_id: str, b: str) -> dict[str, Any] | None:
     from sarship.pipeline.scene import open_scene
 
     p = settings.scenes_dir / f"{scene_id}.zarr"
@@ -154,7 +155,7 @@ def scene_doc(settings: Settings, scene_id: str, b: str) -> dict | None:
     }
 
 
-def scene_names(attrs: dict) -> dict:
+def scene_names(attrs: dict[str, Any]) -> dict[str, str | None]:
     """What a client knows a scene by: ``filename``, the file uploaded or taken from an inbox
     (its base name, recorded at ingest), else the file the scene was ingested from (the
     ingest's ``source``; None when unknown); ``product``, the product's name (a SAFE
@@ -175,7 +176,7 @@ def scene_names(attrs: dict) -> dict:
     }
 
 
-def ingested_at(p: Path, attrs: dict) -> float | None:
+def ingested_at(p: Path, attrs: dict[str, Any]) -> float | None:
     """When scene store ``p`` was ingested (POSIX time): the service's record (``ingested``),
     else the time its metadata was last written."""
     from datetime import datetime
@@ -326,8 +327,8 @@ class Retention:
         self._thread.join(timeout=5)
 
 
-@router.get("/scenes")
-def scenes(request: Request):
+@router.get("/scenes", response_model=None)
+def scenes(request: Request) -> dict[str, Any]:
     """Ready scenes (``DATA/scenes/*.zarr``), then the scenes still ingesting and those whose
     newest ingest failed or was dismissed, listed as ``failed`` with the ``reason`` (the newest
     ingest job of each, found through the store's ingest-job index: the cost does not grow
@@ -336,7 +337,7 @@ def scenes(request: Request):
     settings = settings_of(request)
     b = base_url(request)
     ready = [scene_doc(settings, p.name[:-5], b) for p in sorted(settings.scenes_dir.glob("*.zarr"))]
-    pending: dict[str, dict] = {}
+    pending: dict[str, dict[str, Any]] = {}
     for j in store_of(request).ingest_jobs(("accepted", "running", "failed", "dismissed")):  # newest first
         sid = j["inputs"].get("scene_id")
         if sid in pending or not sid or (settings.scenes_dir / f"{sid}.zarr").exists():
@@ -345,7 +346,7 @@ def scenes(request: Request):
     return {"scenes": [d for d in ready if d] + list(pending.values())}
 
 
-def pending_doc(scene_id: str, job: dict, b: str = "") -> dict:
+def pending_doc(scene_id: str, job: dict[str, Any], b: str = "") -> dict[str, Any]:
     """A scene that is not (yet) in the scene store, from its newest ingest job: ``ingesting``
     (ingest accepted or running) or ``failed`` with the ``reason`` (the ingest job's error; an
     ingest dismissed, or one that succeeded but whose scene store is gone, counts as failed)."""
@@ -376,8 +377,8 @@ def pending_doc(scene_id: str, job: dict, b: str = "") -> dict:
     }
 
 
-@router.delete("/scenes/{scene_id}", responses=problems(404, 409))
-def remove_scene(request: Request, scene_id: str):
+@router.delete("/scenes/{scene_id}", response_model=None, responses=problems(404, 409))
+def remove_scene(request: Request, scene_id: str) -> dict[str, str]:
     """Delete a scene (``DATA/scenes/ID.zarr`` and its uploaded file); ``409`` while an accepted
     or running job names it or its ingest runs, ``404`` when there is no such scene. The
     ingest and detection jobs of the scene stay in the job list (their results too)."""
@@ -403,8 +404,8 @@ def remove_scene(request: Request, scene_id: str):
     return {"sceneID": scene_id, "status": "deleted"}
 
 
-@router.get("/scenes/{scene_id}")
-def scene(request: Request, scene_id: str):
+@router.get("/scenes/{scene_id}", response_model=None)
+def scene(request: Request, scene_id: str) -> dict[str, Any]:
     ok = scene_id.replace("_", "").replace("-", "").isalnum()
     doc = scene_doc(settings_of(request), scene_id, base_url(request)) if ok else None
     if doc is None:

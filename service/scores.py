@@ -13,13 +13,14 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+from typing import Any
 
 from sarship.service.cache import build_once
 
 log = logging.getLogger("sarship.service")
 
 
-def truth_path(run: dict) -> Path | None:
+def truth_path(run: dict[str, Any]) -> Path | None:
     """The scene's truth file, or None (see the module doc)."""
     scene = Path(run["scene"]["path"])
     cands = [Path(f"{scene}.truth.geojson")]
@@ -29,7 +30,7 @@ def truth_path(run: dict) -> Path | None:
     return next((p for p in cands if p.is_file()), None)
 
 
-def job_scores(job_dir: Path, run: dict) -> dict | None:
+def job_scores(job_dir: Path, run: dict[str, Any]) -> dict[str, Any] | None:
     """The job's scores (cached in ``JOB/scores.json``), or None when the scene has no truth.
 
     A truth file that cannot be read is reported as ``{"error": ...}`` rather than failing the
@@ -49,4 +50,5 @@ def job_scores(job_dir: Path, run: dict) -> dict | None:
             scores = {"error": str(exc), "truth": str(truth)}
         tmp.write_text(json.dumps(scores, indent=1, allow_nan=False))
 
-    return json.loads(build_once(job_dir / "scores.json", build).read_text())
+    doc: dict[str, Any] = json.loads(build_once(job_dir / "scores.json", build).read_text())
+    return doc

@@ -93,7 +93,9 @@ def rfc3339(value: Any) -> str | None:
     return t.astimezone(UTC).isoformat().replace("+00:00", "Z")
 
 
-def footprint(attrs: dict, shape: tuple[int, int], n: int = 16) -> tuple[dict | None, list | None]:
+def footprint(
+    attrs: dict[str, Any], shape: tuple[int, int], n: int = 16
+) -> tuple[dict[str, Any] | None, list[float] | None]:
     """``(geometry, bbox)`` of the scene border in WGS84, or ``(None, None)`` without georeference."""
     from sarship.pipeline.targets.ship_features import Georeference
 
@@ -105,16 +107,21 @@ def footprint(attrs: dict, shape: tuple[int, int], n: int = 16) -> tuple[dict | 
         if not g.usable:
             return None, None
         H, W = shape
-        rows, cols = [], []
+        rows: list[float] = []
+        cols: list[float] = []
         t = [i / n for i in range(n)]
         for a in t:
-            rows.append(0.0), cols.append(a * W)
+            rows.append(0.0)
+            cols.append(a * W)
         for a in t:
-            rows.append(a * H), cols.append(float(W))
+            rows.append(a * H)
+            cols.append(float(W))
         for a in t:
-            rows.append(float(H)), cols.append((1 - a) * W)
+            rows.append(float(H))
+            cols.append((1 - a) * W)
         for a in t:
-            rows.append((1 - a) * H), cols.append(0.0)
+            rows.append((1 - a) * H)
+            cols.append(0.0)
         lon, lat = g.lonlat(rows, cols)
         ring = [[float(x), float(y)] for x, y in zip(lon, lat)]
     except Exception:
@@ -129,7 +136,7 @@ def footprint(attrs: dict, shape: tuple[int, int], n: int = 16) -> tuple[dict | 
     return {"type": "Polygon", "coordinates": [ring]}, [min(xs), min(ys), max(xs), max(ys)]
 
 
-def sar_fields(attrs: dict, variables: dict) -> dict:
+def sar_fields(attrs: dict[str, Any], variables: dict[str, str]) -> dict[str, Any]:
     """The sar extension fields the scene's attributes and channels determine (see the module doc);
     empty when any required one is unknown."""
     sensor = str(attrs.get("sensor") or "")
@@ -191,7 +198,7 @@ def _int(v: Any) -> int | None:
     return i if i > 0 else None
 
 
-def product_fields(attrs: dict) -> tuple[dict, list[str]]:
+def product_fields(attrs: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
     """``(properties, extensions)`` naming the source Sentinel-1 product (see the module doc);
     empty when the scene does not come from one."""
     product = str(attrs.get("product") or "")
@@ -235,7 +242,9 @@ def _epsg_code(crs: Any) -> str | None:
     return f"EPSG:{m.group(1)}" if m else None
 
 
-def stac_item(job: dict, run: dict, base: str, scenes_dir: Path, finished: str | None) -> dict:
+def stac_item(
+    job: dict[str, Any], run: dict[str, Any], base: str, scenes_dir: Path, finished: str | None
+) -> dict[str, Any]:
     """The STAC Item of a finished job (see the module doc). ``run``: the job's run.json."""
     from sarship.pipeline.scene import open_scene
 

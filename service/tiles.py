@@ -38,6 +38,7 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -170,7 +171,7 @@ def render_tile(
 
 
 _lru_lock = threading.Lock()
-_lru: OrderedDict[tuple, bytes] = OrderedDict()
+_lru: OrderedDict[tuple[str, str, int, int, int, tuple[str, ...]], bytes] = OrderedDict()
 
 
 def cached_tile(
@@ -195,7 +196,7 @@ def cached_tile(
 GRID_CELLS = 16
 
 
-def lonlat_grid(attrs: dict, shape: tuple[int, int], n: int = GRID_CELLS) -> dict | None:
+def lonlat_grid(attrs: dict[str, Any], shape: tuple[int, int], n: int = GRID_CELLS) -> dict[str, Any] | None:
     """The WGS84 position of a regular grid of scene pixel coordinates, for a map drawing the
     scene in lon/lat (the web page warps each tile between the grid's nodes, bilinearly).
 
@@ -249,11 +250,11 @@ def lonlat_grid(attrs: dict, shape: tuple[int, int], n: int = GRID_CELLS) -> dic
     }
 
 
-def tilejson(base: str, job_id: str, shape: tuple[int, int], attrs: dict | None = None) -> dict:
+def tilejson(base: str, job_id: str, shape: tuple[int, int], attrs: dict[str, Any] | None = None) -> dict[str, Any]:
     """The TileJSON 3.0.0 document of a job's tiles (plus the scene's ``width`` and ``height``,
     and ``lonlat``, :func:`lonlat_grid`, when the scene's attributes ``attrs`` georeference it)."""
     H, W = shape
-    doc = {
+    doc: dict[str, Any] = {
         "tilejson": "3.0.0",
         "tiles": [f"{base}/jobs/{job_id}/tiles/{{z}}/{{x}}/{{y}}.png"],
         "minzoom": 0,
