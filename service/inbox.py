@@ -38,7 +38,7 @@ import time
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sarship.service.inbox_files import (
     Signature,
@@ -56,6 +56,9 @@ from sarship.service.inbox_files import (
 from sarship.service.inbox_store import InboxStore
 from sarship.service.settings import DEFAULT_INBOX_INTERVAL_S, Settings
 from sarship.service.store import INGEST, JobStore, iso
+
+if TYPE_CHECKING:
+    from sarship.service.runner import Runner
 
 log = logging.getLogger("sarship.inbox")
 
@@ -77,6 +80,7 @@ class Schedule:
             from croniter import croniter
 
             return float(croniter(self.cron, datetime.fromtimestamp(t, UTC)).get_next(float))
+        assert self.interval_s is not None  # (set by __init__ whenever there is no cron)
         return t + self.interval_s
 
 
@@ -231,7 +235,7 @@ class Inbox:
             if settled(row["stable_since"], now, self.settings.inbox_settle_s, has_marker):
                 self._take(row, p, sig, has_marker)
 
-    def _take(self, row: dict, p: Path, sig: Signature, has_marker: bool) -> None:
+    def _take(self, row: dict[str, Any], p: Path, sig: Signature, has_marker: bool) -> None:
         try:
             sha = sha256_of(p, on_chunk=self._busy)
         except OSError as exc:  # vanished or unreadable mid-way: looked at again next round
@@ -296,7 +300,7 @@ class Inbox:
                 log.info("inbox: scene %s: submitted %s", row["scene_id"], ", ".join(ids))
                 self.wake_runner()
 
-    def _quarantine(self, row: dict, reason: str) -> None:
+    def _quarantine(self, row: dict[str, Any], reason: str) -> None:
         """Move a file that failed to ingest to the quarantine folder, ``NAME.reason.txt``
         beside it; then record the pass ``quarantined``. Each step can be redone after a crash:
         the destination is recorded before the move, and the move is skipped once done."""
@@ -353,11 +357,11 @@ class Inbox:
         }
 
 
-def _sig(row: dict) -> Signature:
+def _sig(row: dict[str, Any]) -> Signature:
     return Signature(row["size"], row["mtime_ns"], row["nfiles"])
 
 
-def start_inbox(settings: Settings, store: JobStore, runner) -> Inbox:
+def start_inbox(settings: Settings, store: JobStore, runner: Runner) -> Inbox:
     """The inbox loop of this API process, started (idle unless ``settings.inbox``)."""
     inbox = Inbox(settings, store, runner.owner, runner.wake.set)
     inbox.start()

@@ -22,7 +22,10 @@ import shutil
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
+
+if TYPE_CHECKING:
+    from _hashlib import HASH
 
 #: File suffixes of passes (lower case); ``.zarr`` folders besides.
 FILE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg", ".npy", ".zip")
@@ -148,7 +151,7 @@ def sha256_of(p: Path, on_chunk: Callable[[], None] | None = None, chunk: int = 
     return h.hexdigest()
 
 
-def _feed(h, f: Path, on_chunk, chunk: int) -> None:
+def _feed(h: HASH, f: Path, on_chunk: Callable[[], None] | None, chunk: int) -> None:
     with open(f, "rb") as fh:
         while block := fh.read(chunk):
             h.update(block)

@@ -122,7 +122,7 @@ class InboxStore:
 
     # ------------------------------------------------------------------ passes seen
 
-    def latest_by_path(self) -> dict[str, dict]:
+    def latest_by_path(self) -> dict[str, dict[str, Any]]:
         """The newest record of every path."""
         rows = (
             self.jobs._conn()
@@ -155,7 +155,7 @@ class InboxStore:
         with self.jobs._tx() as c:
             c.execute("DELETE FROM inbox_passes WHERE id = ? AND status = 'waiting'", (pass_id,))
 
-    def rows(self, status: str, limit: int = 1000) -> list[dict]:
+    def rows(self, status: str, limit: int = 1000) -> list[dict[str, Any]]:
         rows = (
             self.jobs._conn()
             .execute("SELECT * FROM inbox_passes WHERE status = ? ORDER BY id LIMIT ?", (status, limit))
@@ -267,7 +267,7 @@ class InboxStore:
             )
             return ids
 
-    def to_submit(self, limit: int = 100) -> list[dict]:
+    def to_submit(self, limit: int = 100) -> list[dict[str, Any]]:
         """Ingested passes with detector jobs planned and not yet created."""
         rows = (
             self.jobs._conn()
@@ -290,13 +290,13 @@ class InboxStore:
         counts = counts if counts is not None else self.counts()
         return sum(counts.get(s, 0) for s in BACKLOG)
 
-    def list(self, limit: int = 100) -> list[dict]:
+    def list(self, limit: int = 100) -> list[dict[str, Any]]:
         """The newest ``limit`` passes, newest first."""
         rows = self.jobs._conn().execute("SELECT * FROM inbox_passes ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
         return [dict(r) for r in rows]
 
 
-def pass_doc(row: dict) -> dict[str, Any]:
+def pass_doc(row: dict[str, Any]) -> dict[str, Any]:
     """A pass as ``GET /ingest`` lists it."""
     return {
         "key": row["key"],

@@ -31,7 +31,17 @@ import multiprocessing as mp
 import signal
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, NoReturn
+
+if TYPE_CHECKING:
+    from multiprocessing.connection import Connection
+    from multiprocessing.process import BaseProcess
+    from types import FrameType
+
+    from sarship.pipeline.errors import InputError
+
+    #: The child's end of the pipe: it sends ``(kind, ...)`` messages, receives nothing.
+    _ChildEnd = Connection[tuple[Any, ...], Any]
 
 __all__ = [
     "IngestCrashed",
@@ -77,7 +87,14 @@ class IngestCrashed(Exception):
     """The child ended without an answer (killed, crashed) or failed unexpectedly."""
 
 
-def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb: float | None) -> None:
+def _child(
+    conn: _ChildEnd,
+    src: str,
+    out: str,
+    sidecar_root: str | Path | bool | None,
+    limits: dict[str, Any],
+    memory_mb: float | None,
+) -> None:
     import resource
 
     if memory_mb:
@@ -89,8 +106,8 @@ def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb:
     # every thread's stack and malloc arena, and parallel writers bring tensorstore's threads
     os.environ.setdefault("SARSHIP_INGEST_WRITERS", "1")
 
-    def stop(signum, frame):  # unwind: the atomic store removes its temporary sibling
-        raise SystemExit(128 + signum)
+    def stop(signum: int, frame: FrameType | None) -> NoReturn:
+        raise SystemExit(128 + signum)  # unwind: the atomic store removes its temporary sibling
 
     signal.signal(signal.SIGTERM, stop)
     try:
@@ -140,7 +157,7 @@ def _child(conn, src: str, out: str, sidecar_root: Any, limits: dict, memory_mb:
         conn.close()
 
 
-def _input_error() -> type:
+def _input_error() -> type[InputError]:
     from sarship.pipeline.errors import InputError
 
     return InputError
@@ -150,8 +167,8 @@ def ingest_in_child(
     src: Path,
     out: Path,
     *,
-    sidecar_root: Any,
-    limits: dict,
+    sidecar_root: str | Path | bool | None,
+    limits: dict[str, Any],
     memory_mb: float | None,
     progress: Callable[[int, int], None],
 ) -> None:
@@ -168,7 +185,9 @@ def ingest_in_child(
         raise IngestCrashed(answer[1])
 
 
-def _run_child(target: Callable, args: tuple, progress: Callable[[int, int], None], name: str) -> tuple:
+def _run_child(
+    target: Callable[..., None], args: tuple[Any, ...], progress: Callable[[int, int], None], name: str
+) -> tuple[Any, ...]:
     """Start ``target(conn, *args)`` in a spawned child and wait for its answer (the first
     message that is not ``("progress", done, total)``, each of which is handed to
     ``progress``); :class:`IngestCrashed` when the child ends without one."""
@@ -177,7 +196,7 @@ def _run_child(target: Callable, args: tuple, progress: Callable[[int, int], Non
     proc = ctx.Process(target=target, name=name, daemon=True, args=(child_end, *args))
     proc.start()
     child_end.close()
-    answer = None
+    answer: tuple[Any, ...] | None = None
     try:
         while answer is None:
             if parent.poll(0.5):
@@ -206,7 +225,14 @@ def _run_child(target: Callable, args: tuple, progress: Callable[[int, int], Non
 
 
 def _land_child(
-    conn, src: str, out: str, shape: tuple, attrs: dict, tile: int, max_bytes: int, memory_mb: float | None
+    conn: _ChildEnd,
+    src: str,
+    out: str,
+    shape: tuple[int, int],
+    attrs: dict[str, Any],
+    tile: int,
+    max_bytes: int,
+    memory_mb: float | None,
 ) -> None:
     import resource
 
@@ -214,7 +240,7 @@ def _land_child(
         cap = int(memory_mb * 2**20)
         resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
 
-    def stop(signum, frame):
+    def stop(signum: int, frame: FrameType | None) -> NoReturn:
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, stop)
@@ -248,8 +274,7 @@ def _land_child(
     except Exception as exc:
         if isinstance(exc, _input_error()):
             conn.send(("refused", str(exc)))
-        elif transient_fault(exc) is not None:
-            fault = transient_fault(exc)
+        elif (fault := transient_fault(exc)) is not None:
             conn.send(("transient", f"[Errno {fault.errno}] cannot write the land mask: {fault.strerror or fault}"))
         else:
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
@@ -264,12 +289,12 @@ def land_in_child(
     out: Path,
     *,
     shape: tuple[int, int],
-    attrs: dict,
+    attrs: dict[str, Any],
     tile: int,
     max_bytes: int,
     memory_mb: float | None,
     progress: Callable[[int, int], None],
-) -> dict:
+) -> dict[str, Any]:
     """Check and rasterise the ``land_mask`` FILE ``src`` onto a scene grid of ``shape`` (its
     georeference ``attrs``) in a child process under the same memory cap as an ingest: the
     file (a GeoJSON of any size up to ``max_bytes``, a hostile TIFF) is parsed there, never in
@@ -286,7 +311,8 @@ def land_in_child(
         "sarship-land",
     )
     if answer[0] == "ok":
-        return answer[1]
+        found: dict[str, Any] = answer[1]  # the child's {"kind", "format", "info"}
+        return found
     if answer[0] == "refused":
         raise _input_error()(answer[1])
     if answer[0] == "transient":
@@ -294,7 +320,7 @@ def land_in_child(
     raise IngestCrashed(answer[1])
 
 
-def _stop(proc) -> None:
+def _stop(proc: BaseProcess) -> None:
     if proc.is_alive():
         proc.terminate()
         proc.join(10)

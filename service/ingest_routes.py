@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse
@@ -62,8 +62,11 @@ def inbox_of(request: Request) -> Inbox:
     return inbox
 
 
-@router.get("/ingest", responses={200: {"model": IngestState}})
-def ingest_state(request: Request, limit: int = Query(100, ge=1, le=1000, description="passes listed, newest first")):
+# (response_model=None: the return annotation is for the type checker; FastAPI would take it as the response model)
+@router.get("/ingest", response_model=None, responses={200: {"model": IngestState}})
+def ingest_state(
+    request: Request, limit: int = Query(100, ge=1, le=1000, description="passes listed, newest first")
+) -> dict[str, Any]:
     """``{"enabled", "inboxes", "schedule": {"interval_s", "cron"}, "leader", "last_scan",
     "next_scan", "backlog", "counts": {status: n}, "passes": [{"key", "file", "status",
     "sceneID", "jobs", "ingestJob", "reason", "seen", "updated"}]}``, passes newest first
@@ -73,7 +76,7 @@ def ingest_state(request: Request, limit: int = Query(100, ge=1, le=1000, descri
 
 
 @router.post("/ingest/scan", status_code=202, responses={202: {"model": ScanRequested}})
-def ingest_scan(request: Request):
+def ingest_scan(request: Request) -> JSONResponse:
     """Ask for a scan of the inboxes now (done by the API process that leads the loop,
     whichever it is); ``409`` when no inbox is configured."""
     inbox = inbox_of(request)

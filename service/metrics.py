@@ -8,17 +8,24 @@ counters. No job IDs or file names as labels (unbounded cardinality).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
 from sarship.pipeline import __version__
 
+if TYPE_CHECKING:
+    from sarship.service.inbox_store import InboxStore
+    from sarship.service.store import JobStore
+
 
 class _JobCounts:
-    def __init__(self, store):
+    def __init__(self, store: JobStore) -> None:
         self.store = store
 
-    def collect(self):
+    def collect(self) -> Iterator[Metric]:
         g = GaugeMetricFamily("sarship_jobs", "jobs in the store by status", labels=["status"])
         for status, n in self.store.counts().items():
             g.add_metric([status], n)
@@ -26,10 +33,10 @@ class _JobCounts:
 
 
 class _InboxFigures:
-    def __init__(self, db):
+    def __init__(self, db: InboxStore) -> None:
         self.db = db
 
-    def collect(self):
+    def collect(self) -> Iterator[Metric]:
         counts = self.db.counts()
         st = self.db.state()
         yield GaugeMetricFamily(
@@ -59,7 +66,7 @@ class _InboxFigures:
 
 
 class Metrics:
-    def __init__(self):
+    def __init__(self) -> None:
         self.registry = CollectorRegistry()
         r = self.registry
         self.build = Gauge("sarship_build_info", "build information", ["version"], registry=r)
@@ -75,7 +82,7 @@ class Metrics:
         self.pixels = Counter("sarship_pixels_processed", "scene pixels processed by successful jobs", registry=r)
         self.requests = Counter("sarship_jobs_submitted", "jobs accepted by this API process", ["process"], registry=r)
 
-    def watch_store(self, store) -> None:
+    def watch_store(self, store: JobStore) -> None:
         """Report the job counts and the inbox figures of the shared store."""
         from sarship.service.inbox_store import InboxStore
 

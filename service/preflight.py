@@ -76,7 +76,8 @@ def is_loopback(host: str) -> bool | None:
         infos = socket.getaddrinfo(h, None, type=socket.SOCK_STREAM)
     except (socket.gaierror, UnicodeError):
         return None
-    return bool(infos) and all(ipaddress.ip_address(i[4][0].split("%")[0]).is_loopback for i in infos)
+    # (i[4][0]: the host of an IPv4 or IPv6 socket address, a str; typed str | int for other families)
+    return bool(infos) and all(ipaddress.ip_address(str(i[4][0]).split("%")[0]).is_loopback for i in infos)
 
 
 def check_exposure(settings: Settings) -> None:

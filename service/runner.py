@@ -39,13 +39,20 @@ import time
 import traceback
 import uuid
 from asyncio import CancelledError
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sarship.pipeline.errors import InputError
 from sarship.service.job_inputs import land_file_path, scene_path
 from sarship.service.settings import Settings
-from sarship.service.store import INGEST, JobStore
+from sarship.service.store import INGEST, Job, JobStore
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+    from sarship.service.metrics import Metrics
+    from sarship.service.scheduler_link import SchedulerLink
 
 log = logging.getLogger("sarship.service")
 
@@ -60,7 +67,7 @@ class Dismissed(Exception):
     """The job was dismissed (or re-claimed elsewhere) while it ran."""
 
 
-def transient_reason(exc: BaseException, client=None) -> str | None:
+def transient_reason(exc: BaseException, client: Client | SchedulerLink | None = None) -> str | None:
     """Why ``exc`` is a fault of the service rather than of the job's input, or None: a write
     that failed for want of space (``ENOSPC``, ``EDQUOT``, ``EFBIG``, also behind an
     :class:`InputError`), a busy, locked or full job store, or a Dask scheduler that cannot
@@ -76,13 +83,16 @@ def transient_reason(exc: BaseException, client=None) -> str | None:
         text = str(exc)
         if any(w in text for w in ("locked", "busy", "disk is full", "disk I/O")):
             return f"the job store is unavailable: {text}"
+    comm_closed: tuple[type[BaseException], ...]
     try:
         from distributed.comm.core import CommClosedError
+
+        comm_closed = (CommClosedError,)
     except ImportError:  # pragma: no cover
-        CommClosedError = ConnectionError  # noqa: N806
+        comm_closed = ()  # (ConnectionError, checked anyway, stood in for it)
     from concurrent.futures import CancelledError as FuturesCancelled  # (distributed's FutureCancelledError)
 
-    if isinstance(exc, (CommClosedError, ConnectionError, FuturesCancelled, CancelledError)) or (
+    if isinstance(exc, (*comm_closed, ConnectionError, FuturesCancelled, CancelledError)) or (
         client is not None and getattr(client, "status", "running") not in ("running", None)
     ):
         return f"the Dask scheduler is unreachable: {type(exc).__name__}: {exc}"
@@ -98,7 +108,9 @@ _SCENE_TEMP = re.compile(r"^\.{1,2}(?P<id>[^./]+)\.zarr\.(partial|attempt)-")
 class Runner:
     """``settings.concurrency`` worker threads plus a lease heartbeat."""
 
-    def __init__(self, settings: Settings, store: JobStore, client, metrics=None):
+    def __init__(
+        self, settings: Settings, store: JobStore, client: Client | SchedulerLink, metrics: Metrics | None = None
+    ):
         self.settings = settings
         self.store = store
         self.client = client
@@ -211,7 +223,7 @@ class Runner:
                 with self._lock:
                     self._running.pop(job["id"], None)
 
-    def _retry(self, job: dict, why: str) -> None:
+    def _retry(self, job: Job, why: str) -> None:
         """Put a job that failed for a fault of ours back, to be tried again after a back-off."""
         n = max(int(job["attempts"]), 1)
         delay = min(self.settings.retry_s * 2 ** min(n - 1, 30), self.settings.retry_max_s)
@@ -223,15 +235,76 @@ class Runner:
         except Exception:  # the store itself is unavailable: the lease lapses and the job runs again
             log.exception("job %s: could not record the retry", job["id"])
 
-    def _run(self, job: dict) -> None:
-        from sarship.pipeline.run.outputs import publish
-        from sarship.workers.jobs import run_request
-        from sarship.workers.request import JobRequest
-
+    def _run(self, job: Job) -> None:
+        """Run a claimed job: an ingest (:meth:`_ingest`), else a detector job on the cluster
+        (once the ingest it waits for, if any, has succeeded: :meth:`_ingest_done`), whose
+        outputs are published by the transaction that finishes it."""
         job_id, attempt = job["id"], int(job["attempts"])
         out_dir = self.settings.jobs_dir / job_id
         inputs = dict(job["inputs"])
 
+        if job["process"] == INGEST:
+            self._ingest(job)
+            return
+        if job.get("waits_for") and not self._ingest_done(job):
+            return
+        # the job is ours now: what earlier attempts left (killed, or stale and still running
+        # elsewhere: they cannot publish) goes; this attempt writes aside and publishes when it finishes
+        for stale in [*out_dir.glob(".sarship-partial-*"), *out_dir.glob(".attempt-*")] if out_dir.is_dir() else ():
+            _remove(stale)
+        land_raster = out_dir / f".attempt-{attempt}-{uuid.uuid4().hex[:6]}-land.zarr"
+        staged: list[Path] = []  # the run's temporary folder, published in the store's transaction
+        try:
+            run = self._detect(job, inputs, out_dir, land_raster, staged)
+            self._publish_run(job, run, out_dir, staged)
+        except Dismissed:
+            log.info("job %s (attempt %d) dismissed or taken over while running", job_id, attempt)
+        except (Exception, CancelledError) as exc:  # (Dask's futures cancelled: the scheduler went away)
+            self._run_failed(job, exc)
+        finally:
+            for p in staged:  # (gone once published)
+                _remove(p)
+            _remove(land_raster)
+
+    def _detect(
+        self, job: Job, inputs: dict[str, Any], out_dir: Path, land_raster: Path, staged: list[Path]
+    ) -> dict[str, Any]:
+        """Run a detector job's request on the cluster, its ``land_mask`` FILE (if any)
+        rasterised first into ``land_raster``; the run writes its outputs aside, in a temporary
+        folder appended to ``staged``. The run's ``run.json`` content."""
+        from sarship.workers.jobs import run_request
+        from sarship.workers.request import JobRequest
+
+        job_id, attempt = job["id"], int(job["attempts"])
+        # the request validated when the job was posted, as stored: not validated again (its
+        # parameters are parsed once, here, and the run reads those)
+        request = JobRequest.from_stored(job["process"], inputs)
+        scene = scene_path(self.settings, request.scene)
+        land = land_file_path(self.settings, request)
+        land_source = None
+        if land is not None:  # parsed and rasterised in a memory-capped child: the job reads that raster
+            land_src = self._land_file(land, scene, land_raster, self._still_ours(job_id, attempt))
+            request = request.with_param("land_mask", str(land_src["raster"]))
+            info = land_src["answer"]  # run.json names the file the job named, not the raster
+            land_source = {"path": str(land), "kind": info["kind"], "format": info["format"], **info["info"]}
+        # staged once: the run writes its outputs (run.json naming DATA/jobs/ID) in its temporary
+        # folder, which is published by the transaction that finishes the job (fenced: a stale
+        # attempt publishes nothing)
+        return run_request(
+            request.model_copy(update={"scene": str(scene)}),
+            out_dir=out_dir,
+            client=self.client,
+            progress=False,
+            on_tile=self._tile_progress(job_id, attempt),
+            overwrite=True,
+            publish_with=lambda tmp, _out: staged.append(tmp),
+            land_source=land_source,
+        )
+
+    def _tile_progress(self, job_id: str, attempt: int) -> Callable[[int, int], None]:
+        """The run's ``on_tile(done, total)``: counts the tile; stores the job's progress, and
+        checks that the job is still ours (else :class:`Dismissed`), at most every
+        :data:`PROGRESS_EVERY_S` seconds and on the last tile."""
         last_saved = 0.0
 
         def on_tile(done: int, total: int) -> None:
@@ -248,105 +321,83 @@ class Runner:
             if not self.store.renew(job_id, self.owner, self.settings.lease_s, min(pct, 99), attempt=attempt):
                 raise Dismissed(job_id)
 
-        def still_ours(done: int, total: int) -> None:  # (the land_mask child's progress)
+        return on_tile
+
+    def _still_ours(self, job_id: str, attempt: int) -> Callable[[int, int], None]:
+        """A progress callback (the land_mask child's) that renews the job's lease, and raises
+        :class:`Dismissed` once the job is no longer ours."""
+
+        def still_ours(done: int, total: int) -> None:
             if not self.store.renew(job_id, self.owner, self.settings.lease_s, attempt=attempt):
                 raise Dismissed(job_id)
 
-        if job["process"] == INGEST:
-            self._ingest(job)
-            return
-        if job.get("waits_for") and not self._ingest_done(job):
-            return
-        # the job is ours now: what earlier attempts left (killed, or stale and still running
-        # elsewhere: they cannot publish) goes; this attempt writes aside and publishes when it finishes
-        for stale in [*out_dir.glob(".sarship-partial-*"), *out_dir.glob(".attempt-*")] if out_dir.is_dir() else ():
-            _remove(stale)
-        land_raster = out_dir / f".attempt-{attempt}-{uuid.uuid4().hex[:6]}-land.zarr"
-        staged: list[Path] = []  # the run's temporary folder, published in the store's transaction
-        try:
-            # the request validated when the job was posted, as stored: not validated again (its
-            # parameters are parsed once, here, and the run reads those)
-            request = JobRequest.from_stored(job["process"], inputs)
-            scene = scene_path(self.settings, request.scene)
-            land = land_file_path(self.settings, request)
-            land_source = None
-            if land is not None:  # parsed and rasterised in a memory-capped child: the job reads that raster
-                land_src = self._land_file(land, scene, land_raster, still_ours)
-                request = request.with_param("land_mask", str(land_src["raster"]))
-                info = land_src["answer"]  # run.json names the file the job named, not the raster
-                land_source = {"path": str(land), "kind": info["kind"], "format": info["format"], **info["info"]}
-            # staged once: the run writes its outputs (run.json naming DATA/jobs/ID) in its temporary
-            # folder, which is published by the transaction that finishes the job (fenced: a stale
-            # attempt publishes nothing)
-            run = run_request(
-                request.model_copy(update={"scene": str(scene)}),
-                out_dir=out_dir,
-                client=self.client,
-                progress=False,
-                on_tile=on_tile,
-                overwrite=True,
-                publish_with=lambda tmp, _out: staged.append(tmp),
-                land_source=land_source,
+        return still_ours
+
+    def _publish_run(self, job: Job, run: dict[str, Any], out_dir: Path, staged: list[Path]) -> None:
+        """Finish a detector job whose run succeeded: its summary recorded and its staged
+        outputs published into ``out_dir`` in one fenced transaction (a job that is no longer
+        ours publishes nothing); then its metrics."""
+        from sarship.pipeline.run.outputs import publish
+
+        job_id, attempt = job["id"], int(job["attempts"])
+        summary: dict[str, Any] = {
+            "detections": run["detections"],
+            "detected_px": run["detected_px"],
+            "outputs": run["outputs"],
+            "timings": run["timings"],
+        }
+        if not self.store.finish(
+            job_id,
+            self.owner,
+            "successful",
+            f"{run['detections']} detections in {run['timings']['total_s']:.1f} s",
+            summary,
+            attempt=attempt,
+            publish=lambda: publish(staged[0], out_dir),
+        ):
+            log.warning(
+                "job %s (attempt %d) finished, but the job is no longer ours (dismissed, or re-run "
+                "after its lease lapsed): its results are discarded",
+                job_id,
+                attempt,
             )
-            summary: dict[str, Any] = {
-                "detections": run["detections"],
-                "detected_px": run["detected_px"],
-                "outputs": run["outputs"],
-                "timings": run["timings"],
-            }
-            if not self.store.finish(
+            return
+        if self.metrics is not None:
+            H, W = run["scene"]["shape"]
+            self.metrics.pixels.inc(H * W)
+            self.metrics.duration.labels(job["process"], "successful").observe(run["timings"]["total_s"])
+
+    def _run_failed(self, job: Job, exc: BaseException) -> None:
+        """A detector job's run raised ``exc`` (called while it is handled): discarded when the
+        job is no longer ours; put back for a fault of the service (:func:`transient_reason`);
+        else failed with the reason (an unexpected error logged with its traceback)."""
+        job_id, attempt = job["id"], int(job["attempts"])
+        why = transient_reason(exc, self.client)
+        if not self._holds(job_id, attempt):  # (e.g. its outputs removed by the attempt that took over)
+            log.info(
+                "job %s (attempt %d) ended (%s: %s) after it was dismissed or taken over: discarded",
+                job_id,
+                attempt,
+                type(exc).__name__,
+                exc,
+            )
+        elif why is not None:
+            self._retry(job, why)
+        elif isinstance(exc, InputError):
+            if self.store.finish(job_id, self.owner, "failed", self._public(str(exc)), attempt=attempt):
+                self._observe_failure(job)
+        else:  # never lose the job: record why it failed
+            log.error("job %s failed: %s", job_id, traceback.format_exc())
+            if self.store.finish(
                 job_id,
                 self.owner,
-                "successful",
-                f"{run['detections']} detections in {run['timings']['total_s']:.1f} s",
-                summary,
+                "failed",
+                self._public(f"internal error: {type(exc).__name__}: {exc}"),
                 attempt=attempt,
-                publish=lambda: publish(staged[0], out_dir),
             ):
-                log.warning(
-                    "job %s (attempt %d) finished, but the job is no longer ours (dismissed, or re-run "
-                    "after its lease lapsed): its results are discarded",
-                    job_id,
-                    attempt,
-                )
-                return
-            if self.metrics is not None:
-                H, W = run["scene"]["shape"]
-                self.metrics.pixels.inc(H * W)
-                self.metrics.duration.labels(job["process"], "successful").observe(run["timings"]["total_s"])
-        except Dismissed:
-            log.info("job %s (attempt %d) dismissed or taken over while running", job_id, attempt)
-        except (Exception, CancelledError) as exc:  # (Dask's futures cancelled: the scheduler went away)
-            why = transient_reason(exc, self.client)
-            if not self._holds(job_id, attempt):  # (e.g. its outputs removed by the attempt that took over)
-                log.info(
-                    "job %s (attempt %d) ended (%s: %s) after it was dismissed or taken over: discarded",
-                    job_id,
-                    attempt,
-                    type(exc).__name__,
-                    exc,
-                )
-            elif why is not None:
-                self._retry(job, why)
-            elif isinstance(exc, InputError):
-                if self.store.finish(job_id, self.owner, "failed", self._public(str(exc)), attempt=attempt):
-                    self._observe_failure(job)
-            else:  # never lose the job: record why it failed
-                log.error("job %s failed: %s", job_id, traceback.format_exc())
-                if self.store.finish(
-                    job_id,
-                    self.owner,
-                    "failed",
-                    self._public(f"internal error: {type(exc).__name__}: {exc}"),
-                    attempt=attempt,
-                ):
-                    self._observe_failure(job)
-        finally:
-            for p in staged:  # (gone once published)
-                _remove(p)
-            _remove(land_raster)
+                self._observe_failure(job)
 
-    def _land_file(self, land: Path, scene: Path, out: Path, progress) -> dict:
+    def _land_file(self, land: Path, scene: Path, out: Path, progress: Callable[[int, int], None]) -> dict[str, Any]:
         """The ``land_mask`` FILE ``land`` checked and rasterised onto the scene's grid into the
         Zarr group ``out`` by a child process under ``ingest_memory_mb``
         (:func:`~sarship.service.ingest_proc.land_in_child`): ``{"raster": out, "answer":
@@ -359,7 +410,7 @@ class Runner:
 
         sc = open_scene(scene)
         out.parent.mkdir(parents=True, exist_ok=True)
-        attrs = {k: sc.attrs[k] for k in ("crs", "transform", "gcps") if k in sc.attrs}
+        attrs: dict[str, Any] = {k: sc.attrs[k] for k in ("crs", "transform", "gcps") if k in sc.attrs}
         st = self.settings
         try:
             answer = land_in_child(
@@ -388,7 +439,7 @@ class Runner:
         except Exception:  # the store unavailable: assume so (its finish is fenced anyway)
             return True
 
-    def _ingest_done(self, job: dict) -> bool:
+    def _ingest_done(self, job: Job) -> bool:
         """A job that waited for its scene's ingest job (``waits_for``, see
         :meth:`JobStore.create`): True when that ingest succeeded (the job runs now); else the
         job is failed with the ingest's error and False."""
@@ -413,7 +464,7 @@ class Runner:
             self._observe_failure(job)
         return False
 
-    def _ingest(self, job: dict) -> None:
+    def _ingest(self, job: Job) -> None:
         """A scene file (an upload, input ``upload``, or an inbox pass, input ``path``) to the
         scene store ``DATA/scenes/ID.zarr``, in a child process with a memory cap and the
         service's input limits (:mod:`sarship.service.ingest_proc`): never in this API
@@ -512,7 +563,7 @@ class Runner:
         finally:
             _remove(stage)
 
-    def _observe_failure(self, job: dict) -> None:
+    def _observe_failure(self, job: Job) -> None:
         if self.metrics is not None:
             took = time.time() - (job["started"] or time.time())
             self.metrics.duration.labels(job["process"], "failed").observe(took)
@@ -532,7 +583,7 @@ def _remove(p: Path) -> None:
             pass
 
 
-def wait_final(store: JobStore, job_id: str, timeout: float) -> dict | None:
+def wait_final(store: JobStore, job_id: str, timeout: float) -> Job | None:
     """Poll the store until the job is final (or ``timeout``): the job row."""
     t_end = time.time() + timeout
     while True:

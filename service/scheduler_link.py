@@ -20,7 +20,11 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 log = logging.getLogger("sarship.service")
 
@@ -31,7 +35,8 @@ _GONE = ("closing", "closed", "failed")
 def backoff(first_s: float, max_s: float, failures: int) -> float:
     """Seconds before the next try after ``failures`` failed tries in a row: ``first_s``
     doubled per failure, at most ``max_s``."""
-    return min(first_s * 2 ** min(max(failures, 0), 30), max_s)
+    factor: int = 2 ** min(max(failures, 0), 30)
+    return min(first_s * factor, max_s)
 
 
 class SchedulerLink:
@@ -43,7 +48,14 @@ class SchedulerLink:
     how often the client's state is looked at.
     """
 
-    def __init__(self, address: str, first_s: float = 1.0, max_s: float = 30.0, connect=None, watch_s: float = 0.25):
+    def __init__(
+        self,
+        address: str,
+        first_s: float = 1.0,
+        max_s: float = 30.0,
+        connect: Callable[[], Client] | None = None,
+        watch_s: float = 0.25,
+    ):
         self.address = address
         self.first_s, self.max_s = float(first_s), float(max_s)
         self._connect = connect or (lambda: _client(address))
@@ -68,7 +80,7 @@ class SchedulerLink:
     def connected(self) -> bool:
         return self.status == "running"
 
-    def current(self):
+    def current(self) -> Client:
         """The connected client; :class:`ConnectionError` naming the scheduler when there is none."""
         c = self._client
         if getattr(c, "status", "closed") != "running":
@@ -90,7 +102,7 @@ class SchedulerLink:
         c = self._client
         if c is not None:
             try:
-                c.close()
+                c.close()  # type: ignore[no-untyped-call]  # distributed's Client.close is unannotated
             except Exception:  # noqa: BLE001 - closing a client of a scheduler that is gone
                 pass
 
@@ -124,7 +136,7 @@ class SchedulerLink:
             self._failures, self._next_try, self.last_error = 0, 0.0, None
             self.reconnects += 1
         try:
-            old.close()
+            old.close()  # type: ignore[no-untyped-call]  # distributed's Client.close is unannotated
         except Exception:  # noqa: BLE001
             pass
         n = len(new.scheduler_info().get("workers", {}))
@@ -132,12 +144,13 @@ class SchedulerLink:
         return True
 
 
-def _client(address: str, timeout_s: float = 10.0):
+def _client(address: str, timeout_s: float = 10.0) -> Client:
     """A client of ``address`` whose workers run this sarship version
     (:func:`sarship.workers.cluster.connect_checked`); :class:`InputError` otherwise."""
     from sarship.workers.cluster import connect_checked
 
-    return connect_checked(address, timeout_s)
+    client: Client = connect_checked(address, timeout_s)
+    return client
 
 
 def open_link(address: str, first_s: float = 1.0, max_s: float = 30.0, echo: bool = True) -> SchedulerLink:

@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias, overload
 
 STATUSES = ("accepted", "running", "successful", "failed", "dismissed")
 FINAL = ("successful", "failed", "dismissed")
@@ -72,7 +72,16 @@ CREATE INDEX IF NOT EXISTS jobs_ingest_status ON jobs (status, created) WHERE pr
 #: The process name of scene-ingest jobs (uploads and inbox passes).
 INGEST = "ingest"
 
+#: A job as the store hands it out: its row's columns, ``inputs`` and ``result`` decoded from JSON.
+Job: TypeAlias = dict[str, Any]
 
+
+@overload
+def iso(t: float) -> str: ...
+@overload
+def iso(t: None) -> None: ...
+@overload
+def iso(t: float | None) -> str | None: ...
 def iso(t: float | None) -> str | None:
     """RFC 3339 UTC timestamp of a POSIX time (None stays None)."""
     if t is None:
@@ -126,30 +135,36 @@ class JobStore:
 
     # ------------------------------------------------------------------ jobs
 
-    def create(self, process: str, inputs: dict[str, Any], waits_for: str | None = None, message: str = "") -> dict:
+    def create(self, process: str, inputs: dict[str, Any], waits_for: str | None = None, message: str = "") -> Job:
         """A new accepted job; with ``waits_for`` (an ingest job's ID) it is not claimed until
         that job is final."""
         with self._tx() as c:
             job_id = insert_job(c, process, inputs, waits_for, message)
-        return self.get(job_id)
+        return self._created(job_id)
 
-    def active_ingest(self, scene_id: str) -> dict | None:
+    def _created(self, job_id: str) -> Job:
+        """A job this store has just committed (jobs are never deleted: it is there)."""
+        job = self.get(job_id)
+        assert job is not None, job_id
+        return job
+
+    def active_ingest(self, scene_id: str) -> Job | None:
         """The accepted or running ingest job of ``scene_id``, if any."""
         job_id = active_ingest(self._conn(), scene_id)
         return self.get(job_id) if job_id else None
 
-    def create_ingest(self, inputs: dict[str, Any]) -> tuple[dict, bool]:
+    def create_ingest(self, inputs: dict[str, Any]) -> tuple[Job, bool]:
         """The ingest job of ``inputs["scene_id"]``: the one already accepted or running for
         that scene (so one scene is never written by two jobs at once), else a new one; and
         whether it is new."""
         with self._tx() as c:
             job_id = active_ingest(c, inputs["scene_id"])
             new = job_id is None
-            if new:
+            if job_id is None:
                 job_id = insert_job(c, INGEST, inputs)
-        return self.get(job_id), new
+        return self._created(job_id), new
 
-    def ingest_jobs(self, statuses: tuple[str, ...]) -> list[dict]:
+    def ingest_jobs(self, statuses: tuple[str, ...]) -> list[Job]:
         """Ingest jobs in ``statuses``, newest first (the partial index ``jobs_ingest_status``)."""
         marks = ", ".join("?" * len(statuses))
         rows = (
@@ -161,9 +176,9 @@ class JobStore:
         )
         return [_row(r) for r in rows]
 
-    def ingest_job_for_scene(self, scene_id: str) -> dict | None:
+    def ingest_job_for_scene(self, scene_id: str) -> Job | None:
         """The newest ingest job of a scene (the expression index ``jobs_ingest_scene``)."""
-        row = (
+        row: sqlite3.Row | None = (
             self._conn()
             .execute(
                 "SELECT * FROM jobs WHERE process = 'ingest' AND "
@@ -174,7 +189,7 @@ class JobStore:
         )
         return _row(row)
 
-    def active_jobs(self) -> list[dict]:
+    def active_jobs(self) -> list[Job]:
         """Accepted and running jobs (every process), oldest first (the index ``jobs_status``):
         what a scene deletion must not pull a scene from under."""
         rows = (
@@ -184,11 +199,11 @@ class JobStore:
         )
         return [_row(r) for r in rows]
 
-    def get(self, job_id: str) -> dict | None:
-        row = self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+    def get(self, job_id: str) -> Job | None:
+        row: sqlite3.Row | None = self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return _row(row)
 
-    def list(self, limit: int = 1000, offset: int = 0, status: str | None = None) -> list[dict]:
+    def list(self, limit: int = 1000, offset: int = 0, status: str | None = None) -> list[Job]:
         if status:
             rows = (
                 self._conn()
@@ -212,7 +227,7 @@ class JobStore:
         out.update({r["status"]: r["n"] for r in rows})
         return out
 
-    def claim(self, owner: str, lease_s: float) -> dict | None:
+    def claim(self, owner: str, lease_s: float) -> Job | None:
         """Take the oldest job that is accepted (waiting for no ingest job still accepted or
         running, and not waiting to be retried: ``not_before``), or running with an expired
         lease (its runner died or stalled): mark it running under ``owner`` until
@@ -262,7 +277,7 @@ class JobStore:
         owner: str,
         status: str,
         message: str,
-        result: dict | None = None,
+        result: dict[str, Any] | None = None,
         attempt: int | None = None,
         publish: Callable[[], None] | None = None,
     ) -> bool:
@@ -325,7 +340,7 @@ class JobStore:
         )
         return {r["s"] for r in rows}
 
-    def dismiss(self, job_id: str) -> tuple[dict | None, str | None]:
+    def dismiss(self, job_id: str) -> tuple[Job | None, str | None]:
         """Dismiss (OGC API - Processes): accepted or running -> dismissed (a running job's
         runner stops at its next tile); successful or failed -> dismissed (the caller removes
         its outputs; ``finished`` keeps the time it finished). A dismissed job stays as it is.
@@ -354,7 +369,7 @@ class JobStore:
             self._local.conn = None
 
 
-def _fence(job_id: str, owner: str, attempt: int | None) -> tuple[str, tuple]:
+def _fence(job_id: str, owner: str, attempt: int | None) -> tuple[str, tuple[str | int, ...]]:
     """The WHERE clause of an update by the runner holding a job: the job is running, under
     ``owner`` and (when given) as ``attempt``."""
     if attempt is None:
@@ -387,7 +402,11 @@ def active_ingest(c: sqlite3.Connection, scene_id: str) -> str | None:
     return row["id"] if row else None
 
 
-def _row(row) -> dict | None:
+@overload
+def _row(row: sqlite3.Row) -> Job: ...
+@overload
+def _row(row: sqlite3.Row | None) -> Job | None: ...
+def _row(row: sqlite3.Row | None) -> Job | None:
     if row is None:
         return None
     d = dict(row)
