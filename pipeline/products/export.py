@@ -25,6 +25,7 @@ import json
 import os
 import secrets
 import struct
+import types
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +45,7 @@ SPLIT = {
 EXTRA_HINT = "pip install 'sarship[gis]'"
 
 
-def require_pyogrio():
+def require_pyogrio() -> types.ModuleType:
     """The ``pyogrio`` module, or InputError naming the extra to install."""
     try:
         import pyogrio
