@@ -104,46 +104,16 @@ def serve(
     """Run the warm process in the foreground (``sarship warm run``): start the cluster, then
     run the commands that arrive on the socket until ``idle_timeout`` seconds pass without one
     (0: never), ``sarship warm stop``, SIGTERM or Ctrl-C."""
-    import fcntl
-    import signal
-    import threading
-
     if not supported():
         raise WarmError("the warm cluster needs Unix sockets with peer credentials (Linux)")
     env = relevant_env()  # as started: Dask sets some (OMP_NUM_THREADS) in this process later
     path = path or socket_path()
     private_folder(path.parent)
-    lock_fd = os.open(_lock_path(path), os.O_RDWR | os.O_CREAT, 0o600)
-    try:
-        fcntl.flock(lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        os.close(lock_fd)
-        raise WarmError(f"a warm cluster runs already on {path} (sarship warm status)") from None
-    os.ftruncate(lock_fd, 0)
-    os.write(lock_fd, f"{os.getpid()}\n".encode())
+    lock_fd = _lock(path)
+    _on_signals()
+    from sarship.workers.cluster import connect
 
-    def on_term(signum, frame):
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        raise SystemExit(128 + signum)
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, on_term)
-        # a command is interrupted by the SIGINT this process sends its own main thread
-        # (_run_command's watcher): a warm process started from a background job or a service
-        # manager inherits SIGINT ignored, which would make every interrupt a no-op
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    from sarship.workers.cluster import connect, gpu_procs
-    from sarship.workers.gpus import visible_gpus
-
-    gpus = visible_gpus() if device != "cpu" else []
-    if device == "gpu" and not gpus:
-        raise WarmError("--device gpu: no GPU is visible here")
-    cores = os.cpu_count() or 1
-    per_gpu = gpu_procs(len(gpus), long_lived=True) if gpus else 0  # started once: no cap on the count
-    n_gpu_procs = len(gpus) * per_gpu
-    n_cpu = workers if workers is not None else (max(0, cores - n_gpu_procs) if gpus else cores)
-    if not gpus and n_cpu < 1:
-        raise WarmError("--workers must be at least 1 without GPUs")
+    gpus, per_gpu, n_cpu = _worker_counts(device, workers)
     with connect(
         None,
         n_workers=n_cpu if not gpus else None,
@@ -159,58 +129,18 @@ def serve(
         for name in ("sarship.cli", "sarship.workers.jobs"):  # the commands' imports, done once
             importlib.import_module(name)
         _warm_up(client, path.parent, warm_up)
-
-        info = client.scheduler_info(n_workers=-1).get("workers", {})
-        n_gpu = sum(1 for w in info.values() if float((w.get("resources") or {}).get("GPU", 0)) > 0)
-        what = (
-            f"{n_gpu} GPU worker processes" + (f" and {len(info) - n_gpu} CPU" if len(info) > n_gpu else "")
-            if n_gpu
-            else f"{len(info)} worker processes"
-        )
-        from sarship.workers.cluster import DASHBOARD_HINT, dashboard_url
-
-        state = {
-            "pid": os.getpid(),
-            "what": what,
-            "device": "gpu" if n_gpu else "cpu",
-            "gpu_workers": n_gpu,
-            "cpu_workers": len(info) - n_gpu,
-            "dashboard": dashboard_url(client),
-            "socket": str(path),
-            "idle_timeout_s": idle_timeout,
-            "started": time.time(),
-            "commands": 0,
-            "identity": _identity(),
-            "env": env,
-        }
+        state = _ready_state(client, path, idle_timeout, env)
         srv = _listen(path)
+        from sarship.workers.cluster import DASHBOARD_HINT
+
         dash = f"dashboard {state['dashboard']}" if state["dashboard"] else f"no dashboard ({DASHBOARD_HINT})"
         print(
-            f"sarship: warm cluster ready (pid {os.getpid()}), {what}, {dash}, socket {path}",
+            f"sarship: warm cluster ready (pid {os.getpid()}), {state['what']}, {dash}, socket {path}",
             file=sys.stderr,
             flush=True,
         )
-        last = time.monotonic()
         try:
-            while True:
-                if idle_timeout and time.monotonic() - last > idle_timeout:
-                    print(f"sarship: warm cluster idle for {idle_timeout:g} s: ending", file=sys.stderr, flush=True)
-                    break
-                if client.status not in ("running", "connecting"):
-                    print("sarship: the warm cluster's scheduler is gone: ending", file=sys.stderr, flush=True)
-                    break
-                srv.settimeout(min(5.0, idle_timeout) if idle_timeout else 5.0)
-                try:
-                    conn, _ = srv.accept()
-                except TimeoutError:
-                    continue
-                n = state["commands"]
-                with conn:
-                    end = _handle(conn, client, state, commands)
-                if state["commands"] != n:  # a command (not a status) keeps it warm
-                    last = time.monotonic()
-                if end:
-                    break
+            _accept_commands(srv, client, state, commands, idle_timeout)
         finally:
             srv.close()
             with contextlib.suppress(OSError):
@@ -219,6 +149,110 @@ def serve(
             print("sarship: warm cluster closed", file=sys.stderr, flush=True)
     os.close(lock_fd)
     return 0
+
+
+def _lock(path: Path) -> int:
+    """Take the lock of the socket ``path`` (its file holds this process's id); returns its
+    descriptor. WarmError when another warm process holds it."""
+    import fcntl
+
+    lock_fd = os.open(_lock_path(path), os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(lock_fd)
+        raise WarmError(f"a warm cluster runs already on {path} (sarship warm status)") from None
+    os.ftruncate(lock_fd, 0)
+    os.write(lock_fd, f"{os.getpid()}\n".encode())
+    return lock_fd
+
+
+def _on_signals() -> None:
+    """In the main thread: SIGTERM ends the process (SystemExit 128 + 15) and SIGINT raises
+    KeyboardInterrupt."""
+    import signal
+    import threading
+
+    def on_term(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        raise SystemExit(128 + signum)
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, on_term)
+        # a command is interrupted by the SIGINT this process sends its own main thread
+        # (_run_command's watcher): a warm process started from a background job or a service
+        # manager inherits SIGINT ignored, which would make every interrupt a no-op
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _worker_counts(device: str, workers: int | None) -> tuple[list[Any], int, int]:
+    """The GPUs the cluster uses, its worker processes per GPU and its CPU workers (``workers``,
+    else the cores the GPU processes leave)."""
+    from sarship.workers.cluster import gpu_procs
+    from sarship.workers.gpus import visible_gpus
+
+    gpus = visible_gpus() if device != "cpu" else []
+    if device == "gpu" and not gpus:
+        raise WarmError("--device gpu: no GPU is visible here")
+    cores = os.cpu_count() or 1
+    per_gpu = gpu_procs(len(gpus), long_lived=True) if gpus else 0  # started once: no cap on the count
+    n_gpu_procs = len(gpus) * per_gpu
+    n_cpu = workers if workers is not None else (max(0, cores - n_gpu_procs) if gpus else cores)
+    if not gpus and n_cpu < 1:
+        raise WarmError("--workers must be at least 1 without GPUs")
+    return gpus, per_gpu, n_cpu
+
+
+def _ready_state(client, path: Path, idle_timeout: float, env: dict[str, str]) -> dict[str, Any]:
+    """The warm process's state, once its cluster is up (what ``sarship warm status`` shows)."""
+    from sarship.workers.cluster import dashboard_url
+
+    info = client.scheduler_info(n_workers=-1).get("workers", {})
+    n_gpu = sum(1 for w in info.values() if float((w.get("resources") or {}).get("GPU", 0)) > 0)
+    what = (
+        f"{n_gpu} GPU worker processes" + (f" and {len(info) - n_gpu} CPU" if len(info) > n_gpu else "")
+        if n_gpu
+        else f"{len(info)} worker processes"
+    )
+    return {
+        "pid": os.getpid(),
+        "what": what,
+        "device": "gpu" if n_gpu else "cpu",
+        "gpu_workers": n_gpu,
+        "cpu_workers": len(info) - n_gpu,
+        "dashboard": dashboard_url(client),
+        "socket": str(path),
+        "idle_timeout_s": idle_timeout,
+        "started": time.time(),
+        "commands": 0,
+        "identity": _identity(),
+        "env": env,
+    }
+
+
+def _accept_commands(srv: socket.socket, client, state: dict, commands: CommandLine, idle_timeout: float) -> None:
+    """Take the connections on ``srv``, one at a time, until the process has been idle for
+    ``idle_timeout`` seconds (0: never), its scheduler is gone or a command ends it."""
+    last = time.monotonic()
+    while True:
+        if idle_timeout and time.monotonic() - last > idle_timeout:
+            print(f"sarship: warm cluster idle for {idle_timeout:g} s: ending", file=sys.stderr, flush=True)
+            break
+        if client.status not in ("running", "connecting"):
+            print("sarship: the warm cluster's scheduler is gone: ending", file=sys.stderr, flush=True)
+            break
+        srv.settimeout(min(5.0, idle_timeout) if idle_timeout else 5.0)
+        try:
+            conn, _ = srv.accept()
+        except TimeoutError:
+            continue
+        n = state["commands"]
+        with conn:
+            end = _handle(conn, client, state, commands)
+        if state["commands"] != n:  # a command (not a status) keeps it warm
+            last = time.monotonic()
+        if end:
+            break
 
 
 def _listen(path: Path) -> socket.socket:

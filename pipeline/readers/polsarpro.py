@@ -236,6 +236,39 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
     cfg_path = files.get("config.txt")
     cfg = _parse_config(cfg_path) if cfg_path is not None else {}
     polar_type = cfg.get("PolarType", "").strip().lower()
+    n = _matrix_size(d, files, basis, polar_type)
+    label = f"{basis}{n}"
+    elems = _elements(basis, n)
+    stems = [s for _, ss in elems for s in ss]
+    missing = [f"{s}.bin" for s in stems if f"{s.lower()}.bin" not in files]
+    if missing:
+        raise InputError(f"'{d}': PolSARpro {label} folder is missing element file(s) {', '.join(missing)}")
+    ncfg = _config_shape(cfg, cfg_path)
+    out, shape, orders, headerless = _element_files(files, stems, ncfg, cfg_path)
+    src = _PolsarproSource(
+        path=d, shape=shape, nbands=n, dtype=out[stems[0]][1].newbyteorder("="), fmt="polsarpro", layout="covariance"
+    )
+    src.basis, src.files = basis, out
+    attrs: dict[str, Any] = {
+        "format": f"PolSARpro {label}" if basis == "C" else "PolSARpro T3 -> C3",
+        "source_files": [out[s][0].name for s in stems],
+        "byte_order": sorted(orders)[0] if len(orders) == 1 else sorted(orders),
+        "quantity": f"covariance C{n}",
+    }
+    attrs.update(_basis_attrs(basis, n, polar_type))
+    if cfg:
+        attrs["polsarpro_config"] = {k: cfg[k] for k in ("Nrow", "Ncol", "PolarCase", "PolarType") if k in cfg}
+    if headerless:
+        attrs["polsarpro_note"] = (
+            f"no ENVI header for {', '.join(headerless)}: size from config.txt, float32 little-endian"
+        )
+    src.meta["cov_attrs"] = attrs
+    return src
+
+
+def _matrix_size(d: Path, files: dict[str, Path], basis: str, polar_type: str) -> int:
+    """The side of the folder's matrix (``basis`` C: 3, or 2 for dual-pol; T: 3); C4/T4 and T2
+    folders are refused."""
     if basis == "C" and ("c44.bin" in files) or basis == "T" and ("t44.bin" in files):
         raise InputError(f"'{d}': a PolSARpro {basis}4 folder (4 x 4, bistatic); only C3, T3 and C2 are supported")
     if basis == "C":
@@ -244,64 +277,41 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
             or polar_type.startswith("pp")
             or (polar_type != "full" and "c33.bin" not in files and "c13_real.bin" not in files and "c22.bin" in files)
         )
-        n = 2 if dual else 3
-    else:
-        if polar_type.startswith("pp") or (
-            "t33.bin" not in files and "t13_real.bin" not in files and "t22.bin" in files
-        ):
-            raise InputError(
-                f"'{d}': a PolSARpro T2 folder; only C3, T3 and C2 are supported (convert it to C2 in PolSARpro)"
-            )
-        n = 3
-    label = f"{basis}{n}"
-    elems = _elements(basis, n)
-    stems = [s for _, ss in elems for s in ss]
-    missing = [f"{s}.bin" for s in stems if f"{s.lower()}.bin" not in files]
-    if missing:
-        raise InputError(f"'{d}': PolSARpro {label} folder is missing element file(s) {', '.join(missing)}")
-    ncfg = None
+        return 2 if dual else 3
+    if polar_type.startswith("pp") or ("t33.bin" not in files and "t13_real.bin" not in files and "t22.bin" in files):
+        raise InputError(
+            f"'{d}': a PolSARpro T2 folder; only C3, T3 and C2 are supported (convert it to C2 in PolSARpro)"
+        )
+    return 3
+
+
+def _config_shape(cfg: dict[str, str], cfg_path: Path | None) -> tuple[int, int] | None:
+    """config.txt's (Nrow, Ncol), None when it gives neither."""
     if "Nrow" in cfg or "Ncol" in cfg:
         try:
-            ncfg = (int(cfg["Nrow"]), int(cfg["Ncol"]))
+            return (int(cfg["Nrow"]), int(cfg["Ncol"]))
         except (KeyError, ValueError):
             raise InputError(
                 f"'{cfg_path}': Nrow/Ncol are not whole numbers (Nrow={cfg.get('Nrow')!r}, Ncol={cfg.get('Ncol')!r})"
             ) from None
+    return None
+
+
+def _element_files(
+    files: dict[str, Path], stems: list[str], ncfg: tuple[int, int] | None, cfg_path: Path | None
+) -> tuple[dict[str, tuple[Path, np.dtype, int]], tuple[int, int], set[str], list[str]]:
+    """The element files of ``stems``, each checked: (stem -> (path, dtype, offset), the scene's
+    shape, the byte orders, the names of the files read without a header)."""
     out: dict[str, tuple[Path, np.dtype, int]] = {}
     shape = None
-    orders, headerless = set(), []
+    orders: set[str] = set()
+    headerless: list[str] = []
     for s in stems:
         b = files[f"{s.lower()}.bin"]
         h = files.get(f"{s.lower()}.bin.hdr") or files.get(f"{s.lower()}.hdr")
-        if h is not None:
-            hdr = _parse_envi_header(h)
-            W, H = _header_int(h, hdr, "samples"), _header_int(h, hdr, "lines")
-            nb = _header_int(h, hdr, "bands", 1)
-            off = _header_int(h, hdr, "header offset", 0)
-            code = _header_int(h, hdr, "data type")
-            order = _header_int(h, hdr, "byte order", 0)
-            inter = hdr.get("interleave", "bsq").strip().lower()
-            if code not in _ENVI_DTYPES:
-                raise InputError(
-                    f"'{h}': unsupported ENVI data type {code} ({_ENVI_DTYPE_NAMES.get(code, 'unknown')}); "
-                    "PolSARpro element files are data type 4 (float32) or 5 (float64)"
-                )
-            if nb != 1:
-                raise InputError(f"'{h}': {nb} bands; a PolSARpro element file holds one band")
-            if inter not in ("bsq", "bil", "bip"):
-                raise InputError(f"'{h}': unsupported interleave '{inter}' (expected bsq)")
-            if order not in (0, 1):
-                raise InputError(f"'{h}': byte order must be 0 (little-endian) or 1 (big-endian), got {order}")
-            if H < 1 or W < 1 or off < 0:
-                raise InputError(f"'{h}': bad size ({W} samples x {H} lines, header offset {off})")
-            dt = np.dtype(("<" if order == 0 else ">") + _ENVI_DTYPES[code])
-            what = f"its header '{h.name}' says {W} samples x {H} lines x {dt.itemsize} bytes + offset {off}"
-        else:
-            if ncfg is None:
-                raise InputError(f"'{b}': no ENVI header ('{b.name}.hdr') and no config.txt Nrow/Ncol to give its size")
-            (H, W), off, order, dt = ncfg, 0, 0, np.dtype("<f4")
+        H, W, off, order, dt, what = _element_layout(b, h, ncfg)
+        if h is None:
             headerless.append(b.name)
-            what = f"config.txt says Nrow {H} x Ncol {W} x 4 bytes (float32, no header)"
         size = os.path.getsize(b)
         want = H * W * dt.itemsize + off
         if size != want:
@@ -319,17 +329,53 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
         orders.add("big-endian" if order == 1 else "little-endian")
         out[s] = (b, dt, off)
     assert shape is not None
-    src = _PolsarproSource(
-        path=d, shape=shape, nbands=n, dtype=out[stems[0]][1].newbyteorder("="), fmt="polsarpro", layout="covariance"
+    return out, shape, orders, headerless
+
+
+def _element_layout(b: Path, h: Path | None, ncfg: tuple[int, int] | None) -> tuple[int, int, int, int, np.dtype, str]:
+    """An element file's (lines, samples, header offset, byte order, dtype) from its ENVI header
+    ``h`` (checked) or, without one, from config.txt's size (float32 little-endian), and the
+    sentence that says where they came from."""
+    if h is None:
+        if ncfg is None:
+            raise InputError(f"'{b}': no ENVI header ('{b.name}.hdr') and no config.txt Nrow/Ncol to give its size")
+        H, W = ncfg
+        return H, W, 0, 0, np.dtype("<f4"), f"config.txt says Nrow {H} x Ncol {W} x 4 bytes (float32, no header)"
+    hdr = _parse_envi_header(h)
+    W, H = _header_int(h, hdr, "samples"), _header_int(h, hdr, "lines")
+    nb = _header_int(h, hdr, "bands", 1)
+    off = _header_int(h, hdr, "header offset", 0)
+    code = _header_int(h, hdr, "data type")
+    order = _header_int(h, hdr, "byte order", 0)
+    inter = hdr.get("interleave", "bsq").strip().lower()
+    if code not in _ENVI_DTYPES:
+        raise InputError(
+            f"'{h}': unsupported ENVI data type {code} ({_ENVI_DTYPE_NAMES.get(code, 'unknown')}); "
+            "PolSARpro element files are data type 4 (float32) or 5 (float64)"
+        )
+    if nb != 1:
+        raise InputError(f"'{h}': {nb} bands; a PolSARpro element file holds one band")
+    if inter not in ("bsq", "bil", "bip"):
+        raise InputError(f"'{h}': unsupported interleave '{inter}' (expected bsq)")
+    if order not in (0, 1):
+        raise InputError(f"'{h}': byte order must be 0 (little-endian) or 1 (big-endian), got {order}")
+    if H < 1 or W < 1 or off < 0:
+        raise InputError(f"'{h}': bad size ({W} samples x {H} lines, header offset {off})")
+    dt = np.dtype(("<" if order == 0 else ">") + _ENVI_DTYPES[code])
+    return (
+        H,
+        W,
+        off,
+        order,
+        dt,
+        f"its header '{h.name}' says {W} samples x {H} lines x {dt.itemsize} bytes + offset {off}",
     )
-    src.basis, src.files = basis, out
-    fmt_name = f"PolSARpro {label}" if basis == "C" else "PolSARpro T3 -> C3"
-    attrs: dict[str, Any] = {
-        "format": fmt_name,
-        "source_files": [out[s][0].name for s in stems],
-        "byte_order": sorted(orders)[0] if len(orders) == 1 else sorted(orders),
-        "quantity": f"covariance C{n}",
-    }
+
+
+def _basis_attrs(basis: str, n: int, polar_type: str) -> dict[str, Any]:
+    """The scene attributes ``covariance_basis``, ``quantity_rule`` and, for a C2 folder whose
+    PolarType names them, ``polarisations``."""
+    attrs: dict[str, Any] = {}
     if n == 3:
         attrs["covariance_basis"] = C3_BASIS
         attrs["quantity_rule"] = (
@@ -348,11 +394,4 @@ def _open_polsarpro(d: Path) -> _PolsarproSource:
         if ch:
             attrs["polarisations"] = ch
         attrs["quantity_rule"] = "PolSARpro C2 folder: element files stored as they are"
-    if cfg:
-        attrs["polsarpro_config"] = {k: cfg[k] for k in ("Nrow", "Ncol", "PolarCase", "PolarType") if k in cfg}
-    if headerless:
-        attrs["polsarpro_note"] = (
-            f"no ENVI header for {', '.join(headerless)}: size from config.txt, float32 little-endian"
-        )
-    src.meta["cov_attrs"] = attrs
-    return src
+    return attrs

@@ -407,9 +407,6 @@ def open_grd(
     p: Path, prod: _Product, meas: dict[str, str], swaths: set[str], limits: InputLimits, swath: str | None = None
 ) -> _Source:
     """A GRD product as a source (its measurements from :func:`product_measurements`)."""
-    import xarray as xr
-    from xarray_sentinel import esa_safe
-
     if swath is not None:
         raise InputError(f"'{p}': --swath applies to Sentinel-1 SLC products; this is a GRD product")
     if len(swaths) != 1:
@@ -420,7 +417,8 @@ def open_grd(
     if str(root.get("product_type", "")).upper() != "GRD":
         raise InputError(f"'{p}': product type {root.get('product_type')!r}; only GRD is read so far")
     luts: dict[str, dict[str, Any]] = {}
-    calibrated, denoised = [], []
+    calibrated: list[str] = []
+    denoised: list[str] = []
     shape = None
     spacing = None
     gcps = None
@@ -429,13 +427,7 @@ def open_grd(
         ann = f"annotation/{base}.xml"
         if ann not in prod.members:
             raise InputError(f"'{p}': no annotation {ann} for the {pol.upper()} measurement")
-        try:
-            with prod.open_member(ann) as f:
-                info = esa_safe.parse_tag(f, "//imageInformation")
-        except InputError:
-            raise
-        except Exception as exc:
-            raise InputError(f"'{p}': cannot read the annotation {ann} ({_one_line(exc)})") from None
+        info = _grd_image_information(p, prod, ann)
         hw = (int(info["numberOfLines"]), int(info["numberOfSamples"]))
         check_image_size(p, ann, hw)
         if shape is None:
@@ -448,65 +440,123 @@ def open_grd(
         group = f"{swath}/{pol.upper()}"
         try:
             if gcps is None:
-                g = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/gcp")
-                gl, gp = g["line"].values, g["pixel"].values
-                lat, lon, h, inc = (g[v].values for v in ("latitude", "longitude", "height", "incidenceAngle"))
-                # annotation line/pixel index a pixel, whose centre is (line + 1/2, pixel + 1/2) in the
-                # scene's pixel-is-area coordinates (as GDAL's SAFE GCPs and SNAP's tie-point grids)
-                gcps = [
-                    {
-                        "row": float(gl[i]) + 0.5,
-                        "col": float(gp[j]) + 0.5,
-                        "x": float(lon[i, j]),
-                        "y": float(lat[i, j]),
-                        "z": float(h[i, j]),
-                        "incidence": float(inc[i, j]),
-                    }
-                    for i in range(len(gl))
-                    for j in range(len(gp))
-                ]
-            lut: dict[str, Any] = {}
-            if f"annotation/calibration/calibration-{base}.xml" in prod.members:
-                c = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/calibration")
-                lut["sigma"] = (c["line"].values, c["pixel"].values, c["sigmaNought"].values)
-                check_lut(p, f"sigmaNought calibration LUT of {pol.upper()} (calibration-{base}.xml)", *lut["sigma"])
-                calibrated.append(pol)
-            if f"annotation/calibration/noise-{base}.xml" in prod.members:
-                n = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/noise_range")
-                lut["noise_range"] = (n["line"].values, n["pixel"].values, n["noiseRangeLut"].values)
-                check_lut(
-                    p, f"noise range LUT of {pol.upper()} (noise-{base}.xml)", *lut["noise_range"], positive=False
-                )
-                # every block (xarray-sentinel 0.9's noise_azimuth group keeps only the first)
-                with prod.open_member(f"annotation/calibration/noise-{base}.xml") as f:
-                    vecs = esa_safe.parse_tag_as_list(f, "//noiseAzimuthVector", "noise")
-                lut["noise_azimuth"] = [
-                    (
-                        int(v.get("firstAzimuthLine", 0)),
-                        int(v.get("lastAzimuthLine", shape[0] - 1)),
-                        int(v.get("firstRangeSample", 0)),
-                        int(v.get("lastRangeSample", shape[1] - 1)),
-                        np.array(str(v["line"]["$"]).split(), float),
-                        np.array(str(v["noiseAzimuthLut"]["$"]).split(), float),
-                    )
-                    for v in vecs
-                ]
-                for b in lut["noise_azimuth"]:
-                    check_lut(
-                        p,
-                        f"noise azimuth LUT of {pol.upper()} (noise-{base}.xml)",
-                        b[4],
-                        [b[2]],
-                        b[5][:, None],
-                        positive=False,
-                    )
-                denoised.append(pol)
-            luts[pol] = lut
+                gcps = _grd_gcps(prod, group)
+            luts[pol] = _grd_luts(p, prod, group, base, pol, hw, calibrated, denoised)
         except InputError:
             raise
         except Exception as exc:
             raise InputError(f"'{p}': cannot read the {group} annotation ({_one_line(exc)})") from None
     assert shape is not None
+    meta = _grd_meta(prod, root, swath, pols, spacing, gcps, calibrated, denoised)
+    return _SafeSource(p, prod, pols, meas, meta, luts, shape)
+
+
+def _grd_image_information(p: Path, prod: _Product, ann: str) -> dict[str, Any]:
+    """The ``imageInformation`` of a GRD measurement's annotation ``ann``; a one-line InputError
+    when it cannot be read."""
+    from xarray_sentinel import esa_safe
+
+    try:
+        with prod.open_member(ann) as f:
+            return esa_safe.parse_tag(f, "//imageInformation")
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"'{p}': cannot read the annotation {ann} ({_one_line(exc)})") from None
+
+
+def _grd_gcps(prod: _Product, group: str) -> list[dict[str, float]]:
+    """The ground control points of the measurement ``group`` (``SWATH/POL``), in the scene's
+    pixel-is-area coordinates."""
+    import xarray as xr
+
+    g = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/gcp")
+    gl, gp = g["line"].values, g["pixel"].values
+    lat, lon, h, inc = (g[v].values for v in ("latitude", "longitude", "height", "incidenceAngle"))
+    # annotation line/pixel index a pixel, whose centre is (line + 1/2, pixel + 1/2) in the
+    # scene's pixel-is-area coordinates (as GDAL's SAFE GCPs and SNAP's tie-point grids)
+    return [
+        {
+            "row": float(gl[i]) + 0.5,
+            "col": float(gp[j]) + 0.5,
+            "x": float(lon[i, j]),
+            "y": float(lat[i, j]),
+            "z": float(h[i, j]),
+            "incidence": float(inc[i, j]),
+        }
+        for i in range(len(gl))
+        for j in range(len(gp))
+    ]
+
+
+def _grd_luts(
+    p: Path,
+    prod: _Product,
+    group: str,
+    base: str,
+    pol: str,
+    shape: tuple[int, int],
+    calibrated: list[str],
+    denoised: list[str],
+) -> dict[str, Any]:
+    """The calibration (``sigma``) and noise (``noise_range``, ``noise_azimuth``) LUTs of the
+    measurement ``base`` (of ``shape``) that the product annotates, each checked; ``pol`` is
+    appended to ``calibrated`` / ``denoised`` when it has them."""
+    import xarray as xr
+
+    lut: dict[str, Any] = {}
+    if f"annotation/calibration/calibration-{base}.xml" in prod.members:
+        c = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/calibration")
+        lut["sigma"] = (c["line"].values, c["pixel"].values, c["sigmaNought"].values)
+        check_lut(p, f"sigmaNought calibration LUT of {pol.upper()} (calibration-{base}.xml)", *lut["sigma"])
+        calibrated.append(pol)
+    if f"annotation/calibration/noise-{base}.xml" in prod.members:
+        n = xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/noise_range")
+        lut["noise_range"] = (n["line"].values, n["pixel"].values, n["noiseRangeLut"].values)
+        check_lut(p, f"noise range LUT of {pol.upper()} (noise-{base}.xml)", *lut["noise_range"], positive=False)
+        lut["noise_azimuth"] = _grd_noise_azimuth(p, prod, base, pol, shape)
+        denoised.append(pol)
+    return lut
+
+
+def _grd_noise_azimuth(p: Path, prod: _Product, base: str, pol: str, shape: tuple[int, int]) -> list[tuple[Any, ...]]:
+    """The noise azimuth LUT blocks of the measurement ``base`` (first/last line, first/last
+    sample, lines, values), each checked: every block (xarray-sentinel 0.9's ``noise_azimuth``
+    group keeps only the first)."""
+    from xarray_sentinel import esa_safe
+
+    with prod.open_member(f"annotation/calibration/noise-{base}.xml") as f:
+        vecs = esa_safe.parse_tag_as_list(f, "//noiseAzimuthVector", "noise")
+    blocks = [
+        (
+            int(v.get("firstAzimuthLine", 0)),
+            int(v.get("lastAzimuthLine", shape[0] - 1)),
+            int(v.get("firstRangeSample", 0)),
+            int(v.get("lastRangeSample", shape[1] - 1)),
+            np.array(str(v["line"]["$"]).split(), float),
+            np.array(str(v["noiseAzimuthLut"]["$"]).split(), float),
+        )
+        for v in vecs
+    ]
+    for b in blocks:
+        check_lut(
+            p, f"noise azimuth LUT of {pol.upper()} (noise-{base}.xml)", b[4], [b[2]], b[5][:, None], positive=False
+        )
+    return blocks
+
+
+def _grd_meta(
+    prod: _Product,
+    root: dict[str, Any],
+    swath: str,
+    pols: list[str],
+    spacing: list[float] | None,
+    gcps: list[dict[str, float]] | None,
+    calibrated: list[str],
+    denoised: list[str],
+) -> dict[str, Any]:
+    """A GRD source's metadata: its kind, spacing, sensor, nominal looks, georeference and the
+    attributes that record its calibration, noise removal and SAR geometry."""
     m = re.search(r"_(GRD[HMF])_", prod.name)
     res = m.group(1) if m else "GRD"
     mode = str(root.get("mode", swath))
@@ -547,4 +597,4 @@ def open_grd(
     from sarship.pipeline.readers.safe_geometry import sar_geometry  # issue 16: azimuth-ambiguity geometry
 
     meta["extra_attrs"]["sar_geometry"] = sar_geometry(prod, swath, pols[0])
-    return _SafeSource(p, prod, pols, meas, meta, luts, shape)
+    return meta

@@ -37,6 +37,7 @@ key                             from the annotation (xarray-sentinel group, else
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 from xml.etree import ElementTree
 
@@ -55,13 +56,9 @@ def _seconds(t: Any) -> float:
     return float(np.datetime64(str(t), "ns").astype("int64")) * 1e-9
 
 
-def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
-    """``sar_geometry`` of ``swath``/``pol`` of the product ``prod`` (a
-    :class:`sarship.pipeline.readers.safe._Product`: ``url`` for xarray-sentinel, ``members``
-    and ``open_member`` for the annotation XML). Raises on a missing or bad value (see
-    :func:`sar_geometry` for the form that never raises)."""
-    import xarray as xr
-
+def _annotation_root(prod: Any, swath: str, pol: str) -> ElementTree.Element:
+    """The root of the annotation XML of ``swath``/``pol`` (the plain values: one ElementTree
+    parse of the annotation)."""
     ann = [
         m
         for m in prod.members
@@ -70,34 +67,19 @@ def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
     if not ann:
         raise ValueError(f"no annotation for {swath}/{pol.upper()}")
 
-    with prod.open_member(ann[0]) as f:  # the plain values: one ElementTree parse of the annotation
-        root = ElementTree.parse(f).getroot()
+    with prod.open_member(ann[0]) as f:
+        return ElementTree.parse(f).getroot()
 
-    def text(path: str, default: str | None = None) -> str:
-        v = root.findtext(path)
-        if v is None:
-            if default is None:
-                raise ValueError(f"the annotation has no {path}")
-            return default
-        return v.strip()
 
-    group = f"{swath}/{pol.upper()}"
-
-    def ds(sub: str):
-        return xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/{sub}")
-
-    pi, ii = "generalAnnotation/productInformation/", "imageAnnotation/imageInformation/"
-    freq = float(text(pi + "radarFrequency"))
-    lam = C_LIGHT / freq
-    fs = float(text(pi + "rangeSamplingRate"))
-    ati = float(text(ii + "azimuthTimeInterval"))
-    # PRF per swath
+def _swaths(root: ElementTree.Element, swath: str) -> list[dict[str, Any]]:
+    """``swaths``: each sub-swath's name, PRF (``downlinkInformation/prf``, median) and, in a
+    GRD, its bounds in the merged image (``swathMerging``; none for an SLC's one swath)."""
     prfs: dict[str, list[float]] = {}
     for d in root.iterfind("generalAnnotation/downlinkInformationList/downlinkInformation"):
         prfs.setdefault(str(d.findtext("swath", "")).strip().upper(), []).append(float(d.findtext("prf", "nan")))
     if not prfs or not all(math.isfinite(v) and v > 0 for vs_ in prfs.values() for v in vs_):
         raise ValueError("no valid downlinkInformation/prf in the annotation")
-    swaths = []
+    swaths: list[dict[str, Any]] = []
     merge = root.findall("swathMerging/swathMergeList/swathMerge")
     if merge:  # GRD: each sub-swath's bounds in the merged image
         for m in merge:
@@ -123,6 +105,59 @@ def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
         if name not in prfs:
             raise ValueError(f"no PRF for swath {name}")
         swaths.append({"name": name, "prf_hz": float(np.median(prfs[name])), "blocks": []})
+    return swaths
+
+
+def _tops_burst(
+    root: ElementTree.Element, text: Callable[..., str], steer: float, ka: np.ndarray, vs: float, lam: float, ati: float
+) -> tuple[float, float]:
+    """TOPS (``steer`` > 0): the spread of the centroid over a burst and the burst duration
+    (``linesPerBurst x ati``, else the ``dcEstimate`` fine-DCE window); ``ka``: the azimuth FM
+    rate per range column."""
+    lpb = int(text("swathTiming/linesPerBurst", "0"))
+    if lpb > 0:
+        burst_s = lpb * ati
+    else:
+        win = [
+            _seconds(e.findtext("fineDceAzimuthStopTime")) - _seconds(e.findtext("fineDceAzimuthStartTime"))
+            for e in root.iterfind("dopplerCentroid/dcEstimateList/dcEstimate")
+            if e.findtext("fineDceAzimuthStartTime") and e.findtext("fineDceAzimuthStopTime")
+        ]
+        burst_s = float(np.median(win)) if win else None
+    if not burst_s or burst_s <= 0:
+        raise ValueError("a TOPS product without burst duration (linesPerBurst or dcEstimate windows)")
+    spread = max(tops_doppler_spread_hz(float(k), math.radians(steer), vs, lam, burst_s) for k in ka)
+    return spread, burst_s
+
+
+def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
+    """``sar_geometry`` of ``swath``/``pol`` of the product ``prod`` (a
+    :class:`sarship.pipeline.readers.safe._Product`: ``url`` for xarray-sentinel, ``members``
+    and ``open_member`` for the annotation XML). Raises on a missing or bad value (see
+    :func:`sar_geometry` for the form that never raises)."""
+    import xarray as xr
+
+    root = _annotation_root(prod, swath, pol)
+
+    def text(path: str, default: str | None = None) -> str:
+        v = root.findtext(path)
+        if v is None:
+            if default is None:
+                raise ValueError(f"the annotation has no {path}")
+            return default
+        return v.strip()
+
+    group = f"{swath}/{pol.upper()}"
+
+    def ds(sub: str):
+        return xr.open_dataset(prod.url, engine="sentinel-1", group=f"{group}/{sub}")
+
+    pi, ii = "generalAnnotation/productInformation/", "imageAnnotation/imageInformation/"
+    freq = float(text(pi + "radarFrequency"))
+    lam = C_LIGHT / freq
+    fs = float(text(pi + "rangeSamplingRate"))
+    ati = float(text(ii + "azimuthTimeInterval"))
+    swaths = _swaths(root, swath)
     # platform velocity at mid product
     orb = ds("orbit")
     t_orb = np.array([_seconds(t) for t in orb["azimuth_time"].values])
@@ -150,22 +185,7 @@ def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
     fdc = (fdc + prf0 / 2.0) % prf0 - prf0 / 2.0  # the baseband centroid lies in +-PRF/2
     # TOPS: the spread of the centroid over a burst
     steer = float(text(pi + "azimuthSteeringRate", "0"))
-    spread = 0.0
-    burst_s = None
-    if steer > 0:
-        lpb = int(text("swathTiming/linesPerBurst", "0"))
-        if lpb > 0:
-            burst_s = lpb * ati
-        else:
-            win = [
-                _seconds(e.findtext("fineDceAzimuthStopTime")) - _seconds(e.findtext("fineDceAzimuthStartTime"))
-                for e in root.iterfind("dopplerCentroid/dcEstimateList/dcEstimate")
-                if e.findtext("fineDceAzimuthStartTime") and e.findtext("fineDceAzimuthStopTime")
-            ]
-            burst_s = float(np.median(win)) if win else None
-        if not burst_s or burst_s <= 0:
-            raise ValueError("a TOPS product without burst duration (linesPerBurst or dcEstimate windows)")
-        spread = max(tops_doppler_spread_hz(float(k), math.radians(steer), vs, lam, burst_s) for k in ka)
+    spread, burst_s = _tops_burst(root, text, steer, ka, vs, lam, ati) if steer > 0 else (0.0, None)
     out: dict[str, Any] = {
         "source": f"Sentinel-1 annotation of {swath}/{pol.upper()} (xarray-sentinel)",
         "radar_frequency_hz": freq,

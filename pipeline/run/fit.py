@@ -6,19 +6,26 @@ cells of the kept detections left out.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from sarship.pipeline.run.plan import Plan
 from sarship.pipeline.stats import model_fit
 
 
-def fit_record(plan: Plan, results: list[dict], records: np.ndarray) -> dict:
+def fit_record(plan: Plan, results: list[dict[str, Any]], records: np.ndarray) -> dict[str, Any]:
     """The record (module docstring); ``results``: the tiles' results, ``records``: the kept
-    detections' records."""
+    detections' records. Called only for a plan whose fit is measured (``plan.fit`` set)."""
     fit = plan.fit
+    assert fit is not None  # the callers (sarship.workers.jobs) check plan.fit first
     stride = int(fit["stride"])
     grid = model_fit.assemble((r["fit"] for r in results), plan.shape, stride)
-    boxes = np.stack([records["r0"], records["c0"], records["r1"], records["c1"]], axis=1) if len(records) else []
+    boxes = (
+        np.stack([records["r0"], records["c0"], records["r1"], records["c1"]], axis=1)
+        if len(records)
+        else np.empty((0, 4), np.int64)
+    )
     excluded = model_fit.exclude_targets(grid, stride, boxes)
     rec = model_fit.record(plan.detector, grid, model_fit.pfas_of(plan.params.pfa), stride, excluded)
     # whose decision the probe PFA's exceedances are: the detector's, or its model's (MODEL_PROBE)

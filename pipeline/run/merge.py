@@ -11,15 +11,18 @@ records and what each rule dropped (``run.json`` ``discarded``).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
+from sarship.pipeline.detectors.base import DetectorParams
 from sarship.pipeline.run.plan import Plan
 from sarship.pipeline.targets.lines import discard_lines
 from sarship.pipeline.targets.ship_features import keep_mask, size_prefilter
 
 
 def size_and_lines(
-    records: np.ndarray, params, spacing: tuple[float, float] | None, tile_size_dropped: int
+    records: np.ndarray, params: DetectorParams, spacing: tuple[float, float] | None, tile_size_dropped: int
 ) -> tuple[np.ndarray, dict[str, int]]:
     """The size, shape and line rules (module docstring) on the merged components; returns the
     kept records and the count each rule dropped (``tile_size_dropped``: those the tiles
@@ -45,7 +48,7 @@ def size_and_lines(
 
 
 def discriminate(
-    plan: Plan, prep: dict, merged: np.ndarray, tile_size_dropped: int
+    plan: Plan, prep: dict[str, Any], merged: np.ndarray, tile_size_dropped: int
 ) -> tuple[np.ndarray, dict[str, int]]:
     """The stage (module docstring): the kept records and ``discarded``. ``prep``: the detector's
     prepared values with the scene pass's."""

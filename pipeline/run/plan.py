@@ -53,7 +53,7 @@ class Plan:
     detector: str
     spec: DetectorSpec
     params: DetectorParams  # the run's parameters (run.json ``parameters``)
-    prep: dict  # ``spec.prepare`` on them (run.json ``prepared``)
+    prep: dict[str, Any]  # ``spec.prepare`` on them (run.json ``prepared``)
     device: str  # asked: auto, cpu or gpu
     has_gpu: bool  # GPU code for these parameters
     scene: Scene  # with its absolute path (tile tasks run elsewhere)
@@ -68,8 +68,8 @@ class Plan:
     looks_source: str
     size_rule: str
     spacing: tuple[float, float] | None
-    geo: dict  # the scene's georeference attributes
-    fit: dict | None  # the clutter-model fit's settings, None when not measured
+    geo: dict[str, Any]  # the scene's georeference attributes
+    fit: dict[str, Any] | None  # the clutter-model fit's settings, None when not measured
     warnings: tuple[str, ...]
 
     @property
@@ -138,7 +138,9 @@ def resolve_looks(
     return params.model_copy(update={"looks": L}), "estimated from the scene (MoLC, median over blocks)"
 
 
-def shape_rules(params: DetectorParams, scene: Scene, spacing) -> tuple[DetectorParams, list[str]]:
+def shape_rules(
+    params: DetectorParams, scene: Scene, spacing: tuple[float, float] | None
+) -> tuple[DetectorParams, list[str]]:
     """The shape filter and length limits for the scene: ``max_elongation`` is the default of
     detected (intensity) products, where it was measured; on a complex scene only when asked
     for, and then in metres (complex pixels are not square: an IW SLC's are ~14 m x 2.3 m slant
@@ -158,7 +160,9 @@ def shape_rules(params: DetectorParams, scene: Scene, spacing) -> tuple[Detector
     return params, warnings
 
 
-def fit_config(detector: str, spec: DetectorSpec, params: DetectorParams, shape: tuple[int, int]) -> dict | None:
+def fit_config(
+    detector: str, spec: DetectorSpec, params: DetectorParams, shape: tuple[int, int]
+) -> dict[str, Any] | None:
     """The tiles' clutter-model-fit settings: the scene's grid step and, for each probe PFA
     beyond the asked one, the detector's ``prepare`` there; None for a detector whose fit is not
     measured (pipeline/stats/model_fit.py, ``FIT_DETECTORS``)."""

@@ -32,53 +32,60 @@ class RunRecord(TypedDict, total=False):
     sarship_version: str
     detector: str
     reference: str
-    parameters: dict
+    parameters: dict[str, Any]
     channel: Any
     looks_source: str
     size_rule: str
-    prepared: dict
-    scene_pass: dict | None
-    land: dict | None
-    contrast: dict
-    ambiguities: dict
-    model_fit: dict | None
-    detector_auto: dict
-    scene: dict
-    tiles: dict
+    prepared: dict[str, Any]
+    scene_pass: dict[str, Any] | None
+    land: dict[str, Any] | None
+    contrast: dict[str, Any]
+    ambiguities: dict[str, Any]
+    model_fit: dict[str, Any] | None
+    detector_auto: dict[str, Any]
+    scene: dict[str, Any]
+    tiles: dict[str, Any]
     detections: int
     detected_px: int
     mask_px: int
-    discarded: dict
-    timings: dict
+    discarded: dict[str, int]
+    timings: dict[str, Any]
     device: str
     device_requested: str
-    placement: dict
-    cluster: dict
-    versions: dict
-    warnings: list
-    outputs: dict
+    placement: dict[str, Any]
+    cluster: dict[str, Any]
+    versions: dict[str, str]
+    warnings: list[str]
+    outputs: dict[str, str]
+
+
+class RunExtras(TypedDict, total=False):
+    """The entries a caller adds to ``run.json`` after ``model_fit`` (:attr:`Outcome.extra`):
+    ``detector_auto`` for ``--detector auto``."""
+
+    detector_auto: dict[str, Any]
 
 
 @dataclass
 class Outcome:
     """What the stages after the plan returned (module docstring)."""
 
-    prep: dict
-    scene_pass: dict | None
-    land: dict | None
-    results: list[dict]
+    prep: dict[str, Any]
+    scene_pass: dict[str, Any] | None
+    land: dict[str, Any] | None
+    results: list[dict[str, Any]]
     refined: Refined
-    discarded: dict
-    model_fit: dict | None
+    discarded: dict[str, int]
+    model_fit: dict[str, Any] | None
     kept_px: int
     tiles: int
     device: str
     placement_reason: str
-    restriction: dict
+    restriction: dict[str, Any]
     dashboard: str | None
     warnings: list[str]
-    timings: dict
-    extra: dict = field(default_factory=dict)
+    timings: dict[str, Any]
+    extra: RunExtras = field(default_factory=RunExtras)
 
 
 def versions() -> dict[str, str]:
@@ -99,7 +106,7 @@ def _versions() -> tuple[tuple[str, str], ...]:
     return tuple(out.items())
 
 
-def _scene(plan: Plan) -> dict:
+def _scene(plan: Plan) -> dict[str, Any]:
     s = plan.scene
     H, W = plan.shape
     return {
@@ -114,7 +121,7 @@ def _scene(plan: Plan) -> dict:
     }
 
 
-def _tiles(plan: Plan, o: Outcome) -> dict:
+def _tiles(plan: Plan, o: Outcome) -> dict[str, Any]:
     H, W = plan.shape
     return {
         "size": plan.tile,

@@ -23,7 +23,14 @@ import numpy as np
 from sarship.pipeline.run.plan import Plan
 from sarship.pipeline.targets.ambiguity import flag_features
 from sarship.pipeline.targets.lines import near_land
-from sarship.pipeline.targets.local_contrast import GAP_PX, MIN_RING_PX, RING_PX, add_local_contrast, keep_contrast
+from sarship.pipeline.targets.local_contrast import (
+    GAP_PX,
+    MIN_RING_PX,
+    RING_PX,
+    Reader,
+    add_local_contrast,
+    keep_contrast,
+)
 from sarship.pipeline.targets.ship_features import add_contrast, features, geolocate
 from sarship.pipeline.targets.sidelobes import refine_features
 from sarship.pipeline.tiling.inputs import make_reader, pixel_power, window_reader
@@ -35,24 +42,24 @@ class Refined:
     """The refine stage's output: the detections' features (GeoJSON features), their records,
     the ``run.json`` records of the contrast and ambiguity steps, and what each rule dropped."""
 
-    features: list[dict]
+    features: list[dict[str, Any]]
     records: np.ndarray
-    contrast: dict
-    ambiguities: dict
+    contrast: dict[str, Any]
+    ambiguities: dict[str, Any]
     dropped_land: int | None  # None when the land-gap rule did not run
     dropped_contrast: int
 
 
 def contrast_step(
-    feats: list[dict],
-    records,
+    feats: list[dict[str, Any]],
+    records: np.ndarray,
     floor: float | None,
-    scene_read,
-    mask_read,
+    scene_read: Reader | None,
+    mask_read: Reader | None,
     land_path: Path | None,
     shape: tuple[int, int],
     nodata: float | None,
-) -> tuple[list[dict], Any, dict]:
+) -> tuple[list[dict[str, Any]], np.ndarray, dict[str, Any]]:
     """The local contrast of every detection and the ``min_contrast_db`` rule
     (pipeline/targets/local_contrast.py): (kept features, their records, the ``run.json`` record).
     Measured only when a floor is set (a window read per detection; -30 dB measures every
@@ -61,6 +68,7 @@ def contrast_step(
         for f in feats:
             f["properties"].update(contrast_db=None, contrast_ring_px=None)
         return feats, records, {"min_contrast_db": None, "measured": False}
+    assert scene_read is not None and mask_read is not None  # refine() makes both when a floor is set
     land_read = CachedWindows(window_reader(land_path), shape) if land_path is not None else None
     feats = add_local_contrast(
         feats, lambda *w: pixel_power(np.asarray(scene_read(*w))), mask_read, shape, land_read, nodata
@@ -81,9 +89,9 @@ def contrast_step(
 
 def refine(
     plan: Plan,
-    prep: dict,
+    prep: dict[str, Any],
     records: np.ndarray,
-    land_record: dict | None,
+    land_record: dict[str, Any] | None,
     land_path: Path | None,
     detected_path: Path,
 ) -> Refined:
@@ -91,13 +99,14 @@ def refine(
     pass's; ``land_path``: the run's land array (None without a land mask); ``detected_path``:
     the detector's decision (``mask.zarr/detected``)."""
     params, spec, shape, spacing, geo = plan.params, plan.spec, plan.shape, plan.spacing, plan.geo
-    dropped_land = None
+    dropped_land: int | None = None
     if params.land_gap_px is not None and land_path is not None and len(records):
         near = near_land(records, CachedWindows(window_reader(land_path), shape), shape, params.land_gap_px)
         records, dropped_land = records[~near], int(near.sum())
     feats = features(records, spacing, geo)
     feats = add_contrast(feats, (land_record or {}).get("sea_mean"))
-    scene_read = mask_read = None
+    scene_read: Reader | None = None
+    mask_read: Reader | None = None
     if params.sidelobes or spec.detection_properties is not None or params.min_contrast_db is not None:
         # the mask these steps read is the detector's own decision (each detection's component,
         # and the detections left out of the clutter ring)
@@ -107,6 +116,7 @@ def refine(
         feats, records, params.min_contrast_db, scene_read, mask_read, land_path, shape, getattr(params, "nodata", None)
     )
     if params.sidelobes:  # cross-sidelobe suppression on the detections (pipeline/targets/sidelobes.py)
+        assert scene_read is not None and mask_read is not None  # made above when params.sidelobes
         feats = refine_features(feats, records, scene_read, mask_read, shape, plan.merge_r, spacing, geo)
     if spec.detection_properties is not None:  # the detector's own per-detection properties (e.g. csk)
         feats = spec.detection_properties(
