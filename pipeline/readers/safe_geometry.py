@@ -16,6 +16,9 @@ key                             from the annotation (xarray-sentinel group, else
                                 different PRFs in one GRD)
 ``platform_velocity_m_s``       ``|v|`` of the orbit state vectors (group ``orbit``) at mid product
 ``azimuth_time_interval_s``     ``imageInformation/azimuthTimeInterval`` (zero-Doppler time per line)
+``first_line_time``             ``imageInformation/productFirstLineUtcTime`` (ISO 8601 UTC, ``Z``
+                                appended): with the interval, each line's zero-Doppler time
+                                (:func:`sarship.pipeline.ais.scene_time.line_times`)
 ``range_table.slant_range_m``   ``c tau / 2``: GRD: ``slantRangeTime`` of the geolocation grid per
                                 grid column (group ``gcp``); SLC: ``tau0 + col / rangeSamplingRate``
 ``range_table.effective_``      ``sqrt(|Ka| lambda R / 2)`` with ``Ka`` the azimuth FM rate
@@ -54,6 +57,11 @@ def _poly(coeffs: np.ndarray, t0: np.ndarray, tau: np.ndarray) -> np.ndarray:
 
 def _seconds(t: Any) -> float:
     return float(np.datetime64(str(t), "ns").astype("int64")) * 1e-9
+
+
+def _utc_iso(t: str) -> str:
+    """An annotation time (UTC, written without a zone) as ISO 8601 with ``Z``."""
+    return t if t.endswith("Z") or "+" in t[10:] else t + "Z"
 
 
 def _annotation_root(prod: Any, swath: str, pol: str) -> ElementTree.Element:
@@ -192,6 +200,7 @@ def read_geometry(prod: Any, swath: str, pol: str) -> dict[str, Any]:
         "wavelength_m": lam,
         "platform_velocity_m_s": vs,
         "azimuth_time_interval_s": ati,
+        "first_line_time": _utc_iso(text(ii + "productFirstLineUtcTime")),
         "range_sampling_rate_hz": fs,
         "slant_range_time_s": tau0,
         "range_table": {
