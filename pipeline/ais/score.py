@@ -22,7 +22,7 @@ is its survival function::
 
     score = Q(k/2, d2/2)     (k = 2: exp(-d2/2))                                         (3)
 
-([barshalom2001] sec. 5.4 on chi-square gates; ``Q`` the regularised upper incomplete gamma
+([barshalom2001] on chi-square validation gates; ``Q`` the regularised upper incomplete gamma
 function). A true pair's score is uniform on (0, 1): ``min_score = 0.01`` refuses 1 % of true
 pairs. (The product of the position term's ``exp(-d2_pos/2)`` and the length term's two-sided
 p-value ``erfc(|z|/sqrt 2)`` is not uniform: it would refuse ``a (1 - ln a)`` = 5.6 % of true
