@@ -241,8 +241,8 @@ class _Static:
         seen = self.seen
         keys = zip(mmsi, *([r[i] for r in rows] for i in self.idx))
         fresh = dict.fromkeys(k for k in keys if k not in seen)
-        if len(seen) + len(fresh) > 2 * self.collector.max_vessels:
-            seen.clear()
+        if len(seen) + len(fresh) > self.collector.max_vessels:
+            seen.clear()  # bounded: noting a vessel again changes nothing
         for key in fresh:
             seen.add(key)
             got: dict[str, bytes] = dict(zip(self.roles, key[1:]))  # type: ignore[arg-type]
