@@ -14,7 +14,8 @@ Subpackages, by concern:
 - :mod:`sarship.pipeline.targets`: from a mask to ships (components, features, sidelobes, ambiguities,
   geolocation);
 - :mod:`sarship.pipeline.run`: a run as a plan and typed stages;
-- :mod:`sarship.pipeline.products`: truth, scores and exports.
+- :mod:`sarship.pipeline.products`: truth, scores and exports;
+- :mod:`sarship.pipeline.ais`: AIS reports, tracks and their matching to detections.
 
 Beside them: :mod:`sarship.pipeline.errors` (one-line user errors) and
 :mod:`sarship.pipeline.settings` (every ``SARSHIP_*`` variable read below the service).
