@@ -5,7 +5,7 @@ ships never report) sails a straight line at its SOG and COG through its true po
 zero-Doppler time, and reports over ``[t_c - window_s, t_c + window_s]`` (``t_c`` the zero-Doppler
 time of the scene's middle row):
 
-* report intervals (ITU-R M.1371-5, tables 1 and 2; docs/references.md#itu-m1371): class A at anchor
+* report intervals (ITU-R M.1371-5, Annex 1, tables 1 and 2; docs/references.md#itu-m1371): class A at anchor
   180 s; under way 10 s up to 14 kn, 6 s up to 23 kn, 2 s above; class B ("CS") 180 s up to
   2 kn, 30 s above. A vessel's first report falls at a random phase of its interval, each report
   +- :data:`JITTER` of the interval;

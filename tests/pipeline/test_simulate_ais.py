@@ -239,6 +239,22 @@ def test_ais_only_vessels_outside_the_swath_or_too_small(ais_case):
             assert v["length_m"] < min(shortest, 10.0) and tracks[v["mmsi"]]["length"][0] <= 10.0
 
 
+def test_the_ais_reader_reads_the_file_back(ais_case, tmp_path):
+    from sarship.pipeline.ais.formats import read_ais
+
+    _, _, text = ais_case
+    path = tmp_path / "s.ais.csv"
+    path.write_text(text)
+    reports, info, stats = read_ais([path], None)
+    want, want_info = ais_reports(AIS_SCENE)
+    assert sum(stats.rejected.values()) == 0
+    assert len(reports) == len(want) == stats.kept and np.array_equal(reports.mmsi, want.mmsi)
+    assert np.abs(reports.t - want.t).max() <= 0.0005 + 1e-6  # written to the millisecond
+    assert np.abs(reports.lat - want.lat).max() < 1e-7 and np.abs(reports.lon - want.lon).max() < 1e-7
+    assert np.array_equal(np.isnan(reports.heading_deg), np.isnan(want.heading_deg))
+    assert info == want_info
+
+
 def test_truth_mmsi_and_dark_survive_into_ships(tmp_path):
     from sarship.pipeline.products.truth import load_geojson
 
