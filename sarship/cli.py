@@ -124,6 +124,11 @@ def _progress(label: str):
 def cmd_simulate(a) -> int:
     from sarship.pipeline.simulate import SimConfig, simulate, validate
 
+    if a.ais is not None and a.geo is None:
+        raise InputError("--ais needs --geo LON,LAT: AIS reports are lon/lat positions")
+    if a.dark_fraction is not None and a.ais is None:
+        raise InputError("--dark-fraction needs --ais FILE.csv")
+    ais = {"ais": True, **({} if a.dark_fraction is None else {"dark_fraction": a.dark_fraction})} if a.ais else {}
     cfg = validate(
         SimConfig(
             kind=a.kind,
@@ -145,13 +150,26 @@ def cmd_simulate(a) -> int:
             shape_beta=a.shape_beta,
             geo=a.geo,
             geo_gcps=a.geo_gcps,
+            time=a.time,
+            moving=a.moving,
+            **ais,
         )
     )
     out = Path(a.out)
     truth = a.truth or f"{out}.truth.geojson"
-    simulate(out, cfg, tile=a.tile, truth_path=truth, progress=_progress("simulate"), overwrite=a.overwrite)
+    simulate(
+        out,
+        cfg,
+        tile=a.tile,
+        truth_path=truth,
+        progress=_progress("simulate"),
+        overwrite=a.overwrite,
+        ais_path=a.ais,
+    )
     print(f"scene: {out}")
     print(f"truth: {truth}")
+    if a.ais:
+        print(f"ais: {a.ais}")
     return 0
 
 
@@ -622,9 +640,33 @@ def _parser_simulate(sub) -> None:
         action="store_true",
         help="with --geo: store the georeference as a 6 x 6 grid of GCPs instead of an affine transform",
     )
+    s.add_argument(
+        "--time",
+        metavar="ISO",
+        help="first line time, ISO 8601 UTC (default: a fixed time derived from --seed)",
+    )
+    s.add_argument(
+        "--moving",
+        action="store_true",
+        help="ships under way (30%% at anchor or drifting at 0-1 kn, the others 2-25 kn, COG along the bow), "
+        "imaged at their azimuth-displaced position R v_toward / V (docs/ais.md)",
+    )
+    s.add_argument(
+        "--ais",
+        metavar="FILE.csv",
+        help="with --geo: write the ships' AIS reports (plain AIS CSV, +-10 min) there, plus AIS vessels "
+        "outside the swath and too small to see; the truth gets each ship's mmsi and dark flag",
+    )
+    s.add_argument(
+        "--dark-fraction",
+        dest="dark_fraction",
+        type=float,
+        metavar="F",
+        help="with --ais: the fraction of the ships that never report (default 0.2)",
+    )
     s.add_argument("--truth", help="truth GeoJSON path (default OUT.zarr.truth.geojson)")
     s.add_argument("--tile", type=_positive_int, default=2048)
-    s.add_argument("--overwrite", action="store_true", help="replace an existing scene store and truth file")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing scene store, truth file and AIS file")
     s.set_defaults(func=cmd_simulate)
 
 

@@ -15,7 +15,12 @@ The package (formerly the single module ``simulate.py``) is split by component:
 * :mod:`~sarship.pipeline.simulate.ships`: ship placement and signatures;
 * :mod:`~sarship.pipeline.simulate.artefacts`: sidelobes, azimuth ambiguities, stripes, RFI;
 * :mod:`~sarship.pipeline.simulate.geometry`: the simulated sensor's geometry (``sar_geometry``:
-  where the azimuth ambiguities fall);
+  where the azimuth ambiguities fall, line times, look directions);
+* :mod:`~sarship.pipeline.simulate.motion`: moving ships (SOG, COG) and their azimuth
+  displacement;
+* :mod:`~sarship.pipeline.simulate.ais_vessels`: the scene's vessels as AIS knows them (MMSIs,
+  dark ships, AIS-only vessels);
+* :mod:`~sarship.pipeline.simulate.ais_reports`: their AIS reports and the plain AIS CSV;
 * :mod:`~sarship.pipeline.simulate.model`: the per-configuration scene model;
 * :mod:`~sarship.pipeline.simulate.render`: pixel rendering, :func:`simulate_tile`;
 * :mod:`~sarship.pipeline.simulate.ground_truth`: :func:`ship_catalogue`, the truth GeoJSON;
@@ -27,6 +32,7 @@ Every name of the former module that other code uses is re-exported here.
 
 # Re-exports: the public API (``__all__``) and every other name that other code or the tests
 # use (``from sarship.pipeline import simulate as sim; sim.SEA_RHO, sim._model, ...``).
+from sarship.pipeline.simulate.ais_reports import AisOptions, ais_reports, write_ais_csv  # noqa: F401
 from sarship.pipeline.simulate.artefacts import (  # noqa: F401
     AMBIG_LEVEL_DB,
     AMBIG_SMEAR,
@@ -92,4 +98,7 @@ __all__ = [
     "sea_covariance",
     "effective_looks",
     "variables",
+    "AisOptions",
+    "ais_reports",
+    "write_ais_csv",
 ]

@@ -8,6 +8,7 @@ The physics of each component is described in the docstrings of the modules
 from __future__ import annotations
 
 import dataclasses
+import datetime as _dt
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -52,6 +53,14 @@ class SimConfig:
     shape_beta: float = 1.0  # CGGD clutter (slc only): shape beta (1: complex Gaussian; < 1 super-Gaussian)
     geo: tuple[float, float] | None = None  # (lon, lat) of the scene centre: georeferenced (WGS84), land from GSHHG
     geo_gcps: bool = False  # with geo: the georeference as a grid of GCPs instead of an affine transform
+    time: str | None = None  # first line time (ISO 8601 UTC); None: a fixed time derived from the seed
+    moving: bool = False  # ships under way (SOG, COG) imaged at their azimuth-displaced position (motion module)
+    speed_kn: tuple[float, float] = (2.0, 25.0)  # moving: SOG range (knots) of the ships under way, uniform
+    anchored_fraction: float = 0.3  # moving: fraction of ships at anchor or drifting (SOG 0-1 kn)
+    ais: bool = False  # with geo: ships get MMSIs (but dark_fraction of them), plus AIS-only vessels (ais_vessels)
+    dark_fraction: float = 0.2  # ais: fraction of the scene's ships that never report (round(f * ships) ships)
+    ais_outside: int = 8  # ais: AIS vessels outside the swath (never imaged)
+    ais_small: int = 4  # ais: AIS vessels inside the swath too small to be imaged
 
     def as_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -226,7 +235,72 @@ def validate(cfg: SimConfig) -> SimConfig:
         cap = max_ships(out)
         if ships > cap:
             raise _bad("ships", f"an integer in [0, {cap}] for this shape, length_m and land", ships)
-    return dataclasses.replace(out, ships=ships)
+    return dataclasses.replace(out, ships=ships, **_validate_motion(cfg, geo))
+
+
+#: Latest first line time accepted (POSIX seconds of 2100-01-01T00:00:00Z).
+_TIME_MAX = 4_102_444_800.0
+
+
+def parse_time(text: Any) -> _dt.datetime:
+    """An ISO 8601 time as an aware UTC datetime (no zone: UTC; an offset: converted).
+
+    Raises :class:`InputError` (one line) for anything else or a time outside 1970-2099.
+    """
+    rng = "an ISO 8601 UTC time in 1970-2099 like 2021-06-01T10:30:00Z"
+    if not isinstance(text, str):
+        raise _bad("time", rng, text)
+    try:
+        t = _dt.datetime.fromisoformat(text.strip())
+    except ValueError:
+        raise _bad("time", rng, text) from None
+    t = t.replace(tzinfo=_dt.UTC) if t.tzinfo is None else t.astimezone(_dt.UTC)
+    if not 0.0 <= t.timestamp() < _TIME_MAX:
+        raise _bad("time", rng, text)
+    return t
+
+
+def format_time(t: _dt.datetime) -> str:
+    """``YYYY-MM-DDTHH:MM:SSZ``, with ``.ffffff`` where the time has microseconds."""
+    t = t.astimezone(_dt.UTC)
+    return t.strftime("%Y-%m-%dT%H:%M:%S.%fZ" if t.microsecond else "%Y-%m-%dT%H:%M:%SZ")
+
+
+def scene_time(cfg: SimConfig) -> str:
+    """The scene's first line time (ISO 8601 UTC): ``cfg.time``, else a fixed time derived from
+    the seed (2020-2024; the ``acquired`` time every simulated scene had before ``time``)."""
+    if cfg.time is not None:
+        return format_time(parse_time(cfg.time))
+    t0 = _dt.datetime(2020, 1, 1, tzinfo=_dt.UTC)
+    return format_time(t0 + _dt.timedelta(seconds=int(cfg.seed) % (5 * 365 * 86400)))
+
+
+def _validate_motion(cfg: SimConfig, geo: tuple[float, float] | None) -> dict[str, Any]:
+    """The normalised ``time``, motion and AIS fields of ``cfg`` (see :func:`validate`)."""
+    out: dict[str, Any] = {"time": None if cfg.time is None else format_time(parse_time(cfg.time))}
+    for name in ("moving", "ais"):
+        v = getattr(cfg, name)
+        if not isinstance(v, (bool, np.bool_)):
+            raise _bad(name, "true or false", v)
+        out[name] = bool(v)
+    srng = "two numbers (min, max) of knots with 0 <= min <= max <= 60"
+    a, b = _pair(cfg.speed_kn, "speed_kn", srng)
+    out["speed_kn"] = (_num(a, "speed_kn", srng), _num(b, "speed_kn", srng))
+    if not 0 <= out["speed_kn"][0] <= out["speed_kn"][1] <= 60:
+        raise _bad("speed_kn", srng, cfg.speed_kn)
+    for name in ("anchored_fraction", "dark_fraction"):
+        f = _num(getattr(cfg, name), name, "a number in [0, 1]")
+        if not 0 <= f <= 1:
+            raise _bad(name, "a number in [0, 1]", getattr(cfg, name))
+        out[name] = f
+    for name in ("ais_outside", "ais_small"):
+        n = _int(getattr(cfg, name), name, "an integer in [0, 10000]")
+        if not 0 <= n <= 10000:
+            raise _bad(name, "an integer in [0, 10000]", getattr(cfg, name))
+        out[name] = n
+    if out["ais"] and geo is None:
+        raise _bad("ais", "false without geo (AIS reports are lon/lat positions)", cfg.ais)
+    return out
 
 
 def variables(cfg: SimConfig) -> dict[str, np.dtype]:

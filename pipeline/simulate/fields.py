@@ -32,6 +32,7 @@ _TAG = 0x5A75_1B  # sarship simulator tag in every SeedSequence
 _S_SPECKLE, _S_TEXTURE, _S_CATALOGUE, _S_SHIPDOM, _S_SHIPHULL, _S_SHIPSPK = 1, 2, 3, 4, 5, 6
 _S_LAND, _S_COAST, _S_LAND_TEX, _S_LAND_GAIN, _S_URBAN = 7, 8, 9, 10, 11
 _S_RFI, _S_RFI_NOISE, _S_STRIPES = 12, 13, 14
+_S_MOTION, _S_AIS, _S_AIS_EXTRA, _S_AIS_REPORTS = 15, 16, 17, 18  # moving ships and AIS (issue 33)
 
 
 def _rng(seed: int, *key: int) -> np.random.Generator:

@@ -16,6 +16,16 @@ ambiguities (``--ambiguities``, :mod:`~sarship.pipeline.simulate.artefacts`) fal
 
 At 10 m spacing the first ghosts are ~5.0 km (~500 rows) away along azimuth and 3-4 columns
 away in range.
+
+Time and look directions (issue 33, docs/ais.md): ``first_line_time`` (ISO 8601 UTC, the
+scene's ``time``) with ``azimuth_time_interval_s`` gives a row's zero-Doppler time
+``first_line_time + row * azimuth_time_interval_s``. The scene's frame is north-up (a
+georeferenced scene's, :func:`~sarship.pipeline.simulate.land.geo_attrs`; COG and bow
+directions of a scene without ``geo`` are read in the same frame): increasing rows run south
+(the flight direction, ``flight_direction_deg`` 180), increasing columns east (away from the
+radar, ``range_direction_deg`` 90). Flying south and looking east is a *left*-looking geometry
+(``look_side``); the azimuth displacement of a moving ship, ``R v_toward / V`` along
+increasing rows, does not depend on the look side (docs/ais.md).
 """
 
 from __future__ import annotations
@@ -34,16 +44,37 @@ EFFECTIVE_VELOCITY_M_S = 7180.0
 NEAR_RANGE_M = 800_000.0
 INCIDENCE_DEG = 35.0
 DOPPLER_CENTROID_HZ = 100.0
+#: Ground directions (degrees clockwise from north) of increasing rows and increasing columns.
+FLIGHT_DIRECTION_DEG = 180.0
+RANGE_DIRECTION_DEG = 90.0
+#: Columns (range) increase to the left of the flight direction: a left-looking geometry.
+LOOK_SIDE = "left"
 
 
-def sar_geometry(shape: tuple[int, int], pixel_spacing_m: tuple[float, float]) -> dict[str, Any]:
-    """The ``sar_geometry`` attribute of a simulated scene of ``shape`` and spacing [az, rg]."""
+def sar_geometry(
+    shape: tuple[int, int],
+    pixel_spacing_m: tuple[float, float],
+    first_line_time: str | None = None,
+    georeferenced: bool = False,
+) -> dict[str, Any]:
+    """The ``sar_geometry`` attribute of a simulated scene of ``shape`` and spacing [az, rg].
+
+    Parameters
+    ----------
+    shape, pixel_spacing_m
+        The scene's (rows, cols) and [azimuth, range] spacing (m).
+    first_line_time
+        The first line's zero-Doppler time (ISO 8601 UTC), recorded as ``first_line_time``.
+    georeferenced
+        Record the ground directions of the scene's axes (``flight_direction_deg``,
+        ``range_direction_deg``, ``look_side``; see the module docstring).
+    """
     W = int(shape[1])
     d_az, d_rg = float(pixel_spacing_m[0]), float(pixel_spacing_m[1])
     vg = EFFECTIVE_VELOCITY_M_S**2 / PLATFORM_VELOCITY_M_S
     last = float(max(W - 1, 1))
     slant = [NEAR_RANGE_M, NEAR_RANGE_M + last * d_rg * math.sin(math.radians(INCIDENCE_DEG))]
-    return {
+    out: dict[str, Any] = {
         "source": "sarship simulator (C-band stripmap, Sentinel-1-like orbit)",
         "radar_frequency_hz": RADAR_FREQUENCY_HZ,
         "prf_hz": PRF_HZ,
@@ -57,6 +88,20 @@ def sar_geometry(shape: tuple[int, int], pixel_spacing_m: tuple[float, float]) -
         },
         "doppler_centroid_spread_hz": 0.0,
     }
+    if first_line_time is not None:
+        out["first_line_time"] = first_line_time
+    if georeferenced:
+        out["flight_direction_deg"] = FLIGHT_DIRECTION_DEG
+        out["range_direction_deg"] = RANGE_DIRECTION_DEG
+        out["look_side"] = LOOK_SIDE
+    return out
+
+
+def slant_range_m(shape: tuple[int, int], pixel_spacing_m: tuple[float, float], col: np.ndarray) -> np.ndarray:
+    """Slant range (m) at columns ``col`` (the :func:`sar_geometry` range table, linear)."""
+    t = sar_geometry(shape, pixel_spacing_m)["range_table"]
+    lo, hi = t["slant_range_m"]
+    return lo + (hi - lo) * np.asarray(col, dtype=np.float64) / t["col"][1]
 
 
 def geometry(shape: tuple[int, int], pixel_spacing_m: tuple[float, float]) -> Geometry:
@@ -79,4 +124,4 @@ def ghost_offsets(
     ]
 
 
-__all__ = ["ghost_offsets", "geometry", "sar_geometry"]
+__all__ = ["ghost_offsets", "geometry", "sar_geometry", "slant_range_m"]

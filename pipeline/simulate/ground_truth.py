@@ -10,11 +10,13 @@ from typing import Any
 
 import numpy as np
 
+from sarship.pipeline.simulate.ais_vessels import ais_member, ais_properties
 from sarship.pipeline.simulate.artefacts import AMBIG_LEVEL_DB
 from sarship.pipeline.simulate.clutter import SEA_EPS, SEA_GAMMA, SEA_RHO, _sea_power
 from sarship.pipeline.simulate.config import SimConfig, validate
 from sarship.pipeline.simulate.fields import BLOCK
 from sarship.pipeline.simulate.model import _Model, _model
+from sarship.pipeline.simulate.motion import motion_properties
 from sarship.pipeline.simulate.render import _ghost_render, _render_block
 from sarship.pipeline.simulate.ships import SHIP_CLASSES, _ship_geometry
 
@@ -41,7 +43,9 @@ def ship_catalogue(cfg: SimConfig) -> list[dict[str, Any]]:
     ``width_m``, ``center_px`` (design centre), ``bow_deg`` (bow direction in [0, 360)),
     ``scr_db``, ``mean_power`` (designed mean power over the ship pixels), ``pol_class`` and
     ``pol_signature`` (quad-pol: hull eps, gamma, rho), ``scatterers`` (dominant point
-    scatterers: row, col, power, type).
+    scatterers: row, col, power, type); with ``moving`` or ``ais`` also the motion
+    (:func:`~sarship.pipeline.simulate.motion.motion_properties`; ``center_px`` is then where
+    the ship is imaged).
     """
     cfg = validate(cfg)
     m = _model(cfg)
@@ -59,6 +63,8 @@ def ship_catalogue(cfg: SimConfig) -> list[dict[str, Any]]:
         if s.pol_class is not None:
             c = SHIP_CLASSES[s.pol_class]
             d["pol_signature"] = {"eps": c["eps"], "gamma": c["gamma"], "rho": c["rho"]}
+        if s.sog_kn is not None:
+            d.update(motion_properties(cfg, s))
         dom = s.dom
         d["scatterers"] = [
             {
@@ -129,6 +135,10 @@ def _truth(m: _Model, bufs: dict[int, np.ndarray]) -> dict[str, Any]:
         }
         if s.pol_class is not None:
             props["pol_class"] = s.pol_class
+        if s.sog_kn is not None:  # moving / ais (issue 33)
+            props.update(motion_properties(cfg, s))
+        if cfg.ais:
+            props.update(ais_properties(cfg, s.idx))
         feats.append({"type": "Feature", "id": s.idx, "geometry": None, "properties": props})
     H, W = cfg.shape
     p_sea = _sea_power(cfg)
@@ -191,6 +201,8 @@ def _truth(m: _Model, bufs: dict[int, np.ndarray]) -> dict[str, Any]:
         ]
     if m.stripes is not None:
         coll["stripes"] = True
+    if cfg.ais:
+        coll["ais"] = ais_member(cfg)
     return coll
 
 

@@ -21,6 +21,7 @@ Georeferenced scenes (``geo``: the scene centre's lon/lat)
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -100,6 +101,15 @@ def geo_attrs(cfg: SimConfig) -> dict:
         for q in np.linspace(0.0, W, 6)
     ]
     return {"crs": "EPSG:4326", "gcps": gcps}
+
+
+def geo_lonlat(cfg: SimConfig, row: Any, col: Any) -> tuple[np.ndarray, np.ndarray]:
+    """WGS84 (lon, lat) of continuous pixel coordinates (``row``, ``col``) of a ``geo`` scene
+    (the affine mapping of :func:`geo_attrs`, which its GCPs sample too)."""
+    c, a, b, f, d, e = geo_attrs(dataclasses.replace(cfg, geo_gcps=False))["transform"]
+    row = np.asarray(row, dtype=np.float64)
+    col = np.asarray(col, dtype=np.float64)
+    return c + a * col + b * row, f + d * col + e * row
 
 
 @dataclass

@@ -28,6 +28,7 @@ from sarship.pipeline.simulate.config import SimConfig
 from sarship.pipeline.simulate.fields import BLOCK
 from sarship.pipeline.simulate.geometry import ghost_offsets
 from sarship.pipeline.simulate.land import _Land, _land_model
+from sarship.pipeline.simulate.motion import draw_motion
 from sarship.pipeline.simulate.ships import _dominants, _hull_pattern, _place_ships, _Ship
 
 
@@ -48,7 +49,7 @@ class _Model:
 def _build_model(cfg: SimConfig) -> _Model:
     H, W = cfg.shape
     land = _land_model(cfg) if cfg.land else None
-    ships = _place_ships(cfg, land)
+    ships = _place_ships(cfg, land, draw_motion(cfg))
     p_sea = _sea_power(cfg)
     sf = _span_factor(SEA_EPS, SEA_GAMMA) if cfg.kind == "quadpol" else 1.0
     for s in ships:

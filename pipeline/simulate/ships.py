@@ -20,7 +20,9 @@ Ships
     dihedrals rotated by psi, [cos 2psi, sin 2psi, -cos 2psi]/sqrt2 (even bounce) (Lee &
     Pottier, *Polarimetric Radar Imaging*, 2009, ch. 2/6).
     Ships lie on sea only (>= 8 px from the coast), never overlap (bounding boxes 3 px apart)
-    and stay >= 5 px from the scene border.
+    and stay >= 5 px from the scene border. With ``moving`` a ship is imaged at its azimuth-
+    displaced position (:mod:`~sarship.pipeline.simulate.motion`); both its imaged and its true
+    footprint keep these rules.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from sarship.pipeline.errors import InputError
 from sarship.pipeline.simulate.config import BORDER_PX, GAP_PX, SimConfig
 from sarship.pipeline.simulate.fields import _S_CATALOGUE, _S_SHIPDOM, _S_SHIPHULL, _rng
 from sarship.pipeline.simulate.land import _Land, _land_clearance
+from sarship.pipeline.simulate.motion import Motion, displacement_rows
 
 #: Quad-pol ship classes: hull (eps, gamma, rho) and probability that a dominant scatterer
 #: is a dihedral (else a trihedral), dihedral rotation range (deg).
@@ -69,6 +72,11 @@ class _Ship:
     scale: float = 0.0
     # dominant scatterers: rows, cols (global), sub-pixel offsets, powers, phases, pol vectors
     dom: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    drawn_m: tuple[float, float] | None = None  # length and width as drawn (before widening to a pixel)
+    # motion (moving / ais): true row at its zero-Doppler time (rc is the imaged one), SOG, COG
+    rc_true: float | None = None
+    sog_kn: float | None = None
+    cog_deg: float | None = None
 
     @property
     def r1(self) -> int:
@@ -117,12 +125,46 @@ def _footprint(
     return r0 + int(rows[0]), c0 + int(cols[0]), mask[sl].copy(), cov[sl].astype(np.float32)
 
 
-def _place_ships(cfg: SimConfig, land: _Land | None) -> list[_Ship]:
+_Box = tuple[int, int, int, int]  # r0, r1, c0, c1
+
+
+class _Boxes:
+    """Occupied boxes (grown by GAP_PX), bucketed on a coarse grid for the overlap test."""
+
+    cell = 64
+
+    def __init__(self) -> None:
+        self.grid: dict[tuple[int, int], list[_Box]] = {}
+
+    def free(self, r0: int, r1: int, c0: int, c1: int) -> bool:
+        b = (r0 - GAP_PX, r1 + GAP_PX, c0 - GAP_PX, c1 + GAP_PX)
+        n = self.cell
+        return not any(
+            o[0] < b[1] and b[0] < o[1] and o[2] < b[3] and b[2] < o[3]
+            for p in range(b[0] // n, (b[1] - 1) // n + 1)
+            for q in range(b[2] // n, (b[3] - 1) // n + 1)
+            for o in self.grid.get((p, q), ())
+        )
+
+    def add(self, r0: int, r1: int, c0: int, c1: int) -> None:
+        n = self.cell
+        for p in range(r0 // n, (r1 - 1) // n + 1):
+            for q in range(c0 // n, (c1 - 1) // n + 1):
+                self.grid.setdefault((p, q), []).append((r0, r1, c0, c1))
+
+
+def _place_ships(cfg: SimConfig, land: _Land | None, motion: Motion | None = None) -> list[_Ship]:
+    """The ships, placed one after the other on free sea (see the module docstring).
+
+    With ``motion`` the ships that move are imaged ``displacement_rows`` rows from their true
+    position (:mod:`~sarship.pipeline.simulate.motion`): the imaged footprint obeys the rules
+    above (border, gaps between imaged ships, sea), and so does the true one (border and sea;
+    no two true footprints overlap). The random draws are the same with or without ``motion``.
+    """
     H, W = cfg.shape
     dy, dx = cfg.pixel_spacing_m
     rng = _rng(cfg.seed, _S_CATALOGUE)
-    cell = 64
-    grid: dict[tuple[int, int], list[tuple[int, int, int, int]]] = {}
+    imaged, true = _Boxes(), _Boxes()
     classes = list(SHIP_CLASSES)
     ships: list[_Ship] = []
     lo, hi = cfg.length_m
@@ -132,7 +174,11 @@ def _place_ships(cfg: SimConfig, land: _Land | None) -> list[_Ship]:
         bow = float(rng.uniform(0.0, 360.0))
         scr = float(cfg.scr_db + rng.uniform(-2.0, 2.0))
         pcls = classes[int(rng.integers(0, len(classes)))]
+        drawn = (length, length / ratio)
         length, width = _ship_dims(length, ratio, bow, dy, dx)
+        sog = cog = None
+        if motion is not None:
+            sog, cog = float(motion.sog_kn[i]), motion.cog_deg(i, bow)
         ur, uc, vr, vc = _unit_vectors(bow)
         hr = (abs(ur) * length / 2 + abs(vr) * width / 2) / dy + 1.0
         hc = (abs(uc) * length / 2 + abs(vc) * width / 2) / dx + 1.0
@@ -143,40 +189,40 @@ def _place_ships(cfg: SimConfig, land: _Land | None) -> list[_Ship]:
             for _attempt in range(2000):
                 rc = float(rng.uniform(rlo, rhi))
                 cc = float(rng.uniform(clo, chi))
-                r0, c0, mask, cov = _footprint(rc, cc, length, width, bow, dy, dx)
+                shift = float(displacement_rows(cfg, cc, sog, cog)) if sog else 0.0
+                r0, c0, mask, cov = _footprint(rc + shift, cc, length, width, bow, dy, dx)
                 r1, c1 = r0 + mask.shape[0], c0 + mask.shape[1]
                 if r0 < BORDER_PX or c0 < BORDER_PX or r1 > H - BORDER_PX or c1 > W - BORDER_PX:
                     continue
-                b = (r0 - GAP_PX, r1 + GAP_PX, c0 - GAP_PX, c1 + GAP_PX)
-                cells = [
-                    (p, q)
-                    for p in range(b[0] // cell, (b[1] - 1) // cell + 1)
-                    for q in range(b[2] // cell, (b[3] - 1) // cell + 1)
-                ]
-                if any(
-                    o[0] < b[1] and b[0] < o[1] and o[2] < b[3] and b[2] < o[3]
-                    for pq in cells
-                    for o in grid.get(pq, ())
-                ):
+                if not imaged.free(r0, r1, c0, c1):
+                    continue
+                t0, t1 = math.floor(r0 - shift), math.ceil(r1 - shift)  # the true footprint's rows
+                if motion is not None and not true.free(t0, t1, c0, c1):
                     continue
                 if land is not None and _land_clearance(cfg, land, r0, r1, c0, c1) < LAND_MARGIN_PX:
                     continue
-                placed = (rc, cc, r0, c0, mask, cov)
-                for p in range(r0 // cell, (r1 - 1) // cell + 1):
-                    for q in range(c0 // cell, (c1 - 1) // cell + 1):
-                        grid.setdefault((p, q), []).append((r0, r1, c0, c1))
+                if shift and land is not None and _land_clearance(cfg, land, t0, t1, c0, c1) < LAND_MARGIN_PX:
+                    continue
+                placed = (rc, cc, r0, c0, mask, cov, shift)
+                imaged.add(r0, r1, c0, c1)
+                true.add(t0, t1, c0, c1)
                 break
         if placed is None:
             raise InputError(
                 f"simulation ships: could not place ship {i + 1} of {cfg.ships} on free sea "
-                f"in the {H}x{W} scene (ships must not overlap each other or land); "
-                f"use fewer ships, shorter length_m or a larger shape"
+                f"in the {H}x{W} scene (ships must not overlap each other or land"
+                + (
+                    "; a moving ship's true and azimuth-displaced positions must both fit"
+                    if motion is not None and sog
+                    else ""
+                )
+                + "); use fewer ships, shorter length_m or a larger shape"
             )
-        rc, cc, r0, c0, mask, cov = placed
+        rc, cc, r0, c0, mask, cov, shift = placed
         ships.append(
             _Ship(
                 idx=i,
-                rc=rc,
+                rc=rc + shift,
                 cc=cc,
                 length_m=length,
                 width_m=width,
@@ -187,6 +233,10 @@ def _place_ships(cfg: SimConfig, land: _Land | None) -> list[_Ship]:
                 c0=c0,
                 mask=mask,
                 cov=cov,
+                drawn_m=drawn,
+                rc_true=rc,
+                sog_kn=sog,
+                cog_deg=cog,
             )
         )
     return ships
