@@ -105,7 +105,7 @@ def covers_scene(
         The footprint (:func:`footprint_ring`); reports anywhere count without it.
     max_report_gap_s : float, default 600
         How long before and after the scene a report must exist. 600 s: a live feed carries a
-        class A vessel under way every 2-10 s and at anchor every 3 minutes [itu2014]; ten
+        class A vessel under way every 2-10 s and at anchor every 3 minutes [itu-m1371]; ten
         minutes without any report in the footprint is a gap in the feed, not quiet sea traffic.
 
     Returns
@@ -114,7 +114,7 @@ def covers_scene(
 
     References
     ----------
-    [itu2014].
+    [itu-m1371].
     """
     if not (np.isfinite(max_report_gap_s) and max_report_gap_s >= 0):
         raise InputError(f"max_report_gap_s must be a finite number >= 0, got {max_report_gap_s!r}")

@@ -156,7 +156,7 @@ def vessel_states(reports: Reports, t_ref: float, *, max_extrapolation_s: float 
         A vessel is kept when its nearest report is at most this far from ``t_ref`` (the
         interpolated ones included); this also bounds the propagation beyond the first or last
         report. AIS class A reports every 2-10 s under way and every 3 min at anchor, class B
-        every 30 s (ITU-R M.1371-5, [itu2014]): 600 s keeps a vessel through a few lost
+        every 30 s ([itu-m1371]): 600 s keeps a vessel through a few lost
         reports; the uncertainty the matcher gives its position grows with the gap.
 
     Returns
@@ -171,7 +171,7 @@ def vessel_states(reports: Reports, t_ref: float, *, max_extrapolation_s: float 
 
     References
     ----------
-    [deboor2001] (cubic Hermite interpolation), [itu2014] (AIS report intervals).
+    [deboor2001] (cubic Hermite interpolation), [itu-m1371] (AIS report intervals).
     """
     _check(reports, float(t_ref), float(max_extrapolation_s))
     r = _usable(reports)

@@ -135,7 +135,7 @@ def test_safe_look_geometry_against_the_annotation(grd):
     g = look_geometry(attrs, Georeference(attrs), line[keep], pix[keep])
     assert g is not None and g.valid().all()
     err = np.degrees(np.arcsin(g.sin_incidence)) - inc[keep]
-    assert np.median(np.abs(err)) < 0.3 and np.abs(err).max() < 1.0, err
+    assert np.median(np.abs(err)) < 0.2 and np.abs(err).max() < 0.6, err  # measured 0.08, 0.30
     heading = float(root.findtext("generalAnnotation/productInformation/platformHeading"))
     az = np.degrees(np.arctan2(g.flight_east, g.flight_north))
     d_az = (az - heading + 180.0) % 360.0 - 180.0
