@@ -39,6 +39,7 @@ from sarship.pipeline.ais.reports import KNOT_M_S
 from sarship.pipeline.simulate.config import SimConfig, parse_time, scene_time
 from sarship.pipeline.simulate.fields import _S_MOTION, _rng
 from sarship.pipeline.simulate.geometry import (
+    INCIDENCE_DEG,
     PLATFORM_VELOCITY_M_S,
     RANGE_DIRECTION_DEG,
     sar_geometry,
@@ -105,8 +106,14 @@ def ground_velocity(sog_kn: Any, cog_deg: Any) -> tuple[np.ndarray, np.ndarray]:
     return v * np.sin(c), v * np.cos(c)
 
 
-def velocity_towards_radar(v_east: Any, v_north: Any, range_direction_deg: float = RANGE_DIRECTION_DEG) -> np.ndarray:
-    """``v_toward = -(v . u_range)`` (m/s): the velocity component towards the radar.
+def velocity_towards_radar(
+    v_east: Any,
+    v_north: Any,
+    range_direction_deg: float = RANGE_DIRECTION_DEG,
+    sin_incidence: float = math.sin(math.radians(INCIDENCE_DEG)),
+) -> np.ndarray:
+    """``v_toward = -(v . u_range) sin(theta)`` (m/s): the line-of-sight velocity towards the radar
+    of a ship moving on the sea surface (its ground-range velocity seen at incidence ``theta``).
 
     Parameters
     ----------
@@ -114,9 +121,12 @@ def velocity_towards_radar(v_east: Any, v_north: Any, range_direction_deg: float
         Ground velocity (m/s).
     range_direction_deg
         Ground direction (degrees from north) of increasing range (columns), away from the radar.
+    sin_incidence
+        ``sin`` of the incidence angle (the simulated sensor's 35 degrees by default).
     """
     a = math.radians(range_direction_deg)
-    return -(np.asarray(v_east, dtype=np.float64) * math.sin(a) + np.asarray(v_north, dtype=np.float64) * math.cos(a))
+    v_ground = np.asarray(v_east, dtype=np.float64) * math.sin(a) + np.asarray(v_north, dtype=np.float64) * math.cos(a)
+    return -v_ground * sin_incidence
 
 
 def azimuth_displacement_m(
