@@ -228,10 +228,13 @@ def cmd_detect(a) -> int:
         from sarship.workers.cluster import dashboard_note
 
         note = f"sarship: warm cluster, {warm_process.active_description()}, {dashboard_note(client)}"
+    settings = _settings(a.set)
+    if a.ais:
+        settings["ais"] = a.ais
     run = run_detection(
         a.scene,
         a.detector,
-        _settings(a.set),
+        settings,
         out_dir=a.out,
         tile=a.tile,
         client=client,
@@ -251,8 +254,21 @@ def cmd_detect(a) -> int:
         export(o["detections.geojson"], dst, overwrite=True)  # the run's own folder, just written
         print(f"{fmt}: {dst}")
     print(f"mask: {o['mask.zarr']}")
+    if "ais" in run:
+        _print_ais(run["ais"], o.get("ais_unmatched.geojson"))
     print(f"run: {o['run.json']}")
     return 0
+
+
+def _print_ais(rec: dict, unmatched_path: str | None) -> None:
+    """The AIS stage's summary line (run.json ``ais``)."""
+    dark = "dark: unknown (the AIS given does not cover the scene)" if rec["dark"] is None else f"{rec['dark']} dark"
+    rejected = rec["read"]["rejected"]
+    print(
+        f"ais: {rec['matched']} of {rec['detections']} detections matched, {dark}; "
+        f"{rec['unmatched_in_footprint']} reporting vessels unmatched: {unmatched_path}"
+        + (f" ({rejected} AIS lines or messages rejected)" if rejected else "")
+    )
 
 
 def _formats(text: str | None, scene: str) -> list[str]:
@@ -275,6 +291,16 @@ def _formats(text: str | None, scene: str) -> list[str]:
                 "or GCPs): its detections have no WGS84 outlines to map"
             )
     return extra
+
+
+def cmd_match(a) -> int:
+    from sarship.pipeline.run.rematch import rematch
+
+    rec = rematch(a.run_dir, a.ais, overwrite=a.overwrite)
+    run_dir = Path(a.run_dir)
+    _print_ais(rec, str((run_dir / "ais_unmatched.geojson").resolve()))
+    print(f"detections: {(run_dir / 'detections.geojson').resolve()}")
+    return 0
 
 
 def cmd_export(a) -> int:
@@ -769,6 +795,13 @@ def _parser_detect(sub) -> None:
         help="detection files to write, comma-separated: geojson (always), gpkg (GeoPackage), kml; "
         "gpkg/kml need a georeferenced scene and the extra: pip install 'sarship[gis]'",
     )
+    s.add_argument(
+        "--ais",
+        action="append",
+        metavar="FILE",
+        help="AIS file matched to the detections (repeatable): NMEA, MarineCadastre, Danish Maritime Authority "
+        "or plain CSV, plain or compressed (docs/ais.md); needs a georeferenced scene with a time",
+    )
     s.set_defaults(func=cmd_detect)
 
 
@@ -825,6 +858,18 @@ def _parser_warm(sub) -> None:
 
 def _parser_export(sub) -> None:
     """``sarship export``'s options."""
+    s = sub.add_parser(
+        "match",
+        help="match a finished run's detections to AIS files again, without detecting again (docs/ais.md)",
+    )
+    s.add_argument("run_dir", metavar="RUN_DIR", help="the --out folder of sarship detect (or a service job's)")
+    s.add_argument(
+        "--ais", action="append", required=True, metavar="FILE", help="AIS file (repeatable; formats: docs/ais.md)"
+    )
+    s.add_argument(
+        "--overwrite", action="store_true", help="match again a run already matched (replaces its AIS results)"
+    )
+    s.set_defaults(func=cmd_match)
     s = sub.add_parser("export", help="detections.geojson as a GeoPackage (.gpkg) or KML (.kml) file for a GIS")
     s.add_argument("detections", help="a detections.geojson written by sarship detect or the service")
     s.add_argument("--to", required=True, metavar="FILE", help="FILE.gpkg or FILE.kml (the suffix picks the format)")

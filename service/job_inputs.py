@@ -106,6 +106,11 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: JobStore | 
         check_text(scene, "input 'scene'")
     try:
         request = JobRequest.from_inputs(name, body["inputs"])
+        if request.ais:  # the allowed folders and uploads for AIS files come with the service's AIS support
+            raise InputError(
+                "input 'ais' is not accepted by the service in this version: "
+                "match a job's outputs with sarship match RUN_DIR --ais FILE (docs/ais.md)"
+            )
         land_file_path(settings, request)
         try:
             path: Path | None = scene_path(settings, request.scene)

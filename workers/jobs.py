@@ -12,13 +12,15 @@ in :mod:`sarship.pipeline.run`, this module executes them on the cluster::
     merged = merge_tiles(results)       # components joined across tiles (pipeline/targets/components.py)
     records = discriminate(plan, merged)       # pipeline/run/merge.py: size, lines, the detector's rules
     refined = refine(plan, records)            # pipeline/run/refine.py: features, contrast, sidelobes, geolocation, ambiguities
+    ais = ais_stage(plan.ais, refined)         # pipeline/run/ais.py: AIS matched, dark, unmatched vessels (with AIS files)
     kept_px = _write_kept(refined.records)     # mask.zarr/mask: the kept detections' pixels, on the workers
     run = run_record(plan, outcome)            # pipeline/run/record.py: run.json
     _write_outputs(...); publish(tmp, plan.out_dir)   # renamed into place only when complete
 
 Outputs (docs/interfaces/files.md) in ``DIR``: ``mask.zarr`` (a Zarr v3 group with the uint8 arrays
 ``mask``, the pixels of the detections kept, and ``detected``, the detector's raw decision, chunked
-like the tiles), ``detections.geojson``, ``run.json`` and, with a land mask, ``land.zarr``. A failed
+like the tiles), ``detections.geojson``, ``run.json`` and, with a land mask, ``land.zarr``; with AIS
+files, ``ais_unmatched.geojson``. A failed
 or interrupted run leaves the previous outputs (or nothing) behind.
 """
 
@@ -37,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from sarship.pipeline.run.ais import ais_stage
 from sarship.pipeline.run.fit import fit_record
 from sarship.pipeline.run.merge import discriminate
 from sarship.pipeline.run.outputs import check_out, check_out_path, prepare_out, publish
@@ -221,6 +224,7 @@ def _run_request(
         out_dir=out_dir,
         tile=tile,
         overwrite=overwrite,
+        ais=request.ais,
     )
     if fit_only and plan.fit is None:
         raise ValueError(f"fit_only: the fit of '{plan.detector}' is not measured")
@@ -235,7 +239,7 @@ def _run_request(
         if land_source and outcome.land is not None:  # the service's FILE behind the run's raster
             outcome.land = {**outcome.land, **land_source}
         run = run_record(plan, outcome, tmp)
-        _write_outputs(plan, tmp, run, outcome.refined.features, clock)
+        _write_outputs(plan, tmp, run, outcome, clock)
         publish_with(tmp, plan.out_dir)
         return run
     except BaseException:
@@ -308,6 +312,18 @@ def _execute_plan(
         kept_px = _write_kept(client, jobs, merged, members, refined.records, plan.detector, placement.submit)
         clock["mask"] = time.perf_counter()
     clock["closed"] = time.perf_counter()  # a local cluster started here is closed on leaving the block
+    ais = None
+    if plan.ais is not None:  # pipeline/run/ais.py: on the client, once the cluster is released
+        ais = ais_stage(
+            plan.ais,
+            plan.scene.attrs,
+            plan.geo,
+            plan.shape,
+            refined.features,
+            min_length_m=plan.params.min_length_m,
+            spacing=plan.spacing,
+        )
+    clock["ais"] = time.perf_counter()
     H, W = plan.shape
     timings = {
         "prepare_s": round(clock["prep"] - clock["start"], 4),
@@ -316,6 +332,7 @@ def _execute_plan(
         "cluster_close_s": round(clock["closed"] - clock["mask"], 4),
         "merge_s": round(clock["merge"] - clock["land_done"], 4),
         "mask_s": round(clock["mask"] - clock["merge"], 4),
+        "ais_s": round(clock["ais"] - clock["closed"], 4),
         "detect_cpu_s": round(sum(r["detect_s"] for r in results), 4),
         "read_cpu_s": round(sum(r["read_s"] for r in results), 4),
         "mpx_per_s": round(H * W / max(clock["tiles"] - clock["prep"], 1e-9) / 1e6, 3),
@@ -336,6 +353,7 @@ def _execute_plan(
         dashboard=dashboard,
         warnings=warnings,
         timings=timings,
+        ais=ais,
     )
 
 
@@ -428,14 +446,18 @@ def _scene_pass(
     return jobs, prep, record, warnings
 
 
-def _write_outputs(plan: Plan, tmp: Path, run: dict, feats: list[dict], clock: dict) -> None:
-    """``mask.zarr``'s consolidated metadata (xarray.open_zarr reads it), ``detections.geojson``
-    and ``run.json`` (with the time these took) in the run's temporary folder."""
+def _write_outputs(plan: Plan, tmp: Path, run: dict, outcome: Outcome, clock: dict) -> None:
+    """``mask.zarr``'s consolidated metadata (xarray.open_zarr reads it), ``detections.geojson``,
+    with AIS ``ais_unmatched.geojson``, and ``run.json`` (with the time these took) in the run's
+    temporary folder."""
     t_fin = time.perf_counter()
     finalize_scene(tmp / "mask.zarr")
     t_cons = time.perf_counter()
+    feats = outcome.refined.features
     fc = collection(feats, detector=plan.detector, scene=str(plan.scene.path), parameters=plan.params.model_dump())
     write_json(tmp / "detections.geojson", fc)
+    if outcome.ais is not None:
+        write_json(tmp / "ais_unmatched.geojson", collection(outcome.ais.unmatched, scene=str(plan.scene.path)))
     t_end = time.perf_counter()
     run["timings"]["consolidate_s"] = round(t_cons - t_fin + clock["land_done"] - clock["tiles"], 4)
     run["timings"]["geojson_s"] = round(t_end - t_cons, 4)

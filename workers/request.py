@@ -32,7 +32,9 @@ DEVICES: tuple[str, ...] = get_args(Device)
 #: channels, e.g. ``hh,vv``); no path separator, so never a path (``../../s1.zarr/intensity``).
 CHANNEL = re.compile(r"\s*[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\s*(,\s*[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\s*){0,3}")
 #: Inputs of a job that are not detector parameters.
-RESERVED = ("scene", "device", "channel")
+RESERVED = ("scene", "device", "channel", "ais")
+#: The most AIS files one job may name (``ais``: docs/ais.md).
+MAX_AIS_FILES = 1000
 #: The detector name that has the clutter-model fit choose among ``AUTO_CANDIDATES``
 #: (pipeline/stats/model_fit.py; workers/jobs.py runs it); its parameters must suit every candidate.
 AUTO = "auto"
@@ -88,6 +90,18 @@ def _specs(detector: str) -> list[DetectorSpec]:
     return [detectors.get(detector)]
 
 
+def _ais_paths(value: Any) -> tuple[str, ...]:
+    """The ``ais`` input: one path or a list of paths (at most :data:`MAX_AIS_FILES`)."""
+    if value is None:
+        return ()
+    items = [value] if isinstance(value, str) else value
+    if not isinstance(items, list) or not all(isinstance(v, str) and v.strip() for v in items):
+        raise InputError(f"input 'ais' must be a path or a list of paths to AIS files, got {value!r}")
+    if len(items) > MAX_AIS_FILES:
+        raise InputError(f"input 'ais' names {len(items)} files, more than the {MAX_AIS_FILES} a job may read")
+    return tuple(items)
+
+
 class JobRequest(BaseModel):
     """A detection job: scene, detector, device, channel and the detector's parameters.
 
@@ -106,6 +120,7 @@ class JobRequest(BaseModel):
     device: Device = Field("auto", description="where tiles run: auto, gpu or cpu")
     channel: str | None = Field(None, min_length=1, description="scene variable the detector reads")
     params: dict[str, Any] = Field(default_factory=dict, description="the detector's parameters")
+    ais: tuple[str, ...] = Field((), description="AIS files matched to the detections (docs/ais.md)")
     #: the parsed detector parameters (:meth:`detector_params`), once parsed
     _parsed: DetectorParams | None = PrivateAttr(default=None)
 
@@ -133,6 +148,7 @@ class JobRequest(BaseModel):
                 f"input 'channel' must be a scene variable name (or a comma list of them, "
                 f"e.g. hh,vv), never a path: got {channel!r}"
             )
+        ais = _ais_paths(inputs.get("ais"))
         params = {k: v for k, v in inputs.items() if k not in RESERVED}
         fields = {k: f for s in _specs(detector) for k, f in s.params.model_fields.items()}
         for k, v in params.items():
@@ -140,7 +156,7 @@ class JobRequest(BaseModel):
                 continue  # a true/false parameter (e.g. sidelobes): JSON booleans as its schema says
             if isinstance(v, (bool, dict, list)) or not isinstance(v, (int, float, str, type(None))):
                 raise InputError(f"parameter '{k}' must be a number or a string, got {v!r}")
-        req = cls(scene=scene, detector=detector, device=device, channel=channel, params=params)
+        req = cls(scene=scene, detector=detector, device=device, channel=channel, params=params, ais=ais)
         req.detector_params()  # every parameter checked now, not when a tile runs
         return req
 
@@ -156,6 +172,7 @@ class JobRequest(BaseModel):
             device=inputs.get("device", "auto"),
             channel=inputs.get("channel"),
             params={k: v for k, v in inputs.items() if k not in RESERVED},
+            ais=tuple(inputs.get("ais") or ()),
         )
 
     def model_copy(self, *, update: Mapping[str, Any] | None = None, deep: bool = False) -> JobRequest:
@@ -205,4 +222,6 @@ class JobRequest(BaseModel):
         out: dict[str, Any] = {"scene": self.scene, "device": self.device}
         if self.channel is not None:
             out["channel"] = self.channel
+        if self.ais:
+            out["ais"] = list(self.ais)
         return {**out, **self.params}

@@ -1,7 +1,7 @@
 """A run's output folder: checked before any work, written under a temporary name, published by renames.
 
 Outputs (docs/interfaces/files.md) in ``DIR``: ``mask.zarr``, ``detections.geojson``, ``run.json``
-and, with a land mask, ``land.zarr``. They are written under a temporary folder inside ``DIR``
+and, with a land mask, ``land.zarr``; with AIS files, ``ais_unmatched.geojson``. They are written under a temporary folder inside ``DIR``
 (:func:`prepare_out`) and renamed into place only when the run has succeeded (:func:`publish`),
 so a failed or interrupted run leaves the previous outputs (or nothing) behind.
 """
@@ -16,10 +16,13 @@ from pathlib import Path
 from sarship.pipeline.errors import InputError
 from sarship.pipeline.scene import CLAIM_SUFFIX
 
-OUTPUTS = ("mask.zarr", "detections.geojson", "run.json", "land.zarr")
-#: Outputs a run writes only with some parameters (``land.zarr``: with ``land_mask``); an older
+OUTPUTS = ("mask.zarr", "detections.geojson", "run.json", "land.zarr", "ais_unmatched.geojson")
+#: Outputs a run writes only with some parameters (``land.zarr``: with ``land_mask``;
+#: ``ais_unmatched.geojson``: with AIS files); an older
 #: one in the folder is removed when the new run has none.
-OPTIONAL_OUTPUTS = ("land.zarr",)
+OPTIONAL_OUTPUTS = ("land.zarr", "ais_unmatched.geojson")
+#: The AIS stage's output (written after ``run.json`` is laid out, so listed by the stage's outcome).
+AIS_OUTPUT = "ais_unmatched.geojson"
 #: The temporary folder's name prefix inside ``DIR`` (``sarship/temporaries.py`` removes leftovers).
 PARTIAL_PREFIX = ".sarship-partial-"
 

@@ -18,6 +18,7 @@ from typing import Any
 
 from sarship.pipeline.detectors.base import DetectorParams, DetectorSpec, land_mask_parts, resolve_size
 from sarship.pipeline.errors import InputError
+from sarship.pipeline.run.ais import AisOptions, ais_options
 from sarship.pipeline.run.outputs import check_out
 from sarship.pipeline.scene import Scene, open_scene, processing_tile
 from sarship.pipeline.stats import model_fit
@@ -71,6 +72,7 @@ class Plan:
     geo: dict[str, Any]  # the scene's georeference attributes
     fit: dict[str, Any] | None  # the clutter-model fit's settings, None when not measured
     warnings: tuple[str, ...]
+    ais: AisOptions | None = None  # the AIS files matched to the detections (pipeline/run/ais.py)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -207,10 +209,11 @@ def make_plan(
     out_dir: str | Path,
     tile: int | None,
     overwrite: bool,
+    ais: tuple[str, ...] = (),
 ) -> Plan:
     """The run's :class:`Plan` from its parsed request; every check that can refuse the run
-    (device, output folder, channel, tile, land source, scene size) runs here, before any
-    output is written. ``params``: the request's parameters, parsed once by the caller."""
+    (device, output folder, channel, tile, land source, scene size, AIS files) runs here, before
+    any output is written. ``params``: the request's parameters, parsed once by the caller."""
     detector = spec.name
     has_gpu = check_device(spec, detector, device, params)
     scene = open_scene(scene_path)  # messages name the paths as given
@@ -230,6 +233,7 @@ def make_plan(
     if spec.for_scene is not None:  # settings for the scene's shape; a scene too small is refused here
         params, notes = spec.for_scene(params, scene.shape, spacing)
         warnings.extend(notes)
+    geo: dict[str, Any] = {k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs}
     return Plan(
         detector=detector,
         spec=spec,
@@ -249,7 +253,8 @@ def make_plan(
         looks_source=looks_source,
         size_rule=size_rule,
         spacing=spacing,
-        geo={k: scene.attrs[k] for k in ("crs", "transform", "gcps") if k in scene.attrs},
+        geo=geo,
         fit=fit_config(detector, spec, params, scene.shape),
         warnings=tuple(warnings),
+        ais=ais_options(ais, scene.attrs, geo),
     )

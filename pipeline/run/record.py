@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any, TypedDict
 
 from sarship.pipeline import __version__
-from sarship.pipeline.run.outputs import OPTIONAL_OUTPUTS, OUTPUTS
+from sarship.pipeline.run.ais import AisOutcome
+from sarship.pipeline.run.outputs import AIS_OUTPUT, OPTIONAL_OUTPUTS, OUTPUTS
 from sarship.pipeline.run.plan import Plan
 from sarship.pipeline.run.refine import Refined
 
@@ -27,7 +28,7 @@ TILE_TIMINGS = ("read_s", "land_s", "detect_s", "write_s", "label_s", "h2d_s", "
 
 class RunRecord(TypedDict, total=False):
     """``run.json``: the keys every run writes (docs/interfaces/files.md, "run.json"), in order;
-    ``detector_auto`` only for ``--detector auto``."""
+    ``detector_auto`` only for ``--detector auto``, ``ais`` only with AIS files."""
 
     sarship_version: str
     detector: str
@@ -43,6 +44,7 @@ class RunRecord(TypedDict, total=False):
     ambiguities: dict[str, Any]
     model_fit: dict[str, Any] | None
     detector_auto: dict[str, Any]
+    ais: dict[str, Any]
     scene: dict[str, Any]
     tiles: dict[str, Any]
     detections: int
@@ -86,6 +88,7 @@ class Outcome:
     warnings: list[str]
     timings: dict[str, Any]
     extra: RunExtras = field(default_factory=RunExtras)
+    ais: AisOutcome | None = None
 
 
 def versions() -> dict[str, str]:
@@ -163,6 +166,7 @@ def run_record(plan: Plan, o: Outcome, tmp: Path) -> RunRecord:
         ambiguities=o.refined.ambiguities,
         model_fit=o.model_fit,
         **o.extra,
+        **({"ais": o.ais.record} if o.ais is not None else {}),
         scene=_scene(plan),
         tiles=_tiles(plan, o),
         detections=len(o.refined.features),
@@ -179,6 +183,6 @@ def run_record(plan: Plan, o: Outcome, tmp: Path) -> RunRecord:
         outputs={
             name: str((plan.out_dir / name).resolve())
             for name in OUTPUTS
-            if name not in OPTIONAL_OUTPUTS or (tmp / name).exists()
+            if name not in OPTIONAL_OUTPUTS or (tmp / name).exists() or (name == AIS_OUTPUT and o.ais is not None)
         },
     )

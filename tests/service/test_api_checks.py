@@ -249,3 +249,27 @@ def test_land_file_is_parsed_in_a_capped_child(tmp_path):
             memory_mb=350.0,
             progress=lambda done, total: None,
         )
+
+
+def test_ais_input_is_parsed_and_refused_by_the_service_in_one_line(tmp_path):
+    """``ais``: one path or a list (JobRequest, as the command line passes it), bad shapes named in
+    one line; the service refuses the input as a 400 until it checks AIS files against its allowed
+    folders (docs/ais.md), so no job can read a file outside them."""
+    from sarship.service.common import Problem
+    from sarship.service.job_inputs import validate_inputs
+    from sarship.service.settings import Settings
+    from sarship.workers.request import JobRequest
+
+    (tmp_path / "data" / "scenes").mkdir(parents=True)
+    scene = str(write_scene(tmp_path / "data" / "scenes" / "s.zarr", {"intensity": blobs_scene((64, 64))}))
+    assert JobRequest.from_inputs("ca_cfar", {"scene": scene, "ais": "a.csv"}).ais == ("a.csv",)
+    req = JobRequest.from_inputs("ca_cfar", {"scene": scene, "ais": ["a.csv", "b.nmea"]})
+    assert req.ais == ("a.csv", "b.nmea") and req.inputs()["ais"] == ["a.csv", "b.nmea"]
+    assert JobRequest.from_stored("ca_cfar", req.inputs()).ais == req.ais
+    for bad in (3, ["a.csv", 4], [""], {"f": 1}):
+        with pytest.raises(InputError, match="input 'ais' must be a path or a list"):
+            JobRequest.from_inputs("ca_cfar", {"scene": scene, "ais": bad})
+    settings = Settings(data=tmp_path / "data")
+    with pytest.raises(Problem) as exc:
+        validate_inputs(settings, "ca_cfar", {"inputs": {"scene": scene, "ais": "/etc/passwd"}})
+    assert exc.value.status == 400 and "not accepted by the service" in exc.value.detail
