@@ -307,7 +307,7 @@ def cmd_export(a) -> int:
     from sarship.pipeline.products.export import export
 
     n = export(a.detections, a.to, overwrite=a.overwrite)
-    print(f"{a.to}: {n} ships")
+    print(f"{a.to}: {n} {'vessels' if Path(a.detections).name.startswith('ais_unmatched') else 'ships'}")
     return 0
 
 
@@ -870,8 +870,14 @@ def _parser_export(sub) -> None:
         "--overwrite", action="store_true", help="match again a run already matched (replaces its AIS results)"
     )
     s.set_defaults(func=cmd_match)
-    s = sub.add_parser("export", help="detections.geojson as a GeoPackage (.gpkg) or KML (.kml) file for a GIS")
-    s.add_argument("detections", help="a detections.geojson written by sarship detect or the service")
+    s = sub.add_parser(
+        "export",
+        help="detections.geojson (or ais_unmatched.geojson) as a GeoPackage (.gpkg) or KML (.kml) file for a GIS",
+    )
+    s.add_argument(
+        "detections",
+        help="a detections.geojson written by sarship detect or the service, or a run's ais_unmatched.geojson",
+    )
     s.add_argument("--to", required=True, metavar="FILE", help="FILE.gpkg or FILE.kml (the suffix picks the format)")
     s.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     s.set_defaults(func=cmd_export)

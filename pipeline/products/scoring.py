@@ -41,6 +41,18 @@ Pixel scores (when both a detection mask and a truth mask are given)
     clutter pixels; with the same 0/0 rule (``tpr`` = 1.0 with no ship pixel, ``fpr`` = 0.0
     with no clutter pixel). The counts ``px_truth``, ``px_clutter``, ``px_tp``, ``px_fp``
     are kept for aggregation. Difficult flags do not apply to pixels.
+
+AIS scores (:func:`ais_counts`; docs/ais.md)
+    When the truth carries MMSIs (a ship's ``mmsi``, null for a ship that never reports, and
+    ``dark``, by default ``mmsi`` null: the simulator's truth) and the detections carry ``ais``
+    (``sarship detect --ais``, ``sarship match``), over the *hits* (detections matched as above
+    to a ship that is not difficult): ``ais_precision`` = hits matched to their ship's own MMSI
+    / hits matched to an MMSI; ``ais_recall`` = hits on reporting ships matched to their own
+    MMSI / hits on reporting ships (not dark, with an MMSI); ``dark_precision`` = hits called
+    dark (``dark`` true) on dark ships / hits called dark; ``dark_recall`` = hits on dark ships
+    called dark / hits on dark ships. A detection whose ``dark`` is null (the AIS did not cover
+    the scene) is not called dark. Unlike the object scores, a 0/0 ratio is ``None`` (JSON null):
+    nothing was there to score. The counts behind them are kept for aggregation.
 """
 
 from __future__ import annotations
@@ -70,6 +82,17 @@ IOU_TOL = 1e-9
 #: Integer counts summed by :func:`aggregate`.
 OBJECT_COUNTS = ("n_truth", "n_detections", "n_hit", "n_false", "n_missed", "n_difficult", "n_ignored")
 PIXEL_COUNTS = ("px_truth", "px_clutter", "px_tp", "px_fp")
+#: AIS counts (:func:`ais_counts`), summed by :func:`aggregate` over the images that carry them.
+AIS_COUNTS = (
+    "n_ais_matched",
+    "n_ais_correct",
+    "n_ais_reporting",
+    "n_ais_found",
+    "n_dark_called",
+    "n_dark_correct",
+    "n_dark_ships",
+    "n_dark_found",
+)
 
 _CHUNK = 512  # truth ships per vectorised block of the pairwise tables
 
@@ -173,6 +196,125 @@ def _pixel_ratios(c: dict) -> dict:
     }
 
 
+def _ais_ratios(c: dict) -> dict:
+    def ratio(num: int, den: int) -> float | None:
+        return float(num) / float(den) if den > 0 else None
+
+    return {
+        "ais_precision": ratio(c["n_ais_correct"], c["n_ais_matched"]),
+        "ais_recall": ratio(c["n_ais_found"], c["n_ais_reporting"]),
+        "dark_precision": ratio(c["n_dark_correct"], c["n_dark_called"]),
+        "dark_recall": ratio(c["n_dark_found"], c["n_dark_ships"]),
+    }
+
+
+def _mmsi(value: Any, where: str) -> int | None:
+    """An MMSI as an int (a whole number or a string of digits), or None for null."""
+    if value is None:
+        return None
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, str) and value.strip().isdigit():
+        return int(value)
+    raise InputError(f"{where}: 'mmsi' must be a number or null, got {value!r:.40}")
+
+
+def _flag(value: Any, where: str, name: str) -> bool | None:
+    if value is None or isinstance(value, bool):
+        return value
+    raise InputError(f"{where}: '{name}' must be true, false or null, got {value!r:.40}")
+
+
+def _truth_ais(ship: Ship, where: str) -> tuple[int | None, bool]:
+    """``(mmsi, dark)`` of a truth ship; ``dark`` defaults to ``mmsi`` being null."""
+    mmsi = _mmsi(ship.properties.get("mmsi"), where)
+    dark = _flag(ship.properties.get("dark"), where, "dark")
+    return mmsi, (mmsi is None) if dark is None else dark
+
+
+def _detection_ais(det: Ship, where: str) -> tuple[int | None, bool]:
+    """``(mmsi matched or None, called dark)`` of a detection."""
+    rec = det.properties.get("ais")
+    if rec is not None and not (isinstance(rec, dict) and rec.get("mmsi") is not None):
+        raise InputError(f"{where}: 'ais' must be null or a record with an 'mmsi', got {rec!r:.60}")
+    mmsi = None if rec is None else _mmsi(rec["mmsi"], where)
+    return mmsi, _flag(det.properties.get("dark"), where, "dark") is True
+
+
+def has_ais(detections: list[Ship], truth: list[Ship]) -> bool:
+    """Whether AIS scores apply.
+
+    Parameters
+    ----------
+    detections : list of Ship
+        The detections (``properties`` as in ``detections.geojson``).
+    truth : list of Ship
+        The truth ships.
+
+    Returns
+    -------
+    bool
+        True when some truth ship has an ``mmsi`` property (null included) and some detection
+        an ``ais`` property (null included).
+    """
+    return any("mmsi" in s.properties for s in truth) and any("ais" in d.properties for d in detections)
+
+
+def ais_counts(detections: list[Ship], truth: list[Ship], pairs: list[tuple[int, int]]) -> dict:
+    """The AIS counts of :data:`AIS_COUNTS` over the hits (module docstring, "AIS scores").
+
+    Parameters
+    ----------
+    detections : list of Ship
+        Detections with ``ais`` (null or ``{mmsi, ...}``) and ``dark`` (true, false or null)
+        properties; a detection without them is unmatched and not called dark.
+    truth : list of Ship
+        Truth ships with ``mmsi`` (a number or null) and optionally ``dark`` (default:
+        ``mmsi`` null).
+    pairs : list of (int, int)
+        ``(detection index, truth index)`` from :func:`match`; pairs on difficult ships are
+        left out (they are not hits).
+
+    Returns
+    -------
+    dict
+        ``n_ais_matched`` (hits matched to an MMSI), ``n_ais_correct`` (of those, to their
+        ship's own), ``n_ais_reporting`` (hits on reporting ships), ``n_ais_found`` (of those,
+        matched to their own MMSI), ``n_dark_called`` (hits called dark), ``n_dark_correct``
+        (of those, on dark ships), ``n_dark_ships`` (hits on dark ships), ``n_dark_found`` (of
+        those, called dark).
+
+    Raises
+    ------
+    InputError
+        An ``mmsi`` that is no number, an ``ais`` that is no record with an ``mmsi``, a
+        ``dark`` that is not a boolean or null (one line naming the ship or detection).
+    """
+    ships = [_truth_ais(s, f"truth ship {k + 1}") for k, s in enumerate(truth)]
+    dets = [_detection_ais(d, f"detection {k + 1}") for k, d in enumerate(detections)]
+    c = dict.fromkeys(AIS_COUNTS, 0)
+    for d, t in pairs:
+        if truth[t].difficult:
+            continue
+        (t_mmsi, t_dark), (d_mmsi, d_dark) = ships[t], dets[d]
+        own = d_mmsi is not None and d_mmsi == t_mmsi
+        if d_mmsi is not None:
+            c["n_ais_matched"] += 1
+            c["n_ais_correct"] += own
+        if not t_dark and t_mmsi is not None:
+            c["n_ais_reporting"] += 1
+            c["n_ais_found"] += own
+        if d_dark:
+            c["n_dark_called"] += 1
+            c["n_dark_correct"] += t_dark
+        if t_dark:
+            c["n_dark_ships"] += 1
+            c["n_dark_found"] += d_dark
+    return c
+
+
 def pixel_counts(det_mask: Any, truth_mask: Any) -> dict:
     """``px_truth``, ``px_clutter``, ``px_tp``, ``px_fp`` of two same-shape 2-D masks."""
     d = np.asarray(det_mask) != 0
@@ -206,7 +348,8 @@ def score(
     ``ignore_flagged``: a detection flagged as an azimuth ambiguity that matches no truth ship
     is left out like one on a difficult ship (neither a hit nor a false alarm, not in
     ``n_detections``), counted in ``n_flagged_ignored``; a flagged detection that matches a
-    ship stays a hit (the flag was wrong, the ship was found)."""
+    ship stays a hit (the flag was wrong, the ship was found). AIS scores and their counts
+    when :func:`has_ais` (:func:`ais_counts`)."""
     detections, truth = list(detections), list(truth)
     pairs = match(detections, truth)
     n_ignored = sum(1 for _, t in pairs if truth[t].difficult)
@@ -231,6 +374,10 @@ def score(
         counts["n_flagged_ignored"] = n_flagged
     out: dict[str, Any] = dict(counts)
     out.update(_object_ratios(counts))
+    if has_ais(detections, truth):
+        ais = ais_counts(detections, truth, pairs)
+        out.update(ais)
+        out.update(_ais_ratios(ais))
     if det_mask is not None and truth_mask is not None:
         px = pixel_counts(det_mask, truth_mask)
         out.update(px)
@@ -242,7 +389,8 @@ def aggregate(per_image: Iterable[dict]) -> dict:
     """Micro-average: sum the counts over images and recompute the ratios.
 
     Pixel scores are aggregated over the images that carry pixel counts
-    (``n_images_pixel`` says how many) and appear only when at least one does.
+    (``n_images_pixel`` says how many) and appear only when at least one does; AIS scores
+    likewise (``n_images_ais``).
     """
     per_image = list(per_image)
     tot: dict[str, Any] = {k: int(sum(int(s.get(k, 0)) for s in per_image)) for k in OBJECT_COUNTS}
@@ -257,6 +405,12 @@ def aggregate(per_image: Iterable[dict]) -> dict:
         out["n_images_pixel"] = len(px_imgs)
         out.update(px)
         out.update(_pixel_ratios(px))
+    ais_imgs = [s for s in per_image if all(k in s for k in AIS_COUNTS)]
+    if ais_imgs:
+        ais = {k: int(sum(int(s[k]) for s in ais_imgs)) for k in AIS_COUNTS}
+        out["n_images_ais"] = len(ais_imgs)
+        out.update(ais)
+        out.update(_ais_ratios(ais))
     return out
 
 
@@ -278,7 +432,8 @@ def evaluate(
     the ``mask.zarr`` beside the detections when it exists (a Zarr array, or a group with a
     2-D ``mask`` array; non-zero = detected). Its shape must equal the truth mask's.
     A ``mask_path`` given with a non-mask truth is not used (there is no truth mask).
-    ``ignore_flagged``: see :func:`score`.
+    ``ignore_flagged``: see :func:`score`. AIS scores: when the truth carries MMSIs and the
+    detections ``ais`` (:func:`has_ais`).
     """
     dpath, tpath = Path(detections_path), Path(truth_path)
     dets = load_detections(dpath)
@@ -305,8 +460,21 @@ def evaluate(
     return out
 
 
-def _fmt(v: float) -> str:
+def _fmt(v: float | None) -> str:
+    if v is None:
+        return "n/a"
     return f"{v:.4f}" if v >= 1e-3 or v == 0 else f"{v:.3e}"
+
+
+def _ais_lines(s: dict) -> list[str]:
+    return [
+        f"ais: precision {_fmt(s['ais_precision'])} ({s['n_ais_correct']} of {s['n_ais_matched']} matched hits: "
+        f"own MMSI)   recall {_fmt(s['ais_recall'])} ({s['n_ais_found']} of {s['n_ais_reporting']} detected "
+        "reporting ships: own MMSI)",
+        f"dark: precision {_fmt(s['dark_precision'])} ({s['n_dark_correct']} of {s['n_dark_called']} hits called "
+        f"dark: dark ships)   recall {_fmt(s['dark_recall'])} ({s['n_dark_found']} of {s['n_dark_ships']} "
+        "detected dark ships: called dark)",
+    ]
 
 
 def format_scores(scores: dict) -> str:
@@ -344,4 +512,6 @@ def format_scores(scores: dict) -> str:
             f"pixels: TPR {_fmt(s['tpr'])}   FPR {_fmt(s['fpr'])}   "
             f"({s['px_tp']} of {s['px_truth']} ship px detected, {s['px_fp']} of {s['px_clutter']} clutter px)"
         )
+    if "ais_precision" in s:
+        lines += _ais_lines(s)
     return "\n".join(lines)

@@ -212,6 +212,176 @@ def test_cli_detect_formats(tmp_path):
     assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
 
 
+# ------------------------------------------------------------------ AIS fields (docs/ais.md) and the unmatched vessels
+
+AIS = {
+    "mmsi": 257996179,
+    "name": "SARSHIP 0001",
+    "score": 0.999,
+    "distance_m": 19.8,
+    "dt_s": 0.6,
+    "ais_length_m": None,  # a vessel that sent no dimensions
+    "displacement_m": 434.6,
+}
+AIS_TYPES = {
+    "ais_mmsi": "OFTInteger",
+    "ais_name": "OFTString",
+    "ais_score": "OFTReal",
+    "ais_distance_m": "OFTReal",
+    "ais_dt_s": "OFTReal",
+    "ais_length_m": "OFTReal",
+    "ais_displacement_m": "OFTReal",
+    "dark": "OFTInteger",
+}
+
+
+def _ais_geojson(tmp_path: Path, records=(AIS, None, None), dark=(False, True, None)) -> Path:
+    """Three detections as a run with --ais writes them: matched, dark, not covered."""
+    fc = _collection()
+    for f, a, d in zip(fc["features"], records, dark):
+        f["properties"]["ais"], f["properties"]["dark"] = a, d
+    p = tmp_path / "detections.geojson"
+    p.write_text(json.dumps(fc))
+    return p
+
+
+def _vessel(mmsi, name, lon, lat, length_m=12.0, detectable=True) -> dict:
+    props = {
+        "mmsi": mmsi,
+        "name": name,
+        "length_m": length_m,
+        "time": 1577836805.376,
+        "gap_s": 4.3,
+        "extrapolated": False,
+        "detectable": detectable,
+    }
+    return {"type": "Feature", "geometry": {"type": "Point", "coordinates": [lon, lat]}, "properties": props}
+
+
+def _unmatched(tmp_path: Path, feats=None) -> Path:
+    if feats is None:
+        feats = [
+            _vessel(257752068, "SARSHIP S001", 15.51, 54.12),
+            _vessel(412966071, None, 15.49, 54.13, length_m=None, detectable=None),
+        ]
+    p = tmp_path / "ais_unmatched.geojson"
+    p.write_text(json.dumps({"type": "FeatureCollection", "features": feats, "scene": "/data/s.zarr"}))
+    return p
+
+
+def _gpkg(dst: Path) -> tuple[dict, dict]:
+    info = pyogrio.read_info(dst)
+    meta, _, _, fields = pyogrio.raw.read(dst)
+    types = {k: (t, st) for k, t, st in zip(info["fields"], info["ogr_types"], info["ogr_subtypes"])}
+    return dict(zip(meta["fields"], fields)), types
+
+
+def test_gpkg_ais_columns_typed_and_null_where_no_match(tmp_path):
+    src = _ais_geojson(tmp_path)
+    assert E.export(src, tmp_path / "ships.gpkg") == 3
+    cols, types = _gpkg(tmp_path / "ships.gpkg")
+    assert "ais" not in cols and {k: types[k][0] for k in AIS_TYPES} == AIS_TYPES
+    assert types["dark"][1] == "OFSTBoolean"
+    assert (int(cols["ais_mmsi"][0]), cols["ais_name"][0]) == (257996179, "SARSHIP 0001")
+    assert [cols[f"ais_{k}"][0] for k in ("score", "distance_m", "dt_s", "displacement_m")] == [0.999, 19.8, 0.6, 434.6]
+    assert np.isnan(cols["ais_length_m"][0])  # null inside the record
+    for k in AIS_TYPES:  # no vessel matched: null
+        if k != "dark":
+            assert all(v is None or np.isnan(v) for v in cols[k][1:]), k
+    assert cols["dark"][0] == 0 and cols["dark"][1] == 1 and np.isnan(cols["dark"][2])  # null: not covered
+
+
+def test_gpkg_ais_columns_keep_their_types_when_all_null(tmp_path):
+    """No detection matched and the AIS did not cover the scene: the columns are still typed."""
+    src = _ais_geojson(tmp_path, records=(None, None, None), dark=(None, None, None))
+    E.export(src, tmp_path / "ships.gpkg")
+    cols, types = _gpkg(tmp_path / "ships.gpkg")
+    assert {k: types[k][0] for k in AIS_TYPES} == AIS_TYPES and types["dark"][1] == "OFSTBoolean"
+    assert all(np.isnan(v) for v in cols["ais_mmsi"]) and list(cols["ais_name"]) == [None] * 3
+
+
+def test_kml_ais_extended_data(tmp_path):
+    src = _ais_geojson(tmp_path)
+    E.export(src, tmp_path / "ships.kml")
+    root = ET.parse(tmp_path / "ships.kml").getroot()
+    schema = {f.get("name"): f.get("type") for f in root.iter(f"{KML}SimpleField")}
+    assert {k: schema[k] for k in AIS_TYPES} == {
+        **{k: "double" for k in AIS_TYPES},
+        "ais_mmsi": "int",
+        "ais_name": "string",
+        "dark": "bool",
+    }
+    data = [{d.get("name"): d.text for d in m.iter(f"{KML}SimpleData")} for m in root.iter(f"{KML}Placemark")]
+    assert (data[0]["ais_mmsi"], data[0]["ais_name"], float(data[0]["ais_score"])) == (
+        "257996179",
+        "SARSHIP 0001",
+        0.999,
+    )
+    assert data[0]["dark"] == "false" and "ais_length_m" not in data[0]  # a null is left out
+    assert data[1]["dark"] == "true" and not [k for k in data[1] if k.startswith("ais_")]
+    assert "dark" not in data[2]
+
+
+def test_unmatched_vessels_as_a_point_layer(tmp_path):
+    src = _unmatched(tmp_path)
+    assert E.export(src, tmp_path / "v.gpkg") == 2
+    info = pyogrio.read_info(tmp_path / "v.gpkg")
+    assert (info["layer_name"], info["geometry_type"], info["crs"]) == ("ais_unmatched", "Point", "EPSG:4326")
+    assert info["dataset_metadata"] == {"scene": "/data/s.zarr"}
+    meta, _, geoms, fields = pyogrio.raw.read(tmp_path / "v.gpkg")
+    cols = dict(zip(meta["fields"], fields))
+    _, types = _gpkg(tmp_path / "v.gpkg")
+    assert list(cols["name"]) == ["SARSHIP S001", "MMSI 412966071"]  # the vessel's name, else its MMSI
+    assert list(cols["mmsi"]) == [257752068, 412966071] and types["mmsi"][0] == "OFTInteger"
+    assert types["detectable"][1] == types["extrapolated"][1] == "OFSTBoolean"
+    assert cols["detectable"][0] == 1 and np.isnan(cols["detectable"][1]) and np.isnan(cols["length_m"][1])
+    assert cols["time"][0] == 1577836805.376 and cols["gap_s"][1] == 4.3
+    assert [struct_point(g) for g in geoms] == [(15.51, 54.12), (15.49, 54.13)]
+    assert E.export(src, tmp_path / "v.kml") == 2
+    root = ET.parse(tmp_path / "v.kml").getroot()
+    marks = root.findall(f".//{KML}Placemark")
+    assert [m.find(f"{KML}name").text for m in marks] == ["SARSHIP S001", "MMSI 412966071"]
+    pt = marks[0].find(f".//{KML}Point/{KML}coordinates").text.split(",")
+    assert (float(pt[0]), float(pt[1])) == (15.51, 54.12)
+    data = {d.get("name"): d.text for d in marks[0].iter(f"{KML}SimpleData")}
+    assert data["mmsi"] == "257752068" and data["detectable"] == "true"
+    assert root.find(f".//{KML}Document/{KML}name").text == "sarship AIS vessels unmatched"
+
+
+def struct_point(wkb: bytes) -> tuple[float, float]:
+    assert wkb[:1] == b"\x01" and int.from_bytes(wkb[1:5], "little") == 1
+    x, y = np.frombuffer(wkb[5:21], "<f8")
+    return float(x), float(y)
+
+
+def test_point_layer_edge_cases(tmp_path):
+    empty = _unmatched(tmp_path, feats=[])  # every reporting vessel matched: an empty Point layer
+    assert E.export(empty, tmp_path / "e.gpkg") == 0
+    info = pyogrio.read_info(tmp_path / "e.gpkg")
+    assert (info["layer_name"], info["geometry_type"], info["features"]) == ("ais_unmatched", "Point", 0)
+    fc = _collection()
+    fc["features"].append(_vessel(257752068, "X", 15.5, 54.1))
+    mixed = tmp_path / "mixed.geojson"
+    mixed.write_text(json.dumps(fc))
+    with pytest.raises(InputError, match="mixes Polygon and Point"):
+        E.export(mixed, tmp_path / "m.gpkg")
+    bad = _vessel(257752068, "X", 15.5, 54.1)
+    bad["geometry"]["coordinates"] = []
+    with pytest.raises(InputError, match="Point geometry"):
+        E.export(_unmatched(tmp_path, feats=[bad]), tmp_path / "b.kml")
+    line = {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 1]]}, "properties": {}}
+    with pytest.raises(InputError, match="LineString geometry; Polygon"):
+        E.export(_unmatched(tmp_path, feats=[line]), tmp_path / "b.kml")
+    assert not list(tmp_path.glob("[mb].*")) and not list(tmp_path.glob(".[mb]*"))
+
+
+def test_cli_export_unmatched(tmp_path):
+    src = _unmatched(tmp_path)
+    res = sarship("export", src, "--to", tmp_path / "v.kml")
+    assert res.returncode == 0, res.stderr
+    assert "2 vessels" in res.stdout and len(ET.parse(tmp_path / "v.kml").getroot().findall(f".//{KML}Placemark")) == 2
+
+
 # ------------------------------------------------------------------ the STAC item names the source product
 
 
