@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sarship.pipeline.errors import InputError
+from sarship.service.ais_files import ais_paths
 from sarship.service.job_inputs import land_file_path, scene_path
 from sarship.service.settings import Settings
 from sarship.service.store import INGEST, Job, JobStore
@@ -281,6 +282,8 @@ class Runner:
         request = JobRequest.from_stored(job["process"], inputs)
         scene = scene_path(self.settings, request.scene)
         land = land_file_path(self.settings, request)
+        if request.ais:  # (checked when posted; a file may have gone or been deleted meanwhile)
+            request = request.model_copy(update={"ais": ais_paths(self.settings, request.ais)})
         land_source = None
         if land is not None:  # parsed and rasterised in a memory-capped child: the job reads that raster
             land_src = self._land_file(land, scene, land_raster, self._still_ours(job_id, attempt))

@@ -138,6 +138,9 @@ class Settings(BaseSettings):
     )
     sync_timeout_s: float = Field(600.0, gt=0.0, description="longest wait of a 'Prefer: respond-sync' execution")
     max_upload_mb: float = Field(4096.0, gt=0.0, description="largest scene upload (POST /scenes), MiB")
+    max_ais_upload_mb: float = Field(
+        1024.0, gt=0.0, description="largest AIS file upload (POST /ais), MiB: 413 beyond it"
+    )
     max_body_kb: float = Field(
         1024.0,
         gt=0.0,
@@ -332,6 +335,11 @@ class Settings(BaseSettings):
     @property
     def uploads_dir(self) -> Path:
         return self.data / "uploads"
+
+    @property
+    def ais_dir(self) -> Path:
+        """Uploaded AIS files (``POST /ais``): ``DATA/ais/ID`` and its record ``ID.json``."""
+        return self.data / "ais"
 
     @property
     def quarantine_dir(self) -> Path:
