@@ -113,7 +113,15 @@ async def _receive(request: Request, out: BinaryIO, limit: int, h: Any) -> tuple
     return n, None
 
 
-@router.post("/ais", responses=problems(400, 413, 507))
+@router.post(
+    "/ais",
+    status_code=201,
+    responses={
+        201: {"description": "a new AIS file, kept", "headers": {"Location": {"schema": {"type": "string"}}}},
+        200: {"description": "the same content was uploaded before: that file"},
+        **problems(400, 413, 507),
+    },
+)
 async def upload_ais(request: Request, filename: str | None = None) -> JSONResponse:
     """An AIS file (CSV or NMEA, possibly gzip/zstd/zip compressed: docs/ais.md), streamed to
     disk (raw body with optional ``?filename=``, or multipart field ``file``), checked against

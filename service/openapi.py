@@ -144,11 +144,11 @@ EXECUTE_BODY: dict[str, Any] = {
                                 "description": "AIS files matched to the detections: uploaded AIS ids "
                                 "(POST /ais) or paths inside an allowed folder",
                                 "oneOf": [
+                                    {"type": "null"},
                                     {"type": "string", "minLength": 1},
                                     {
                                         "type": "array",
                                         "items": {"type": "string", "minLength": 1},
-                                        "minItems": 1,
                                         "maxItems": MAX_AIS_FILES,
                                     },
                                 ],

@@ -37,8 +37,9 @@ router = APIRouter()
 #: The ``ais`` input: one AIS id or path, or a list of them.
 AIS_SCHEMA: dict[str, Any] = {
     "oneOf": [
+        {"type": "null"},
         {"type": "string", "minLength": 1},
-        {"type": "array", "items": {"type": "string", "minLength": 1}, "minItems": 1, "maxItems": MAX_AIS_FILES},
+        {"type": "array", "items": {"type": "string", "minLength": 1}, "maxItems": MAX_AIS_FILES},
     ]
 }
 #: Inputs every process takes besides its detector parameters.
@@ -109,7 +110,8 @@ def process_description(name: str, base: str) -> dict[str, Any]:
         "inputs": inputs,
         "outputs": {
             k: {"title": k, "schema": {"type": "string", "contentMediaType": v["type"]}}
-            for k, v in results_doc({"id": "ID"}, base).items()
+            # (ais_unmatched: with the input 'ais')
+            for k, v in results_doc({"id": "ID", "result": {"outputs": {"ais_unmatched.geojson": ""}}}, base).items()
         },
     }
 

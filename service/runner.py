@@ -349,6 +349,8 @@ class Runner:
             "outputs": run["outputs"],
             "timings": run["timings"],
         }
+        if isinstance(run.get("ais"), dict):  # the AIS counts (the whole record: results/metrics)
+            summary["ais"] = {k: run["ais"].get(k) for k in ("covered", "matched", "dark", "unmatched_in_footprint")}
         if not self.store.finish(
             job_id,
             self.owner,
@@ -369,6 +371,8 @@ class Runner:
             H, W = run["scene"]["shape"]
             self.metrics.pixels.inc(H * W)
             self.metrics.duration.labels(job["process"], "successful").observe(run["timings"]["total_s"])
+            if isinstance(run.get("ais"), dict):
+                self.metrics.count_ais(run["ais"])
 
     def _run_failed(self, job: Job, exc: BaseException) -> None:
         """A detector job's run raised ``exc`` (called while it is handled): discarded when the

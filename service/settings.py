@@ -134,7 +134,8 @@ class Settings(BaseSettings):
         description="job lease: a job whose runner stops renewing it is re-run (the stale run cannot publish)",
     )
     allowed_roots: list[Path] = Field(
-        default_factory=list, description="folders a job may name scenes in (besides DATA/scenes)"
+        default_factory=list,
+        description="folders a job may name scenes, land_mask and ais files in (besides DATA/scenes)",
     )
     sync_timeout_s: float = Field(600.0, gt=0.0, description="longest wait of a 'Prefer: respond-sync' execution")
     max_upload_mb: float = Field(4096.0, gt=0.0, description="largest scene upload (POST /scenes), MiB")
