@@ -200,7 +200,25 @@ def delete_ais(request: Request, ais_id: str) -> dict[str, str]:
     settings = settings_of(request)
     if not AIS_ID.fullmatch(ais_id) or _record(settings, ais_id) is None:
         raise Problem(404, "no such AIS file", f"no uploaded AIS file '{ais_id}'")
-    users = ais_users(settings, store_of(request), ais_file(settings, ais_id))
+    store, path = store_of(request), ais_file(settings, ais_id)
+    _not_in_use(ais_id, ais_users(settings, store, path))
+    # the record renamed aside first (a job submitted from then on is refused: no such id), then
+    # the jobs checked again (one accepted between the check and the rename keeps the file)
+    aside = settings.ais_dir / f".deleted-{ais_id}-{uuid.uuid4().hex[:6]}.json"
+    try:
+        os.rename(settings.ais_dir / f"{ais_id}.json", aside)
+    except FileNotFoundError:  # deleted meanwhile
+        raise Problem(404, "no such AIS file", f"no uploaded AIS file '{ais_id}'") from None
+    users = ais_users(settings, store, path)
+    if users:
+        os.rename(aside, settings.ais_dir / f"{ais_id}.json")
+        _not_in_use(ais_id, users)
+    path.unlink(missing_ok=True)
+    aside.unlink(missing_ok=True)
+    return {"aisID": ais_id, "status": "deleted"}
+
+
+def _not_in_use(ais_id: str, users: list[str]) -> None:
     if users:
         raise Problem(
             409,
@@ -208,9 +226,6 @@ def delete_ais(request: Request, ais_id: str) -> dict[str, str]:
             f"AIS file '{ais_id}' is named by accepted or running job(s) "
             f"{', '.join(users[:10])}{' ...' if len(users) > 10 else ''}: dismiss them or wait until they finish",
         )
-    (settings.ais_dir / f"{ais_id}.json").unlink(missing_ok=True)
-    ais_file(settings, ais_id).unlink(missing_ok=True)
-    return {"aisID": ais_id, "status": "deleted"}
 
 
 def ais_paths(settings: Settings, names: tuple[str, ...]) -> tuple[str, ...]:
