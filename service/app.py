@@ -3,7 +3,7 @@
 ``create_app(settings)`` only assembles: the settings, the middleware, the problem handlers
 (``service/problem_handlers.py``), the OpenAPI document and the routers, one module per thing
 served (``landing``, ``processes``, ``jobs``, ``health``, ``results``, ``scenes``,
-``ingest_routes``, ``web``); its lifespan opens the job store, connects to Dask (a local
+``ais_files``, ``ingest_routes``, ``web``); its lifespan opens the job store, connects to Dask (a local
 cluster, or ``settings.scheduler``) and runs the job runner, the inbox and the scene retention
 for the application's lifetime. How to add a route: docs/adding-an-endpoint.md.
 """
@@ -17,7 +17,18 @@ from typing import TYPE_CHECKING
 from fastapi import FastAPI
 
 from sarship.pipeline import __version__
-from sarship.service import health, ingest_routes, jobs, landing, problem_handlers, processes, results, scenes, web
+from sarship.service import (
+    ais_files,
+    health,
+    ingest_routes,
+    jobs,
+    landing,
+    problem_handlers,
+    processes,
+    results,
+    scenes,
+    web,
+)
 from sarship.service.auth import BearerAuth
 from sarship.service.limits import RequestLimits
 from sarship.service.metrics import Metrics
@@ -39,6 +50,7 @@ ROUTERS = (
     health.router,
     results.router,
     scenes.router,
+    ais_files.router,
     ingest_routes.router,
     web.router,
 )

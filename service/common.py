@@ -167,13 +167,19 @@ def status_doc(job: dict[str, Any], base: str) -> dict[str, Any]:
 
 
 def results_doc(job: dict[str, Any], base: str) -> dict[str, Any]:
+    """The results document of a finished detector job: its products by reference;
+    ``ais_unmatched`` too when the job was given AIS files (its outputs name the file)."""
     u = f"{base}/jobs/{job['id']}/results"
-    return {
+    doc = {
         "detections": {"href": f"{u}/detections", "type": "application/geo+json"},
         "mask": {"href": f"{u}/mask", "type": "image/tiff; application=geotiff"},
         "metrics": {"href": f"{u}/metrics", "type": "application/json"},
         "stac": {"href": f"{u}/stac", "type": "application/geo+json"},
     }
+    outputs = (job.get("result") or {}).get("outputs") or {}
+    if "ais_unmatched.geojson" in outputs:
+        doc["ais_unmatched"] = {"href": f"{u}/ais_unmatched", "type": "application/geo+json"}
+    return doc
 
 
 def settings_of(request: Request) -> Settings:

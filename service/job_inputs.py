@@ -1,4 +1,4 @@
-"""What a job names, checked before it runs: its request, scene store, land-mask file, the coastline's needs.
+"""What a job names, checked before it runs: its request, scene store, land-mask file, AIS files, the coastline's needs.
 
 :func:`validate_inputs` is the one validation of a posted job (``service/processes.py``): it
 returns the normalized request the job store keeps and the runner runs
@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from sarship.pipeline.errors import InputError
+from sarship.service.ais_files import ais_paths
 from sarship.service.common import Problem, check_text
 from sarship.service.settings import Settings
 from sarship.service.store import JobStore
@@ -106,11 +107,8 @@ def validate_inputs(settings: Settings, name: str, body: Any, store: JobStore | 
         check_text(scene, "input 'scene'")
     try:
         request = JobRequest.from_inputs(name, body["inputs"])
-        if request.ais:  # the allowed folders and uploads for AIS files come with the service's AIS support
-            raise InputError(
-                "input 'ais' is not accepted by the service in this version: "
-                "match a job's outputs with sarship match RUN_DIR --ais FILE (docs/ais.md)"
-            )
+        if request.ais:  # uploaded ids or files inside the allowed folders, kept as resolved paths
+            request = request.model_copy(update={"ais": ais_paths(settings, request.ais)})
         land_file_path(settings, request)
         try:
             path: Path | None = scene_path(settings, request.scene)

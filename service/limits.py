@@ -1,8 +1,8 @@
 """Request limits applied before a route runs, as a plain ASGI middleware (like
 :mod:`sarship.service.auth`, see there why not Starlette's function middleware).
 
-- The body of every request but a scene upload (``POST /scenes``, which streams to disk under
-  its own limit, ``max_upload_mb``) is at most ``max_body_kb``: a larger ``Content-Length``
+- The body of every request but an upload (``POST /scenes`` and ``POST /ais``, which stream to
+  disk under their own limits, ``max_upload_mb`` and ``max_ais_upload_mb``) is at most ``max_body_kb``: a larger ``Content-Length``
   is a ``413`` problem at once, and a body without one (chunked) is counted as it arrives and
   refused with ``413`` as soon as it passes the limit, before any of it is parsed. The body
   read here is handed to the route unchanged.
@@ -17,7 +17,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from sarship.service.common import problem
 
 #: (method, path) of the routes that take large bodies under their own limit.
-OWN_LIMIT = {("POST", "/scenes"), ("POST", "/scenes/")}
+OWN_LIMIT = {("POST", "/scenes"), ("POST", "/scenes/"), ("POST", "/ais"), ("POST", "/ais/")}
 
 
 class RequestLimits:

@@ -2,14 +2,15 @@
 
 Job counts by status and the inbox figures (ingest backlog, passes by status, quarantined
 total, last and next scan) are read from the shared store at scrape time (so every API
-process reports the same totals); durations, tiles and pixels are this process's own
+process reports the same totals); durations, tiles, pixels and the AIS counts of finished jobs
+(``sarship_ais_*``: detections matched, dark, vessels unmatched) are this process's own
 counters. No job IDs or file names as labels (unbounded cardinality).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -81,6 +82,18 @@ class Metrics:
         self.tiles = Counter("sarship_tiles_processed", "tiles processed by this API process's jobs", registry=r)
         self.pixels = Counter("sarship_pixels_processed", "scene pixels processed by successful jobs", registry=r)
         self.requests = Counter("sarship_jobs_submitted", "jobs accepted by this API process", ["process"], registry=r)
+        # AIS (docs/ais.md): over the successful jobs given AIS files that this process finished
+        self.ais_jobs = Counter("sarship_ais_jobs", "successful jobs matched to AIS files", registry=r)
+        self.ais_detections = Counter("sarship_ais_detections", "detections of jobs matched to AIS", registry=r)
+        self.ais_matched = Counter("sarship_ais_matched", "detections matched to an AIS vessel", registry=r)
+        self.ais_dark = Counter(
+            "sarship_ais_dark", "dark detections: no AIS vessel matched where the AIS covers the scene", registry=r
+        )
+        self.ais_unmatched = Counter(
+            "sarship_ais_unmatched_vessels",
+            "AIS vessels that reported inside a scene's footprint and matched no detection",
+            registry=r,
+        )
 
     def watch_store(self, store: JobStore) -> None:
         """Report the job counts and the inbox figures of the shared store."""
@@ -88,6 +101,15 @@ class Metrics:
 
         self.registry.register(_JobCounts(store))
         self.registry.register(_InboxFigures(InboxStore(store)))
+
+    def count_ais(self, record: dict[str, Any]) -> None:
+        """Count a finished job's ``run.json`` ``ais`` record (``dark`` is null where the AIS
+        does not cover the scene: counted as none)."""
+        self.ais_jobs.inc()
+        self.ais_detections.inc(int(record.get("detections") or 0))
+        self.ais_matched.inc(int(record.get("matched") or 0))
+        self.ais_dark.inc(int(record.get("dark") or 0))
+        self.ais_unmatched.inc(int(record.get("unmatched_in_footprint") or 0))
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

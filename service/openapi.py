@@ -22,7 +22,7 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel, ConfigDict, Field
 
-from sarship.workers.request import DEVICES
+from sarship.workers.request import DEVICES, MAX_AIS_FILES
 
 PROBLEM_MEDIA = "application/problem+json"
 PROBLEM_REF = "#/components/schemas/Problem"
@@ -132,14 +132,27 @@ EXECUTE_BODY: dict[str, Any] = {
                     "inputs": {
                         "type": "object",
                         "required": ["scene"],
-                        "description": "'scene' (a scene id or a path inside an allowed folder), optional 'device' and "
-                        "'channel', and the detector's parameters (GET /processes/{processId} lists them "
+                        "description": "'scene' (a scene id or a path inside an allowed folder), optional 'device', "
+                        "'channel' and 'ais', and the detector's parameters (GET /processes/{processId} lists them "
                         "with their schemas; docs/interfaces/rest.md and docs/algorithms/ in the sarship "
                         "repository describe them)",
                         "properties": {
                             "scene": {"type": "string", "minLength": 1},
                             "device": {"type": "string", "enum": list(DEVICES), "default": "auto"},
                             "channel": {"type": ["string", "null"]},
+                            "ais": {
+                                "description": "AIS files matched to the detections: uploaded AIS ids "
+                                "(POST /ais) or paths inside an allowed folder",
+                                "oneOf": [
+                                    {"type": "null"},
+                                    {"type": "string", "minLength": 1},
+                                    {
+                                        "type": "array",
+                                        "items": {"type": "string", "minLength": 1},
+                                        "maxItems": MAX_AIS_FILES,
+                                    },
+                                ],
+                            },
                         },
                         "additionalProperties": {"type": ["number", "string", "null"]},
                     },

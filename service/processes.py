@@ -30,10 +30,18 @@ from sarship.service.openapi import (
     problems,
 )
 from sarship.service.store import FINAL, JobStore
-from sarship.workers.request import DEVICES
+from sarship.workers.request import DEVICES, MAX_AIS_FILES
 
 router = APIRouter()
 
+#: The ``ais`` input: one AIS id or path, or a list of them.
+AIS_SCHEMA: dict[str, Any] = {
+    "oneOf": [
+        {"type": "null"},
+        {"type": "string", "minLength": 1},
+        {"type": "array", "items": {"type": "string", "minLength": 1}, "maxItems": MAX_AIS_FILES},
+    ]
+}
 #: Inputs every process takes besides its detector parameters.
 COMMON_INPUTS = {
     "scene": {
@@ -47,6 +55,15 @@ COMMON_INPUTS = {
         "title": "device",
         "description": "where tiles run: auto (GPU workers if any), gpu or cpu",
         "schema": {"type": "string", "enum": list(DEVICES), "default": "auto"},
+        "minOccurs": 0,
+        "maxOccurs": 1,
+    },
+    "ais": {
+        "title": "AIS files",
+        "description": "AIS files matched to the detections (docs/ais.md): uploaded AIS ids (POST /ais) or "
+        "paths of files inside an allowed folder; each detection gets 'ais' and 'dark', and the "
+        "vessels that matched nothing are the result ais_unmatched",
+        "schema": AIS_SCHEMA,
         "minOccurs": 0,
         "maxOccurs": 1,
     },
@@ -93,7 +110,8 @@ def process_description(name: str, base: str) -> dict[str, Any]:
         "inputs": inputs,
         "outputs": {
             k: {"title": k, "schema": {"type": "string", "contentMediaType": v["type"]}}
-            for k, v in results_doc({"id": "ID"}, base).items()
+            # (ais_unmatched: with the input 'ais')
+            for k, v in results_doc({"id": "ID", "result": {"outputs": {"ais_unmatched.geojson": ""}}}, base).items()
         },
     }
 

@@ -168,9 +168,24 @@ def detections_out(request: Request, job_id: str, f: str = "geojson") -> Respons
     return FileResponse(out, media_type=DETECTION_MEDIA[fmt], filename=f"{job_id}-detections.{fmt}", headers=headers)
 
 
+@router.get(
+    "/jobs/{job_id}/results/ais_unmatched",
+    responses=media("application/geo+json", "the AIS vessels that matched no detection", schema={"type": "object"}),
+)
+def ais_unmatched_out(request: Request, job_id: str) -> Response:
+    """``ais_unmatched.geojson``: the vessels that reported inside the scene's footprint and
+    matched no detection (docs/ais.md); a 404 problem for a job given no AIS files."""
+    finished(request, job_id)
+    p = _job_dir(request, job_id) / "ais_unmatched.geojson"
+    if not p.is_file():
+        raise Problem(404, "no such result", f"job '{job_id}' was given no AIS files (input 'ais'): no ais_unmatched")
+    return FileResponse(p, media_type="application/geo+json", filename=f"{job_id}-ais_unmatched.geojson")
+
+
 @router.get("/jobs/{job_id}/results/metrics", response_model=None)
 def metrics_out(request: Request, job_id: str) -> dict[str, Any]:
-    """run.json, plus ``scores`` (``sarship evaluate``'s) when the scene has ground truth."""
+    """run.json (with AIS files, its ``ais`` record: docs/ais.md), plus ``scores``
+    (``sarship evaluate``'s) when the scene has ground truth."""
     from sarship.service.scores import job_scores
 
     finished(request, job_id)

@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sarship.pipeline.errors import InputError
+from sarship.service.ais_files import ais_paths
 from sarship.service.job_inputs import land_file_path, scene_path
 from sarship.service.settings import Settings
 from sarship.service.store import INGEST, Job, JobStore
@@ -281,6 +282,8 @@ class Runner:
         request = JobRequest.from_stored(job["process"], inputs)
         scene = scene_path(self.settings, request.scene)
         land = land_file_path(self.settings, request)
+        if request.ais:  # (checked when posted; a file may have gone or been deleted meanwhile)
+            request = request.model_copy(update={"ais": ais_paths(self.settings, request.ais)})
         land_source = None
         if land is not None:  # parsed and rasterised in a memory-capped child: the job reads that raster
             land_src = self._land_file(land, scene, land_raster, self._still_ours(job_id, attempt))
@@ -346,6 +349,8 @@ class Runner:
             "outputs": run["outputs"],
             "timings": run["timings"],
         }
+        if isinstance(run.get("ais"), dict):  # the AIS counts (the whole record: results/metrics)
+            summary["ais"] = {k: run["ais"].get(k) for k in ("covered", "matched", "dark", "unmatched_in_footprint")}
         if not self.store.finish(
             job_id,
             self.owner,
@@ -366,6 +371,8 @@ class Runner:
             H, W = run["scene"]["shape"]
             self.metrics.pixels.inc(H * W)
             self.metrics.duration.labels(job["process"], "successful").observe(run["timings"]["total_s"])
+            if isinstance(run.get("ais"), dict):
+                self.metrics.count_ais(run["ais"])
 
     def _run_failed(self, job: Job, exc: BaseException) -> None:
         """A detector job's run raised ``exc`` (called while it is handled): discarded when the

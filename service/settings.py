@@ -134,10 +134,14 @@ class Settings(BaseSettings):
         description="job lease: a job whose runner stops renewing it is re-run (the stale run cannot publish)",
     )
     allowed_roots: list[Path] = Field(
-        default_factory=list, description="folders a job may name scenes in (besides DATA/scenes)"
+        default_factory=list,
+        description="folders a job may name scenes, land_mask and ais files in (besides DATA/scenes)",
     )
     sync_timeout_s: float = Field(600.0, gt=0.0, description="longest wait of a 'Prefer: respond-sync' execution")
     max_upload_mb: float = Field(4096.0, gt=0.0, description="largest scene upload (POST /scenes), MiB")
+    max_ais_upload_mb: float = Field(
+        1024.0, gt=0.0, description="largest AIS file upload (POST /ais), MiB: 413 beyond it"
+    )
     max_body_kb: float = Field(
         1024.0,
         gt=0.0,
@@ -332,6 +336,11 @@ class Settings(BaseSettings):
     @property
     def uploads_dir(self) -> Path:
         return self.data / "uploads"
+
+    @property
+    def ais_dir(self) -> Path:
+        """Uploaded AIS files (``POST /ais``): ``DATA/ais/ID`` and its record ``ID.json``."""
+        return self.data / "ais"
 
     @property
     def quarantine_dir(self) -> Path:

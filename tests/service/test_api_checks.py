@@ -251,10 +251,10 @@ def test_land_file_is_parsed_in_a_capped_child(tmp_path):
         )
 
 
-def test_ais_input_is_parsed_and_refused_by_the_service_in_one_line(tmp_path):
+def test_ais_input_is_parsed_and_checked_by_the_service_in_one_line(tmp_path):
     """``ais``: one path or a list (JobRequest, as the command line passes it), bad shapes named in
-    one line; the service refuses the input as a 400 until it checks AIS files against its allowed
-    folders (docs/ais.md), so no job can read a file outside them."""
+    one line; the service takes files inside its allowed folders only (a 400 in one line
+    otherwise: no job reads a file outside them) and keeps them as resolved absolute paths."""
     from sarship.service.common import Problem
     from sarship.service.job_inputs import validate_inputs
     from sarship.service.settings import Settings
@@ -272,4 +272,12 @@ def test_ais_input_is_parsed_and_refused_by_the_service_in_one_line(tmp_path):
     settings = Settings(data=tmp_path / "data")
     with pytest.raises(Problem) as exc:
         validate_inputs(settings, "ca_cfar", {"inputs": {"scene": scene, "ais": "/etc/passwd"}})
-    assert exc.value.status == 400 and "not accepted by the service" in exc.value.detail
+    assert exc.value.status == 400 and "outside the allowed scene folders" in exc.value.detail
+    assert "\n" not in exc.value.detail
+    (tmp_path / "data" / "scenes" / "day.csv").write_text("mmsi,time,lon,lat\n")
+    inputs = validate_inputs(settings, "ca_cfar", {"inputs": {"scene": scene, "ais": ["day.csv", "./day.csv"]}})
+    assert inputs["ais"] == [str((tmp_path / "data" / "scenes" / "day.csv").resolve())]
+    for bad, words in (("nope.csv", "no file 'nope.csv'"), ("0123456789abcdef", "no uploaded AIS file")):
+        with pytest.raises(Problem) as exc:
+            validate_inputs(settings, "ca_cfar", {"inputs": {"scene": scene, "ais": bad}})
+        assert exc.value.status == 400 and words in exc.value.detail, exc.value.detail
