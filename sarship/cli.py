@@ -438,6 +438,7 @@ def cmd_serve(a) -> int:
             "inbox_detectors": a.inbox_detectors,
             "inbox_settle_s": a.inbox_settle,
             "inbox_quarantine": a.inbox_quarantine,
+            "inbox_ais": a.inbox_ais,
             "allow_unauthenticated": a.allow_unauthenticated or None,
         }.items()
         if v is not None
@@ -1013,6 +1014,12 @@ def _parser_serve(sub) -> None:
         "--inbox-quarantine",
         metavar="FOLDER",
         help="where files that fail to ingest go, with NAME.reason.txt (default DATA/quarantine)",
+    )
+    s.add_argument(
+        "--inbox-ais",
+        metavar="FOLDER",
+        help="folder of AIS files each new pass's detector jobs are matched with (the newest "
+        "first, within SARSHIP_INBOX_AIS_MAX_FILES and _MAX_MB; docs/ais.md); outside the inboxes",
     )
     s.set_defaults(func=cmd_serve)
 

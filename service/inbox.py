@@ -16,7 +16,9 @@ asks. Every tick (at most a second apart) the leader also:
    first 16 hex digits, the scheme of ``POST /scenes``: an ``ingest`` job is created in the
    same transaction (or the pass is a ``duplicate`` of an earlier file of that content);
 3. follows the ingest jobs (the runners of any API process run them): a success submits the
-   configured detector jobs, created in the transaction that marks the pass ``submitted``; a
+   configured detector jobs, created in the transaction that marks the pass ``submitted``
+   (with ``SARSHIP_INBOX_AIS``, each gets that folder's AIS files as its ``ais`` input, unless
+   the scene has no georeference or time: :meth:`Inbox.ais_for`, docs/ais.md); a
    failure caused by the file moves it to the quarantine folder with ``NAME.reason.txt``
    beside it, and the loop goes on. A fault of ours (the data folder full) is no failure: the
    runner tries the ingest job again after a back-off, and the pass stays ``ingesting``.
@@ -42,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 
 from sarship.service.inbox_files import (
     Signature,
+    ais_files,
     list_passes,
     marked_done,
     marker,
@@ -291,14 +294,39 @@ class Inbox:
                 self.db.mark(row["id"], "ingesting", "failed", "its ingest job was dismissed")
         for row in self.db.to_submit():
             self._busy()
+            ais, note = self.ais_for(row["scene_id"])
+            extra = {"ais": list(ais)} if ais else {}
 
-            def job_of(entry: dict[str, Any], scene: str = row["scene_id"]) -> tuple[str, dict[str, Any]]:
-                return entry["detector"], {"scene": scene, **{k: v for k, v in entry.items() if k != "detector"}}
+            def job_of(
+                entry: dict[str, Any], scene: str = row["scene_id"], extra: dict[str, Any] = extra
+            ) -> tuple[str, dict[str, Any]]:
+                params = {k: v for k, v in entry.items() if k != "detector"}
+                return entry["detector"], {"scene": scene, **params, **extra}
 
-            ids = self.db.submit(row["id"], job_of)
+            ids = self.db.submit(row["id"], job_of, note)
             if ids:
                 log.info("inbox: scene %s: submitted %s", row["scene_id"], ", ".join(ids))
+                if note:
+                    log.warning("inbox: scene %s: %s", row["scene_id"], note)
                 self.wake_runner()
+
+    def ais_for(self, scene_id: str) -> tuple[tuple[str, ...], str]:
+        """The ``ais`` input of a pass's detector jobs (``SARSHIP_INBOX_AIS``'s files,
+        :func:`~sarship.service.inbox_files.ais_files`) and a note for the jobs and the pass
+        (empty when there is nothing to say). A scene without georeference or time gets no AIS
+        (its jobs run, and the note says why), never a failure."""
+        folder = self.settings.inbox_ais
+        if folder is None:
+            return (), ""
+        why = scene_lacks_ais_needs(self.settings.scenes_dir / f"{scene_id}.zarr")
+        if why:
+            return (), f"no AIS matching: {why}"
+        if not folder.is_dir():
+            return (), f"no AIS matching: the AIS folder {folder} is missing"
+        choice = ais_files(folder, self.settings.inbox_ais_max_files, int(self.settings.inbox_ais_max_mb * 2**20))
+        if not choice.paths:
+            return (), "; ".join(("no AIS matching: no AIS file in the AIS folder", *choice.left_out))
+        return choice.paths, "; ".join(choice.left_out)
 
     def _quarantine(self, row: dict[str, Any], reason: str) -> None:
         """Move a file that failed to ingest to the quarantine folder, ``NAME.reason.txt``
@@ -359,6 +387,25 @@ class Inbox:
 
 def _sig(row: dict[str, Any]) -> Signature:
     return Signature(row["size"], row["mtime_ns"], row["nfiles"])
+
+
+def scene_lacks_ais_needs(scene: Path) -> str:
+    """Why the scene store ``scene`` cannot be matched with AIS (no georeference, no time: the
+    run's own check, :func:`~sarship.pipeline.run.ais.ais_options`), or ``""`` when it can."""
+    import numpy as np
+    import zarr
+
+    from sarship.pipeline.ais.scene_time import line_times
+
+    try:
+        attrs = dict(zarr.open_group(str(scene), mode="r").attrs)
+    except Exception as exc:  # (zarr raises several types; the run reports a bad store itself)
+        return f"the scene's attributes cannot be read ({type(exc).__name__})"
+    if not any(k in attrs for k in ("crs", "transform", "gcps")):
+        return "the scene is not georeferenced (no transform or GCPs), so its detections have no lon/lat"
+    if line_times(attrs, np.zeros(1)) is None:
+        return "the scene states no acquisition time (sar_geometry.first_line_time, acquisition_start or acquired)"
+    return ""
 
 
 def start_inbox(settings: Settings, store: JobStore, runner: Runner) -> Inbox:

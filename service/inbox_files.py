@@ -12,6 +12,10 @@ PolSARpro folders are not taken from an inbox (no suffix marks them; ingest them
 ``sarship ingest`` or ``POST /scenes``). Hidden files and folders (``.name``), temporary files
 (``~``, ``.tmp``, ``.part``, ``.partial``, ``.crdownload``, ``.swp``), ``.done`` markers and
 quarantine reason files are ignored; sub-folders are scanned.
+
+The AIS folder (``SARSHIP_INBOX_AIS``, :func:`ais_files`) is listed for each new pass: its AIS
+files, newest first, within a count and a total size; the same hidden and temporary names are
+passed over, and files whose first MiB is not AIS (as the reader recognises it) are left out.
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
+
+from sarship.pipeline.errors import InputError
 
 if TYPE_CHECKING:
     from _hashlib import HASH
@@ -219,3 +225,91 @@ def _remove(p: Path) -> None:
         shutil.rmtree(p, ignore_errors=True)
     else:
         p.unlink(missing_ok=True)
+
+
+#: Bytes of an AIS file looked at to tell AIS from other files (as the reader recognises it).
+AIS_HEAD = 1 << 20
+
+
+class AisChoice(NamedTuple):
+    """The AIS files a pass's jobs are given (absolute resolved paths, newest first) and what
+    was left out, in one line each (empty when nothing was)."""
+
+    paths: tuple[str, ...]
+    left_out: tuple[str, ...]
+
+
+def _is_ais(p: Path) -> bool:
+    """Whether ``p``'s first MiB is AIS as the reader recognises it (a compressed stream passes:
+    the run decompresses it and counts what it cannot read)."""
+    from sarship.pipeline.ais.formats import detect_format
+    from sarship.pipeline.ais.stream import compression_of
+
+    try:
+        with open(p, "rb") as f:
+            head = f.read(AIS_HEAD)
+    except OSError:
+        return False
+    if not head:
+        return False
+    if compression_of(head):
+        return True
+    try:
+        detect_format(head, p.name)
+    except InputError:
+        return False
+    return True
+
+
+def ais_files(folder: Path, max_files: int, max_bytes: int) -> AisChoice:
+    """The AIS files of ``folder`` (sub-folders included; hidden, temporary and ``.done`` names
+    passed over) a pass's jobs read: newest modification time first, at most ``max_files``,
+    adding files while their total stays within ``max_bytes`` (a file that would pass it is
+    skipped, a smaller older one may still fit); files that are not AIS are left out. The run
+    keeps only the reports inside the scene's time and footprint, so every file may be given."""
+    found: list[tuple[int, str, int]] = []  # (-mtime_ns, path, size)
+    not_ais = 0
+    stack = [folder]
+    while stack:
+        d = stack.pop()
+        try:
+            entries = list(os.scandir(d))
+        except OSError:
+            continue
+        for e in entries:
+            name, low = e.name, e.name.lower()
+            if name.startswith((".", "~")) or low.endswith(("~", MARKER, *TEMP_SUFFIXES)):
+                continue
+            try:
+                if e.is_dir(follow_symlinks=False):
+                    stack.append(Path(e.path))
+                    continue
+                if not e.is_file(follow_symlinks=True):
+                    continue
+                st = e.stat(follow_symlinks=True)
+            except OSError:
+                continue
+            found.append((-st.st_mtime_ns, str(Path(e.path).resolve()), st.st_size))
+    found.sort()
+    paths: list[str] = []
+    total = over_count = over_size = 0
+    for _neg, path, size in found:
+        if len(paths) >= max_files:
+            over_count += 1
+            continue
+        if total + size > max_bytes:
+            over_size += 1
+            continue
+        if not _is_ais(Path(path)):
+            not_ais += 1
+            continue
+        paths.append(path)
+        total += size
+    left: list[str] = []
+    if over_count:
+        left.append(f"{over_count} older AIS file(s) beyond inbox_ais_max_files ({max_files}) left out")
+    if over_size:
+        left.append(f"{over_size} AIS file(s) beyond inbox_ais_max_mb ({max_bytes / 2**20:g} MiB in all) left out")
+    if not_ais:
+        left.append(f"{not_ais} file(s) of the AIS folder that are not AIS left out")
+    return AisChoice(tuple(paths), tuple(left))

@@ -251,19 +251,24 @@ class InboxStore:
             )
             return cur.rowcount == 1
 
-    def submit(self, pass_id: int, inputs_of: Callable[[dict[str, Any]], tuple[str, dict[str, Any]]]) -> list[str]:
+    def submit(
+        self, pass_id: int, inputs_of: Callable[[dict[str, Any]], tuple[str, dict[str, Any]]], note: str = ""
+    ) -> list[str]:
         """An ``ingested`` pass's planned detector jobs, created in the transaction that
         records their IDs and marks the pass ``submitted`` (so they are created exactly once).
-        ``inputs_of(entry) -> (process, inputs)``. The job IDs ([] if already submitted)."""
+        ``inputs_of(entry) -> (process, inputs)``; ``note`` (e.g. why the jobs run without AIS)
+        becomes the jobs' first message and is added to the pass's reason. The job IDs ([] if already
+        submitted)."""
         now = time.time()
         with self.jobs._tx() as c:
             row = c.execute("SELECT plan FROM inbox_passes WHERE id = ? AND status = 'ingested'", (pass_id,)).fetchone()
             if row is None:
                 return []
-            ids = [insert_job(c, *inputs_of(entry)) for entry in json.loads(row["plan"])]
+            ids = [insert_job(c, *inputs_of(entry), message=note) for entry in json.loads(row["plan"])]
             c.execute(
-                "UPDATE inbox_passes SET status = 'submitted', jobs = ?, updated = ? WHERE id = ?",
-                (json.dumps(ids), now, pass_id),
+                "UPDATE inbox_passes SET status = 'submitted', jobs = ?, updated = ?, reason = CASE "
+                "WHEN ? = '' THEN reason WHEN reason = '' THEN ? ELSE reason || '; ' || ? END WHERE id = ?",
+                (json.dumps(ids), now, note, note, note, pass_id),
             )
             return ids
 

@@ -30,6 +30,10 @@ from sarship.pipeline.readers.limits import (
 
 #: Scan interval used when neither an interval nor a cron expression is set.
 DEFAULT_INBOX_INTERVAL_S = 30.0
+#: The most AIS files of ``inbox_ais`` one pass's jobs are given, by default (docs/ais.md, "Inbox").
+DEFAULT_INBOX_AIS_MAX_FILES = 100
+#: Their largest total size by default, MiB (a DMA day file is about 2 GB and streams in about 7 s).
+DEFAULT_INBOX_AIS_MAX_MB = 16384.0
 
 
 def _bad(detail: str) -> PydanticCustomError:
@@ -262,6 +266,26 @@ class Settings(BaseSettings):
     inbox_quarantine: Path | None = Field(
         None, description="where files that fail to ingest are moved (default DATA/quarantine)"
     )
+    inbox_ais: Path | None = Field(
+        None,
+        description="folder of AIS files (CSV or NMEA, plain or compressed; sub-folders scanned) given to "
+        "the detector jobs of each new pass as their 'ais' input (the newest first, within "
+        "inbox_ais_max_files and inbox_ais_max_mb; the run keeps the reports of the scene's time and "
+        "footprint); a pass whose scene has no georeference or time runs without AIS and says why; "
+        "never inside an inbox folder; unset: no AIS",
+    )
+    inbox_ais_max_files: int = Field(
+        DEFAULT_INBOX_AIS_MAX_FILES,
+        ge=1,
+        le=1000,
+        description="the most AIS files of inbox_ais a pass's jobs read (the newest by modification time)",
+    )
+    inbox_ais_max_mb: float = Field(
+        DEFAULT_INBOX_AIS_MAX_MB,
+        gt=0.0,
+        description="the largest total size of the AIS files of inbox_ais a pass's jobs read, MiB "
+        "(newest first; a file that would pass it is left out, and the job says so)",
+    )
 
     @field_validator("inbox", mode="before")
     @classmethod
@@ -289,6 +313,22 @@ class Settings(BaseSettings):
             if rp not in out:
                 out.append(rp)
         return out
+
+    @field_validator("inbox_ais")
+    @classmethod
+    def _inbox_ais(cls, v: Path | None, info: ValidationInfo) -> Path | None:
+        if v is None or not str(v).strip():
+            return None
+        if not v.is_dir():
+            raise _bad(f"AIS folder '{v}' does not exist or is not a folder")
+        rv = v.resolve()
+        for inbox in info.data.get("inbox") or ():
+            if rv == inbox or inbox in rv.parents or rv in inbox.parents:
+                raise _bad(
+                    f"AIS folder '{v}' overlaps the inbox folder '{inbox}' (its files would be taken as passes): "
+                    "keep it outside"
+                )
+        return rv
 
     @field_validator("inbox_detectors", mode="before")
     @classmethod

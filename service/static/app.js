@@ -701,6 +701,10 @@
       mapEl, mapNote, table);
     loadScores(id, links, scoresBox);  // beside the map, not before it
     await buildMap(id, mapEl, mapNote, feats, links, jobUrl);
+    if (current.id !== id || !(hasAis(feats) || links.ais_unmatched)) return;
+    const nUnmatched = await addUnmatched(id, links, mapNote);
+    if (current.id !== id) return;
+    mapNote.after(aisLegend(feats, nUnmatched));
   }
 
   /** Scores first, in this order; then any other number of the scores document. */
@@ -742,6 +746,7 @@
     const shown = feats.slice(0, MAX_ROWS);
     // a georeferenced scene: every detection has its WGS84 centre
     const geo = feats.every((f) => Array.isArray(f.properties.centroid_lonlat) && f.properties.centroid_lonlat.length === 2);
+    const ais = hasAis(feats);
     const tbody = h('tbody', {}, shown.map((f, i) => {
       const p = f.properties;
       const [r0, c0, r1, c1] = p.bbox_px;
@@ -755,14 +760,16 @@
         h('td', {}, `${r1 - r0}×${c1 - c0}`),
         h('td', { class: 'num' }, fmtNum(p.area_px)),
         h('td', { class: 'num' }, len), h('td', { class: 'num' }, wid),
-        h('td', { class: 'num' }, fmtNum(p.score)), h('td', { class: 'num' }, fmtNum(p.peak)));
+        h('td', { class: 'num' }, fmtNum(p.score)), h('td', { class: 'num' }, fmtNum(p.peak)),
+        ais ? aisCell(p) : null);
+      if (ais) tr.dataset.ais = aisState(p);
       tr.addEventListener('click', (ev) => { if (!ev.target.closest('button')) selectDet(i, true); });
       return tr;
     }));
     const wrap = h('div', { class: 'scroll det-scroll' }, h('table', { id: 'det-table' },
       h('caption', { class: 'sr-only' }, 'Detections; choose one to show it on the map'),
       h('thead', {}, h('tr', {}, ['#', geo ? 'centre (lat, lon)' : 'centroid (row, col)', 'box (rows×cols)', 'area px', 'length', 'width', 'score', 'peak']
-        .map((t) => h('th', { scope: 'col' }, t)))), tbody));
+        .concat(ais ? ['AIS vessel'] : []).map((t) => h('th', { scope: 'col' }, t)))), tbody));
     const out = [wrap];
     if (feats.length > shown.length) out.push(h('p', { class: 'hint' }, `The first ${MAX_ROWS} of ${feats.length} are listed; all are drawn.`));
     return h('div', {}, out);
@@ -770,6 +777,92 @@
 
   const BOX = { color: '#ffd400', weight: 2, fillOpacity: 0.08 };
   const BOX_SEL = { color: '#00e5ff', weight: 3, fillOpacity: 0.2 };
+
+  // ---------------------------------------------------------------- AIS (docs/ais.md)
+
+  /** Colours of a detection's AIS state (the legend's swatches use the same, app.css): matched
+   * to a vessel's AIS, dark (no AIS though the AIS covers the scene), or none / unknown. */
+  const AIS_COLOURS = { matched: '#2ee06f', dark: '#ff3b30', none: BOX.color };
+  const AIS_LABELS = {
+    matched: 'matched to AIS',
+    dark: 'dark: no AIS though the AIS covers the scene',
+    none: 'no AIS given, or unknown',
+    unmatched: 'AIS vessel not matched to a detection',
+  };
+  /** A detection's AIS state from its ``ais`` and ``dark`` properties. */
+  function aisState(p) {
+    if (p && p.ais && typeof p.ais === 'object') return 'matched';
+    if (p && p.dark === true) return 'dark';
+    return 'none';
+  }
+  /** Whether the job's detections carry AIS results at all (a run given AIS files). */
+  const hasAis = (feats) => feats.some((f) => 'ais' in f.properties || 'dark' in f.properties);
+  /** A detection's box style: its AIS state's colour. */
+  const boxStyle = (f) => ({ ...BOX, color: AIS_COLOURS[aisState(f.properties)] });
+  /** The vessel's name and MMSI of a matched detection ('' otherwise). */
+  function vesselText(p) {
+    const a = p.ais;
+    if (!a || typeof a !== 'object') return '';
+    const name = typeof a.name === 'string' && a.name.trim() ? a.name.trim() : 'unnamed';
+    return `${name} (MMSI ${a.mmsi})`;
+  }
+  /** The AIS cell of the detections table. */
+  function aisCell(p) {
+    const st = aisState(p);
+    if (st === 'matched') {
+      const d = typeof p.ais.distance_m === 'number' ? `, ${fmtNum(p.ais.distance_m, 3)} m off` : '';
+      return h('td', { class: 'ais-matched', title: `score ${fmtNum(p.ais.score, 3)}${d}` }, vesselText(p));
+    }
+    if (st === 'dark') return h('td', { class: 'ais-dark' }, 'dark');
+    return h('td', { class: 'ais-none' }, p.dark === null ? 'AIS does not cover' : '—');
+  }
+  /** The tooltip of detection i: its number, and its vessel or "dark". */
+  function detLabel(f, i) {
+    const st = aisState(f.properties);
+    const extra = st === 'matched' ? ` · ${vesselText(f.properties)}` : (st === 'dark' ? ' · dark (no AIS)' : '');
+    return `#${i + 1}${extra}`;
+  }
+
+  /** The legend of the AIS colours (only for a job whose detections carry AIS results). */
+  function aisLegend(feats, nUnmatched) {
+    const n = { matched: 0, dark: 0, none: 0 };
+    for (const f of feats) n[aisState(f.properties)] += 1;
+    const item = (k, count) => h('li', { dataset: { state: k } },
+      h('span', { class: `swatch swatch-${k}`, 'aria-hidden': 'true' }), ` ${AIS_LABELS[k]}: `, h('b', {}, String(count)));
+    const items = ['matched', 'dark', 'none'].map((k) => item(k, n[k]));
+    if (nUnmatched !== null) items.push(item('unmatched', nUnmatched));
+    return h('ul', { class: 'ais-legend', id: 'ais-legend', 'aria-label': 'AIS legend' }, items);
+  }
+
+  /** The AIS vessels that reported inside the footprint and matched no detection (the
+   * results' ``ais_unmatched`` link, when the service gives it), as markers on a lon/lat map;
+   * their count, or null when there is no such link or it cannot be read. */
+  async function addUnmatched(id, links, note) {
+    const link = links.ais_unmatched;
+    if (!link || !link.href) return null;
+    let fc;
+    try {
+      fc = await getJSON(link.href);
+    } catch (e) {
+      note.textContent += ' The unmatched AIS vessels could not be loaded.';
+      return null;
+    }
+    if (current.id !== id) return null;
+    const pts = (fc.features || []).filter((f) => f && f.geometry && f.geometry.type === 'Point'
+      && Array.isArray(f.geometry.coordinates));
+    if (current.map && document.getElementById('map').dataset.crs === 'EPSG:3857') {
+      for (const f of pts) {
+        const [lon, lat] = f.geometry.coordinates;
+        const p = f.properties || {};
+        const name = typeof p.name === 'string' && p.name.trim() ? p.name.trim() : 'unnamed';
+        const len = typeof p.length_m === 'number' ? `, ${fmtNum(p.length_m, 3)} m` : '';
+        L.circleMarker([lat, lon], { radius: 6, color: '#d200ff', weight: 2, fillOpacity: 0.3, className: 'ais-unmatched' })
+          .bindTooltip(h('span', {}, `${name} (MMSI ${p.mmsi})${len}: not matched`), { direction: 'top' })
+          .addTo(current.map);
+      }
+    }
+    return pts.length;
+  }
 
   /** A Leaflet tile layer; with a token, tiles are fetched with it (an <img> cannot send
    * Authorization, and reads may be protected) and shown from blob: URLs. */
@@ -872,7 +965,7 @@
     map.setMaxBounds(bounds.pad(0.5));
     current.boxes = feats.map((f, i) => {
       const [r0, c0, r1, c1] = f.properties.bbox_px;
-      return detBox(L.rectangle(L.latLngBounds(px(r1, c0), px(r0, c1)), { ...BOX, className: 'det-box' }), i);
+      return detBox(L.rectangle(L.latLngBounds(px(r1, c0), px(r0, c1)), { ...boxStyle(f), className: `det-box det-${aisState(f.properties)}` }), i, f);
     });
     current.feats = feats;
     current.focus = (f) => {
@@ -887,10 +980,13 @@
     map.fitBounds(bounds);
   }
 
-  function detBox(layer, i) {
-    layer.bindTooltip(h('span', {}, `#${i + 1}`), { direction: 'top' });
+  function detBox(layer, i, f) {
+    layer.bindTooltip(h('span', {}, detLabel(f, i)), { direction: 'top' });
     layer.on('click', () => selectDet(i, false));
-    return layer.addTo(current.map);
+    layer.addTo(current.map);
+    const el = layer.getElement && layer.getElement();  // (none on a canvas: many detections)
+    if (el) el.dataset.det = String(i);
+    return layer;
   }
 
   // ---------------------------------------------------------------- lon/lat map
@@ -1101,7 +1197,7 @@
       }
       return pixelRing(f);
     };
-    current.boxes = feats.map((f, i) => detBox(L.polygon(ring(f), { ...BOX, className: 'det-box' }), i));
+    current.boxes = feats.map((f, i) => detBox(L.polygon(ring(f), { ...boxStyle(f), className: `det-box det-${aisState(f.properties)}` }), i, f));
     current.feats = feats;
     current.focus = (f) => [L.latLngBounds(ring(f)).pad(2), 20];
     cursorControl(map, (ll) => `${fmtLat(ll.lat)}, ${fmtLon(ll.lng)}`);
@@ -1112,7 +1208,7 @@
   /** Highlight detection i in the table and on the map; pan/zoom to it when asked. */
   function selectDet(i, zoom) {
     if (!current.boxes) return;
-    if (current.sel !== undefined && current.boxes[current.sel]) current.boxes[current.sel].setStyle(BOX);
+    if (current.sel !== undefined && current.boxes[current.sel]) current.boxes[current.sel].setStyle(boxStyle(current.feats[current.sel]));
     current.sel = i;
     const rect = current.boxes[i];
     rect.setStyle(BOX_SEL);

@@ -295,6 +295,145 @@ def test_scene_lookups_use_the_ingest_indexes(tmp_path):
     assert "jobs_ingest_status" in plan, plan
 
 
+AIS_CSV = "mmsi,time,lon,lat,sog,cog\n219000001,2024-05-01T10:00:00Z,10.5,55.5,12.0,90\n"
+
+
+def _ais_folder(root):
+    """An AIS folder: three CSVs of known ages and sizes, a gzip, and files that are not AIS."""
+    import gzip
+
+    d = root / "ais"
+    (d / "sub").mkdir(parents=True)
+    for name, age in (("old.csv", 300), ("mid.csv", 200), ("sub/new.csv", 100)):
+        (d / name).write_text(AIS_CSV)
+        os.utime(d / name, (time.time() - age, time.time() - age))
+    (d / "day.csv.gz").write_bytes(gzip.compress(AIS_CSV.encode()))
+    os.utime(d / "day.csv.gz", (time.time() - 400, time.time() - 400))
+    (d / "README.txt").write_text("AIS files of the harbour feed\n")  # not AIS: left out
+    (d / ".hidden.csv").write_text(AIS_CSV)
+    (d / "next.csv.part").write_text(AIS_CSV)  # being downloaded
+    (d / "mid.csv.done").write_text("")
+    return d
+
+
+def test_ais_folder_files_newest_first_within_the_bounds(tmp_path):
+    from sarship.service.inbox_files import ais_files
+
+    d = _ais_folder(tmp_path)
+    names = lambda c: [os.path.relpath(p, d.resolve()) for p in c.paths]  # noqa: E731
+    every = ais_files(d, 100, 1 << 30)
+    assert names(every) == ["sub/new.csv", "mid.csv", "old.csv", "day.csv.gz"], every
+    assert all(os.path.isabs(p) for p in every.paths)
+    assert every.left_out == ("1 file(s) of the AIS folder that are not AIS left out",)
+    two = ais_files(d, 2, 1 << 30)
+    assert (
+        names(two) == ["sub/new.csv", "mid.csv"]
+        and "2 older AIS file(s) beyond inbox_ais_max_files (2)" in (two.left_out[0])
+    )
+    size = len(AIS_CSV)
+    small = ais_files(d, 100, 2 * size)  # two CSVs fit; the gzip (smaller) after them does not
+    assert names(small)[:2] == ["sub/new.csv", "mid.csv"] and any("inbox_ais_max_mb" in n for n in small.left_out)
+    assert ais_files(tmp_path / "empty-or-missing", 10, 1 << 20) == ((), ())
+
+
+def test_inbox_ais_setting_is_checked(tmp_path, monkeypatch):
+    from pydantic import ValidationError
+
+    from sarship.service.settings import Settings
+
+    for k in list(os.environ):
+        if k.startswith("SARSHIP_"):
+            monkeypatch.delenv(k)
+    inbox, ais = tmp_path / "in", tmp_path / "ais"
+    (inbox / "ais").mkdir(parents=True)
+    ais.mkdir()
+    s = Settings(inbox=str(inbox), inbox_ais=str(ais))
+    assert s.inbox_ais == ais.resolve() and Settings().inbox_ais is None
+    assert s.inbox_ais_max_files == 100 and s.inbox_ais_max_mb == 16384
+    for bad, word in (
+        (tmp_path / "missing", "does not exist"),
+        (inbox / "ais", "overlaps the inbox folder"),
+        (inbox, "overlaps the inbox folder"),
+        (tmp_path, "overlaps the inbox folder"),
+    ):
+        with pytest.raises(ValidationError) as ei:
+            Settings(inbox=str(inbox), inbox_ais=str(bad))
+        e = ei.value.errors()[0]
+        assert e["loc"][0] == "inbox_ais" and word in e["msg"], e
+    with pytest.raises(ValidationError, match="inbox_ais_max_files"):
+        Settings(inbox_ais_max_files=0)
+
+
+def test_serve_exits_2_on_a_missing_ais_folder(tmp_path, monkeypatch, capsys):
+    from sarship.cli import main
+
+    inbox = tmp_path / "in"
+    inbox.mkdir()
+    for k in list(os.environ):
+        if k.startswith("SARSHIP_"):
+            monkeypatch.delenv(k)
+    args = ["serve", "--data", str(tmp_path / "d"), "--port", str(free_port()), "--inbox", str(inbox)]
+    rc = main([*args, "--inbox-ais", str(tmp_path / "nope")])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("sarship serve: error: setting 'inbox_ais'"), lines
+    assert "nope" in lines[0] and not (tmp_path / "d").exists()
+    monkeypatch.setenv("SARSHIP_INBOX_AIS", str(inbox))  # the environment variable, checked the same
+    rc = main(args)
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and "setting 'inbox_ais'" in lines[0] and "overlaps" in lines[0], lines
+
+
+def test_a_pass_s_jobs_get_the_ais_folder_or_say_why_not(tmp_path, monkeypatch):
+    """Without a server: passes whose scenes are in the store are submitted by
+    :meth:`Inbox.advance`; a georeferenced scene with a time gets the AIS folder's files as its
+    jobs' ``ais`` (which the runner's request carries), one without a time or georeference
+    gets none, and its jobs and pass say why."""
+    from sarship.pipeline.scene import create_scene
+    from sarship.service.inbox import Inbox
+    from sarship.service.settings import Settings
+    from sarship.service.store import JobStore
+    from sarship.workers.request import JobRequest
+
+    for k in list(os.environ):
+        if k.startswith("SARSHIP_"):
+            monkeypatch.delenv(k)
+    inbox, data = tmp_path / "in", tmp_path / "data"
+    inbox.mkdir()
+    ais = _ais_folder(tmp_path)
+    settings = Settings(data=data, inbox=str(inbox), inbox_ais=str(ais), inbox_detectors=json.dumps(DETECTOR))
+    geo = {"crs": "EPSG:4326", "transform": [0.001, 0, 10.0, 0, -0.001, 56.0]}
+    scenes = {
+        "a" * 16: {**geo, "acquired": "2024-05-01T10:00:00Z"},
+        "b" * 16: geo,  # no time
+        "c" * 16: {"acquired": "2024-05-01T10:00:00Z"},  # no georeference
+    }
+    for key, attrs in scenes.items():
+        create_scene(settings.scenes_dir / f"{key}.zarr", (8, 8), {"intensity": "float32"}, attrs=attrs)
+    jobs = JobStore(settings.db_path)
+    box = Inbox(settings, jobs, "me")
+    for n, key in enumerate(scenes):
+        box.db.add_waiting(f"/in/{n}.tif", Signature(1, n, 1), 1.0)
+        row = box.db.rows("waiting")[-1]
+        assert (
+            box.db.take(row["id"], Signature(1, n, 1), key * 4, key, True, settings.inbox_detectors, {}) == "ingested"
+        )
+    box.advance()
+    by_scene = {j["inputs"]["scene"]: j for j in jobs.list() if j["process"] == "os_cfar"}
+    a, b, c = (by_scene[k] for k in scenes)
+    want = [str((ais / p).resolve()) for p in ("sub/new.csv", "mid.csv", "old.csv", "day.csv.gz")]
+    assert a["inputs"]["ais"] == want and a["inputs"]["guard"] == 11
+    assert "not AIS left out" in a["message"]
+    req = JobRequest.from_stored("os_cfar", a["inputs"])
+    assert req.ais == tuple(want) and "ais" not in req.params
+    JobRequest.from_inputs("os_cfar", a["inputs"])  # what the inbox stores is a valid request
+    assert "ais" not in b["inputs"] and "no AIS matching: the scene states no acquisition time" in b["message"]
+    assert "ais" not in c["inputs"] and "no AIS matching: the scene is not georeferenced" in c["message"]
+    reasons = {p["scene_id"]: p["reason"] for p in box.db.list()}
+    assert reasons["b" * 16].startswith("scene already in the store; no AIS matching: the scene states no")
+    monkeypatch.setattr(settings, "inbox_ais", None)
+    assert box.ais_for("a" * 16) == ((), "")  # no AIS folder: the jobs as before
+
+
 # ----------------------------------------------------------------------------- one server
 
 

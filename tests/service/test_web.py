@@ -9,7 +9,9 @@ detail beside the form, as text; a running job is dismissed from the list in a n
 ingest panel follows passes dropped in the inbox (one ingested, one quarantined with its reason)
 and the new scene joins the form; a scene file uploaded from the page (refused without a token,
 with the API's detail shown) is ingested and chosen in the form, and a detection runs on it; a
-file that cannot be ingested shows why; a job on a scene with ground truth shows its scores; the
+file that cannot be ingested shows why; a job on a scene with ground truth shows its scores; a
+job whose detections carry AIS results colours them matched / dark / none, names the vessels
+and draws a legend and the unmatched AIS vessels; the
 API docs (``/docs``, Swagger UI) render with the browser limited to the server. The page must
 raise no JavaScript error and log no console error.
 Without a browser: the page's cache headers and the landing page's HTML redirect.
@@ -529,3 +531,82 @@ def test_job_view_shows_scores_and_lonlat_of_a_georeferenced_scene(server, page,
     m = pg.locator("#map").bounding_box()
     pg.mouse.move(m["x"] + m["width"] / 2, m["y"] + m["height"] / 2)
     pg.wait_for_function("() => /^row \\d+, col \\d+$/.test(document.querySelector('#map-cursor').textContent)")
+
+
+def test_detections_coloured_by_ais_with_names_legend_and_unmatched_vessels(server, page, tmp_path):
+    """A job whose detections carry AIS results (a job on a simulated georeferenced scene with
+    moving ships, matched afterwards with ``sarship match`` on its output folder, the job's own
+    files): each box in its AIS state's colour (matched, dark, none), the vessel's name and MMSI
+    in the table and the box's tooltip, a legend with the counts; the unmatched AIS vessels as
+    markers when the results link ``ais_unmatched`` (the service's route for
+    ``ais_unmatched.geojson``) is there: given here by intercepting the results document, so
+    the page's side is tested whether or not this server serves that route."""
+    import json
+
+    from sarship.cli import main
+
+    u, pg = server.url, page.page
+    scene = server.data / "scenes" / "aisy.zarr"
+    ais = server.data.parent / "aisy.csv"
+    if not scene.exists():
+        args = ["simulate", str(scene), "--shape", "768x768", "--ships", "14", "--seed", "11", "--geo", "5.5,56.5"]
+        assert main([*args, "--moving", "--ais", str(ais), "--dark-fraction", "0.3"]) == 0
+    r = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "aisy"}}, headers=AUTH)
+    assert r.status_code == 201, r.text
+    job_id = r.json()["jobID"]
+    assert wait_job(u, job_id)["status"] == "successful"
+    out = server.data / "jobs" / job_id
+    assert main(["match", str(out), "--ais", str(ais)]) == 0
+    feats = httpx.get(f"{u}/jobs/{job_id}/results/detections").json()["features"]
+    unmatched = json.loads((out / "ais_unmatched.geojson").read_text())["features"]
+    state = ["matched" if f["properties"]["ais"] else "dark" if f["properties"]["dark"] else "none" for f in feats]
+    n = {k: state.count(k) for k in ("matched", "dark", "none")}
+    assert n["matched"] >= 1 and n["dark"] >= 1 and unmatched, (n, len(unmatched))
+
+    def results(route):  # the results document with the ais_unmatched link
+        doc = route.fetch().json()
+        doc.setdefault("ais_unmatched", {"href": f"{u}/jobs/{job_id}/results/ais_unmatched"})
+        route.fulfill(json=doc)
+
+    pg.route(f"{u}/jobs/{job_id}/results", results)
+    if httpx.get(f"{u}/jobs/{job_id}/results/ais_unmatched").status_code != 200:
+        pg.route(
+            f"{u}/jobs/{job_id}/results/ais_unmatched",
+            lambda route: route.fulfill(
+                body=(out / "ais_unmatched.geojson").read_bytes(), content_type="application/geo+json"
+            ),
+        )
+    pg.goto(f"{u}/ui/#/jobs/{job_id}")
+    pg.wait_for_selector("#map[data-ready=true][data-crs='EPSG:3857']")
+    pg.wait_for_selector("#ais-legend")
+    colours = {"matched": "#2ee06f", "dark": "#ff3b30", "none": "#ffd400"}
+    for k, colour in colours.items():
+        strokes = pg.eval_on_selector_all(f"#map path.det-{k}", "els => els.map(e => e.getAttribute('stroke'))")
+        assert len(strokes) == n[k] and set(strokes) <= {colour}, (k, strokes)
+        assert pg.inner_text(f"#ais-legend li[data-state={k}] b") == str(n[k])
+    assert pg.inner_text("#ais-legend li[data-state=unmatched] b") == str(len(unmatched))
+    assert pg.locator("#map path.ais-unmatched").count() == len(unmatched)
+    # the table: the vessel's name and MMSI of each matched detection, "dark" for the dark ones
+    assert pg.inner_text("#det-table thead tr th:last-child") == "AIS vessel"
+    for i, f in enumerate(feats):
+        row = pg.locator(f"#det-table tbody tr[data-det='{i}']")
+        assert row.get_attribute("data-ais") == state[i]
+        cell = row.locator("td:last-child").inner_text()
+        a = f["properties"]["ais"]
+        if a:
+            assert f"MMSI {a['mmsi']}" in cell and (a["name"] or "unnamed").strip() in cell, (cell, a)
+        elif state[i] == "dark":
+            assert cell == "dark"
+    # selecting a detection highlights it; selecting another gives the first its AIS colour back
+    first, other = state.index("matched"), state.index("dark")
+    pg.locator(f"#det-table tbody tr[data-det='{first}'] td:nth-child(2)").click()
+    sel = f"#map path.det-box[data-det='{first}']"
+    assert pg.locator(sel).get_attribute("stroke") == "#00e5ff"
+    pg.locator(f"#det-table tbody tr[data-det='{other}'] td:nth-child(2)").click()
+    assert pg.locator(sel).get_attribute("stroke") == colours["matched"]
+    # the tooltip of a matched box names its vessel
+    name = feats[first]["properties"]["ais"]["mmsi"]
+    pg.locator(sel).dispatch_event("mouseover")
+    pg.wait_for_selector(".leaflet-tooltip")
+    assert f"MMSI {name}" in pg.inner_text(".leaflet-tooltip")
+    pg.screenshot(path=str(tmp_path / "ais.png"), full_page=True)
