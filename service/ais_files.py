@@ -250,7 +250,12 @@ def ais_paths(settings: Settings, names: tuple[str, ...]) -> tuple[str, ...]:
             raise InputError(
                 f"input 'ais': no file '{s}' (an uploaded AIS id, or a path inside the allowed scene folders)"
             ) from None
-        roots = [*settings.roots(), settings.ais_dir.resolve()]
+        # the inbox's AIS folder too: its passes' jobs name its files (service/inbox.py)
+        roots = [
+            *settings.roots(),
+            settings.ais_dir.resolve(),
+            *([settings.inbox_ais.resolve()] if settings.inbox_ais else []),
+        ]
         if not any(r in real.parents for r in roots):
             raise InputError(f"input 'ais': '{s}' is outside the allowed scene folders")
         if not real.is_file():

@@ -426,6 +426,9 @@ def test_a_pass_s_jobs_get_the_ais_folder_or_say_why_not(tmp_path, monkeypatch):
     req = JobRequest.from_stored("os_cfar", a["inputs"])
     assert req.ais == tuple(want) and "ais" not in req.params
     JobRequest.from_inputs("os_cfar", a["inputs"])  # what the inbox stores is a valid request
+    from sarship.service.ais_files import ais_paths
+
+    assert ais_paths(settings, req.ais) == tuple(want)  # the runner's check of the paths accepts them
     assert "ais" not in b["inputs"] and "no AIS matching: the scene states no acquisition time" in b["message"]
     assert "ais" not in c["inputs"] and "no AIS matching: the scene is not georeferenced" in c["message"]
     reasons = {p["scene_id"]: p["reason"] for p in box.db.list()}
