@@ -534,48 +534,34 @@ def test_job_view_shows_scores_and_lonlat_of_a_georeferenced_scene(server, page,
 
 
 def test_detections_coloured_by_ais_with_names_legend_and_unmatched_vessels(server, page, tmp_path):
-    """A job whose detections carry AIS results (a job on a simulated georeferenced scene with
-    moving ships, matched afterwards with ``sarship match`` on its output folder, the job's own
-    files): each box in its AIS state's colour (matched, dark, none), the vessel's name and MMSI
-    in the table and the box's tooltip, a legend with the counts; the unmatched AIS vessels as
-    markers when the results link ``ais_unmatched`` (the service's route for
-    ``ais_unmatched.geojson``) is there: given here by intercepting the results document, so
-    the page's side is tested whether or not this server serves that route."""
+    """A job given AIS (REST input ``ais``: a simulated georeferenced scene with moving ships and
+    its AIS file in the scene folder): each box in its AIS state's colour (matched, dark, none),
+    the vessel's name and MMSI in the table and the box's tooltip, a legend with the counts; the
+    unmatched AIS vessels as markers from the results' ``ais_unmatched`` link."""
     import json
 
     from sarship.cli import main
 
     u, pg = server.url, page.page
     scene = server.data / "scenes" / "aisy.zarr"
-    ais = server.data.parent / "aisy.csv"
+    ais = server.data / "scenes" / "aisy.csv"  # inside the allowed folders
     if not scene.exists():
         args = ["simulate", str(scene), "--shape", "768x768", "--ships", "14", "--seed", "11", "--geo", "5.5,56.5"]
         assert main([*args, "--moving", "--ais", str(ais), "--dark-fraction", "0.3"]) == 0
-    r = httpx.post(u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "aisy"}}, headers=AUTH)
+    r = httpx.post(
+        u + "/processes/ca_cfar/execution", json={"inputs": {"scene": "aisy", "ais": [str(ais)]}}, headers=AUTH
+    )
     assert r.status_code == 201, r.text
     job_id = r.json()["jobID"]
     assert wait_job(u, job_id)["status"] == "successful"
     out = server.data / "jobs" / job_id
-    assert main(["match", str(out), "--ais", str(ais)]) == 0
+    assert "ais_unmatched" in httpx.get(f"{u}/jobs/{job_id}/results").json()
     feats = httpx.get(f"{u}/jobs/{job_id}/results/detections").json()["features"]
     unmatched = json.loads((out / "ais_unmatched.geojson").read_text())["features"]
     state = ["matched" if f["properties"]["ais"] else "dark" if f["properties"]["dark"] else "none" for f in feats]
     n = {k: state.count(k) for k in ("matched", "dark", "none")}
     assert n["matched"] >= 1 and n["dark"] >= 1 and unmatched, (n, len(unmatched))
 
-    def results(route):  # the results document with the ais_unmatched link
-        doc = route.fetch().json()
-        doc.setdefault("ais_unmatched", {"href": f"{u}/jobs/{job_id}/results/ais_unmatched"})
-        route.fulfill(json=doc)
-
-    pg.route(f"{u}/jobs/{job_id}/results", results)
-    if httpx.get(f"{u}/jobs/{job_id}/results/ais_unmatched").status_code != 200:
-        pg.route(
-            f"{u}/jobs/{job_id}/results/ais_unmatched",
-            lambda route: route.fulfill(
-                body=(out / "ais_unmatched.geojson").read_bytes(), content_type="application/geo+json"
-            ),
-        )
     pg.goto(f"{u}/ui/#/jobs/{job_id}")
     pg.wait_for_selector("#map[data-ready=true][data-crs='EPSG:3857']")
     pg.wait_for_selector("#ais-legend")
