@@ -51,6 +51,9 @@ class MatchParams:
       docs/ais.md); Sentinel-1's own absolute geolocation is ~10 m;
     - ``sigma_rate_m_s`` (0.5): growth of the AIS position error per second from the nearest
       report (manoeuvres between reports: 0.5 m/s is 90 m after 3 minutes);
+    - ``sigma_turn_deg_s`` (0): an unknown turn rate since the nearest report (deg/s): the error
+      ``|v| sigma_turn gap^2 / 2`` grows with the square of the gap and with the speed (eq. 1 of
+      :mod:`~sarship.pipeline.ais.score`);
     - ``sigma_sog_kn`` (0.5), ``sigma_cog_deg`` (3): SOG and COG errors, the displacement's own
       uncertainty (eq. 1 of :mod:`~sarship.pipeline.ais.score`);
     - ``length_sigma_log`` (0.4): sigma of ``ln(L_det / L_ais)`` (SAR length estimates of ships
@@ -68,6 +71,7 @@ class MatchParams:
 
     sigma_geo_m: float = 100.0
     sigma_rate_m_s: float = 0.5
+    sigma_turn_deg_s: float = 0.0
     sigma_sog_kn: float = 0.5
     sigma_cog_deg: float = 3.0
     length_sigma_log: float = 0.4
@@ -86,7 +90,7 @@ class MatchParams:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"MatchParams.{name} must be a finite number > 0, got {v!r}")
-        for name in ("sigma_rate_m_s", "sigma_sog_kn", "sigma_cog_deg", "max_extrapolation_s"):
+        for name in ("sigma_rate_m_s", "sigma_turn_deg_s", "sigma_sog_kn", "sigma_cog_deg", "max_extrapolation_s"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"MatchParams.{name} must be a finite number >= 0, got {v!r}")
@@ -200,6 +204,7 @@ def _candidates(
     var = (
         p.sigma_geo_m**2
         + (p.sigma_rate_m_s * (states.gap_s + dt_max)) ** 2
+        + S.manoeuvre_sigma_m(speed, states.gap_s + dt_max, np.radians(p.sigma_turn_deg_s)) ** 2
         + (S.REF_POINT_FRACTION * L_max) ** 2
         + speed**2 * (sig_t**2 + 0.5 * p.unknown_range_over_velocity_s**2 * (not geo_ok.all()))
         + rv_max**2 * ((p.sigma_sog_kn * KNOT_M_S) ** 2 + (speed * np.radians(p.sigma_cog_deg)) ** 2)
@@ -240,7 +245,12 @@ def _score_pairs(
     dt, gap = _nearest_report(states, j, t)
     L_det = np.asarray(det.length_m, np.float64)[i] if det.length_m is not None else np.full(i.shape, np.nan)
     L = np.where(np.isfinite(L_ais[j]), L_ais[j], L_det)
-    a = p.sigma_geo_m**2 + (p.sigma_rate_m_s * gap) ** 2 + (S.REF_POINT_FRACTION * np.nan_to_num(L)) ** 2
+    a = (
+        p.sigma_geo_m**2
+        + (p.sigma_rate_m_s * gap) ** 2
+        + S.manoeuvre_sigma_m(speed, gap, np.radians(p.sigma_turn_deg_s)) ** 2
+        + (S.REF_POINT_FRACTION * np.nan_to_num(L)) ** 2
+    )
     if det.time_sigma_s is not None:
         a = a + (speed * np.asarray(det.time_sigma_s, np.float64)[i]) ** 2
     z2 = S.length_z2(L_det, L_ais[j], p.length_sigma_log)
