@@ -44,17 +44,27 @@ from sarship.pipeline.errors import InputError
 class MatchParams:
     """The matcher's parameters (docs/ais.md, "Matching"); every limit has a safe default.
 
+    ``sigma_geo_m``, ``sigma_rate_m_s``, ``sigma_turn_deg_s``, ``length_sigma_log`` and
+    ``max_distance_m`` were chosen on half A of the OpenSARShip GRD chips of ../shared and
+    reported on half B (bench/realdata_ais.py, bench/REALDATA.md "AIS matching on OpenSARShip"):
+    every chip of A matched, then the best calibrated (own-ship scores closest to uniform).
+
     - ``sigma_geo_m`` (100): the detection's position error, 1-sigma per axis: the scene's
-      georeferencing, the detection's centroid and the AIS GNSS fix. Measured on the 38
-      OpenSARShip GRD chips of ../shared (ships at rest: 50-280 m from their AIS position, a
-      product's bias up to ~250 m across track; 27 of 38 chips matched at 50 m, 34 at 75-150 m,
-      docs/ais.md); Sentinel-1's own absolute geolocation is ~10 m;
-    - ``sigma_rate_m_s`` (0.5): growth of the AIS position error per second from the nearest
-      report (manoeuvres between reports: 0.5 m/s is 90 m after 3 minutes);
+      georeferencing, the detection's centroid and the AIS GNSS fix (ships at rest on the
+      OpenSARShip chips: 51-281 m from their AIS report, a product's bias up to ~250 m);
+      Sentinel-1's own absolute geolocation is ~10 m;
+    - ``sigma_rate_m_s`` (0.25): growth of the AIS position error per second from the nearest
+      report (0.25 m/s is 45 m after 3 minutes);
+    - ``sigma_turn_deg_s`` (0): an unknown turn rate since the nearest report (deg/s): the error
+      ``|v| sigma_turn gap^2 / 2`` grows with the square of the gap and with the speed (eq. 1 of
+      :mod:`~sarship.pipeline.ais.score`). Off: the ships of half A under way 166-222 s from their
+      report lie 41-93 m from it, moved and displaced, and any turn term made their scores less
+      calibrated; set it for sparse (satellite) AIS in manoeuvring waters;
     - ``sigma_sog_kn`` (0.5), ``sigma_cog_deg`` (3): SOG and COG errors, the displacement's own
       uncertainty (eq. 1 of :mod:`~sarship.pipeline.ais.score`);
-    - ``length_sigma_log`` (0.4): sigma of ``ln(L_det / L_ais)`` (SAR length estimates of ships
-      are off by tens of percent: a ratio of 1.5 is one sigma);
+    - ``length_sigma_log`` (0.6): sigma of ``ln(L_det / L_ais)`` (SAR length estimates of ships
+      are off by tens of percent, and a 10 m detection of a 70-100 m ship can be 2.6 times too
+      long: a ratio of 1.8 is one sigma);
     - ``min_score`` (0.01): a pair is matched when its score is at least this: the fraction of
       true pairs refused;
     - ``max_distance_m`` (2000): no pair farther apart (after the displacement) whatever the
@@ -67,10 +77,11 @@ class MatchParams:
     """
 
     sigma_geo_m: float = 100.0
-    sigma_rate_m_s: float = 0.5
+    sigma_rate_m_s: float = 0.25
+    sigma_turn_deg_s: float = 0.0
     sigma_sog_kn: float = 0.5
     sigma_cog_deg: float = 3.0
-    length_sigma_log: float = 0.4
+    length_sigma_log: float = 0.6
     min_score: float = 0.01
     max_distance_m: float = 2000.0
     max_extrapolation_s: float = 600.0
@@ -86,7 +97,7 @@ class MatchParams:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"MatchParams.{name} must be a finite number > 0, got {v!r}")
-        for name in ("sigma_rate_m_s", "sigma_sog_kn", "sigma_cog_deg", "max_extrapolation_s"):
+        for name in ("sigma_rate_m_s", "sigma_turn_deg_s", "sigma_sog_kn", "sigma_cog_deg", "max_extrapolation_s"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"MatchParams.{name} must be a finite number >= 0, got {v!r}")
@@ -200,6 +211,7 @@ def _candidates(
     var = (
         p.sigma_geo_m**2
         + (p.sigma_rate_m_s * (states.gap_s + dt_max)) ** 2
+        + S.manoeuvre_sigma_m(speed, states.gap_s + dt_max, np.radians(p.sigma_turn_deg_s)) ** 2
         + (S.REF_POINT_FRACTION * L_max) ** 2
         + speed**2 * (sig_t**2 + 0.5 * p.unknown_range_over_velocity_s**2 * (not geo_ok.all()))
         + rv_max**2 * ((p.sigma_sog_kn * KNOT_M_S) ** 2 + (speed * np.radians(p.sigma_cog_deg)) ** 2)
@@ -240,7 +252,12 @@ def _score_pairs(
     dt, gap = _nearest_report(states, j, t)
     L_det = np.asarray(det.length_m, np.float64)[i] if det.length_m is not None else np.full(i.shape, np.nan)
     L = np.where(np.isfinite(L_ais[j]), L_ais[j], L_det)
-    a = p.sigma_geo_m**2 + (p.sigma_rate_m_s * gap) ** 2 + (S.REF_POINT_FRACTION * np.nan_to_num(L)) ** 2
+    a = (
+        p.sigma_geo_m**2
+        + (p.sigma_rate_m_s * gap) ** 2
+        + S.manoeuvre_sigma_m(speed, gap, np.radians(p.sigma_turn_deg_s)) ** 2
+        + (S.REF_POINT_FRACTION * np.nan_to_num(L)) ** 2
+    )
     if det.time_sigma_s is not None:
         a = a + (speed * np.asarray(det.time_sigma_s, np.float64)[i]) ** 2
     z2 = S.length_z2(L_det, L_ais[j], p.length_sigma_log)

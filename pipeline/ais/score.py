@@ -5,14 +5,19 @@ The residual is 2-D (position, metres) plus 1-D where both lengths are known (th
 ratio). For a true pair it is a zero-mean Gaussian with covariance::
 
     Sigma = a I + b u u^T                                                 (1)
-    a = sigma_geo^2 + (sigma_rate gap)^2 + (f_ref L)^2 + (|v| sigma_t)^2  [+ (|v| R/V)^2 / 2]
+    a = sigma_geo^2 + (sigma_rate gap)^2 + (|v| sigma_turn gap^2 / 2)^2 + (f_ref L)^2
+        + (|v| sigma_t)^2  [+ (|v| R/V)^2 / 2]
     b = (R / V)^2 sigma_los^2,  sigma_los^2 = sin^2(theta_i) (sigma_sog^2 (v^ . u_r)^2
                                              + |v|^2 sigma_cog^2 (v^_perp . u_r)^2)
 
-(``u`` the flight direction: the displacement's own error lies along it; ``f_ref L``: the AIS
-antenna's unknown place along a hull of length ``L``, uniform, ``f_ref = 1/sqrt(12)``; ``|v|
-sigma_t``: a detection time known to ``sigma_t``; the bracketed term only where the scene has no
-look geometry, the displacement's mean square over an unknown look direction). Its squared
+(``u`` the flight direction: the displacement's own error lies along it; ``sigma_rate gap``: an
+error growing linearly with the gap to the nearest report; ``|v| sigma_turn gap^2 / 2``: a
+manoeuvre since that report, an unknown turn at rate ``omega`` (rad/s) moving a ship at speed
+``|v|`` sideways by ``|v| omega gap^2 / 2`` (a relative change of speed at the same rate moves it
+as far along its course), :func:`manoeuvre_sigma_m`; ``f_ref L``: the AIS antenna's unknown
+place along a hull of length ``L``, uniform, ``f_ref = 1/sqrt(12)``; ``|v| sigma_t``: a detection
+time known to ``sigma_t``; the bracketed term only where the scene has no look geometry, the
+displacement's mean square over an unknown look direction). Its squared
 Mahalanobis distance, with ``Sigma^-1 = (I - b/(a+b) u u^T) / a``::
 
     d2 = (|r|^2 - b/(a+b) (r . u)^2) / a  +  z^2,   z = ln(L_det / L_ais) / sigma_len    (2)
@@ -94,6 +99,29 @@ def los_velocity_variance(
     return np.asarray(sin_incidence) ** 2 * var
 
 
+def manoeuvre_sigma_m(speed_m_s: np.ndarray, gap_s: np.ndarray, sigma_turn_rad_s: float) -> np.ndarray:
+    """The position error (m, per axis) of a manoeuvre since the nearest report (eq. 1): a ship at
+    ``speed_m_s`` turning at an unknown rate of standard deviation ``sigma_turn_rad_s`` for
+    ``gap_s`` seconds is ``|v| omega gap^2 / 2`` off its straight track (small angles), growing
+    with the square of the gap and with the speed (a ship at rest does not manoeuvre away).
+
+    Parameters
+    ----------
+    speed_m_s : np.ndarray
+        Speed over ground, m/s (NaN counts as 0).
+    gap_s : np.ndarray
+        Time from the nearest report, s.
+    sigma_turn_rad_s : float
+        Standard deviation of the unknown turn rate, rad/s.
+
+    Returns
+    -------
+    np.ndarray
+        ``|v| sigma_turn gap^2 / 2``, m.
+    """
+    return 0.5 * np.nan_to_num(np.asarray(speed_m_s, np.float64)) * sigma_turn_rad_s * np.square(gap_s)
+
+
 def length_z2(det_length_m: np.ndarray, ais_length_m: np.ndarray, sigma_log: float) -> np.ndarray:
     """``z^2`` of eq. 2 where both lengths are known and positive, NaN elsewhere."""
     ld, la = np.asarray(det_length_m, np.float64), np.asarray(ais_length_m, np.float64)
@@ -103,4 +131,12 @@ def length_z2(det_length_m: np.ndarray, ais_length_m: np.ndarray, sigma_log: flo
     return np.where(ok, z * z, np.nan)
 
 
-__all__ = ["REF_POINT_FRACTION", "chi2_isf", "chi2_sf", "length_z2", "los_velocity_variance", "mahalanobis2"]
+__all__ = [
+    "REF_POINT_FRACTION",
+    "chi2_isf",
+    "chi2_sf",
+    "length_z2",
+    "los_velocity_variance",
+    "mahalanobis2",
+    "manoeuvre_sigma_m",
+]

@@ -303,6 +303,7 @@ def _calibration_pairs(rng, n: int, p: MatchParams):
     L_ais = np.where(rng.random(n) < 0.5, rng.uniform(20, 300, n), np.nan)
     L_det = L_ais * np.exp(rng.normal(0, p.length_sigma_log, n))
     a = p.sigma_geo_m**2 + (p.sigma_rate_m_s * gap) ** 2 + (np.nan_to_num(L_ais) / np.sqrt(12)) ** 2
+    a = a + (0.5 * speed * np.radians(p.sigma_turn_deg_s) * gap**2) ** 2  # a turn since the report
     e = dx_true * uf[0] + rng.normal(0, 1, n) * np.sqrt(a)
     nn = dx_true * uf[1] + rng.normal(0, 1, n) * np.sqrt(a)
     d_lon = lon + e / (K * np.cos(np.radians(lat)))
@@ -318,8 +319,9 @@ def _calibration_pairs(rng, n: int, p: MatchParams):
     [
         MatchParams(min_score=1e-9, sigma_geo_m=50.0),  # mostly isotropic (50 m: the displacement stays > 5 sigma)
         MatchParams(min_score=1e-9, sigma_geo_m=10.0, sigma_rate_m_s=0.1, sigma_sog_kn=2.0, sigma_cog_deg=8.0),
+        MatchParams(min_score=1e-9, sigma_geo_m=30.0, sigma_rate_m_s=0.0, sigma_turn_deg_s=0.05),  # up to 85 m at 2 min
     ],
-    ids=["position-dominated", "displacement-dominated"],
+    ids=["position-dominated", "displacement-dominated", "manoeuvre-dominated"],
 )
 def test_true_pair_scores_are_uniform(params):
     n = 6000
@@ -450,6 +452,7 @@ def test_bad_input_refused_in_one_line():
         lambda: match(Detections(np.array([3.0]), np.array([54.0]), np.array([0.0, 1.0])), states),
         lambda: MatchParams(min_score=1.5),
         lambda: MatchParams(sigma_geo_m=0.0),
+        lambda: MatchParams(sigma_turn_deg_s=-0.1),
     ):
         with pytest.raises(InputError) as e:
             call()
