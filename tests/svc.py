@@ -41,10 +41,33 @@ def make_store(data: Path) -> None:
     JobStore(data / "jobs.sqlite").close()
 
 
+def _ephemeral_range() -> tuple[int, int]:
+    try:
+        low, high = (int(v) for v in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+        return low, high
+    except (OSError, ValueError):
+        return 32768, 60999  # Linux's default
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A free loopback port BELOW the kernel's ephemeral range: a port the kernel hands out for
+    ``bind(0)`` can be handed out again, to the server's own Dask scheduler or a worker, before
+    the server binds it, and the readiness poll then speaks HTTP to the scheduler (seen in a
+    fresh-clone run: the scheduler read "GET /readyz" as a frame length and the server died).
+    Ports below the range are never handed out by ``bind(0)``."""
+    import random
+
+    low = _ephemeral_range()[0]
+    rng = random.Random()
+    for _ in range(200):
+        port = rng.randrange(max(low - 12000, 1024), low)
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free port below the ephemeral range")
 
 
 class Server:
