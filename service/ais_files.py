@@ -18,13 +18,13 @@ import re
 import time
 import uuid
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from sarship.pipeline.errors import InputError
-from sarship.service.common import Problem, base_url, check_text, settings_of, store_of
+from sarship.service.common import Problem, base_url, check_text, receive_upload, settings_of, store_of
 from sarship.service.openapi import problems
 from sarship.service.settings import Settings
 from sarship.service.store import JobStore, iso
@@ -33,8 +33,6 @@ router = APIRouter()
 
 #: An uploaded AIS file's id: the first 16 hex digits of its SHA-256.
 AIS_ID = re.compile(r"[0-9a-f]{16}")
-#: Bytes of an upload checked to be AIS (as the reader recognises its format).
-HEAD_BYTES = 1 << 20
 #: Longest file name recorded for an upload.
 MAX_NAME = 255
 
@@ -72,45 +70,12 @@ def check_head(path: Path, name: str) -> None:
     """A 400 problem unless the file's first MiB is AIS as the reader recognises it (a CSV
     header with MMSI, time, longitude and latitude columns, or NMEA sentences); a compressed
     stream (gzip, zstd, zip) passes: the run decompresses and checks it."""
-    from sarship.pipeline.ais.formats import detect_format
-    from sarship.pipeline.ais.stream import compression_of
+    from sarship.pipeline.ais.formats import check_ais_head
 
-    with open(path, "rb") as f:
-        head = f.read(HEAD_BYTES)
-    if compression_of(head):
-        return
     try:
-        detect_format(head, name)
+        check_ais_head(path, name)
     except InputError as exc:
         raise Problem(400, "not AIS", str(exc)) from None
-
-
-async def _receive(request: Request, out: BinaryIO, limit: int, h: Any) -> tuple[int, str | None]:
-    """Stream the request's file (raw body, or multipart field ``file``) into ``out``: its
-    bytes, and the multipart file name (if any). A 413 problem past ``limit`` bytes."""
-    n = 0
-
-    def take(chunk: bytes) -> None:
-        nonlocal n
-        n += len(chunk)
-        if n > limit:
-            raise Problem(
-                413, "too large", f"AIS upload exceeds the limit of {limit} bytes (setting max_ais_upload_mb)"
-            )
-        h.update(chunk)
-        out.write(chunk)
-
-    if request.headers.get("content-type", "").startswith("multipart/form-data"):
-        form = await request.form()
-        f = form.get("file")
-        if f is None or isinstance(f, str):
-            raise Problem(400, "missing file", "multipart upload needs a file field named 'file'")
-        while chunk := await f.read(1 << 20):
-            take(chunk)
-        return n, f.filename
-    async for chunk in request.stream():
-        take(chunk)
-    return n, None
 
 
 @router.post(
@@ -145,7 +110,8 @@ async def upload_ais(request: Request, filename: str | None = None) -> JSONRespo
     h = hashlib.sha256()
     try:
         with open(tmp, "wb") as out:
-            n, form_name = await _receive(request, out, limit, h)
+            too_large = f"AIS upload exceeds the limit of {limit} bytes (setting max_ais_upload_mb)"
+            n, form_name = await receive_upload(request, out, limit, h, too_large)
         if n == 0:
             raise Problem(400, "empty upload", "the upload is empty")
         name = _upload_name(filename or form_name)
@@ -233,6 +199,12 @@ def ais_paths(settings: Settings, names: tuple[str, ...]) -> tuple[str, ...]:
     path (absolute, or relative to the scene folder) of a regular file inside an allowed
     folder; the resolved absolute paths, in order (a file named twice is read once). A
     one-line :class:`InputError` (a 400) otherwise."""
+    # the inbox's AIS folder too: its passes' jobs name its files (service/inbox.py)
+    roots = [
+        *settings.roots(),
+        settings.ais_dir.resolve(),
+        *([settings.inbox_ais.resolve()] if settings.inbox_ais else []),
+    ]
     out: list[str] = []
     for s0 in names:
         s = s0.strip()
@@ -250,12 +222,6 @@ def ais_paths(settings: Settings, names: tuple[str, ...]) -> tuple[str, ...]:
             raise InputError(
                 f"input 'ais': no file '{s}' (an uploaded AIS id, or a path inside the allowed scene folders)"
             ) from None
-        # the inbox's AIS folder too: its passes' jobs name its files (service/inbox.py)
-        roots = [
-            *settings.roots(),
-            settings.ais_dir.resolve(),
-            *([settings.inbox_ais.resolve()] if settings.inbox_ais else []),
-        ]
         if not any(r in real.parents for r in roots):
             raise InputError(f"input 'ais': '{s}' is outside the allowed scene folders")
         if not real.is_file():

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import errno
 import json
-from typing import Any
+from typing import Any, BinaryIO
 
 from fastapi import Request
 from fastapi.responses import JSONResponse
@@ -217,3 +217,31 @@ def finished(request: Request, job_id: str, ingest_ok: bool = False) -> dict[str
             f"(the scene is /scenes/{job['inputs'].get('scene_id', '')})",
         )
     return job
+
+
+async def receive_upload(request: Request, out: BinaryIO, limit: int, h: Any, too_large: str) -> tuple[int, str | None]:
+    """Stream a request's file (raw body, or multipart field ``file``) into ``out``, fed to the
+    hash ``h`` as it arrives: its byte count and the multipart file name (None for a raw body).
+    A 413 problem with ``too_large`` as its detail once more than ``limit`` bytes arrived; a 400
+    for a multipart body without its ``file``. The uploads of scenes and AIS files share it."""
+    n = 0
+
+    def take(chunk: bytes) -> None:
+        nonlocal n
+        n += len(chunk)
+        if n > limit:
+            raise Problem(413, "too large", too_large)
+        h.update(chunk)
+        out.write(chunk)
+
+    if request.headers.get("content-type", "").startswith("multipart/form-data"):
+        form = await request.form()
+        f = form.get("file")
+        if f is None or isinstance(f, str):
+            raise Problem(400, "missing file", "multipart upload needs a file field named 'file'")
+        while chunk := await f.read(1 << 20):
+            take(chunk)
+        return n, f.filename
+    async for chunk in request.stream():
+        take(chunk)
+    return n, None

@@ -227,10 +227,6 @@ def _remove(p: Path) -> None:
         p.unlink(missing_ok=True)
 
 
-#: Bytes of an AIS file looked at to tell AIS from other files (as the reader recognises it).
-AIS_HEAD = 1 << 20
-
-
 class AisChoice(NamedTuple):
     """The AIS files a pass's jobs are given (absolute resolved paths, newest first) and what
     was left out, in one line each (empty when nothing was)."""
@@ -242,20 +238,10 @@ class AisChoice(NamedTuple):
 def _is_ais(p: Path) -> bool:
     """Whether ``p``'s first MiB is AIS as the reader recognises it (a compressed stream passes:
     the run decompresses it and counts what it cannot read)."""
-    from sarship.pipeline.ais.formats import detect_format
-    from sarship.pipeline.ais.stream import compression_of
+    from sarship.pipeline.ais.formats import check_ais_head
 
     try:
-        with open(p, "rb") as f:
-            head = f.read(AIS_HEAD)
-    except OSError:
-        return False
-    if not head:
-        return False
-    if compression_of(head):
-        return True
-    try:
-        detect_format(head, p.name)
+        check_ais_head(p, p.name)
     except InputError:
         return False
     return True

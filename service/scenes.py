@@ -10,12 +10,12 @@ import threading
 import time
 import uuid
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
-from sarship.service.common import Problem, base_url, check_text, settings_of, store_of
+from sarship.service.common import Problem, base_url, check_text, receive_upload, settings_of, store_of
 from sarship.service.inbox_files import scene_key
 from sarship.service.openapi import problems
 from sarship.service.settings import Settings
@@ -49,29 +49,11 @@ async def upload(request: Request, filename: str | None = None) -> JSONResponse:
     settings.uploads_dir.mkdir(parents=True, exist_ok=True)
     tmp = settings.uploads_dir / f".upload-{uuid.uuid4().hex}"
     h = hashlib.sha256()
-    n = 0
-
-    def take(chunk: bytes, out: BinaryIO) -> None:
-        nonlocal n
-        n += len(chunk)
-        if n > limit:
-            raise Problem(413, "too large", f"upload exceeds the limit of {limit} bytes")
-        h.update(chunk)
-        out.write(chunk)
-
     try:
         with open(tmp, "wb") as out:
-            if request.headers.get("content-type", "").startswith("multipart/form-data"):
-                form = await request.form()
-                f = form.get("file")
-                if f is None or isinstance(f, str):
-                    raise Problem(400, "missing file", "multipart upload needs a file field named 'file'")
-                filename = filename or f.filename
-                while chunk := await f.read(1 << 20):
-                    take(chunk, out)
-            else:
-                async for chunk in request.stream():
-                    take(chunk, out)
+            too_large = f"upload exceeds the limit of {limit} bytes"
+            n, form_name = await receive_upload(request, out, limit, h, too_large)
+        filename = filename or form_name
         if n == 0:
             raise Problem(400, "empty upload", "the upload is empty")
         check_text(filename or "", "the file name")  # (a multipart file name too)

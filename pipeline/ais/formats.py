@@ -64,6 +64,26 @@ def detect_format(head: bytes, label: str) -> CsvLayout | None:
     )
 
 
+#: Bytes of a file's start that :func:`check_ais_head` reads.
+HEAD_BYTES = 1 << 20
+
+
+def check_ais_head(path: Path, label: str | None = None) -> None:
+    """Refuse a file whose first :data:`HEAD_BYTES` are not AIS as :func:`detect_format`
+    recognises it (one-line :class:`InputError`; an unreadable file too); a compressed stream
+    (gzip, zstd, zip) passes unopened: reading it decompresses and checks it. For a quick check
+    of a file before it is kept or given to a job (uploads, the inbox's AIS folder)."""
+    label = label or str(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(HEAD_BYTES)
+    except OSError as exc:
+        raise InputError(f"{label}: cannot read ({exc.strerror or exc})") from None
+    if compression_of(head):
+        return
+    detect_format(head, label)
+
+
 def _read_stream(label: str, reader: LineReader, collector: Collector, window: Window | None, stats: ReadStats) -> None:
     try:
         head = reader.head()
